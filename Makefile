@@ -1,0 +1,51 @@
+# The README's commands. `make demo` and `make test` each set everything up on a fresh machine.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+# A pinned CPU build here; on a GPU machine pass e.g. TORCH_SPEC="torch" to keep your CUDA build.
+TORCH_SPEC ?= torch==2.13.0
+STAMP := $(VENV)/.installed-stamp
+JS := tests/js
+
+.PHONY: install demo test test-fast lint format bench js-deps clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# Independent readers used by the tests (the official TypeScript MCAP reader, splat-transform).
+# Skipped only when npm is absent; a failing install fails the target.
+js-deps:
+	@if command -v npm >/dev/null 2>&1; then \
+		if [ ! -d $(JS)/node_modules ] || [ $(JS)/package.json -nt $(JS)/node_modules ]; then \
+			npm install --prefix $(JS) --no-audit --no-fund --loglevel=error && touch $(JS)/node_modules; \
+		fi; \
+	else echo "npm not found: the independent-reader tests will be skipped"; fi
+
+demo: install
+	$(PY) examples/demo.py --out demo_out
+
+test: install js-deps
+	$(PY) -m pytest -q
+
+test-fast: install
+	$(PY) -m pytest -q -x -m "not slow"
+
+lint: install
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
+
+format: install
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
+
+bench: install
+	$(PY) bench/offline.py
+
+clean:
+	rm -rf $(VENV) $(JS)/node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache demo_out

@@ -1,0 +1,1 @@
+"""The `gsc` command-line tool (installed as package `gscompress_cli`)."""

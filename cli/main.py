@@ -1,0 +1,68 @@
+"""The `gsc` click group.
+
+Commands are loaded lazily from their own modules, so that `gsc info` never pays for importing
+torch or the SLAM code. A `GscError` becomes a one-line message and exit code 1; anything else is
+a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from typing import Any
+
+import click
+
+from gscompress import __version__
+from gscompress.errors import GscError
+
+# command name -> "module:function" inside this package
+COMMANDS: dict[str, str] = {
+    "import-ply": "import_ply:import_ply",
+    "info": "info:info",
+    "prune": "prune:prune",
+    "share": "share:share",
+    "export-ply": "export_ply:export_ply",
+}
+
+
+class GscGroup(click.Group):
+    """A group that imports each command on first use and reports GscError on one line."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        target = COMMANDS.get(cmd_name)
+        if target is None:
+            return None
+        module_name, attr = target.split(":")
+        module = importlib.import_module(f"{__package__}.{module_name}")
+        command: click.Command = getattr(module, attr)
+        return command
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except GscError as exc:
+            message = " ".join(str(exc).split())
+            raise click.ClickException(message) from None
+
+
+@click.group(cls=GscGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="gsc")
+@click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+def cli(verbose: int, quiet: bool) -> None:
+    """gsc: compact 3D Gaussian Splatting maps and bandwidth-aware map sharing.
+
+    \b
+    Typical flow:
+      gsc slam SEQ -o a.mcap              map a sequence, score every Gaussian (PWAS)
+      gsc prune a.mcap --keep 0.3 -o p.mcap   keep the most important 30%
+      gsc share --budget 0.2 a.mcap s.mcap    cut the top-20% share for another agent
+      gsc export-ply a.mcap -o a.ply      open the map in any 3DGS viewer
+      gsc info a.mcap                     what a log holds
+    """
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")

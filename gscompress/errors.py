@@ -1,0 +1,41 @@
+"""The one exception family of gscompress.
+
+Anything raised as a `GscError` is an expected failure caused by the input or the environment:
+the CLI prints its message on one line and exits non-zero. Any other exception is a bug.
+"""
+
+
+class GscError(Exception):
+    """Base class of every expected gscompress failure."""
+
+
+class InputError(GscError):
+    """A bad argument or option value (a ratio outside (0, 1], an unknown strategy, ...)."""
+
+
+class OutputError(GscError):
+    """An output path that may not be written (exists, equals an input, ...)."""
+
+
+class MapError(GscError):
+    """A Gaussian map that is inconsistent (shapes, non-finite values, duplicate ids)."""
+
+
+class LogFormatError(GscError):
+    """An MCAP file that is not a valid gscompress log."""
+
+
+class PlyFormatError(GscError):
+    """A PLY file that is not a readable 3DGS map."""
+
+
+class DatasetError(GscError):
+    """An RGB-D sequence that cannot be opened or read."""
+
+
+class BudgetError(GscError):
+    """A selection budget that cannot be met."""
+
+
+class MissingDependencyError(GscError):
+    """An optional dependency that the requested feature needs is not installed."""

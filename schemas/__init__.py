@@ -1,0 +1,25 @@
+"""Versioned schema files of the gscompress MCAP log profile (package `gscompress_schemas`).
+
+`PROFILE_VERSION` is the version of the log profile this release writes. A reader accepts logs of
+the same major version and refuses newer major versions.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+from typing import Any
+
+PROFILE = "gscompress"
+PROFILE_VERSION = "1.0"
+
+
+def schema_bytes(name: str) -> bytes:
+    """The raw bytes of schema file `name` (e.g. "slam_stats.v1.schema.json")."""
+    return resources.files(__name__).joinpath(name).read_bytes()
+
+
+def load_schema(name: str) -> dict[str, Any]:
+    """Schema file `name` parsed as JSON."""
+    result: dict[str, Any] = json.loads(schema_bytes(name))
+    return result
