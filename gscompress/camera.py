@@ -69,7 +69,7 @@ def quat_to_rotmat(q_wxyz: np.ndarray) -> np.ndarray:
         ],
         axis=-1,
     )  # fmt: skip
-    return R.reshape(q.shape[:-1] + (3, 3))
+    return R.reshape((*q.shape[:-1], 3, 3))
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
@@ -93,22 +93,22 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
                  (r[:, 1, 0] - r[:, 0, 1]) / t], axis=1)  # fmt: skip
         else:
             i = case - 1
-            j, l = (i + 1) % 3, (i + 2) % 3
-            t = np.sqrt(1.0 + r[:, i, i] - r[:, j, j] - r[:, l, l]) * 2
+            j, m2 = (i + 1) % 3, (i + 2) % 3
+            t = np.sqrt(1.0 + r[:, i, i] - r[:, j, j] - r[:, m2, m2]) * 2
             qi = np.empty((r.shape[0], 4))
-            qi[:, 0] = (r[:, l, j] - r[:, j, l]) / t
+            qi[:, 0] = (r[:, m2, j] - r[:, j, m2]) / t
             qi[:, 1 + i] = 0.25 * t
             qi[:, 1 + j] = (r[:, j, i] + r[:, i, j]) / t
-            qi[:, 1 + l] = (r[:, l, i] + r[:, i, l]) / t
+            qi[:, 1 + m2] = (r[:, m2, i] + r[:, i, m2]) / t
             q[s] = qi
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q.reshape(R.shape[:-2] + (4,))
+    return q.reshape((*R.shape[:-2], 4))
 
 
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 rigid transform(s) from rotation [..., 3, 3] and translation [..., 3]."""
     R = np.asarray(R, dtype=np.float64)
-    T = np.zeros(R.shape[:-2] + (4, 4))
+    T = np.zeros((*R.shape[:-2], 4, 4))
     T[..., :3, :3] = R
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0

@@ -1,0 +1,46 @@
+"""`gsc export-ply`: write a log's map as a 3DGS PLY file for external viewers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from gscompress.pipeline import export_ply as run_export
+
+from .options import emit, force_option, json_option
+
+
+@click.command("export-ply")
+@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "-o", "--output", "dst", required=True, type=click.Path(path_type=Path), help="Output PLY file."
+)
+@click.option(
+    "--snapshot",
+    type=int,
+    default=-1,
+    show_default=True,
+    help="Which /gaussians snapshot (0 = first, -1 = last, the map).",
+)
+@click.option(
+    "--no-importance",
+    is_flag=True,
+    help="Write only the INRIA 3DGS properties (no importance, sums or ids).",
+)
+@force_option
+@json_option
+def export_ply(
+    src: Path, dst: Path, snapshot: int, no_importance: bool, force: bool, as_json: bool
+) -> None:
+    """Write the map in SRC as an INRIA-layout binary 3DGS PLY.
+
+    Opens in SuperSplat, splat-transform and other 3DGS viewers; the extra `importance`
+    property lets viewers that colour by a property show the PWAS score.
+
+    \b
+    Example:
+      gsc export-ply run.mcap -o run.ply
+    """
+    result = run_export(src, dst, snapshot=snapshot, importance=not no_importance, force=force)
+    emit(result, as_json, f"wrote {dst}: {result['gaussians']} Gaussians")

@@ -1,0 +1,80 @@
+"""`gsc info`: what a gscompress log holds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from gscompress.pipeline import log_info
+
+from .options import emit, json_option
+
+
+@click.command("info")
+@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@json_option
+def info(src: Path, as_json: bool) -> None:
+    """Show the channels, snapshots, map, importance scores, bytes and provenance of SRC.
+
+    \b
+    Example:
+      gsc info run.mcap
+      gsc info run.mcap --json | jq .map.gaussians
+    """
+    result = log_info(src)
+    emit(result, as_json, format_info(result))
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """Human-readable text of a `log_info` result."""
+    lines = [
+        f"{info['path']}  ({_size(info['file_bytes'])}, profile {info['profile_version'] or '?'}, "
+        f"written by gscompress {info['tool_version'] or '?'})",
+    ]
+    if info["sequence"]:
+        lines.append(f"sequence  {info['sequence']}  frames {info['frames'] or 'all'}")
+    lines.append("channels")
+    for c in info["channels"]:
+        lines.append(f"  {c['topic']:<22} {c['messages']:>7}  {c['schema']} ({c['encoding']})")
+    snaps = info["snapshots"]
+    lines.append(f"snapshots {len(snaps)}: " + ", ".join(str(s["gaussians"]) for s in snaps))
+    m = info.get("map")
+    if m:
+        kind = "isotropic" if m["isotropic"] else "anisotropic"
+        lines.append(
+            f"map       {m['gaussians']} Gaussians, {kind}, SH degree {m['sh_degree']}, "
+            f"{_size(m['bytes'])} packed"
+        )
+        if m["has_importance"]:
+            q = m["importance_quantiles"]
+            lines.append(
+                f"importance scored {m['scored']}/{m['gaussians']}; min {q['q00']:.4g}  "
+                f"q25 {q['q25']:.4g}  median {q['q50']:.4g}  q75 {q['q75']:.4g}  "
+                f"q95 {q['q95']:.4g}  max {q['q100']:.4g}"
+            )
+            counts = m["importance_histogram"]["counts"]
+            peak = max(counts) or 1
+            bars = "".join(" ▁▂▃▄▅▆▇█"[round(8 * c / peak)] for c in counts)
+            lines.append(f"histogram |{bars}|")
+        else:
+            lines.append("importance none (run `gsc score` or `gsc slam` to get PWAS scores)")
+    for step in info["provenance"]:
+        op = step["operation"]
+        params = " ".join(f"{k}={v}" for k, v in op.items() if k != "name")
+        lines.append(
+            f"from      {op.get('name', '?')} {params} <- {step['parent']} "
+            f"(sha256 {step['parent_sha256'][:12]})"
+        )
+    if info["results"]:
+        lines.append("results   " + " ".join(f"{k}={v}" for k, v in info["results"].items()))
+    return "\n".join(lines)
+
+
+def _size(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024  # type: ignore[assignment]
+    return str(n)

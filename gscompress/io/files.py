@@ -1,0 +1,63 @@
+"""Safe output files: refuse to overwrite inputs, write under a temporary name, rename.
+
+A crash or an error never leaves a half-written file under the final name.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import IO
+
+from gscompress.errors import OutputError
+
+
+def sha256(path: str | Path) -> str:
+    """Hex sha256 of a file, read in 8 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(8 << 20):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def check_output(
+    output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False
+) -> Path:
+    """Refuse to write over an input, or over an existing file without `force`."""
+    output = Path(output)
+    for source in inputs:
+        if Path(source).exists() and output.exists() and output.samefile(source):
+            raise OutputError(f"output {output} is also an input; choose another path")
+        if output.resolve() == Path(source).resolve():
+            raise OutputError(f"output {output} is also an input; choose another path")
+    if output.exists() and not force:
+        raise OutputError(f"{output} exists; pass --force to overwrite it")
+    if output.exists() and output.is_dir():
+        raise OutputError(f"{output} is a directory")
+    if not output.parent.exists():
+        raise OutputError(f"directory {output.parent} does not exist")
+    return output
+
+
+class AtomicFile:
+    """A binary file written under a temporary name and renamed into place on `commit`."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.tmp_path = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        self.file: IO[bytes] = open(self.tmp_path, "wb")
+
+    def commit(self) -> None:
+        """Flush, fsync and rename over the final path."""
+        self.file.flush()
+        os.fsync(self.file.fileno())
+        self.file.close()
+        os.replace(self.tmp_path, self.path)
+
+    def discard(self) -> None:
+        """Close and remove the temporary file."""
+        self.file.close()
+        self.tmp_path.unlink(missing_ok=True)

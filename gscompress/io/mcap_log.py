@@ -1,0 +1,557 @@
+"""The gscompress MCAP log profile: writer and reader.
+
+One profile serves SLAM logs, pruned logs and shares (DESIGN.md section 6):
+
+- `/gaussians`: foxglove.PointCloud, one message per map snapshot; the last one is "the map".
+  Packed little-endian fields named as in 3DGS PLY (see `gscompress.io.columns`), plus the PWAS
+  score `importance`, its sums and the uint32 `id`.
+- `/camera/pose`, `/camera/pose_gt`: foxglove.PoseInFrame (camera-to-world, frame "world").
+- `/tf`: foxglove.FrameTransform world -> camera for the estimated pose.
+- `/camera/calibration`: foxglove.CameraCalibration.
+- `/slam/stats`: JSON per frame, schema `schemas/slam_stats.v1.schema.json`.
+- Metadata record `gscompress`: profile version, tool version, command line, config, sequence,
+  frame subset, provenance chain and operation results (`LogMetadata`).
+
+Files are chunked and zstd-compressed (a log without chunks shows no messages in the TypeScript
+reader), always carry the metadata record, and are written to a temporary file that is renamed
+into place only when complete. Readers treat every file as untrusted.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from google.protobuf.message import DecodeError, Message
+from gscompress_schemas import PROFILE, PROFILE_VERSION, schema_bytes
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Schema
+from mcap.records import Message as McapMessage
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import build_file_descriptor_set
+
+from gscompress import __version__
+from gscompress.camera import Intrinsics, rotmat_to_quat
+from gscompress.errors import GscError, LogFormatError, MapError
+from gscompress.gaussians import GaussianMap
+from gscompress.io.columns import column_dtypes, map_from_columns, map_to_columns, pack_records
+from gscompress.io.files import AtomicFile, check_output, sha256
+
+TOPIC_GAUSSIANS = "/gaussians"
+TOPIC_POSE = "/camera/pose"
+TOPIC_POSE_GT = "/camera/pose_gt"
+TOPIC_TF = "/tf"
+TOPIC_CALIBRATION = "/camera/calibration"
+TOPIC_STATS = "/slam/stats"
+METADATA_NAME = "gscompress"
+WORLD_FRAME = "world"
+CAMERA_FRAME = "camera"
+STATS_SCHEMA = "slam_stats.v1.schema.json"
+
+MAX_CHUNK_BYTES = 8 * 2**30
+"""Largest decompressed chunk a reader accepts (a guard against hostile size fields)."""
+
+# foxglove.PackedElementField.NumericType values and their numpy equivalents
+_NUMERIC_TYPES: dict[int, np.dtype] = {
+    1: np.dtype("u1"),
+    2: np.dtype("i1"),
+    3: np.dtype("<u2"),
+    4: np.dtype("<i2"),
+    5: np.dtype("<u4"),
+    6: np.dtype("<i4"),
+    7: np.dtype("<f4"),
+    8: np.dtype("<f8"),
+}
+_NUMERIC_CODES = {dtype: code for code, dtype in _NUMERIC_TYPES.items()}
+
+_READ_ERRORS = (McapError, DecodeError, struct.error, EOFError, ValueError, KeyError, IndexError)
+
+
+# ---------------------------------------------------------------------- metadata
+
+
+@dataclass
+class LogMetadata:
+    """The `gscompress` metadata record of a log.
+
+    Attributes:
+        profile_version: log profile version the file was written with ("major.minor").
+        tool_version: gscompress version that wrote the file.
+        command: the command line that produced the file.
+        config: full configuration of the run (JSON-serialisable).
+        sequence: name of the recorded sequence, if any.
+        frames: frame subset of the sequence ("all", "odd", "even", "A:B:C").
+        provenance: oldest first, one entry per derivation step: {"operation", "parent",
+            "parent_sha256", ...parameters}.
+        results: what the operation that wrote this file reports (e.g. selected / total counts).
+    """
+
+    profile_version: str = PROFILE_VERSION
+    tool_version: str = __version__
+    command: str = ""
+    config: dict[str, Any] = field(default_factory=dict)
+    sequence: str = ""
+    frames: str = ""
+    provenance: list[dict[str, Any]] = field(default_factory=list)
+    results: dict[str, Any] = field(default_factory=dict)
+
+    _JSON_FIELDS = ("config", "provenance", "results")
+
+    def to_record(self) -> dict[str, str]:
+        """The MCAP metadata map (string -> string; structured values as JSON)."""
+        return {
+            key: json.dumps(value, sort_keys=True) if key in self._JSON_FIELDS else str(value)
+            for key, value in asdict(self).items()
+        }
+
+    @classmethod
+    def from_record(cls, record: dict[str, str], source: str = "log") -> LogMetadata:
+        """Parse a metadata map, refusing profile versions newer than this reader's major."""
+        version = record.get("profile_version", "")
+        try:
+            major = int(version.split(".")[0])
+        except ValueError:
+            raise LogFormatError(f"{source}: bad profile_version {version!r}") from None
+        if major > int(PROFILE_VERSION.split(".")[0]):
+            raise LogFormatError(
+                f"{source} was written with log profile {version}, newer than this gscompress "
+                f"({__version__}, profile {PROFILE_VERSION}); upgrade gscompress to read it"
+            )
+        values: dict[str, Any] = {}
+        for key in ("profile_version", "tool_version", "command", "sequence", "frames"):
+            values[key] = record.get(key, "")
+        try:
+            for key in cls._JSON_FIELDS:
+                if key in record:
+                    values[key] = json.loads(record[key])
+        except json.JSONDecodeError as exc:
+            raise LogFormatError(f"{source}: metadata field is not JSON ({exc})") from None
+        return cls(**values)
+
+    def derive(self, operation: dict[str, Any], parent: str | Path) -> LogMetadata:
+        """Metadata for a file derived from `parent` by `operation` (appends provenance)."""
+        parent = Path(parent)
+        step = {"operation": operation, "parent": parent.name, "parent_sha256": sha256(parent)}
+        return LogMetadata(
+            command=self.command,
+            config=self.config,
+            sequence=self.sequence,
+            frames=self.frames,
+            provenance=[*self.provenance, step],
+        )
+
+
+# ---------------------------------------------------------------------- writer
+
+
+def gaussians_to_pointcloud(gaussians: GaussianMap, timestamp_ns: int = 0) -> PointCloud:
+    """A foxglove.PointCloud holding every field of a map as packed little-endian records."""
+    cols = map_to_columns(gaussians)
+    records = pack_records(cols, column_dtypes(cols))
+    layout: dict[str, Any] = dict(records.dtype.fields or {})
+    fields = [
+        PackedElementField(name=name, offset=spec[1], type=_NUMERIC_CODES[spec[0]])  # type: ignore[arg-type]
+        for name, spec in layout.items()
+    ]
+    msg = PointCloud(
+        frame_id=WORLD_FRAME,
+        point_stride=records.dtype.itemsize,
+        fields=fields,
+        data=records.tobytes(),
+    )
+    msg.timestamp.FromNanoseconds(timestamp_ns)
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+class LogWriter:
+    """Writes a gscompress log; use as a context manager.
+
+    The file appears under its final name only when the writer closes without an exception; on
+    an exception the temporary file is removed. `metadata` may be changed until then.
+
+    Example:
+        with LogWriter("map.mcap", LogMetadata(command="...")) as log:
+            log.write_gaussians(gaussians, log_time_ns=0)
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        metadata: LogMetadata,
+        *,
+        inputs: Sequence[str | Path] = (),
+        force: bool = False,
+        chunk_size: int = 1 << 20,
+    ):
+        self.path = check_output(path, inputs, force)
+        self.metadata = metadata
+        self._file = AtomicFile(self.path)
+        self._mcap = McapWriter(
+            self._file.file, chunk_size=chunk_size, compression=CompressionType.ZSTD
+        )
+        self._mcap.start(profile=PROFILE, library=f"gscompress {__version__}")
+        self._schemas: dict[tuple[str, str, bytes], int] = {}
+        self._channels: dict[str, int] = {}
+        self._closed = False
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    # -- channels
+
+    def _schema_id(self, name: str, encoding: str, data: bytes) -> int:
+        key = (name, encoding, data)
+        if key not in self._schemas:
+            self._schemas[key] = self._mcap.register_schema(name, encoding, data)
+        return self._schemas[key]
+
+    def _channel_id(
+        self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str] | None = None
+    ) -> int:
+        if topic not in self._channels:
+            self._channels[topic] = self._mcap.register_channel(
+                topic, encoding, schema_id, metadata or {}
+            )
+        return self._channels[topic]
+
+    def write_protobuf(self, topic: str, message: Message, log_time_ns: int) -> None:
+        """Write a protobuf message (its schema registered on first use)."""
+        descriptor = message.DESCRIPTOR
+        schema_id = self._schema_id(
+            descriptor.full_name,
+            "protobuf",
+            build_file_descriptor_set(type(message)).SerializeToString(),
+        )
+        channel_id = self._channel_id(topic, "protobuf", schema_id)
+        self._mcap.add_message(channel_id, log_time_ns, message.SerializeToString(), log_time_ns)
+
+    def write_json(
+        self, topic: str, value: dict[str, Any], log_time_ns: int, schema_file: str
+    ) -> None:
+        """Write a JSON message whose jsonschema is `schema_file` from gscompress_schemas."""
+        schema_id = self._schema_id(
+            schema_file.split(".")[0], "jsonschema", schema_bytes(schema_file)
+        )
+        channel_id = self._channel_id(topic, "json", schema_id)
+        data = json.dumps(value, sort_keys=True, allow_nan=False).encode()
+        self._mcap.add_message(channel_id, log_time_ns, data, log_time_ns)
+
+    def copy_message(self, schema: Schema | None, channel: Channel, message: McapMessage) -> None:
+        """Pass a message of another log through unchanged (schema, channel and bytes)."""
+        schema_id = (
+            0 if schema is None else self._schema_id(schema.name, schema.encoding, schema.data)
+        )
+        channel_id = self._channel_id(
+            channel.topic, channel.message_encoding, schema_id, dict(channel.metadata)
+        )
+        self._mcap.add_message(
+            channel_id, message.log_time, message.data, message.publish_time, message.sequence
+        )
+
+    # -- the profile's messages
+
+    def write_gaussians(self, gaussians: GaussianMap, log_time_ns: int) -> None:
+        """Write one map snapshot to `/gaussians`."""
+        self.write_protobuf(
+            TOPIC_GAUSSIANS, gaussians_to_pointcloud(gaussians, log_time_ns), log_time_ns
+        )
+
+    def write_pose(
+        self, T_world_cam: np.ndarray, log_time_ns: int, ground_truth: bool = False
+    ) -> None:
+        """Write a camera-to-world pose; estimated poses also go to `/tf` (world -> camera)."""
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        q = rotmat_to_quat(T[:3, :3])
+        msg = PoseInFrame(frame_id=WORLD_FRAME)
+        msg.timestamp.FromNanoseconds(log_time_ns)
+        _set_pose(msg.pose.position, msg.pose.orientation, T[:3, 3], q)
+        self.write_protobuf(TOPIC_POSE_GT if ground_truth else TOPIC_POSE, msg, log_time_ns)
+        if not ground_truth:
+            tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=CAMERA_FRAME)
+            tf.timestamp.FromNanoseconds(log_time_ns)
+            _set_pose(tf.translation, tf.rotation, T[:3, 3], q)
+            self.write_protobuf(TOPIC_TF, tf, log_time_ns)
+
+    def write_calibration(self, intrinsics: Intrinsics, log_time_ns: int) -> None:
+        """Write the pinhole calibration of the camera frame."""
+        fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+        msg = CameraCalibration(
+            frame_id=CAMERA_FRAME,
+            width=intrinsics.width,
+            height=intrinsics.height,
+            distortion_model="plumb_bob",
+            D=[0.0] * 5,
+            K=[fx, 0, cx, 0, fy, cy, 0, 0, 1],
+            R=[1, 0, 0, 0, 1, 0, 0, 0, 1],
+            P=[fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0],
+        )
+        msg.timestamp.FromNanoseconds(log_time_ns)
+        self.write_protobuf(TOPIC_CALIBRATION, msg, log_time_ns)
+
+    def write_stats(self, stats: dict[str, Any], log_time_ns: int) -> None:
+        """Write one `/slam/stats` record (see slam_stats.v1.schema.json)."""
+        self.write_json(TOPIC_STATS, stats, log_time_ns, STATS_SCHEMA)
+
+    def flush(self) -> None:
+        """Close the current chunk and push it to disk (a crash keeps what was flushed)."""
+        self._mcap.flush()
+
+    # -- finishing
+
+    def close(self) -> Path:
+        """Write the metadata record and the summary, then move the file into place."""
+        if not self._closed:
+            self._closed = True
+            try:
+                self._mcap.add_metadata(METADATA_NAME, self.metadata.to_record())
+                self._mcap.finish()
+                self._file.commit()
+            except BaseException:
+                self._file.discard()
+                raise
+        return self.path
+
+    def abort(self) -> None:
+        """Drop the output: nothing appears under the final name."""
+        if not self._closed:
+            self._closed = True
+            self._file.discard()
+
+
+def _set_pose(position: Any, orientation: Any, t: np.ndarray, q_wxyz: np.ndarray) -> None:
+    position.x, position.y, position.z = (float(v) for v in t)
+    orientation.w, orientation.x, orientation.y, orientation.z = (float(v) for v in q_wxyz)
+
+
+# ---------------------------------------------------------------------- reader
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """One channel of a log: topic, schema name, encoding and message count."""
+
+    topic: str
+    schema: str
+    encoding: str
+    messages: int
+
+
+class LogReader:
+    """Reads a gscompress log; use as a context manager.
+
+    Opening reads only the summary and the metadata record; maps are decoded on demand.
+
+    Raises:
+        LogFormatError: the file is not a readable MCAP, is truncated or unindexed, has a
+            hostile size field, or was written by a newer major profile version.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise LogFormatError(f"{self.path}: no such file")
+        self._stream: IO[bytes] = open(self.path, "rb")
+        try:
+            self._open()
+        except GscError:
+            self._stream.close()
+            raise
+        except _READ_ERRORS as exc:
+            self._stream.close()
+            raise LogFormatError(
+                f"{self.path}: not a readable MCAP file ({_describe(exc)})"
+            ) from None
+
+    def _open(self) -> None:
+        size = self.path.stat().st_size
+        self._reader = SeekingReader(self._stream, validate_crcs=True, record_size_limit=size)
+        summary = self._reader.get_summary()
+        if summary is None:
+            raise LogFormatError(
+                f"{self.path}: MCAP has no summary (truncated or still being written); "
+                "try `mcap recover` on it"
+            )
+        self._summary = summary
+        for chunk in summary.chunk_indexes:
+            if chunk.uncompressed_size > MAX_CHUNK_BYTES:
+                raise LogFormatError(
+                    f"{self.path}: a chunk claims {chunk.uncompressed_size} bytes uncompressed"
+                )
+        records = [m for m in self._reader.iter_metadata() if m.name == METADATA_NAME]
+        self.metadata = (
+            LogMetadata.from_record(dict(records[-1].metadata), str(self.path))
+            if records
+            else LogMetadata(profile_version="", tool_version="")
+        )
+
+    def __enter__(self) -> LogReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file."""
+        self._stream.close()
+
+    @property
+    def channels(self) -> list[ChannelInfo]:
+        """Every channel with its message count, in topic order."""
+        counts = self._summary.statistics.channel_message_counts if self._summary.statistics else {}
+        out = []
+        for channel_id, channel in self._summary.channels.items():
+            schema = self._summary.schemas.get(channel.schema_id)
+            out.append(
+                ChannelInfo(
+                    topic=channel.topic,
+                    schema=schema.name if schema else "",
+                    encoding=channel.message_encoding,
+                    messages=int(counts.get(channel_id, 0)),
+                )
+            )
+        return sorted(out, key=lambda c: c.topic)
+
+    @property
+    def snapshot_count(self) -> int:
+        """Number of `/gaussians` messages (map snapshots)."""
+        return sum(c.messages for c in self.channels if c.topic == TOPIC_GAUSSIANS)
+
+    def _guard(self) -> Any:
+        return _ReadGuard(self.path)
+
+    def iter_messages(
+        self, topics: Sequence[str] | None = None, reverse: bool = False
+    ) -> Iterator[tuple[Schema | None, Channel, McapMessage]]:
+        """Raw (schema, channel, message) records in log-time order."""
+        with self._guard():
+            yield from self._reader.iter_messages(topics=topics, reverse=reverse)
+
+    def read_map(self, snapshot: int = -1) -> GaussianMap:
+        """Decode map snapshot `snapshot` (Python indexing: -1 is the last, "the map").
+
+        Raises:
+            LogFormatError: no `/gaussians` channel, index out of range, or a malformed cloud.
+        """
+        count = self.snapshot_count
+        if count == 0:
+            raise LogFormatError(
+                f"{self.path} has no {TOPIC_GAUSSIANS} channel: not a gscompress map log"
+            )
+        if not -count <= snapshot < count:
+            raise LogFormatError(f"{self.path} has {count} snapshot(s); no snapshot {snapshot}")
+        index = snapshot % count
+        reverse = index >= count // 2 + 1
+        skip = count - 1 - index if reverse else index
+        for i, (schema, _channel, message) in enumerate(
+            self.iter_messages([TOPIC_GAUSSIANS], reverse=reverse)
+        ):
+            if i == skip:
+                return self.decode_map(schema, message)
+        raise LogFormatError(f"{self.path}: snapshot {snapshot} could not be found")
+
+    def decode_map(self, schema: Schema | None, message: McapMessage) -> GaussianMap:
+        """Decode one `/gaussians` message into a validated map."""
+        if schema is None or schema.name != "foxglove.PointCloud" or schema.encoding != "protobuf":
+            name = schema.name if schema else "no schema"
+            raise LogFormatError(
+                f"{self.path}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud"
+            )
+        with self._guard():
+            cloud = PointCloud()
+            cloud.ParseFromString(message.data)
+        try:
+            return pointcloud_to_gaussians(cloud, source=str(self.path))
+        except MapError as exc:
+            raise LogFormatError(str(exc)) from None
+
+
+def pointcloud_to_gaussians(cloud: PointCloud, source: str = "point cloud") -> GaussianMap:
+    """Decode a PointCloud written by `gaussians_to_pointcloud` (or any compatible writer).
+
+    Checks the stride, every field's type and extent and the data length before reading, and
+    the decoded map's finiteness and id uniqueness.
+
+    Raises:
+        MapError: inconsistent layout or invalid values.
+    """
+    stride = cloud.point_stride
+    data = cloud.data
+    if stride <= 0:
+        raise MapError(f"{source}: point_stride is {stride}")
+    if len(data) % stride:
+        raise MapError(
+            f"{source}: data length {len(data)} is not a multiple of point_stride {stride}"
+        )
+    names: list[str] = []
+    formats: list[np.dtype] = []
+    offsets: list[int] = []
+    for f in cloud.fields:
+        dtype = _NUMERIC_TYPES.get(f.type)
+        if dtype is None:
+            raise MapError(f"{source}: field {f.name!r} has unknown numeric type {f.type}")
+        if f.offset < 0 or f.offset + dtype.itemsize > stride:
+            raise MapError(f"{source}: field {f.name!r} lies outside the {stride}-byte stride")
+        if f.name in names:
+            raise MapError(f"{source}: field {f.name!r} appears twice")
+        names.append(f.name)
+        formats.append(dtype)
+        offsets.append(f.offset)
+    records = np.frombuffer(
+        data,
+        dtype=np.dtype(
+            {"names": names, "formats": formats, "offsets": offsets, "itemsize": stride}
+        ),
+    )
+    return map_from_columns({name: records[name] for name in names}, source).validate()
+
+
+class _ReadGuard:
+    """Turns the errors a malformed file raises inside mcap / protobuf into LogFormatError."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object
+    ) -> None:
+        if exc is not None and isinstance(exc, _READ_ERRORS) and not isinstance(exc, GscError):
+            raise LogFormatError(f"{self.path}: corrupt MCAP data ({_describe(exc)})") from None
+
+
+def _describe(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:200]
+
+
+def read_map(path: str | Path, snapshot: int = -1) -> GaussianMap:
+    """The map (snapshot -1, the last) of a log."""
+    with LogReader(path) as log:
+        return log.read_map(snapshot)

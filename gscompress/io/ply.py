@@ -1,0 +1,186 @@
+"""3D Gaussian Splatting PLY files (the INRIA layout that 3DGS viewers and converters read).
+
+Writes `binary_little_endian` vertices with the properties, in order:
+x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3, raw values (log scales, opacity
+logit, w x y z quaternion), optionally followed by our extras importance, importance_sum,
+importance_weight, alpha_t_sum (float) and id (uint). Viewers ignore properties they do not know.
+
+Reads PLY maps of other 3DGS tools too: the INRIA layout with f_rest up to degree 3, the gsplat
+layout without normals, either endianness, properties in any order, extra properties ignored.
+Every file is untrusted: the header is parsed strictly and the vertex count is checked against
+the file size before anything is allocated.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gscompress import __version__
+from gscompress.errors import MapError, PlyFormatError
+from gscompress.gaussians import GaussianMap
+from gscompress.io.columns import (
+    APPEARANCE,
+    GEOMETRY,
+    IMPORTANCE,
+    column_dtypes,
+    map_from_columns,
+    map_to_columns,
+    pack_records,
+)
+from gscompress.io.files import AtomicFile, check_output
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+_TYPE_NAMES = {"<f4": "float", "<u4": "uint"}
+_MAX_HEADER_BYTES = 1 << 16
+
+
+def write_ply(
+    gaussians: GaussianMap,
+    path: str | Path,
+    *,
+    importance: bool = True,
+    inputs: tuple[str | Path, ...] = (),
+    force: bool = False,
+) -> Path:
+    """Write a map as a 3DGS PLY file (atomically: temporary file, then rename).
+
+    Args:
+        gaussians: the map.
+        path: output file.
+        importance: also write importance, its sums, alpha_t_sum and id as extra properties.
+        inputs: paths the output must not overwrite.
+        force: overwrite an existing output.
+
+    Returns:
+        The output path.
+    """
+    path = check_output(path, inputs, force)
+    cols = map_to_columns(gaussians, importance=importance)
+    if not importance:
+        del cols["id"]
+    zeros = np.zeros(len(gaussians), np.float32)
+    rest = [name for name in cols if name.startswith("f_rest_")]
+    extras = [*IMPORTANCE, "id"] if importance else []
+    order = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", *rest, "opacity"]
+    order += [name for name in GEOMETRY if name.startswith(("scale", "rot"))] + extras
+    cols.update(nx=zeros, ny=zeros, nz=zeros)
+    dtypes = column_dtypes({name: cols[name] for name in order})
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        f"comment written by gscompress {__version__}",
+        f"element vertex {len(gaussians)}",
+        *(f"property {_TYPE_NAMES[dtypes[name].str]} {name}" for name in order),
+        "end_header",
+    ]
+    records = pack_records(cols, dtypes)
+    out = AtomicFile(path)
+    try:
+        out.file.write(("\n".join(header) + "\n").encode("ascii"))
+        out.file.write(records.tobytes())
+        out.commit()
+    except BaseException:
+        out.discard()
+        raise
+    return path
+
+
+def read_ply(path: str | Path) -> GaussianMap:
+    """Read a 3DGS PLY map (ours or another tool's) into a validated GaussianMap.
+
+    Raises:
+        PlyFormatError: not a binary PLY, no vertex element, missing required properties,
+            truncated data, or invalid values.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PlyFormatError(f"{path}: no such file")
+    with open(path, "rb") as f:
+        head = f.read(_MAX_HEADER_BYTES)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise PlyFormatError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
+    header_end = head.index(b"\n", end) + 1 if b"\n" in head[end:] else -1
+    if header_end < 0:
+        raise PlyFormatError(f"{path}: header is not terminated")
+    try:
+        lines = head[:header_end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise PlyFormatError(f"{path}: header is not ASCII") from None
+    endian, elements = _parse_header(lines, path)
+    offset = header_end
+    file_size = path.stat().st_size
+    for name, count, props in elements:
+        dtype = np.dtype([(p, endian + t) for p, t in props])
+        if name == "vertex":
+            if offset + count * dtype.itemsize > file_size:
+                raise PlyFormatError(
+                    f"{path}: truncated: {count} vertices of {dtype.itemsize} bytes need "
+                    f"{offset + count * dtype.itemsize} bytes, the file has {file_size}"
+                )
+            records = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+            cols = {p: records[p] for p, _ in props}
+            _check_required(cols, path)
+            try:
+                return map_from_columns(cols, str(path)).validate()
+            except MapError as exc:
+                raise PlyFormatError(str(exc)) from None
+        offset += count * dtype.itemsize
+    raise PlyFormatError(f"{path}: no vertex element")
+
+
+def _parse_header(
+    lines: list[str], path: Path
+) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]]]:
+    """(endianness prefix, [(element name, count, [(property, numpy type)])])."""
+    endian = ""
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    for number, line in enumerate(lines[1:], start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info", "end_header"):
+            continue
+        if words[0] == "format":
+            if len(words) != 3 or words[1] not in ("binary_little_endian", "binary_big_endian"):
+                raise PlyFormatError(
+                    f"{path}: unsupported PLY format {' '.join(words[1:])!r}; "
+                    "3DGS maps are binary (convert ASCII PLY first)"
+                )
+            endian = "<" if words[1] == "binary_little_endian" else ">"
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise PlyFormatError(f"{path}: line {number}: bad element line {line!r}")
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            if not elements:
+                raise PlyFormatError(f"{path}: line {number}: property before any element")
+            if words[1] == "list":
+                raise PlyFormatError(
+                    f"{path}: line {number}: list properties are not supported in a 3DGS map"
+                )
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                raise PlyFormatError(f"{path}: line {number}: bad property line {line!r}")
+            elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+        else:
+            raise PlyFormatError(f"{path}: line {number}: unknown header keyword {words[0]!r}")
+    if not endian:
+        raise PlyFormatError(f"{path}: header has no format line")
+    for name, _count, props in elements:
+        names = [p for p, _ in props]
+        if len(set(names)) != len(names):
+            raise PlyFormatError(f"{path}: element {name!r} repeats a property")
+    return endian, elements
+
+
+def _check_required(cols: dict[str, np.ndarray], path: Path) -> None:
+    missing = [name for name in GEOMETRY + APPEARANCE if name not in cols]
+    if missing:
+        raise PlyFormatError(
+            f"{path}: not a 3DGS map: missing vertex properties {', '.join(missing)}"
+        )

@@ -1,0 +1,132 @@
+"""Budgeted selection of Gaussians: the scores each strategy ranks by, and exact top-K.
+
+Pruning (keep a fraction of a map) and sharing (send a fraction of a map) are the same
+operation: rank by a score, keep the K best. Both go through `select_top`.
+
+Rounding: K = floor(ratio * N + 0.5), i.e. round half up (with a 1e-9 guard against binary
+floating point, so 0.35 * 10 keeps 4). A ratio that rounds to zero Gaussians is an error rather
+than an empty map.
+
+Ties: Gaussians with equal scores are ranked by ascending id, so a selection does not depend on
+the order the Gaussians are stored in.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import Enum
+
+import numpy as np
+
+from gscompress.errors import BudgetError, InputError
+from gscompress.gaussians import GaussianMap
+
+
+class Strategy(str, Enum):
+    """What a selection ranks Gaussians by."""
+
+    PWAS = "pwas"
+    """Proximity-weighted accumulated alpha*T (the paper's importance score)."""
+    OPACITY = "opacity"
+    """Opacity (equivalently its logit)."""
+    RANDOM = "random"
+    """Uniformly random, seeded."""
+    ALPHA_T = "alpha-t"
+    """Unweighted sum of alpha*T over all views (LightGaussian / Mini-Splatting style)."""
+
+
+STRATEGIES = tuple(s.value for s in Strategy)
+
+
+def check_ratio(ratio: float, name: str = "ratio") -> float:
+    """Return `ratio` if it lies in (0, 1], else raise InputError."""
+    if not (isinstance(ratio, int | float) and math.isfinite(ratio) and 0.0 < ratio <= 1.0):
+        raise InputError(f"{name} must be in (0, 1], got {ratio}")
+    return float(ratio)
+
+
+def keep_count(n: int, ratio: float) -> int:
+    """Number of Gaussians kept out of `n` for a retention `ratio` in (0, 1] (round half up)."""
+    check_ratio(ratio)
+    k = min(n, math.floor(ratio * n + 0.5 + 1e-9))
+    if n > 0 and k == 0:
+        raise BudgetError(f"keeping {ratio:g} of {n} Gaussians rounds to none; raise the ratio")
+    return k
+
+
+def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int = 0) -> np.ndarray:
+    """[N] float64 scores for `strategy`; higher is more important.
+
+    Raises:
+        InputError: unknown strategy.
+        BudgetError: the map has no scores for a score-based strategy.
+    """
+    try:
+        strategy = Strategy(strategy)
+    except ValueError:
+        raise InputError(
+            f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}"
+        ) from None
+    if strategy is Strategy.PWAS:
+        if not gaussians.has_importance:
+            raise BudgetError(
+                "this map has no PWAS scores: record it with `gsc slam`, or score an existing "
+                "map with `gsc score MAP --seq SEQ`, or choose --by/--strategy opacity"
+            )
+        return gaussians.importance.astype(np.float64)
+    if strategy is Strategy.ALPHA_T:
+        if not np.any(gaussians.alpha_t_sum > 0):
+            raise BudgetError(
+                "this map has no alpha*T sums: record it with `gsc slam` or `gsc score`"
+            )
+        return gaussians.alpha_t_sum.astype(np.float64)
+    if strategy is Strategy.OPACITY:
+        return gaussians.opacity_logits.astype(np.float64)
+    return np.random.default_rng(seed).random(len(gaussians))
+
+
+def top_k(scores: np.ndarray, ids: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the `k` highest scores, ties broken by ascending id, in ascending index order.
+
+    Runs in O(N) plus O(T log T) for the T entries tied at the threshold.
+
+    Args:
+        scores: [N] scores (higher is better).
+        ids: [N] unique ids used to break ties.
+        k: how many to keep, 0 <= k <= N.
+
+    Returns:
+        [k] int64 indices into `scores`, sorted ascending (so the kept map keeps storage order).
+    """
+    n = scores.shape[0]
+    if not 0 <= k <= n:
+        raise BudgetError(f"cannot keep {k} of {n}")
+    if k == n:
+        return np.arange(n, dtype=np.int64)
+    if k == 0:
+        return np.zeros(0, dtype=np.int64)
+    threshold = np.partition(scores, n - k)[n - k]
+    above = np.flatnonzero(scores > threshold)
+    tied = np.flatnonzero(scores == threshold)
+    need = k - above.size
+    tied = tied[np.argsort(ids[tied], kind="stable")[:need]]
+    return np.sort(np.concatenate([above, tied]))
+
+
+def select_top(
+    gaussians: GaussianMap, ratio: float, strategy: str | Strategy = Strategy.PWAS, seed: int = 0
+) -> tuple[GaussianMap, np.ndarray]:
+    """Keep the round(ratio * N) most important Gaussians of a map.
+
+    Args:
+        gaussians: the map.
+        ratio: fraction to keep, in (0, 1].
+        strategy: what to rank by (see `Strategy`).
+        seed: random seed for `Strategy.RANDOM`.
+
+    Returns:
+        The kept map and the [K] indices of the kept Gaussians in the input.
+    """
+    k = keep_count(len(gaussians), ratio)
+    index = top_k(strategy_scores(gaussians, strategy, seed), gaussians.ids, k)
+    return gaussians.select(index), index
