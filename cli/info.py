@@ -41,11 +41,13 @@ def format_info(info: dict[str, Any]) -> str:
     snaps = info["snapshots"]
     lines.append(f"snapshots {len(snaps)}: " + ", ".join(str(s["gaussians"]) for s in snaps))
     m = info.get("map")
-    if m:
+    if not m:
+        lines.append("map       none: no /gaussians channel (not a map log)")
+    else:
         kind = "isotropic" if m["isotropic"] else "anisotropic"
         lines.append(
             f"map       {m['gaussians']} Gaussians, {kind}, SH degree {m['sh_degree']}, "
-            f"{_size(m['bytes'])} packed"
+            f"{_size(m['packed_bytes'])} packed ({_size(m['bytes'])} as a message)"
         )
         if m["has_importance"]:
             q = m["importance_quantiles"]

@@ -22,6 +22,7 @@ from gscompress.io.mcap_log import (
     LogMetadata,
     LogReader,
     LogWriter,
+    record_size,
 )
 from gscompress.io.ply import read_ply, write_ply
 from gscompress.ops.select import check_ratio, select_top, strategy_scores
@@ -154,7 +155,7 @@ def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
         final_bytes = 0
         for schema, _channel, message in log_in.iter_messages([TOPIC_GAUSSIANS]):
             final = log_in.decode_map(schema, message)
-            final_bytes = len(message.data)
+            final_bytes = len(message.data)  # the serialized PointCloud, as it would be sent
             snapshots.append({"log_time_ns": message.log_time, "gaussians": len(final)})
         meta = log_in.metadata
     info: dict[str, Any] = {
@@ -174,6 +175,7 @@ def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
     if final is not None:
         info["map"] = map_summary(final, histogram_bins)
         info["map"]["bytes"] = final_bytes
+        info["map"]["packed_bytes"] = len(final) * record_size(final)
     return info
 
 

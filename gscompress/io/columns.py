@@ -51,8 +51,9 @@ def map_to_columns(gaussians: GaussianMap, importance: bool = True) -> dict[str,
     cols.update({f"rot_{i}": gaussians.quats[:, i] for i in range(4)})
     cols["opacity"] = gaussians.opacity_logits
     cols.update({f"f_dc_{i}": gaussians.sh_dc[:, i] for i in range(3)})
-    rest = gaussians.sh_rest.transpose(0, 2, 1).reshape(len(gaussians), -1)  # [N, 3K] by channel
-    cols.update({name: rest[:, i] for i, name in enumerate(f_rest_names(rest.shape[1] // 3))})
+    k = gaussians.sh_rest.shape[1]
+    rest = gaussians.sh_rest.transpose(0, 2, 1).reshape(len(gaussians), 3 * k)  # by channel
+    cols.update({name: rest[:, i] for i, name in enumerate(f_rest_names(k))})
     if importance:
         cols["importance"] = gaussians.importance
         cols["importance_sum"] = gaussians.importance_sum

@@ -177,6 +177,11 @@ def gaussians_to_pointcloud(gaussians: GaussianMap, timestamp_ns: int = 0) -> Po
     return msg
 
 
+def record_size(gaussians: GaussianMap) -> int:
+    """Bytes per Gaussian in a `/gaussians` PointCloud of this map (its point_stride)."""
+    return 4 * len(map_to_columns(gaussians.select(slice(0, 0))))
+
+
 class LogWriter:
     """Writes a gscompress log; use as a context manager.
 

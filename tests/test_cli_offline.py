@@ -1,0 +1,280 @@
+"""The offline commands through click: exit codes, one-line messages, outputs, provenance."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from gscompress_cli.main import cli
+
+from gscompress.gaussians import random_map
+from gscompress.io.mcap_log import (
+    LogMetadata,
+    LogReader,
+    LogWriter,
+    gaussians_to_pointcloud,
+    read_map,
+)
+from gscompress.io.ply import read_ply, write_ply
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+@pytest.fixture()
+def log_path(tmp_path):
+    """A small log: calibration, three poses, two snapshots (the last with 1000 Gaussians)."""
+    from gscompress.camera import Intrinsics
+
+    path = tmp_path / "run.mcap"
+    with LogWriter(path, LogMetadata(command="test", sequence="synthetic")) as log:
+        log.write_calibration(Intrinsics(50, 50, 16, 12, 32, 24), 0)
+        for i in range(3):
+            log.write_pose(np.eye(4), i)
+        log.write_gaussians(random_map(400, seed=1), 1)
+        log.write_gaussians(random_map(1000, seed=2), 2)
+    return path
+
+
+def snapshot_of(path):
+    return {p.name for p in path.parent.iterdir()}
+
+
+def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path):
+    out = tmp_path / "p.mcap"
+    r = run("prune", log_path, "--keep", "0.3", "-o", out)
+    assert r.exit_code == 0, r.output
+    assert "kept 300 of 1000" in r.output
+    full, pruned = read_map(log_path), read_map(out)
+    assert len(pruned) == 300
+    assert pruned.importance.min() >= np.setdiff1d(full.importance, pruned.importance).max()
+    with LogReader(log_path) as a, LogReader(out) as b:
+        assert [(c.topic, c.messages) for c in a.channels] == [
+            (c.topic, c.messages) for c in b.channels
+        ]
+        assert a.read_map(0).equals(b.read_map(0))  # earlier snapshots unchanged
+        raw_a = [
+            (ch.topic, m.log_time, m.data) for _, ch, m in a.iter_messages(["/camera/pose", "/tf"])
+        ]
+        raw_b = [
+            (ch.topic, m.log_time, m.data) for _, ch, m in b.iter_messages(["/camera/pose", "/tf"])
+        ]
+        assert raw_a == raw_b
+        step = b.metadata.provenance[-1]
+        assert step["operation"] == {"name": "prune", "keep": 0.3, "by": "pwas", "seed": 0}
+        assert step["parent"] == "run.mcap" and b.metadata.sequence == "synthetic"
+        assert b.metadata.results == {"kept": 300, "total": 1000}
+
+
+def test_prune_by_opacity_and_percent_syntax(log_path, tmp_path):
+    out = tmp_path / "p.mcap"
+    r = run("prune", log_path, "--keep", "10%", "--by", "opacity", "-o", out, "--json")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["kept"] == 100
+    full, pruned = read_map(log_path), read_map(out)
+    assert (
+        pruned.opacity_logits.min()
+        >= np.setdiff1d(full.opacity_logits, pruned.opacity_logits).max()
+    )
+
+
+def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
+    out, ply = tmp_path / "s.mcap", tmp_path / "s.ply"
+    r = run("share", "--budget", "0.2", log_path, out, "--ply", ply, "--strategy", "pwas")
+    assert r.exit_code == 0, r.output
+    shared = read_map(out)
+    assert len(shared) == 200
+    assert read_ply(ply).equals(shared)
+    with LogReader(out) as s:
+        assert s.metadata.results == {
+            "source": "run.mcap",
+            "strategy": "pwas",
+            "budget": 0.2,
+            "selected": 200,
+            "total": 1000,
+        }
+        assert [c.topic for c in s.channels] == ["/gaussians"]
+
+
+def test_export_ply_last_and_chosen_snapshot(log_path, tmp_path):
+    r = run("export-ply", log_path, "-o", tmp_path / "a.ply")
+    assert r.exit_code == 0, r.output
+    assert read_ply(tmp_path / "a.ply").equals(read_map(log_path))
+    r = run("export-ply", log_path, "-o", tmp_path / "b.ply", "--snapshot", "0")
+    assert r.exit_code == 0 and len(read_ply(tmp_path / "b.ply")) == 400
+
+
+def test_import_ply_then_info(tmp_path):
+    g = random_map(50, scored=False, sh_degree=3, isotropic=False)
+    write_ply(g, tmp_path / "in.ply", importance=False)
+    r = run("import-ply", tmp_path / "in.ply", "-o", tmp_path / "m.mcap")
+    assert r.exit_code == 0, r.output
+    back = read_map(tmp_path / "m.mcap")
+    assert back.means.tobytes() == g.means.tobytes() and back.sh_degree == 3
+    r = run("info", tmp_path / "m.mcap")
+    assert r.exit_code == 0 and "importance none" in r.output and "import-ply" in r.output
+    r = run("prune", tmp_path / "m.mcap", "--keep", "0.5", "-o", tmp_path / "p.mcap")
+    assert r.exit_code == 1 and "gsc score" in r.output
+    assert not (tmp_path / "p.mcap").exists()
+
+
+def test_info_json_describes_the_log(log_path, tmp_path):
+    run("share", log_path, tmp_path / "s.mcap")
+    r = run("info", tmp_path / "s.mcap", "--json")
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)
+    assert info["map"]["gaussians"] == 200 and info["map"]["has_importance"]
+    q = info["map"]["importance_quantiles"]
+    assert q["q00"] <= q["q50"] <= q["q100"]
+    assert sum(info["map"]["importance_histogram"]["counts"]) == 200
+    assert info["map"]["packed_bytes"] == 200 * 76  # 18 float32 fields and a uint32 id each
+    assert 200 * 76 < info["map"]["bytes"] < 200 * 76 + 1000  # plus the PointCloud header
+    assert info["provenance"][0]["operation"]["name"] == "share"
+    assert info["channels"] == [
+        {
+            "topic": "/gaussians",
+            "schema": "foxglove.PointCloud",
+            "encoding": "protobuf",
+            "messages": 1,
+        }
+    ]
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def _truncated(src, dst):
+    dst.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
+
+
+def _no_gaussians(src, dst):
+    with LogWriter(dst, LogMetadata()) as log:
+        log.write_pose(np.eye(4), 0)
+
+
+def _bad_stride(src, dst):
+    cloud = gaussians_to_pointcloud(random_map(10))
+    cloud.data = cloud.data[:-5]
+    with LogWriter(dst, LogMetadata()) as log:
+        log.write_protobuf("/gaussians", cloud, 0)
+
+
+def _non_finite(src, dst):
+    g = random_map(10)
+    g.means[0, 0] = np.nan
+    with LogWriter(dst, LogMetadata()) as log:
+        log.write_gaussians(g, 0)
+
+
+def _not_mcap(src, dst):
+    dst.write_text("this is not an mcap file\n")
+
+
+def _newer_profile(src, dst):
+    with LogWriter(dst, LogMetadata(profile_version="99.0")) as log:
+        log.write_gaussians(random_map(10), 0)
+
+
+@pytest.mark.parametrize(
+    "make_input, message",
+    [
+        (_not_mcap, "not a readable MCAP"),
+        (_truncated, "MCAP"),
+        (_no_gaussians, "no /gaussians channel"),
+        (_bad_stride, "not a multiple of point_stride"),
+        (_non_finite, "non-finite"),
+        (_newer_profile, "newer than this gscompress"),
+    ],
+)
+@pytest.mark.parametrize("command", ["prune", "share", "export-ply", "info"])
+def test_bad_logs_give_one_line_error_and_no_output(
+    log_path, tmp_path, make_input, message, command
+):
+    bad = tmp_path / "bad.mcap"
+    make_input(log_path, bad)
+    before = snapshot_of(bad)
+    args = {
+        "prune": ("prune", bad, "--keep", "0.3", "-o", tmp_path / "out.mcap"),
+        "share": ("share", bad, tmp_path / "out.mcap", "--ply", tmp_path / "out.ply"),
+        "export-ply": ("export-ply", bad, "-o", tmp_path / "out.ply"),
+        "info": ("info", bad),
+    }[command]
+    r = run(*args)
+    if command == "info" and make_input is _no_gaussians:
+        assert r.exit_code == 0 and "no /gaussians channel" in r.output
+        return
+    assert r.exit_code == 1, r.output
+    assert message in r.output
+    assert r.output.count("\n") == 1 and r.output.startswith("Error: ")
+    assert "Traceback" not in r.output
+    assert snapshot_of(bad) == before  # no output, no temporary file left behind
+
+
+@pytest.mark.parametrize("value", ["0", "-0.1", "1.5", "abc", "nan"])
+def test_ratio_outside_range(log_path, tmp_path, value):
+    r = run("prune", log_path, "--keep", value, "-o", tmp_path / "o.mcap")
+    assert r.exit_code == 2 and "--keep" in r.output
+    r = run("share", log_path, tmp_path / "o.mcap", "--budget", value)
+    assert r.exit_code == 2 and "--budget" in r.output
+    assert not (tmp_path / "o.mcap").exists()
+
+
+def test_output_equal_to_input_and_existing_output(log_path, tmp_path):
+    original = log_path.read_bytes()
+    r = run("prune", log_path, "--keep", "0.3", "-o", log_path, "--force")
+    assert r.exit_code == 1 and "also an input" in r.output
+    r = run("export-ply", log_path, "-o", log_path, "--force")
+    assert r.exit_code == 1 and "also an input" in r.output
+    assert log_path.read_bytes() == original
+    existing = tmp_path / "exists.mcap"
+    existing.write_bytes(b"precious")
+    r = run("prune", log_path, "--keep", "0.3", "-o", existing)
+    assert r.exit_code == 1 and "--force" in r.output and existing.read_bytes() == b"precious"
+    r = run("prune", log_path, "--keep", "0.3", "-o", existing, "--force")
+    assert r.exit_code == 0 and len(read_map(existing)) == 300
+
+
+def test_ply_missing_properties(tmp_path):
+    from plyfile import PlyData, PlyElement
+
+    data = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    PlyData([PlyElement.describe(data, "vertex")]).write(str(tmp_path / "pts.ply"))
+    r = run("import-ply", tmp_path / "pts.ply", "-o", tmp_path / "m.mcap")
+    assert r.exit_code == 1 and "missing vertex properties" in r.output
+    assert not (tmp_path / "m.mcap").exists()
+
+
+def test_offline_commands_do_not_import_torch(log_path, tmp_path):
+    runs = [
+        ["prune", str(log_path), "--keep", "0.3", "-o", str(tmp_path / "p.mcap")],
+        ["share", str(log_path), str(tmp_path / "s.mcap")],
+        ["export-ply", str(log_path), "-o", str(tmp_path / "e.ply")],
+        ["info", str(log_path)],
+    ]
+    code = (
+        "import json, sys\n"
+        "from gscompress_cli.main import cli\n"
+        "for args in json.loads(sys.argv[1]):\n"
+        "    try:\n"
+        "        cli(args)\n"
+        "    except SystemExit as e:\n"
+        "        assert e.code == 0, e\n"
+        "print('torch' in sys.modules)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, json.dumps(runs)], capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip().splitlines()[-1] == "False"
+    assert (tmp_path / "e.ply").exists()
+
+
+def test_help_teaches():
+    r = run("--help")
+    assert r.exit_code == 0
+    for name in ("prune", "share", "export-ply", "info", "import-ply"):
+        assert name in r.output
+    r = run("prune", "--help")
+    assert "Example" in r.output and "--keep" in r.output
