@@ -1,0 +1,148 @@
+"""C++/OpenMP compositing kernels (forward and backward) for the cpu backend.
+
+The extension is compiled on first use with `torch.utils.cpp_extension.load` into a cache
+directory keyed on the source, the flags, torch and Python (`$GSCOMPRESS_CACHE_DIR` or
+`$XDG_CACHE_HOME/gscompress`, default `~/.cache/gscompress`), so later processes load it in well
+under a second. Without a C++ compiler `load_extension()` returns None and the caller falls back
+to the pure-torch backend.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import sys
+import warnings
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import torch
+
+from gscompress.render.projection import TileBins
+
+logger = logging.getLogger(__name__)
+
+_SOURCE = Path(__file__).with_name("composite.cpp")
+# -O3 and OpenMP only: no -march=native, so a cached build runs on any x86-64 machine.
+# -ffp-contract=off keeps the forward, the backward and the torch oracle rounding alike.
+_CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off"]
+_LDFLAGS = ["-fopenmp"]
+
+
+def _cache_root() -> Path:
+    if "GSCOMPRESS_CACHE_DIR" in os.environ:
+        return Path(os.environ["GSCOMPRESS_CACHE_DIR"])
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "gscompress"
+
+
+@functools.cache
+def load_extension() -> ModuleType | None:
+    """The compiled kernels, building them on first use; None when no compiler is available.
+
+    A missing compiler or a failed build is reported once with a warning.
+    """
+    compiler = os.environ.get("CXX", "c++")
+    if shutil.which(compiler) is None:
+        warnings.warn(
+            f"no C++ compiler ({compiler!r}) found: the cpu render backend falls back to pure "
+            "torch (slower); install g++ to enable it",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return None
+    key = hashlib.sha256()
+    key.update(_SOURCE.read_bytes())
+    key.update(" ".join(_CFLAGS + _LDFLAGS).encode())
+    key.update(f"{torch.__version__}|{sys.version}|{platform.machine()}|{compiler}".encode())
+    digest = key.hexdigest()[:16]
+    build_dir = _cache_root() / f"ext-{digest}"
+    name = f"gsc_composite_{digest}"
+    if not (build_dir / f"{name}.so").exists():
+        logger.info("building the C++ render kernels in %s (first use, about 30 s)", build_dir)
+    try:
+        from torch.utils import cpp_extension
+
+        build_dir.mkdir(parents=True, exist_ok=True)
+        return cpp_extension.load(
+            name=name,
+            sources=[str(_SOURCE)],
+            extra_cflags=_CFLAGS,
+            extra_ldflags=_LDFLAGS,
+            build_directory=str(build_dir),
+            verbose=False,
+        )
+    except Exception as exc:  # a build failure must not take rendering down
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        warnings.warn(
+            f"building the C++ render kernels failed ({first_line}): the cpu render backend "
+            "falls back to pure torch",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return None
+
+
+class _Composite(torch.autograd.Function):
+    """Autograd wrapper: C++ forward, C++ backward."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        ext: ModuleType,
+        means2d: torch.Tensor,
+        conics: torch.Tensor,
+        opacities: torch.Tensor,
+        features: torch.Tensor,
+        bins: TileBins,
+        width: int,
+        height: int,
+        want_contribution: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        geometry = (width, height, bins.tiles_x, bins.tiles_y)
+        image, T_final, last, contribution = ext.composite_forward(
+            means2d, conics, opacities, features, bins.offsets, bins.ids, *geometry,
+            want_contribution,
+        )  # fmt: skip
+        ctx.ext, ctx.geometry = ext, geometry
+        ctx.save_for_backward(
+            means2d, conics, opacities, features, bins.offsets, bins.ids, T_final, last
+        )
+        ctx.mark_non_differentiable(contribution)
+        return image, T_final, contribution
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(
+        ctx: Any, grad_image: torch.Tensor, grad_T: torch.Tensor, _grad_contribution: Any
+    ) -> tuple[Any, ...]:
+        means2d, conics, opacities, features, offsets, ids, T_final, last = ctx.saved_tensors
+        g_means2d, g_conics, g_opacities, g_features = ctx.ext.composite_backward(
+            means2d, conics, opacities, features, offsets, ids, *ctx.geometry,
+            T_final, last, grad_image.contiguous(), grad_T.contiguous(),
+        )  # fmt: skip
+        return None, g_means2d, g_conics, g_opacities, g_features, None, None, None, None
+
+
+def composite_cpu(
+    ext: ModuleType,
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    want_contribution: bool,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """C++ counterpart of `gscompress.render.torch_backend.composite_torch` (same contract)."""
+    image, T_final, contribution = _Composite.apply(
+        ext, means2d.contiguous(), conics.contiguous(), opacities.contiguous(),
+        features.contiguous(), bins, width, height, want_contribution,
+    )  # fmt: skip
+    return image, T_final, (contribution if want_contribution else None)

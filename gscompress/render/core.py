@@ -1,0 +1,208 @@
+"""The `render()` front door: input checks, backend choice, and the shared post-processing."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+
+from gscompress.camera import Intrinsics
+from gscompress.errors import InputError
+from gscompress.render.projection import bin_tiles, project_gaussians
+from gscompress.render.torch_backend import composite_torch
+
+logger = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "torch", "cpu", "gsplat")
+"""Accepted values of `render(..., backend=...)`."""
+
+DEPTH_EPS = 1e-10
+"""Floor of the silhouette when normalising depth."""
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view.
+
+    Attributes:
+        color: [H, W, 3] sum_i w_i c_i + T_final * background, with w_i = alpha_i T_i.
+        depth: [H, W] sum_i w_i z_i (camera z, not normalised).
+        depth_normalized: [H, W] depth / max(silhouette, 1e-10): the expected depth.
+        silhouette: [H, W] sum_i w_i = 1 - T_final (accumulated opacity).
+        radii: [N] int32 screen radius in pixels; 0 for a Gaussian that is not rendered.
+        contribution: [N] sum over pixels of alpha_i T_i (no gradient), or None when not asked.
+        backend: the backend that produced this output ("torch", "cpu" or "gsplat").
+    """
+
+    color: torch.Tensor
+    depth: torch.Tensor
+    depth_normalized: torch.Tensor
+    silhouette: torch.Tensor
+    radii: torch.Tensor
+    contribution: torch.Tensor | None
+    backend: str
+
+    @property
+    def visible(self) -> torch.Tensor:
+        """[N] bool: the Gaussians that touch at least one tile of the image."""
+        return self.radii > 0
+
+
+def render(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    intrinsics: Intrinsics,
+    T_cam_world: torch.Tensor,
+    *,
+    backend: str = "auto",
+    want_contribution: bool = False,
+    near: float = 0.01,
+    background: torch.Tensor | None = None,
+) -> RenderOutput:
+    """Differentiably render colour, depth and silhouette of activated 3D Gaussians.
+
+    EWA splatting with 16x16 tiles and front-to-back compositing, as in 3DGS; the exact rules
+    are in the `gscompress.render` module docstring. Every output except `radii` and
+    `contribution` is differentiable w.r.t. every input tensor (`background` included).
+
+    Args:
+        means: [N, 3] centres in world coordinates.
+        quats: [N, 4] rotations (w, x, y, z), need not be normalised.
+        scales: [N, 3] standard deviations (expand isotropic scales to 3 columns).
+        opacities: [N] opacities in (0, 1).
+        colors: [N, 3] RGB.
+        intrinsics: pinhole intrinsics; the image size is `intrinsics.width` x `.height`.
+        T_cam_world: [4, 4] world-to-camera transform.
+        backend: "torch" (pure torch), "cpu" (C++ kernels; pure torch if no compiler), "gsplat"
+            (CUDA) or "auto" (gsplat for CUDA tensors when installed, else cpu, else torch).
+        want_contribution: also compute the per-Gaussian sum over pixels of alpha_i T_i.
+        near: Gaussians with camera depth z < near are culled.
+        background: [3] colour seen where the Gaussians leave transmittance; None for black.
+
+    Returns:
+        The rendered view.
+
+    Raises:
+        InputError: on inconsistent shapes, dtypes or devices, or an unknown backend.
+        MissingDependencyError: backend="gsplat" without gsplat installed.
+    """
+    _check_inputs(means, quats, scales, opacities, colors, intrinsics, T_cam_world, background)
+    if backend not in BACKENDS:
+        raise InputError(f"unknown render backend {backend!r}; choose one of {BACKENDS}")
+    if backend == "auto":
+        backend = _auto_backend(means.device)
+    if backend == "gsplat":
+        from gscompress.render.gsplat_backend import render_gsplat
+
+        return render_gsplat(
+            means, quats, scales, opacities, colors, intrinsics, T_cam_world,
+            want_contribution=want_contribution, near=near, background=background,
+        )  # fmt: skip
+
+    ext = None
+    if backend == "cpu":
+        if means.device.type != "cpu":
+            raise InputError(f"backend='cpu' needs CPU tensors, got {means.device}")
+        from gscompress.render.cpu import load_extension
+
+        ext = load_extension()
+        if ext is None:
+            backend = "torch"
+
+    width, height = intrinsics.width, intrinsics.height
+    proj = project_gaussians(means, quats, scales, T_cam_world, intrinsics, near)
+    bins = bin_tiles(proj, width, height)
+    features = torch.cat([colors, proj.depths[:, None]], dim=1)  # [N, 4] r g b z
+    if ext is not None:
+        from gscompress.render.cpu import composite_cpu
+
+        image, T_final, contribution = composite_cpu(
+            ext, proj.means2d, proj.conics, opacities, features, bins, width, height,
+            want_contribution,
+        )  # fmt: skip
+    else:
+        image, T_final, contribution = composite_torch(
+            proj.means2d, proj.conics, opacities, features, bins, width, height,
+            want_contribution,
+        )  # fmt: skip
+    return finish_output(
+        image[..., :3], image[..., 3], T_final, proj.radii, contribution, background, backend
+    )
+
+
+def finish_output(
+    color: torch.Tensor,
+    depth: torch.Tensor,
+    T_final: torch.Tensor,
+    radii: torch.Tensor,
+    contribution: torch.Tensor | None,
+    background: torch.Tensor | None,
+    backend: str,
+) -> RenderOutput:
+    """Assemble a RenderOutput from composited colour [H, W, 3], depth and T_final [H, W]."""
+    silhouette = 1.0 - T_final  # [H, W]
+    if background is not None:
+        color = color + T_final[..., None] * background  # [H, W, 3]
+    return RenderOutput(
+        color=color,
+        depth=depth,
+        depth_normalized=depth / torch.clamp(silhouette, min=DEPTH_EPS),
+        silhouette=silhouette,
+        radii=radii,
+        contribution=contribution,
+        backend=backend,
+    )
+
+
+def gsplat_available() -> bool:
+    """Whether gsplat can be imported (without importing it twice)."""
+    import importlib.util
+
+    return importlib.util.find_spec("gsplat") is not None
+
+
+def _auto_backend(device: torch.device) -> str:
+    if device.type == "cuda":
+        return "gsplat" if gsplat_available() else "torch"
+    return "cpu" if device.type == "cpu" else "torch"
+
+
+def _check_inputs(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    intrinsics: Intrinsics,
+    T_cam_world: torch.Tensor,
+    background: torch.Tensor | None,
+) -> None:
+    n = means.shape[0] if means.dim() == 2 else -1
+    expected = {
+        "means": (means, (n, 3), "[N, 3]"),
+        "quats": (quats, (n, 4), "[N, 4]"),
+        "scales": (scales, (n, 3), "[N, 3]"),
+        "opacities": (opacities, (n,), "[N]"),
+        "colors": (colors, (n, 3), "[N, 3]"),
+        "T_cam_world": (T_cam_world, (4, 4), "[4, 4]"),
+    }
+    if background is not None:
+        expected["background"] = (background, (3,), "[3]")
+    for name, (tensor, shape, shown) in expected.items():
+        if not isinstance(tensor, torch.Tensor):
+            raise InputError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
+        if tuple(tensor.shape) != shape:
+            raise InputError(f"{name} must have shape {shown}, got {list(tensor.shape)}")
+        if tensor.dtype not in (torch.float32, torch.float64):
+            raise InputError(f"{name} must be float32 or float64, got {tensor.dtype}")
+        if tensor.dtype != means.dtype or tensor.device != means.device:
+            raise InputError(
+                f"{name} is {tensor.dtype} on {tensor.device} but means is "
+                f"{means.dtype} on {means.device}"
+            )
+    if intrinsics.width <= 0 or intrinsics.height <= 0:
+        raise InputError(f"image size must be positive, got {intrinsics.width}x{intrinsics.height}")

@@ -1,0 +1,91 @@
+"""CUDA rendering through gsplat's `rasterization()` (optional extra `gscompress[gpu]`).
+
+gsplat samples pixel (i, j) at (i + 0.5, j + 0.5) with `u = fx x / z + cx`, whereas gscompress
+samples it at (i, j) (OpenCV convention); the principal point handed to gsplat is therefore
+shifted by +0.5 px so that both put every Gaussian at the same place relative to the pixels.
+gsplat's kernels are float32: float64 inputs are rendered in float32 and the outputs cast back.
+
+Known differences from the torch/cpu backends, all at the level of single pixels or rounding:
+gsplat stops compositing when T would become <= 1e-4 (we stop at < 1e-4), and recent gsplat
+versions shrink a Gaussian's tile footprint using its opacity.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from gscompress.camera import Intrinsics
+from gscompress.errors import InputError, MissingDependencyError
+from gscompress.render.core import RenderOutput, finish_output
+
+
+def render_gsplat(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    intrinsics: Intrinsics,
+    T_cam_world: torch.Tensor,
+    *,
+    want_contribution: bool,
+    near: float,
+    background: torch.Tensor | None,
+) -> RenderOutput:
+    """`gscompress.render.render` on CUDA via gsplat (same arguments and output).
+
+    The contribution uses the identity contribution_i = d(sum over pixels of an extra
+    rendered channel) / d(f_i) with f_i = 1 for every Gaussian: that channel renders
+    sum_i alpha_i T_i f_i, so its gradient w.r.t. f_i is sum over pixels of alpha_i T_i.
+
+    Raises:
+        MissingDependencyError: gsplat is not installed.
+        InputError: the tensors are not on a CUDA device.
+    """
+    try:
+        from gsplat import rasterization
+    except ImportError as exc:
+        raise MissingDependencyError(
+            "backend='gsplat' needs the gsplat package: pip install gscompress[gpu]"
+        ) from exc
+    if means.device.type != "cuda":
+        raise InputError(f"backend='gsplat' needs CUDA tensors, got {means.device}")
+
+    dtype, device = means.dtype, means.device
+    n = means.shape[0]
+    width, height = intrinsics.width, intrinsics.height
+    K = torch.tensor(
+        [[intrinsics.fx, 0.0, intrinsics.cx + 0.5],
+         [0.0, intrinsics.fy, intrinsics.cy + 0.5],
+         [0.0, 0.0, 1.0]],
+        dtype=torch.float32, device=device,
+    )  # [3, 3]  # fmt: skip
+    grad_wanted = torch.is_grad_enabled()
+    with torch.enable_grad():
+        features = colors.float()  # [N, 3]
+        ones = None
+        if want_contribution:
+            ones = torch.ones(n, 1, dtype=torch.float32, device=device, requires_grad=True)
+            features = torch.cat([features, ones], dim=1)  # [N, 4]
+        rendered, alphas, meta = rasterization(
+            means.float(), quats.float(), scales.float(), opacities.float(), features,
+            T_cam_world.float()[None], K[None], width, height,
+            near_plane=near, eps2d=0.3, packed=False, render_mode="RGB+D",
+        )  # rendered [1, H, W, 3 (+1) + 1], alphas [1, H, W, 1]  # fmt: skip
+        contribution = None
+        if ones is not None:
+            (grad_ones,) = torch.autograd.grad(
+                rendered[0, ..., 3].sum(), ones, retain_graph=grad_wanted
+            )  # [N, 1]
+            contribution = grad_ones[:, 0].to(dtype)  # [N]
+    rendered = rendered[0].to(dtype)  # [H, W, C]
+    T_final = 1.0 - alphas[0, ..., 0].to(dtype)  # [H, W]
+    if not grad_wanted:
+        rendered, T_final = rendered.detach(), T_final.detach()
+    radii = meta["radii"][0]  # [N] or [N, 2] (per-axis radii in recent gsplat)
+    if radii.dim() == 2:
+        radii = radii.max(dim=-1).values
+    return finish_output(
+        rendered[..., :3], rendered[..., -1], T_final, radii.to(torch.int32), contribution,
+        background, "gsplat",
+    )  # fmt: skip
