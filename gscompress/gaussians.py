@@ -334,7 +334,7 @@ def random_map(
         log_scales=rng.uniform(-5.0, -2.0, (n, 1 if isotropic else 3)),
         quats=rng.normal(size=(n, 4)) + np.array([3.0, 0, 0, 0]),
         opacity_logits=rng.normal(0.0, 2.0, n),
-        sh_dc=rng.normal(0.0, 1.0, (n, 3)),
+        sh_dc=(rng.uniform(0.0, 1.0, (n, 3)) - 0.5) / SH_C0,  # colours in [0, 1]
         sh_rest=rng.normal(0.0, 0.1, (n, k, 3)),
         ids=rng.permutation(n).astype(np.uint32) + np.uint32(1000),
         importance_sum=rng.exponential(5.0, n) if scored else zeros,
