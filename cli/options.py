@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import json
+import re
 import shlex
 import sys
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
+
+from gscompress.errors import InputError
+
+if TYPE_CHECKING:
+    from gscompress.datasets.base import FrameSelection
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -63,3 +69,60 @@ def command_line() -> str:
 def emit(result: dict[str, Any], as_json: bool, text: str) -> None:
     """Print a command's result: the JSON object with --json, else the text."""
     click.echo(json.dumps(result, indent=2, sort_keys=True) if as_json else text)
+
+
+class Size(click.ParamType):
+    """An image size written `WxH` (e.g. 320x240), converted to the tuple (W, H)."""
+
+    name = "WxH"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> tuple[int, int]:
+        if isinstance(value, tuple):
+            return value
+        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(value))
+        if m is None or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+            self.fail(f"{value!r} is not a size WxH of positive integers, e.g. 320x240", param, ctx)
+        return int(m.group(1)), int(m.group(2))
+
+
+class FrameSubset(click.ParamType):
+    """A frame subset: all, odd, even or START:STOP:STEP (`gscompress.datasets.parse_frames`)."""
+
+    name = "subset"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> FrameSelection:
+        # imported here so that commands without --frames never load the dataset readers
+        from gscompress.datasets.base import FrameSelection, parse_frames
+
+        if isinstance(value, FrameSelection):
+            return value
+        try:
+            return parse_frames(str(value))
+        except InputError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+def size_option(default: str | None = None, help: str | None = None) -> Callable[[F], F]:
+    """`--size WxH`: the working image size (None when not given and no default)."""
+    return click.option(
+        "--size",
+        type=Size(),
+        default=default,
+        show_default=default is not None,
+        help=help or "Working image size WxH (resizes colour, depth and intrinsics).",
+    )
+
+
+def frames_option(f: F) -> F:
+    """`--frames SUBSET`: all, odd (agent A), even (agent B) or START:STOP:STEP."""
+    return click.option(
+        "--frames",
+        type=FrameSubset(),
+        default="all",
+        show_default=True,
+        help="Frames to use (0-based): all, odd (agent A), even (agent B) or START:STOP:STEP.",
+    )(f)

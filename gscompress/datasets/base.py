@@ -1,0 +1,386 @@
+"""The RGB-D sequence interface, frame subsets, and image loading shared by every layout.
+
+A sequence is a list of associated colour/depth frames with one set of pinhole intrinsics and,
+when the dataset has it, a ground-truth camera-to-world pose per frame. `open_sequence`
+(in `gscompress.datasets`) picks the reader by folder layout; every reader returns frames as
+`Frame` records: colour [H, W, 3] float32 in [0, 1], depth [H, W] float32 metres (0 = invalid).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from PIL import Image
+
+from gscompress.camera import Intrinsics
+from gscompress.errors import DatasetError, InputError
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One associated RGB-D frame.
+
+    Attributes:
+        index: 0-based position of the frame among all associated frames of the sequence,
+            before any subset (`frames="odd"`, ...) is applied.
+        timestamp: seconds.
+        color: [H, W, 3] float32 in [0, 1].
+        depth: [H, W] float32 metres along the optical axis; 0 where invalid.
+        T_world_cam: [4, 4] float64 ground-truth camera-to-world pose, or None.
+    """
+
+    index: int
+    timestamp: float
+    color: np.ndarray
+    depth: np.ndarray
+    T_world_cam: np.ndarray | None
+
+
+@runtime_checkable
+class RGBDSequence(Protocol):
+    """What the SLAM front end and the evaluation need from a sequence."""
+
+    @property
+    def name(self) -> str:
+        """A short name (usually the folder name)."""
+        ...
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        """Intrinsics at the working size (after any resize)."""
+        ...
+
+    @property
+    def has_ground_truth(self) -> bool:
+        """True when at least one selected frame has a ground-truth pose."""
+        ...
+
+    @property
+    def indices(self) -> np.ndarray:
+        """[N] int64: the original frame index of each selected frame."""
+        ...
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """[N] float64 seconds of each selected frame."""
+        ...
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps [M], T_world_cam [M, 4, 4]) of the selected frames that have a pose."""
+        ...
+
+    def __len__(self) -> int: ...
+
+    def frame(self, i: int) -> Frame:
+        """The i-th selected frame (0 <= i < len)."""
+        ...
+
+
+def iter_frames(sequence: RGBDSequence) -> Iterator[Frame]:
+    """Yield every frame of `sequence` in order."""
+    for i in range(len(sequence)):
+        yield sequence.frame(i)
+
+
+# ---------------------------------------------------------------------------------------------
+# Frame subsets
+
+
+_SLICE_RE = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*(?::\s*(\d*)\s*)?$")
+
+
+@dataclass(frozen=True)
+class FrameSelection:
+    """A subset of frame indices: `all`, `odd`, `even` or a Python slice `START:STOP:STEP`.
+
+    Indices are 0-based positions among the associated frames. In the two-agent protocol the
+    odd-indexed frames (1, 3, 5, ...) go to agent A and the even-indexed ones (0, 2, 4, ...) to
+    agent B, so the two agents see interleaved, disjoint halves of one sequence.
+    """
+
+    start: int | None = None
+    stop: int | None = None
+    step: int = 1
+    spec: str = "all"
+
+    def apply(self, n: int) -> np.ndarray:
+        """[M] int64 selected indices out of `n` frames, increasing."""
+        return np.arange(n, dtype=np.int64)[slice(self.start, self.stop, self.step)]
+
+    def __str__(self) -> str:
+        return self.spec
+
+
+def parse_frames(spec: str | FrameSelection) -> FrameSelection:
+    """Parse a frame-subset spec: `all`, `odd`, `even` or `START:STOP:STEP` (parts optional).
+
+    `START:STOP:STEP` follows Python slicing on the 0-based frame index (`10:`, `:100`, `::5`,
+    `-30:`); STEP must be positive so that frames stay in time order.
+
+    Raises:
+        InputError: anything else.
+    """
+    if isinstance(spec, FrameSelection):
+        return spec
+    text = str(spec).strip().lower()
+    if text == "all":
+        return FrameSelection(spec="all")
+    if text == "odd":
+        return FrameSelection(1, None, 2, spec="odd")
+    if text == "even":
+        return FrameSelection(0, None, 2, spec="even")
+    m = _SLICE_RE.match(text)
+    if m is None:
+        raise InputError(f"bad frame subset {spec!r}: use all, odd, even or START:STOP:STEP")
+    start = int(m.group(1)) if m.group(1) not in ("", "-") else None
+    stop = int(m.group(2)) if m.group(2) not in ("", "-") else None
+    if m.group(1) == "-" or m.group(2) == "-":
+        raise InputError(f"bad frame subset {spec!r}: use all, odd, even or START:STOP:STEP")
+    step = int(m.group(3)) if m.group(3) else 1
+    if step <= 0:
+        raise InputError(f"bad frame subset {spec!r}: STEP must be a positive integer")
+    return FrameSelection(start, stop, step, spec=text)
+
+
+# ---------------------------------------------------------------------------------------------
+# Image loading and resizing
+
+
+def load_color(path: Path) -> np.ndarray:
+    """[H, W, 3] float32 in [0, 1] from an 8-bit colour (or grey) image file."""
+    img = _open_image(path, "colour")
+    with img:
+        if img.mode in ("RGBA", "P", "L", "LA", "CMYK", "YCbCr"):
+            img = img.convert("RGB")
+        if img.mode != "RGB":
+            raise DatasetError(f"colour image {path} has unsupported mode {img.mode}")
+        arr = np.asarray(img, dtype=np.uint8)
+    return arr.astype(np.float32) / np.float32(255.0)
+
+
+def load_depth(path: Path, depth_scale: float) -> np.ndarray:
+    """[H, W] float32 metres from a 16-bit depth PNG holding `depth_scale` units per metre."""
+    img = _open_image(path, "depth")
+    with img:
+        if img.mode in ("L", "P", "RGB", "RGBA", "LA", "1"):
+            raise DatasetError(
+                f"depth image {path} is {img.mode} (8-bit); expected a 16-bit single-channel PNG"
+            )
+        if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+            raise DatasetError(f"depth image {path} has unsupported mode {img.mode}")
+        raw = np.asarray(img)
+    if raw.dtype.kind == "i" and (raw.min(initial=0) < 0 or raw.max(initial=0) > 65535):
+        raise DatasetError(f"depth image {path} has values outside 0..65535")
+    return (raw.astype(np.float64) / depth_scale).astype(np.float32)
+
+
+def _open_image(path: Path, what: str) -> Image.Image:
+    """Open an image lazily, turning every failure into a DatasetError naming the file."""
+    if not path.is_file():
+        raise DatasetError(f"{what} image not found: {path}")
+    try:
+        img = Image.open(path)
+        img.load()
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
+        raise DatasetError(f"cannot read {what} image {path}: {exc}") from None
+    return img
+
+
+def resize_color(color: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize colour [H, W, 3] float32: area average when shrinking, bilinear when enlarging."""
+    h0, w0 = color.shape[:2]
+    if (w0, h0) == (width, height):
+        return color
+    shrink = width <= w0 and height <= h0
+    resample = Image.Resampling.BOX if shrink else Image.Resampling.BILINEAR
+    channels = [
+        np.asarray(
+            Image.fromarray(np.ascontiguousarray(color[..., c], dtype=np.float32), mode="F").resize(
+                (width, height), resample
+            )
+        )
+        for c in range(color.shape[2])
+    ]
+    return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
+
+
+def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize depth [H, W] by nearest neighbour (pixel-centre convention; never mixes depths)."""
+    h0, w0 = depth.shape
+    if (w0, h0) == (width, height):
+        return depth
+    rows = np.minimum(((np.arange(height) + 0.5) * (h0 / height)).astype(np.int64), h0 - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * (w0 / width)).astype(np.int64), w0 - 1)
+    return depth[rows[:, None], cols[None, :]]
+
+
+# ---------------------------------------------------------------------------------------------
+# A sequence backed by image files
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """Where one associated frame lives on disk."""
+
+    timestamp: float
+    color_path: Path
+    depth_path: Path
+    T_world_cam: np.ndarray | None
+
+
+class FileSequence:
+    """An `RGBDSequence` over image files listed by a layout reader (TUM, Replica).
+
+    Frames are loaded on demand; `frame(i)` checks that colour, depth and intrinsics agree on
+    the image size and resizes to the working size when one was asked for.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        records: Sequence[FrameRecord],
+        native_intrinsics: Intrinsics,
+        depth_scale: float,
+        selection: FrameSelection,
+        size: tuple[int, int] | None = None,
+    ) -> None:
+        if depth_scale <= 0 or not np.isfinite(depth_scale):
+            raise DatasetError(f"{name}: depth scale must be positive, got {depth_scale}")
+        self._name = name
+        self._all = list(records)
+        self._indices = selection.apply(len(self._all))
+        if len(self._indices) == 0:
+            raise DatasetError(
+                f"{name}: frame subset {selection} selects none of {len(self._all)} frames"
+            )
+        self._native = native_intrinsics
+        self._depth_scale = float(depth_scale)
+        w, h = size if size is not None else (native_intrinsics.width, native_intrinsics.height)
+        self._intrinsics = native_intrinsics.scaled(w, h)
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    @property
+    def native_intrinsics(self) -> Intrinsics:
+        """Intrinsics at the size of the files."""
+        return self._native
+
+    @property
+    def depth_scale(self) -> float:
+        """Depth PNG units per metre."""
+        return self._depth_scale
+
+    @property
+    def indices(self) -> np.ndarray:
+        return self._indices.copy()
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return np.array([self._all[i].timestamp for i in self._indices], dtype=np.float64)
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(self._all[i].T_world_cam is not None for i in self._indices)
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        recs = [self._all[i] for i in self._indices if self._all[i].T_world_cam is not None]
+        stamps = np.array([r.timestamp for r in recs], dtype=np.float64)
+        poses = np.array([r.T_world_cam for r in recs], dtype=np.float64).reshape(-1, 4, 4)
+        return stamps, poses
+
+    def __len__(self) -> int:
+        return len(self._indices)
+
+    def __iter__(self) -> Iterator[Frame]:
+        return iter_frames(self)
+
+    def frame(self, i: int) -> Frame:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame {i} out of range for {len(self)} frames")
+        index = int(self._indices[i])
+        rec = self._all[index]
+        color = load_color(rec.color_path)
+        depth = load_depth(rec.depth_path, self._depth_scale)
+        if color.shape[:2] != depth.shape:
+            raise DatasetError(
+                f"size mismatch: colour {rec.color_path} is {color.shape[1]}x{color.shape[0]}, "
+                f"depth {rec.depth_path} is {depth.shape[1]}x{depth.shape[0]}"
+            )
+        if color.shape[:2] != (self._native.height, self._native.width):
+            raise DatasetError(
+                f"colour {rec.color_path} is {color.shape[1]}x{color.shape[0]} but the "
+                f"intrinsics are for {self._native.width}x{self._native.height}"
+            )
+        k = self._intrinsics
+        return Frame(
+            index=index,
+            timestamp=rec.timestamp,
+            color=resize_color(color, k.width, k.height),
+            depth=resize_depth(depth, k.width, k.height),
+            T_world_cam=None if rec.T_world_cam is None else rec.T_world_cam.copy(),
+        )
+
+
+def check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
+    """Validate a working size (W, H)."""
+    if size is None:
+        return None
+    try:
+        w, h = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise InputError(f"size must be (width, height), got {size!r}") from None
+    if w <= 0 or h <= 0:
+        raise InputError(f"size must be positive, got {w}x{h}")
+    return w, h
+
+
+def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
+    """Intrinsics and optional depth scale (units per metre) from a JSON file.
+
+    Two schemas are accepted: flat `{"fx", "fy", "cx", "cy", "width", "height",
+    "depth_scale"?}` (ours, written by `gsc synth`) and NICE-SLAM's `cam_params.json`
+    `{"camera": {"fx", "fy", "cx", "cy", "w", "h", "scale"?}}`.
+
+    Raises:
+        DatasetError: missing file, bad JSON, or missing / non-positive fields.
+    """
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DatasetError(f"intrinsics file not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"cannot read intrinsics file {path}: {exc}") from None
+    if isinstance(data, dict) and isinstance(data.get("camera"), dict):
+        data = dict(data["camera"])
+        data.setdefault("width", data.get("w"))
+        data.setdefault("height", data.get("h"))
+        data.setdefault("depth_scale", data.get("scale"))
+    if not isinstance(data, dict):
+        raise DatasetError(f"intrinsics file {path}: expected a JSON object")
+    try:
+        fx, fy, cx, cy = (float(data[k]) for k in ("fx", "fy", "cx", "cy"))
+        width, height = int(data["width"]), int(data["height"])
+        scale = data.get("depth_scale")
+        depth_scale = None if scale is None else float(scale)
+    except KeyError as exc:
+        raise DatasetError(f"intrinsics file {path}: missing field {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(f"intrinsics file {path}: bad value ({exc})") from None
+    values = [fx, fy, cx, cy, width, height] + ([depth_scale] if depth_scale else [])
+    if fx <= 0 or fy <= 0 or width <= 0 or height <= 0 or not np.all(np.isfinite(values)):
+        raise DatasetError(f"intrinsics file {path}: focal lengths and size must be positive")
+    if depth_scale is not None and depth_scale <= 0:
+        raise DatasetError(f"intrinsics file {path}: depth_scale must be positive")
+    return Intrinsics(fx, fy, cx, cy, width, height), depth_scale

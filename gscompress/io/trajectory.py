@@ -1,0 +1,142 @@
+"""TUM trajectory text files: `timestamp tx ty tz qx qy qz qw`, one pose per line.
+
+The format that the TUM RGB-D benchmark, evo (`evo_ape tum GT EST`) and most SLAM systems read
+and write. Poses are camera-to-world (`T_world_cam`). Reading is tolerant of `#` comments,
+blank lines, surrounding whitespace and commas as separators, and strict on everything else: a
+row that does not hold exactly eight finite numbers, or whose quaternion has zero length, is an
+`InputError` that names the file and line.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gscompress.camera import pose_from_tum, pose_to_tum
+from gscompress.errors import InputError, OutputError
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Timestamped camera-to-world poses.
+
+    Attributes:
+        timestamps: [N] float64 seconds, in file order.
+        T_world_cam: [N, 4, 4] float64 camera-to-world transforms.
+    """
+
+    timestamps: np.ndarray
+    T_world_cam: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.timestamps)
+        if np.shape(self.timestamps) != (n,) or np.shape(self.T_world_cam) != (n, 4, 4):
+            raise InputError(
+                f"trajectory needs timestamps [N] and poses [N, 4, 4], got "
+                f"{np.shape(self.timestamps)} and {np.shape(self.T_world_cam)}"
+            )
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+
+def parse_tum_trajectory(text: str, source: str = "<text>") -> Trajectory:
+    """Parse the text of a TUM trajectory file.
+
+    Args:
+        text: file content.
+        source: the name used in error messages (usually the path).
+
+    Returns:
+        The trajectory (possibly empty).
+
+    Raises:
+        InputError: a row that is not eight finite numbers with a non-zero quaternion.
+    """
+    stamps: list[float] = []
+    rows: list[list[float]] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].replace(",", " ").strip()
+        if not line:
+            continue
+        fields = line.split()
+        if len(fields) != 8:
+            raise InputError(
+                f"{source}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', "
+                f"got {len(fields)}"
+            )
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            raise InputError(f"{source}:{lineno}: not a number in {line!r}") from None
+        if not all(math.isfinite(v) for v in values):
+            raise InputError(f"{source}:{lineno}: non-finite value in {line!r}")
+        if math.hypot(*values[4:8]) < 1e-12:
+            raise InputError(f"{source}:{lineno}: zero-length quaternion")
+        stamps.append(values[0])
+        rows.append(values[1:])
+    if not rows:
+        return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+    return Trajectory(np.asarray(stamps, dtype=np.float64), pose_from_tum(np.asarray(rows)))
+
+
+def read_tum_trajectory(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file (see `parse_tum_trajectory`).
+
+    Raises:
+        InputError: the file is missing, unreadable, or has a malformed row.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"trajectory file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read trajectory file {path}: {exc}") from None
+    return parse_tum_trajectory(text, source=str(path))
+
+
+def format_tum_trajectory(
+    timestamps: np.ndarray, T_world_cam: np.ndarray, comments: Iterable[str] = ()
+) -> str:
+    """TUM text for `timestamps` [N] (s) and camera-to-world poses `T_world_cam` [N, 4, 4].
+
+    Numbers are written with Python's shortest round-trip representation, so reading the text
+    back gives the same timestamps and translations bit for bit (rotations up to the
+    matrix -> quaternion conversion, about 1e-15).
+    """
+    traj = Trajectory(np.asarray(timestamps, np.float64), np.asarray(T_world_cam, np.float64))
+    lines = [f"# {c}" for c in comments]
+    lines.append("# timestamp tx ty tz qx qy qz qw")
+    if len(traj):
+        tum = pose_to_tum(traj.T_world_cam)
+        if not (np.all(np.isfinite(tum)) and np.all(np.isfinite(traj.timestamps))):
+            raise InputError("trajectory has non-finite timestamps or poses")
+        for t, row in zip(traj.timestamps.tolist(), tum.tolist(), strict=True):
+            lines.append(" ".join(repr(float(v)) for v in (t, *row)))
+    return "\n".join(lines) + "\n"
+
+
+def write_tum_trajectory(
+    path: str | Path,
+    timestamps: np.ndarray,
+    T_world_cam: np.ndarray,
+    comments: Iterable[str] = (),
+) -> None:
+    """Write a TUM trajectory file that evo and `read_tum_trajectory` read.
+
+    Args:
+        path: output file (overwritten).
+        timestamps: [N] seconds.
+        T_world_cam: [N, 4, 4] camera-to-world poses.
+        comments: lines written first, each prefixed by `# `.
+    """
+    text = format_tum_trajectory(timestamps, T_world_cam, comments)
+    try:
+        Path(path).write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise OutputError(f"cannot write trajectory file {path}: {exc}") from None
