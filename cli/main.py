@@ -23,6 +23,7 @@ COMMANDS: dict[str, str] = {
     "prune": "prune:prune",
     "share": "share:share",
     "export-ply": "export_ply:export_ply",
+    "score": "score:score",
     "synth": "synth:synth",
 }
 

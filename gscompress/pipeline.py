@@ -9,6 +9,7 @@ import) import neither torch nor the SLAM code.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -61,25 +62,46 @@ def prune_log(
     message, earlier snapshots included, passes through unchanged.
     """
     check_ratio(keep, "--keep")
-    check_output(dst, [src], force)
+
+    def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+        kept, _ = select_top(full, keep, by, seed)
+        return kept, {"kept": len(kept), "total": len(full)}
+
     operation = {"name": "prune", "keep": keep, "by": by, "seed": seed}
+    return rewrite_map(src, dst, operation, prune, command=command, force=force)
+
+
+def rewrite_map(
+    src: str | Path,
+    dst: str | Path,
+    operation: dict[str, Any],
+    transform: Callable[[GaussianMap], tuple[GaussianMap, dict[str, Any]]],
+    *,
+    command: str = "",
+    force: bool = False,
+) -> dict[str, Any]:
+    """Copy a log, replacing its map (the last snapshot) by `transform(map)`.
+
+    Every other message passes through unchanged; the output's provenance gains `operation` and
+    its results are what `transform` returns beside the new map.
+    """
+    check_output(dst, [src], force)
     with LogReader(src) as log_in:
-        last = log_in.snapshot_count - 1
-        if last < 0:
-            log_in.read_map()  # raises the "no /gaussians" error
+        last = log_in.require_snapshots() - 1
         meta = log_in.metadata.derive(operation, src)
         meta.command = command
         with LogWriter(dst, meta, inputs=[src], force=force) as out:
             snapshot = 0
             for schema, channel, message in log_in.iter_messages():
-                if channel.topic == TOPIC_GAUSSIANS and snapshot == last:
-                    full = log_in.decode_map(schema, message)
-                    kept, _ = select_top(full, keep, by, seed)
-                    out.write_gaussians(kept, message.log_time)
-                    meta.results = {"kept": len(kept), "total": len(full)}
+                if channel.topic != TOPIC_GAUSSIANS:
+                    out.copy_message(schema, channel, message)
+                    continue
+                if snapshot == last:
+                    new_map, meta.results = transform(log_in.decode_map(schema, message))
+                    out.write_gaussians(new_map, message.log_time)
                 else:
                     out.copy_message(schema, channel, message)
-                snapshot += channel.topic == TOPIC_GAUSSIANS
+                snapshot += 1
     return {"output": str(dst), **meta.results}
 
 
@@ -201,3 +223,104 @@ def map_summary(gaussians: GaussianMap, histogram_bins: int = 10) -> dict[str, A
         summary["importance_histogram"] = {"counts": counts.tolist(), "edges": edges.tolist()}
         summary["scored"] = int(np.count_nonzero(gaussians.importance_weight > 0))
     return summary
+
+
+def score_file(
+    src: str | Path,
+    dst: str | Path,
+    seq: str | Path,
+    *,
+    poses: str | Path | None = None,
+    frames: str = "all",
+    size: tuple[int, int] | None = None,
+    sigma_d: float = 20.0,
+    backend: str = "auto",
+    command: str = "",
+    force: bool = False,
+    progress: Callable[[int], object] | None = None,
+) -> dict[str, Any]:
+    """PWAS-score the map in `src` (a log or a 3DGS PLY) from the views of sequence `seq`.
+
+    The map is rendered, not optimised, from every selected frame at its ground-truth pose or
+    at the pose `poses` (a TUM trajectory) gives for its timestamp. An MCAP input is copied with
+    its map replaced by the scored one; a PLY input becomes a new log with calibration, the view
+    poses and the scored map. Needs torch (the renderer).
+    """
+    from gscompress.datasets import open_sequence
+    from gscompress.importance import PwasConfig
+    from gscompress.ops.score import score_map
+
+    check_output(dst, [src], force)
+    if not sigma_d > 0:
+        raise InputError(f"--sigma-d must be positive, got {sigma_d}")
+    sequence = open_sequence(seq, size=size, frames=frames)
+    stamps, T_world_cams = view_poses(sequence, poses)
+    config = PwasConfig(sigma_d=sigma_d)
+
+    def score(gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+        scored = score_map(
+            gaussians, T_world_cams, sequence.intrinsics, config, backend=backend, progress=progress
+        )
+        seen = int(np.count_nonzero(scored.importance_weight > 0))
+        return scored, {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen}
+
+    operation = {
+        "name": "score",
+        "sequence": sequence.name,
+        "frames": str(frames),
+        "poses": Path(poses).name if poses else "ground truth",
+        "sigma_d": sigma_d,
+        "size": list(size) if size else None,
+    }
+    if Path(src).suffix.lower() != ".ply":
+        return rewrite_map(src, dst, operation, score, command=command, force=force)
+    scored, results = score(read_ply(src))
+    meta = LogMetadata(command=command, sequence=sequence.name, frames=str(frames))
+    meta = meta.derive(operation, src)
+    meta.command, meta.results = command, results
+    with LogWriter(dst, meta, inputs=[src], force=force) as out:
+        out.write_calibration(sequence.intrinsics, 0)
+        for stamp, T in zip(stamps, T_world_cams, strict=True):
+            out.write_pose(T, seconds_to_ns(stamp))
+        out.write_gaussians(scored, seconds_to_ns(stamps[-1]) if len(stamps) else 0)
+    return {"output": str(dst), **results}
+
+
+def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.ndarray]:
+    """(timestamps [M], camera-to-world [M, 4, 4]) of a sequence's selected frames.
+
+    From the sequence's ground truth, or from the TUM trajectory `poses` associated to the
+    frames by nearest timestamp (within 0.02 s).
+    """
+    from gscompress.errors import DatasetError
+    from gscompress.io.trajectory import read_tum_trajectory
+
+    if poses is None:
+        if not sequence.has_ground_truth:
+            raise DatasetError(
+                f"{sequence.name} has no ground-truth poses; pass --poses TRAJ.txt (TUM format)"
+            )
+        stamps, T = sequence.ground_truth()
+        return np.asarray(stamps), np.asarray(T)
+    trajectory = read_tum_trajectory(poses)
+    stamps = np.asarray(sequence.timestamps)
+    if len(trajectory) == 0:
+        raise DatasetError(f"{poses} holds no poses")
+    order = np.argsort(trajectory.timestamps)
+    t_sorted = trajectory.timestamps[order]
+    pos = np.clip(np.searchsorted(t_sorted, stamps), 1, max(len(t_sorted) - 1, 1))
+    left = np.clip(pos - 1, 0, len(t_sorted) - 1)
+    right = np.clip(pos, 0, len(t_sorted) - 1)
+    nearest = np.where(
+        np.abs(t_sorted[left] - stamps) <= np.abs(t_sorted[right] - stamps), left, right
+    )
+    gap = np.abs(t_sorted[nearest] - stamps)
+    if np.any(gap > 0.02):
+        worst = float(stamps[int(np.argmax(gap))])
+        raise DatasetError(f"{poses} has no pose within 0.02 s of frame time {worst:.6f}")
+    return stamps, trajectory.T_world_cam[order[nearest]]
+
+
+def seconds_to_ns(seconds: float) -> int:
+    """Integer nanoseconds (log times) from seconds."""
+    return round(float(seconds) * 1e9)

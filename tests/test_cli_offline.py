@@ -7,7 +7,6 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from gscompress_cli.main import cli
 
 from gscompress.gaussians import random_map
 from gscompress.io.mcap_log import (
@@ -18,6 +17,7 @@ from gscompress.io.mcap_log import (
     read_map,
 )
 from gscompress.io.ply import read_ply, write_ply
+from gscompress_cli.main import cli
 
 
 def run(*args):

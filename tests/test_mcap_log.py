@@ -5,7 +5,6 @@ import json
 import jsonschema
 import numpy as np
 import pytest
-from gscompress_schemas import PROFILE_VERSION, load_schema
 from mcap.reader import make_reader
 
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
@@ -25,6 +24,7 @@ from gscompress.io.mcap_log import (
     pointcloud_to_gaussians,
     read_map,
 )
+from gscompress_schemas import PROFILE_VERSION, load_schema
 
 
 @pytest.mark.parametrize("isotropic", [True, False])

@@ -446,6 +446,15 @@ class LogReader:
         """Number of `/gaussians` messages (map snapshots)."""
         return sum(c.messages for c in self.channels if c.topic == TOPIC_GAUSSIANS)
 
+    def require_snapshots(self) -> int:
+        """The number of map snapshots; LogFormatError when the log has none."""
+        count = self.snapshot_count
+        if count == 0:
+            raise LogFormatError(
+                f"{self.path} has no {TOPIC_GAUSSIANS} channel: not a gscompress map log"
+            )
+        return count
+
     def _guard(self) -> Any:
         return _ReadGuard(self.path)
 
@@ -462,11 +471,7 @@ class LogReader:
         Raises:
             LogFormatError: no `/gaussians` channel, index out of range, or a malformed cloud.
         """
-        count = self.snapshot_count
-        if count == 0:
-            raise LogFormatError(
-                f"{self.path} has no {TOPIC_GAUSSIANS} channel: not a gscompress map log"
-            )
+        count = self.require_snapshots()
         if not -count <= snapshot < count:
             raise LogFormatError(f"{self.path} has {count} snapshot(s); no snapshot {snapshot}")
         index = snapshot % count

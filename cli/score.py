@@ -1,0 +1,103 @@
+"""`gsc score`: PWAS importance for an existing map from a sequence's views."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+from tqdm import tqdm
+
+from gscompress.pipeline import score_file
+
+from .options import FrameSubset, command_line, emit, force_option, json_option, size_option
+
+
+@click.command("score")
+@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--seq",
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    required=True,
+    help="RGB-D sequence folder (TUM or Replica layout).",
+)
+@click.option(
+    "--poses",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="TUM trajectory of the views (default: the ground truth).",
+)
+@click.option(
+    "--frames",
+    type=FrameSubset(),
+    default="all",
+    show_default=True,
+    help="Views to score from: all, odd, even or START:STOP:STEP.",
+)
+@size_option(help="Render at this size WxH (default: the sequence's own).")
+@click.option(
+    "--sigma-d",
+    type=float,
+    default=20.0,
+    show_default=True,
+    help="Distance scale of the PWAS proximity weight, metres.",
+)
+@click.option(
+    "--backend",
+    type=click.Choice(["auto", "cpu", "torch", "gsplat"]),
+    default="auto",
+    show_default=True,
+    help="Render backend.",
+)
+@click.option(
+    "-o",
+    "--output",
+    "dst",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Output log (.mcap).",
+)
+@force_option
+@json_option
+def score(
+    src: Path,
+    seq: Path,
+    poses: Path | None,
+    frames: object,
+    size: tuple[int, int] | None,
+    sigma_d: float,
+    backend: str,
+    dst: Path,
+    force: bool,
+    as_json: bool,
+) -> None:
+    """Score every Gaussian of the map in SRC (.mcap log or 3DGS .ply) with PWAS.
+
+    The map is rendered from each selected frame of SEQ (no optimisation) and each Gaussian's
+    proximity-weighted alpha x transmittance is accumulated, so maps made by any 3DGS tool can
+    be pruned and shared by importance.
+
+    \b
+    Example:
+      gsc score point_cloud.ply --seq data/office --size 320x240 -o scored.mcap
+      gsc prune scored.mcap --keep 0.3 -o small.mcap
+    """
+    with tqdm(desc="score", unit="view", leave=False, disable=as_json) as bar:
+        result = score_file(
+            src,
+            dst,
+            seq,
+            poses=poses,
+            frames=str(frames),
+            size=size,
+            sigma_d=sigma_d,
+            backend=backend,
+            command=command_line(),
+            force=force,
+            progress=bar.update,
+        )
+    emit(
+        result,
+        as_json,
+        f"scored {result['scored']} of {result['gaussians']} Gaussians from "
+        f"{result['views']} views -> {dst}",
+    )

@@ -1,0 +1,84 @@
+"""PWAS scores for an existing map: render it from a sequence's views and accumulate.
+
+No optimisation happens: a map made by any 3DGS tool (or by gsc) gets its importance sums from
+the views it is seen from, so that it can be pruned and shared like a map recorded by
+`gsc slam`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+
+import numpy as np
+import torch
+
+from gscompress.camera import Intrinsics, invert_transform
+from gscompress.gaussians import SH_C0, GaussianMap
+from gscompress.importance import ImportanceSums, PwasConfig
+from gscompress.render import render
+
+
+def activated_tensors(
+    gaussians: GaussianMap, device: str | torch.device = "cpu"
+) -> dict[str, torch.Tensor]:
+    """The renderer's inputs for a map: means, quats, [N, 3] scales, opacities, RGB colours."""
+    t = gaussians.to_tensors(device)
+    return {
+        "means": t["means"],
+        "quats": t["quats"],
+        "scales": torch.exp(t["log_scales"]).expand(len(gaussians), 3),
+        "opacities": torch.sigmoid(t["opacity_logits"]),
+        "colors": (0.5 + SH_C0 * t["sh_dc"]).clamp_min(0.0),
+    }
+
+
+def score_map(
+    gaussians: GaussianMap,
+    T_world_cams: Iterable[np.ndarray],
+    intrinsics: Intrinsics,
+    config: PwasConfig | None = None,
+    *,
+    backend: str = "auto",
+    device: str | torch.device = "cpu",
+    accumulate: bool = False,
+    progress: Callable[[int], object] | None = None,
+) -> GaussianMap:
+    """Render `gaussians` from every camera pose and return the map with its PWAS sums.
+
+    Args:
+        gaussians: the map.
+        T_world_cams: camera-to-world 4x4 poses of the views to score from.
+        intrinsics: camera intrinsics (and image size) of the views.
+        config: PWAS settings.
+        backend: render backend (see `gscompress.render.render`).
+        device: torch device for rendering.
+        accumulate: add to the map's existing sums instead of starting from zero.
+        progress: called with 1 after each view.
+
+    Returns:
+        A copy of the map with importance_sum, importance_weight and alpha_t_sum set.
+    """
+    params = activated_tensors(gaussians, device)
+    n = len(gaussians)
+    config = config or PwasConfig()
+    sums = ImportanceSums.zeros(n, device)
+    if accumulate:
+        t = gaussians.to_tensors(device, torch.float64)
+        sums = ImportanceSums(t["importance_sum"], t["importance_weight"], t["alpha_t_sum"])
+    for T_world_cam in T_world_cams:
+        T_cam_world = torch.as_tensor(invert_transform(T_world_cam), dtype=torch.float32)
+        with torch.no_grad():
+            out = render(
+                **params, intrinsics=intrinsics, T_cam_world=T_cam_world.to(device),
+                backend=backend, want_contribution=True,
+            )  # fmt: skip
+        assert out.contribution is not None
+        center = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], device=device)
+        sums.accumulate(out.contribution, out.visible, params["means"], center, config)
+        if progress is not None:
+            progress(1)
+    return gaussians.with_importance(
+        sums.importance_sum.cpu().numpy(),
+        sums.importance_weight.cpu().numpy(),
+        sums.alpha_t_sum.cpu().numpy(),
+    )

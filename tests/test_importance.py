@@ -1,0 +1,132 @@
+"""PWAS accumulation, scoring an existing map by rendering, and `gsc score`."""
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from gscompress.camera import Intrinsics, make_transform
+from gscompress.gaussians import SH_C0, GaussianMap
+from gscompress.importance import ImportanceSums, PwasConfig
+from gscompress.io.mcap_log import LogReader, read_map
+from gscompress.io.ply import write_ply
+from gscompress.ops.score import score_map
+from gscompress.ops.select import select_top
+from gscompress.slam.densify import gaussians_from_rgbd
+from gscompress_cli.main import cli
+
+INTR = Intrinsics(40.0, 40.0, 15.5, 11.5, 32, 24)
+
+
+def test_accumulate_matches_the_equations():
+    sums = ImportanceSums.zeros(3)
+    means = torch.tensor([[0.0, 0, 1], [0, 0, 5], [0, 0, 50]])
+    config = PwasConfig(sigma_d=2.0)
+    frames = [
+        (torch.tensor([4.0, 1.0, 0.0]), torch.tensor([True, True, False]), torch.zeros(3)),
+        (
+            torch.tensor([2.0, 0.0, 0.0]),
+            torch.tensor([True, True, True]),
+            torch.tensor([0, 0, 1.0]),
+        ),
+    ]
+    for contribution, visible, center in frames:
+        sums.accumulate(contribution, visible, means, center, config)
+    w = [[np.exp(-d / 2.0) for d in (1, 5, 50)], [np.exp(-d / 2.0) for d in (0, 4, 49)]]
+    S = [4 * w[0][0] + 2 * w[1][0], 1 * w[0][1], 0.0]
+    W = [w[0][0] + w[1][0], w[0][1] + w[1][1], w[1][2]]
+    np.testing.assert_allclose(sums.importance_sum.numpy(), S, rtol=1e-12)
+    np.testing.assert_allclose(sums.importance_weight.numpy(), W, rtol=1e-12)
+    np.testing.assert_allclose(sums.alpha_t_sum.numpy(), [6, 1, 0])
+    np.testing.assert_allclose(sums.score().numpy(), np.array(S) / (np.array(W) + 1e-8))
+    # visible-but-occluded frames lower the score (the second Gaussian)
+    assert sums.score()[1] < 1.0
+
+
+def _scene() -> GaussianMap:
+    """A large near Gaussian in front of a small distant one on the optical axis, plus one
+    off to the side that no camera sees."""
+    return GaussianMap.new(
+        means=[[0.0, 0.0, 1.0], [0.0, 0.0, 4.0], [30.0, 0.0, 1.0]],
+        log_scales=np.log([[0.2], [0.05], [0.1]]),
+        quats=[[1, 0, 0, 0]] * 3,
+        opacity_logits=[4.0, 4.0, 4.0],
+        sh_dc=np.full((3, 3), (0.7 - 0.5) / SH_C0),
+    )
+
+
+def test_score_ranks_near_large_above_distant_occluded():
+    views = [make_transform(np.eye(3), np.array([dx, 0.0, 0.0])) for dx in (-0.05, 0.0, 0.05)]
+    scored = score_map(_scene(), views, INTR, backend="torch")
+    s = scored.importance
+    assert s[0] > 10 * s[1] > 0
+    assert scored.importance_weight[2] == 0 and s[2] == 0  # never visible
+    assert scored.importance_weight[1] > 0  # visible, though occluded
+    kept, _ = select_top(scored, 1 / 3, "pwas")
+    assert kept.ids.tolist() == [0]
+
+
+def test_score_from_views_accumulates_across_calls():
+    views = [make_transform(np.eye(3), np.zeros(3))]
+    once = score_map(_scene(), views * 2, INTR, backend="torch")
+    twice = score_map(score_map(_scene(), views, INTR, backend="torch"), views, INTR,
+                      backend="torch", accumulate=True)  # fmt: skip
+    np.testing.assert_allclose(twice.importance_sum, once.importance_sum, rtol=1e-6)
+    np.testing.assert_allclose(twice.importance_weight, once.importance_weight, rtol=1e-6)
+
+
+def test_backprojection_lands_on_the_depth():
+    depth = np.full((24, 32), 2.0, np.float32)
+    depth[:, :4] = 0
+    color = np.random.default_rng(0).random((24, 32, 3)).astype(np.float32)
+    T = make_transform(np.eye(3), np.array([1.0, 2.0, 3.0]))
+    g = gaussians_from_rgbd(color, depth, INTR, T, stride=2, first_id=7)
+    assert len(g) == 12 * 14 and g.ids[0] == 7 and g.isotropic
+    np.testing.assert_allclose(g.means[:, 2], 5.0)
+    np.testing.assert_allclose(g.scales()[:, 0], 2.0 * 2 / 40.0, rtol=1e-6)
+    np.testing.assert_allclose(g.colors()[0], color[0, 4], rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def tiny_sequence(tmp_path_factory):
+    out = tmp_path_factory.mktemp("seq") / "synthetic"
+    r = CliRunner().invoke(cli, ["synth", str(out), "--frames", "6", "--size", "32x24"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_gsc_score_ply_and_mcap(tiny_sequence, tmp_path):
+    from gscompress.datasets import open_sequence
+
+    seq = open_sequence(tiny_sequence)
+    f = seq.frame(0)
+    g = gaussians_from_rgbd(f.color, f.depth, seq.intrinsics, f.T_world_cam, stride=2)
+    write_ply(g, tmp_path / "m.ply", importance=False)
+    r = CliRunner().invoke(cli, ["score", str(tmp_path / "m.ply"), "--seq", str(tiny_sequence),
+                                 "-o", str(tmp_path / "s.mcap"), "--json"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    scored = read_map(tmp_path / "s.mcap")
+    assert scored.has_importance and np.array_equal(scored.means, g.means)
+    with LogReader(tmp_path / "s.mcap") as log:
+        counts = {c.topic: c.messages for c in log.channels}
+        assert counts["/camera/pose"] == 6 and counts["/camera/calibration"] == 1
+        assert log.metadata.provenance[-1]["operation"]["name"] == "score"
+    # scoring a log again replaces only its map
+    r = CliRunner().invoke(cli, ["score", str(tmp_path / "s.mcap"), "--seq", str(tiny_sequence),
+                                 "--frames", "0:3", "-o", str(tmp_path / "t.mcap")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    again = read_map(tmp_path / "t.mcap")
+    assert np.all(again.importance_weight <= scored.importance_weight + 1e-6)
+
+
+def test_gsc_score_without_poses_is_a_clear_error(tiny_sequence, tmp_path):
+    import shutil
+
+    seq = tmp_path / "nogt"
+    shutil.copytree(tiny_sequence, seq)
+    (seq / "groundtruth.txt").unlink()
+    write_ply(_scene(), tmp_path / "m.ply")
+    r = CliRunner().invoke(cli, ["score", str(tmp_path / "m.ply"), "--seq", str(seq),
+                                 "-o", str(tmp_path / "s.mcap")])  # fmt: skip
+    assert r.exit_code == 1 and "--poses" in r.output
+    assert not (tmp_path / "s.mcap").exists()
