@@ -228,6 +228,10 @@ def test_output_equal_to_input_and_existing_output(log_path, tmp_path):
     assert r.exit_code == 1 and "also an input" in r.output
     r = run("export-ply", log_path, "-o", log_path, "--force")
     assert r.exit_code == 1 and "also an input" in r.output
+    link = tmp_path / "link.mcap"
+    link.symlink_to(log_path)
+    r = run("share", log_path, link, "--force")
+    assert r.exit_code == 1 and "also an input" in r.output
     assert log_path.read_bytes() == original
     existing = tmp_path / "exists.mcap"
     existing.write_bytes(b"precious")

@@ -26,17 +26,18 @@ def sha256(path: str | Path) -> str:
 def check_output(
     output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False
 ) -> Path:
-    """Refuse to write over an input, or over an existing file without `force`."""
+    """Refuse to write over an input (also through a link), a directory, or an existing file
+    without `force`; the output's directory must exist.
+    """
     output = Path(output)
-    for source in inputs:
-        if Path(source).exists() and output.exists() and output.samefile(source):
+    for source in map(Path, inputs):
+        same = output.exists() and source.exists() and output.samefile(source)
+        if same or output.resolve() == source.resolve():
             raise OutputError(f"output {output} is also an input; choose another path")
-        if output.resolve() == Path(source).resolve():
-            raise OutputError(f"output {output} is also an input; choose another path")
+    if output.is_dir():
+        raise OutputError(f"{output} is a directory")
     if output.exists() and not force:
         raise OutputError(f"{output} exists; pass --force to overwrite it")
-    if output.exists() and output.is_dir():
-        raise OutputError(f"{output} is a directory")
     if not output.parent.exists():
         raise OutputError(f"directory {output.parent} does not exist")
     return output
