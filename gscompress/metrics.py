@@ -418,13 +418,16 @@ def load_lpips_params(path: Path) -> dict[str, np.ndarray]:
 class LpipsAlex(torch.nn.Module):
     """LPIPS v0.1 with the AlexNet backbone, in torch (eval mode only; dropout is identity)."""
 
+    shift: torch.Tensor
+    scale: torch.Tensor
+
     def __init__(self, params: dict[str, np.ndarray]) -> None:
         super().__init__()
         self.convs = torch.nn.ModuleList()
         for i, (o, c, k, stride, pad) in enumerate(_ALEX_CONVS):
             conv = torch.nn.Conv2d(c, o, k, stride=stride, padding=pad)
-            conv.weight.data = torch.from_numpy(params[f"conv{i}.weight"].copy())
-            conv.bias.data = torch.from_numpy(params[f"conv{i}.bias"].copy())
+            conv.weight = torch.nn.Parameter(torch.from_numpy(params[f"conv{i}.weight"].copy()))
+            conv.bias = torch.nn.Parameter(torch.from_numpy(params[f"conv{i}.bias"].copy()))
             self.convs.append(conv)
         self.lins = torch.nn.ParameterList(
             [torch.nn.Parameter(torch.from_numpy(params[f"lin{i}.weight"].copy()))
