@@ -1,0 +1,109 @@
+"""The synthetic room: determinism, exact depth, trackable texture, and `gsc synth`."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gscompress.datasets import open_sequence
+from gscompress.datasets.synthetic import (
+    CEILING,
+    FLOOR,
+    ROOM_MAX,
+    synthetic_sequence,
+    write_synthetic_sequence,
+)
+from gscompress.errors import OutputError
+from gscompress_cli.main import cli
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def test_same_seed_same_bytes_other_seed_other_scene(tmp_path: Path) -> None:
+    a = write_synthetic_sequence(tmp_path / "a", frames=4, size=(48, 36), seed=5)
+    b = write_synthetic_sequence(tmp_path / "b", frames=4, size=(48, 36), seed=5)
+    c = write_synthetic_sequence(tmp_path / "c", frames=4, size=(48, 36), seed=6)
+    da, db, dc = _digest(a), _digest(b), _digest(c)
+    assert da == db and len(da) == 4 + 4 + 4  # rgb, depth, 4 text/json files
+    assert da["rgb/000000.png"] != dc["rgb/000000.png"]
+
+
+def test_floor_and_ceiling_depth_is_exact() -> None:
+    seq = synthetic_sequence(40, (64, 48), seed=0)
+    K = seq.intrinsics
+    checked = 0
+    for i in (0, 17, 39):
+        frame, surface = seq.render_with_surfaces(i)
+        T = frame.T_world_cam
+        u, v = np.meshgrid(np.arange(K.width), np.arange(K.height))
+        d_world = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1)
+        d_world = d_world @ T[:3, :3].T
+        cam_z = T[2, 3]
+        # a ray o + s d with unit camera-z reaches the plane z = h at s = depth = (h - o_z) / d_z
+        for sid, height in ((FLOOR, 0.0), (CEILING, ROOM_MAX[2])):
+            m = surface == sid
+            expected = (height - cam_z) / d_world[..., 2][m]
+            np.testing.assert_allclose(frame.depth[m], expected, rtol=2e-7)
+            checked += int(m.sum())
+    assert checked > 1000
+
+
+def test_frames_are_textured_everywhere() -> None:
+    seq = synthetic_sequence(60, (160, 120), seed=0)
+    for i in (0, 30, 59):
+        f = seq.frame(i)
+        assert np.all(f.depth > 0.3) and np.all(f.depth < 8.0)
+        grey = f.color.mean(axis=-1)
+        gx = np.abs(np.diff(grey, axis=1))[:-1, :]
+        gy = np.abs(np.diff(grey, axis=0))[:, :-1]
+        grad = np.maximum(gx, gy)
+        # every 16x16 block has visible texture (no flat, untrackable regions)
+        blocks = grad[:112, :144].reshape(7, 16, 9, 16).max(axis=(1, 3))
+        assert blocks.min() > 0.02
+    # the camera moves and turns
+    _, poses = seq.ground_truth()
+    assert np.linalg.norm(poses[-1, :3, 3] - poses[0, :3, 3]) > 0.5
+    cos = (np.trace(poses[0, :3, :3].T @ poses[-1, :3, :3]) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) > 20
+
+
+def test_refuses_non_empty_output_unless_forced(tmp_path: Path) -> None:
+    out = tmp_path / "seq"
+    out.mkdir()
+    (out / "keep.txt").write_text("x")
+    with pytest.raises(OutputError, match="not empty"):
+        write_synthetic_sequence(out, frames=2, size=(16, 12))
+    assert (out / "keep.txt").exists()
+    write_synthetic_sequence(out, frames=2, size=(16, 12), force=True)
+    assert not (out / "keep.txt").exists() and len(open_sequence(out)) == 2
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]  # no temporary folders left
+
+
+def test_gsc_synth_command(tmp_path: Path) -> None:
+    runner = CliRunner()
+    out = tmp_path / "demo"
+    result = runner.invoke(cli, ["synth", str(out), "--frames", "3", "--size", "32x24"])
+    assert result.exit_code == 0, result.output
+    assert "wrote 3 frames (32x24)" in result.output
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json",
+                 "rgb/000002.png", "depth/000002.png"):  # fmt: skip
+        assert (out / name).is_file()
+    seq = open_sequence(out)
+    assert len(seq) == 3 and seq.intrinsics.width == 32 and seq.has_ground_truth
+
+    again = runner.invoke(cli, ["synth", str(out), "--frames", "3", "--size", "32x24"])
+    assert again.exit_code == 1 and "not empty" in again.output
+    forced = runner.invoke(cli, ["synth", str(out), "--frames", "2", "--size", "32x24", "--force"])
+    assert forced.exit_code == 0 and len(open_sequence(out)) == 2
+    bad = runner.invoke(cli, ["synth", str(tmp_path / "x"), "--size", "32by24"])
+    assert bad.exit_code == 2 and "WxH" in bad.output
