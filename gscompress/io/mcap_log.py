@@ -34,7 +34,6 @@ from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from google.protobuf.message import DecodeError, Message
-from gscompress_schemas import PROFILE, PROFILE_VERSION, schema_bytes
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Schema
@@ -49,6 +48,7 @@ from gscompress.errors import GscError, LogFormatError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import column_dtypes, map_from_columns, map_to_columns, pack_records
 from gscompress.io.files import AtomicFile, check_output, sha256
+from gscompress_schemas import PROFILE, PROFILE_VERSION, schema_bytes
 
 TOPIC_GAUSSIANS = "/gaussians"
 TOPIC_POSE = "/camera/pose"
