@@ -69,7 +69,8 @@ def score_map(
         T_cam_world = torch.as_tensor(invert_transform(T_world_cam), dtype=torch.float32)
         with torch.no_grad():
             out = render(
-                **params, intrinsics=intrinsics, T_cam_world=T_cam_world.to(device),
+                params["means"], params["quats"], params["scales"], params["opacities"],
+                params["colors"], intrinsics, T_cam_world.to(device),
                 backend=backend, want_contribution=True,
             )  # fmt: skip
         assert out.contribution is not None
