@@ -126,3 +126,13 @@ def frames_option(f: F) -> F:
         show_default=True,
         help="Frames to use (0-based): all, odd (agent A), even (agent B) or START:STOP:STEP.",
     )(f)
+
+
+def progress_bar(desc: str, unit: str, total: int | None = None, hidden: bool = False) -> Any:
+    """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set."""
+    import logging
+
+    from tqdm import tqdm
+
+    quiet = logging.getLogger().getEffectiveLevel() > logging.INFO
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet)

@@ -5,11 +5,18 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-from tqdm import tqdm
 
 from gscompress.pipeline import score_file
 
-from .options import FrameSubset, command_line, emit, force_option, json_option, size_option
+from .options import (
+    FrameSubset,
+    command_line,
+    emit,
+    force_option,
+    json_option,
+    progress_bar,
+    size_option,
+)
 
 
 @click.command("score")
@@ -81,7 +88,7 @@ def score(
       gsc score point_cloud.ply --seq data/office --size 320x240 -o scored.mcap
       gsc prune scored.mcap --keep 0.3 -o small.mcap
     """
-    with tqdm(desc="score", unit="view", leave=False, disable=as_json) as bar:
+    with progress_bar("score", "view", hidden=as_json) as bar:
         result = score_file(
             src,
             dst,

@@ -5,11 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
-from tqdm import tqdm
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 
-from .options import force_option, size_option
+from .options import force_option, progress_bar, size_option
 
 
 @click.command()
@@ -26,7 +25,7 @@ def synth(out_dir: Path, frames: int, size: tuple[int, int], seed: int, force: b
     Writes rgb/, depth/ (uint16, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt and
     intrinsics.json; `gsc slam OUT_DIR` and any TUM reader open it. Same seed, same bytes.
     """
-    with tqdm(total=frames, desc="synth", unit="frame", leave=False) as bar:
+    with progress_bar("synth", "frame", total=frames) as bar:
         out = write_synthetic_sequence(
             out_dir, frames=frames, size=size, seed=seed, force=force, progress=bar.update
         )
