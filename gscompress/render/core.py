@@ -91,6 +91,8 @@ def render(
         MissingDependencyError: backend="gsplat" without gsplat installed.
     """
     _check_inputs(means, quats, scales, opacities, colors, intrinsics, T_cam_world, background)
+    if not near > 0:
+        raise InputError(f"near must be positive, got {near}")
     if backend not in BACKENDS:
         raise InputError(f"unknown render backend {backend!r}; choose one of {BACKENDS}")
     if backend == "auto":

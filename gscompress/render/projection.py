@@ -15,7 +15,7 @@ Conventions (the rasterizer's spec; `gscompress.render` documents the compositin
 - The radius is `ceil(3 sqrt(lambda_max))` px of the dilated 2D covariance.
 - A Gaussian is binned to every 16x16 tile whose pixel centres span
   `[16 t, 16 t + 15]` intersects `[u - r, u + r]` (and likewise in `v`); within a tile the list
-  is in increasing depth (ties by Gaussian index).
+  is in increasing depth (as float32; ties by Gaussian index).
 """
 
 from __future__ import annotations
@@ -172,27 +172,29 @@ def project_gaussians(
 
 
 def bin_tiles(projection: Projection, width: int, height: int) -> TileBins:
-    """Bin the visible Gaussians into 16x16 tiles, each list sorted front to back."""
+    """Bin the visible Gaussians into 16x16 tiles, each list sorted front to back.
+
+    One integer sort orders all (tile, Gaussian) pairs by the key `tile * 2^31 + depth bits`:
+    the IEEE bits of a positive float32 sort like its value, so within a tile the order is by
+    depth rounded to float32, ties by Gaussian index (the sort is stable).
+    """
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
     device = projection.radii.device
-    visible = torch.nonzero(projection.radii > 0).squeeze(1)  # [V]
-    # Depth order first; the stable sort by tile below keeps it within each tile.
-    depth_order = torch.argsort(projection.depths.detach()[visible], stable=True)  # [V]
-    gids = visible[depth_order]  # [V]
+    gids = torch.nonzero(projection.radii > 0).squeeze(1)  # [V]
     x0, x1, y0, y1 = tile_rects(
         projection.means2d[gids], projection.radii[gids], tiles_x, tiles_y
     )  # [V] each
     span_x = x1 - x0  # [V]
-    counts = span_x * (y1 - y0)  # [V]
-    total = int(counts.sum())
+    counts = span_x * (y1 - y0)  # [V], >= 1 for a visible Gaussian
     starts = torch.cumsum(counts, 0) - counts  # [V]
     owner = torch.repeat_interleave(torch.arange(len(gids), device=device), counts)  # [I]
-    local = torch.arange(total, device=device) - starts[owner]  # [I]
-    tile = (y0[owner] + local // span_x[owner]) * tiles_x + x0[owner] + local % span_x[owner]
-    tile_sorted, order = torch.sort(tile, stable=True)  # [I]
-    ids = gids[owner[order]]  # [I]
-    per_tile = torch.bincount(tile_sorted, minlength=n_tiles)  # [n_tiles]
+    local = torch.arange(len(owner), device=device) - starts[owner]  # [I]
+    row, col = local // span_x[owner], local % span_x[owner]  # [I]
+    tile = (y0[owner] + row) * tiles_x + x0[owner] + col  # [I]
+    depth_bits = projection.depths.detach()[gids].float().view(torch.int32).long()  # [V]
+    _, order = torch.sort(tile * 2**31 + depth_bits[owner], stable=True)  # [I]
+    per_tile = torch.bincount(tile, minlength=n_tiles)  # [n_tiles]
     offsets = torch.zeros(n_tiles + 1, dtype=torch.int64, device=device)
     offsets[1:] = torch.cumsum(per_tile, 0)
-    return TileBins(tiles_x=tiles_x, tiles_y=tiles_y, offsets=offsets, ids=ids)
+    return TileBins(tiles_x=tiles_x, tiles_y=tiles_y, offsets=offsets, ids=gids[owner[order]])

@@ -28,10 +28,33 @@ from gscompress.render.projection import TileBins
 logger = logging.getLogger(__name__)
 
 _SOURCE = Path(__file__).with_name("composite.cpp")
-# -O3 and OpenMP only: no -march=native, so a cached build runs on any x86-64 machine.
 # -ffp-contract=off keeps the forward, the backward and the torch oracle rounding alike.
 _CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off"]
 _LDFLAGS = ["-fopenmp"]
+
+
+def _cpu_signature() -> str | None:
+    """The CPU's model and feature flags (Linux), or None when they cannot be read."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    lines = [ln for ln in text.splitlines() if ln.startswith(("flags", "model name"))]
+    return "\n".join(sorted(set(lines))) or None
+
+
+def _build_flags() -> tuple[list[str], str]:
+    """Compiler flags and the CPU part of the cache key.
+
+    The kernels are vectorised for the build machine (-march=native, e.g. AVX2 / AVX-512), so
+    the cache key includes the CPU's model and feature flags: a home directory shared between
+    different machines then holds one build per CPU type instead of a build that crashes.
+    Elsewhere (not x86-64, or the CPU cannot be identified) the build uses portable flags.
+    """
+    cpu = _cpu_signature() if platform.machine() in ("x86_64", "AMD64") else None
+    if cpu is None:
+        return list(_CFLAGS), "generic"
+    return [*_CFLAGS, "-march=native"], cpu
 
 
 def _cache_root() -> Path:
@@ -56,10 +79,12 @@ def load_extension() -> ModuleType | None:
             stacklevel=3,
         )
         return None
+    cflags, cpu = _build_flags()
     key = hashlib.sha256()
     key.update(_SOURCE.read_bytes())
-    key.update(" ".join(_CFLAGS + _LDFLAGS).encode())
+    key.update(" ".join(cflags + _LDFLAGS).encode())
     key.update(f"{torch.__version__}|{sys.version}|{platform.machine()}|{compiler}".encode())
+    key.update(cpu.encode())
     digest = key.hexdigest()[:16]
     build_dir = _cache_root() / f"ext-{digest}"
     name = f"gsc_composite_{digest}"
@@ -72,7 +97,7 @@ def load_extension() -> ModuleType | None:
         return cpp_extension.load(
             name=name,
             sources=[str(_SOURCE)],
-            extra_cflags=_CFLAGS,
+            extra_cflags=cflags,
             extra_ldflags=_LDFLAGS,
             build_directory=str(build_dir),
             verbose=False,

@@ -3,14 +3,18 @@
 // The rules are those of gscompress/render/torch_backend.py (the oracle these kernels are tested
 // against): pixel (i, j) is evaluated at (i, j); alpha = min(0.99, o exp(power)); alpha < 1/255
 // is skipped; compositing stops before the Gaussian that would bring T below 1e-4 (that one is
-// left out). Work is split per 16x16 tile with OpenMP dynamic scheduling. Within a tile the loop
-// runs Gaussian by Gaussian (front to back) over the pixels of that Gaussian's footprint, so each
-// Gaussian only visits the pixels where its alpha can reach 1/255.
+// left out).
+//
+// Layout of the work: tiles of 16x16 pixels are handed to threads with OpenMP dynamic
+// scheduling. Within a tile the loop runs Gaussian by Gaussian (front to back in the forward,
+// back to front in the backward); for each Gaussian only the tile rows where its alpha can reach
+// 1/255 are visited, and each such row is one branch-free, SIMD-vectorised loop over its 16
+// pixels, with per-pixel state (T, accumulated features, ...) in small tile-local arrays.
 //
 // The forward stores per pixel the final transmittance and the number of list entries it
 // consumed, so the backward is a single back-to-front pass that recovers T by division.
-// Per-Gaussian sums (contribution, gradients) go to thread-local buffers that are reduced at
-// the end: no atomics, and a fixed reduction order.
+// Per-Gaussian sums (contribution, gradients) are reduced over pixels inside the tile, then
+// added to thread-local buffers that are summed at the end: no atomics.
 
 #include <torch/extension.h>
 
@@ -25,8 +29,8 @@ namespace {
 
 constexpr int kTile = 16;
 constexpr int kPix = kTile * kTile;
-constexpr int kCh = 4;      // composited features: r, g, b, depth
-constexpr int kGrad = 10;   // per-Gaussian gradient slots: mean2d(2) conic(3) opacity(1) feats(4)
+constexpr int kCh = 4;     // composited features: r, g, b, depth
+constexpr int kGrad = 10;  // per-Gaussian gradient slots: mean2d(2) conic(3) opacity(1) feats(4)
 
 template <typename scalar_t>
 struct Rules {
@@ -35,44 +39,142 @@ struct Rules {
   static constexpr scalar_t t_min = scalar_t(1e-4);
 };
 
-// Pixel range [lo, hi) of the tile outside which a Gaussian's alpha is provably below 1/255.
-// alpha = o exp(-q / 2) >= 1/255 needs q <= 2 ln(255 o), and on that ellipse |dx| is at most
-// sqrt(2 ln(255 o) Sigma_xx) with Sigma = conic^-1. The 1e-3 relative + 1e-2 px margin keeps
-// rounding from ever dropping a pixel the exact test would keep; those pixels are tested exactly.
-struct Span {
-  int x0, x1, y0, y1;
+// One tile row of 16 pixels as a GCC vector: the compiler maps it onto whatever SIMD the build
+// targets (one AVX-512 register of floats, two AVX2 registers, four SSE registers, ...).
+template <typename S>
+struct Simd;
+template <>
+struct Simd<float> {
+  typedef float V __attribute__((vector_size(kTile * sizeof(float))));
+  typedef int32_t I __attribute__((vector_size(kTile * sizeof(int32_t))));
+  typedef int32_t Int;
+};
+template <>
+struct Simd<double> {
+  typedef double V __attribute__((vector_size(kTile * sizeof(double))));
+  typedef int64_t I __attribute__((vector_size(kTile * sizeof(int64_t))));
+  typedef int64_t Int;
 };
 
-template <typename scalar_t>
-inline Span footprint(scalar_t mx, scalar_t my, scalar_t a, scalar_t b, scalar_t c, scalar_t o,
-                      int tile_x, int tile_y, int tw, int th) {
-  const double q = 2.0 * std::log(255.0 * double(o)) * 1.001 + 1e-6;
-  const double det = double(a) * double(c) - double(b) * double(b);
-  Span s{0, 0, 0, 0};
-  if (!(q > 0.0) || !(det > 0.0)) {
-    // Degenerate input: fall back to testing the whole tile.
-    s.x1 = tw;
-    s.y1 = th;
-    return s;
-  }
-  const double ex = std::sqrt(q * double(c) / det) + 1e-2;
-  const double ey = std::sqrt(q * double(a) / det) + 1e-2;
-  const double lx = std::ceil(double(mx) - ex) - tile_x;
-  const double hx = std::floor(double(mx) + ex) - tile_x + 1;
-  const double ly = std::ceil(double(my) - ey) - tile_y;
-  const double hy = std::floor(double(my) + ey) - tile_y + 1;
-  s.x0 = int(std::clamp(lx, 0.0, double(tw)));
-  s.x1 = int(std::clamp(hx, 0.0, double(tw)));
-  s.y0 = int(std::clamp(ly, 0.0, double(th)));
-  s.y1 = int(std::clamp(hy, 0.0, double(th)));
-  return s;
+template <typename V, typename S>
+inline V splat(S s) {
+  return V{} + s;
 }
 
-template <typename scalar_t>
-inline scalar_t gauss_power(scalar_t a, scalar_t b, scalar_t c, scalar_t dx, scalar_t dy) {
-  // Same operation order as the torch oracle, so both round alike.
-  return scalar_t(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
+template <typename V>
+inline auto hsum(const V& v) {
+  auto sum = v[0];
+  for (int i = 1; i < kTile; ++i) sum += v[i];
+  return sum;
 }
+
+// exp(x) for x <= 0, accurate to about 1 ulp, on a whole row (libm's exp does not vectorise).
+// x is clamped at -30: there alpha = o exp(x) is far below 1/255, so the clamp never changes a
+// composited value, and it keeps every product in masked-out lanes away from denormals, which
+// are very slow to compute with.
+constexpr double kMinPower = -30.0;
+
+inline Simd<float>::V vexp(Simd<float>::V x) {
+  using V = Simd<float>::V;
+  using I = Simd<float>::I;
+  x = x < float(kMinPower) ? splat<V>(float(kMinPower)) : x;
+  const float big = 12582912.0f;  // 1.5 * 2^23: adding it rounds to an integer
+  const V n = (x * 1.44269504088896341f + big) - big;
+  V r = x - n * 0.693359375f;
+  r = r - n * -2.12194440e-4f;
+  V p = splat<V>(1.9875691500e-4f);
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  const V y = p * (r * r) + r + 1.0f;
+  const I bits = (__builtin_convertvector(n, I) + 127) << 23;
+  return y * reinterpret_cast<const V&>(bits);
+}
+
+inline Simd<double>::V vexp(Simd<double>::V x) {
+  using V = Simd<double>::V;
+  using I = Simd<double>::I;
+  x = x < kMinPower ? splat<V>(kMinPower) : x;
+  const double big = 6755399441055744.0;  // 1.5 * 2^52
+  const V n = (x * 1.4426950408889634 + big) - big;
+  V r = x - n * 6.93145751953125e-1;
+  r = r - n * 1.42860682030941723212e-6;
+  // Taylor series to degree 13 on |r| <= ln(2)/2: truncation error below 1e-17.
+  V p = splat<V>(1.0 / 6227020800.0);
+  p = p * r + 1.0 / 479001600.0;
+  p = p * r + 1.0 / 39916800.0;
+  p = p * r + 1.0 / 3628800.0;
+  p = p * r + 1.0 / 362880.0;
+  p = p * r + 1.0 / 40320.0;
+  p = p * r + 1.0 / 5040.0;
+  p = p * r + 1.0 / 720.0;
+  p = p * r + 1.0 / 120.0;
+  p = p * r + 1.0 / 24.0;
+  p = p * r + 1.0 / 6.0;
+  p = p * r + 0.5;
+  const V y = p * (r * r) + r + 1.0;
+  const I bits = (__builtin_convertvector(n, I) + 1023) << 52;
+  return y * reinterpret_cast<const V&>(bits);
+}
+
+// Half extents (x, y) in pixels of the ellipse outside which a Gaussian's alpha is provably
+// below 1/255: alpha = o exp(-q / 2) >= 1/255 needs q <= 2 ln(255 o), and on that ellipse |dx|
+// is at most sqrt(2 ln(255 o) Sigma_xx), Sigma = conic^-1. A 1e-3 relative + 1e-2 px margin
+// keeps rounding from dropping a pixel that the exact test would keep; pixels inside are tested
+// exactly. -1 marks a Gaussian that can never reach 1/255; +inf a degenerate conic (test all).
+template <typename scalar_t>
+void footprints(const scalar_t* conics, const scalar_t* opac, int64_t n, float* extents,
+                int n_threads) {
+#pragma omp parallel for num_threads(n_threads) schedule(static)
+  for (int64_t g = 0; g < n; ++g) {
+    const double o = opac[g], a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
+    const double q = 2.0 * std::log(255.0 * o) * 1.001 + 1e-6;
+    const double det = a * c - b * b;
+    if (!(o >= double(Rules<scalar_t>::alpha_min))) {
+      extents[2 * g] = extents[2 * g + 1] = -1.0f;
+    } else if (!(q > 0.0) || !(det > 0.0) || !(a > 0.0) || !(c > 0.0)) {
+      extents[2 * g] = extents[2 * g + 1] = INFINITY;
+    } else {
+      extents[2 * g] = float(std::sqrt(q * c / det) + 1e-2);
+      extents[2 * g + 1] = float(std::sqrt(q * a / det) + 1e-2);
+    }
+  }
+}
+
+// Range [lo, hi) of tile-local coordinates within `half` of `centre` (tile starts at `origin`).
+inline void span(double centre, float half, int origin, int size, int& lo, int& hi) {
+  const double l = std::ceil(centre - double(half)) - origin;
+  const double h = std::floor(centre + double(half)) - origin + 1;
+  lo = int(std::clamp(l, 0.0, double(size)));
+  hi = int(std::clamp(h, 0.0, double(size)));
+}
+
+// Everything the per-row loops need about one Gaussian in one tile.
+template <typename scalar_t>
+struct Splat {
+  scalar_t mx, my, a, b, c, o, f[kCh];
+  int x0, x1, y0, y1;  // tile-local rows / columns where alpha can reach 1/255
+
+  // Loads Gaussian g; false when it cannot reach 1/255 anywhere in this tile.
+  bool load(int64_t g, const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
+            const scalar_t* feats, const float* extents, int tile_x, int tile_y, int tw,
+            int th) {
+    if (extents[2 * g] < 0) return false;
+    mx = means2d[2 * g];
+    my = means2d[2 * g + 1];
+    span(mx, extents[2 * g], tile_x, tw, x0, x1);
+    span(my, extents[2 * g + 1], tile_y, th, y0, y1);
+    if (x0 >= x1 || y0 >= y1) return false;
+    a = conics[3 * g];
+    b = conics[3 * g + 1];
+    c = conics[3 * g + 2];
+    o = opac[g];
+    for (int ch = 0; ch < kCh; ++ch) f[ch] = feats[kCh * g + ch];
+    return true;
+  }
+};
 
 template <typename scalar_t>
 void forward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
@@ -80,76 +182,81 @@ void forward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_
                   int width, int height, int tiles_x, int tiles_y, scalar_t* out_feats,
                   scalar_t* out_T, int32_t* out_last, scalar_t* contrib, int n_threads) {
   using R = Rules<scalar_t>;
+  using V = typename Simd<scalar_t>::V;
+  using I = typename Simd<scalar_t>::I;
+  using int_t = typename Simd<scalar_t>::Int;
   const int n_tiles = tiles_x * tiles_y;
+  std::vector<float> extents(size_t(2) * n);
+  footprints(conics, opac, n, extents.data(), n_threads);
   std::vector<scalar_t> contrib_local(contrib ? size_t(n_threads) * n : 0, scalar_t(0));
 
 #pragma omp parallel num_threads(n_threads)
   {
-    scalar_t* my_contrib = contrib ? contrib_local.data() + size_t(omp_get_thread_num()) * n
-                                   : nullptr;
-    alignas(64) scalar_t T[kPix];
-    alignas(64) scalar_t acc[kCh][kPix];
-    alignas(64) int32_t last[kPix];
-    alignas(64) unsigned char done[kPix];
+    scalar_t* my_contrib =
+        contrib ? contrib_local.data() + size_t(omp_get_thread_num()) * n : nullptr;
+    // Per-pixel state, one vector per tile row.
+    V T[kTile];
+    V acc[kCh][kTile];
+    I alive[kTile];  // all ones while the pixel is still compositing
+    I last[kTile];   // list entries consumed (index of the last composited one + 1)
+    V lane;
+    for (int lx = 0; lx < kTile; ++lx) lane[lx] = scalar_t(lx);
 
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < n_tiles; ++t) {
       const int tile_x = (t % tiles_x) * kTile, tile_y = (t / tiles_x) * kTile;
       const int tw = std::min(kTile, width - tile_x), th = std::min(kTile, height - tile_y);
-      std::fill(T, T + kPix, scalar_t(1));
-      std::fill(&acc[0][0], &acc[0][0] + kCh * kPix, scalar_t(0));
-      std::fill(last, last + kPix, 0);
-      std::fill(done, done + kPix, 0);
+      const V xs = lane + scalar_t(tile_x);
+      for (int ly = 0; ly < kTile; ++ly) {
+        T[ly] = splat<V>(scalar_t(1));
+        for (int ch = 0; ch < kCh; ++ch) acc[ch][ly] = V{};
+        alive[ly] = (lane < scalar_t(tw)) & splat<I>(int_t(ly < th ? -1 : 0));
+        last[ly] = I{};
+      }
       int n_active = tw * th;
       const int64_t begin = offsets[t], end = offsets[t + 1];
+      Splat<scalar_t> sp;
 
       for (int64_t s = begin; s < end && n_active > 0; ++s) {
         const int64_t g = ids[s];
-        const scalar_t o = opac[g];
-        if (o < R::alpha_min) continue;  // alpha <= o everywhere
-        const scalar_t mx = means2d[2 * g], my = means2d[2 * g + 1];
-        const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
-        const scalar_t f0 = feats[kCh * g], f1 = feats[kCh * g + 1];
-        const scalar_t f2 = feats[kCh * g + 2], f3 = feats[kCh * g + 3];
-        const Span sp = footprint(mx, my, a, b, c, o, tile_x, tile_y, tw, th);
-        const int32_t k1 = int32_t(s - begin + 1);
-        scalar_t csum = 0;
+        if (!sp.load(g, means2d, conics, opac, feats, extents.data(), tile_x, tile_y, tw, th))
+          continue;
+        const I k1 = splat<I>(int_t(s - begin + 1));
+        const I in_x = (xs > scalar_t(tile_x + sp.x0) - scalar_t(0.5)) &
+                       (xs < scalar_t(tile_x + sp.x1) - scalar_t(0.5));
+        const V dx = xs - sp.mx;
+        const V a_dx_dx = sp.a * dx * dx;
+        V lane_w{};
+        I lane_stop{};
         for (int ly = sp.y0; ly < sp.y1; ++ly) {
-          const scalar_t dy = scalar_t(tile_y + ly) - my;
-          for (int lx = sp.x0; lx < sp.x1; ++lx) {
-            const int p = ly * kTile + lx;
-            if (done[p]) continue;
-            const scalar_t dx = scalar_t(tile_x + lx) - mx;
-            const scalar_t alpha =
-                std::min(R::alpha_max, o * std::exp(gauss_power(a, b, c, dx, dy)));
-            if (alpha < R::alpha_min) continue;
-            const scalar_t Tp = T[p];
-            const scalar_t T_next = Tp * (scalar_t(1) - alpha);
-            if (T_next < R::t_min) {
-              done[p] = 1;
-              --n_active;
-              continue;
-            }
-            const scalar_t w = alpha * Tp;
-            acc[0][p] += w * f0;
-            acc[1][p] += w * f1;
-            acc[2][p] += w * f2;
-            acc[3][p] += w * f3;
-            T[p] = T_next;
-            last[p] = k1;
-            csum += w;
-          }
+          const scalar_t dy = scalar_t(tile_y + ly) - sp.my;
+          // Same operation order as the torch oracle, so both round alike.
+          const V power = scalar_t(-0.5) * (a_dx_dx + sp.c * dy * dy) - sp.b * dx * dy;
+          const V oG = sp.o * vexp(power);
+          const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
+          const V Tp = T[ly];
+          const V T_next = Tp * (scalar_t(1) - alpha);
+          const I hit = in_x & alive[ly] & (alpha >= R::alpha_min);
+          const I stop = hit & (T_next < R::t_min);
+          const I use = hit & ~stop;
+          const V w = use ? alpha * Tp : V{};
+          for (int ch = 0; ch < kCh; ++ch) acc[ch][ly] += w * sp.f[ch];
+          T[ly] = use ? T_next : Tp;
+          last[ly] = use ? k1 : last[ly];
+          alive[ly] &= ~stop;
+          lane_w += w;
+          lane_stop -= stop;  // stop is -1 where a pixel stops
         }
-        if (my_contrib) my_contrib[g] += csum;
+        n_active -= int(hsum(lane_stop));
+        if (my_contrib) my_contrib[g] += hsum(lane_w);
       }
 
       for (int ly = 0; ly < th; ++ly) {
         for (int lx = 0; lx < tw; ++lx) {
-          const int p = ly * kTile + lx;
           const int64_t q = int64_t(tile_y + ly) * width + (tile_x + lx);
-          for (int ch = 0; ch < kCh; ++ch) out_feats[kCh * q + ch] = acc[ch][p];
-          out_T[q] = T[p];
-          out_last[q] = last[p];
+          for (int ch = 0; ch < kCh; ++ch) out_feats[kCh * q + ch] = acc[ch][ly][lx];
+          out_T[q] = T[ly][lx];
+          out_last[q] = int32_t(last[ly][lx]);
         }
       }
     }
@@ -173,92 +280,101 @@ void backward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar
                    scalar_t* g_means2d, scalar_t* g_conics, scalar_t* g_opac, scalar_t* g_feats,
                    int n_threads) {
   using R = Rules<scalar_t>;
+  using V = typename Simd<scalar_t>::V;
+  using I = typename Simd<scalar_t>::I;
+  using int_t = typename Simd<scalar_t>::Int;
   const int n_tiles = tiles_x * tiles_y;
+  std::vector<float> extents(size_t(2) * n);
+  footprints(conics, opac, n, extents.data(), n_threads);
   std::vector<scalar_t> local(size_t(n_threads) * n * kGrad, scalar_t(0));
 
 #pragma omp parallel num_threads(n_threads)
   {
-    scalar_t* my = local.data() + size_t(omp_get_thread_num()) * n * kGrad;
-    alignas(64) scalar_t T[kPix];       // transmittance after the current Gaussian
-    alignas(64) scalar_t T_end[kPix];   // final transmittance
-    alignas(64) scalar_t gT[kPix];      // dL/dT_final
-    alignas(64) scalar_t gF[kCh][kPix]; // dL/d(composited features)
-    alignas(64) scalar_t S[kCh][kPix];  // sum over the Gaussians behind of w_j f_j
-    alignas(64) int32_t last[kPix];
+    scalar_t* mine = local.data() + size_t(omp_get_thread_num()) * n * kGrad;
+    // Per-pixel state, one vector per tile row.
+    V T[kTile];         // transmittance after the current Gaussian
+    V gT_end[kTile];    // dL/dT_final * T_final
+    V gF[kCh][kTile];   // dL/d(composited features)
+    V S[kCh][kTile];    // sum over the Gaussians behind of w_j f_j
+    I last[kTile];      // list entries consumed by the pixel in the forward
+    V lane;
+    for (int lx = 0; lx < kTile; ++lx) lane[lx] = scalar_t(lx);
 
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < n_tiles; ++t) {
       const int tile_x = (t % tiles_x) * kTile, tile_y = (t / tiles_x) * kTile;
       const int tw = std::min(kTile, width - tile_x), th = std::min(kTile, height - tile_y);
-      std::fill(last, last + kPix, 0);
+      const V xs = lane + scalar_t(tile_x);
       int32_t k_max = 0;
-      for (int ly = 0; ly < th; ++ly) {
-        for (int lx = 0; lx < tw; ++lx) {
-          const int p = ly * kTile + lx;
+      for (int ly = 0; ly < kTile; ++ly) {
+        T[ly] = splat<V>(scalar_t(1));
+        gT_end[ly] = V{};
+        last[ly] = I{};
+        for (int ch = 0; ch < kCh; ++ch) gF[ch][ly] = S[ch][ly] = V{};
+        for (int lx = 0; lx < tw && ly < th; ++lx) {
           const int64_t q = int64_t(tile_y + ly) * width + (tile_x + lx);
-          T[p] = T_end[p] = T_final[q];
-          gT[p] = grad_T[q];
-          for (int ch = 0; ch < kCh; ++ch) {
-            gF[ch][p] = grad_feats[kCh * q + ch];
-            S[ch][p] = 0;
-          }
-          last[p] = last_in[q];
-          k_max = std::max(k_max, last[p]);
+          T[ly][lx] = T_final[q];
+          gT_end[ly][lx] = grad_T[q] * T_final[q];
+          for (int ch = 0; ch < kCh; ++ch) gF[ch][ly][lx] = grad_feats[kCh * q + ch];
+          last[ly][lx] = last_in[q];
+          k_max = std::max(k_max, last_in[q]);
         }
       }
       const int64_t begin = offsets[t];
+      Splat<scalar_t> sp;
 
       for (int64_t s = begin + k_max - 1; s >= begin; --s) {
-        const int32_t k = int32_t(s - begin);
         const int64_t g = ids[s];
-        const scalar_t o = opac[g];
-        if (o < R::alpha_min) continue;
-        const scalar_t mx = means2d[2 * g], my_ = means2d[2 * g + 1];
-        const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
-        const scalar_t f[kCh] = {feats[kCh * g], feats[kCh * g + 1], feats[kCh * g + 2],
-                                 feats[kCh * g + 3]};
-        const Span sp = footprint(mx, my_, a, b, c, o, tile_x, tile_y, tw, th);
-        scalar_t d_mx = 0, d_my = 0, d_a = 0, d_b = 0, d_c = 0, d_o = 0;
-        scalar_t d_f[kCh] = {0, 0, 0, 0};
+        if (!sp.load(g, means2d, conics, opac, feats, extents.data(), tile_x, tile_y, tw, th))
+          continue;
+        const I k = splat<I>(int_t(s - begin));
+        const I in_x = (xs > scalar_t(tile_x + sp.x0) - scalar_t(0.5)) &
+                       (xs < scalar_t(tile_x + sp.x1) - scalar_t(0.5));
+        const V dx = xs - sp.mx;
+        const V a_dx_dx = sp.a * dx * dx;
+        const V a_dx = sp.a * dx, b_dx = sp.b * dx;
+        // Per-lane partial gradients, summed over the lanes once per Gaussian.
+        V d_mx{}, d_my{}, d_a{}, d_b{}, d_c{}, d_o{};
+        V d_f[kCh] = {};
         for (int ly = sp.y0; ly < sp.y1; ++ly) {
-          const scalar_t dy = scalar_t(tile_y + ly) - my_;
-          for (int lx = sp.x0; lx < sp.x1; ++lx) {
-            const int p = ly * kTile + lx;
-            if (k >= last[p]) continue;
-            const scalar_t dx = scalar_t(tile_x + lx) - mx;
-            const scalar_t G = std::exp(gauss_power(a, b, c, dx, dy));
-            const scalar_t oG = o * G;
-            const scalar_t alpha = std::min(R::alpha_max, oG);
-            if (alpha < R::alpha_min) continue;
-            const scalar_t one_minus = scalar_t(1) - alpha;
-            const scalar_t T_before = T[p] / one_minus;
-            const scalar_t w = alpha * T_before;
-            scalar_t d_alpha = -gT[p] * T_end[p] / one_minus;
-            for (int ch = 0; ch < kCh; ++ch) {
-              d_f[ch] += w * gF[ch][p];
-              d_alpha += gF[ch][p] * (T_before * f[ch] - S[ch][p] / one_minus);
-              S[ch][p] += w * f[ch];
-            }
-            T[p] = T_before;
-            if (oG <= R::alpha_max) {  // the clamp passes no gradient once it bites
-              d_o += d_alpha * G;
-              const scalar_t d_pow = d_alpha * alpha;
-              d_a += scalar_t(-0.5) * d_pow * dx * dx;
-              d_b -= d_pow * dx * dy;
-              d_c += scalar_t(-0.5) * d_pow * dy * dy;
-              d_mx += d_pow * (a * dx + b * dy);
-              d_my += d_pow * (b * dx + c * dy);
-            }
+          const scalar_t dy = scalar_t(tile_y + ly) - sp.my;
+          const V power = scalar_t(-0.5) * (a_dx_dx + sp.c * dy * dy) - sp.b * dx * dy;
+          const V G = vexp(power);
+          const V oG = sp.o * G;
+          const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
+          const I hit = in_x & (k < last[ly]) & (alpha >= R::alpha_min);
+          const V one_minus = scalar_t(1) - alpha;
+          const V T_before = T[ly] / one_minus;
+          const V w = hit ? alpha * T_before : V{};
+          // dL/dalpha: this Gaussian's own term, minus what it hides behind it, minus its
+          // share of the final transmittance.
+          V own{}, behind = gT_end[ly];
+          for (int ch = 0; ch < kCh; ++ch) {
+            own += gF[ch][ly] * sp.f[ch];
+            behind += gF[ch][ly] * S[ch][ly];
+            d_f[ch] += w * gF[ch][ly];
+            S[ch][ly] += w * sp.f[ch];
           }
+          T[ly] = hit ? T_before : T[ly];
+          // The clamp at 0.99 passes no gradient once it bites.
+          const I pass = hit & (oG <= R::alpha_max);
+          const V d_alpha = pass ? T_before * own - behind / one_minus : V{};
+          d_o += d_alpha * G;
+          const V d_pow = d_alpha * alpha;
+          d_a += scalar_t(-0.5) * d_pow * dx * dx;
+          d_b -= d_pow * dx * dy;
+          d_c += scalar_t(-0.5) * d_pow * dy * dy;
+          d_mx += d_pow * (a_dx + sp.b * dy);
+          d_my += d_pow * (b_dx + sp.c * dy);
         }
-        scalar_t* dst = my + size_t(g) * kGrad;
-        dst[0] += d_mx;
-        dst[1] += d_my;
-        dst[2] += d_a;
-        dst[3] += d_b;
-        dst[4] += d_c;
-        dst[5] += d_o;
-        for (int ch = 0; ch < kCh; ++ch) dst[6 + ch] += d_f[ch];
+        scalar_t* dst = mine + size_t(g) * kGrad;
+        dst[0] += hsum(d_mx);
+        dst[1] += hsum(d_my);
+        dst[2] += hsum(d_a);
+        dst[3] += hsum(d_b);
+        dst[4] += hsum(d_c);
+        dst[5] += hsum(d_o);
+        for (int ch = 0; ch < kCh; ++ch) dst[6 + ch] += hsum(d_f[ch]);
       }
     }
 

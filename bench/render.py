@@ -1,0 +1,203 @@
+"""Benchmark of `gscompress.render.render`: C++ (cpu) vs pure-torch backends, same scenes.
+
+Prints one JSON object per case and backend on stdout:
+
+    python bench/render.py            # 160x120/10k, 320x240/50k, 640x480/200k
+    python bench/render.py --quick    # 320x240/50k only
+
+Scenes look like a SLAM map seen by its camera: float32 Gaussians spread uniformly over the
+view at 2-5 m depth, mildly anisotropic and randomly rotated, with opacities in [0.3, 0.95].
+Their size is calibrated so that on average ~25 Gaussians overlap each pixel (counting, for
+each Gaussian, the ellipse where its alpha reaches 1/255; `mean_depth_complexity` reports the
+value measured on the final scene).
+
+Timings: median over `--iters` iterations after 2 warm-up ones, with `torch.get_num_threads()`
+threads. `ms_forward` is `render()` with inputs that require grad (the forward of a training
+step); `ms_forward_backward` adds the backward of a loss over colour, depth and silhouette;
+`ms_forward_contribution` is the same forward with `want_contribution=True`.
+
+Memory: every case and backend runs in a fresh subprocess; `peak_rss_mb` is that process's
+`resource.getrusage(RUSAGE_SELF).ru_maxrss` at the end (whole process: Python, torch, scene,
+render), and `baseline_rss_mb` the same figure just before the first render, so the renderer's
+own peak is roughly the difference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+
+from gscompress.camera import Intrinsics
+from gscompress.render import render
+from gscompress.render.projection import bin_tiles, project_gaussians
+
+CASES = [(160, 120, 10_000), (320, 240, 50_000), (640, 480, 200_000)]
+QUICK = [(320, 240, 50_000)]
+BACKENDS = ("cpu", "torch")
+TARGET_OVERLAP = 25.0
+TORCH_MAX_GAUSSIANS = 200_000
+"""Largest case the pure-torch backend is run on (its autograd graph needs several GB)."""
+
+
+def rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def make_scene(width: int, height: int, n: int, seed: int = 0) -> dict:
+    """A random SLAM-like view with ~TARGET_OVERLAP Gaussians per pixel (float32)."""
+    g = torch.Generator().manual_seed(seed)
+    f = 0.8 * width
+    intr = Intrinsics(f, f, (width - 1) / 2, (height - 1) / 2, width, height)
+    z = 2.0 + 3.0 * torch.rand(n, generator=g)
+    u = (torch.rand(n, generator=g) * 1.04 - 0.02) * width
+    v = (torch.rand(n, generator=g) * 1.04 - 0.02) * height
+    means = torch.stack([(u - intr.cx) * z / f, (v - intr.cy) * z / f, z], dim=1)
+    shape = torch.exp(0.25 * torch.randn(n, 3, generator=g))  # mild anisotropy
+    scene = {
+        "means": means,
+        "quats": torch.randn(n, 4, generator=g),
+        "unit_scales": shape * (z / f)[:, None],  # 1 px standard deviation at the centre
+        "opacities": 0.3 + 0.65 * torch.rand(n, generator=g),
+        "colors": torch.rand(n, 3, generator=g),
+        "T_cam_world": torch.eye(4),
+        "intrinsics": intr,
+    }
+    sigma_px = 1.0
+    for _ in range(6):  # the 0.3 px^2 dilation makes overlap non-linear in the scale
+        scene["scales"] = scene["unit_scales"] * sigma_px
+        overlap = depth_complexity(scene)
+        sigma_px *= math.sqrt(TARGET_OVERLAP / overlap)
+    scene["scales"] = scene["unit_scales"] * sigma_px
+    return scene
+
+
+def depth_complexity(scene: dict) -> float:
+    """Mean over pixels of the number of Gaussians whose alpha reaches 1/255 there.
+
+    Each visible Gaussian covers the ellipse d^T conic d <= 2 ln(255 o), of area
+    pi * 2 ln(255 o) / sqrt(det conic); the sum is divided by the pixel count.
+    """
+    intr = scene["intrinsics"]
+    with torch.no_grad():
+        proj = project_gaussians(
+            scene["means"], scene["quats"], scene["scales"], scene["T_cam_world"], intr, 0.01
+        )
+        a, b, c = proj.conics.double().unbind(-1)
+        o = scene["opacities"].double()
+        area = math.pi * 2 * torch.log(255 * o).clamp(min=0) / torch.sqrt(a * c - b * b)
+        area = torch.where(proj.radii > 0, area, torch.zeros_like(area))
+    return float(area.sum()) / (intr.width * intr.height)
+
+
+def timed(fn, iters: int) -> float:
+    for _ in range(2):
+        fn()
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000.0 * statistics.median(times)
+
+
+def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict:
+    """Run one case with one backend in this process and return its JSON record."""
+    scene = make_scene(width, height, n)
+    intr = scene["intrinsics"]
+    if backend == "cpu":
+        from gscompress.render.cpu import load_extension
+
+        if load_extension() is None:
+            return {"backend": backend, "skipped": "the C++ extension could not be built"}
+    params = {k: scene[k].clone().requires_grad_(True) for k in
+              ("means", "quats", "scales", "opacities", "colors", "T_cam_world")}  # fmt: skip
+    baseline = rss_mb()
+
+    def forward(contribution: bool = False):
+        return render(
+            params["means"], params["quats"], params["scales"], params["opacities"],
+            params["colors"], intr, params["T_cam_world"], backend=backend,
+            want_contribution=contribution,
+        )  # fmt: skip
+
+    def forward_backward():
+        out = forward()
+        loss = out.color.sum() + 0.1 * out.depth.sum() + out.silhouette.sum()
+        loss.backward()
+
+    out = forward()
+    assert out.backend == backend, out.backend
+    with torch.no_grad():
+        proj = project_gaussians(
+            scene["means"], scene["quats"], scene["scales"], scene["T_cam_world"], intr, 0.01
+        )
+        intersections = len(bin_tiles(proj, width, height).ids)
+    record = {
+        "backend": backend,
+        "width": width,
+        "height": height,
+        "gaussians": n,
+        "threads": torch.get_num_threads(),
+        "dtype": "float32",
+        "mean_depth_complexity": round(depth_complexity(scene), 2),
+        "visible": int(out.visible.sum()),
+        "tile_intersections": intersections,
+        "mean_silhouette": round(float(out.silhouette.mean()), 4),
+        "iters": iters,
+    }
+    record["ms_forward"] = round(timed(forward, iters), 2)
+    record["ms_forward_contribution"] = round(timed(lambda: forward(True), iters), 2)
+    record["ms_forward_backward"] = round(timed(forward_backward, iters), 2)
+    record["contribution_overhead_pct"] = round(
+        100.0 * (record["ms_forward_contribution"] / record["ms_forward"] - 1.0), 1
+    )
+    record["peak_rss_mb"] = round(rss_mb(), 1)
+    record["baseline_rss_mb"] = round(baseline, 1)
+    return record
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="only 320x240 with 50k Gaussians")
+    parser.add_argument("--iters", type=int, default=5, help="timed iterations per figure")
+    parser.add_argument("--backends", default=",".join(BACKENDS), help="comma-separated")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        w, h, n, backend = args.worker.split(",")
+        print(json.dumps(worker(int(w), int(h), int(n), backend, args.iters)))
+        return
+    for width, height, n in QUICK if args.quick else CASES:
+        records = {}
+        for backend in args.backends.split(","):
+            if backend == "torch" and n > TORCH_MAX_GAUSSIANS:
+                records[backend] = {"skipped": f"pure torch limited to {TORCH_MAX_GAUSSIANS}"}
+            else:
+                proc = subprocess.run(
+                    [sys.executable, __file__, "--worker", f"{width},{height},{n},{backend}",
+                     "--iters", str(args.iters)],
+                    capture_output=True, text=True, check=False,
+                )  # fmt: skip
+                if proc.returncode != 0:
+                    tail = proc.stderr.strip().splitlines()[-1:] or ["no output"]
+                    records[backend] = {"skipped": f"worker failed: {tail[0]}"}
+                else:
+                    records[backend] = json.loads(proc.stdout.strip().splitlines()[-1])
+        base = records.get("torch", {}).get("ms_forward_backward")
+        for backend, rec in records.items():
+            rec = {"backend": backend, "width": width, "height": height, "gaussians": n, **rec}
+            if base and "ms_forward_backward" in rec:
+                rec["speedup_vs_torch"] = round(base / rec["ms_forward_backward"], 2)
+            print(json.dumps(rec), flush=True)
+
+
+if __name__ == "__main__":
+    main()
