@@ -8,14 +8,12 @@ import click
 
 from gscompress.pipeline import export_ply as run_export
 
-from .options import emit, force_option, json_option
+from .options import emit, force_option, json_option, output_option
 
 
 @click.command("export-ply")
 @click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option(
-    "-o", "--output", "dst", required=True, type=click.Path(path_type=Path), help="Output PLY file."
-)
+@output_option("Output PLY file.")
 @click.option(
     "--snapshot",
     type=int,

@@ -8,19 +8,12 @@ import click
 
 from gscompress.pipeline import import_ply as run_import
 
-from .options import command_line, emit, force_option, json_option
+from .options import command_line, emit, force_option, json_option, output_option
 
 
 @click.command("import-ply")
 @click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option(
-    "-o",
-    "--output",
-    "dst",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Output log (.mcap).",
-)
+@output_option()
 @force_option
 @json_option
 def import_ply(src: Path, dst: Path, force: bool, as_json: bool) -> None:

@@ -7,6 +7,7 @@ import re
 import shlex
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
@@ -136,3 +137,10 @@ def progress_bar(desc: str, unit: str, total: int | None = None, hidden: bool = 
 
     quiet = logging.getLogger().getEffectiveLevel() > logging.INFO
     return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet)
+
+
+def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
+    """`-o/--output PATH`, required, passed to the command as `dst`."""
+    return click.option(
+        "-o", "--output", "dst", required=True, type=click.Path(path_type=Path), help=help
+    )

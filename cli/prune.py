@@ -9,7 +9,15 @@ import click
 from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import prune_log
 
-from .options import Ratio, command_line, emit, force_option, json_option, seed_option
+from .options import (
+    Ratio,
+    command_line,
+    emit,
+    force_option,
+    json_option,
+    output_option,
+    seed_option,
+)
 
 
 @click.command("prune")
@@ -27,14 +35,7 @@ from .options import Ratio, command_line, emit, force_option, json_option, seed_
     show_default=True,
     help="Score to rank by.",
 )
-@click.option(
-    "-o",
-    "--output",
-    "dst",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Output log (.mcap).",
-)
+@output_option()
 @seed_option
 @force_option
 @json_option

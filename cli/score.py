@@ -14,6 +14,7 @@ from .options import (
     emit,
     force_option,
     json_option,
+    output_option,
     progress_bar,
     size_option,
 )
@@ -55,14 +56,7 @@ from .options import (
     show_default=True,
     help="Render backend.",
 )
-@click.option(
-    "-o",
-    "--output",
-    "dst",
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Output log (.mcap).",
-)
+@output_option()
 @force_option
 @json_option
 def score(

@@ -84,7 +84,7 @@ def write_ply(
     out = AtomicFile(path)
     try:
         out.file.write(("\n".join(header) + "\n").encode("ascii"))
-        out.file.write(memoryview(records).cast("B"))  # no extra copy of the records
+        records.tofile(out.file)  # no extra copy of the records
         out.commit()
     except BaseException:
         out.discard()
