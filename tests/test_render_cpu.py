@@ -79,6 +79,7 @@ def test_contribution_does_not_change_other_outputs():
 
 
 def test_results_do_not_depend_on_thread_count():
+    """Per-Gaussian sums are reduced in list order, so threads change nothing, bit for bit."""
     scene = make_scene(300, seed=5)
     before = torch.get_num_threads()
     try:
@@ -89,17 +90,15 @@ def test_results_do_not_depend_on_thread_count():
     finally:
         torch.set_num_threads(before)
     assert torch.equal(one.color, two.color)
-    assert_rel_close(one.contribution, two.contribution, 1e-14, "contribution")
-    for key in INPUTS:
-        assert_rel_close(g_one[key], g_two[key], 1e-13, key)
+    assert torch.equal(one.contribution, two.contribution)
+    for key in ("opacities", "colors"):  # direct kernel outputs, before any torch reduction
+        assert torch.equal(g_one[key], g_two[key]), key
 
 
 def test_gradcheck_camera_pose_cpu():
     scene = {k: v.detach() for k, v in make_scene(40, seed=7).items()}
     xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(
-        _pose_function(scene, "cpu"), (xi,), eps=1e-6, atol=1e-6, nondet_tol=1e-12
-    )
+    assert torch.autograd.gradcheck(_pose_function(scene, "cpu"), (xi,), eps=1e-6, atol=1e-6)
 
 
 def test_gradcheck_kernel_inputs():
@@ -113,7 +112,7 @@ def test_gradcheck_kernel_inputs():
         return torch.stack([(getattr(res, k) * w).sum() for k, w in weights.items()])
 
     args = tuple(scene[k].clone().requires_grad_(True) for k in ("opacities", "colors", "means"))
-    assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6, nondet_tol=1e-12)
+    assert torch.autograd.gradcheck(f, args, eps=1e-6, atol=1e-6)
 
 
 def test_non_contiguous_inputs():

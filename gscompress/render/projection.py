@@ -68,15 +68,14 @@ class TileBins:
     ids: torch.Tensor
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [N, 3, 3] from unnormalised (w, x, y, z) quaternions [N, 4]."""
+def rotation_rows(quats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The three rows ([N, 3] each) of the rotations of unnormalised (w, x, y, z) quaternions."""
     w, x, y, z = torch.unbind(quats / quats.norm(dim=-1, keepdim=True), dim=-1)  # [N] each
-    rows = (
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    )  # fmt: skip
-    return torch.stack(rows, dim=-1).reshape(-1, 3, 3)
+    return (
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    )
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:
@@ -124,35 +123,29 @@ def project_gaussians(
     """
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
     width, height = intrinsics.width, intrinsics.height
-    R_cw = T_cam_world[:3, :3]  # [3, 3]
-    t_cw = T_cam_world[:3, 3]  # [3]
-
-    p_cam = means @ R_cw.T + t_cw  # [N, 3]
-    x, y, z = torch.unbind(p_cam, dim=-1)  # [N] each
+    # Written with elementwise [N] / [N, 3] operations only: torch's batched 3x3 matmuls are
+    # several times slower on CPU for this shape.
+    W = T_cam_world[:3, :3]  # [3, 3] world-to-camera rotation
+    t = T_cam_world[:3, 3]  # [3]
+    x, y, z = ((means * W[i]).sum(-1) + t[i] for i in range(3))  # [N] each, camera frame
     in_front = z >= near  # [N]
     # Culled Gaussians get a harmless depth so that no inf/nan reaches the backward pass.
     z_safe = torch.where(in_front, z, torch.ones_like(z))  # [N]
 
-    M = quat_to_rotmat(quats) * scales[:, None, :]  # [N, 3, 3] = R S
-    cov_world = M @ M.transpose(1, 2)  # [N, 3, 3]
-    cov_cam = R_cw @ cov_world @ R_cw.T  # [N, 3, 3]
+    # Rows of W R S, whose outer product is the camera-frame covariance W R S S R^T W^T.
+    M = [row * scales for row in rotation_rows(quats)]  # 3 x [N, 3], rows of R S
+    WM = [W[i, 0] * M[0] + W[i, 1] * M[1] + W[i, 2] * M[2] for i in range(3)]  # 3 x [N, 3]
 
-    lim_x_pos = (width - cx) / fx + 0.3 * (0.5 * width / fx)
-    lim_x_neg = cx / fx + 0.3 * (0.5 * width / fx)
-    lim_y_pos = (height - cy) / fy + 0.3 * (0.5 * height / fy)
-    lim_y_neg = cy / fy + 0.3 * (0.5 * height / fy)
-    tx = z_safe * torch.clamp(x / z_safe, -lim_x_neg, lim_x_pos)  # [N]
-    ty = z_safe * torch.clamp(y / z_safe, -lim_y_neg, lim_y_pos)  # [N]
-    zeros = torch.zeros_like(z_safe)
-    J = torch.stack(
-        [fx / z_safe, zeros, -fx * tx / (z_safe * z_safe),
-         zeros, fy / z_safe, -fy * ty / (z_safe * z_safe)],
-        dim=-1,
-    ).reshape(-1, 2, 3)  # [N, 2, 3]  # fmt: skip
-    cov2d = J @ cov_cam @ J.transpose(1, 2)  # [N, 2, 2]
-    s_xx = cov2d[:, 0, 0] + EPS2D  # [N]
-    s_xy = 0.5 * (cov2d[:, 0, 1] + cov2d[:, 1, 0])  # [N]
-    s_yy = cov2d[:, 1, 1] + EPS2D  # [N]
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    u = torch.clamp(x / z_safe, -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x)
+    v = torch.clamp(y / z_safe, -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y)
+    # Rows of J W R S with the pinhole Jacobian J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]].
+    inv_z = (1.0 / z_safe)[:, None]  # [N, 1]
+    row_u = (fx * inv_z) * (WM[0] - u[:, None] * WM[2])  # [N, 3]
+    row_v = (fy * inv_z) * (WM[1] - v[:, None] * WM[2])  # [N, 3]
+    s_xx = (row_u * row_u).sum(-1) + EPS2D  # [N]
+    s_xy = (row_u * row_v).sum(-1)  # [N]
+    s_yy = (row_v * row_v).sum(-1) + EPS2D  # [N]
     det = s_xx * s_yy - s_xy * s_xy  # [N]
     ok = in_front & (det > 0)  # [N]
     det_safe = torch.where(ok, det, torch.ones_like(det))  # [N]
@@ -181,20 +174,25 @@ def bin_tiles(projection: Projection, width: int, height: int) -> TileBins:
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
     device = projection.radii.device
+    take = torch.index_select  # much faster than advanced indexing on CPU
     gids = torch.nonzero(projection.radii > 0).squeeze(1)  # [V]
     x0, x1, y0, y1 = tile_rects(
-        projection.means2d[gids], projection.radii[gids], tiles_x, tiles_y
+        take(projection.means2d, 0, gids), take(projection.radii, 0, gids), tiles_x, tiles_y
     )  # [V] each
     span_x = x1 - x0  # [V]
     counts = span_x * (y1 - y0)  # [V], >= 1 for a visible Gaussian
-    starts = torch.cumsum(counts, 0) - counts  # [V]
+    depth_bits = take(projection.depths.detach(), 0, gids).float().view(torch.int32).long()
+    first = torch.cumsum(counts, 0) - counts  # [V] first slot of each Gaussian
     owner = torch.repeat_interleave(torch.arange(len(gids), device=device), counts)  # [I]
-    local = torch.arange(len(owner), device=device) - starts[owner]  # [I]
-    row, col = local // span_x[owner], local % span_x[owner]  # [I]
-    tile = (y0[owner] + row) * tiles_x + x0[owner] + col  # [I]
-    depth_bits = projection.depths.detach()[gids].float().view(torch.int32).long()  # [V]
-    _, order = torch.sort(tile * 2**31 + depth_bits[owner], stable=True)  # [I]
+    # One gather of everything needed per (Gaussian, tile) slot.
+    per_slot = take(torch.stack([first, span_x, x0, y0, depth_bits], dim=1), 0, owner)  # [I, 5]
+    first_s, span_s, x0_s, y0_s, depth_s = per_slot.unbind(1)  # [I] each
+    local = torch.arange(len(owner), device=device) - first_s  # [I] index within the rect
+    row = local // span_s  # [I]
+    tile = (y0_s + row) * tiles_x + x0_s + (local - row * span_s)  # [I]
+    _, order = torch.sort(tile * 2**31 + depth_s, stable=True)  # [I]
     per_tile = torch.bincount(tile, minlength=n_tiles)  # [n_tiles]
     offsets = torch.zeros(n_tiles + 1, dtype=torch.int64, device=device)
     offsets[1:] = torch.cumsum(per_tile, 0)
-    return TileBins(tiles_x=tiles_x, tiles_y=tiles_y, offsets=offsets, ids=gids[owner[order]])
+    ids = take(gids, 0, take(owner, 0, order))  # [I]
+    return TileBins(tiles_x=tiles_x, tiles_y=tiles_y, offsets=offsets, ids=ids)

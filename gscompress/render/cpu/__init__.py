@@ -130,14 +130,13 @@ class _Composite(torch.autograd.Function):
         want_contribution: bool,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         geometry = (width, height, bins.tiles_x, bins.tiles_y)
-        image, T_final, last, contribution = ext.composite_forward(
+        image, T_final, last, contribution, packed = ext.composite_forward(
             means2d, conics, opacities, features, bins.offsets, bins.ids, *geometry,
             want_contribution,
         )  # fmt: skip
-        ctx.ext, ctx.geometry = ext, geometry
-        ctx.save_for_backward(
-            means2d, conics, opacities, features, bins.offsets, bins.ids, T_final, last
-        )
+        ctx.ext, ctx.geometry, ctx.n = ext, geometry, len(means2d)
+        # The packed per-entry parameters are reused, so the backward reads no Gaussian twice.
+        ctx.save_for_backward(packed, bins.offsets, bins.ids, T_final, last)
         ctx.mark_non_differentiable(contribution)
         return image, T_final, contribution
 
@@ -146,10 +145,10 @@ class _Composite(torch.autograd.Function):
     def backward(
         ctx: Any, grad_image: torch.Tensor, grad_T: torch.Tensor, _grad_contribution: Any
     ) -> tuple[Any, ...]:
-        means2d, conics, opacities, features, offsets, ids, T_final, last = ctx.saved_tensors
+        packed, offsets, ids, T_final, last = ctx.saved_tensors
         g_means2d, g_conics, g_opacities, g_features = ctx.ext.composite_backward(
-            means2d, conics, opacities, features, offsets, ids, *ctx.geometry,
-            T_final, last, grad_image.contiguous(), grad_T.contiguous(),
+            packed, offsets, ids, ctx.n, *ctx.geometry, T_final, last,
+            grad_image.contiguous(), grad_T.contiguous(),
         )  # fmt: skip
         return None, g_means2d, g_conics, g_opacities, g_features, None, None, None, None
 

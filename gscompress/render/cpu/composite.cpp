@@ -5,16 +5,20 @@
 // is skipped; compositing stops before the Gaussian that would bring T below 1e-4 (that one is
 // left out).
 //
-// Layout of the work: tiles of 16x16 pixels are handed to threads with OpenMP dynamic
-// scheduling. Within a tile the loop runs Gaussian by Gaussian (front to back in the forward,
-// back to front in the backward); for each Gaussian only the tile rows where its alpha can reach
-// 1/255 are visited, and each such row is one branch-free, SIMD-vectorised loop over its 16
-// pixels, with per-pixel state (T, accumulated features, ...) in small tile-local arrays.
-//
-// The forward stores per pixel the final transmittance and the number of list entries it
-// consumed, so the backward is a single back-to-front pass that recovers T by division.
-// Per-Gaussian sums (contribution, gradients) are reduced over pixels inside the tile, then
-// added to thread-local buffers that are summed at the end: no atomics.
+// Layout of the work:
+// - A parallel pass copies each (tile, Gaussian) entry's parameters, in tile list order, into a
+//   packed array: the tile loops then read memory sequentially instead of jumping through
+//   per-Gaussian arrays (those cache misses dominated an earlier version).
+// - Tiles of 16x16 pixels are handed to threads with OpenMP dynamic scheduling. Within a tile
+//   the loop runs Gaussian by Gaussian (front to back in the forward, back to front in the
+//   backward); for each Gaussian only the tile rows where its alpha can reach 1/255 are
+//   visited, and each row is one branch-free SIMD computation over its 16 pixels, with the
+//   per-pixel state (T, accumulated features, ...) in tile-local vectors.
+// - The forward stores per pixel the final transmittance and the number of list entries it
+//   consumed, so the backward is a single back-to-front pass that recovers T by division.
+// - Per-Gaussian sums (contribution, gradients) are reduced over the pixels of a tile into the
+//   entry's own slot, and the slots are added per Gaussian in list order at the end: no atomics,
+//   no shared writes, and results that do not depend on the thread count or the schedule.
 
 #include <torch/extension.h>
 
@@ -23,6 +27,8 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -30,7 +36,6 @@ namespace {
 constexpr int kTile = 16;
 constexpr int kPix = kTile * kTile;
 constexpr int kCh = 4;     // composited features: r, g, b, depth
-constexpr int kGrad = 10;  // per-Gaussian gradient slots: mean2d(2) conic(3) opacity(1) feats(4)
 
 template <typename scalar_t>
 struct Rules {
@@ -61,11 +66,16 @@ inline V splat(S s) {
   return V{} + s;
 }
 
+// Sum of the 16 lanes, as a tree (a sequential loop over lanes is a long dependency chain).
 template <typename V>
 inline auto hsum(const V& v) {
-  auto sum = v[0];
-  for (int i = 1; i < kTile; ++i) sum += v[i];
-  return sum;
+  using S = std::remove_cv_t<std::remove_reference_t<decltype(v[0])>>;
+  alignas(sizeof(V)) S lanes[kTile];
+  std::memcpy(lanes, &v, sizeof(V));
+  for (int half = kTile / 2; half >= 1; half /= 2) {
+    for (int i = 0; i < half; ++i) lanes[i] += lanes[i + half];
+  }
+  return lanes[0];
 }
 
 // exp(x) for x <= 0, accurate to about 1 ulp, on a whole row (libm's exp does not vectorise).
@@ -119,81 +129,87 @@ inline Simd<double>::V vexp(Simd<double>::V x) {
   return y * reinterpret_cast<const V&>(bits);
 }
 
-// Half extents (x, y) in pixels of the ellipse outside which a Gaussian's alpha is provably
-// below 1/255: alpha = o exp(-q / 2) >= 1/255 needs q <= 2 ln(255 o), and on that ellipse |dx|
-// is at most sqrt(2 ln(255 o) Sigma_xx), Sigma = conic^-1. A 1e-3 relative + 1e-2 px margin
-// keeps rounding from dropping a pixel that the exact test would keep; pixels inside are tested
-// exactly. -1 marks a Gaussian that can never reach 1/255; +inf a degenerate conic (test all).
+// Fields of one packed (tile, Gaussian) entry.
+enum Field { kMx, kMy, kA, kB, kC, kO, kF0, kEx = kF0 + kCh, kEy, kFields };
+
+// Packs the parameters of every list entry in list order (see the file comment). kEx / kEy are
+// the half extents in pixels of the ellipse outside which the Gaussian's alpha is provably below
+// 1/255: alpha = o exp(-q / 2) >= 1/255 needs q <= 2 ln(255 o), and on that ellipse |dx| is at
+// most sqrt(2 ln(255 o) Sigma_xx), Sigma = conic^-1. A 1e-3 relative + 1e-2 px margin keeps
+// rounding from dropping a pixel that the exact test would keep (pixels inside are tested
+// exactly). -1 marks a Gaussian that never reaches 1/255; +inf a degenerate conic (test all).
 template <typename scalar_t>
-void footprints(const scalar_t* conics, const scalar_t* opac, int64_t n, float* extents,
-                int n_threads) {
+void pack_entries(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
+                  const scalar_t* feats, const int64_t* ids, int64_t n_entries, scalar_t* packed,
+                  int n_threads) {
 #pragma omp parallel for num_threads(n_threads) schedule(static)
-  for (int64_t g = 0; g < n; ++g) {
-    const double o = opac[g], a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
-    const double q = 2.0 * std::log(255.0 * o) * 1.001 + 1e-6;
-    const double det = a * c - b * b;
-    if (!(o >= double(Rules<scalar_t>::alpha_min))) {
-      extents[2 * g] = extents[2 * g + 1] = -1.0f;
-    } else if (!(q > 0.0) || !(det > 0.0) || !(a > 0.0) || !(c > 0.0)) {
-      extents[2 * g] = extents[2 * g + 1] = INFINITY;
+  for (int64_t s = 0; s < n_entries; ++s) {
+    const int64_t g = ids[s];
+    scalar_t* e = packed + s * kFields;
+    const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
+    const scalar_t o = opac[g];
+    e[kMx] = means2d[2 * g];
+    e[kMy] = means2d[2 * g + 1];
+    e[kA] = a;
+    e[kB] = b;
+    e[kC] = c;
+    e[kO] = o;
+    for (int ch = 0; ch < kCh; ++ch) e[kF0 + ch] = feats[kCh * g + ch];
+    const double q = 2.0 * std::log(255.0 * double(o)) * 1.001 + 1e-6;
+    const double det = double(a) * double(c) - double(b) * double(b);
+    if (!(o >= Rules<scalar_t>::alpha_min)) {
+      e[kEx] = e[kEy] = scalar_t(-1);
+    } else if (!(q > 0.0) || !(det > 0.0) || !(a > 0) || !(c > 0)) {
+      e[kEx] = e[kEy] = scalar_t(INFINITY);
     } else {
-      extents[2 * g] = float(std::sqrt(q * c / det) + 1e-2);
-      extents[2 * g + 1] = float(std::sqrt(q * a / det) + 1e-2);
+      e[kEx] = scalar_t(std::sqrt(q * double(c) / det) + 1e-2);
+      e[kEy] = scalar_t(std::sqrt(q * double(a) / det) + 1e-2);
     }
   }
 }
 
 // Range [lo, hi) of tile-local coordinates within `half` of `centre` (tile starts at `origin`).
-inline void span(double centre, float half, int origin, int size, int& lo, int& hi) {
-  const double l = std::ceil(centre - double(half)) - origin;
-  const double h = std::floor(centre + double(half)) - origin + 1;
+inline void span(double centre, double half, int origin, int size, int& lo, int& hi) {
+  const double l = std::ceil(centre - half) - origin;
+  const double h = std::floor(centre + half) - origin + 1;
   lo = int(std::clamp(l, 0.0, double(size)));
   hi = int(std::clamp(h, 0.0, double(size)));
 }
 
-// Everything the per-row loops need about one Gaussian in one tile.
+// Tile-local rows [y0, y1) and columns [x0, x1) where a packed entry's alpha can reach 1/255;
+// false when there are none.
 template <typename scalar_t>
-struct Splat {
-  scalar_t mx, my, a, b, c, o, f[kCh];
-  int x0, x1, y0, y1;  // tile-local rows / columns where alpha can reach 1/255
+inline bool entry_rect(const scalar_t* e, int tile_x, int tile_y, int tw, int th, int& x0,
+                       int& x1, int& y0, int& y1) {
+  if (e[kEx] < 0) return false;
+  span(e[kMx], e[kEx], tile_x, tw, x0, x1);
+  span(e[kMy], e[kEy], tile_y, th, y0, y1);
+  return x0 < x1 && y0 < y1;
+}
 
-  // Loads Gaussian g; false when it cannot reach 1/255 anywhere in this tile.
-  bool load(int64_t g, const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
-            const scalar_t* feats, const float* extents, int tile_x, int tile_y, int tw,
-            int th) {
-    if (extents[2 * g] < 0) return false;
-    mx = means2d[2 * g];
-    my = means2d[2 * g + 1];
-    span(mx, extents[2 * g], tile_x, tw, x0, x1);
-    span(my, extents[2 * g + 1], tile_y, th, y0, y1);
-    if (x0 >= x1 || y0 >= y1) return false;
-    a = conics[3 * g];
-    b = conics[3 * g + 1];
-    c = conics[3 * g + 2];
-    o = opac[g];
-    for (int ch = 0; ch < kCh; ++ch) f[ch] = feats[kCh * g + ch];
-    return true;
+// Adds per-entry slots [n_entries, width] into per-Gaussian sums [n, width], in list order.
+template <typename scalar_t>
+void reduce_entries(const scalar_t* slots, const int64_t* ids, int64_t n_entries, int width,
+                    scalar_t* out, int64_t n) {
+  std::fill(out, out + n * width, scalar_t(0));
+  for (int64_t s = 0; s < n_entries; ++s) {
+    scalar_t* dst = out + ids[s] * width;
+    for (int j = 0; j < width; ++j) dst[j] += slots[s * width + j];
   }
-};
+}
 
 template <typename scalar_t>
-void forward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
-                  const scalar_t* feats, const int64_t* offsets, const int64_t* ids, int64_t n,
-                  int width, int height, int tiles_x, int tiles_y, scalar_t* out_feats,
-                  scalar_t* out_T, int32_t* out_last, scalar_t* contrib, int n_threads) {
+void forward_impl(const scalar_t* packed, const int64_t* offsets, int width, int height,
+                  int tiles_x, int tiles_y, scalar_t* out_feats, scalar_t* out_T,
+                  int32_t* out_last, scalar_t* entry_weight, int n_threads) {
   using R = Rules<scalar_t>;
   using V = typename Simd<scalar_t>::V;
   using I = typename Simd<scalar_t>::I;
   using int_t = typename Simd<scalar_t>::Int;
   const int n_tiles = tiles_x * tiles_y;
-  std::vector<float> extents(size_t(2) * n);
-  footprints(conics, opac, n, extents.data(), n_threads);
-  std::vector<scalar_t> contrib_local(contrib ? size_t(n_threads) * n : 0, scalar_t(0));
 
 #pragma omp parallel num_threads(n_threads)
   {
-    scalar_t* my_contrib =
-        contrib ? contrib_local.data() + size_t(omp_get_thread_num()) * n : nullptr;
     // Per-pixel state, one vector per tile row.
     V T[kTile];
     V acc[kCh][kTile];
@@ -215,24 +231,25 @@ void forward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_
       }
       int n_active = tw * th;
       const int64_t begin = offsets[t], end = offsets[t + 1];
-      Splat<scalar_t> sp;
+      if (entry_weight) std::fill(entry_weight + begin, entry_weight + end, scalar_t(0));
 
       for (int64_t s = begin; s < end && n_active > 0; ++s) {
-        const int64_t g = ids[s];
-        if (!sp.load(g, means2d, conics, opac, feats, extents.data(), tile_x, tile_y, tw, th))
-          continue;
+        const scalar_t* e = packed + s * kFields;
+        int x0, x1, y0, y1;
+        if (!entry_rect(e, tile_x, tile_y, tw, th, x0, x1, y0, y1)) continue;
+        const scalar_t mx = e[kMx], my = e[kMy], a = e[kA], b = e[kB], c = e[kC], o = e[kO];
         const I k1 = splat<I>(int_t(s - begin + 1));
-        const I in_x = (xs > scalar_t(tile_x + sp.x0) - scalar_t(0.5)) &
-                       (xs < scalar_t(tile_x + sp.x1) - scalar_t(0.5));
-        const V dx = xs - sp.mx;
-        const V a_dx_dx = sp.a * dx * dx;
+        const I in_x = (xs > scalar_t(tile_x + x0) - scalar_t(0.5)) &
+                       (xs < scalar_t(tile_x + x1) - scalar_t(0.5));
+        const V dx = xs - mx;
+        const V a_dx_dx = a * dx * dx;
         V lane_w{};
         I lane_stop{};
-        for (int ly = sp.y0; ly < sp.y1; ++ly) {
-          const scalar_t dy = scalar_t(tile_y + ly) - sp.my;
+        for (int ly = y0; ly < y1; ++ly) {
+          const scalar_t dy = scalar_t(tile_y + ly) - my;
           // Same operation order as the torch oracle, so both round alike.
-          const V power = scalar_t(-0.5) * (a_dx_dx + sp.c * dy * dy) - sp.b * dx * dy;
-          const V oG = sp.o * vexp(power);
+          const V power = scalar_t(-0.5) * (a_dx_dx + c * dy * dy) - b * dx * dy;
+          const V oG = o * vexp(power);
           const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
           const V Tp = T[ly];
           const V T_next = Tp * (scalar_t(1) - alpha);
@@ -240,7 +257,7 @@ void forward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_
           const I stop = hit & (T_next < R::t_min);
           const I use = hit & ~stop;
           const V w = use ? alpha * Tp : V{};
-          for (int ch = 0; ch < kCh; ++ch) acc[ch][ly] += w * sp.f[ch];
+          for (int ch = 0; ch < kCh; ++ch) acc[ch][ly] += w * e[kF0 + ch];
           T[ly] = use ? T_next : Tp;
           last[ly] = use ? k1 : last[ly];
           alive[ly] &= ~stop;
@@ -248,7 +265,7 @@ void forward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_
           lane_stop -= stop;  // stop is -1 where a pixel stops
         }
         n_active -= int(hsum(lane_stop));
-        if (my_contrib) my_contrib[g] += hsum(lane_w);
+        if (entry_weight) entry_weight[s] = hsum(lane_w);
       }
 
       for (int ly = 0; ly < th; ++ly) {
@@ -260,43 +277,31 @@ void forward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_
         }
       }
     }
-
-    if (contrib) {
-#pragma omp for schedule(static)
-      for (int64_t g = 0; g < n; ++g) {
-        scalar_t sum = 0;
-        for (int k = 0; k < n_threads; ++k) sum += contrib_local[size_t(k) * n + g];
-        contrib[g] = sum;
-      }
-    }
   }
 }
 
+// Per-entry gradient slots: mean2d (2), conic (3), opacity (1), features (kCh).
+constexpr int kGradSlots = 6 + kCh;
+
 template <typename scalar_t>
-void backward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
-                   const scalar_t* feats, const int64_t* offsets, const int64_t* ids, int64_t n,
-                   int width, int height, int tiles_x, int tiles_y, const scalar_t* T_final,
-                   const int32_t* last_in, const scalar_t* grad_feats, const scalar_t* grad_T,
-                   scalar_t* g_means2d, scalar_t* g_conics, scalar_t* g_opac, scalar_t* g_feats,
+void backward_impl(const scalar_t* packed, const int64_t* offsets, int width, int height,
+                   int tiles_x, int tiles_y, const scalar_t* T_final, const int32_t* last_in,
+                   const scalar_t* grad_feats, const scalar_t* grad_T, scalar_t* entry_grads,
                    int n_threads) {
   using R = Rules<scalar_t>;
   using V = typename Simd<scalar_t>::V;
   using I = typename Simd<scalar_t>::I;
   using int_t = typename Simd<scalar_t>::Int;
   const int n_tiles = tiles_x * tiles_y;
-  std::vector<float> extents(size_t(2) * n);
-  footprints(conics, opac, n, extents.data(), n_threads);
-  std::vector<scalar_t> local(size_t(n_threads) * n * kGrad, scalar_t(0));
 
 #pragma omp parallel num_threads(n_threads)
   {
-    scalar_t* mine = local.data() + size_t(omp_get_thread_num()) * n * kGrad;
     // Per-pixel state, one vector per tile row.
-    V T[kTile];         // transmittance after the current Gaussian
-    V gT_end[kTile];    // dL/dT_final * T_final
-    V gF[kCh][kTile];   // dL/d(composited features)
-    V S[kCh][kTile];    // sum over the Gaussians behind of w_j f_j
-    I last[kTile];      // list entries consumed by the pixel in the forward
+    V T[kTile];        // transmittance after the current Gaussian
+    V gT_end[kTile];   // dL/dT_final * T_final
+    V gF[kCh][kTile];  // dL/d(composited features)
+    V S[kCh][kTile];   // sum over the Gaussians behind of w_j f_j
+    I last[kTile];     // list entries consumed by the pixel in the forward
     V lane;
     for (int lx = 0; lx < kTile; ++lx) lane[lx] = scalar_t(lx);
 
@@ -320,27 +325,28 @@ void backward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar
           k_max = std::max(k_max, last_in[q]);
         }
       }
-      const int64_t begin = offsets[t];
-      Splat<scalar_t> sp;
+      const int64_t begin = offsets[t], end = offsets[t + 1];
+      std::fill(entry_grads + begin * kGradSlots, entry_grads + end * kGradSlots, scalar_t(0));
 
       for (int64_t s = begin + k_max - 1; s >= begin; --s) {
-        const int64_t g = ids[s];
-        if (!sp.load(g, means2d, conics, opac, feats, extents.data(), tile_x, tile_y, tw, th))
-          continue;
+        const scalar_t* e = packed + s * kFields;
+        int x0, x1, y0, y1;
+        if (!entry_rect(e, tile_x, tile_y, tw, th, x0, x1, y0, y1)) continue;
+        const scalar_t mx = e[kMx], my = e[kMy], a = e[kA], b = e[kB], c = e[kC], o = e[kO];
         const I k = splat<I>(int_t(s - begin));
-        const I in_x = (xs > scalar_t(tile_x + sp.x0) - scalar_t(0.5)) &
-                       (xs < scalar_t(tile_x + sp.x1) - scalar_t(0.5));
-        const V dx = xs - sp.mx;
-        const V a_dx_dx = sp.a * dx * dx;
-        const V a_dx = sp.a * dx, b_dx = sp.b * dx;
-        // Per-lane partial gradients, summed over the lanes once per Gaussian.
+        const I in_x = (xs > scalar_t(tile_x + x0) - scalar_t(0.5)) &
+                       (xs < scalar_t(tile_x + x1) - scalar_t(0.5));
+        const V dx = xs - mx;
+        const V a_dx_dx = a * dx * dx;
+        const V a_dx = a * dx, b_dx = b * dx;
+        // Per-lane partial gradients, summed over the lanes once per entry.
         V d_mx{}, d_my{}, d_a{}, d_b{}, d_c{}, d_o{};
         V d_f[kCh] = {};
-        for (int ly = sp.y0; ly < sp.y1; ++ly) {
-          const scalar_t dy = scalar_t(tile_y + ly) - sp.my;
-          const V power = scalar_t(-0.5) * (a_dx_dx + sp.c * dy * dy) - sp.b * dx * dy;
+        for (int ly = y0; ly < y1; ++ly) {
+          const scalar_t dy = scalar_t(tile_y + ly) - my;
+          const V power = scalar_t(-0.5) * (a_dx_dx + c * dy * dy) - b * dx * dy;
           const V G = vexp(power);
-          const V oG = sp.o * G;
+          const V oG = o * G;
           const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
           const I hit = in_x & (k < last[ly]) & (alpha >= R::alpha_min);
           const V one_minus = scalar_t(1) - alpha;
@@ -350,10 +356,10 @@ void backward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar
           // share of the final transmittance.
           V own{}, behind = gT_end[ly];
           for (int ch = 0; ch < kCh; ++ch) {
-            own += gF[ch][ly] * sp.f[ch];
+            own += gF[ch][ly] * e[kF0 + ch];
             behind += gF[ch][ly] * S[ch][ly];
             d_f[ch] += w * gF[ch][ly];
-            S[ch][ly] += w * sp.f[ch];
+            S[ch][ly] += w * e[kF0 + ch];
           }
           T[ly] = hit ? T_before : T[ly];
           // The clamp at 0.99 passes no gradient once it bites.
@@ -364,34 +370,18 @@ void backward_impl(const scalar_t* means2d, const scalar_t* conics, const scalar
           d_a += scalar_t(-0.5) * d_pow * dx * dx;
           d_b -= d_pow * dx * dy;
           d_c += scalar_t(-0.5) * d_pow * dy * dy;
-          d_mx += d_pow * (a_dx + sp.b * dy);
-          d_my += d_pow * (b_dx + sp.c * dy);
+          d_mx += d_pow * (a_dx + b * dy);
+          d_my += d_pow * (b_dx + c * dy);
         }
-        scalar_t* dst = mine + size_t(g) * kGrad;
-        dst[0] += hsum(d_mx);
-        dst[1] += hsum(d_my);
-        dst[2] += hsum(d_a);
-        dst[3] += hsum(d_b);
-        dst[4] += hsum(d_c);
-        dst[5] += hsum(d_o);
-        for (int ch = 0; ch < kCh; ++ch) dst[6 + ch] += hsum(d_f[ch]);
+        scalar_t* dst = entry_grads + s * kGradSlots;
+        dst[0] = hsum(d_mx);
+        dst[1] = hsum(d_my);
+        dst[2] = hsum(d_a);
+        dst[3] = hsum(d_b);
+        dst[4] = hsum(d_c);
+        dst[5] = hsum(d_o);
+        for (int ch = 0; ch < kCh; ++ch) dst[6 + ch] = hsum(d_f[ch]);
       }
-    }
-
-#pragma omp for schedule(static)
-    for (int64_t g = 0; g < n; ++g) {
-      scalar_t sum[kGrad] = {0};
-      for (int k = 0; k < n_threads; ++k) {
-        const scalar_t* src = local.data() + (size_t(k) * n + g) * kGrad;
-        for (int j = 0; j < kGrad; ++j) sum[j] += src[j];
-      }
-      g_means2d[2 * g] = sum[0];
-      g_means2d[2 * g + 1] = sum[1];
-      g_conics[3 * g] = sum[2];
-      g_conics[3 * g + 1] = sum[3];
-      g_conics[3 * g + 2] = sum[4];
-      g_opac[g] = sum[5];
-      for (int ch = 0; ch < kCh; ++ch) g_feats[kCh * g + ch] = sum[6 + ch];
     }
   }
 }
@@ -425,56 +415,68 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
                                              int64_t tiles_y, bool want_contribution) {
   check_inputs(means2d, conics, opac, feats, offsets, ids, tiles_x, tiles_y);
   const auto n = means2d.size(0);
+  const auto n_entries = ids.size(0);
   auto opts = means2d.options();
+  auto packed = torch::empty({n_entries, kFields}, opts);
   auto out_feats = torch::empty({height, width, kCh}, opts);
   auto out_T = torch::empty({height, width}, opts);
   auto out_last = torch::empty({height, width}, opts.dtype(torch::kInt32));
-  auto contrib = want_contribution ? torch::empty({n}, opts) : torch::empty({0}, opts);
+  auto contrib = torch::empty({want_contribution ? n : 0}, opts);
   const int n_threads = std::max(1, at::get_num_threads());
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
-    forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+    pack_entries<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
                            opac.data_ptr<scalar_t>(), feats.data_ptr<scalar_t>(),
-                           offsets.data_ptr<int64_t>(), ids.data_ptr<int64_t>(), n, int(width),
-                           int(height), int(tiles_x), int(tiles_y),
+                           ids.data_ptr<int64_t>(), n_entries, packed.data_ptr<scalar_t>(),
+                           n_threads);
+    std::vector<scalar_t> entry_weight(want_contribution ? n_entries : 0);
+    forward_impl<scalar_t>(packed.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(),
+                           int(width), int(height), int(tiles_x), int(tiles_y),
                            out_feats.data_ptr<scalar_t>(), out_T.data_ptr<scalar_t>(),
                            out_last.data_ptr<int32_t>(),
-                           want_contribution ? contrib.data_ptr<scalar_t>() : nullptr,
-                           n_threads);
+                           want_contribution ? entry_weight.data() : nullptr, n_threads);
+    if (want_contribution) {
+      reduce_entries<scalar_t>(entry_weight.data(), ids.data_ptr<int64_t>(), n_entries, 1,
+                               contrib.data_ptr<scalar_t>(), n);
+    }
   });
-  return {out_feats, out_T, out_last, contrib};
+  return {out_feats, out_T, out_last, contrib, packed};
 }
 
-std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tensor conics,
-                                              torch::Tensor opac, torch::Tensor feats,
-                                              torch::Tensor offsets, torch::Tensor ids,
-                                              int64_t width, int64_t height, int64_t tiles_x,
-                                              int64_t tiles_y, torch::Tensor T_final,
-                                              torch::Tensor last, torch::Tensor grad_feats,
-                                              torch::Tensor grad_T) {
-  check_inputs(means2d, conics, opac, feats, offsets, ids, tiles_x, tiles_y);
-  TORCH_CHECK(T_final.is_contiguous() && last.is_contiguous() && grad_feats.is_contiguous() &&
-                  grad_T.is_contiguous(),
-              "saved tensors and gradients must be contiguous");
+std::vector<torch::Tensor> composite_backward(torch::Tensor packed, torch::Tensor offsets,
+                                              torch::Tensor ids, int64_t n, int64_t width,
+                                              int64_t height, int64_t tiles_x, int64_t tiles_y,
+                                              torch::Tensor T_final, torch::Tensor last,
+                                              torch::Tensor grad_feats, torch::Tensor grad_T) {
+  const auto n_entries = ids.size(0);
+  TORCH_CHECK(packed.dim() == 2 && packed.size(0) == n_entries && packed.size(1) == kFields,
+              "packed entries must be [I, ", int(kFields), "]");
+  TORCH_CHECK(offsets.dim() == 1 && offsets.size(0) == tiles_x * tiles_y + 1,
+              "offsets must be [tiles + 1]");
+  TORCH_CHECK(offsets.scalar_type() == torch::kInt64 && ids.scalar_type() == torch::kInt64,
+              "offsets and ids must be int64");
   TORCH_CHECK(last.scalar_type() == torch::kInt32, "last must be int32");
-  TORCH_CHECK(grad_feats.scalar_type() == means2d.scalar_type() &&
-                  grad_T.scalar_type() == means2d.scalar_type(),
-              "gradients must share the input dtype");
-  const auto n = means2d.size(0);
-  auto g_means2d = torch::empty_like(means2d);
-  auto g_conics = torch::empty_like(conics);
-  auto g_opac = torch::empty_like(opac);
-  auto g_feats = torch::empty_like(feats);
+  for (const auto* x : {&packed, &T_final, &grad_feats, &grad_T}) {
+    TORCH_CHECK(x->scalar_type() == packed.scalar_type(), "all inputs must share a dtype");
+  }
+  for (const auto* x : {&packed, &offsets, &ids, &T_final, &last, &grad_feats, &grad_T}) {
+    TORCH_CHECK(x->is_contiguous() && x->device().is_cpu(), "inputs must be contiguous CPU");
+  }
+  auto opts = packed.options();
+  auto entry_grads = torch::empty({n_entries, kGradSlots}, opts);
+  auto grads = torch::empty({n, kGradSlots}, opts);
   const int n_threads = std::max(1, at::get_num_threads());
-  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
-    backward_impl<scalar_t>(
-        means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-        feats.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(), ids.data_ptr<int64_t>(), n,
-        int(width), int(height), int(tiles_x), int(tiles_y), T_final.data_ptr<scalar_t>(),
-        last.data_ptr<int32_t>(), grad_feats.data_ptr<scalar_t>(), grad_T.data_ptr<scalar_t>(),
-        g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
-        g_opac.data_ptr<scalar_t>(), g_feats.data_ptr<scalar_t>(), n_threads);
+  AT_DISPATCH_FLOATING_TYPES(packed.scalar_type(), "composite_backward", [&] {
+    backward_impl<scalar_t>(packed.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(),
+                            int(width), int(height), int(tiles_x), int(tiles_y),
+                            T_final.data_ptr<scalar_t>(), last.data_ptr<int32_t>(),
+                            grad_feats.data_ptr<scalar_t>(), grad_T.data_ptr<scalar_t>(),
+                            entry_grads.data_ptr<scalar_t>(), n_threads);
+    reduce_entries<scalar_t>(entry_grads.data_ptr<scalar_t>(), ids.data_ptr<int64_t>(),
+                             n_entries, kGradSlots, grads.data_ptr<scalar_t>(), n);
   });
-  return {g_means2d, g_conics, g_opac, g_feats};
+  // [N, 10] -> mean2d [N, 2], conic [N, 3], opacity [N], features [N, kCh]
+  return {grads.slice(1, 0, 2), grads.slice(1, 2, 5), grads.select(1, 5),
+          grads.slice(1, 6, 6 + kCh)};
 }
 
 }  // namespace
