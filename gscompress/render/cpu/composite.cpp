@@ -132,38 +132,49 @@ inline Simd<double>::V vexp(Simd<double>::V x) {
 // Fields of one packed (tile, Gaussian) entry.
 enum Field { kMx, kMy, kA, kB, kC, kO, kF0, kEx = kF0 + kCh, kEy, kFields };
 
-// Packs the parameters of every list entry in list order (see the file comment). kEx / kEy are
-// the half extents in pixels of the ellipse outside which the Gaussian's alpha is provably below
-// 1/255: alpha = o exp(-q / 2) >= 1/255 needs q <= 2 ln(255 o), and on that ellipse |dx| is at
-// most sqrt(2 ln(255 o) Sigma_xx), Sigma = conic^-1. A 1e-3 relative + 1e-2 px margin keeps
-// rounding from dropping a pixel that the exact test would keep (pixels inside are tested
-// exactly). -1 marks a Gaussian that never reaches 1/255; +inf a degenerate conic (test all).
+// Packs the parameters of every list entry in list order (see the file comment): first one
+// record per Gaussian (a sequential pass), then one copy of a record per entry, so that each
+// entry costs a single random read. kEx / kEy are the half extents in pixels of the ellipse
+// outside which the Gaussian's alpha is provably below 1/255: alpha = o exp(-q / 2) >= 1/255
+// needs q <= 2 ln(255 o), and on that ellipse |dx| is at most sqrt(2 ln(255 o) Sigma_xx),
+// Sigma = conic^-1. A 1e-3 relative + 1e-2 px margin keeps rounding from dropping a pixel that
+// the exact test would keep (pixels inside are tested exactly). -1 marks a Gaussian that never
+// reaches 1/255; +inf a degenerate conic (all pixels are tested).
 template <typename scalar_t>
 void pack_entries(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
-                  const scalar_t* feats, const int64_t* ids, int64_t n_entries, scalar_t* packed,
-                  int n_threads) {
-#pragma omp parallel for num_threads(n_threads) schedule(static)
-  for (int64_t s = 0; s < n_entries; ++s) {
-    const int64_t g = ids[s];
-    scalar_t* e = packed + s * kFields;
-    const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
-    const scalar_t o = opac[g];
-    e[kMx] = means2d[2 * g];
-    e[kMy] = means2d[2 * g + 1];
-    e[kA] = a;
-    e[kB] = b;
-    e[kC] = c;
-    e[kO] = o;
-    for (int ch = 0; ch < kCh; ++ch) e[kF0 + ch] = feats[kCh * g + ch];
-    const double q = 2.0 * std::log(255.0 * double(o)) * 1.001 + 1e-6;
-    const double det = double(a) * double(c) - double(b) * double(b);
-    if (!(o >= Rules<scalar_t>::alpha_min)) {
-      e[kEx] = e[kEy] = scalar_t(-1);
-    } else if (!(q > 0.0) || !(det > 0.0) || !(a > 0) || !(c > 0)) {
-      e[kEx] = e[kEy] = scalar_t(INFINITY);
-    } else {
-      e[kEx] = scalar_t(std::sqrt(q * double(c) / det) + 1e-2);
-      e[kEy] = scalar_t(std::sqrt(q * double(a) / det) + 1e-2);
+                  const scalar_t* feats, int64_t n, const int64_t* ids, int64_t n_entries,
+                  scalar_t* packed, int n_threads) {
+  std::vector<scalar_t> records(size_t(n) * kFields);
+#pragma omp parallel num_threads(n_threads)
+  {
+#pragma omp for schedule(static)
+    for (int64_t g = 0; g < n; ++g) {
+      scalar_t* e = records.data() + g * kFields;
+      const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
+      const scalar_t o = opac[g];
+      e[kMx] = means2d[2 * g];
+      e[kMy] = means2d[2 * g + 1];
+      e[kA] = a;
+      e[kB] = b;
+      e[kC] = c;
+      e[kO] = o;
+      for (int ch = 0; ch < kCh; ++ch) e[kF0 + ch] = feats[kCh * g + ch];
+      const float q = 2.0f * std::log(255.0f * float(o)) * 1.001f + 1e-6f;
+      const float det = float(a) * float(c) - float(b) * float(b);
+      if (!(o >= Rules<scalar_t>::alpha_min)) {
+        e[kEx] = e[kEy] = scalar_t(-1);
+      } else if (!(q > 0.0f) || !(det > 0.0f) || !(a > 0) || !(c > 0) ||
+                 !std::isfinite(q * float(c) / det) || !std::isfinite(q * float(a) / det)) {
+        e[kEx] = e[kEy] = scalar_t(INFINITY);
+      } else {
+        e[kEx] = scalar_t(std::sqrt(q * float(c) / det) * 1.0001f + 1e-2f);
+        e[kEy] = scalar_t(std::sqrt(q * float(a) / det) * 1.0001f + 1e-2f);
+      }
+    }
+#pragma omp for schedule(static)
+    for (int64_t s = 0; s < n_entries; ++s) {
+      std::memcpy(packed + s * kFields, records.data() + ids[s] * kFields,
+                  sizeof(scalar_t) * kFields);
     }
   }
 }
@@ -425,7 +436,7 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
   const int n_threads = std::max(1, at::get_num_threads());
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
     pack_entries<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
-                           opac.data_ptr<scalar_t>(), feats.data_ptr<scalar_t>(),
+                           opac.data_ptr<scalar_t>(), feats.data_ptr<scalar_t>(), n,
                            ids.data_ptr<int64_t>(), n_entries, packed.data_ptr<scalar_t>(),
                            n_threads);
     std::vector<scalar_t> entry_weight(want_contribution ? n_entries : 0);
