@@ -12,10 +12,12 @@ each Gaussian, the ellipse where its alpha reaches 1/255; `mean_depth_complexity
 value measured on the final scene).
 
 Timings: median over `--iters` iterations (a third of them for pure torch) after 2 warm-up
-ones, with `torch.get_num_threads()` threads; the forward with and without contribution are
-timed interleaved, so that load from other processes affects both alike. `ms_forward` is `render()` with inputs that require grad (the forward of a training
-step); `ms_forward_backward` adds the backward of a loss over colour, depth and silhouette;
-`ms_forward_contribution` is the same forward with `want_contribution=True`.
+ones, with `torch.get_num_threads()` threads. `ms_forward` is `render()` with inputs that
+require grad (the forward of a training step); `ms_forward_contribution` is the same with
+`want_contribution=True`, timed interleaved with it so that load from other processes affects
+both alike; `ms_forward_backward` adds the backward of a loss over colour, depth and silhouette.
+The machine's load average is recorded with each case: figures taken while other processes
+compete for the cores are not comparable.
 
 Memory: every case and backend runs in a fresh subprocess; `peak_rss_mb` is that process's
 `resource.getrusage(RUSAGE_SELF).ru_maxrss` at the end (whole process: Python, torch, scene,
@@ -28,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import statistics
 import subprocess
@@ -156,6 +159,7 @@ def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict:
         "tile_intersections": intersections,
         "mean_silhouette": round(float(out.silhouette.mean()), 4),
         "iters": iters,
+        "load_average_1min": round(os.getloadavg()[0], 2),
     }
     ms_forward, ms_contribution = timed(forward, lambda: forward(True), iters=iters)
     record["ms_forward"] = round(ms_forward, 2)
