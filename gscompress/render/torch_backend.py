@@ -85,9 +85,7 @@ def composite_torch(
         k = torch.arange(k_max, device=device)  # [K]
         slot = bins.offsets[chunk][:, None] + k  # [B, K]
         valid = k < (bins.offsets[chunk + 1] - bins.offsets[chunk])[:, None]  # [B, K]
-        gid = bins.ids[
-            torch.where(valid, slot, torch.zeros_like(slot)).clamp(max=max(len(bins.ids) - 1, 0))
-        ]  # [B, K]
+        gid = bins.ids[torch.where(valid, slot, torch.zeros_like(slot))]  # [B, K], 0 = pad
 
         dx = px[chunk][:, :, None].to(dtype) - means2d[gid][:, None, :, 0]  # [B, P, K]
         dy = py[chunk][:, :, None].to(dtype) - means2d[gid][:, None, :, 1]  # [B, P, K]
