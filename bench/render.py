@@ -15,7 +15,8 @@ Timings: median over `--iters` iterations (a third of them for pure torch) after
 ones, with `torch.get_num_threads()` threads. `ms_forward` is `render()` with inputs that
 require grad (the forward of a training step); `ms_forward_contribution` is the same with
 `want_contribution=True`, timed interleaved with it so that load from other processes affects
-both alike; `ms_forward_backward` adds the backward of a loss over colour, depth and silhouette.
+both alike; `ms_forward_backward` adds the backward of a loss over colour, depth and silhouette;
+the `*_min` fields are the fastest iteration of each.
 The machine's load average is recorded with each case: figures taken while other processes
 compete for the cores are not comparable.
 
@@ -102,8 +103,8 @@ def depth_complexity(scene: dict) -> float:
     return float(area.sum()) / (intr.width * intr.height)
 
 
-def timed(*fns, iters: int) -> list[float]:
-    """Median milliseconds of each function, calls interleaved so that drift hits all alike."""
+def timed(*fns, iters: int) -> list[tuple[float, float]]:
+    """(median, min) milliseconds of each function, calls interleaved so drift hits all alike."""
     for fn in fns * 2:
         fn()
     times: list[list[float]] = [[] for _ in fns]
@@ -112,7 +113,7 @@ def timed(*fns, iters: int) -> list[float]:
             t0 = time.perf_counter()
             fn()
             bucket.append(time.perf_counter() - t0)
-    return [1000.0 * statistics.median(bucket) for bucket in times]
+    return [(1000.0 * statistics.median(b), 1000.0 * min(b)) for b in times]
 
 
 def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict:
@@ -161,14 +162,16 @@ def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict:
         "iters": iters,
         "load_average_1min": round(os.getloadavg()[0], 2),
     }
-    ms_forward, ms_contribution = timed(forward, lambda: forward(True), iters=iters)
-    record["ms_forward"] = round(ms_forward, 2)
-    record["ms_forward_contribution"] = round(ms_contribution, 2)
-    (ms_forward_backward,) = timed(forward_backward, iters=iters)
-    record["ms_forward_backward"] = round(ms_forward_backward, 2)
-    record["contribution_overhead_pct"] = round(
-        100.0 * (record["ms_forward_contribution"] / record["ms_forward"] - 1.0), 1
-    )
+    fwd, fwd_contribution = timed(forward, lambda: forward(True), iters=iters)
+    (fwd_bwd,) = timed(forward_backward, iters=iters)
+    record["ms_forward"] = round(fwd[0], 2)
+    record["ms_forward_contribution"] = round(fwd_contribution[0], 2)
+    record["ms_forward_backward"] = round(fwd_bwd[0], 2)
+    record["contribution_overhead_pct"] = round(100.0 * (fwd_contribution[0] / fwd[0] - 1.0), 1)
+    # Minima are the figures least disturbed by other processes on a shared machine.
+    record["ms_forward_min"] = round(fwd[1], 2)
+    record["ms_forward_contribution_min"] = round(fwd_contribution[1], 2)
+    record["ms_forward_backward_min"] = round(fwd_bwd[1], 2)
     record["peak_rss_mb"] = round(rss_mb(), 1)
     record["baseline_rss_mb"] = round(baseline, 1)
     return record
