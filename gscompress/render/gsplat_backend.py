@@ -5,9 +5,14 @@ samples it at (i, j) (OpenCV convention); the principal point handed to gsplat i
 shifted by +0.5 px so that both put every Gaussian at the same place relative to the pixels.
 gsplat's kernels are float32: float64 inputs are rendered in float32 and the outputs cast back.
 
-Known differences from the torch/cpu backends, all at the level of single pixels or rounding:
-gsplat stops compositing when T would become <= 1e-4 (we stop at < 1e-4), and recent gsplat
-versions shrink a Gaussian's tile footprint using its opacity.
+gsplat clamps alpha at 0.999 where gscompress clamps at 0.99; opacities are therefore capped at
+0.99 before they reach gsplat, so that an opaque Gaussian still lets 1% through and the
+silhouette saturates at the same levels (0.99, 0.9999, ...) as on the other backends. For
+o > 0.99 that gives alpha = 0.99 G instead of min(0.99, o G): slightly fainter edges.
+
+Other known differences from the torch/cpu backends, all at the level of single pixels or
+rounding: gsplat stops compositing when T would become <= 1e-4 (we stop at < 1e-4), and recent
+gsplat versions size a Gaussian's tile footprint from its opacity instead of 3 sigma.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import torch
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, MissingDependencyError
 from gscompress.render.core import RenderOutput, finish_output
+from gscompress.render.torch_backend import ALPHA_MAX
 
 
 def render_gsplat(
@@ -68,7 +74,8 @@ def render_gsplat(
             ones = torch.ones(n, 1, dtype=torch.float32, device=device, requires_grad=True)
             features = torch.cat([features, ones], dim=1)  # [N, 4]
         rendered, alphas, meta = rasterization(
-            means.float(), quats.float(), scales.float(), opacities.float(), features,
+            means.float(), quats.float(), scales.float(),
+            opacities.float().clamp(max=ALPHA_MAX), features,
             T_cam_world.float()[None], K[None], width, height,
             near_plane=near, eps2d=0.3, packed=False, render_mode="RGB+D",
         )  # rendered [1, H, W, 3 (+1) + 1], alphas [1, H, W, 1]  # fmt: skip
