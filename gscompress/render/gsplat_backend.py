@@ -59,6 +59,13 @@ def render_gsplat(
 
     dtype, device = means.dtype, means.device
     n = means.shape[0]
+    if n == 0:  # nothing to rasterize; the pure-torch path handles an empty map on any device
+        from gscompress.render.core import render
+
+        return render(
+            means, quats, scales, opacities, colors, intrinsics, T_cam_world, backend="torch",
+            want_contribution=want_contribution, near=near, background=background,
+        )  # fmt: skip
     width, height = intrinsics.width, intrinsics.height
     K = torch.tensor(
         [[intrinsics.fx, 0.0, intrinsics.cx + 0.5],
