@@ -25,6 +25,7 @@ COMMANDS: dict[str, str] = {
     "export-ply": "export_ply:export_ply",
     "score": "score:score",
     "synth": "synth:synth",
+    "slam": "slam:slam",
 }
 
 

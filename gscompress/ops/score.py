@@ -13,9 +13,10 @@ import numpy as np
 import torch
 
 from gscompress.camera import Intrinsics, invert_transform
-from gscompress.gaussians import SH_C0, GaussianMap
+from gscompress.gaussians import GaussianMap
 from gscompress.importance import ImportanceSums, PwasConfig
 from gscompress.render import render
+from gscompress.slam.params import activate
 
 
 def activated_tensors(
@@ -23,13 +24,8 @@ def activated_tensors(
 ) -> dict[str, torch.Tensor]:
     """The renderer's inputs for a map: means, quats, [N, 3] scales, opacities, RGB colours."""
     t = gaussians.to_tensors(device)
-    return {
-        "means": t["means"],
-        "quats": t["quats"],
-        "scales": torch.exp(t["log_scales"]).expand(len(gaussians), 3),
-        "opacities": torch.sigmoid(t["opacity_logits"]),
-        "colors": (0.5 + SH_C0 * t["sh_dc"]).clamp_min(0.0),
-    }
+    inputs = activate(t["means"], t["log_scales"], t["quats"], t["opacity_logits"], t["sh_dc"])
+    return dict(inputs._asdict())
 
 
 def score_map(

@@ -1,5 +1,8 @@
 """New Gaussians from RGB-D pixels (SplaTAM-style initialisation and densification).
 
+`densification_mask` picks the pixels of a frame that the map does not explain yet;
+`gaussians_from_rgbd` turns selected pixels into Gaussians.
+
 Each selected pixel with valid depth becomes one isotropic Gaussian at its back-projected point,
 coloured by the pixel, with opacity 0.5 and a standard deviation of depth / mean focal length
 (the size of the pixel's footprint at that depth) times the sampling stride.
@@ -63,3 +66,36 @@ def gaussians_from_rgbd(
         sh_dc=(color[v, u].astype(np.float64) - 0.5) / SH_C0,
         ids=np.arange(first_id, first_id + n, dtype=np.uint32),
     )
+
+
+def densification_mask(
+    silhouette: np.ndarray,
+    rendered_depth: np.ndarray,
+    depth: np.ndarray,
+    *,
+    silhouette_max: float = 0.5,
+    depth_error_factor: float = 50.0,
+) -> np.ndarray:
+    """[H, W] bool: observed pixels the map does not explain yet (SplaTAM's rule).
+
+    A pixel with a depth measurement qualifies when the rendered silhouette is below
+    `silhouette_max` (nothing there yet), or when the observed surface lies in front of the
+    rendered one by more than `depth_error_factor` times the median depth error over the
+    observed, well-covered pixels (new geometry in front of the map).
+
+    Args:
+        silhouette: [H, W] rendered accumulated opacity.
+        rendered_depth: [H, W] rendered expected depth (normalised by the silhouette).
+        depth: [H, W] observed depth, 0 = invalid.
+        silhouette_max: silhouette threshold.
+        depth_error_factor: multiple of the median depth error.
+    """
+    valid = depth > 0
+    empty = silhouette < silhouette_max
+    covered = valid & ~empty
+    front = np.zeros_like(valid)
+    if np.any(covered):
+        error = np.abs(rendered_depth - depth)
+        threshold = depth_error_factor * float(np.median(error[covered]))
+        front = covered & (rendered_depth > depth) & (error > threshold)
+    return valid & (empty | front)

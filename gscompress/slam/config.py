@@ -1,0 +1,428 @@
+"""SLAM hyperparameters: dataclasses with documented defaults, presets, and YAML round trips.
+
+Three presets:
+
+- `tiny`: for tests and smoke runs (a handful of iterations; seconds for a few 64x48 frames).
+- `cpu` (the default of `gsc slam`): reduced resolution and iteration counts sized for a 2-core
+  CPU at about 2 s per frame.
+- `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
+  for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
+
+Learning rates are those of SplaTAM unless noted. Colour is optimised as the SH DC coefficient
+(`sh_dc`, the raw form the map stores), but its learning rate is given in RGB units like
+SplaTAM's and divided by SH_C0 internally, so that an Adam step moves RGB by about `lr_colors`.
+
+A YAML file holds any subset of `SlamConfig.to_dict()`; `load_config` applies it on top of a
+preset (the file's own `preset:` key, else the one asked for). Unknown keys are errors.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from gscompress.errors import InputError
+from gscompress.importance import PwasConfig
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Camera tracking (pose only, Gaussians fixed; paper Eq. 4-5).
+
+    Attributes:
+        iters: optimisation iterations per frame.
+        lr_rotation: Adam lr of the pose's rotation increment (quaternion vector part).
+        lr_translation: Adam lr of the pose's translation increment, metres.
+        silhouette_min: only pixels whose rendered silhouette exceeds this are used.
+        outlier_factor: also leave out pixels whose depth error exceeds this many times the
+            median depth error of the mask (SplaTAM's `ignore_outlier_depth_loss`); 0: keep all.
+        gamma_color: g_im, colour-error scale of the adaptive weight w_im = g_im/(L_color+g_im).
+        gamma_depth: g_d, depth-error scale (metres) of w_depth = g_d/(L_depth+g_d).
+        balance_weight: lambda of the balance term lambda (log(w_depth/w_im) - log rho)^2.
+        rho: target ratio w_depth / w_im of the balance term.
+        constant_velocity: start from the constant-velocity guess (else the previous pose).
+        use_ground_truth: skip tracking and use ground-truth poses (mapping-only runs).
+    """
+
+    iters: int = 40
+    lr_rotation: float = 4e-4
+    lr_translation: float = 2e-3
+    silhouette_min: float = 0.99
+    outlier_factor: float = 10.0
+    gamma_color: float = 0.1
+    gamma_depth: float = 0.05
+    balance_weight: float = 0.1
+    rho: float = 1.0
+    constant_velocity: bool = True
+    use_ground_truth: bool = False
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """Map optimisation (Gaussians only, poses fixed; paper Eq. 2-3).
+
+    Attributes:
+        iters: iterations per frame (one render of one window view each).
+        first_frame_iters: iterations on the first frame.
+        lr_means: Adam lr of the centres, metres.
+        lr_colors: Adam lr of the colour in RGB units (see module docstring).
+        lr_quats: Adam lr of the rotations (anisotropic maps only).
+        lr_opacity_logits: Adam lr of the opacity logits.
+        lr_log_scales: Adam lr of the log scales.
+        color_weight: weight of L_color in L_map.
+        depth_weight: weight of L_depth in L_map.
+        ssim_weight: share of (1 - SSIM) in L_color = (1-s) L1 + s (1 - SSIM).
+        illum_tau: cap tau of w_illum = min(L_illum / (L_color + eps), tau); 0 disables L_illum.
+        illum_edge_sigma: relative depth step per pixel at which the pseudo-target I_fuse is
+            63% the observed image (see `gscompress.slam.losses.fuse_target`).
+        current_frame_share: fraction of the iterations spent on the current frame; the others
+            draw a keyframe of the window.
+    """
+
+    iters: int = 60
+    first_frame_iters: int = 60
+    lr_means: float = 1e-4
+    lr_colors: float = 2.5e-3
+    lr_quats: float = 1e-3
+    lr_opacity_logits: float = 5e-2
+    lr_log_scales: float = 1e-3
+    color_weight: float = 0.5
+    depth_weight: float = 1.0
+    ssim_weight: float = 0.2
+    illum_tau: float = 1.0
+    illum_edge_sigma: float = 0.05
+    current_frame_share: float = 0.5
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    """Keyframes and the mapping window (SplaTAM's overlap-based selection).
+
+    Attributes:
+        every: every `every`-th frame becomes a keyframe (the first one always).
+        window: keyframes in the mapping window besides the current frame (the most
+            overlapping ones; the latest keyframe is always included).
+        overlap_samples: current-frame pixels back-projected to measure overlap.
+    """
+
+    every: int = 5
+    window: int = 24
+    overlap_samples: int = 1600
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """New Gaussians where the map does not explain the observed frame (SplaTAM).
+
+    Attributes:
+        stride: back-project every `stride`-th pixel in each direction.
+        silhouette_max: add where the rendered silhouette is below this.
+        depth_error_factor: also add where the observation is in front of the rendered depth by
+            more than this many median depth errors.
+        opacity: initial opacity of new Gaussians.
+    """
+
+    stride: int = 1
+    silhouette_max: float = 0.5
+    depth_error_factor: float = 50.0
+    opacity: float = 0.5
+
+
+@dataclass(frozen=True)
+class PruneConfig:
+    """Cyclic removal and stage-wise PWAS pruning (paper Eq. 9-10).
+
+    Attributes:
+        opacity_every: every this many mapping iterations remove opacity < alpha_min and huge
+            Gaussians (0: never).
+        alpha_min: opacity threshold of the cyclic removal.
+        huge_fraction: remove Gaussians whose largest scale exceeds this fraction of the scene
+            radius (max first-frame depth / scene_radius_depth_ratio); 0 disables.
+        scene_radius_depth_ratio: scene radius = max first-frame depth / this.
+        stages: positions in the sequence (fractions of its frames) of the PWAS pruning
+            stages; empty for none (`gsc slam --no-prune`).
+        keep: fraction of Gaussians kept (top by PWAS) at each stage.
+    """
+
+    opacity_every: int = 100
+    alpha_min: float = 0.005
+    huge_fraction: float = 0.1
+    scene_radius_depth_ratio: float = 3.0
+    stages: tuple[float, ...] = (1 / 3, 2 / 3)
+    keep: float = 0.3
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Everything a `gsc slam` run is configured by.
+
+    Attributes:
+        preset: the preset these values started from (informational).
+        size: working image size (W, H), or None for the sequence's own.
+        isotropic: one scale per Gaussian (SplaTAM) instead of three.
+        backend: render backend (`gscompress.render.BACKENDS`).
+        seed: seed of the random choices (window views).
+        init_from_ground_truth: put the first frame at its ground-truth pose when the sequence
+            has one (else identity), so estimated and true trajectories share a frame.
+        tracking, mapping, keyframes, densify, prune, pwas: see their classes.
+    """
+
+    preset: str = "paper"
+    size: tuple[int, int] | None = None
+    isotropic: bool = True
+    backend: str = "auto"
+    seed: int = 0
+    init_from_ground_truth: bool = True
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    prune: PruneConfig = field(default_factory=PruneConfig)
+    pwas: PwasConfig = field(default_factory=PwasConfig)
+
+    def __post_init__(self) -> None:
+        check_config(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON/YAML-ready values (tuples as lists)."""
+        return _plain(dataclasses.asdict(self))
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any], base: SlamConfig | None = None) -> SlamConfig:
+        """`base` (default: the defaults) with the entries of `values` replaced.
+
+        Raises:
+            InputError: unknown keys or values of the wrong type.
+        """
+        result = _merge(base or cls(), values, "")
+        assert isinstance(result, SlamConfig)
+        return result
+
+    def with_overrides(self, **changes: Any) -> SlamConfig:
+        """A copy with dotted-path overrides, e.g. `**{"prune.keep": 0.2}`."""
+        nested: dict[str, Any] = {}
+        for key, value in changes.items():
+            node = nested
+            *parents, leaf = key.split(".")
+            for part in parents:
+                node = node.setdefault(part, {})
+            node[leaf] = value
+        return SlamConfig.from_dict(nested, self)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, tuple | list):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _merge(current: Any, values: Any, path: str) -> Any:
+    """`current` (a config dataclass) with `values` (a dict) applied, type-checked."""
+    if not isinstance(values, dict):
+        raise InputError(f"config {path or 'file'}: expected a mapping, got {values!r}")
+    known = {f.name: f for f in fields(current)}
+    changes: dict[str, Any] = {}
+    for key, value in values.items():
+        where = f"{path}{key}"
+        if key not in known:
+            raise InputError(f"config: unknown key {where!r}; known: {', '.join(sorted(known))}")
+        old = getattr(current, key)
+        if dataclasses.is_dataclass(old):
+            changes[key] = _merge(old, value, f"{where}.")
+        else:
+            changes[key] = _coerce(old, value, where, key)
+    return replace(current, **changes)
+
+
+def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
+    """`value` converted to the type of the field's current value, or InputError."""
+    if key == "size":
+        if value is None:
+            return None
+        if (
+            isinstance(value, list | tuple)
+            and len(value) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
+        ):
+            return (int(value[0]), int(value[1]))
+        raise InputError(f"config {where}: expected [W, H] of positive integers or null")
+    if isinstance(old, bool):
+        if not isinstance(value, bool):
+            raise InputError(f"config {where}: expected true or false, got {value!r}")
+        return value
+    if isinstance(old, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(f"config {where}: expected an integer, got {value!r}")
+        return value
+    if isinstance(old, float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise InputError(f"config {where}: expected a number, got {value!r}")
+        return float(value)
+    if isinstance(old, str):
+        if not isinstance(value, str):
+            raise InputError(f"config {where}: expected a string, got {value!r}")
+        return value
+    if isinstance(old, tuple):
+        if not isinstance(value, list | tuple) or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in value
+        ):
+            raise InputError(f"config {where}: expected a list of numbers, got {value!r}")
+        return tuple(float(v) for v in value)
+    raise InputError(f"config {where}: cannot set this field")  # pragma: no cover
+
+
+def check_config(config: SlamConfig) -> None:
+    """Refuse values that cannot work (negative counts, ratios outside their range, ...)."""
+    problems: list[str] = []
+
+    def need(ok: bool, text: str) -> None:
+        if not ok:
+            problems.append(text)
+
+    t, m, k, d, p = config.tracking, config.mapping, config.keyframes, config.densify, config.prune
+    need(t.iters >= 0 and m.iters >= 0 and m.first_frame_iters >= 0, "iterations must be >= 0")
+    need(
+        all(v > 0 for v in (t.lr_rotation, t.lr_translation, t.gamma_color, t.gamma_depth, t.rho)),
+        "tracking learning rates, gammas and rho must be positive",
+    )
+    need(
+        all(
+            v >= 0
+            for v in (m.lr_means, m.lr_colors, m.lr_quats, m.lr_opacity_logits, m.lr_log_scales)
+        ),
+        "mapping learning rates must be >= 0",
+    )
+    need(0.0 <= t.silhouette_min < 1.0, "tracking.silhouette_min must be in [0, 1)")
+    need(0.0 <= m.ssim_weight <= 1.0, "mapping.ssim_weight must be in [0, 1]")
+    need(m.illum_tau >= 0 and m.illum_edge_sigma > 0, "illum_tau >= 0 and illum_edge_sigma > 0")
+    need(0.0 <= m.current_frame_share <= 1.0, "mapping.current_frame_share must be in [0, 1]")
+    need(k.every >= 1 and k.window >= 0 and k.overlap_samples >= 1, "bad keyframe settings")
+    need(d.stride >= 1, "densify.stride must be >= 1")
+    need(0.0 < d.opacity < 1.0, "densify.opacity must be in (0, 1)")
+    need(p.opacity_every >= 0 and p.alpha_min >= 0 and p.huge_fraction >= 0, "bad prune values")
+    need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")
+    need(0.0 < p.keep <= 1.0, "prune.keep must be in (0, 1]")
+    need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
+    need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")
+    from gscompress.render import BACKENDS
+
+    need(config.backend in BACKENDS, f"backend must be one of {', '.join(BACKENDS)}")
+    if problems:
+        raise InputError("bad SLAM config: " + "; ".join(problems))
+
+
+# ---------------------------------------------------------------------------------------------
+# Presets
+
+PRESETS: dict[str, SlamConfig] = {
+    "paper": SlamConfig(preset="paper"),
+    "paper-tum": SlamConfig(
+        preset="paper-tum",
+        tracking=TrackingConfig(iters=200, lr_rotation=2e-3),
+        mapping=MappingConfig(iters=30, first_frame_iters=30),
+    ),
+    "cpu": SlamConfig(
+        preset="cpu",
+        size=(160, 120),
+        tracking=TrackingConfig(iters=12, lr_rotation=1e-3, lr_translation=2e-3),
+        mapping=MappingConfig(iters=10, first_frame_iters=60, lr_means=2e-4),
+        keyframes=KeyframeConfig(every=5, window=8, overlap_samples=800),
+        densify=DensifyConfig(stride=1),
+    ),
+    "tiny": SlamConfig(
+        preset="tiny",
+        tracking=TrackingConfig(iters=8, lr_rotation=1e-3, lr_translation=2e-3),
+        mapping=MappingConfig(iters=6, first_frame_iters=15, lr_means=2e-4),
+        keyframes=KeyframeConfig(every=2, window=3, overlap_samples=200),
+        densify=DensifyConfig(stride=1),
+        prune=PruneConfig(opacity_every=20),
+    ),
+}
+"""Named starting points; `gsc slam --preset NAME`."""
+
+DEFAULT_PRESET = "cpu"
+
+
+def preset(name: str) -> SlamConfig:
+    """The preset called `name`.
+
+    Raises:
+        InputError: an unknown name.
+    """
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise InputError(
+            f"unknown SLAM preset {name!r}; choose one of {', '.join(PRESETS)}"
+        ) from None
+
+
+def load_config(path: str | Path, base: str | SlamConfig = DEFAULT_PRESET) -> SlamConfig:
+    """A YAML config file applied on top of a preset.
+
+    The file's `preset:` entry, when present, names the base preset; otherwise `base` is used.
+
+    Raises:
+        InputError: unreadable YAML, unknown keys or bad values.
+    """
+    path = Path(path)
+    try:
+        values = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise InputError(f"cannot read config {path}: {' '.join(str(exc).split())}") from None
+    if values is None:
+        values = {}
+    if not isinstance(values, dict):
+        raise InputError(f"config {path} must hold a mapping of settings")
+    start = base if isinstance(base, SlamConfig) else preset(base)
+    if "preset" in values:
+        if not isinstance(values["preset"], str):
+            raise InputError(f"config {path}: preset must be a name")
+        start = preset(values["preset"])
+    return SlamConfig.from_dict(values, start)
+
+
+def save_config(config: SlamConfig, path: str | Path) -> Path:
+    """Write the full config as YAML (readable back with `load_config`)."""
+    path = Path(path)
+    text = yaml.safe_dump(config.to_dict(), sort_keys=False, default_flow_style=None)
+    path.write_text(
+        "# gscompress SLAM config (gsc slam --config FILE); any subset of keys may be given\n"
+        + text,
+        encoding="utf-8",
+    )
+    return path
+
+
+def resolve_config(
+    preset_name: str = DEFAULT_PRESET,
+    config_path: str | Path | None = None,
+    *,
+    size: tuple[int, int] | None = None,
+    keep: float | None = None,
+    no_prune: bool = False,
+) -> SlamConfig:
+    """The config of a run: preset, then the YAML file, then the command-line options.
+
+    Args:
+        preset_name: base preset (a `preset:` entry in the file wins).
+        config_path: optional YAML file.
+        size: working size (W, H) override.
+        keep: PWAS keep ratio of the pruning stages override.
+        no_prune: no PWAS pruning stages (the cyclic opacity cleanup still runs).
+    """
+    config = load_config(config_path, preset_name) if config_path else preset(preset_name)
+    overrides: dict[str, Any] = {}
+    if size is not None:
+        overrides["size"] = size
+    if keep is not None:
+        overrides["prune.keep"] = keep
+    if no_prune:
+        overrides["prune.stages"] = ()
+    return config.with_overrides(**overrides) if overrides else config

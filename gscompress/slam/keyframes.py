@@ -1,0 +1,118 @@
+"""Keyframes and the mapping window (SplaTAM's overlap-based selection).
+
+Every `every`-th frame is kept as a keyframe with its observed colour and depth and the pose
+estimated when it was tracked (poses are not refined later). The mapping window of a frame is
+the current frame plus the keyframes that see most of what it sees: pixels of the current
+depth map are back-projected with the current pose estimate and projected into each keyframe;
+the fraction that lands inside the keyframe's image in front of its camera is its overlap (no
+occlusion test, as in SplaTAM). The most recent keyframe is always in the window.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from gscompress.camera import Intrinsics, invert_transform
+from gscompress.slam.config import KeyframeConfig
+
+
+@dataclass
+class View:
+    """An observed frame with a fixed pose, as the mapper uses it.
+
+    Attributes:
+        index: processing position of the frame (0 = first frame of the run).
+        color: [H, W, 3] observed colour (tensor on the map's device).
+        depth: [H, W] observed depth, 0 = invalid.
+        T_world_cam: [4, 4] float64 camera-to-world pose estimate.
+    """
+
+    index: int
+    color: torch.Tensor
+    depth: torch.Tensor
+    T_world_cam: np.ndarray
+
+    def T_cam_world(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """[4, 4] world-to-camera tensor on the view's device."""
+        return torch.as_tensor(
+            invert_transform(self.T_world_cam), dtype=dtype, device=self.color.device
+        )
+
+
+def is_keyframe(position: int, config: KeyframeConfig) -> bool:
+    """Whether the frame at this processing position becomes a keyframe."""
+    return position % config.every == 0
+
+
+def sample_points(
+    depth: np.ndarray,
+    intrinsics: Intrinsics,
+    T_world_cam: np.ndarray,
+    samples: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """[M, 3] world points of up to `samples` random valid pixels of a depth map."""
+    v, u = np.nonzero(depth > 0)
+    if len(v) > samples:
+        pick = rng.choice(len(v), size=samples, replace=False)
+        v, u = v[pick], u[pick]
+    z = depth[v, u].astype(np.float64)
+    cam = np.stack(
+        [(u - intrinsics.cx) / intrinsics.fx * z, (v - intrinsics.cy) / intrinsics.fy * z, z],
+        axis=1,
+    )
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    return cam @ T[:3, :3].T + T[:3, 3]
+
+
+def overlap_fraction(points: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray) -> float:
+    """Fraction of world points [M, 3] that project inside the image in front of the camera."""
+    if len(points) == 0:
+        return 0.0
+    T = invert_transform(T_world_cam)
+    cam = points @ T[:3, :3].T + T[:3, 3]
+    z = cam[:, 2]
+    front = z > 1e-6
+    zs = np.where(front, z, 1.0)
+    u = intrinsics.fx * cam[:, 0] / zs + intrinsics.cx
+    v = intrinsics.fy * cam[:, 1] / zs + intrinsics.cy
+    inside = (
+        front
+        & (u >= -0.5)
+        & (u <= intrinsics.width - 0.5)
+        & (v >= -0.5)
+        & (v <= intrinsics.height - 0.5)
+    )
+    return float(inside.mean())
+
+
+def select_window(
+    keyframes: list[View],
+    current: View,
+    intrinsics: Intrinsics,
+    config: KeyframeConfig,
+    rng: np.random.Generator,
+) -> list[View]:
+    """The keyframes to map together with `current` (not including it).
+
+    Up to `config.window` keyframes: the latest one, then those with the largest overlap with
+    the current frame (ties: the more recent first); keyframes without overlap are left out.
+    """
+    if not keyframes or config.window == 0:
+        return []
+    depth = current.depth.detach().cpu().numpy()
+    points = sample_points(depth, intrinsics, current.T_world_cam, config.overlap_samples, rng)
+    latest = keyframes[-1]
+    scored = [
+        (overlap_fraction(points, intrinsics, kf.T_world_cam), kf.index, kf)
+        for kf in keyframes[:-1]
+        if kf.index != current.index
+    ]
+    scored = [s for s in scored if s[0] > 0.0]
+    scored.sort(key=lambda s: (-s[0], -s[1]))
+    chosen = [latest] if latest.index != current.index else []
+    chosen += [kf for _, _, kf in scored[: config.window - len(chosen)]]
+    return chosen

@@ -1,0 +1,148 @@
+"""Mapping: optimise the Gaussians over a window of views with fixed poses (paper Eq. 2-3).
+
+The `Mapper` owns the map's leaf tensors and one Adam optimizer that lives for the whole run
+(one parameter group per tensor, with its own learning rate). Gaussians are added by
+densification and removed by pruning between or during iterations; the optimizer's moments
+follow their Gaussians (`gscompress.slam.params.resize_adam_rows`). Each iteration renders one
+view: the current frame, or with probability 1 - `current_frame_share` a keyframe of the window.
+Every `opacity_every` mapping iterations (counted over the run) Gaussians with opacity below
+`alpha_min` and huge ones are removed (paper Eq. 9, SplaTAM's cleanup).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from gscompress.camera import Intrinsics
+from gscompress.gaussians import SH_C0, GaussianMap
+from gscompress.render import render
+from gscompress.slam.config import SlamConfig
+from gscompress.slam.keyframes import View
+from gscompress.slam.losses import mapping_loss
+from gscompress.slam.params import GaussianParams
+
+
+@dataclass
+class MappingStats:
+    """What one mapping call did (losses averaged over its iterations).
+
+    Attributes:
+        iters: iterations run.
+        loss, color, depth, illum, w_illum: mean total loss, its terms and the illum weight.
+        first_loss, last_loss: total loss of the first and the last iteration.
+        removed: Gaussians removed by the cyclic cleanup during these iterations.
+    """
+
+    iters: int = 0
+    loss: float = 0.0
+    color: float = 0.0
+    depth: float = 0.0
+    illum: float = 0.0
+    w_illum: float = 0.0
+    first_loss: float = 0.0
+    last_loss: float = 0.0
+    removed: int = 0
+
+
+class Mapper:
+    """The map's parameters, their optimizer and the mapping iterations.
+
+    Args:
+        config: the SLAM configuration (mapping learning rates and loss, cleanup settings).
+        intrinsics: camera intrinsics at the working size.
+        device: torch device of the map.
+    """
+
+    def __init__(self, config: SlamConfig, intrinsics: Intrinsics, device: torch.device) -> None:
+        self.config = config
+        self.intrinsics = intrinsics
+        self.device = device
+        self.params = GaussianParams.from_map(GaussianMap.empty(config.isotropic), device)
+        m = config.mapping
+        p = self.params
+        groups = [
+            {"params": [p.means], "lr": m.lr_means, "name": "means"},
+            {"params": [p.sh_dc], "lr": m.lr_colors / SH_C0, "name": "sh_dc"},
+            {"params": [p.opacity_logits], "lr": m.lr_opacity_logits, "name": "opacity_logits"},
+            {"params": [p.log_scales], "lr": m.lr_log_scales, "name": "log_scales"},
+        ]
+        if not config.isotropic:
+            groups.append({"params": [p.quats], "lr": m.lr_quats, "name": "quats"})
+        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+        self.iterations = 0
+        self.scene_radius: float | None = None
+
+    def __len__(self) -> int:
+        return len(self.params)
+
+    def add(self, gaussians: GaussianMap) -> int:
+        """Append Gaussians (fresh optimizer state); returns how many."""
+        if len(gaussians):
+            self.params.append(gaussians, self.optimizer)
+        return len(gaussians)
+
+    def keep(self, index: torch.Tensor) -> int:
+        """Keep the Gaussians at `index` (bool mask or indices); returns how many were removed."""
+        before = len(self.params)
+        self.params.keep(index, self.optimizer)
+        return before - len(self.params)
+
+    def cleanup(self) -> int:
+        """Remove Gaussians with opacity < alpha_min or a huge scale; returns how many."""
+        prune = self.config.prune
+        with torch.no_grad():
+            opacity = torch.sigmoid(self.params.opacity_logits)
+            drop = opacity < prune.alpha_min
+            if prune.huge_fraction > 0 and self.scene_radius is not None:
+                largest = torch.exp(self.params.log_scales.max(dim=1).values)
+                drop |= largest > prune.huge_fraction * self.scene_radius
+        if not bool(drop.any()):
+            return 0
+        return self.keep(~drop)
+
+    def optimize(
+        self, current: View, window: list[View], iters: int, rng: np.random.Generator
+    ) -> MappingStats:
+        """Run `iters` mapping iterations on the current frame and its window.
+
+        Args:
+            current: the frame just tracked (its pose fixed).
+            window: keyframes mapped alongside it.
+            iters: iterations.
+            rng: source of the per-iteration view choice.
+        """
+        stats = MappingStats()
+        config = self.config
+        every = config.prune.opacity_every
+        for it in range(iters):
+            if len(self.params) == 0:
+                break
+            use_current = it == 0 or not window or rng.random() < config.mapping.current_frame_share
+            view = current if use_current else window[int(rng.integers(len(window)))]
+            out = render(
+                *self.params.render_inputs(), self.intrinsics, view.T_cam_world(),
+                backend=config.backend,
+            )  # fmt: skip
+            terms = mapping_loss(out, view.color, view.depth, config.mapping)
+            self.optimizer.zero_grad(set_to_none=True)
+            terms.total.backward()
+            self.optimizer.step()
+            value = float(terms.total.detach())
+            stats.iters += 1
+            stats.loss += value
+            stats.color += terms.color
+            stats.depth += terms.depth
+            stats.illum += terms.illum
+            stats.w_illum += (terms.weights or {}).get("w_illum", 0.0)
+            stats.first_loss = value if it == 0 else stats.first_loss
+            stats.last_loss = value
+            self.iterations += 1
+            if every > 0 and self.iterations % every == 0:
+                stats.removed += self.cleanup()
+        if stats.iters:
+            for name in ("loss", "color", "depth", "illum", "w_illum"):
+                setattr(stats, name, getattr(stats, name) / stats.iters)
+        return stats

@@ -1,0 +1,358 @@
+"""The SLAM system: one RGB-D frame at a time (DESIGN.md section 4).
+
+Per frame: constant-velocity pose guess -> tracking (pose only) -> densification (new Gaussians
+where the map does not explain the frame) -> mapping (Gaussians only, over a window of
+overlapping keyframes and the current frame) -> PWAS accumulation for the frame at its final
+mapped state and estimated pose -> stage-wise PWAS pruning when the frame is a stage.
+
+The first frame is put at its ground-truth pose when the sequence gives one (so that estimated
+and true trajectories share a world frame), else at the identity; the whole valid depth map is
+back-projected, then mapped for `first_frame_iters` iterations.
+
+The system is pure: no files, no printing. `gscompress.pipeline.slam_file` runs it over a
+sequence and writes the log.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import torch
+
+from gscompress.camera import Intrinsics
+from gscompress.datasets.base import Frame
+from gscompress.errors import InputError
+from gscompress.gaussians import GaussianMap
+from gscompress.ops.select import keep_count, top_k
+from gscompress.render import render
+from gscompress.slam.config import SlamConfig
+from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
+from gscompress.slam.keyframes import View, is_keyframe, select_window
+from gscompress.slam.mapper import Mapper, MappingStats
+from gscompress.slam.tracker import TrackResult, constant_velocity, track
+
+log = logging.getLogger(__name__)
+
+PHASES = ("tracking", "densification", "mapping", "pwas", "pruning")
+"""The timed phases of a frame (milliseconds in `FrameResult.ms`)."""
+
+
+@dataclass
+class FrameResult:
+    """What processing one frame did.
+
+    Attributes:
+        position: 0-based processing position (frames processed before this one).
+        frame: the frame's index in the sequence.
+        timestamp: the frame's timestamp, seconds.
+        T_world_cam: [4, 4] estimated camera-to-world pose.
+        keyframe: whether the frame became a keyframe.
+        gaussians: Gaussians in the map after the frame.
+        added: Gaussians added by densification.
+        removed: Gaussians removed (cyclic cleanup and pruning stage).
+        event: "prune-stage-K" when a PWAS pruning stage ran after this frame, else None.
+        tracking: the tracking outcome (None for the first frame and for ground-truth poses).
+        mapping: the mapping statistics.
+        psnr: PSNR (dB) of the frame rendered after mapping, all pixels.
+        ms: milliseconds per phase (see PHASES) and "total".
+    """
+
+    position: int
+    frame: int
+    timestamp: float
+    T_world_cam: np.ndarray
+    keyframe: bool
+    gaussians: int
+    added: int
+    removed: int
+    event: str | None
+    tracking: TrackResult | None
+    mapping: MappingStats
+    psnr: float
+    ms: dict[str, float] = field(default_factory=dict)
+
+    def stats(self) -> dict[str, Any]:
+        """The `/slam/stats` record (schemas/slam_stats.v1.schema.json)."""
+        record: dict[str, Any] = {
+            "frame": self.frame,
+            "timestamp": self.timestamp,
+            "gaussians": self.gaussians,
+            "added": self.added,
+            "removed": self.removed,
+            "keyframe": self.keyframe,
+            "tracking_iters": self.tracking.iters if self.tracking else 0,
+            "mapping_iters": self.mapping.iters,
+            "loss_mapping": self.mapping.loss,
+            "loss_color": self.mapping.color,
+            "loss_depth": self.mapping.depth,
+            "loss_illum": self.mapping.illum,
+            "w_illum": self.mapping.w_illum,
+            "ms": {k: round(v, 3) for k, v in self.ms.items()},
+        }
+        if self.tracking is not None:
+            record["loss_tracking"] = self.tracking.loss
+            record["loss_tracking_initial"] = self.tracking.first_loss
+        if np.isfinite(self.psnr):
+            record["psnr"] = self.psnr
+        if self.event:
+            record["event"] = self.event
+        return {k: v for k, v in record.items() if not isinstance(v, float) or np.isfinite(v)}
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """`auto` -> cuda when available else cpu; anything else as torch understands it."""
+    if str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda asked for, but torch sees no CUDA device")
+    return dev
+
+
+def stage_positions(total_frames: int, stages: tuple[float, ...]) -> dict[int, int]:
+    """{processing position after which to prune: stage number (1-based)} for a run length.
+
+    Stage s at fraction p runs after frame round(p * total) - 1 (at least after the first).
+    """
+    out: dict[int, int] = {}
+    for number, fraction in enumerate(sorted(stages), start=1):
+        position = max(round(fraction * total_frames), 1) - 1
+        out.setdefault(position, number)
+    return out
+
+
+class SlamSystem:
+    """SplaTAM-style RGB-D SLAM with PWAS importance, fed one frame at a time.
+
+    Args:
+        config: hyperparameters (`gscompress.slam.config`).
+        intrinsics: camera intrinsics at the working size of the frames.
+        device: torch device (or "auto").
+        total_frames: frames the run will have; needed to place the PWAS pruning stages
+            (None: no stage-wise pruning).
+
+    Example:
+        system = SlamSystem(preset("tiny"), sequence.intrinsics, total_frames=len(sequence))
+        for frame in iter_frames(sequence):
+            result = system.process(frame)
+        gaussians = system.gaussian_map()
+    """
+
+    def __init__(
+        self,
+        config: SlamConfig,
+        intrinsics: Intrinsics,
+        device: str | torch.device = "cpu",
+        *,
+        total_frames: int | None = None,
+    ) -> None:
+        self.config = config
+        self.intrinsics = intrinsics
+        self.device = resolve_device(device)
+        self.mapper = Mapper(config, intrinsics, self.device)
+        self.keyframes: list[View] = []
+        self.poses: list[np.ndarray] = []
+        self.frame_indices: list[int] = []
+        self.timestamps: list[float] = []
+        self.rng = np.random.default_rng(config.seed)
+        self.next_id = 0
+        self.stages = (
+            stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
+        )
+
+    # ------------------------------------------------------------------ state
+
+    def gaussian_map(self) -> GaussianMap:
+        """The current map with its PWAS sums (a numpy copy)."""
+        return self.mapper.params.to_map()
+
+    def __len__(self) -> int:
+        """Gaussians in the map."""
+        return len(self.mapper)
+
+    def add_gaussians(self, gaussians: GaussianMap, *, renumber: bool = True) -> int:
+        """Append Gaussians to the map (densification; later: injected shares).
+
+        Args:
+            gaussians: the new Gaussians, with or without importance sums.
+            renumber: give them fresh ids after the map's (keep theirs when False).
+        """
+        if renumber:
+            n = len(gaussians)
+            ids = np.arange(self.next_id, self.next_id + n, dtype=np.uint32)
+            gaussians = replace(gaussians, ids=ids)
+        added = self.mapper.add(gaussians)
+        if len(gaussians):
+            self.next_id = max(self.next_id, int(gaussians.ids.max()) + 1)
+        return added
+
+    # ------------------------------------------------------------------ one frame
+
+    def process(self, frame: Frame) -> FrameResult:
+        """Track, densify, map, score and (when scheduled) prune with one frame.
+
+        Args:
+            frame: colour [H, W, 3] and depth [H, W] at the working size of `intrinsics`.
+
+        Returns:
+            The frame's pose estimate, counts, losses and timings.
+        """
+        shape = (self.intrinsics.height, self.intrinsics.width)
+        if frame.color.shape[:2] != shape or frame.depth.shape != shape:
+            raise InputError(
+                f"frame {frame.index} is {frame.depth.shape[1]}x{frame.depth.shape[0]}, "
+                f"the intrinsics are for {shape[1]}x{shape[0]}"
+            )
+        ms: dict[str, float] = dict.fromkeys(PHASES, 0.0)
+        start = time.perf_counter()
+        position = len(self.poses)
+        color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(self.device)
+        depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(self.device)
+
+        clock = time.perf_counter()
+        T_world_cam, tracking = self._pose(frame, color, depth, position)
+        ms["tracking"] = 1e3 * (time.perf_counter() - clock)
+        current = View(position, color, depth, T_world_cam)
+
+        clock = time.perf_counter()
+        added = self._densify(current, frame)
+        ms["densification"] = 1e3 * (time.perf_counter() - clock)
+
+        clock = time.perf_counter()
+        window = select_window(
+            self.keyframes, current, self.intrinsics, self.config.keyframes, self.rng
+        )
+        iters = (
+            self.config.mapping.first_frame_iters if position == 0 else self.config.mapping.iters
+        )
+        mapping = self.mapper.optimize(current, window, iters, self.rng)
+        keyframe = is_keyframe(position, self.config.keyframes)
+        if keyframe:
+            self.keyframes.append(current)
+        ms["mapping"] = 1e3 * (time.perf_counter() - clock)
+
+        clock = time.perf_counter()
+        psnr = self._accumulate_pwas(current)
+        ms["pwas"] = 1e3 * (time.perf_counter() - clock)
+
+        clock = time.perf_counter()
+        removed = mapping.removed
+        event = None
+        stage = self.stages.get(position)
+        if stage is not None:
+            removed += self.prune_to(self.config.prune.keep)
+            event = f"prune-stage-{stage}"
+        ms["pruning"] = 1e3 * (time.perf_counter() - clock)
+        ms["total"] = 1e3 * (time.perf_counter() - start)
+
+        self.poses.append(T_world_cam)
+        self.frame_indices.append(frame.index)
+        self.timestamps.append(frame.timestamp)
+        return FrameResult(
+            position=position,
+            frame=frame.index,
+            timestamp=float(frame.timestamp),
+            T_world_cam=T_world_cam,
+            keyframe=keyframe,
+            gaussians=len(self.mapper),
+            added=added,
+            removed=removed,
+            event=event,
+            tracking=tracking,
+            mapping=mapping,
+            psnr=psnr,
+            ms=ms,
+        )
+
+    def prune_to(self, keep: float) -> int:
+        """Keep the top `keep` fraction of the map by PWAS score; returns how many were removed.
+
+        Exactly `keep_count(N, keep)` Gaussians survive; ties go to the lower id.
+        """
+        n = len(self.mapper)
+        if n == 0:
+            return 0
+        params = self.mapper.params
+        scores = params.sums.score().cpu().numpy()
+        index = top_k(scores, params.ids.cpu().numpy(), keep_count(n, keep))
+        return self.mapper.keep(torch.from_numpy(index).to(self.device))
+
+    # ------------------------------------------------------------------ phases
+
+    def _pose(
+        self, frame: Frame, color: torch.Tensor, depth: torch.Tensor, position: int
+    ) -> tuple[np.ndarray, TrackResult | None]:
+        """The frame's camera-to-world pose: initial, ground truth or tracked."""
+        gt = frame.T_world_cam
+        if position == 0:
+            if gt is not None and self.config.init_from_ground_truth:
+                return np.asarray(gt, dtype=np.float64), None
+            return np.eye(4), None
+        if self.config.tracking.use_ground_truth:
+            if gt is None:
+                raise InputError(
+                    f"tracking.use_ground_truth is set but frame {frame.index} has no pose"
+                )
+            return np.asarray(gt, dtype=np.float64), None
+        guess = self.poses[-1]
+        if self.config.tracking.constant_velocity:
+            guess = constant_velocity(self.poses[-1], self.poses[-2] if position > 1 else None)
+        result = track(
+            self.mapper.params.render_inputs(), color, depth, self.intrinsics, guess,
+            self.config.tracking, backend=self.config.backend,
+        )  # fmt: skip
+        return result.T_world_cam, result
+
+    def _densify(self, current: View, frame: Frame) -> int:
+        """Add Gaussians for the pixels of the frame the map does not explain yet."""
+        settings = self.config.densify
+        depth = frame.depth
+        if len(self.mapper) == 0:
+            mask = depth > 0
+        else:
+            with torch.no_grad():
+                out = render(
+                    *self.mapper.params.render_inputs(), self.intrinsics, current.T_cam_world(),
+                    backend=self.config.backend,
+                )  # fmt: skip
+            mask = densification_mask(
+                out.silhouette.cpu().numpy(),
+                out.depth_normalized.cpu().numpy(),
+                depth,
+                silhouette_max=settings.silhouette_max,
+                depth_error_factor=settings.depth_error_factor,
+            )
+        if self.mapper.scene_radius is None and np.any(depth > 0):
+            self.mapper.scene_radius = (
+                float(depth.max()) / self.config.prune.scene_radius_depth_ratio
+            )
+        new = gaussians_from_rgbd(
+            frame.color, depth, self.intrinsics, current.T_world_cam, mask=mask,
+            stride=settings.stride, first_id=self.next_id, opacity=settings.opacity,
+        )  # fmt: skip
+        if not self.config.isotropic:
+            new = new.as_anisotropic()
+        return self.add_gaussians(new, renumber=False)
+
+    def _accumulate_pwas(self, current: View) -> float:
+        """Add this frame's PWAS terms at the final mapped state; returns the frame's PSNR."""
+        params = self.mapper.params
+        if len(params) == 0:
+            return float("nan")
+        with torch.no_grad():
+            inputs = params.render_inputs()
+            out = render(
+                *inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend,
+                want_contribution=True,
+            )  # fmt: skip
+            assert out.contribution is not None
+            center = torch.as_tensor(current.T_world_cam[:3, 3], device=self.device)
+            params.sums.accumulate(
+                out.contribution, out.visible, inputs.means, center, self.config.pwas
+            )
+            mse = float(((out.color.clamp(0, 1) - current.color) ** 2).mean())
+        return 10.0 * float(np.log10(1.0 / mse)) if mse > 0 else float("inf")

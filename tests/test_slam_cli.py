@@ -1,0 +1,138 @@
+"""`gsc slam` end to end on a tiny synthetic sequence, and the log it writes."""
+
+import json
+
+import jsonschema
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_sequence
+from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogReader, read_map
+from gscompress.metrics import ate_rmse_cm
+from gscompress.ops.select import keep_count
+from gscompress.pipeline import slam_file
+from gscompress.slam.config import load_config, preset
+from gscompress_cli.main import cli
+from gscompress_schemas import load_schema
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, (64, 48))
+
+
+def poses(log, topic):
+    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+
+    from gscompress.camera import make_transform, quat_to_rotmat
+
+    out = []
+    for _, _, message in log.iter_messages([topic]):
+        p = PoseInFrame.FromString(message.data).pose
+        q = [p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z]
+        out.append(make_transform(quat_to_rotmat(np.array(q)), [p.position.x, p.position.y,
+                                                               p.position.z]))  # fmt: skip
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def slam_log(seq_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "run.mcap"
+    r = run("slam", seq_dir, "--preset", "tiny", "-o", out)
+    assert r.exit_code == 0, r.output
+    assert "mapped 6 frames" in r.output and "ATE RMSE" in r.output
+    return out
+
+
+def test_log_has_poses_stats_snapshots_and_metadata(slam_log):
+    schema = load_schema("slam_stats.v1.schema.json")
+    with LogReader(slam_log) as log:
+        counts = {c.topic: c.messages for c in log.channels}
+        assert counts["/camera/pose"] == counts["/camera/pose_gt"] == counts["/tf"] == 6
+        assert counts["/slam/stats"] == 6 and counts["/camera/calibration"] == 1
+        assert counts["/gaussians"] == 3  # two pruning stages and the end
+        stats = [json.loads(m.data) for _, _, m in log.iter_messages([TOPIC_STATS])]
+        est, gt = poses(log, TOPIC_POSE), poses(log, TOPIC_POSE_GT)
+        meta = log.metadata
+        final = log.read_map()
+    for record in stats:
+        jsonschema.validate(record, schema)
+    assert [s["frame"] for s in stats] == list(range(6))
+    assert [s.get("event") for s in stats] == [None, "prune-stage-1", None, "prune-stage-2",
+                                               None, None]  # fmt: skip
+    assert stats[-1]["gaussians"] == len(final) and final.has_importance
+    assert set(stats[1]["ms"]) >= {"tracking", "densification", "mapping", "pwas", "pruning"}
+    ate = ate_rmse_cm(gt, est)
+    assert np.isfinite(ate) and ate < 10.0
+    assert meta.results["ate_rmse_cm"] == pytest.approx(ate)
+    assert meta.results["frames"] == 6 and not meta.results["interrupted"]
+    assert meta.config["preset"] == "tiny" and meta.sequence == "room" and meta.frames == "all"
+    assert meta.command.startswith("gsc")
+
+
+def test_offline_commands_accept_the_log(slam_log, tmp_path):
+    r = run("info", slam_log, "--json")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["map"]["has_importance"]
+    r = run("prune", slam_log, "--keep", "0.5", "-o", tmp_path / "p.mcap")
+    assert r.exit_code == 0, r.output
+    r = run("share", "--budget", "0.2", slam_log, tmp_path / "s.mcap")
+    assert r.exit_code == 0, r.output
+    r = run("export-ply", slam_log, "-o", tmp_path / "m.ply")
+    assert r.exit_code == 0, r.output
+    assert len(read_map(tmp_path / "p.mcap")) == keep_count(len(read_map(slam_log)), 0.5)
+
+
+def test_config_save_load_and_no_prune(seq_dir, tmp_path):
+    cfg = tmp_path / "c.yaml"
+    r = run("slam", seq_dir, "--preset", "tiny", "--no-prune", "--keep", "0.4",
+            "--save-config", cfg)  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert cfg.exists()
+    config = load_config(cfg)
+    assert config.prune.stages == () and config.prune.keep == 0.4
+    assert config.mapping == preset("tiny").mapping
+    out = tmp_path / "n.mcap"
+    r = run("slam", seq_dir, "--config", cfg, "--frames", "0:4", "--size", "48x36", "-o", out)
+    assert r.exit_code == 0, r.output
+    with LogReader(out) as log:
+        counts = {c.topic: c.messages for c in log.channels}
+        assert counts["/gaussians"] == 1 and counts["/camera/pose"] == 4
+        assert log.metadata.config["size"] == [48, 36] and log.metadata.frames == "0:4"
+    r = run("slam", seq_dir, "--preset", "tiny", "-o", out)
+    assert r.exit_code != 0 and "exists" in r.output
+
+
+def test_bad_config_and_missing_output_are_one_line_errors(seq_dir, tmp_path):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("mapping:\n  iterz: 3\n")
+    r = run("slam", seq_dir, "--config", cfg, "-o", tmp_path / "x.mcap")
+    assert r.exit_code == 1 and "unknown key 'mapping.iterz'" in r.output
+    assert not (tmp_path / "x.mcap").exists()
+    r = run("slam", seq_dir)
+    assert r.exit_code == 1 and "-o OUT.mcap" in r.output
+
+
+def test_keyboard_interrupt_leaves_a_readable_log_of_the_frames_done(tmp_path):
+    sequence = synthetic_sequence(6, (48, 36))
+    out = tmp_path / "cut.mcap"
+
+    def stop_after_three(done, total, stats):
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(None, out, preset="tiny", no_prune=True, progress=stop_after_three,
+                  sequence=sequence)  # fmt: skip
+    with LogReader(out) as log:
+        counts = {c.topic: c.messages for c in log.channels}
+        assert counts["/camera/pose"] == 3 and counts["/slam/stats"] == 3
+        assert counts["/gaussians"] == 1
+        assert log.metadata.results["interrupted"] and log.metadata.results["frames"] == 3
+        final = log.read_map()
+    assert len(final) > 0 and final.has_importance

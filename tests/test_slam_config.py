@@ -1,0 +1,57 @@
+"""SLAM configuration: presets, YAML round trips, overrides and refusals."""
+
+import pytest
+
+from gscompress.errors import InputError
+from gscompress.slam.config import (
+    PRESETS,
+    SlamConfig,
+    load_config,
+    preset,
+    resolve_config,
+    save_config,
+)
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_presets_round_trip_through_yaml(name, tmp_path):
+    path = save_config(preset(name), tmp_path / "c.yaml")
+    assert load_config(path, "tiny") == preset(name)
+    assert SlamConfig.from_dict(preset(name).to_dict()) == preset(name)
+
+
+def test_partial_file_applies_on_top_of_its_preset(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("preset: paper\nmapping:\n  iters: 7\nsize: [80, 60]\nprune:\n  stages: []\n")
+    config = load_config(path, "cpu")
+    assert config.mapping.iters == 7 and config.size == (80, 60) and config.prune.stages == ()
+    assert config.tracking == preset("paper").tracking
+    path.write_text("tracking:\n  iters: 3\n")
+    assert load_config(path, "tiny").keyframes == preset("tiny").keyframes
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("mapping:\n  itres: 3\n", "unknown key 'mapping.itres'"),
+        ("mapping:\n  iters: 2.5\n", "expected an integer"),
+        ("prune:\n  keep: 1.5\n", "prune.keep"),
+        ("size: [80]\n", "size"),
+        ("isotropic: 1\n", "true or false"),
+        ("preset: nope\n", "unknown SLAM preset"),
+        ("- 1\n", "mapping"),
+        ("mapping: [1\n", "cannot read config"),
+    ],
+)
+def test_bad_files_are_refused_with_a_clear_message(tmp_path, text, message):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        load_config(path)
+
+
+def test_resolve_config_applies_command_line_overrides(tmp_path):
+    config = resolve_config("tiny", size=(40, 30), keep=0.5, no_prune=True)
+    assert config.size == (40, 30) and config.prune.keep == 0.5 and config.prune.stages == ()
+    assert config.mapping == preset("tiny").mapping
+    assert resolve_config("cpu") == preset("cpu")
