@@ -28,6 +28,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <memory>
 #include <type_traits>
 #include <vector>
 
@@ -144,12 +145,13 @@ template <typename scalar_t>
 void pack_entries(const scalar_t* means2d, const scalar_t* conics, const scalar_t* opac,
                   const scalar_t* feats, int64_t n, const int64_t* ids, int64_t n_entries,
                   scalar_t* packed, int n_threads) {
-  std::vector<scalar_t> records(size_t(n) * kFields);
+  // Every record is written below: no zero-initialisation pass.
+  std::unique_ptr<scalar_t[]> records(new scalar_t[size_t(n) * kFields]);
 #pragma omp parallel num_threads(n_threads)
   {
 #pragma omp for schedule(static)
     for (int64_t g = 0; g < n; ++g) {
-      scalar_t* e = records.data() + g * kFields;
+      scalar_t* e = records.get() + g * kFields;
       const scalar_t a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
       const scalar_t o = opac[g];
       e[kMx] = means2d[2 * g];
@@ -173,7 +175,7 @@ void pack_entries(const scalar_t* means2d, const scalar_t* conics, const scalar_
     }
 #pragma omp for schedule(static)
     for (int64_t s = 0; s < n_entries; ++s) {
-      std::memcpy(packed + s * kFields, records.data() + ids[s] * kFields,
+      std::memcpy(packed + s * kFields, records.get() + ids[s] * kFields,
                   sizeof(scalar_t) * kFields);
     }
   }
