@@ -1,10 +1,10 @@
 """C++/OpenMP compositing kernels (forward and backward) for the cpu backend.
 
 The extension is compiled on first use with `torch.utils.cpp_extension.load` into a cache
-directory keyed on the source, the flags, torch and Python (`$GSCOMPRESS_CACHE_DIR` or
-`$XDG_CACHE_HOME/gscompress`, default `~/.cache/gscompress`), so later processes load it in well
-under a second. Without a C++ compiler `load_extension()` returns None and the caller falls back
-to the pure-torch backend.
+directory keyed on the source, the flags, torch, Python and (for the -march=native build on
+x86-64) the CPU model and feature flags (`$GSCOMPRESS_CACHE_DIR` or `$XDG_CACHE_HOME/gscompress`,
+default `~/.cache/gscompress`), so later processes load it in well under a second. Without a
+C++ compiler `load_extension()` returns None and the caller falls back to the pure-torch backend.
 """
 
 from __future__ import annotations
@@ -58,6 +58,7 @@ def _build_flags() -> tuple[list[str], str]:
 
 
 def _cache_root() -> Path:
+    """Where the compiled extensions are kept."""
     if "GSCOMPRESS_CACHE_DIR" in os.environ:
         return Path(os.environ["GSCOMPRESS_CACHE_DIR"])
     xdg = os.environ.get("XDG_CACHE_HOME")
