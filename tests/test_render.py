@@ -400,6 +400,8 @@ def test_bad_inputs_raise_input_error():
         run(dict(scene, colors=scene["colors"].half()))
     with pytest.raises(InputError, match="but means is"):
         run(dict(scene, colors=scene["colors"].float()))
+    with pytest.raises(InputError, match="near must be positive"):
+        run(scene, near=0.0)
 
 
 def test_gsplat_backend_without_gsplat_raises(monkeypatch):
