@@ -148,7 +148,8 @@ def test_mapping_loss_terms_and_capped_detached_illum_weight(scene):
     terms = mapping_loss(out, color_gt, depth_gt, config)
     valid = depth_gt > 0
     l1 = float((color.detach() - color_gt).abs().mean())
-    assert terms.depth == pytest.approx(float((depth - depth_gt).abs()[valid].mean()), rel=1e-6)
+    expected_depth = float((depth.detach() - depth_gt).abs()[valid].mean())
+    assert terms.depth == pytest.approx(expected_depth, rel=1e-6)
     assert terms.color < l1  # 0.8 L1 + 0.2 (1 - SSIM), SSIM of a noisy copy > 1 - L1 here
     assert terms.illum > 0 and terms.weights is not None
     w = terms.weights["w_illum"]

@@ -14,7 +14,7 @@ from gscompress.slam.keyframes import View, overlap_fraction, sample_points, sel
 from gscompress.slam.mapper import Mapper
 from gscompress.slam.params import GaussianParams
 from gscompress.slam.system import SlamSystem, stage_positions
-from gscompress.slam.tracker import constant_velocity, track
+from gscompress.slam.tracker import constant_velocity, orthonormalize, track
 
 SIZE = (64, 48)
 
@@ -62,6 +62,19 @@ def test_constant_velocity_repeats_the_last_motion():
     c = constant_velocity(b, a)
     np.testing.assert_allclose(invert_transform(b) @ c, invert_transform(a) @ b, atol=1e-12)
     np.testing.assert_array_equal(constant_velocity(b, None), b)
+
+
+def test_constant_velocity_stays_rigid_over_a_long_run():
+    # rounding error in chained poses must not grow (it did, geometrically, before the
+    # rotation was projected back onto SO(3))
+    R = quat_to_rotmat(np.array([np.cos(0.01), 0.3 * np.sin(0.01), np.sin(0.01), 0]))
+    step = make_transform(R * (1 + 1e-12), [0.01, 0.002, 0.0])
+    poses = [np.eye(4), step]
+    for _ in range(300):
+        poses.append(constant_velocity(poses[-1], poses[-2]))
+    R_last = poses[-1][:3, :3]
+    np.testing.assert_allclose(R_last.T @ R_last, np.eye(3), atol=1e-12)
+    assert np.linalg.det(orthonormalize(np.diag([1.0, 1.0, -1.0, 1.0]))[:3, :3]) > 0
 
 
 def test_mapping_reduces_the_loss(seq):

@@ -37,6 +37,9 @@ class TrackingConfig:
         iters: optimisation iterations per frame.
         lr_rotation: Adam lr of the pose's rotation increment (quaternion vector part).
         lr_translation: Adam lr of the pose's translation increment, metres.
+        lr_final_fraction: both learning rates decay geometrically to this fraction of their
+            value at the last iteration (1: constant, as SplaTAM), so that large first steps
+            can absorb a poor guess and small last steps settle.
         silhouette_min: only pixels whose rendered silhouette exceeds this are used.
         outlier_factor: also leave out pixels whose depth error exceeds this many times the
             median depth error of the mask (SplaTAM's `ignore_outlier_depth_loss`); 0: keep all.
@@ -51,6 +54,7 @@ class TrackingConfig:
     iters: int = 40
     lr_rotation: float = 4e-4
     lr_translation: float = 2e-3
+    lr_final_fraction: float = 1.0
     silhouette_min: float = 0.99
     outlier_factor: float = 10.0
     gamma_color: float = 0.1
@@ -286,6 +290,7 @@ def check_config(config: SlamConfig) -> None:
             problems.append(text)
 
     t, m, k, d, p = config.tracking, config.mapping, config.keyframes, config.densify, config.prune
+    need(0.0 < t.lr_final_fraction <= 1.0, "tracking.lr_final_fraction must be in (0, 1]")
     need(t.iters >= 0 and m.iters >= 0 and m.first_frame_iters >= 0, "iterations must be >= 0")
     need(
         all(v > 0 for v in (t.lr_rotation, t.lr_translation, t.gamma_color, t.gamma_depth, t.rho)),

@@ -8,6 +8,7 @@ constant-velocity prediction), applied in the camera frame:
 
 with (qx, qy, qz) and tau starting at zero. Near zero, 2 (qx, qy, qz) is the rotation vector, so
 the Adam learning rates act like SplaTAM's on the world-to-camera quaternion and translation.
+They may decay geometrically over the iterations (`TrackingConfig.lr_final_fraction`).
 The Gaussians are rendered from detached tensors: only the six pose numbers get gradients.
 The pose after the last iteration is returned. (SplaTAM returns the pose of lowest loss seen;
 with a mask that changes with the pose, losses of different poses are sums over different
@@ -68,12 +69,29 @@ def pose_increment(q_xyz: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, bottom], dim=0)
 
 
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """The rigid transform nearest to T [4, 4]: its rotation block projected onto SO(3).
+
+    Products of poses gather rounding error, and `invert_transform` (which transposes the
+    rotation) turns a rotation that is slightly off SO(3) into an inverse that is off by as
+    much again; chained over frames by the constant-velocity model the error would grow
+    geometrically. Every pose the tracker makes goes through here.
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(T, dtype=np.float64)[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = R
+    return out
+
+
 def constant_velocity(T_prev: np.ndarray, T_prev2: np.ndarray | None) -> np.ndarray:
     """Camera-to-world guess for the next frame: repeat the last relative motion."""
     if T_prev2 is None:
-        return np.asarray(T_prev, dtype=np.float64)
+        return orthonormalize(T_prev)
     motion = invert_transform(T_prev2) @ T_prev  # camera t-2 -> camera t-1
-    return np.asarray(T_prev, dtype=np.float64) @ motion
+    return orthonormalize(np.asarray(T_prev, dtype=np.float64) @ motion)
 
 
 def track(
@@ -108,6 +126,8 @@ def track(
     optimizer = torch.optim.Adam(
         [{"params": [q], "lr": config.lr_rotation}, {"params": [tau], "lr": config.lr_translation}]
     )
+    gamma = config.lr_final_fraction ** (1.0 / max(config.iters - 1, 1))
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma)
     first_loss = last_loss = float("nan")
     pixels = done = 0
     for _ in range(config.iters):
@@ -122,11 +142,12 @@ def track(
         optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         optimizer.step()
+        scheduler.step()
         done += 1
     with torch.no_grad():
         T_cam_world = pose_increment(q, tau) @ T0
     return TrackResult(
-        T_world_cam=invert_transform(T_cam_world.cpu().numpy()),
+        T_world_cam=orthonormalize(invert_transform(T_cam_world.cpu().numpy())),
         loss=last_loss,
         first_loss=first_loss,
         iters=done,
