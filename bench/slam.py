@@ -13,6 +13,7 @@ Usage:
     python bench/slam.py SEQ [--preset cpu] [--frames all] [--size WxH] [--no-prune]
         [--set mapping.iters=20 ...] [--out run.mcap] [--json-out result.json]
     python bench/slam.py synthetic:60 --size 320x240   # the synthetic room, 60 frames
+    python bench/slam.py SEQ --log run.mcap            # only evaluate a log of `gsc slam`
 """
 
 from __future__ import annotations
@@ -52,6 +53,43 @@ def read_poses(log: LogReader, topic: str) -> np.ndarray:
     return np.array(out)
 
 
+def evaluate(log_path: Path, sequence: Any, eval_every: int = 1) -> dict[str, Any]:
+    """ATE, training-view PSNR/SSIM, Gaussian counts and mean phase times of a SLAM log."""
+    with LogReader(log_path) as log:
+        est = read_poses(log, TOPIC_POSE)
+        stats = [json.loads(m.data) for _, _, m in log.iter_messages([TOPIC_STATS])]
+        final = log.read_map()
+    _, gt = sequence.ground_truth() if sequence.has_ground_truth else (None, None)
+    params = GaussianParams.from_map(final).render_inputs()
+    psnrs, ssims = [], []
+    with torch.no_grad():
+        for i in range(0, len(est), eval_every):
+            frame = sequence.frame(i)
+            T = torch.as_tensor(invert_transform(est[i]), dtype=torch.float32)
+            image = render(*(p.detach() for p in params), sequence.intrinsics, T).color
+            image = image.clamp(0, 1).numpy()
+            valid = frame.depth > 0
+            psnrs.append(psnr(image, frame.color, valid))
+            ssims.append(ssim(image, frame.color, valid))
+    phases = ("tracking", "densification", "mapping", "pwas", "pruning", "total")
+    ms = {p: float(np.mean([s["ms"].get(p, 0.0) for s in stats[1:] or stats])) for p in phases}
+    return {
+        "log": str(log_path),
+        "sequence": getattr(sequence, "name", ""),
+        "size": [sequence.intrinsics.width, sequence.intrinsics.height],
+        "frames": len(est),
+        "gaussians": len(final),
+        "gaussians_max": max(s["gaussians"] for s in stats),
+        "ate_rmse_cm": ate_rmse_cm(gt[: len(est)], est) if gt is not None else None,
+        "ate_splatam_cm": ate_splatam_cm(gt[: len(est)], est) if gt is not None else None,
+        "psnr_db": float(np.mean(psnrs)),
+        "ssim": float(np.mean(ssims)),
+        "eval_views": len(psnrs),
+        "first_frame_ms": stats[0]["ms"].get("total"),
+        "ms_per_frame_after_first": ms,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("seq", help="sequence folder, or synthetic:N for the in-memory room")
@@ -65,6 +103,7 @@ def main() -> None:
     parser.add_argument("--eval-every", type=int, default=1)
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--out", default=None, help="keep the log here")
+    parser.add_argument("--log", default=None, help="evaluate this existing log instead of running")
     parser.add_argument("--json-out", default=None)
     opts = parser.parse_args()
     if opts.threads:
@@ -89,53 +128,28 @@ def main() -> None:
         sequence = open_sequence(opts.seq, size=config.size, frames=opts.frames)
         seq_arg = opts.seq
 
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    result = slam_file(
-        seq_arg, out, preset=opts.preset, config_path=config_path, frames=opts.frames,
-        command="bench/slam.py", force=True, sequence=sequence,
-    )  # fmt: skip
-    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-
-    with LogReader(out) as log:
-        est = read_poses(log, TOPIC_POSE)
-        stats = [json.loads(m.data) for _, _, m in log.iter_messages([TOPIC_STATS])]
-        final = log.read_map()
-    _, gt = sequence.ground_truth() if sequence.has_ground_truth else (None, None)
-
-    params = GaussianParams.from_map(final).render_inputs()
-    psnrs, ssims = [], []
-    with torch.no_grad():
-        for i in range(0, len(est), opts.eval_every):
-            frame = sequence.frame(i)
-            T = torch.as_tensor(invert_transform(est[i]), dtype=torch.float32)
-            image = render(*(p.detach() for p in params), sequence.intrinsics, T).color
-            image = image.clamp(0, 1).numpy()
-            valid = frame.depth > 0
-            psnrs.append(psnr(image, frame.color, valid))
-            ssims.append(ssim(image, frame.color, valid))
-    phases = ("tracking", "densification", "mapping", "pwas", "pruning", "total")
-    ms = {p: float(np.mean([s["ms"].get(p, 0.0) for s in stats[1:] or stats])) for p in phases}
-    report = {
-        "sequence": getattr(sequence, "name", opts.seq),
-        "preset": config.preset,
-        "size": [sequence.intrinsics.width, sequence.intrinsics.height],
-        "frames": len(est),
-        "stages": list(config.prune.stages),
-        "overrides": overrides,
-        "gaussians": len(final),
-        "gaussians_max": max(s["gaussians"] for s in stats),
-        "ate_rmse_cm": ate_rmse_cm(gt[: len(est)], est) if gt is not None else None,
-        "ate_splatam_cm": ate_splatam_cm(gt[: len(est)], est) if gt is not None else None,
-        "psnr_db": float(np.mean(psnrs)),
-        "ssim": float(np.mean(ssims)),
-        "eval_views": len(psnrs),
-        "seconds_per_frame_wall": wall / len(est),
-        "seconds_per_frame_cpu": cpu / len(est),
-        "torch_threads": torch.get_num_threads(),
-        "cpus": os.cpu_count(),
-        "ms_per_frame_after_first": ms,
-        "log_results": result,
-    }
+    wall: float | None
+    cpu: float | None
+    if opts.log:
+        out, result, wall, cpu = Path(opts.log), None, None, None
+    else:
+        cpu0, wall0 = time.process_time(), time.perf_counter()
+        result = slam_file(
+            seq_arg, out, preset=opts.preset, config_path=config_path, frames=opts.frames,
+            command="bench/slam.py", force=True, sequence=sequence,
+        )  # fmt: skip
+        wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    report = evaluate(out, sequence, opts.eval_every)
+    report.update(
+        preset=config.preset,
+        stages=list(config.prune.stages),
+        overrides=overrides,
+        seconds_per_frame_wall=None if wall is None else wall / report["frames"],
+        seconds_per_frame_cpu=None if cpu is None else cpu / report["frames"],
+        torch_threads=torch.get_num_threads(),
+        cpus=os.cpu_count(),
+        log_results=result,
+    )
     text = json.dumps(report, indent=2)
     print(text)
     if opts.json_out:

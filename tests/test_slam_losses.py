@@ -89,7 +89,7 @@ def test_tracking_leaves_out_depth_outliers(scene):
     depth = depth.detach().clone()
     depth[20, 3] += 5.0  # a 5 m error: far above 10x the median (~4 cm)
     out = fake_render(color, depth, silhouette)
-    kept = tracking_loss(out, color_gt, depth_gt, TrackingConfig())
+    kept = tracking_loss(out, color_gt, depth_gt, TrackingConfig(outlier_factor=10.0))
     everything = tracking_loss(out, color_gt, depth_gt, TrackingConfig(outlier_factor=0.0))
     assert kept.pixels == everything.pixels - 1  # only that pixel is left out
     assert kept.depth < 0.1 and everything.depth > kept.depth + 4.0 / everything.pixels

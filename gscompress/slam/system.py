@@ -246,6 +246,11 @@ class SlamSystem:
         if stage is not None:
             removed += self.prune_to(self.config.prune.keep)
             event = f"prune-stage-{stage}"
+            if self.config.prune.refine_iters:
+                refine = self.mapper.optimize(
+                    current, window, self.config.prune.refine_iters, self.rng
+                )
+                removed += refine.removed
         ms["pruning"] = 1e3 * (time.perf_counter() - clock)
         ms["total"] = 1e3 * (time.perf_counter() - start)
 
