@@ -55,3 +55,11 @@ def test_resolve_config_applies_command_line_overrides(tmp_path):
     assert config.size == (40, 30) and config.prune.keep == 0.5 and config.prune.stages == ()
     assert config.mapping == preset("tiny").mapping
     assert resolve_config("cpu") == preset("cpu")
+
+
+@pytest.mark.parametrize("name", ["cpu", "paper"])
+def test_example_configs_equal_their_presets(name):
+    from pathlib import Path
+
+    path = Path(__file__).parents[1] / "examples" / "configs" / f"{name}.yaml"
+    assert load_config(path, "tiny") == preset(name), f"regenerate {path} with save_config"

@@ -152,9 +152,6 @@ class PruneConfig:
         stages: positions in the sequence (fractions of its frames) of the PWAS pruning
             stages; empty for none (`gsc slam --no-prune`).
         keep: fraction of Gaussians kept (top by PWAS) at each stage.
-        refine_iters: mapping iterations over the frame's window right after a pruning stage
-            (beyond the paper), so that the kept Gaussians close the holes before the next
-            frame is tracked; 0: none.
     """
 
     opacity_every: int = 100
@@ -163,7 +160,6 @@ class PruneConfig:
     scene_radius_depth_ratio: float = 3.0
     stages: tuple[float, ...] = (1 / 3, 2 / 3)
     keep: float = 0.3
-    refine_iters: int = 0
 
 
 @dataclass(frozen=True)
@@ -316,7 +312,6 @@ def check_config(config: SlamConfig) -> None:
     need(k.every >= 1 and k.window >= 0 and k.overlap_samples >= 1, "bad keyframe settings")
     need(d.stride >= 1, "densify.stride must be >= 1")
     need(0.0 < d.opacity < 1.0, "densify.opacity must be in (0, 1)")
-    need(p.refine_iters >= 0, "prune.refine_iters must be >= 0")
     need(p.opacity_every >= 0 and p.alpha_min >= 0 and p.huge_fraction >= 0, "bad prune values")
     need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")
     need(0.0 < p.keep <= 1.0, "prune.keep must be in (0, 1]")
@@ -404,7 +399,7 @@ def load_config(path: str | Path, base: str | SlamConfig = DEFAULT_PRESET) -> Sl
 def save_config(config: SlamConfig, path: str | Path) -> Path:
     """Write the full config as YAML (readable back with `load_config`)."""
     path = Path(path)
-    text = yaml.safe_dump(config.to_dict(), sort_keys=False, default_flow_style=None)
+    text = yaml.safe_dump(config.to_dict(), sort_keys=False, default_flow_style=False)
     path.write_text(
         "# gscompress SLAM config (gsc slam --config FILE); any subset of keys may be given\n"
         + text,

@@ -11,6 +11,11 @@ back-projected, then mapped for `first_frame_iters` iterations.
 
 The system is pure: no files, no printing. `gscompress.pipeline.slam_file` runs it over a
 sequence and writes the log.
+
+Not yet here (later steps of issue 5): resuming a run from a log (`--resume`; it needs the
+keyframes and optimizer state, which the log does not hold) and injecting another agent's share
+(`--inject`); the entry point for the latter is `SlamSystem.add_gaussians(share,
+renumber=False)`, which keeps the share's ids and PWAS sums.
 """
 
 from __future__ import annotations
@@ -246,11 +251,6 @@ class SlamSystem:
         if stage is not None:
             removed += self.prune_to(self.config.prune.keep)
             event = f"prune-stage-{stage}"
-            if self.config.prune.refine_iters:
-                refine = self.mapper.optimize(
-                    current, window, self.config.prune.refine_iters, self.rng
-                )
-                removed += refine.removed
         ms["pruning"] = 1e3 * (time.perf_counter() - clock)
         ms["total"] = 1e3 * (time.perf_counter() - start)
 
