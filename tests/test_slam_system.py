@@ -1,11 +1,15 @@
 """The SLAM core on a tiny synthetic sequence: tracking, mapping, densification, pruning."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
 from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
 from gscompress.datasets.synthetic import synthetic_sequence
+from gscompress.errors import MapError
+from gscompress.gaussians import random_map
 from gscompress.ops.select import keep_count
 from gscompress.render import render
 from gscompress.slam.config import TrackingConfig, preset
@@ -166,6 +170,21 @@ def test_system_runs_and_prunes_exactly_the_top_fraction(seq):
     result = system.process(seq.frame(3))
     assert result.gaussians == len(system.gaussian_map())
     assert np.isfinite(result.T_world_cam).all()
+
+
+def test_add_gaussians_renumbers_or_refuses_clashing_ids(seq):
+    system = SlamSystem(preset("tiny"), seq.intrinsics)
+    system.process(seq.frame(0))
+    n = len(system)
+    extra = random_map(5, seed=1)
+    assert system.add_gaussians(extra) == 5
+    ids = system.gaussian_map().ids
+    np.testing.assert_array_equal(ids[-5:], np.arange(n, n + 5))
+    with pytest.raises(MapError, match="already in the map"):
+        system.add_gaussians(replace(extra, ids=ids[:5]), renumber=False)
+    foreign = replace(extra, ids=np.arange(10**6, 10**6 + 5))
+    assert system.add_gaussians(foreign, renumber=False) == 5
+    np.testing.assert_allclose(system.gaussian_map().importance_sum[-5:], extra.importance_sum)
 
 
 def test_stage_events_follow_the_schedule(seq):

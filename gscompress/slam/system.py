@@ -30,7 +30,7 @@ import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.datasets.base import Frame
-from gscompress.errors import InputError
+from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.select import keep_count, top_k
 from gscompress.render import render
@@ -185,7 +185,15 @@ class SlamSystem:
         Args:
             gaussians: the new Gaussians, with or without importance sums.
             renumber: give them fresh ids after the map's (keep theirs when False).
+
+        Raises:
+            MapError: with `renumber=False`, ids that the map already holds.
         """
+        if not renumber and len(gaussians) and len(self.mapper):
+            held = self.mapper.params.ids.cpu().numpy()
+            clash = np.intersect1d(held, gaussians.ids.astype(np.int64))
+            if clash.size:
+                raise MapError(f"{clash.size} of the new Gaussians' ids are already in the map")
         if renumber:
             n = len(gaussians)
             ids = np.arange(self.next_id, self.next_id + n, dtype=np.uint32)
