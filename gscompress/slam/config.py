@@ -4,9 +4,9 @@ Three presets:
 
 - `tiny`: for tests and smoke runs (a handful of iterations; seconds for a few 64x48 frames).
 - `cpu` (the default of `gsc slam`): 160x120 and iteration counts sized for a 2-core CPU at
-  about 1-1.5 s per frame; higher colour and scale learning rates than SplaTAM's, because there
-  are 10 mapping iterations per frame instead of 30-60 (tuned on the synthetic room and two
-  real sequences, see bench/slam.py).
+  about 1-1.5 s per frame (40 tracking / 15 mapping iterations), with higher colour and scale
+  learning rates than SplaTAM's because there are 15 mapping iterations per frame instead of
+  30-60 (tuned on the synthetic room and two real sequences with bench/slam.py).
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
 
@@ -337,9 +337,9 @@ PRESETS: dict[str, SlamConfig] = {
     "cpu": SlamConfig(
         preset="cpu",
         size=(160, 120),
-        tracking=TrackingConfig(iters=30, lr_rotation=2e-3, lr_translation=2e-3),
+        tracking=TrackingConfig(iters=40, lr_rotation=2e-3, lr_translation=2e-3),
         mapping=MappingConfig(
-            iters=10, first_frame_iters=100, lr_means=2e-4, lr_colors=2e-2, lr_log_scales=5e-3
+            iters=15, first_frame_iters=100, lr_means=2e-4, lr_colors=2e-2, lr_log_scales=5e-3
         ),
         keyframes=KeyframeConfig(every=5, window=8, overlap_samples=800),
     ),
