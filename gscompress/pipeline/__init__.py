@@ -1,0 +1,39 @@
+"""Glue between files and the pure core: each function here is one `gsc` command's work.
+
+Functions take paths and options, read inputs through `gscompress.io`, call the pure operations
+in `gscompress.ops`, `gscompress.slam` and `gscompress.metrics`, and write outputs atomically.
+They return a small dict of results that the CLI prints. Nothing here prints or exits.
+
+- `offline`: import-ply, prune, share, export-ply, info (numpy + mcap only, never torch).
+- `scoring`: score (PWAS for a map made elsewhere).
+- `slam_run`: slam (a sequence into a log).
+
+Modules that need torch import it inside their functions, so importing this package stays cheap.
+"""
+
+from gscompress.pipeline.offline import (
+    export_ply,
+    import_ply,
+    log_info,
+    map_summary,
+    prune_log,
+    rewrite_map,
+    seconds_to_ns,
+    share_log,
+)
+from gscompress.pipeline.scoring import score_file, view_poses
+from gscompress.pipeline.slam_run import slam_file
+
+__all__ = [
+    "export_ply",
+    "import_ply",
+    "log_info",
+    "map_summary",
+    "prune_log",
+    "rewrite_map",
+    "score_file",
+    "seconds_to_ns",
+    "share_log",
+    "slam_file",
+    "view_poses",
+]

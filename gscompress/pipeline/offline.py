@@ -1,0 +1,227 @@
+"""The offline commands: import-ply, prune, share, export-ply and info.
+
+numpy + mcap only: nothing here imports torch or the SLAM code, so these commands start fast.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.errors import InputError
+from gscompress.gaussians import GaussianMap
+from gscompress.io.files import check_output, sha256
+from gscompress.io.mcap_log import (
+    TOPIC_GAUSSIANS,
+    LogMetadata,
+    LogReader,
+    LogWriter,
+    record_size,
+)
+from gscompress.io.ply import read_ply, write_ply
+from gscompress.ops.select import check_ratio, select_top, strategy_scores
+
+log = logging.getLogger(__name__)
+
+QUANTILES = (0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0)
+
+
+def import_ply(
+    src: str | Path, dst: str | Path, *, command: str = "", force: bool = False
+) -> dict[str, Any]:
+    """Turn a 3DGS PLY map (from any tool) into a one-snapshot gscompress log."""
+    check_output(dst, [src], force)
+    gaussians = read_ply(src)
+    meta = LogMetadata(command=command).derive({"name": "import-ply"}, src)
+    meta.results = {"gaussians": len(gaussians), "scored": gaussians.has_importance}
+    with LogWriter(dst, meta, inputs=[src], force=force) as out:
+        out.write_gaussians(gaussians, 0)
+    return {"output": str(dst), **meta.results}
+
+
+def prune_log(
+    src: str | Path,
+    dst: str | Path,
+    keep: float,
+    *,
+    by: str = "pwas",
+    seed: int = 0,
+    command: str = "",
+    force: bool = False,
+) -> dict[str, Any]:
+    """Keep the `keep` fraction of a log's map with the highest `by` scores.
+
+    The last `/gaussians` snapshot is replaced by its pruned version (same log time); every other
+    message, earlier snapshots included, passes through unchanged.
+    """
+    check_ratio(keep, "--keep")
+
+    def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+        kept, _ = select_top(full, keep, by, seed)
+        return kept, {"kept": len(kept), "total": len(full)}
+
+    operation = {"name": "prune", "keep": keep, "by": by, "seed": seed}
+    return rewrite_map(src, dst, operation, prune, command=command, force=force)
+
+
+def rewrite_map(
+    src: str | Path,
+    dst: str | Path,
+    operation: dict[str, Any],
+    transform: Callable[[GaussianMap], tuple[GaussianMap, dict[str, Any]]],
+    *,
+    command: str = "",
+    force: bool = False,
+) -> dict[str, Any]:
+    """Copy a log, replacing its map (the last snapshot) by `transform(map)`.
+
+    Every other message passes through unchanged; the output's provenance gains `operation` and
+    its results are what `transform` returns beside the new map.
+    """
+    check_output(dst, [src], force)
+    with LogReader(src) as log_in:
+        last = log_in.require_snapshots() - 1
+        meta = log_in.metadata.derive(operation, src)
+        meta.command = command
+        with LogWriter(dst, meta, inputs=[src], force=force) as out:
+            snapshot = 0
+            for schema, channel, message in log_in.iter_messages():
+                if channel.topic != TOPIC_GAUSSIANS:
+                    out.copy_message(schema, channel, message)
+                    continue
+                if snapshot == last:
+                    new_map, meta.results = transform(log_in.decode_map(schema, message))
+                    out.write_gaussians(new_map, message.log_time)
+                else:
+                    out.copy_message(schema, channel, message)
+                snapshot += 1
+    return {"output": str(dst), **meta.results}
+
+
+def share_log(
+    src: str | Path,
+    dst: str | Path,
+    budget: float,
+    *,
+    strategy: str = "pwas",
+    seed: int = 0,
+    ply: str | Path | None = None,
+    command: str = "",
+    force: bool = False,
+) -> dict[str, Any]:
+    """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
+
+    The share is a small log: the metadata record (source, strategy, budget, counts, provenance)
+    and one `/gaussians` snapshot holding the selected Gaussians with all their fields.
+    """
+    check_ratio(budget, "--budget")
+    outputs = [dst] if ply is None else [dst, ply]
+    if ply is not None and Path(ply).resolve() == Path(dst).resolve():
+        raise InputError("--ply must differ from the MCAP output")
+    for path in outputs:
+        check_output(path, [src], force)
+    with LogReader(src) as log_in:
+        full = log_in.read_map()
+        meta = log_in.metadata
+    shared, _ = select_top(full, budget, strategy, seed)
+    operation = {"name": "share", "budget": budget, "strategy": strategy, "seed": seed}
+    out_meta = meta.derive(operation, src)
+    out_meta.command = command
+    out_meta.results = {
+        "source": Path(src).name,
+        "strategy": strategy,
+        "budget": budget,
+        "selected": len(shared),
+        "total": len(full),
+    }
+    with LogWriter(dst, out_meta, inputs=[src], force=force) as out:
+        out.write_gaussians(shared, 0)
+    if ply is not None:
+        write_ply(shared, ply, inputs=(src,), force=force)
+    return {"output": str(dst), "ply": None if ply is None else str(ply), **out_meta.results}
+
+
+def export_ply(
+    src: str | Path,
+    dst: str | Path,
+    *,
+    snapshot: int = -1,
+    importance: bool = True,
+    force: bool = False,
+) -> dict[str, Any]:
+    """Write one snapshot of a log (default the last, "the map") as a 3DGS PLY file."""
+    check_output(dst, [src], force)
+    with LogReader(src) as log_in:
+        gaussians = log_in.read_map(snapshot)
+    write_ply(gaussians, dst, importance=importance, inputs=(src,), force=force)
+    return {"output": str(dst), "gaussians": len(gaussians), "snapshot": snapshot}
+
+
+def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
+    """Summarise a log: channels, snapshots, the map, its scores, bytes and provenance."""
+    path = Path(path)
+    with LogReader(path) as log_in:
+        channels = [
+            {"topic": c.topic, "schema": c.schema, "encoding": c.encoding, "messages": c.messages}
+            for c in log_in.channels
+        ]
+        snapshots: list[dict[str, Any]] = []
+        final: GaussianMap | None = None
+        final_bytes = 0
+        for schema, _channel, message in log_in.iter_messages([TOPIC_GAUSSIANS]):
+            final = log_in.decode_map(schema, message)
+            final_bytes = len(message.data)  # the serialized PointCloud, as it would be sent
+            snapshots.append({"log_time_ns": message.log_time, "gaussians": len(final)})
+        meta = log_in.metadata
+    info: dict[str, Any] = {
+        "path": str(path),
+        "file_bytes": path.stat().st_size,
+        "sha256": sha256(path),
+        "profile_version": meta.profile_version,
+        "tool_version": meta.tool_version,
+        "command": meta.command,
+        "sequence": meta.sequence,
+        "frames": meta.frames,
+        "channels": channels,
+        "snapshots": snapshots,
+        "provenance": meta.provenance,
+        "results": meta.results,
+    }
+    if final is not None:
+        info["map"] = map_summary(final, histogram_bins)
+        info["map"]["bytes"] = final_bytes
+        info["map"]["packed_bytes"] = len(final) * record_size(final)
+    return info
+
+
+def map_summary(gaussians: GaussianMap, histogram_bins: int = 10) -> dict[str, Any]:
+    """Counts, layout, bounds and score statistics of a map (JSON-ready)."""
+    summary: dict[str, Any] = {
+        "gaussians": len(gaussians),
+        "isotropic": gaussians.isotropic,
+        "sh_degree": gaussians.sh_degree,
+        "has_importance": gaussians.has_importance,
+    }
+    if len(gaussians):
+        summary["bounds_min"] = gaussians.means.min(axis=0).tolist()
+        summary["bounds_max"] = gaussians.means.max(axis=0).tolist()
+        summary["opacity_mean"] = float(gaussians.opacities().mean())
+    if gaussians.has_importance and len(gaussians):
+        scores = strategy_scores(gaussians, "pwas")
+        summary["importance_quantiles"] = {
+            f"q{round(q * 100):02d}": float(v)
+            for q, v in zip(QUANTILES, np.quantile(scores, QUANTILES), strict=True)
+        }
+        counts, edges = np.histogram(scores, bins=histogram_bins)
+        summary["importance_histogram"] = {"counts": counts.tolist(), "edges": edges.tolist()}
+        summary["scored"] = int(np.count_nonzero(gaussians.importance_weight > 0))
+    return summary
+
+
+def seconds_to_ns(seconds: float) -> int:
+    """Integer nanoseconds (log times) from seconds."""
+    return round(float(seconds) * 1e9)
