@@ -107,3 +107,12 @@ def test_gsc_synth_command(tmp_path: Path) -> None:
     assert forced.exit_code == 0 and len(open_sequence(out)) == 2
     bad = runner.invoke(cli, ["synth", str(tmp_path / "x"), "--size", "32by24"])
     assert bad.exit_code == 2 and "WxH" in bad.output
+
+
+def test_supersampling_changes_colour_only() -> None:
+    one = synthetic_sequence(frames=2, size=(64, 48), supersample=1).frame(1)
+    four = synthetic_sequence(frames=2, size=(64, 48), supersample=2).frame(1)
+    np.testing.assert_array_equal(one.depth, four.depth)
+    assert not np.array_equal(one.color, four.color)
+    # averaging 2x2 samples smooths the texture: less pixel-to-pixel variation
+    assert np.abs(np.diff(four.color, axis=1)).mean() < np.abs(np.diff(one.color, axis=1)).mean()
