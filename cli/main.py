@@ -26,6 +26,7 @@ COMMANDS: dict[str, str] = {
     "score": "score:score",
     "synth": "synth:synth",
     "slam": "slam:slam",
+    "eval": "eval:eval_command",
 }
 
 

@@ -215,10 +215,24 @@ def _blur(x: torch.Tensor, win: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, k.view(1, 1, -1, 1).repeat(c, 1, 1, 1), groups=c)
 
 
-def _ssim_maps(
-    x: torch.Tensor, y: torch.Tensor, data_range: float
+def ssim_maps(
+    x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """SSIM and contrast-structure maps [B, C, H - 10, W - 10] ('valid' window positions)."""
+    """Per-position SSIM and contrast-structure maps of two image batches (differentiable).
+
+    The building block of `ssim`, `ms_ssim` and the SLAM colour loss, so that the metric and
+    the loss are the same function: Gaussian window 11 (sigma 1.5), K1 = 0.01, K2 = 0.03,
+    'valid' convolution per channel. Works on any device and floating dtype.
+
+    Args:
+        x: [B, C, H, W] images (H, W >= 11).
+        y: [B, C, H, W] reference images.
+        data_range: peak value (1.0 for images in [0, 1]).
+
+    Returns:
+        (ssim [B, C, H - 10, W - 10], cs [B, C, H - 10, W - 10]): SSIM and its
+        contrast-structure factor at each window position.
+    """
     win = _gaussian_window()
     c1 = (SSIM_K[0] * data_range) ** 2
     c2 = (SSIM_K[1] * data_range) ** 2
@@ -261,7 +275,7 @@ def ssim(image: Any, reference: Any, mask: Any = None, data_range: float = 1.0) 
     x, y = _pair(image, reference)
     _check_ssim_size(x, SSIM_WINDOW)
     m = _as_mask(mask, x.shape)
-    s, _ = _ssim_maps(x, y, data_range)
+    s, _ = ssim_maps(x, y, data_range)
     return float(_masked_channel_mean(s, m).mean())
 
 
@@ -277,7 +291,7 @@ def ms_ssim(image: Any, reference: Any, mask: Any = None, data_range: float = 1.
     levels = len(MS_SSIM_WEIGHTS)
     factors = []
     for level in range(levels):
-        s, cs = _ssim_maps(x, y, data_range)
+        s, cs = ssim_maps(x, y, data_range)
         if level < levels - 1:
             factors.append(torch.relu(_masked_channel_mean(cs, m)))
             pad = [d % 2 for d in x.shape[2:]]

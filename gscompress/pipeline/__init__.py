@@ -11,6 +11,7 @@ They return a small dict of results that the CLI prints. Nothing here prints or 
 Modules that need torch import it inside their functions, so importing this package stays cheap.
 """
 
+from gscompress.pipeline.evaluate import evaluate_log
 from gscompress.pipeline.offline import (
     export_ply,
     import_ply,
@@ -25,6 +26,7 @@ from gscompress.pipeline.scoring import score_file, view_poses
 from gscompress.pipeline.slam_run import slam_file
 
 __all__ = [
+    "evaluate_log",
     "export_ply",
     "import_ply",
     "log_info",

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from gscompress.metrics import _ssim_maps
+from gscompress.metrics import ssim_maps
 from gscompress.render import RenderOutput
 from gscompress.slam.config import MappingConfig, TrackingConfig
 
@@ -163,7 +163,7 @@ def ssim_map(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """Differentiable SSIM map (window 11, sigma 1.5; `gscompress.metrics`) of [H, W, 3] images."""
     x = image.permute(2, 0, 1)[None]
     y = reference.permute(2, 0, 1)[None]
-    s, _ = _ssim_maps(x, y, 1.0)
+    s, _ = ssim_maps(x, y, 1.0)
     return s
 
 

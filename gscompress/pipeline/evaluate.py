@@ -1,0 +1,258 @@
+"""`gsc eval`: a log's final map and trajectory scored against its sequence (needs torch).
+
+The log's estimated poses (`/camera/pose`) are matched to the sequence's frames by time: a
+frame matches the pose whose log time is nearest to the frame's timestamp in nanoseconds, when
+they differ by at most `POSE_MATCH_TOLERANCE_NS` (1 ms; `gsc slam` writes the frame timestamp
+itself, so its logs match exactly, and frames of a 30 Hz camera are 33 ms apart). Frames with no
+estimated pose are skipped and counted.
+
+- Trajectory: `ate_rmse_cm` (evo's `evo_ape tum GT EST -a` RMSE, camera centres, SE(3) without
+  scale) and `ate_splatam_cm` (the mean SplaTAM prints, each trajectory first expressed relative
+  to its own first pose, as SplaTAM's start at identity) over every matched frame that has a
+  ground-truth pose: the sequence's, or `/camera/pose_gt` of the log when the sequence has none.
+- Images: the final map (last `/gaussians` snapshot) rendered at the estimated pose of every
+  `every`-th matched frame and scored by `gscompress.ops.evaluate.evaluate_map`.
+- Size: Gaussian count, the serialized `/gaussians` message in bytes (as `gsc info` reports it,
+  what would be sent) and the file's bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from google.protobuf.message import DecodeError
+
+from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
+from gscompress.errors import InputError, LogFormatError
+from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_POSE_GT, LogReader
+from gscompress.pipeline.offline import seconds_to_ns
+
+log = logging.getLogger(__name__)
+
+POSE_MATCH_TOLERANCE_NS = 1_000_000
+"""Largest |log time - frame timestamp| (ns) at which a logged pose belongs to a frame."""
+
+
+def read_poses(reader: LogReader, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """The foxglove.PoseInFrame messages of `topic` in a log.
+
+    Returns:
+        (log times [N] int64 ns, camera-to-world poses [N, 4, 4] float64), in log-time order;
+        empty arrays when the log has no such channel.
+
+    Raises:
+        LogFormatError: a message that is not a PoseInFrame, or a non-finite or zero-length
+            pose.
+    """
+    times: list[int] = []
+    poses: list[np.ndarray] = []
+    for schema, _channel, message in reader.iter_messages([topic]):
+        if schema is None or schema.name != "foxglove.PoseInFrame":
+            name = schema.name if schema else "no schema"
+            raise LogFormatError(f"{reader.path}: {topic} is {name}, not foxglove.PoseInFrame")
+        try:
+            pose = PoseInFrame.FromString(message.data).pose
+        except DecodeError:
+            raise LogFormatError(f"{reader.path}: corrupt {topic} message") from None
+        p, o = pose.position, pose.orientation
+        q = np.array([o.w, o.x, o.y, o.z])
+        t = np.array([p.x, p.y, p.z])
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or np.linalg.norm(q) < 1e-12:
+            raise LogFormatError(
+                f"{reader.path}: {topic} at {message.log_time} ns has a non-finite or "
+                "zero-length pose"
+            )
+        times.append(int(message.log_time))
+        poses.append(make_transform(quat_to_rotmat(q), t))
+    stamps = np.array(times, dtype=np.int64)
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
+
+
+def match_times(
+    query_ns: np.ndarray, reference_ns: np.ndarray, tolerance_ns: int = POSE_MATCH_TOLERANCE_NS
+) -> np.ndarray:
+    """For each query time, the index of the nearest reference time within the tolerance.
+
+    Args:
+        query_ns: [M] int64 times.
+        reference_ns: [N] int64 times, sorted ascending.
+        tolerance_ns: the largest accepted difference.
+
+    Returns:
+        [M] int64 indices into `reference_ns`, -1 where none is within the tolerance.
+    """
+    query = np.asarray(query_ns, dtype=np.int64)
+    ref = np.asarray(reference_ns, dtype=np.int64)
+    if len(ref) == 0:
+        return np.full(len(query), -1, dtype=np.int64)
+    right = np.clip(np.searchsorted(ref, query), 0, len(ref) - 1)
+    left = np.clip(right - 1, 0, len(ref) - 1)
+    nearest = np.where(np.abs(ref[left] - query) <= np.abs(ref[right] - query), left, right)
+    return np.where(np.abs(ref[nearest] - query) <= tolerance_ns, nearest, -1)
+
+
+def trajectory_errors(T_world_cam_gt: np.ndarray, T_world_cam_est: np.ndarray) -> dict[str, Any]:
+    """Both ATE conventions (cm), or None with the reason when fewer than 2 poses pair up."""
+    from gscompress.metrics import ate_rmse_cm, ate_splatam_cm
+
+    n = len(T_world_cam_gt)
+    if n < 2:
+        reason = f"{n} frame(s) with both an estimated and a ground-truth pose; need 2"
+        return {"ate_rmse_cm": None, "ate_splatam_cm": None, "ate_frames": n, "ate_reason": reason}
+    gt = invert_transform(T_world_cam_gt[0]) @ T_world_cam_gt
+    est = invert_transform(T_world_cam_est[0]) @ T_world_cam_est
+    return {
+        "ate_rmse_cm": ate_rmse_cm(T_world_cam_gt, T_world_cam_est),
+        "ate_splatam_cm": ate_splatam_cm(gt, est),
+        "ate_frames": n,
+        "ate_reason": "",
+    }
+
+
+def evaluate_log(
+    log_path: str | Path,
+    seq: str | Path,
+    *,
+    frames: str | None = None,
+    every: int = 1,
+    size: tuple[int, int] | None = None,
+    backend: str = "auto",
+    device: str = "auto",
+    lpips: bool = True,
+    progress: Callable[[int, int], object] | None = None,
+) -> dict[str, Any]:
+    """Score a log's final map and estimated trajectory against the sequence it was made from.
+
+    Args:
+        log_path: a gscompress log with `/gaussians` and `/camera/pose`.
+        seq: the sequence folder.
+        frames: frame subset; None: the one recorded in the log's metadata (else all).
+        every: render every `every`-th frame that has an estimated pose (ATE uses all of them).
+        size: working size (W, H); None: the one in the log's config (else the sequence's own).
+        backend: render backend.
+        device: torch device to render on, or "auto".
+        lpips: compute LPIPS (reported unavailable with the reason when it cannot be).
+        progress: called with (views done, views in total) after each rendered view.
+
+    Returns:
+        A flat JSON-ready dict: `ate_rmse_cm`, `ate_splatam_cm` (None with `ate_reason` when
+        there is no ground truth), `psnr`, `ssim`, `ms_ssim`, `lpips`, `depth_l1_cm` (each None
+        with `<name>_reason` when unavailable), `gaussians`, `bytes` (the serialized map
+        message), `file_bytes`, frame counts (`frames_selected`, `frames_with_pose`,
+        `frames_without_pose`, `frames_evaluated`), the settings used and `per_frame` (per
+        rendered view: index, timestamp and its metrics).
+
+    Raises:
+        LogFormatError: unreadable log, or no `/gaussians` or `/camera/pose`.
+        DatasetError: unreadable sequence.
+        InputError: `every` < 1, or no frame of the sequence has a pose in the log.
+    """
+    from gscompress.datasets import open_sequence
+    from gscompress.ops.evaluate import EvalView, evaluate_map
+    from gscompress.slam.system import resolve_device
+
+    if every < 1:
+        raise InputError(f"--every must be a positive integer, got {every}")
+    start = time.perf_counter()
+    log_path = Path(log_path)
+    with LogReader(log_path) as reader:
+        reader.require_snapshots()
+        schema, _channel, last = next(iter(reader.iter_messages([TOPIC_GAUSSIANS], reverse=True)))
+        gaussians = reader.decode_map(schema, last)
+        map_bytes = len(last.data)
+        est_ns, est_poses = read_poses(reader, TOPIC_POSE)
+        gt_log_ns, gt_log_poses = read_poses(reader, TOPIC_POSE_GT)
+        meta = reader.metadata
+    if len(est_ns) == 0:
+        raise LogFormatError(
+            f"{log_path} has no {TOPIC_POSE} messages: not a SLAM log (nothing to evaluate at)"
+        )
+    if frames is None:
+        frames = meta.frames or "all"
+    if size is None and meta.config.get("size"):
+        w, h = meta.config["size"]
+        size = (int(w), int(h))
+    sequence = open_sequence(seq, size=size, frames=frames)
+    if meta.sequence and meta.sequence != sequence.name:
+        log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
+                    sequence.name)  # fmt: skip
+
+    frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
+    est_index = match_times(frame_ns, est_ns)
+    positions = np.flatnonzero(est_index >= 0)
+    if len(positions) == 0:
+        raise InputError(
+            f"no frame of {sequence.name} (frames {frames}) has an estimated pose in {log_path} "
+            f"within {POSE_MATCH_TOLERANCE_NS / 1e6:g} ms: is this the sequence the log was "
+            "made from?"
+        )
+    T_est = est_poses[est_index[positions]]
+
+    # ground truth per matched frame: the sequence's, else the log's /camera/pose_gt
+    gt_stamps, gt_poses = sequence.ground_truth()
+    source = "sequence"
+    if len(gt_stamps) == 0:
+        gt_stamps_ns, gt_poses, source = gt_log_ns, gt_log_poses, "log"
+    else:
+        gt_stamps_ns = np.array([seconds_to_ns(t) for t in gt_stamps], dtype=np.int64)
+        order = np.argsort(gt_stamps_ns, kind="stable")
+        gt_stamps_ns, gt_poses = gt_stamps_ns[order], np.asarray(gt_poses)[order]
+    gt_index = match_times(frame_ns[positions], gt_stamps_ns)
+    paired = gt_index >= 0
+    ate = trajectory_errors(gt_poses[gt_index[paired]], T_est[paired])
+    if ate["ate_frames"] == 0 and len(gt_stamps_ns) == 0:
+        ate["ate_reason"] = "no ground truth: neither the sequence nor the log has poses"
+    ate["ground_truth"] = source if ate["ate_frames"] else None
+
+    chosen = list(range(0, len(positions), every))
+
+    def views() -> Iterator[EvalView]:
+        for k in chosen:
+            frame = sequence.frame(int(positions[k]))
+            yield EvalView(frame.color, frame.depth, T_est[k], frame.index, frame.timestamp)
+
+    done = 0
+
+    def step(n: int) -> None:
+        nonlocal done
+        done += n
+        if progress is not None:
+            progress(done, len(chosen))
+
+    images = evaluate_map(
+        gaussians,
+        views(),
+        sequence.intrinsics,
+        backend=backend,
+        device=resolve_device(device),
+        lpips=lpips,
+        progress=step,
+    )
+    per_frame = images.pop("per_view")
+    intr = sequence.intrinsics
+    return {
+        "log": str(log_path),
+        "sequence": sequence.name,
+        "frames": str(frames),
+        "size": [intr.width, intr.height],
+        "every": every,
+        "frames_selected": len(sequence),
+        "frames_with_pose": len(positions),
+        "frames_without_pose": len(sequence) - len(positions),
+        "frames_evaluated": images.pop("views"),
+        "frames_without_depth": images.pop("views_without_depth"),
+        **ate,
+        **images,
+        "gaussians": len(gaussians),
+        "bytes": map_bytes,
+        "file_bytes": log_path.stat().st_size,
+        "seconds": round(time.perf_counter() - start, 3),
+        "per_frame": per_frame,
+    }

@@ -1,0 +1,293 @@
+"""`gsc eval` (map + trajectory metrics of a log) and the Foxglove layout in examples/."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gscompress.camera import make_transform
+from gscompress.datasets import open_sequence
+from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.io.mcap_log import (
+    CAMERA_FRAME,
+    TOPIC_GAUSSIANS,
+    TOPIC_POSE,
+    TOPIC_POSE_GT,
+    TOPIC_STATS,
+    TOPIC_TF,
+    WORLD_FRAME,
+    LogMetadata,
+    LogReader,
+    LogWriter,
+)
+from gscompress.metrics import ate_rmse_cm, ate_splatam_cm, psnr
+from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
+from gscompress.ops.score import activated_tensors
+from gscompress.pipeline import evaluate_log, slam_file
+from gscompress.pipeline.evaluate import match_times
+from gscompress_cli.main import cli
+
+LAYOUT = Path(__file__).resolve().parent.parent / "examples" / "foxglove_layout.json"
+
+
+def run(*args):
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, (64, 48))
+
+
+@pytest.fixture(scope="module")
+def bare(seq_dir, tmp_path_factory):
+    """The same frames without groundtruth.txt: a sequence with no ground truth."""
+    out = tmp_path_factory.mktemp("bare") / "room"
+    out.mkdir()
+    for name in ("rgb", "depth"):
+        (out / name).symlink_to(seq_dir / name)
+    for name in ("rgb.txt", "depth.txt", "intrinsics.json"):
+        (out / name).write_bytes((seq_dir / name).read_bytes())
+    return out
+
+
+@pytest.fixture(scope="module")
+def gt_log(seq_dir, tmp_path_factory):
+    """A tiny SLAM log whose poses are the ground truth (tracking skipped)."""
+    tmp = tmp_path_factory.mktemp("gtrun")
+    config = tmp / "gt.yaml"
+    config.write_text("preset: tiny\ntracking:\n  use_ground_truth: true\n")
+    out = tmp / "gt.mcap"
+    slam_file(seq_dir, out, preset="tiny", config_path=config)
+    return out
+
+
+def test_ground_truth_poses_give_zero_ate_in_both_conventions(gt_log, seq_dir):
+    r = evaluate_log(gt_log, seq_dir, lpips=False)
+    assert r["ground_truth"] == "sequence" and r["ate_frames"] == 6 and r["ate_reason"] == ""
+    assert 0 <= r["ate_rmse_cm"] < 1e-6
+    assert 0 <= r["ate_splatam_cm"] < 1e-6
+    assert r["frames_selected"] == r["frames_with_pose"] == r["frames_evaluated"] == 6
+    assert r["frames_without_pose"] == 0
+    # a map was made: it explains the frames far better than an empty render would
+    assert r["psnr"] > 15 and 0 < r["ssim"] <= 1 and r["depth_l1_cm"] < 50
+    assert [f["index"] for f in r["per_frame"]] == list(range(6))
+    assert r["psnr"] == pytest.approx(np.mean([f["psnr"] for f in r["per_frame"]]))
+    # 64x48 is too small for MS-SSIM: reported unavailable, never a number
+    assert r["ms_ssim"] is None and "161" in r["ms_ssim_reason"]
+    assert r["lpips"] is None and r["lpips_reason"]
+    with LogReader(gt_log) as log:
+        last = list(log.iter_messages([TOPIC_GAUSSIANS]))[-1][2]
+        assert r["gaussians"] == len(log.read_map()) and r["bytes"] == len(last.data)
+    assert r["file_bytes"] == gt_log.stat().st_size
+    json.dumps(r, allow_nan=False)  # JSON-ready
+
+
+def test_psnr_matches_an_independent_render(gt_log, seq_dir):
+    r = evaluate_log(gt_log, seq_dir, lpips=False, frames="2:3")
+    assert r["frames_evaluated"] == 1 and r["frames_without_pose"] == 0
+    with LogReader(gt_log) as log:
+        gaussians = log.read_map()
+    sequence = open_sequence(seq_dir, frames="2:3")
+    frame = sequence.frame(0)
+    color, _ = render_view(activated_tensors(gaussians), frame.T_world_cam, sequence.intrinsics)
+    expected = psnr(color, frame.color, frame.depth > 0)
+    assert r["per_frame"][0]["index"] == 2
+    assert r["psnr"] == pytest.approx(expected, abs=1e-4)
+
+
+@pytest.mark.parametrize(("every", "count"), [(1, 6), (2, 3), (4, 2), (6, 1), (10, 1)])
+def test_every_n_renders_every_nth_frame_with_a_pose(gt_log, seq_dir, every, count):
+    r = evaluate_log(gt_log, seq_dir, lpips=False, every=every, backend="cpu")
+    assert r["frames_evaluated"] == count
+    assert [f["index"] for f in r["per_frame"]] == list(range(0, 6, every))
+    assert r["ate_frames"] == 6  # the trajectory always uses every frame
+
+
+def test_frames_without_a_logged_pose_are_skipped_and_ate_pairs_the_right_frames(
+    seq_dir, gt_log, tmp_path
+):
+    """A hand-written log: noisy poses for frames 0, 1, 3, 4, 5 (none for 2), no pose_gt."""
+    sequence = open_sequence(seq_dir)
+    with LogReader(gt_log) as log:
+        gaussians = log.read_map()
+    rng = np.random.default_rng(0)
+    kept = [0, 1, 3, 4, 5]
+    gt = np.array([sequence.frame(i).T_world_cam for i in kept])
+    est = gt.copy()
+    est[:, :3, 3] += rng.normal(0, 0.01, (len(kept), 3))
+    out = tmp_path / "partial.mcap"
+    with LogWriter(out, LogMetadata(sequence="room", frames="all")) as w:
+        for i, T in zip(kept, est, strict=True):
+            t_ns = round(sequence.timestamps[i] * 1e9) + 400_000  # within the 1 ms tolerance
+            w.write_pose(T, t_ns)
+        w.write_gaussians(gaussians, 0)
+    r = evaluate_log(out, seq_dir, lpips=False, every=2)
+    assert r["frames_with_pose"] == 5 and r["frames_without_pose"] == 1
+    assert [f["index"] for f in r["per_frame"]] == [0, 3, 5]  # every 2nd frame with a pose
+    assert r["ground_truth"] == "sequence" and r["ate_frames"] == 5
+    assert r["ate_rmse_cm"] == pytest.approx(ate_rmse_cm(gt, est), rel=1e-9)
+    first = np.linalg.inv(gt[0])
+    rel_gt, rel_est = first @ gt, np.linalg.inv(est[0]) @ est
+    assert r["ate_splatam_cm"] == pytest.approx(ate_splatam_cm(rel_gt, rel_est), rel=1e-9)
+    assert 0.1 < r["ate_rmse_cm"] < 3
+
+
+def test_no_ground_truth_anywhere_reports_ate_unavailable(bare, gt_log, seq_dir, tmp_path):
+    with LogReader(gt_log) as log:
+        gaussians = log.read_map()
+    sequence = open_sequence(seq_dir, frames="0:3")
+    out = tmp_path / "nogt.mcap"
+    with LogWriter(out, LogMetadata()) as w:
+        for i in range(3):
+            f = sequence.frame(i)
+            w.write_pose(f.T_world_cam, round(f.timestamp * 1e9))
+        w.write_gaussians(gaussians, 0)
+    r = evaluate_log(out, bare, lpips=False, frames="0:3")
+    assert r["ate_rmse_cm"] is None and r["ate_splatam_cm"] is None
+    assert "no ground truth" in r["ate_reason"] and r["ground_truth"] is None
+    assert r["frames_evaluated"] == 3 and r["psnr"] > 15
+
+
+def test_log_ground_truth_is_used_when_the_sequence_has_none(bare, gt_log):
+    r = evaluate_log(gt_log, bare, lpips=False, every=6)
+    assert r["ground_truth"] == "log" and r["ate_frames"] == 6 and r["ate_rmse_cm"] < 1e-6
+
+
+def test_evaluate_map_rejects_mismatched_views_and_counts_depthless_ones(gt_log, seq_dir):
+    with LogReader(gt_log) as log:
+        gaussians = log.read_map()
+    sequence = open_sequence(seq_dir, frames="0:2")
+    f0, f1 = sequence.frame(0), sequence.frame(1)
+    views = [
+        EvalView(f0.color, np.zeros_like(f0.depth), f0.T_world_cam, 0),
+        EvalView(f1.color, f1.depth, f1.T_world_cam, 1),
+    ]
+    r = evaluate_map(gaussians, views, sequence.intrinsics, lpips=False)
+    assert r["views"] == 1 and r["views_without_depth"] == 1
+    assert [v["index"] for v in r["per_view"]] == [1]
+    from gscompress.errors import InputError
+
+    small = EvalView(f0.color[:10], f0.depth[:10], f0.T_world_cam)
+    with pytest.raises(InputError, match="images are"):
+        evaluate_map(gaussians, [small], sequence.intrinsics, lpips=False)
+
+
+def test_lpips_is_a_number_or_unavailable_with_a_reason(gt_log, seq_dir):
+    r = evaluate_log(gt_log, seq_dir, every=6)
+    if r["lpips"] is None:
+        assert r["lpips_reason"]
+    else:
+        assert 0 <= r["lpips"] < 1 and r["lpips_reason"] == ""
+        assert r["per_frame"][0]["lpips"] == pytest.approx(r["lpips"])
+
+
+def test_match_times_takes_the_nearest_within_tolerance():
+    ref = np.array([0, 1_000_000_000, 2_000_000_000])
+    query = np.array([5, 999_500_000, 1_500_000_000, 2_000_999_999, 3_000_000_000])
+    assert match_times(query, ref).tolist() == [0, 1, -1, 2, -1]
+    assert match_times(query, np.array([], dtype=np.int64)).tolist() == [-1] * 5
+
+
+# ------------------------------------------------------------------------------------- CLI
+
+
+def test_cli_json(gt_log, seq_dir):
+    r = run("eval", gt_log, "--seq", seq_dir, "--every", "3", "--no-lpips", "--json")
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output)
+    assert result["frames_evaluated"] == 2 and result["ate_rmse_cm"] < 1e-6
+    keys = ("ate_rmse_cm", "ate_splatam_cm", "psnr", "ssim", "ms_ssim", "lpips", "lpips_reason",
+            "depth_l1_cm", "gaussians", "bytes", "frames_evaluated")  # fmt: skip
+    assert set(keys) <= set(result)
+    assert result["lpips"] is None and "not asked" in result["lpips_reason"]
+
+
+def test_cli_text_table(gt_log, seq_dir):
+    r = run("eval", gt_log, "--seq", seq_dir, "--every", "6", "--no-lpips")
+    assert r.exit_code == 0, r.output
+    assert "ATE RMSE" in r.output and "ATE SplaTAM" in r.output and "PSNR" in r.output
+    assert "MS-SSIM      unavailable" in r.output and "Gaussians" in r.output
+
+
+def one_line_error(r):
+    assert r.exit_code == 1, r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error:"), r.output
+    return lines[0]
+
+
+def test_cli_errors_are_one_line(gt_log, seq_dir, tmp_path):
+    assert "no such file" in one_line_error(run("eval", tmp_path / "x.mcap", "--seq", seq_dir))
+    assert "not found" in one_line_error(run("eval", gt_log, "--seq", tmp_path / "noseq"))
+    # a log without a map
+    nomap = tmp_path / "nomap.mcap"
+    with LogWriter(nomap, LogMetadata()) as w:
+        w.write_pose(np.eye(4), 0)
+    assert TOPIC_GAUSSIANS in one_line_error(run("eval", nomap, "--seq", seq_dir))
+    # a map without poses
+    with LogReader(gt_log) as log:
+        gaussians = log.read_map()
+    noposes = tmp_path / "noposes.mcap"
+    with LogWriter(noposes, LogMetadata()) as w:
+        w.write_gaussians(gaussians, 0)
+    assert TOPIC_POSE in one_line_error(run("eval", noposes, "--seq", seq_dir))
+    # poses at times no frame of the sequence has
+    other = tmp_path / "other.mcap"
+    with LogWriter(other, LogMetadata()) as w:
+        w.write_pose(make_transform(np.eye(3), [0, 0, 1]), 10**15)
+        w.write_gaussians(gaussians, 0)
+    assert "is this the sequence" in one_line_error(run("eval", other, "--seq", seq_dir))
+    # not a log at all
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file")
+    one_line_error(run("eval", junk, "--seq", seq_dir))
+
+
+# ------------------------------------------------------------------------- Foxglove layout
+
+
+def _strings(value):
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield k
+            yield from _strings(v)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _strings(v)
+    elif isinstance(value, str):
+        yield value
+
+
+def _panels(node):
+    if isinstance(node, str):
+        yield node
+    else:
+        yield from _panels(node["first"])
+        yield from _panels(node["second"])
+
+
+def test_foxglove_layout_names_our_topics_and_the_importance_field():
+    layout = json.loads(LAYOUT.read_text())
+    configs = layout["configById"]
+    assert sorted(_panels(layout["layout"])) == sorted(configs)  # every panel is placed
+    three_d = [c for pid, c in configs.items() if pid.startswith("3D!")]
+    assert len(three_d) == 1
+    scene = three_d[0]
+    cloud = scene["topics"][TOPIC_GAUSSIANS]
+    assert cloud["visible"] and cloud["colorMode"] == "colormap"
+    assert cloud["colorField"] == "importance" and cloud["pointSize"] > 0
+    assert scene["topics"][TOPIC_POSE]["visible"]
+    assert scene["followTf"] in (WORLD_FRAME, CAMERA_FRAME)
+    strings = set(_strings(layout))
+    text = " ".join(strings)
+    for topic in (TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS):
+        assert topic in text, topic
+    # message paths into our records use fields that exist
+    assert f"{TOPIC_STATS}.gaussians" in strings or any(
+        s.startswith(f"{TOPIC_STATS}.gaussians") for s in strings
+    )
+    assert f"{TOPIC_POSE}.pose.position.x" in strings
+    assert TOPIC_TF not in scene["topics"] or scene["topics"][TOPIC_TF]["visible"]
