@@ -47,7 +47,11 @@ def format_info(info: dict[str, Any]) -> str:
         kind = "isotropic" if m["isotropic"] else "anisotropic"
         lines.append(
             f"map       {m['gaussians']} Gaussians, {kind}, SH degree {m['sh_degree']}, "
-            f"{_size(m['packed_bytes'])} packed ({_size(m['bytes'])} as a message)"
+            f"{m['precision']}"
+        )
+        lines.append(
+            f"bytes     {m['bytes']} B ({_size(m['bytes'])}) as a /gaussians message: "
+            f"{m['record_bytes']} B per Gaussian, {_size(m['packed_bytes'])} packed"
         )
         if m["has_importance"]:
             q = m["importance_quantiles"]

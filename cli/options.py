@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import click
 
 from gscompress.errors import InputError
+from gscompress.ops.budget import Budget
 
 if TYPE_CHECKING:
     from gscompress.datasets.base import FrameSelection
@@ -60,6 +61,20 @@ class Ratio(click.ParamType):
         if not 0.0 < ratio <= 1.0:
             self.fail(f"{value} is outside (0, 1]", param, ctx)
         return ratio
+
+
+class BudgetParam(click.ParamType):
+    """A share budget: a fraction (`0.2`, `20%`) or bytes (`2MB`, `1.5MiB`); see `Budget`."""
+
+    name = "budget"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> Budget:
+        try:
+            return Budget.parse(value)
+        except InputError as exc:
+            self.fail(str(exc), param, ctx)
 
 
 def command_line() -> str:

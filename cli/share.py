@@ -6,10 +6,12 @@ from pathlib import Path
 
 import click
 
+from gscompress.io.columns import PRECISIONS
+from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import share_log
 
-from .options import Ratio, command_line, emit, force_option, json_option, seed_option
+from .options import BudgetParam, command_line, emit, force_option, json_option, seed_option
 
 
 @click.command("share")
@@ -17,10 +19,11 @@ from .options import Ratio, command_line, emit, force_option, json_option, seed_
 @click.argument("dst", type=click.Path(path_type=Path))
 @click.option(
     "--budget",
-    type=Ratio(),
-    default=0.2,
+    type=BudgetParam(),
+    default="0.2",
     show_default=True,
-    help="Fraction of the map's Gaussians to share, in (0, 1].",
+    help="A fraction of the map's Gaussians in (0, 1] (0.2 or 20%), or the most bytes the share "
+    "may take, with a unit: B, kB, MB, GB (powers of 1000) or KiB, MiB, GiB (e.g. 2MB, 1.5MiB).",
 )
 @click.option(
     "--strategy",
@@ -30,10 +33,18 @@ from .options import Ratio, command_line, emit, force_option, json_option, seed_
     help="What to rank Gaussians by.",
 )
 @click.option(
+    "--precision",
+    type=click.Choice(PRECISIONS),
+    default="fp32",
+    show_default=True,
+    help="Storage of scales, rotations, opacity and colour: fp16 sends more Gaussians per byte "
+    "(positions, scores and sums stay float32; the receiver decodes float32).",
+)
+@click.option(
     "--ply",
     type=click.Path(path_type=Path),
     default=None,
-    help="Also write the share as a 3DGS PLY file.",
+    help="Also write the share as a float32 3DGS PLY file (the values the receiver decodes).",
 )
 @seed_option
 @force_option
@@ -41,8 +52,9 @@ from .options import Ratio, command_line, emit, force_option, json_option, seed_
 def share(
     src: Path,
     dst: Path,
-    budget: float,
+    budget: Budget,
     strategy: str,
+    precision: str,
     ply: Path | None,
     seed: int,
     force: bool,
@@ -51,18 +63,33 @@ def share(
     """Write the top BUDGET share of the map in SRC to DST (a small gscompress log).
 
     The share holds the selected Gaussians with all their fields, ids and PWAS sums, and records
-    its source, strategy, budget and the selected / total counts.
+    its source, strategy, budget, precision, bytes and the selected / total counts.
+
+    A fraction budget sends round(fraction x N) Gaussians. A byte budget sends the most
+    Gaussians whose /gaussians message (what is sent: the PointCloud header plus one record per
+    Gaussian) fits in it; it is never exceeded. `gsc info` shows a share's bytes.
 
     \b
-    Example:
+    Examples:
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
+      gsc share --budget 2MB agent_a.mcap share.mcap
+      gsc share --budget 2MB --precision fp16 agent_a.mcap share.mcap
     """
     result = share_log(
-        src, dst, budget, strategy=strategy, seed=seed, ply=ply, command=command_line(), force=force
+        src,
+        dst,
+        budget,
+        strategy=strategy,
+        precision=precision,
+        seed=seed,
+        ply=ply,
+        command=command_line(),
+        force=force,
     )
     extra = f" and {ply}" if ply else ""
     emit(
         result,
         as_json,
-        f"shared {result['selected']} of {result['total']} Gaussians ({strategy}) -> {dst}{extra}",
+        f"shared {result['selected']} of {result['total']} Gaussians ({strategy}, {precision}, "
+        f"{result['bytes']} B) -> {dst}{extra}",
     )

@@ -2,6 +2,10 @@
 
 `PROFILE_VERSION` is the version of the log profile this release writes. A reader accepts logs of
 the same major version and refuses newer major versions.
+
+History: 1.0 float32 `/gaussians` fields. 1.1 adds precision fp16: bounded attributes may be
+stored as uint16 `<name>_f16` fields holding float16 bit patterns (a 1.0 reader then reports the
+plain fields as missing instead of misreading them); float32 logs are unchanged.
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ from importlib import resources
 from typing import Any
 
 PROFILE = "gscompress"
-PROFILE_VERSION = "1.0"
+PROFILE_VERSION = "1.1"
 
 
 def schema_bytes(name: str) -> bytes:

@@ -93,6 +93,8 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
             "source": "run.mcap",
             "strategy": "pwas",
             "budget": 0.2,
+            "precision": "fp32",
+            "bytes": 200 * 76 + 357,  # records plus the PointCloud header
             "selected": 200,
             "total": 1000,
         }
@@ -131,7 +133,9 @@ def test_info_json_describes_the_log(log_path, tmp_path):
     assert q["q00"] <= q["q50"] <= q["q100"]
     assert sum(info["map"]["importance_histogram"]["counts"]) == 200
     assert info["map"]["packed_bytes"] == 200 * 76  # 18 float32 fields and a uint32 id each
+    assert info["map"]["record_bytes"] == 76 and info["map"]["precision"] == "fp32"
     assert 200 * 76 < info["map"]["bytes"] < 200 * 76 + 1000  # plus the PointCloud header
+    assert info["map"]["bytes"] == info["results"]["bytes"]
     assert info["provenance"][0]["operation"]["name"] == "share"
     assert info["channels"] == [
         {
@@ -282,3 +286,46 @@ def test_help_teaches():
         assert name in r.output
     r = run("prune", "--help")
     assert "Example" in r.output and "--keep" in r.output
+
+
+# ---------------------------------------------------------------- byte budgets
+
+
+@pytest.mark.parametrize(
+    "value, message",
+    [
+        ("2", "add a unit"),
+        ("2XB", "unknown unit"),
+        ("0B", "at least 1 B"),
+        ("MB", "neither a fraction"),
+    ],
+)
+def test_bad_budget_strings_are_usage_errors(log_path, tmp_path, value, message):
+    r = run("share", log_path, tmp_path / "o.mcap", "--budget", value)
+    assert r.exit_code == 2 and "--budget" in r.output and message in r.output
+    assert "Traceback" not in r.output and not (tmp_path / "o.mcap").exists()
+
+
+def test_budget_below_one_gaussian_is_a_one_line_error(log_path, tmp_path):
+    r = run("share", log_path, tmp_path / "o.mcap", "--budget", "400B")
+    assert r.exit_code == 1 and r.output.startswith("Error: ") and r.output.count("\n") == 1
+    assert "cannot hold one Gaussian" in r.output and not (tmp_path / "o.mcap").exists()
+
+
+def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
+    out, ply = tmp_path / "s.mcap", tmp_path / "s.ply"
+    r = run("share", "--budget", "20kB", "--precision", "fp16", log_path, out, "--ply", ply)
+    assert r.exit_code == 0, r.output
+    assert "fp16" in r.output
+    r = run("share", "--budget", "20kB", "--precision", "fp16", log_path, out, "--json", "--force")
+    result = json.loads(r.output)
+    assert result["budget"] == "20kB" and result["budget_bytes"] == 20_000
+    assert result["precision"] == "fp16" and result["bytes"] <= 20_000
+    assert result["selected"] == (20_000 - 398 - 1 - 3) // 54  # header, data tag and 3-byte length
+    assert read_ply(ply).equals(read_map(out))
+    r = run("info", out)
+    assert r.exit_code == 0, r.output
+    assert f"{result['selected']} Gaussians, isotropic, SH degree 0, fp16" in r.output
+    assert f"bytes     {result['bytes']} B" in r.output and "54 B per Gaussian" in r.output
+    r = run("share", "--help")
+    assert "2MB" in r.output and "1.5MiB" in r.output and "--precision" in r.output

@@ -5,6 +5,12 @@ named scalar fields, with the 3DGS PLY names: x y z, scale_0..2 (log), rot_0..3 
 opacity (logit), f_dc_0..2, f_rest_* (channel-major, as the INRIA PLY writer lays them out),
 plus our own importance, importance_sum, importance_weight, alpha_t_sum and id. This module turns
 a map into such columns and back, and packs / unpacks columns as little-endian records.
+
+Precision: columns are float32 (`fp32`), or, at `fp16`, every column whose values are bounded by
+design (log scales, rotations, opacity logit, SH) is stored as IEEE 754 binary16 bit patterns in
+a uint16 column named `<name>_f16`. Positions stay float32 (viewers place the cloud by them) and
+so do the importance score and sums, which grow with image size and frame count and can exceed
+the float16 range (65504). Decoding turns `_f16` columns back into float32 ones of the plain name.
 """
 
 from __future__ import annotations
@@ -13,7 +19,7 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from gscompress.errors import MapError
+from gscompress.errors import InputError, MapError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 
 GEOMETRY = ("x", "y", "z", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
@@ -124,5 +130,85 @@ def pack_records(cols: Mapping[str, np.ndarray], dtypes: Mapping[str, np.dtype])
 
 
 def column_dtypes(cols: Mapping[str, np.ndarray]) -> dict[str, np.dtype]:
-    """Little-endian record dtypes for columns: uint32 for `id`, float32 for all else."""
-    return {name: np.dtype("<u4" if name == "id" else "<f4") for name in cols}
+    """Little-endian record dtypes: uint32 for `id`, uint16 for `*_f16`, float32 for all else."""
+    return {
+        name: np.dtype("<u4" if name == "id" else "<u2" if name.endswith(HALF_SUFFIX) else "<f4")
+        for name in cols
+    }
+
+
+PRECISIONS = ("fp32", "fp16")
+"""Storage precisions of the float columns."""
+
+HALF_SUFFIX = "_f16"
+"""Name suffix of a uint16 column that holds the float16 bit patterns of a float column."""
+
+FLOAT32_ALWAYS = ("x", "y", "z", "importance", "importance_sum", "importance_weight", "alpha_t_sum")
+"""Columns kept float32 at every precision (positions; unbounded scores and sums)."""
+
+HALF_MAX = float(np.finfo(np.float16).max)
+"""Largest finite float16 (65504)."""
+
+
+def check_precision(precision: str) -> str:
+    """Return `precision` if it is one of PRECISIONS, else raise InputError."""
+    if precision not in PRECISIONS:
+        raise InputError(f"unknown precision {precision!r}; choose one of {', '.join(PRECISIONS)}")
+    return precision
+
+
+def encode_columns(cols: Mapping[str, np.ndarray], precision: str) -> dict[str, np.ndarray]:
+    """Columns as stored at `precision`: unchanged at fp32; at fp16 the bounded ones as halves.
+
+    Values round to the nearest float16; a finite value that would round to infinity is refused
+    (non-finite values pass through, for the reader's checks to refuse).
+
+    Raises:
+        InputError: unknown precision.
+        MapError: a value outside the float16 range.
+    """
+    if check_precision(precision) == "fp32":
+        return dict(cols)
+    out: dict[str, np.ndarray] = {}
+    for name, values in cols.items():
+        if name == "id" or name in FLOAT32_ALWAYS:
+            out[name] = values
+            continue
+        values = np.asarray(values, dtype=np.float32)
+        with np.errstate(over="ignore"):  # overflow is reported below, by column
+            half = values.astype(np.float16)
+        overflow = np.isinf(half) & np.isfinite(values)
+        if overflow.any():
+            worst = float(values[overflow][np.argmax(np.abs(values[overflow]))])
+            raise MapError(
+                f"{name} holds {int(overflow.sum())} value(s) beyond the float16 range "
+                f"(|v| > {HALF_MAX:g}, e.g. {worst:g}); use precision fp32"
+            )
+        out[name + HALF_SUFFIX] = half.view("<u2")
+    return out
+
+
+def decode_columns(cols: Mapping[str, np.ndarray], source: str = "input") -> dict[str, np.ndarray]:
+    """Stored columns back to plain ones: each uint16 `<name>_f16` becomes float32 `<name>`.
+
+    Raises:
+        MapError: a `_f16` column that is not uint16, is `id_f16`, or repeats a plain column.
+    """
+    out: dict[str, np.ndarray] = {}
+    for name, values in cols.items():
+        if not name.endswith(HALF_SUFFIX):
+            out[name] = values
+            continue
+        plain = name[: -len(HALF_SUFFIX)]
+        values = np.asarray(values)
+        if values.dtype.kind != "u" or values.dtype.itemsize != 2 or plain == "id":
+            raise MapError(f"{source}: field {name!r} must be a uint16 float16 field")
+        if plain in cols:
+            raise MapError(f"{source}: field {plain!r} appears twice ({plain!r} and {name!r})")
+        out[plain] = values.astype("<u2").view("<f2").astype(np.float32)
+    return out
+
+
+def columns_precision(names: Iterable[str]) -> str:
+    """The precision of stored columns: fp16 when some column is a `_f16` one."""
+    return "fp16" if any(name.endswith(HALF_SUFFIX) for name in names) else "fp32"

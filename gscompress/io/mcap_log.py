@@ -4,7 +4,8 @@ One profile serves SLAM logs, pruned logs and shares (DESIGN.md section 6):
 
 - `/gaussians`: foxglove.PointCloud, one message per map snapshot; the last one is "the map".
   Packed little-endian fields named as in 3DGS PLY (see `gscompress.io.columns`), plus the PWAS
-  score `importance`, its sums and the uint32 `id`.
+  score `importance`, its sums and the uint32 `id`; float32, or at precision fp16 (profile 1.1)
+  the bounded attributes as uint16 `<name>_f16` fields holding float16 bit patterns.
 - `/camera/pose`, `/camera/pose_gt`: foxglove.PoseInFrame (camera-to-world, frame "world").
 - `/tf`: foxglove.FrameTransform world -> camera for the estimated pose.
 - `/camera/calibration`: foxglove.CameraCalibration.
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -46,7 +47,15 @@ from gscompress import __version__
 from gscompress.camera import Intrinsics, rotmat_to_quat
 from gscompress.errors import GscError, LogFormatError, MapError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.columns import column_dtypes, map_from_columns, map_to_columns, pack_records
+from gscompress.io.columns import (
+    column_dtypes,
+    columns_precision,
+    decode_columns,
+    encode_columns,
+    map_from_columns,
+    map_to_columns,
+    pack_records,
+)
 from gscompress.io.files import AtomicFile, check_output, sha256
 from gscompress_schemas import PROFILE, PROFILE_VERSION, schema_bytes
 
@@ -94,6 +103,10 @@ class LogMetadata:
         config: full configuration of the run (JSON-serialisable).
         sequence: name of the recorded sequence, if any.
         frames: frame subset of the sequence ("all", "odd", "even", "A:B:C").
+        world_frame: what the map's world frame is anchored to, so that maps of two agents
+            are only merged when their frames agree: "ground-truth:<sequence>" (first frame at
+            its ground-truth pose), "first-camera:<sequence>:<frame>" (first camera at the
+            identity), or "" when unknown (e.g. a PLY from another tool).
         provenance: oldest first, one entry per derivation step: {"operation", "parent",
             "parent_sha256", ...parameters}.
         results: what the operation that wrote this file reports (e.g. selected / total counts).
@@ -105,6 +118,7 @@ class LogMetadata:
     config: dict[str, Any] = field(default_factory=dict)
     sequence: str = ""
     frames: str = ""
+    world_frame: str = ""
     provenance: list[dict[str, Any]] = field(default_factory=list)
     results: dict[str, Any] = field(default_factory=dict)
 
@@ -131,7 +145,14 @@ class LogMetadata:
                 f"({__version__}, profile {PROFILE_VERSION}); upgrade gscompress to read it"
             )
         values: dict[str, Any] = {}
-        for key in ("profile_version", "tool_version", "command", "sequence", "frames"):
+        for key in (
+            "profile_version",
+            "tool_version",
+            "command",
+            "sequence",
+            "frames",
+            "world_frame",
+        ):
             values[key] = record.get(key, "")
         try:
             for key in cls._JSON_FIELDS:
@@ -150,6 +171,7 @@ class LogMetadata:
             config=self.config,
             sequence=self.sequence,
             frames=self.frames,
+            world_frame=self.world_frame,
             provenance=[*self.provenance, step],
         )
 
@@ -157,9 +179,21 @@ class LogMetadata:
 # ---------------------------------------------------------------------- writer
 
 
-def gaussians_to_pointcloud(gaussians: GaussianMap, timestamp_ns: int = 0) -> PointCloud:
-    """A foxglove.PointCloud holding every field of a map as packed little-endian records."""
-    cols = map_to_columns(gaussians)
+def gaussians_to_pointcloud(
+    gaussians: GaussianMap, timestamp_ns: int = 0, precision: str = "fp32"
+) -> PointCloud:
+    """A foxglove.PointCloud holding every field of a map as packed little-endian records.
+
+    Args:
+        gaussians: the map.
+        timestamp_ns: the cloud's timestamp.
+        precision: "fp32", or "fp16" to store the bounded attributes as float16 (positions,
+            scores and sums stay float32; see `gscompress.io.columns`).
+
+    Raises:
+        MapError: at fp16, a value beyond the float16 range.
+    """
+    cols = encode_columns(map_to_columns(gaussians), precision)
     records = pack_records(cols, column_dtypes(cols))
     layout: dict[str, Any] = dict(records.dtype.fields or {})
     fields = [
@@ -177,9 +211,38 @@ def gaussians_to_pointcloud(gaussians: GaussianMap, timestamp_ns: int = 0) -> Po
     return msg
 
 
-def record_size(gaussians: GaussianMap) -> int:
+def record_size(gaussians: GaussianMap, precision: str = "fp32") -> int:
     """Bytes per Gaussian in a `/gaussians` PointCloud of this map (its point_stride)."""
-    return 4 * len(map_to_columns(gaussians.select(slice(0, 0))))
+    cols = encode_columns(map_to_columns(gaussians.select(slice(0, 0))), precision)
+    return sum(dtype.itemsize for dtype in column_dtypes(cols).values())
+
+
+def pointcloud_bytes(
+    gaussians: GaussianMap, precision: str = "fp32", timestamp_ns: int = 0
+) -> Callable[[int], int]:
+    """Exact serialized size of the `/gaussians` message holding K Gaussians of this map's layout.
+
+    The message is a header that depends only on the layout (fields, stride, frame, pose,
+    timestamp) plus the `data` bytes field: its tag, the varint of its length, and K records.
+
+    Returns:
+        A function K -> bytes of `gaussians_to_pointcloud(m, timestamp_ns, precision)` for any
+        map m of K Gaussians with this layout (SH degree, score columns).
+    """
+    header = gaussians_to_pointcloud(gaussians.select(slice(0, 0)), timestamp_ns, precision)
+    header_bytes = header.ByteSize()  # proto3 leaves an empty `data` out
+    stride = header.point_stride
+    tag_bytes = _varint_size(PointCloud.DESCRIPTOR.fields_by_name["data"].number << 3 | 2)
+
+    def size(count: int) -> int:
+        n = count * stride
+        return header_bytes + (tag_bytes + _varint_size(n) + n if n else 0)
+
+    return size
+
+
+def _varint_size(value: int) -> int:
+    return max(1, (value.bit_length() + 6) // 7)
 
 
 class LogWriter:
@@ -244,8 +307,8 @@ class LogWriter:
             )
         return self._channels[topic]
 
-    def write_protobuf(self, topic: str, message: Message, log_time_ns: int) -> None:
-        """Write a protobuf message (its schema registered on first use)."""
+    def write_protobuf(self, topic: str, message: Message, log_time_ns: int) -> int:
+        """Write a protobuf message (its schema registered on first use); returns its bytes."""
         descriptor = message.DESCRIPTOR
         schema_id = self._schema_id(
             descriptor.full_name,
@@ -253,7 +316,9 @@ class LogWriter:
             build_file_descriptor_set(type(message)).SerializeToString(),
         )
         channel_id = self._channel_id(topic, "protobuf", schema_id)
-        self._mcap.add_message(channel_id, log_time_ns, message.SerializeToString(), log_time_ns)
+        data = message.SerializeToString()
+        self._mcap.add_message(channel_id, log_time_ns, data, log_time_ns)
+        return len(data)
 
     def write_json(
         self, topic: str, value: dict[str, Any], log_time_ns: int, schema_file: str
@@ -280,11 +345,16 @@ class LogWriter:
 
     # -- the profile's messages
 
-    def write_gaussians(self, gaussians: GaussianMap, log_time_ns: int) -> None:
-        """Write one map snapshot to `/gaussians`."""
-        self.write_protobuf(
-            TOPIC_GAUSSIANS, gaussians_to_pointcloud(gaussians, log_time_ns), log_time_ns
-        )
+    def write_gaussians(
+        self, gaussians: GaussianMap, log_time_ns: int, precision: str = "fp32"
+    ) -> int:
+        """Write one map snapshot to `/gaussians`; returns the bytes of the serialized message.
+
+        Raises:
+            MapError: at precision fp16, a value beyond the float16 range.
+        """
+        cloud = gaussians_to_pointcloud(gaussians, log_time_ns, precision)
+        return self.write_protobuf(TOPIC_GAUSSIANS, cloud, log_time_ns)
 
     def write_pose(
         self, T_world_cam: np.ndarray, log_time_ns: int, ground_truth: bool = False
@@ -321,6 +391,14 @@ class LogWriter:
     def write_stats(self, stats: dict[str, Any], log_time_ns: int) -> None:
         """Write one `/slam/stats` record (see slam_stats.v1.schema.json)."""
         self.write_json(TOPIC_STATS, stats, log_time_ns, STATS_SCHEMA)
+
+    def write_metadata(self) -> None:
+        """Write the metadata record now as well as at close.
+
+        A run that may be killed writes it at the start, so that even its unfinished file
+        (see `read_unfinished_log`) says what produced it; readers take the last record.
+        """
+        self._mcap.add_metadata(METADATA_NAME, self.metadata.to_record())
 
     def flush(self) -> None:
         """Close the current chunk and push it to disk (a crash keeps what was flushed)."""
@@ -486,6 +564,10 @@ class LogReader:
 
     def decode_map(self, schema: Schema | None, message: McapMessage) -> GaussianMap:
         """Decode one `/gaussians` message into a validated map."""
+        return self.decode_snapshot(schema, message).gaussians
+
+    def decode_snapshot(self, schema: Schema | None, message: McapMessage) -> Snapshot:
+        """Decode one `/gaussians` message into a validated map and how it was stored."""
         if schema is None or schema.name != "foxglove.PointCloud" or schema.encoding != "protobuf":
             name = schema.name if schema else "no schema"
             raise LogFormatError(
@@ -495,16 +577,43 @@ class LogReader:
             cloud = PointCloud()
             cloud.ParseFromString(message.data)
         try:
-            return pointcloud_to_gaussians(cloud, source=str(self.path))
+            gaussians = pointcloud_to_gaussians(cloud, source=str(self.path))
         except MapError as exc:
             raise LogFormatError(str(exc)) from None
+        return Snapshot(
+            gaussians=gaussians,
+            log_time_ns=message.log_time,
+            message_bytes=len(message.data),
+            point_stride=cloud.point_stride,
+            precision=columns_precision(f.name for f in cloud.fields),
+        )
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """One decoded `/gaussians` message.
+
+    Attributes:
+        gaussians: the map (float32 whatever the stored precision).
+        log_time_ns: the message's log time.
+        message_bytes: bytes of the serialized PointCloud (what is sent).
+        point_stride: bytes per Gaussian record.
+        precision: "fp32", or "fp16" when some fields are stored as float16.
+    """
+
+    gaussians: GaussianMap
+    log_time_ns: int
+    message_bytes: int
+    point_stride: int
+    precision: str
 
 
 def pointcloud_to_gaussians(cloud: PointCloud, source: str = "point cloud") -> GaussianMap:
     """Decode a PointCloud written by `gaussians_to_pointcloud` (or any compatible writer).
 
     Checks the stride, every field's type and extent and the data length before reading, and
-    the decoded map's finiteness and id uniqueness.
+    the decoded map's finiteness and id uniqueness. Fields `<name>_f16` (uint16 float16 bit
+    patterns) are returned as float32 `<name>`.
 
     Raises:
         MapError: inconsistent layout or invalid values.
@@ -537,7 +646,8 @@ def pointcloud_to_gaussians(cloud: PointCloud, source: str = "point cloud") -> G
             {"names": names, "formats": formats, "offsets": offsets, "itemsize": stride}
         ),
     )
-    return map_from_columns({name: records[name] for name in names}, source).validate()
+    cols = decode_columns({name: records[name] for name in names}, source)
+    return map_from_columns(cols, source).validate()
 
 
 class _ReadGuard:

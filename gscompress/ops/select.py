@@ -1,7 +1,8 @@
 """Budgeted selection of Gaussians: the scores each strategy ranks by, and exact top-K.
 
 Pruning (keep a fraction of a map) and sharing (send a fraction of a map) are the same
-operation: rank by a score, keep the K best. Both go through `select_top`.
+operation: rank by a score, keep the K best. Both go through `select_top`, or `select_count` when
+K comes from elsewhere (a byte budget, see `gscompress.ops.budget`).
 
 Rounding: K = floor(ratio * N + 0.5), i.e. round half up (with a 1e-9 guard against binary
 floating point, so 0.35 * 10 keeps 4). A ratio that rounds to zero Gaussians is an error rather
@@ -127,6 +128,16 @@ def select_top(
     Returns:
         The kept map and the [K] indices of the kept Gaussians in the input.
     """
-    k = keep_count(len(gaussians), ratio)
+    return select_count(gaussians, keep_count(len(gaussians), ratio), strategy, seed)
+
+
+def select_count(
+    gaussians: GaussianMap, k: int, strategy: str | Strategy = Strategy.PWAS, seed: int = 0
+) -> tuple[GaussianMap, np.ndarray]:
+    """Keep the `k` most important Gaussians of a map (a count, e.g. what a byte budget allows).
+
+    Returns:
+        The kept map and the [k] indices of the kept Gaussians in the input.
+    """
     index = top_k(strategy_scores(gaussians, strategy, seed), gaussians.ids, k)
     return gaussians.select(index), index

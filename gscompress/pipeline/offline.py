@@ -14,16 +14,20 @@ import numpy as np
 
 from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
+from gscompress.io.columns import check_precision
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import (
     TOPIC_GAUSSIANS,
     LogMetadata,
     LogReader,
     LogWriter,
-    record_size,
+    Snapshot,
+    pointcloud_bytes,
+    read_map,
 )
 from gscompress.io.ply import read_ply, write_ply
-from gscompress.ops.select import check_ratio, select_top, strategy_scores
+from gscompress.ops.budget import Budget
+from gscompress.ops.select import check_ratio, select_count, select_top, strategy_scores
 
 log = logging.getLogger(__name__)
 
@@ -105,9 +109,10 @@ def rewrite_map(
 def share_log(
     src: str | Path,
     dst: str | Path,
-    budget: float,
+    budget: str | float | Budget,
     *,
     strategy: str = "pwas",
+    precision: str = "fp32",
     seed: int = 0,
     ply: str | Path | None = None,
     command: str = "",
@@ -117,8 +122,28 @@ def share_log(
 
     The share is a small log: the metadata record (source, strategy, budget, counts, provenance)
     and one `/gaussians` snapshot holding the selected Gaussians with all their fields.
+
+    Args:
+        src: the log whose map (last snapshot) is shared.
+        dst: the share (MCAP).
+        budget: a fraction of the Gaussians in (0, 1], or bytes (`"2MB"`, `"1.5MiB"`, see
+            `Budget`). A byte budget bounds the serialized `/gaussians` message, which holds the
+            most Gaussians that fit.
+        strategy: what to rank Gaussians by (`Strategy`).
+        precision: "fp32", or "fp16" to send the bounded attributes as float16 (more Gaussians
+            per byte; the receiver decodes float32).
+        seed: seed of the random strategy.
+        ply: also write the share as a float32 3DGS PLY (the decoded values).
+        command: command line for the provenance record.
+        force: overwrite existing outputs.
+
+    Raises:
+        InputError: bad budget, precision or strategy, or --ply equal to the MCAP output.
+        BudgetError: the budget holds no Gaussian.
+        MapError: at fp16, a selected value beyond the float16 range.
     """
-    check_ratio(budget, "--budget")
+    budget = Budget.parse(budget)
+    check_precision(precision)
     outputs = [dst] if ply is None else [dst, ply]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
         raise InputError("--ply must differ from the MCAP output")
@@ -127,21 +152,29 @@ def share_log(
     with LogReader(src) as log_in:
         full = log_in.read_map()
         meta = log_in.metadata
-    shared, _ = select_top(full, budget, strategy, seed)
-    operation = {"name": "share", "budget": budget, "strategy": strategy, "seed": seed}
+    count = budget.count(len(full), pointcloud_bytes(full, precision, timestamp_ns=0))
+    shared, _ = select_count(full, count, strategy, seed)
+    operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
+    operation["precision"] = precision
     out_meta = meta.derive(operation, src)
     out_meta.command = command
     out_meta.results = {
         "source": Path(src).name,
         "strategy": strategy,
-        "budget": budget,
+        **budget.record(),
+        "precision": precision,
         "selected": len(shared),
         "total": len(full),
     }
     with LogWriter(dst, out_meta, inputs=[src], force=force) as out:
-        out.write_gaussians(shared, 0)
+        written = out.write_gaussians(shared, 0, precision)
+        if budget.budget_bytes is not None and written > budget.budget_bytes:
+            raise AssertionError(f"share message of {written} B exceeds {budget.budget_bytes} B")
+        out_meta.results["bytes"] = written  # the metadata record is written on close
     if ply is not None:
-        write_ply(shared, ply, inputs=(src,), force=force)
+        # the receiver's values: what the share decodes to (float16-rounded at fp16)
+        received = shared if precision == "fp32" else read_map(dst)
+        write_ply(received, ply, inputs=(src,), force=force)
     return {"output": str(dst), "ply": None if ply is None else str(ply), **out_meta.results}
 
 
@@ -162,7 +195,12 @@ def export_ply(
 
 
 def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
-    """Summarise a log: channels, snapshots, the map, its scores, bytes and provenance."""
+    """Summarise a log: channels, snapshots, the map, its scores, bytes and provenance.
+
+    `map.bytes` is the serialized `/gaussians` message of the map (what a share sends, the
+    quantity a byte budget bounds), `map.packed_bytes` its records alone, `map.record_bytes`
+    the bytes per Gaussian and `map.precision` how the float fields are stored.
+    """
     path = Path(path)
     with LogReader(path) as log_in:
         channels = [
@@ -170,12 +208,10 @@ def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
             for c in log_in.channels
         ]
         snapshots: list[dict[str, Any]] = []
-        final: GaussianMap | None = None
-        final_bytes = 0
+        final: Snapshot | None = None
         for schema, _channel, message in log_in.iter_messages([TOPIC_GAUSSIANS]):
-            final = log_in.decode_map(schema, message)
-            final_bytes = len(message.data)  # the serialized PointCloud, as it would be sent
-            snapshots.append({"log_time_ns": message.log_time, "gaussians": len(final)})
+            final = log_in.decode_snapshot(schema, message)
+            snapshots.append({"log_time_ns": message.log_time, "gaussians": len(final.gaussians)})
         meta = log_in.metadata
     info: dict[str, Any] = {
         "path": str(path),
@@ -192,9 +228,11 @@ def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
         "results": meta.results,
     }
     if final is not None:
-        info["map"] = map_summary(final, histogram_bins)
-        info["map"]["bytes"] = final_bytes
-        info["map"]["packed_bytes"] = len(final) * record_size(final)
+        info["map"] = map_summary(final.gaussians, histogram_bins)
+        info["map"]["precision"] = final.precision
+        info["map"]["bytes"] = final.message_bytes
+        info["map"]["record_bytes"] = final.point_stride
+        info["map"]["packed_bytes"] = len(final.gaussians) * final.point_stride
     return info
 
 

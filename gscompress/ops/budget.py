@@ -1,0 +1,167 @@
+"""Share budgets: a fraction of a map's Gaussians, or a number of bytes on the wire.
+
+A budget is written either as a bare fraction in (0, 1] (`0.2`, or a percentage `20%`) or as a
+byte count with a unit: `B`, `kB`, `MB`, `GB` (powers of 1000) or `KiB`, `MiB`, `GiB` (powers of
+1024), case-insensitive, e.g. `2MB`, `500kB`, `1.5MiB`, `300000B`. A fractional byte count is
+rounded down (a budget is never exceeded). A bare number above 1 is refused: it is most likely a
+byte count that lacks its unit.
+
+A byte budget counts what is sent: the serialized message holding the share. The caller supplies
+that size as a function of the Gaussian count (`largest_count_within`), so this module stays free
+of any file format.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from gscompress.errors import BudgetError, InputError
+from gscompress.ops.select import keep_count
+
+BYTE_UNITS: dict[str, int] = {
+    "b": 1,
+    "kb": 1000,
+    "mb": 1000**2,
+    "gb": 1000**3,
+    "kib": 1024,
+    "mib": 1024**2,
+    "gib": 1024**3,
+}
+"""Byte units (lower case) and their sizes in bytes."""
+
+_BUDGET = re.compile(r"\s*(\d+(?:\.\d*)?|\.\d+)(?:[eE]([+-]?\d+))?\s*(%|[a-zA-Z]+)?\s*")
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A share budget: exactly one of a fraction of the Gaussians or a number of bytes.
+
+    Attributes:
+        ratio: fraction of the map's Gaussians to send, in (0, 1], or None.
+        budget_bytes: the most bytes the sent message may take (>= 1), or None.
+        text: how the budget was written (for messages and records).
+    """
+
+    ratio: float | None = None
+    budget_bytes: int | None = None
+    text: str = ""
+
+    def __post_init__(self) -> None:
+        if (self.ratio is None) == (self.budget_bytes is None):
+            raise InputError("a budget is either a fraction or a number of bytes")
+        if self.ratio is not None and not (math.isfinite(self.ratio) and 0.0 < self.ratio <= 1.0):
+            raise InputError(f"budget fraction must be in (0, 1], got {self.ratio:g}")
+        if self.budget_bytes is not None and self.budget_bytes < 1:
+            raise InputError(f"budget must be at least 1 byte, got {self.budget_bytes}")
+
+    @property
+    def in_bytes(self) -> bool:
+        """True for a byte budget."""
+        return self.budget_bytes is not None
+
+    def __str__(self) -> str:
+        if self.text:
+            return self.text
+        return f"{self.ratio:g}" if self.ratio is not None else f"{self.budget_bytes}B"
+
+    def count(self, n: int, message_bytes: Callable[[int], int]) -> int:
+        """How many of `n` Gaussians this budget sends.
+
+        Args:
+            n: Gaussians available.
+            message_bytes: exact size in bytes of the message holding K Gaussians (used by byte
+                budgets only; see `largest_count_within`).
+
+        Raises:
+            BudgetError: the budget holds no Gaussian.
+        """
+        if self.ratio is not None:
+            return keep_count(n, self.ratio)
+        assert self.budget_bytes is not None  # one of the two is set (__post_init__)
+        return largest_count_within(self.budget_bytes, n, message_bytes)
+
+    def record(self) -> dict[str, Any]:
+        """The budget as recorded in provenance and results: `budget` [and `budget_bytes`]."""
+        if self.ratio is not None:
+            return {"budget": self.ratio}
+        return {"budget": str(self), "budget_bytes": self.budget_bytes}
+
+    @classmethod
+    def parse(cls, value: str | float | Budget) -> Budget:
+        """Read a budget from its written form (see the module docstring) or a number.
+
+        Raises:
+            InputError: not a number, an unknown unit, a fraction outside (0, 1], a bare number
+                above 1, or a byte count below one byte.
+        """
+        if isinstance(value, Budget):
+            return value
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return cls._from_number(float(value), f"{value:g}")
+        text = str(value).strip()
+        m = _BUDGET.fullmatch(text)
+        if m is None:
+            raise InputError(
+                f"budget {text!r} is neither a fraction such as 0.2 or 20% nor a size such as "
+                "2MB, 500kB or 1.5MiB"
+            )
+        number = float(m.group(1) + (f"e{m.group(2)}" if m.group(2) else ""))
+        unit = m.group(3)
+        if unit is None:
+            return cls._from_number(number, text)
+        if unit == "%":
+            return cls._from_number(number / 100, text, percent=True)
+        scale = BYTE_UNITS.get(unit.lower())
+        if scale is None:
+            raise InputError(
+                f"budget {text!r} has unknown unit {unit!r}; use B, kB, MB, GB, KiB, MiB or GiB"
+            )
+        if not (math.isfinite(number * scale) and number * scale >= 1):
+            raise InputError(f"budget {text!r} is not a finite byte count of at least 1 B")
+        return cls(budget_bytes=math.floor(number * scale), text=text)
+
+    @classmethod
+    def _from_number(cls, number: float, text: str, percent: bool = False) -> Budget:
+        if math.isfinite(number) and number > 1.0 and not percent:
+            raise InputError(
+                f"budget {text} is above 1: a bare number is a fraction in (0, 1]; "
+                f"for bytes add a unit, e.g. {text}B, {text}kB or {text}MB"
+            )
+        if not (math.isfinite(number) and 0.0 < number <= 1.0):
+            raise InputError(f"budget {text} is not a fraction in (0, 1]")
+        return cls(ratio=number, text=text)
+
+
+def largest_count_within(budget_bytes: int, n: int, message_bytes: Callable[[int], int]) -> int:
+    """The largest K <= n whose message takes at most `budget_bytes` bytes.
+
+    Args:
+        budget_bytes: the most bytes the message may take.
+        n: Gaussians available.
+        message_bytes: exact size in bytes of the message holding K Gaussians, nondecreasing in K.
+
+    Returns:
+        K, found by bisection (O(log n) calls to `message_bytes`).
+
+    Raises:
+        BudgetError: not even one Gaussian (or, for an empty map, the empty message) fits.
+    """
+    first = message_bytes(min(n, 1))
+    if first > budget_bytes:
+        what = "one Gaussian" if n else "an empty map"
+        raise BudgetError(
+            f"a budget of {budget_bytes} B cannot hold {what}: that message takes {first} B "
+            f"({message_bytes(0)} B of header); raise the budget"
+        )
+    lo, hi = min(n, 1), n  # message_bytes(lo) fits; find the last K in [lo, hi] that fits
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if message_bytes(mid) <= budget_bytes:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo

@@ -1,0 +1,328 @@
+"""Byte budgets and fp16 shares: parsing, the exact message size, never over budget, fp16 error."""
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from gscompress.errors import BudgetError, InputError, LogFormatError, MapError
+from gscompress.gaussians import random_map
+from gscompress.io.columns import map_from_columns
+from gscompress.io.mcap_log import (
+    LogMetadata,
+    LogReader,
+    LogWriter,
+    gaussians_to_pointcloud,
+    pointcloud_bytes,
+    pointcloud_to_gaussians,
+    read_map,
+    record_size,
+)
+from gscompress.io.ply import read_ply
+from gscompress.ops.budget import Budget, largest_count_within
+from gscompress.ops.select import select_count, strategy_scores, top_k
+from gscompress.pipeline import log_info, share_log
+
+
+def write_log(path, gaussians):
+    with LogWriter(path, LogMetadata(command="test")) as log:
+        log.write_gaussians(gaussians, 0)
+    return path
+
+
+def map_message_bytes(path):
+    """Byte length of the (only) /gaussians message of a log, read back from the file."""
+    with LogReader(path) as log:
+        (size,) = [len(m.data) for _, _, m in log.iter_messages(["/gaussians"])]
+    return size
+
+
+# ---------------------------------------------------------------- parsing
+
+
+@pytest.mark.parametrize(
+    "text, ratio, budget_bytes",
+    [
+        ("0.2", 0.2, None),
+        ("1", 1.0, None),
+        ("20%", 0.2, None),
+        (0.5, 0.5, None),
+        ("2MB", None, 2_000_000),
+        ("2mb", None, 2_000_000),
+        ("500kB", None, 500_000),
+        ("500 KB", None, 500_000),
+        ("1.5MiB", None, 1_572_864),
+        ("1KiB", None, 1024),
+        ("1GB", None, 10**9),
+        ("1gib", None, 2**30),
+        ("300000B", None, 300_000),
+        ("1e6B", None, 1_000_000),
+        ("2.5B", None, 2),  # rounded down: a budget is never exceeded
+    ],
+)
+def test_budget_parses_fractions_and_byte_units(text, ratio, budget_bytes):
+    budget = Budget.parse(text)
+    assert budget.ratio == pytest.approx(ratio) if ratio is not None else budget.ratio is None
+    assert budget.budget_bytes == budget_bytes
+    assert budget.in_bytes == (budget_bytes is not None)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("2", "add a unit, e.g. 2B, 2kB or 2MB"),
+        (3, "add a unit"),
+        ("1.5", "add a unit"),
+        ("0", r"not a fraction in \(0, 1\]"),
+        ("150%", r"not a fraction in \(0, 1\]"),
+        ("abc", "neither a fraction"),
+        ("", "neither a fraction"),
+        ("-1MB", "neither a fraction"),
+        ("nan", "neither a fraction"),
+        ("2XB", "unknown unit 'XB'"),
+        ("2 bits", "unknown unit"),
+        ("0B", "at least 1 B"),
+        ("0.5B", "at least 1 B"),
+        ("1e400B", "at least 1 B"),
+    ],
+)
+def test_bad_budgets_are_refused_with_a_hint(text, message):
+    with pytest.raises(InputError, match=message):
+        Budget.parse(text)
+
+
+def test_largest_count_within_is_the_last_that_fits():
+    size = lambda k: 100 + 7 * k  # noqa: E731
+    assert largest_count_within(100 + 7 * 10, 50, size) == 10
+    assert largest_count_within(100 + 7 * 10 + 6, 50, size) == 10
+    assert largest_count_within(10**6, 50, size) == 50  # everything fits
+    assert largest_count_within(107, 50, size) == 1
+    with pytest.raises(BudgetError, match="cannot hold one Gaussian: that message takes 107 B"):
+        largest_count_within(106, 50, size)
+
+
+# ---------------------------------------------------------------- the message size
+
+
+def _varint_boundaries(stride, limit):
+    """Counts K-1, K where the varint of the data length K * stride gains a byte."""
+    out = [1, 2]
+    for bound in (1 << 7, 1 << 14, 1 << 21):
+        k = -(-bound // stride)
+        if k <= limit:
+            out += [k - 1, k]
+    return out
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16"])
+@pytest.mark.parametrize("sh_degree, isotropic", [(0, True), (1, False), (3, True)])
+def test_message_size_model_is_exact_across_varint_boundaries(precision, sh_degree, isotropic):
+    full = random_map(40_000 if sh_degree == 0 else 2_000, 3, isotropic, sh_degree)
+    for timestamp_ns in (0, 1_234_567_890_123):
+        size = pointcloud_bytes(full, precision, timestamp_ns)
+        stride = record_size(full, precision)
+        for k in [0, *_varint_boundaries(stride, len(full)), len(full)]:
+            cloud = gaussians_to_pointcloud(full.select(slice(0, k)), timestamp_ns, precision)
+            assert cloud.point_stride == stride
+            assert size(k) == len(cloud.SerializeToString()), (k, timestamp_ns)
+
+
+def test_fp16_records_are_smaller():
+    assert record_size(random_map(1)) == 76  # 18 float32 + uint32 id
+    assert record_size(random_map(1), "fp16") == 54  # 11 halves, 7 float32, id
+    assert record_size(random_map(1, sh_degree=3), "fp32") == 256
+    assert record_size(random_map(1, sh_degree=3), "fp16") == 144
+
+
+# ---------------------------------------------------------------- never over budget
+
+
+@st.composite
+def byte_budget_cases(draw):
+    n = draw(st.integers(1, 300))
+    sh_degree = draw(st.sampled_from([0, 1, 2, 3]))
+    isotropic = draw(st.booleans())
+    precision = draw(st.sampled_from(["fp32", "fp16"]))
+    full = random_map(n, draw(st.integers(0, 10_000)), isotropic, sh_degree)
+    size = pointcloud_bytes(full, precision)
+    low, high = {
+        "any": (size(1), size(n) + 500),  # anywhere up to everything
+        "few": (size(1), size(1) + 300),  # a few Gaussians
+        "all": (max(size(1), size(n) - 200), size(n) + 10),  # about everything
+        "tiny": (1, size(1) + 5),  # below the header, below one Gaussian, or just one
+    }[draw(st.sampled_from(["any", "few", "all", "tiny"]))]
+    budget_bytes = draw(st.integers(low, high))
+    return full, precision, budget_bytes
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(case=byte_budget_cases())
+def test_byte_budget_is_never_exceeded_and_holds_the_most_that_fit(case):
+    full, precision, budget_bytes = case
+    with tempfile.TemporaryDirectory() as tmp:
+        src = write_log(Path(tmp) / "a.mcap", full)
+        dst = Path(tmp) / "s.mcap"
+        one = len(gaussians_to_pointcloud(full.select([0]), 0, precision).SerializeToString())
+        if budget_bytes < one:
+            event("below one Gaussian")
+            with pytest.raises(BudgetError, match="raise the budget"):
+                share_log(src, dst, f"{budget_bytes}B", precision=precision)
+            assert not dst.exists()
+            return
+        result = share_log(src, dst, f"{budget_bytes}B", precision=precision)
+        k = result["selected"]
+        event("all fit" if k == len(full) else "some fit")
+        written = map_message_bytes(dst)
+        assert written == result["bytes"] <= budget_bytes  # what is sent fits
+        assert result["budget_bytes"] == budget_bytes and result["precision"] == precision
+        index = top_k(strategy_scores(full, "pwas"), full.ids, k)
+        assert read_map(dst).ids.tolist() == full.ids[index].tolist()  # the K best
+        if k < len(full):  # one more would not fit: checked on the real serialization
+            more = top_k(strategy_scores(full, "pwas"), full.ids, k + 1)
+            cloud = gaussians_to_pointcloud(full.select(more), 0, precision)
+            assert len(cloud.SerializeToString()) > budget_bytes
+
+
+@pytest.mark.parametrize("precision", ["fp32", "fp16"])
+def test_budget_below_the_header_or_one_gaussian_is_a_budget_error(tmp_path, precision):
+    full = random_map(100)
+    src = write_log(tmp_path / "a.mcap", full)
+    size = pointcloud_bytes(full, precision)
+    for budget_bytes in (1, size(0) - 1, size(0), size(1) - 1):
+        with pytest.raises(BudgetError, match=r"cannot hold one Gaussian: that message takes"):
+            share_log(src, tmp_path / "s.mcap", f"{budget_bytes}B", precision=precision)
+    assert not (tmp_path / "s.mcap").exists()
+    exact = share_log(src, tmp_path / "s.mcap", f"{size(1)}B", precision=precision)
+    assert exact["selected"] == 1 and exact["bytes"] == size(1)
+
+
+def test_fp16_fits_more_of_the_same_ranking(tmp_path):
+    full = random_map(5_000, seed=4)
+    src = write_log(tmp_path / "a.mcap", full)
+    r32 = share_log(src, tmp_path / "s32.mcap", "100kB")
+    r16 = share_log(src, tmp_path / "s16.mcap", "100kB", precision="fp16")
+    assert r16["selected"] > 1.35 * r32["selected"]  # 76 vs 54 bytes per Gaussian
+    ids32 = set(read_map(tmp_path / "s32.mcap").ids.tolist())
+    assert ids32 < set(read_map(tmp_path / "s16.mcap").ids.tolist())  # a longer prefix
+    for name, r in (("s32", r32), ("s16", r16)):
+        info = log_info(tmp_path / f"{name}.mcap")
+        assert info["map"]["bytes"] == r["bytes"] <= 100_000
+        assert info["map"]["precision"] == r["precision"]
+        assert info["map"]["packed_bytes"] == r["selected"] * info["map"]["record_bytes"]
+
+
+def test_fraction_budget_with_fp16(tmp_path):
+    src = write_log(tmp_path / "a.mcap", random_map(1000, seed=2))
+    r = share_log(src, tmp_path / "s.mcap", 0.2, precision="fp16", ply=tmp_path / "s.ply")
+    assert r["selected"] == 200 and r["budget"] == 0.2 and "budget_bytes" not in r
+    shared = read_map(tmp_path / "s.mcap")
+    assert read_ply(tmp_path / "s.ply").equals(shared)  # the PLY holds the decoded float32 values
+    assert shared.log_scales.dtype == np.float32
+
+
+# ---------------------------------------------------------------- fp16 values
+
+
+@pytest.mark.parametrize("sh_degree, isotropic", [(0, True), (3, False)])
+def test_fp16_round_trip_error_is_bounded(tmp_path, sh_degree, isotropic):
+    g = random_map(2000, seed=7, isotropic=isotropic, sh_degree=sh_degree)
+    g.sh_dc[:5, 0] = [1e-6, -3e-7, 6e-8, 65504.0, -1000.5]  # subnormal, the largest half
+    path = tmp_path / "h.mcap"
+    with LogWriter(path, LogMetadata()) as log:
+        log.write_gaussians(g, 0, precision="fp16")
+    back = read_map(path)
+    # float32 at every precision: positions, score sums, ids
+    for name in ("means", "importance_sum", "importance_weight", "alpha_t_sum", "ids"):
+        assert getattr(back, name).tobytes() == getattr(g, name).tobytes(), name
+    assert back.isotropic == isotropic and back.sh_degree == sh_degree
+    for name in ("log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"):
+        orig = getattr(g, name).astype(np.float64)
+        got = getattr(back, name)
+        assert got.dtype == np.float32 and got.shape == orig.shape
+        err = np.abs(got - orig)
+        normal = np.abs(orig) >= 2.0**-14  # float16 normal range: relative error <= 2^-11
+        assert np.all(err[normal] <= 2.0**-11 * np.abs(orig[normal])), name
+        assert np.all(err[~normal] <= 2.0**-25), name  # subnormal: half a step of 2^-24
+        assert np.any(err > 0) or (name == "sh_rest" and sh_degree == 0)  # really rounded
+
+
+def test_fp16_overflow_is_refused_not_written_as_inf(tmp_path):
+    g = random_map(10)
+    g.opacity_logits[3] = 70_000.0
+    with pytest.raises(MapError, match=r"opacity holds 1 value\(s\) beyond the float16 range"):
+        gaussians_to_pointcloud(g, precision="fp16")
+    src = write_log(tmp_path / "a.mcap", g)  # fine at fp32
+    with pytest.raises(MapError, match="use precision fp32"):
+        share_log(src, tmp_path / "s.mcap", 1.0, precision="fp16")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap"]  # no partial output
+    g.opacity_logits[3] = 0.0
+    g.importance_sum[3] = 1e9  # scores and sums stay float32: no range limit
+    assert pointcloud_to_gaussians(gaussians_to_pointcloud(g, precision="fp16")).importance_sum[
+        3
+    ] == np.float32(1e9)
+
+
+@pytest.mark.parametrize("value", [np.inf, np.nan])
+def test_non_finite_after_fp16_decode_is_refused(tmp_path, value):
+    g = random_map(8)
+    g.quats[2, 1] = value
+    path = tmp_path / "h.mcap"
+    with LogWriter(path, LogMetadata()) as log:
+        log.write_gaussians(g, 0, precision="fp16")
+    with pytest.raises(LogFormatError, match="quats has 1 non-finite"):
+        read_map(path)
+
+
+def _rename_field(cloud, old, new, type_=None):
+    for f in cloud.fields:
+        if f.name == old:
+            f.name = new
+            if type_ is not None:
+                f.type = type_
+    return cloud
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda c: _rename_field(c, "scale_1_f16", "scale_1_f16", type_=4), "must be a uint16"),
+        (lambda c: _rename_field(c, "id", "id_f16", type_=3), "lies outside|must be a uint16"),
+        (lambda c: _rename_field(c, "x", "opacity"), "appears twice"),
+        (lambda c: _rename_field(c, "importance", "opacity"), "'opacity' appears twice"),
+    ],
+)
+def test_half_fields_are_checked(mutate, message):
+    cloud = mutate(gaussians_to_pointcloud(random_map(8), precision="fp16"))
+    with pytest.raises(MapError, match=message):
+        pointcloud_to_gaussians(cloud)
+
+
+def test_fp16_field_layout_and_old_readers(tmp_path):
+    cloud = gaussians_to_pointcloud(random_map(8), precision="fp16")
+    types = {f.name: f.type for f in cloud.fields}
+    assert all(types[n] == 7 for n in ("x", "y", "z", "importance", "importance_sum"))  # FLOAT32
+    assert types["opacity_f16"] == 3 and types["rot_0_f16"] == 3  # UINT16 float16 patterns
+    assert types["id"] == 5 and "opacity" not in types
+    # a profile 1.0 reader (no `_f16` rule) reports missing fields instead of misreading them
+    records = np.frombuffer(
+        cloud.data,
+        dtype=np.dtype(
+            {
+                "names": [f.name for f in cloud.fields],
+                "formats": [{3: "<u2", 5: "<u4", 7: "<f4"}[f.type] for f in cloud.fields],
+                "offsets": [f.offset for f in cloud.fields],
+                "itemsize": cloud.point_stride,
+            }
+        ),
+    )
+    with pytest.raises(MapError, match="lacks required field"):
+        map_from_columns({name: records[name] for name in records.dtype.names})
+
+
+def test_select_count_matches_top_k():
+    g = random_map(50, seed=1)
+    kept, index = select_count(g, 7)
+    assert len(kept) == 7 and index.tolist() == top_k(g.importance, g.ids, 7).tolist()
