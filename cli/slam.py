@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,11 @@ from .options import (
 )
 
 PRESET_NAMES = ("tiny", "cpu", "paper", "paper-tum")
+
+
+def _stop(signum: int, frame: object) -> None:
+    """SIGTERM ends a run like Ctrl-C: the log of the frames done so far is closed."""
+    raise KeyboardInterrupt
 
 
 @click.command("slam")
@@ -73,6 +79,19 @@ PRESET_NAMES = ("tiny", "cpu", "paper", "paper-tum")
     is_flag=True,
     help="Skip the PWAS pruning stages (transparent and huge Gaussians are still removed).",
 )
+@click.option(
+    "--inject",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Start the map with another agent's share (a `gsc share` log in the same world "
+    "frame): its Gaussians, ids and PWAS sums, so tracking uses them from the first frame.",
+)
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Continue the interrupted run whose log (or unfinished file, after a kill) is at -o, "
+    "with the settings recorded in it.",
+)
 @force_option
 @json_option
 def slam(
@@ -86,6 +105,8 @@ def slam(
     device: str,
     keep: float | None,
     no_prune: bool,
+    inject: Path | None,
+    resume: bool,
     force: bool,
     as_json: bool,
 ) -> None:
@@ -103,6 +124,12 @@ def slam(
       gsc slam demo_seq -o demo.mcap                  # cpu preset, 160x120
       gsc slam data/office --preset paper --device cuda -o office.mcap
       gsc slam demo_seq --save-config my.yaml         # edit, then --config my.yaml
+      gsc slam demo_seq -o demo.mcap --resume         # after Ctrl-C or a kill
+      gsc slam demo_seq --frames even --inject a_share.mcap -o b.mcap
+
+    Ctrl-C (or SIGTERM) stops after closing a valid log of the frames done so far; a
+    checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
+    even a killed run resumes with --resume, redoing at most that many frames.
     """
     from gscompress.errors import InputError
     from gscompress.io.files import check_output
@@ -121,9 +148,13 @@ def slam(
         raise InputError("give an output log with -o OUT.mcap")
 
     started = time.perf_counter()
+    previous_handler = signal.signal(signal.SIGTERM, _stop)
     with tqdm(desc="slam", unit="frame", leave=False, disable=as_json) as bar:
+        processed = 0
 
         def progress(done: int, total: int, stats: dict[str, Any]) -> None:
+            nonlocal processed
+            processed += 1
             bar.total = total
             elapsed = time.perf_counter() - started
             bar.set_postfix(
@@ -131,25 +162,38 @@ def slam(
                 gaussians=stats["gaussians"],
                 track=f"{stats.get('loss_tracking', 0.0):.4f}",
                 map=f"{stats.get('loss_mapping', 0.0):.4f}",
-                s_per_frame=f"{elapsed / done:.2f}",
+                s_per_frame=f"{elapsed / processed:.2f}",
                 refresh=False,
             )
-            bar.update(1)
+            bar.update(done - bar.n)
 
-        result = slam_file(
-            seq,
-            dst,
-            preset=preset,
-            config_path=config_path,
-            frames=str(frames),
-            size=size,
-            device=device,
-            keep=keep,
-            no_prune=no_prune,
-            command=command_line(),
-            force=force,
-            progress=progress,
-        )
+        try:
+            result = slam_file(
+                seq,
+                dst,
+                preset=preset,
+                config_path=config_path,
+                frames=str(frames),
+                size=size,
+                device=device,
+                keep=keep,
+                no_prune=no_prune,
+                inject=inject,
+                resume=resume,
+                command=command_line(),
+                force=force,
+                progress=progress,
+            )
+        except KeyboardInterrupt:
+            bar.close()
+            click.echo(
+                f"Interrupted: {dst} holds the frames done so far; continue with "
+                f"`gsc slam {seq} -o {dst} --resume`",
+                err=True,
+            )
+            raise SystemExit(130) from None
+        finally:
+            signal.signal(signal.SIGTERM, previous_handler)
     ate = result.get("ate_rmse_cm")
     emit(
         result,

@@ -396,7 +396,7 @@ class LogWriter:
         """Write the metadata record now as well as at close.
 
         A run that may be killed writes it at the start, so that even its unfinished file
-        (see `read_unfinished_log`) says what produced it; readers take the last record.
+        (see `gscompress.io.recover`) says what produced it; readers take the last record.
         """
         self._mcap.add_metadata(METADATA_NAME, self.metadata.to_record())
 

@@ -1,21 +1,77 @@
-"""`gsc slam`: a sequence through the SLAM system into a log (DESIGN.md section 6)."""
+"""`gsc slam`: a sequence through the SLAM system into a log (DESIGN.md section 6).
+
+A run starts fresh, from another agent's share (`inject`), or from the log of an interrupted
+run (`resume`); the frame loop and the log it writes are the same in all three cases.
+"""
 
 from __future__ import annotations
 
+import logging
+import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError
-from gscompress.io.files import check_output
+from gscompress.errors import InputError, MapError
+from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import (
+    TOPIC_CALIBRATION,
+    TOPIC_GAUSSIANS,
+    TOPIC_POSE,
+    TOPIC_STATS,
     LogMetadata,
+    LogReader,
     LogWriter,
+    pointcloud_to_gaussians,
 )
+from gscompress.io.recover import Record, read_messages, unfinished_files
 from gscompress.ops.select import check_ratio
 from gscompress.pipeline.offline import seconds_to_ns
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[int, int, dict[str, Any]], object]
+
+
+@dataclass
+class _Run:
+    """Everything the frame loop needs, however the run started."""
+
+    config: Any  # SlamConfig
+    sequence: Any  # RGBDSequence
+    system: Any  # SlamSystem
+    meta: LogMetadata
+    inputs: list[str | Path]
+    start: int = 0  # first processing position still to do
+    carried: list[Record] = field(default_factory=list)  # messages of the resumed log
+    est_poses: list[np.ndarray] = field(default_factory=list)
+    gt_poses: list[np.ndarray] = field(default_factory=list)
+    t_ns: int = 0
+    leftovers: list[Path] = field(default_factory=list)  # unfinished files to delete at the end
+
+
+def world_frame_of(sequence: Any, config: Any) -> str:
+    """What a run's world frame is anchored to (see `LogMetadata.world_frame`)."""
+    if config.init_from_ground_truth and sequence.has_ground_truth:
+        return f"ground-truth:{sequence.name}"
+    return f"first-camera:{sequence.name}:{int(sequence.indices[0])}"
+
+
+def check_same_world(receiver: str, share: str, what: str) -> None:
+    """Refuse to combine maps whose world frames are unknown or not known to agree."""
+    if not receiver or not share:
+        raise MapError(
+            f"{what}: the world frame of {'the share' if not share else 'the receiver'} is "
+            "unknown; only maps anchored to the same frame can be combined"
+        )
+    if receiver != share:
+        raise MapError(
+            f"{what}: the share is expressed in {share!r} but the receiver in {receiver!r}; "
+            "maps whose world frames are not known to agree cannot be combined"
+        )
 
 
 def slam_file(
@@ -29,19 +85,25 @@ def slam_file(
     device: str = "auto",
     keep: float | None = None,
     no_prune: bool = False,
+    inject: str | Path | None = None,
+    resume: bool = False,
     command: str = "",
     force: bool = False,
-    progress: Callable[[int, int, dict[str, Any]], object] | None = None,
+    progress: Progress | None = None,
     sequence: Any = None,
 ) -> dict[str, Any]:
     """Run SLAM over a sequence and write the log (DESIGN.md section 6).
 
     The log holds the calibration, one `/camera/pose` (+ `/tf`) and `/slam/stats` record per
     frame, `/camera/pose_gt` where the sequence has ground truth, a `/gaussians` snapshot after
-    each PWAS pruning stage and one at the end ("the map"), and the metadata record (full config,
-    sequence, frames, command, results). Each frame is flushed to disk as soon as it is done.
-    On KeyboardInterrupt the map so far is written as the final snapshot, the log is closed
-    (valid and readable, results marked `interrupted`) and the interrupt is raised again.
+    each PWAS pruning stage, every `checkpoint_every` frames and at the end ("the map"), and the
+    metadata record (full config, sequence, frames, world frame, command, results), written at
+    the start and again at the end. Each frame is flushed to disk as soon as it is done.
+
+    On KeyboardInterrupt or an exception the map so far is written as the final snapshot, the
+    log is closed (valid and readable, results marked `interrupted`) and the exception is raised
+    again. A run killed outright leaves its unfinished temporary file beside `dst`; `resume`
+    continues from either.
 
     Args:
         seq: the sequence folder (None when `sequence` is given).
@@ -53,6 +115,10 @@ def slam_file(
         device: torch device, or "auto".
         keep: PWAS keep ratio of the pruning stages, overriding the config's.
         no_prune: skip the PWAS pruning stages (cyclic opacity cleanup still runs).
+        inject: a share log whose Gaussians (with ids and PWAS sums) start the map; its world
+            frame must be this run's.
+        resume: continue the interrupted run whose log (or unfinished file) is at `dst`, with
+            the config, frames and size recorded in it; the other options must be left unset.
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called after every frame with (frames done, total, the frame's stats).
@@ -63,71 +129,265 @@ def slam_file(
         Output path, frame and Gaussian counts, seconds per frame, ATE (cm) when the sequence
         has ground truth, and whether the run was interrupted.
     """
-    import time
-
-    from gscompress.datasets import open_sequence
-    from gscompress.metrics import ate_rmse_cm
-    from gscompress.slam.config import resolve_config
-    from gscompress.slam.system import SlamSystem
-
     if sequence is None and seq is None:
         raise InputError("slam_file needs a sequence folder or an opened sequence")
-    inputs = [seq] if sequence is None and seq is not None else []
-    check_output(dst, inputs, force)
     if keep is not None:
         check_ratio(keep, "--keep")
-    config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
+    if resume:
+        given = {"--config": config_path, "--size": size, "--keep": keep, "--inject": inject}
+        clashing = [name for name, value in given.items() if value is not None]
+        clashing += ["--no-prune"] if no_prune else []
+        if clashing:
+            dropped = ", ".join(clashing)
+            raise InputError(f"--resume continues with the log's own settings; drop {dropped}")
+        run = _resume_run(seq, dst, device, sequence)
+    else:
+        run = _fresh_run(
+            seq, dst, preset, config_path, frames, size, device, keep, no_prune, inject,
+            force, sequence,
+        )  # fmt: skip
+    run.meta.command = command
+    return _loop(run, dst, progress)
+
+
+def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> Any:
+    """The sequence to run on, refusing an empty selection."""
+    from gscompress.datasets import open_sequence
+
     if sequence is None:
         assert seq is not None
         sequence = open_sequence(seq, size=config.size, frames=frames)
-    total = len(sequence)
-    if total == 0:
+    if len(sequence) == 0:
         raise InputError(f"{getattr(sequence, 'name', seq)}: no frames selected ({frames})")
-    system = SlamSystem(config, sequence.intrinsics, device, total_frames=total)
+    return sequence
+
+
+def _fresh_run(
+    seq: str | Path | None,
+    dst: str | Path,
+    preset: str,
+    config_path: str | Path | None,
+    frames: str,
+    size: tuple[int, int] | None,
+    device: str,
+    keep: float | None,
+    no_prune: bool,
+    inject: str | Path | None,
+    force: bool,
+    sequence: Any,
+) -> _Run:
+    """A run from the first frame, optionally starting with another agent's share."""
+    from gscompress.slam.config import resolve_config
+    from gscompress.slam.system import SlamSystem
+
+    inputs: list[str | Path] = [seq] if sequence is None and seq is not None else []
+    inputs += [inject] if inject is not None else []
+    check_output(dst, inputs, force)
+    config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
+    sequence = _open(seq, sequence, config, frames)
+    system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     meta = LogMetadata(
-        command=command, config=config.to_dict(), sequence=sequence.name, frames=str(frames)
+        config=config.to_dict(),
+        sequence=sequence.name,
+        frames=str(frames),
+        world_frame=world_frame_of(sequence, config),
     )
-    gt_poses: list[np.ndarray] = []
-    est_poses: list[np.ndarray] = []
-    interrupted: KeyboardInterrupt | None = None
+    if inject is not None:
+        with LogReader(inject) as share_log:
+            share = share_log.read_map()
+            share_meta = share_log.metadata
+        check_same_world(meta.world_frame, share_meta.world_frame, "--inject")
+        injected = system.add_gaussians(share, renumber=False)
+        operation = {"name": "inject", "gaussians": injected}
+        meta.provenance.append(
+            {"operation": operation, "parent": Path(inject).name, "parent_sha256": sha256(inject)}
+        )
+        meta.results["injected"] = injected
+    return _Run(config, sequence, system, meta, inputs)
+
+
+def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: Any) -> _Run:
+    """A run restored from the log (or unfinished file) of an interrupted one at `dst`."""
+    from gscompress.slam.config import SlamConfig
+    from gscompress.slam.keyframes import View, is_keyframe
+    from gscompress.slam.system import SlamSystem
+
+    dst = Path(dst)
+    leftovers = unfinished_files(dst)
+    sources = ([dst] if dst.is_file() else []) + leftovers
+    if not sources:
+        raise InputError(f"--resume: there is no log {dst} nor an unfinished run of it")
+    contents = read_messages(sources[0])
+    meta = contents.metadata
+    if not meta.config:
+        raise InputError(f"{sources[0]} records no SLAM config: not a `gsc slam` log")
+    if contents.finished and not meta.results.get("interrupted", False):
+        raise InputError(
+            f"{dst} is a finished run of {meta.results.get('frames', '?')} frames; "
+            "nothing to resume"
+        )
+    config = SlamConfig.from_dict(meta.config)
+    sequence = _open(seq, sequence, config, meta.frames or "all")
+    if meta.sequence and sequence.name != meta.sequence:
+        raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
+
+    by_topic: dict[str, list[Record]] = {}
+    for record in contents.messages:
+        by_topic.setdefault(record[1].topic, []).append(record)
+    snapshots = by_topic.get(TOPIC_GAUSSIANS, [])
+    stamps = [r[2].log_time for r in by_topic.get(TOPIC_POSE, [])]
+    expected = [seconds_to_ns(t) for t in sequence.timestamps[: len(stamps)]]
+    if len(stamps) > len(sequence) or stamps != expected:
+        raise InputError(f"{dst}: its poses do not match the frames of {sequence.name}")
+
+    # restore at the last snapshot: the frames up to its time are kept, later ones redone
+    done, last = 0, None
+    if snapshots:
+        last = snapshots[-1]
+        done = sum(1 for t in stamps if t <= last[2].log_time)
+    cut = stamps[done - 1] if done else -1
+    carried = [
+        r
+        for r in contents.messages
+        if r[1].topic == TOPIC_CALIBRATION or (done and r[2].log_time <= cut)
+    ]
+    if contents.finished and last is not None:
+        carried = [r for r in carried if r[2] is not last[2]]  # rewritten at the real end
+
+    system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
+    run = _Run(config, sequence, system, meta, [seq] if seq is not None else [], start=done)
+    run.carried, run.leftovers = carried, leftovers
+    run.meta.provenance = meta.provenance
+    if done == 0:
+        run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
+        return run
+    assert last is not None
+    gaussians = pointcloud_to_gaussians(_parse_cloud(last), source=str(sources[0]))
+    pose_records = by_topic[TOPIC_POSE][:done]
+    stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
+    poses = [_pose(r) for r in pose_records]
+    keyframes = []
+    for position in range(done):
+        if is_keyframe(position, config.keyframes):
+            frame = sequence.frame(position)
+            keyframes.append(View(position, *_tensors(frame, system.device), poses[position]))
+    next_id = max([s.get("next_id", 0) for s in stats] + [int(gaussians.ids.max()) + 1])
+    system.restore(
+        gaussians,
+        [(int(sequence.indices[i]), float(sequence.timestamps[i]), poses[i]) for i in range(done)],
+        keyframes,
+        mapping_iterations=sum(int(s.get("mapping_iters", 0)) for s in stats),
+        next_id=next_id,
+        first_depth=sequence.frame(0).depth,
+    )
+    if sequence.has_ground_truth:
+        _, gt = sequence.ground_truth()
+        run.gt_poses, run.est_poses = list(gt[:done]), list(poses)
+    run.t_ns = cut
+    log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
+    return run
+
+
+def _parse_cloud(record: Record) -> Any:
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+
+    cloud = PointCloud()
+    cloud.ParseFromString(record[2].data)
+    return cloud
+
+
+def _json(record: Record) -> dict[str, Any]:
+    import json
+
+    value = json.loads(record[2].data)
+    return value if isinstance(value, dict) else {}
+
+
+def _pose(record: Record) -> np.ndarray:
+    """[4, 4] camera-to-world of a foxglove.PoseInFrame record."""
+    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+
+    from gscompress.camera import make_transform, quat_to_rotmat
+
+    msg = PoseInFrame()
+    msg.ParseFromString(record[2].data)
+    p, q = msg.pose.position, msg.pose.orientation
+    return make_transform(quat_to_rotmat(np.array([q.w, q.x, q.y, q.z])), np.array([p.x, p.y, p.z]))
+
+
+def _tensors(frame: Any, device: Any) -> tuple[Any, Any]:
+    import torch
+
+    color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(device)
+    depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(device)
+    return color, depth
+
+
+def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:
+    """Process the frames from `run.start` on, writing the log as they are done."""
+    from gscompress.metrics import ate_rmse_cm
+
+    sequence, system, meta = run.sequence, run.system, run.meta
+    total = len(sequence)
+    every = run.config.checkpoint_every
+    failure: BaseException | None = None
     start = time.perf_counter()
-    t_ns = 0
-    with LogWriter(dst, meta, inputs=inputs, force=force) as out:
-        out.write_calibration(sequence.intrinsics, 0)
+    with LogWriter(dst, meta, inputs=run.inputs, force=True) as out:
+        if run.carried:
+            for schema, channel, message in run.carried:
+                out.copy_message(schema, channel, message)
+        else:
+            out.write_calibration(sequence.intrinsics, 0)
+        out.write_metadata()
         out.flush()
         try:
-            for i in range(total):
+            for i in range(run.start, total):
                 frame = sequence.frame(i)
                 result = system.process(frame)
-                t_ns = seconds_to_ns(frame.timestamp)
-                out.write_pose(result.T_world_cam, t_ns)
+                run.t_ns = seconds_to_ns(frame.timestamp)
+                out.write_pose(result.T_world_cam, run.t_ns)
                 if frame.T_world_cam is not None:
-                    out.write_pose(frame.T_world_cam, t_ns, ground_truth=True)
-                    gt_poses.append(frame.T_world_cam)
-                    est_poses.append(result.T_world_cam)
+                    out.write_pose(frame.T_world_cam, run.t_ns, ground_truth=True)
+                    run.gt_poses.append(frame.T_world_cam)
+                    run.est_poses.append(result.T_world_cam)
                 stats = result.stats()
-                out.write_stats(stats, t_ns)
-                if result.event:
-                    out.write_gaussians(system.gaussian_map(), t_ns)
+                checkpoint = every > 0 and (i + 1) % every == 0 and i + 1 < total
+                if checkpoint and not result.event:
+                    stats["event"] = "checkpoint"
+                out.write_stats(stats, run.t_ns)
+                if result.event or checkpoint:
+                    out.write_gaussians(system.gaussian_map(), run.t_ns)
                 out.flush()
                 if progress is not None:
                     progress(i + 1, total, stats)
-        except KeyboardInterrupt as exc:
-            interrupted = exc
+        except (KeyboardInterrupt, Exception) as exc:
+            if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
+                raise  # nothing done: no log is better than an empty one
+            failure = exc
         done = len(system.poses)
         seconds = time.perf_counter() - start
         gaussians = system.gaussian_map()
-        out.write_gaussians(gaussians, t_ns)
-        meta.results = {
-            "frames": done,
-            "frames_total": total,
-            "gaussians": len(gaussians),
-            "seconds": round(seconds, 3),
-            "seconds_per_frame": round(seconds / max(done, 1), 4),
-            "interrupted": interrupted is not None,
-        }
-        if len(gt_poses) >= 2:
-            meta.results["ate_rmse_cm"] = ate_rmse_cm(np.array(gt_poses), np.array(est_poses))
-    if interrupted is not None:
-        raise interrupted
+        out.write_gaussians(gaussians, run.t_ns)
+        meta.results.update(
+            {
+                "frames": done,
+                "frames_total": total,
+                "gaussians": len(gaussians),
+                "seconds": round(seconds, 3),
+                "seconds_per_frame": round(seconds / max(done - run.start, 1), 4),
+                "interrupted": failure is not None,
+            }
+        )
+        if run.start:
+            meta.results["resumed_at"] = run.start
+        if failure is not None and not isinstance(failure, KeyboardInterrupt):
+            meta.results["error"] = f"{type(failure).__name__}: {failure}"
+        if len(run.gt_poses) >= 2:
+            meta.results["ate_rmse_cm"] = ate_rmse_cm(
+                np.array(run.gt_poses), np.array(run.est_poses)
+            )
+    for leftover in run.leftovers:
+        leftover.unlink(missing_ok=True)
+    if failure is not None:
+        raise failure
     return {"output": str(dst), **meta.results}

@@ -174,6 +174,8 @@ class SlamConfig:
         seed: seed of the random choices (window views).
         init_from_ground_truth: put the first frame at its ground-truth pose when the sequence
             has one (else identity), so estimated and true trajectories share a frame.
+        checkpoint_every: write a `/gaussians` checkpoint snapshot every this many frames
+            (0: never), so that a killed run can resume from at most that many frames back.
         tracking, mapping, keyframes, densify, prune, pwas: see their classes.
     """
 
@@ -183,6 +185,7 @@ class SlamConfig:
     backend: str = "auto"
     seed: int = 0
     init_from_ground_truth: bool = True
+    checkpoint_every: int = 20
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -294,6 +297,7 @@ def check_config(config: SlamConfig) -> None:
     t, m, k, d, p = config.tracking, config.mapping, config.keyframes, config.densify, config.prune
     need(0.0 < t.lr_final_fraction <= 1.0, "tracking.lr_final_fraction must be in (0, 1]")
     need(t.iters >= 0 and m.iters >= 0 and m.first_frame_iters >= 0, "iterations must be >= 0")
+    need(config.checkpoint_every >= 0, "checkpoint_every must be >= 0")
     need(
         all(v > 0 for v in (t.lr_rotation, t.lr_translation, t.gamma_color, t.gamma_depth, t.rho)),
         "tracking learning rates, gammas and rho must be positive",

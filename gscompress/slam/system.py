@@ -12,10 +12,10 @@ back-projected, then mapped for `first_frame_iters` iterations.
 The system is pure: no files, no printing. `gscompress.pipeline.slam_file` runs it over a
 sequence and writes the log.
 
-Not yet here (later steps of issue 5): resuming a run from a log (`--resume`; it needs the
-keyframes and optimizer state, which the log does not hold) and injecting another agent's share
-(`--inject`); the entry point for the latter is `SlamSystem.add_gaussians(share,
-renumber=False)`, which keeps the share's ids and PWAS sums.
+Random choices (the mapping window's views) draw from a generator seeded by (seed, position),
+so a run restored at any frame (`SlamSystem.restore`, what `gsc slam --resume` uses) makes the
+same choices as an uninterrupted one. Another agent's share enters through
+`SlamSystem.add_gaussians(share, renumber=False)`, which keeps its ids and PWAS sums.
 """
 
 from __future__ import annotations
@@ -63,6 +63,7 @@ class FrameResult:
         tracking: the tracking outcome (None for the first frame and for ground-truth poses).
         mapping: the mapping statistics.
         psnr: PSNR (dB) of the frame rendered after mapping, all pixels.
+        next_id: the id the next new Gaussian will get (for resuming).
         ms: milliseconds per phase (see PHASES) and "total".
     """
 
@@ -78,6 +79,7 @@ class FrameResult:
     tracking: TrackResult | None
     mapping: MappingStats
     psnr: float
+    next_id: int = 0
     ms: dict[str, float] = field(default_factory=dict)
 
     def stats(self) -> dict[str, Any]:
@@ -96,6 +98,7 @@ class FrameResult:
             "loss_depth": self.mapping.depth,
             "loss_illum": self.mapping.illum,
             "w_illum": self.mapping.w_illum,
+            "next_id": self.next_id,
             "ms": {k: round(v, 3) for k, v in self.ms.items()},
         }
         if self.tracking is not None:
@@ -163,7 +166,6 @@ class SlamSystem:
         self.poses: list[np.ndarray] = []
         self.frame_indices: list[int] = []
         self.timestamps: list[float] = []
-        self.rng = np.random.default_rng(config.seed)
         self.next_id = 0
         self.stages = (
             stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
@@ -203,6 +205,44 @@ class SlamSystem:
             self.next_id = max(self.next_id, int(gaussians.ids.max()) + 1)
         return added
 
+    def restore(
+        self,
+        gaussians: GaussianMap,
+        poses: list[tuple[int, float, np.ndarray]],
+        keyframes: list[View],
+        *,
+        mapping_iterations: int,
+        next_id: int,
+        first_depth: np.ndarray,
+    ) -> None:
+        """Put a fresh system in the state of a run after its first `len(poses)` frames.
+
+        The map (with its PWAS sums), the poses, the keyframes, the mapping iteration count
+        (which places the cyclic cleanup) and the id counter come back exactly; the optimizer
+        restarts with zero moments, which a log does not record.
+
+        Args:
+            gaussians: the map after the last restored frame.
+            poses: (frame index, timestamp, [4, 4] camera-to-world) of each processed frame.
+            keyframes: the keyframe views among them, in order.
+            mapping_iterations: mapping iterations run so far.
+            next_id: the id the next new Gaussian gets.
+            first_depth: [H, W] depth of the first frame (sets the scene radius).
+        """
+        if len(self.poses) or len(self.mapper):
+            raise MapError("restore() needs a fresh SlamSystem")
+        self.add_gaussians(gaussians, renumber=False)
+        for index, stamp, T in poses:
+            self.frame_indices.append(int(index))
+            self.timestamps.append(float(stamp))
+            self.poses.append(np.asarray(T, dtype=np.float64))
+        self.keyframes = list(keyframes)
+        self.mapper.iterations = int(mapping_iterations)
+        self.next_id = max(self.next_id, int(next_id))
+        if np.any(first_depth > 0):
+            ratio = self.config.prune.scene_radius_depth_ratio
+            self.mapper.scene_radius = float(first_depth.max()) / ratio
+
     # ------------------------------------------------------------------ one frame
 
     def process(self, frame: Frame) -> FrameResult:
@@ -236,13 +276,12 @@ class SlamSystem:
         ms["densification"] = 1e3 * (time.perf_counter() - clock)
 
         clock = time.perf_counter()
-        window = select_window(
-            self.keyframes, current, self.intrinsics, self.config.keyframes, self.rng
-        )
+        rng = np.random.default_rng([self.config.seed, position])
+        window = select_window(self.keyframes, current, self.intrinsics, self.config.keyframes, rng)
         iters = (
             self.config.mapping.first_frame_iters if position == 0 else self.config.mapping.iters
         )
-        mapping = self.mapper.optimize(current, window, iters, self.rng)
+        mapping = self.mapper.optimize(current, window, iters, rng)
         keyframe = is_keyframe(position, self.config.keyframes)
         if keyframe:
             self.keyframes.append(current)
@@ -278,6 +317,7 @@ class SlamSystem:
             tracking=tracking,
             mapping=mapping,
             psnr=psnr,
+            next_id=self.next_id,
             ms=ms,
         )
 

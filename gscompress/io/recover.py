@@ -1,0 +1,94 @@
+"""Reading what a killed writer left behind, for `gsc slam --resume`.
+
+A `gsc slam` run flushes a complete chunk after every frame and writes its metadata record at
+the start, into a temporary file beside the output (`.NAME.PID.tmp`) that is renamed only when
+the log is closed. A run killed without a chance to close (SIGKILL, power loss, the OOM killer)
+leaves that file: no summary, a truncated last record, but every flushed chunk intact.
+`read_messages` reads such a file up to its last complete record, or a finished log whole.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mcap.exceptions import McapError
+from mcap.reader import StreamReader
+from mcap.records import Channel, Message, Metadata, Schema
+
+from gscompress.errors import LogFormatError
+from gscompress.io.mcap_log import METADATA_NAME, LogMetadata, LogReader
+
+Record = tuple[Schema | None, Channel, Message]
+
+MAGIC = b"\x89MCAP0\r\n"
+"""The 8 bytes an MCAP file starts and, when closed properly, ends with."""
+
+
+@dataclass
+class LogContents:
+    """Every message of a log with its last metadata record.
+
+    Attributes:
+        metadata: the last `gscompress` metadata record (defaults when there is none).
+        messages: (schema, channel, message) in file order.
+        finished: whether the file was closed properly (it has a summary).
+    """
+
+    metadata: LogMetadata
+    messages: list[Record] = field(default_factory=list)
+    finished: bool = True
+
+
+def unfinished_files(path: str | Path) -> list[Path]:
+    """Temporary files a killed writer of `path` left beside it, newest first."""
+    path = Path(path)
+    found = path.parent.glob(f".{path.name}.*.tmp")
+    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
+
+
+def read_messages(path: str | Path) -> LogContents:
+    """Read a finished log, or an unfinished one up to its last complete record.
+
+    Raises:
+        LogFormatError: not an MCAP file, or nothing readable in it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such file")
+    with open(path, "rb") as stream:
+        stream.seek(max(path.stat().st_size - len(MAGIC), 0))
+        finished = stream.read() == MAGIC  # a closed MCAP ends with its magic
+    if not finished:
+        return _read_unfinished(path)
+    with LogReader(path) as log:
+        return LogContents(log.metadata, list(log.iter_messages()), finished=True)
+
+
+def _read_unfinished(path: Path) -> LogContents:
+    """Stream an MCAP without a summary, stopping quietly at a truncated tail."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    out = LogContents(LogMetadata(profile_version="", tool_version=""), finished=False)
+    metadata: Metadata | None = None
+    with open(path, "rb") as stream:
+        reader = StreamReader(
+            stream, skip_magic=False, validate_crcs=True, record_size_limit=path.stat().st_size
+        )
+        try:
+            for record in reader.records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+                    metadata = record
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    channel = channels[record.channel_id]
+                    out.messages.append((schemas.get(channel.schema_id), channel, record))
+        except (McapError, EOFError, ValueError, KeyError, IndexError):
+            pass  # the tail a killed writer left half-written
+    if metadata is None:
+        raise LogFormatError(f"{path}: no gscompress metadata record; nothing to resume from")
+    out.metadata = LogMetadata.from_record(dict(metadata.metadata), str(path))
+    return out

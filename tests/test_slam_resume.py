@@ -1,0 +1,206 @@
+"""`gsc slam --resume` after Ctrl-C, SIGTERM and SIGKILL, and `gsc slam --inject`."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.errors import InputError, MapError
+from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, LogReader
+from gscompress.io.recover import read_messages, unfinished_files
+from gscompress.pipeline import share_log, slam_file
+from gscompress_cli.main import cli
+
+FRAMES = 8
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", FRAMES, (64, 48))
+
+
+@pytest.fixture(scope="module")
+def config_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("cfg") / "tiny.yaml"
+    path.write_text("preset: tiny\ncheckpoint_every: 2\n")
+    return path
+
+
+def frames_in(path: Path) -> list[int]:
+    with LogReader(path) as log:
+        return [json.loads(m.data)["frame"] for _, _, m in log.iter_messages([TOPIC_STATS])]
+
+
+def stop_after(count: int):  # type: ignore[no-untyped-def]
+    def progress(done: int, total: int, stats: dict) -> None:
+        if done == count:
+            raise KeyboardInterrupt
+
+    return progress
+
+
+def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config_file, progress=stop_after(3))
+    with LogReader(out) as log:
+        assert log.metadata.results["interrupted"] is True
+        assert log.metadata.results["frames"] == 3
+        interrupted_map = log.read_map()
+    assert frames_in(out) == [0, 1, 2]
+
+    result = slam_file(seq_dir, out, resume=True)
+    assert result["frames"] == FRAMES and result["resumed_at"] == 3
+    assert result["interrupted"] is False
+    assert frames_in(out) == list(range(FRAMES))
+    with LogReader(out) as log:
+        assert {c.topic: c.messages for c in log.channels}[TOPIC_POSE] == FRAMES
+        stats = [json.loads(m.data) for _, _, m in log.iter_messages([TOPIC_STATS])]
+        assert log.metadata.config["checkpoint_every"] == 2  # the log's own config
+    # the map went on from the interrupted one: its Gaussians that survived keep their ids,
+    # and new Gaussians were numbered after every id the interrupted run had used
+    fresh = [s for s in stats[3:] if s["added"] > 0]
+    assert fresh and min(s["next_id"] for s in fresh) > int(interrupted_map.ids.max())
+
+    with pytest.raises(InputError, match="finished run"):
+        slam_file(seq_dir, out, resume=True)
+    with pytest.raises(InputError, match="drop --keep"):
+        slam_file(seq_dir, out, resume=True, keep=0.5)
+
+
+def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no log"):
+        slam_file(seq_dir, tmp_path / "none.mcap", resume=True)
+
+
+def _gsc(*args: object) -> list[str]:
+    return [sys.executable, "-m", "gscompress_cli", *map(str, args)]
+
+
+def _wait_for(predicate, proc: subprocess.Popen, timeout: float = 120.0) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert proc.poll() is None, "the run ended before it could be stopped"
+        assert time.monotonic() < deadline, "the run made no progress"
+        time.sleep(0.1)
+
+
+def _checkpoints(path: Path) -> int:
+    files = unfinished_files(path)
+    if not files:
+        return 0
+    try:
+        contents = read_messages(files[0])
+    except Exception:
+        return 0
+    return sum(1 for _, channel, _ in contents.messages if channel.topic == TOPIC_GAUSSIANS)
+
+
+def test_killed_run_resumes_to_the_same_number_of_frames(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "killed.mcap"
+    proc = subprocess.Popen(
+        _gsc("slam", seq_dir, "-o", out, "--config", config_file),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        _wait_for(lambda: _checkpoints(out) >= 1, proc)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert not out.exists()  # nothing half-written under the final name
+    (leftover,) = unfinished_files(out)
+    done_before = len(read_messages(leftover).messages)
+    assert done_before > 0
+
+    r = CliRunner().invoke(cli, ["slam", str(seq_dir), "-o", str(out), "--resume", "--json"])
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output)
+    assert result["frames"] == FRAMES and result["resumed_at"] >= 2
+    assert frames_in(out) == list(range(FRAMES))
+    assert unfinished_files(out) == []
+
+
+def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "term.mcap"
+    proc = subprocess.Popen(
+        _gsc("slam", seq_dir, "-o", out, "--config", config_file),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    _wait_for(lambda: _checkpoints(out) >= 1, proc)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert b"--resume" in err
+    with LogReader(out) as log:
+        assert log.metadata.results["interrupted"] is True
+        done = log.metadata.results["frames"]
+    assert 2 <= done <= FRAMES and frames_in(out) == list(range(done))
+
+
+def test_inject_starts_the_map_with_the_share(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    a = tmp_path / "a.mcap"
+    slam_file(seq_dir, a, config_path=config_file, frames="odd")
+    share = tmp_path / "share.mcap"
+    share_log(a, share, 0.5)
+    with LogReader(share) as log:
+        shared = log.read_map()
+        assert log.metadata.world_frame == "ground-truth:room"
+
+    b = tmp_path / "b.mcap"
+    result = slam_file(seq_dir, b, config_path=config_file, frames="even", inject=share)
+    assert result["injected"] == len(shared)
+    with LogReader(b) as log:
+        first = log.read_map(0)
+        step = log.metadata.provenance[-1]
+    assert step["operation"]["name"] == "inject" and step["parent"] == "share.mcap"
+    # the first snapshot (a checkpoint after two frames) still holds share Gaussians, with
+    # their PWAS sums carried on (never smaller than what the share brought)
+    common, in_first, in_share = np.intersect1d(first.ids, shared.ids, return_indices=True)
+    assert len(common) > 0
+    assert np.all(first.importance_weight[in_first] >= shared.importance_weight[in_share])
+
+
+def test_inject_refuses_a_share_from_another_world_frame(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    other = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=1)
+    a = tmp_path / "a.mcap"
+    slam_file(other, a, config_path=config_file)
+    share = tmp_path / "share.mcap"
+    share_log(a, share, 0.5)
+    with pytest.raises(MapError, match="world frame"):
+        slam_file(seq_dir, tmp_path / "b.mcap", config_path=config_file, inject=share)
+    assert not (tmp_path / "b.mcap").exists()
+
+
+def test_unfinished_reader_stops_at_a_truncated_tail(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "full.mcap"
+    slam_file(seq_dir, out, config_path=config_file)
+    data = out.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    contents = read_messages(cut)
+    assert not contents.finished
+    assert 0 < len(contents.messages) < len(read_messages(out).messages)
+    assert contents.metadata.config["checkpoint_every"] == 2
+    os.unlink(cut)
