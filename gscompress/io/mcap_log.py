@@ -44,7 +44,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from gscompress import __version__
-from gscompress.camera import Intrinsics, rotmat_to_quat
+from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat, rotmat_to_quat
 from gscompress.errors import GscError, LogFormatError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import (
@@ -424,6 +424,27 @@ class LogWriter:
         if not self._closed:
             self._closed = True
             self._file.discard()
+
+
+def decode_pose(schema: Schema | None, message: McapMessage, source: str = "log") -> np.ndarray:
+    """[4, 4] camera-to-world of a foxglove.PoseInFrame message.
+
+    Raises:
+        LogFormatError: not a PoseInFrame, corrupt, or a non-finite or zero-length pose.
+    """
+    where = f"{source}: message at {message.log_time} ns"
+    if schema is None or schema.name != "foxglove.PoseInFrame":
+        raise LogFormatError(f"{where} is {schema.name if schema else 'schemaless'}, not a pose")
+    try:
+        pose = PoseInFrame.FromString(message.data).pose
+    except DecodeError:
+        raise LogFormatError(f"{where} is a corrupt PoseInFrame") from None
+    p, o = pose.position, pose.orientation
+    q = np.array([o.w, o.x, o.y, o.z])
+    t = np.array([p.x, p.y, p.z])
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or np.linalg.norm(q) < 1e-12:
+        raise LogFormatError(f"{where} has a non-finite or zero-length pose")
+    return make_transform(quat_to_rotmat(q), t)
 
 
 def _set_pose(position: Any, orientation: Any, t: np.ndarray, q_wxyz: np.ndarray) -> None:

@@ -25,12 +25,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
-from google.protobuf.message import DecodeError
 
-from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
+from gscompress.camera import invert_transform
 from gscompress.errors import InputError, LogFormatError
-from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_POSE_GT, LogReader
+from gscompress.io.mcap_log import (
+    TOPIC_GAUSSIANS,
+    TOPIC_POSE,
+    TOPIC_POSE_GT,
+    LogReader,
+    decode_pose,
+)
 from gscompress.pipeline.offline import seconds_to_ns
 
 log = logging.getLogger(__name__)
@@ -53,23 +57,8 @@ def read_poses(reader: LogReader, topic: str) -> tuple[np.ndarray, np.ndarray]:
     times: list[int] = []
     poses: list[np.ndarray] = []
     for schema, _channel, message in reader.iter_messages([topic]):
-        if schema is None or schema.name != "foxglove.PoseInFrame":
-            name = schema.name if schema else "no schema"
-            raise LogFormatError(f"{reader.path}: {topic} is {name}, not foxglove.PoseInFrame")
-        try:
-            pose = PoseInFrame.FromString(message.data).pose
-        except DecodeError:
-            raise LogFormatError(f"{reader.path}: corrupt {topic} message") from None
-        p, o = pose.position, pose.orientation
-        q = np.array([o.w, o.x, o.y, o.z])
-        t = np.array([p.x, p.y, p.z])
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or np.linalg.norm(q) < 1e-12:
-            raise LogFormatError(
-                f"{reader.path}: {topic} at {message.log_time} ns has a non-finite or "
-                "zero-length pose"
-            )
+        poses.append(decode_pose(schema, message, str(reader.path)))
         times.append(int(message.log_time))
-        poses.append(make_transform(quat_to_rotmat(q), t))
     stamps = np.array(times, dtype=np.int64)
     order = np.argsort(stamps, kind="stable")
     return stamps[order], np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]

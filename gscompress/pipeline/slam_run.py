@@ -25,6 +25,7 @@ from gscompress.io.mcap_log import (
     LogMetadata,
     LogReader,
     LogWriter,
+    decode_pose,
     pointcloud_to_gaussians,
 )
 from gscompress.io.recover import Record, read_messages, unfinished_files
@@ -265,7 +266,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     gaussians = pointcloud_to_gaussians(_parse_cloud(last), source=str(sources[0]))
     pose_records = by_topic[TOPIC_POSE][:done]
     stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
-    poses = [_pose(r) for r in pose_records]
+    poses = [decode_pose(r[0], r[2], str(sources[0])) for r in pose_records]
     keyframes = []
     for position in range(done):
         if is_keyframe(position, config.keyframes):
@@ -301,18 +302,6 @@ def _json(record: Record) -> dict[str, Any]:
 
     value = json.loads(record[2].data)
     return value if isinstance(value, dict) else {}
-
-
-def _pose(record: Record) -> np.ndarray:
-    """[4, 4] camera-to-world of a foxglove.PoseInFrame record."""
-    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
-
-    from gscompress.camera import make_transform, quat_to_rotmat
-
-    msg = PoseInFrame()
-    msg.ParseFromString(record[2].data)
-    p, q = msg.pose.position, msg.pose.orientation
-    return make_transform(quat_to_rotmat(np.array([q.w, q.x, q.y, q.z])), np.array([p.x, p.y, p.z]))
 
 
 def _tensors(frame: Any, device: Any) -> tuple[Any, Any]:
