@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "synth": "synth:synth",
     "slam": "slam:slam",
     "eval": "eval:eval_command",
+    "merge": "merge:merge",
 }
 
 

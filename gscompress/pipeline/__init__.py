@@ -6,12 +6,15 @@ They return a small dict of results that the CLI prints. Nothing here prints or 
 
 - `offline`: import-ply, prune, share, export-ply, info (numpy + mcap only, never torch).
 - `scoring`: score (PWAS for a map made elsewhere).
-- `slam_run`: slam (a sequence into a log).
+- `slam_run`: slam (a sequence into a log; resume; inject).
+- `merge`: merge (a share into a receiver's map, refined).
+- `evaluate`: eval (ATE and image metrics of a log).
 
 Modules that need torch import it inside their functions, so importing this package stays cheap.
 """
 
 from gscompress.pipeline.evaluate import evaluate_log
+from gscompress.pipeline.merge import merge_logs
 from gscompress.pipeline.offline import (
     export_ply,
     import_ply,
@@ -31,6 +34,7 @@ __all__ = [
     "import_ply",
     "log_info",
     "map_summary",
+    "merge_logs",
     "prune_log",
     "rewrite_map",
     "score_file",

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError, MapError
+from gscompress.errors import InputError
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -29,6 +29,7 @@ from gscompress.io.mcap_log import (
     pointcloud_to_gaussians,
 )
 from gscompress.io.recover import Record, read_messages, unfinished_files
+from gscompress.ops.merge import check_same_world
 from gscompress.ops.select import check_ratio
 from gscompress.pipeline.offline import seconds_to_ns
 
@@ -59,20 +60,6 @@ def world_frame_of(sequence: Any, config: Any) -> str:
     if config.init_from_ground_truth and sequence.has_ground_truth:
         return f"ground-truth:{sequence.name}"
     return f"first-camera:{sequence.name}:{int(sequence.indices[0])}"
-
-
-def check_same_world(receiver: str, share: str, what: str) -> None:
-    """Refuse to combine maps whose world frames are unknown or not known to agree."""
-    if not receiver or not share:
-        raise MapError(
-            f"{what}: the world frame of {'the share' if not share else 'the receiver'} is "
-            "unknown; only maps anchored to the same frame can be combined"
-        )
-    if receiver != share:
-        raise MapError(
-            f"{what}: the share is expressed in {share!r} but the receiver in {receiver!r}; "
-            "maps whose world frames are not known to agree cannot be combined"
-        )
 
 
 def slam_file(
@@ -271,7 +258,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     for position in range(done):
         if is_keyframe(position, config.keyframes):
             frame = sequence.frame(position)
-            keyframes.append(View(position, *_tensors(frame, system.device), poses[position]))
+            keyframes.append(View.from_frame(position, frame, poses[position], system.device))
     next_id = max([s.get("next_id", 0) for s in stats] + [int(gaussians.ids.max()) + 1])
     system.restore(
         gaussians,
@@ -302,14 +289,6 @@ def _json(record: Record) -> dict[str, Any]:
 
     value = json.loads(record[2].data)
     return value if isinstance(value, dict) else {}
-
-
-def _tensors(frame: Any, device: Any) -> tuple[Any, Any]:
-    import torch
-
-    color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(device)
-    depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(device)
-    return color, depth
 
 
 def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:

@@ -11,6 +11,7 @@ occlusion test, as in SplaTAM). The most recent keyframe is always in the window
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,6 +35,13 @@ class View:
     color: torch.Tensor
     depth: torch.Tensor
     T_world_cam: np.ndarray
+
+    @classmethod
+    def from_frame(cls, index: int, frame: Any, T_world_cam: np.ndarray, device: Any) -> View:
+        """The view of a sequence `Frame` at processing position `index` with a given pose."""
+        color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(device)
+        depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(device)
+        return cls(index, color, depth, np.asarray(T_world_cam, dtype=np.float64))
 
     def T_cam_world(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """[4, 4] world-to-camera tensor on the view's device."""

@@ -1,0 +1,108 @@
+"""`gsc merge`: inject another agent's share into a receiver's map and refine it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from gscompress.pipeline import merge_logs
+
+from .options import (
+    FrameSubset,
+    command_line,
+    emit,
+    force_option,
+    json_option,
+    output_option,
+    progress_bar,
+    seed_option,
+    size_option,
+)
+
+
+@click.command("merge")
+@click.argument("receiver", metavar="RECEIVER.mcap", type=click.Path(path_type=Path))
+@click.argument("share", metavar="SHARE.mcap", type=click.Path(path_type=Path))
+@output_option("Output log (.mcap): the receiver's log with the merged, refined map.")
+@click.option(
+    "--seq",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="The receiver's RGB-D sequence (needed to refine; not with --iters 0).",
+)
+@click.option(
+    "--frames",
+    type=FrameSubset(),
+    default=None,
+    help="The receiver's frames: all, odd, even or START:STOP:STEP [default: its log's subset].",
+)
+@size_option(help="Working size WxH [default: the receiver's config].")
+@click.option(
+    "--iters",
+    type=click.IntRange(min=0),
+    default=200,
+    show_default=True,
+    help="Refinement iterations on the receiver's keyframes (0: concatenate only).",
+)
+@click.option("--device", default="auto", show_default=True, help="Torch device (auto, cpu, cuda).")
+@seed_option
+@force_option
+@json_option
+def merge(
+    receiver: Path,
+    share: Path,
+    dst: Path,
+    seq: Path | None,
+    frames: object,
+    size: tuple[int, int] | None,
+    iters: int,
+    device: str,
+    seed: int,
+    force: bool,
+    as_json: bool,
+) -> None:
+    """Merge SHARE.mcap (another agent's share) into the map of RECEIVER.mcap.
+
+    Every Gaussian of both maps is kept with its parameters, id and PWAS sums (the share's ids
+    move past the receiver's when they clash; the offset is reported). The merged map is then
+    refined on the receiver's own keyframes at its estimated poses with a fresh optimizer.
+    Both maps must be in the same world frame (agents anchored at the ground-truth pose of
+    their first frame on one sequence are). `gsc slam --inject` is the other path: the share
+    enters before the receiver maps, so its tracking benefits too.
+
+    \b
+    Example:
+      gsc share a.mcap a_share.mcap --budget 0.2
+      gsc merge b.mcap a_share.mcap --seq data/room -o b_merged.mcap
+      gsc eval b_merged.mcap --seq data/room
+    """
+    with progress_bar("refine", "iter", total=iters, hidden=as_json) as bar:
+
+        def progress(done: int, total: int) -> None:
+            bar.update(done - bar.n)
+
+        result = merge_logs(
+            receiver,
+            share,
+            dst,
+            seq=seq,
+            frames=None if frames is None else str(frames),
+            size=size,
+            iters=iters,
+            device=device,
+            seed=seed,
+            command=command_line(),
+            force=force,
+            progress=progress,
+        )
+    text = (
+        f"merged {result['share']} shared + {result['receiver']} own -> "
+        f"{result['gaussians']} Gaussians in {dst}"
+    )
+    if result.get("refine_iters"):
+        text += (
+            f" (refined {result['refine_iters']} iterations on {result['refine_views']} "
+            f"views: loss {result['refine_loss_first']:.4f} -> {result['refine_loss_last']:.4f})"
+        )
+    emit(result, as_json, text)

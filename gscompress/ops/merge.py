@@ -1,0 +1,122 @@
+"""Merging another agent's share into a map, and refining the result (DESIGN.md section 5).
+
+`merge_maps` is exact: every Gaussian of both maps, with all its parameters and PWAS sums, is
+in the result. Ids stay as they are unless the two maps share some; then the share's ids are
+all moved by one offset past the receiver's largest id, so `id - offset` still names the
+Gaussian in the sending agent's map.
+
+`refine` then optimises the merged map on the receiver's own views (poses fixed) with a fresh
+optimizer, as the SLAM mapper does (`gscompress.slam.mapper`), but without the cyclic removal:
+a merge never drops a Gaussian. PWAS sums are carried, not added to.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from gscompress.camera import Intrinsics
+from gscompress.errors import MapError
+from gscompress.gaussians import GaussianMap
+
+MAX_ID = np.iinfo(np.uint32).max
+
+
+def check_same_world(receiver: str, share: str, what: str) -> None:
+    """Refuse to combine maps whose world frames are unknown or not known to agree."""
+    if not receiver or not share:
+        raise MapError(
+            f"{what}: the world frame of {'the share' if not share else 'the receiver'} is "
+            "unknown; only maps anchored to the same frame can be combined"
+        )
+    if receiver != share:
+        raise MapError(
+            f"{what}: the share is expressed in {share!r} but the receiver in {receiver!r}; "
+            "maps whose world frames are not known to agree cannot be combined"
+        )
+
+
+def merge_maps(receiver: GaussianMap, share: GaussianMap) -> tuple[GaussianMap, int]:
+    """Concatenate `share` after `receiver`.
+
+    Returns:
+        The merged map (receiver rows first, then the share's) and the offset added to the
+        share's ids (0 when no id clashed).
+
+    Raises:
+        MapError: SH degrees differ, or shifted ids would not fit in uint32.
+    """
+    offset = 0
+    if len(receiver) and len(share) and np.intersect1d(receiver.ids, share.ids).size:
+        offset = int(receiver.ids.max()) + 1 - int(share.ids.min())
+        if int(share.ids.max()) + offset > MAX_ID:
+            raise MapError("the share's ids cannot be moved past the receiver's within uint32")
+        share = replace(share, ids=(share.ids.astype(np.int64) + offset).astype(np.uint32))
+    return GaussianMap.concat([receiver, share]), offset
+
+
+def refine(
+    gaussians: GaussianMap,
+    views: Sequence[Any],
+    intrinsics: Intrinsics,
+    config: Any,
+    iters: int,
+    *,
+    device: Any = "cpu",
+    seed: int = 0,
+    progress: Callable[[int], object] | None = None,
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """Optimise a map on fixed views for `iters` iterations, one random view each.
+
+    Args:
+        gaussians: the map (SH degree 0: the SLAM parameterisation).
+        views: `gscompress.slam.keyframes.View` objects (observed colour, depth and pose).
+        intrinsics: camera intrinsics at the views' size.
+        config: a `SlamConfig` (mapping loss and learning rates are taken from it).
+        iters: iterations.
+        device: torch device of the views.
+        seed: seed of the view choice.
+        progress: called with 1 after each iteration.
+
+    Returns:
+        The refined map (same Gaussians, same order, same ids and sums) and
+        {"iters", "loss_first", "loss_last"} (mean mapping loss over the first and the last
+        tenth of the iterations).
+
+    Raises:
+        MapError: a map with higher SH bands (they would be dropped), or no views.
+    """
+    import torch
+
+    from gscompress.slam.mapper import Mapper
+
+    if iters <= 0 or len(gaussians) == 0:
+        return gaussians, {"iters": 0}
+    if gaussians.sh_degree > 0:
+        raise MapError(
+            f"refinement optimises SH degree 0 only; this map has degree {gaussians.sh_degree} "
+            "(merge with 0 iterations to keep its higher bands)"
+        )
+    if not views:
+        raise MapError("no views to refine on")
+    config = config.with_overrides(**{"prune.opacity_every": 0, "isotropic": gaussians.isotropic})
+    mapper = Mapper(config, intrinsics, torch.device(device))
+    mapper.add(gaussians)
+    rng = np.random.default_rng(seed)
+    losses = []
+    for _ in range(iters):
+        view = views[int(rng.integers(len(views)))]
+        losses.append(mapper.optimize(view, [], 1, rng).loss)
+        if progress is not None:
+            progress(1)
+    refined = mapper.params.to_map()
+    tenth = max(iters // 10, 1)
+    stats = {
+        "iters": iters,
+        "loss_first": float(np.mean(losses[:tenth])),
+        "loss_last": float(np.mean(losses[-tenth:])),
+    }
+    return refined, stats

@@ -1,0 +1,155 @@
+"""`gsc merge`: inject another agent's share into a receiver's map and refine it there.
+
+The receiver's log is copied with its map (the last snapshot) replaced by receiver + share,
+refined on the receiver's own keyframes at the receiver's estimated poses (see
+`gscompress.ops.merge`). Both inputs are in the output's provenance: the receiver as the parent,
+the share (name, sha256, id offset) in the merge operation. Maps are merged only when their
+world frames agree (`LogMetadata.world_frame`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.errors import InputError, LogFormatError
+from gscompress.gaussians import GaussianMap
+from gscompress.io.files import check_output, sha256
+from gscompress.io.mcap_log import TOPIC_POSE, LogReader
+from gscompress.ops.merge import check_same_world
+from gscompress.pipeline.offline import rewrite_map, seconds_to_ns
+
+
+def merge_logs(
+    receiver: str | Path,
+    share: str | Path,
+    dst: str | Path,
+    *,
+    seq: str | Path | None = None,
+    frames: str | None = None,
+    size: tuple[int, int] | None = None,
+    iters: int = 200,
+    device: str = "auto",
+    seed: int = 0,
+    command: str = "",
+    force: bool = False,
+    progress: Callable[[int, int], object] | None = None,
+) -> dict[str, Any]:
+    """Merge the share log `share` into the receiver log `receiver` and write `dst`.
+
+    Args:
+        receiver: the receiving agent's SLAM log (map, poses, config).
+        share: a share (`gsc share`) or any log whose last snapshot is the map to inject.
+        dst: the output log.
+        seq: the receiver's sequence (needed when `iters` > 0).
+        frames: the receiver's frame subset (default: the one recorded in its log).
+        size: working size (default: the receiver's config).
+        iters: refinement iterations on the receiver's keyframes (0: concatenate only).
+        device: torch device, or "auto".
+        seed: seed of the view choice.
+        command: the command line, for the metadata.
+        force: overwrite `dst`.
+        progress: called with (iterations done, iterations) during refinement.
+
+    Returns:
+        Output path, Gaussian counts (receiver, share, merged), the id offset given to the
+        share, and the refinement's first/last loss.
+    """
+    from gscompress.ops.merge import merge_maps
+
+    if iters < 0:
+        raise InputError(f"--iters must be >= 0, got {iters}")
+    if iters > 0 and seq is None:
+        raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
+    inputs = [receiver, share] + ([seq] if seq is not None else [])
+    check_output(dst, inputs, force)
+    with LogReader(share) as share_log:
+        shared = share_log.read_map()
+        share_world = share_log.metadata.world_frame
+    with LogReader(receiver) as receiver_log:
+        meta = receiver_log.metadata
+        receiver_log.require_snapshots()
+    check_same_world(meta.world_frame, share_world, "merge")
+
+    def merge(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+        merged, offset = merge_maps(own, shared)
+        results: dict[str, Any] = {
+            "receiver": len(own),
+            "share": len(shared),
+            "gaussians": len(merged),
+            "id_offset": offset,
+        }
+        if iters > 0:
+            assert seq is not None
+            merged, stats = _refine(merged, receiver, meta, seq, frames, size, iters, device,
+                                    seed, progress)  # fmt: skip
+            results.update({f"refine_{k}": v for k, v in stats.items()})
+        return merged, results
+
+    operation = {
+        "name": "merge",
+        "share": Path(share).name,
+        "share_sha256": sha256(share),
+        "iters": iters,
+        "seed": seed,
+    }
+    out = rewrite_map(receiver, dst, operation, merge, command=command, force=force)
+    return out
+
+
+def _refine(
+    merged: GaussianMap,
+    receiver: str | Path,
+    meta: Any,
+    seq: str | Path,
+    frames: str | None,
+    size: tuple[int, int] | None,
+    iters: int,
+    device: str,
+    seed: int,
+    progress: Callable[[int, int], object] | None,
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """Refine `merged` on the receiver's keyframes at its estimated poses."""
+    from gscompress.datasets import open_sequence
+    from gscompress.ops.merge import refine
+    from gscompress.pipeline.evaluate import match_times, read_poses
+    from gscompress.slam.config import SlamConfig, preset
+    from gscompress.slam.keyframes import View, is_keyframe
+    from gscompress.slam.system import resolve_device
+
+    config = SlamConfig.from_dict(meta.config) if meta.config else preset("cpu")
+    if size is None and config.size is not None:
+        size = config.size
+    sequence = open_sequence(seq, size=size, frames=frames or meta.frames or "all")
+    with LogReader(receiver) as receiver_log:
+        pose_ns, poses = read_poses(receiver_log, TOPIC_POSE)
+    if len(pose_ns) == 0:
+        raise LogFormatError(f"{receiver} has no {TOPIC_POSE}: refinement needs its poses")
+    frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
+    match = match_times(frame_ns, pose_ns)
+    positions = np.flatnonzero(match >= 0)
+    if len(positions) == 0:
+        raise InputError(f"no frame of {sequence.name} has a pose in {receiver}")
+    torch_device = resolve_device(device)
+    views = [
+        View.from_frame(k, sequence.frame(int(p)), poses[match[p]], torch_device)
+        for k, p in enumerate(positions)
+        if is_keyframe(k, config.keyframes)
+    ]
+    done = 0
+
+    def step(n: int) -> None:
+        nonlocal done
+        done += n
+        if progress is not None:
+            progress(done, iters)
+
+    refined, stats = refine(
+        merged, views, sequence.intrinsics, config, iters, device=torch_device, seed=seed,
+        progress=step,
+    )  # fmt: skip
+    stats["views"] = len(views)
+    return refined, stats

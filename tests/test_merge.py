@@ -1,0 +1,122 @@
+"""`gsc merge`: a share injected into a receiver's map keeps every Gaussian and its sums."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.errors import InputError, MapError
+from gscompress.gaussians import GaussianMap, random_map
+from gscompress.io.mcap_log import LogReader
+from gscompress.io.ply import write_ply
+from gscompress.ops.merge import merge_maps
+from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
+from gscompress_cli.main import cli
+
+
+def by_id(gaussians: GaussianMap) -> GaussianMap:
+    return gaussians.select(np.argsort(gaussians.ids, kind="stable"))
+
+
+def test_merge_maps_keeps_every_gaussian_and_its_sums() -> None:
+    receiver = random_map(50, seed=3)
+    share = random_map(20, seed=4)  # its ids clash with the receiver's
+    merged, offset = merge_maps(receiver, share)
+    assert len(merged) == 70
+    assert offset == int(receiver.ids.max()) + 1 - int(share.ids.min())  # all moved past
+    assert merged.select(np.arange(50)).equals(receiver)
+    tail = merged.select(np.arange(50, 70))
+    assert tail.equals(replace(share, ids=share.ids + np.uint32(offset)))
+    assert len(np.unique(merged.ids)) == 70
+
+    disjoint = replace(share, ids=share.ids + np.uint32(1000))
+    merged, offset = merge_maps(receiver, disjoint)
+    assert offset == 0 and merged.select(np.arange(50, 70)).equals(disjoint)
+
+
+@pytest.fixture(scope="module")
+def agents(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("agents")
+    seq = write_synthetic_sequence(root / "room", 8, (64, 48))
+    a, b = root / "a.mcap", root / "b.mcap"
+    slam_file(seq, a, preset="tiny", frames="odd")
+    slam_file(seq, b, preset="tiny", frames="even")
+    share = root / "share.mcap"
+    share_log(a, share, 0.3)
+    return {"seq": seq, "a": a, "b": b, "share": share, "root": root}
+
+
+def test_merge_refines_and_keeps_every_gaussian_and_sum(agents: dict[str, Path]) -> None:
+    out = agents["root"] / "merged.mcap"
+    result = merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=30)
+    with LogReader(agents["b"]) as log:
+        own = log.read_map()
+    with LogReader(agents["share"]) as log:
+        shared = log.read_map()
+    with LogReader(out) as log:
+        merged = log.read_map()
+        meta = log.metadata
+        counts = {c.topic: c.messages for c in log.channels}
+    assert result["gaussians"] == len(merged) == len(own) + len(shared)
+    offset = result["id_offset"]
+    expected, _ = merge_maps(own, shared)
+    # same Gaussians, same ids, same PWAS sums; the parameters were refined
+    assert np.array_equal(merged.ids, expected.ids)
+    for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
+        assert np.array_equal(getattr(merged, name), getattr(expected, name))
+    assert not np.array_equal(merged.means, expected.means)
+    assert result["refine_iters"] == 30 and result["refine_views"] >= 1
+    # provenance names both inputs; the receiver's poses and stats are all there
+    step = meta.provenance[-1]
+    assert step["parent"] == "b.mcap" and step["operation"]["share"] == "share.mcap"
+    assert step["operation"]["name"] == "merge" and len(step["operation"]["share_sha256"]) == 64
+    assert counts["/camera/pose"] == 4 and meta.world_frame == "ground-truth:room"
+    assert offset >= 0
+
+
+def test_merge_without_refinement_is_exact_concatenation(agents: dict[str, Path]) -> None:
+    out = agents["root"] / "concat.mcap"
+    merge_logs(agents["b"], agents["share"], out, iters=0)
+    with LogReader(agents["b"]) as log:
+        own = log.read_map()
+    with LogReader(agents["share"]) as log:
+        shared = log.read_map()
+    with LogReader(out) as log:
+        assert log.read_map().equals(merge_maps(own, shared)[0])
+
+
+def test_merge_refuses_unknown_or_different_world_frames(
+    agents: dict[str, Path], tmp_path: Path
+) -> None:
+    ply = tmp_path / "other.ply"
+    write_ply(random_map(10), ply)
+    foreign = tmp_path / "foreign.mcap"
+    import_ply(ply, foreign)
+    with pytest.raises(MapError, match="unknown"):
+        merge_logs(agents["b"], foreign, tmp_path / "x.mcap", iters=0)
+    other_seq = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=2)
+    other = tmp_path / "other.mcap"
+    slam_file(other_seq, other, preset="tiny")
+    with pytest.raises(MapError, match="not known to agree"):
+        merge_logs(agents["b"], other, tmp_path / "x.mcap", iters=0)
+    with pytest.raises(InputError, match="--seq"):
+        merge_logs(agents["b"], agents["share"], tmp_path / "x.mcap", iters=5)
+    assert not (tmp_path / "x.mcap").exists()
+
+
+def test_gsc_merge_command(agents: dict[str, Path]) -> None:
+    out = agents["root"] / "cli.mcap"
+    args = ["merge", agents["b"], agents["share"], "--seq", agents["seq"], "-o", out,
+            "--iters", "5", "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, [str(a) for a in args])
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output)
+    assert result["refine_iters"] == 5 and Path(result["output"]) == out
+    r = CliRunner().invoke(cli, [str(a) for a in args])
+    assert r.exit_code == 1 and r.output.startswith("Error: ") and "--force" in r.output
