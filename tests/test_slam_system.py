@@ -10,7 +10,7 @@ from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.errors import MapError
 from gscompress.gaussians import random_map
-from gscompress.ops.select import keep_count
+from gscompress.ops.select import STRATEGIES, keep_count, strategy_scores
 from gscompress.render import render
 from gscompress.slam.config import TrackingConfig, preset
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
@@ -196,3 +196,68 @@ def test_stage_events_follow_the_schedule(seq):
             events[i] = r.event
             assert r.removed >= r.gaussians  # kept ~30%: removed at least as many as kept
     assert events == {1: "prune-stage-1", 3: "prune-stage-2"}
+
+
+@pytest.mark.parametrize("by", STRATEGIES)
+def test_a_stage_keeps_exactly_the_top_fraction_by_its_score(seq, by):
+    config = preset("tiny").with_overrides(
+        **{"prune.stages": (0.5,), "prune.keep": 0.35, "prune.by": by, "seed": 3}
+    )
+    system = SlamSystem(config, seq.intrinsics, total_frames=4)
+    calls = []
+    keep = system.mapper.keep
+
+    def spy(index):
+        calls.append((system.gaussian_map(), index))
+        return keep(index)
+
+    system.mapper.keep = spy
+    results = [system.process(seq.frame(i)) for i in range(2)]
+    assert results[1].event == "prune-stage-1"
+    before, _ = calls[-1]  # the stage is the last removal of frame 1 (no refinement here)
+    after = system.gaussian_map()
+    assert len(after) == keep_count(len(before), 0.35) == results[1].gaussians
+    scores = strategy_scores(before, by, seed=3 * 1000 + 1)
+    order = np.lexsort((before.ids, -scores))
+    np.testing.assert_array_equal(np.sort(after.ids), np.sort(before.ids[order[: len(after)]]))
+    dropped = ~np.isin(before.ids, after.ids)
+    assert scores[~dropped].min() >= scores[dropped].max()  # nothing dropped outranks a kept one
+
+
+def test_refinement_after_a_stage_and_after_the_last_frame(seq):
+    config = preset("tiny").with_overrides(
+        **{"prune.stages": (0.5,), "prune.refine_iters": 5, "mapping.final_iters": 7}
+    )
+    system = SlamSystem(config, seq.intrinsics, total_frames=4)
+    visited = []
+    step = system.mapper._step
+
+    def spy(view, stats):
+        visited.append(view.index)
+        return step(view, stats)
+
+    system.mapper._step = spy
+    results, views = [], []
+    for i in range(4):
+        before = len(visited)
+        results.append(system.process(seq.frame(i)))
+        views.append(visited[before:])
+    assert [r.refinement is not None for r in results] == [False, True, False, True]
+    assert results[1].refinement.iters == 5 and results[3].refinement.iters == 7
+    assert results[1].stats()["refine_iters"] == 5 and "refine_iters" not in results[2].stats()
+    assert all("refinement" in r.ms for r in results)
+    # keyframes of tiny: every 2nd frame -> positions 0 and 2; after the last frame (3, not a
+    # keyframe) the views are 0, 2 and 3, each once per shuffled pass
+    final = views[3][-7:]
+    assert sorted(final[:3]) == [0, 2, 3] and sorted(final[3:6]) == [0, 2, 3]
+    stage = views[1][-5:]
+    assert sorted(stage[:2]) == [0, 1] and sorted(stage[2:4]) == [0, 1]
+
+
+def test_refinement_lowers_the_loss_over_the_keyframes(seq):
+    config = preset("tiny").with_overrides(**{"prune.stages": ()})
+    system = SlamSystem(config, seq.intrinsics, total_frames=6)
+    for i in range(4):
+        system.process(seq.frame(i))
+    stats = system.mapper.refine(system.keyframes, 30, np.random.default_rng(0))
+    assert stats.iters == 30 and stats.last_loss < stats.first_loss

@@ -29,6 +29,7 @@ import yaml
 
 from gscompress.errors import InputError
 from gscompress.importance import PwasConfig
+from gscompress.ops.select import STRATEGIES
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,9 @@ class MappingConfig:
             63% the observed image (see `gscompress.slam.losses.fuse_target`).
         current_frame_share: fraction of the iterations spent on the current frame; the others
             draw a keyframe of the window.
+        final_iters: global refinement after the last frame: this many iterations over all
+            keyframes and the last frame, each once per shuffled pass (0: none). Pruned and
+            unpruned runs get it alike; its time is the last frame's "refinement" phase.
     """
 
     iters: int = 60
@@ -102,6 +106,7 @@ class MappingConfig:
     illum_tau: float = 1.0
     illum_edge_sigma: float = 0.05
     current_frame_share: float = 0.5
+    final_iters: int = 0
 
 
 @dataclass(frozen=True)
@@ -151,7 +156,13 @@ class PruneConfig:
         scene_radius_depth_ratio: scene radius = max first-frame depth / this.
         stages: positions in the sequence (fractions of its frames) of the PWAS pruning
             stages; empty for none (`gsc slam --no-prune`).
-        keep: fraction of Gaussians kept (top by PWAS) at each stage.
+        keep: fraction of Gaussians kept at each stage (the top ones by `by`).
+        by: the score a stage ranks by (`gscompress.ops.select.STRATEGIES`): "pwas" (the
+            paper's), "opacity", "alpha-t" (unweighted alpha*T sum) or "random" (seeded by
+            `seed` and the stage); exact counts and ties as `gsc prune`.
+        refine_iters: mapping iterations right after each stage over all keyframes so far and
+            the current frame, each once per shuffled pass, so that the survivors fill the
+            holes left in views the camera will not see again (0: none).
     """
 
     opacity_every: int = 100
@@ -160,6 +171,8 @@ class PruneConfig:
     scene_radius_depth_ratio: float = 3.0
     stages: tuple[float, ...] = (1 / 3, 2 / 3)
     keep: float = 0.3
+    by: str = "pwas"
+    refine_iters: int = 0
 
 
 @dataclass(frozen=True)
@@ -319,6 +332,8 @@ def check_config(config: SlamConfig) -> None:
     need(p.opacity_every >= 0 and p.alpha_min >= 0 and p.huge_fraction >= 0, "bad prune values")
     need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")
     need(0.0 < p.keep <= 1.0, "prune.keep must be in (0, 1]")
+    need(p.by in STRATEGIES, f"prune.by must be one of {', '.join(STRATEGIES)}")
+    need(p.refine_iters >= 0 and m.final_iters >= 0, "refinement iterations must be >= 0")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
     need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")
     from gscompress.render import BACKENDS

@@ -46,6 +46,13 @@ class MappingStats:
     last_loss: float = 0.0
     removed: int = 0
 
+    def averaged(self) -> MappingStats:
+        """These stats with the summed losses divided by the iterations (in place)."""
+        if self.iters:
+            for name in ("loss", "color", "depth", "illum", "w_illum"):
+                setattr(self, name, getattr(self, name) / self.iters)
+        return self
+
 
 class Mapper:
     """The map's parameters, their optimizer and the mapping iterations.
@@ -122,27 +129,47 @@ class Mapper:
                 break
             use_current = it == 0 or not window or rng.random() < config.mapping.current_frame_share
             view = current if use_current else window[int(rng.integers(len(window)))]
-            out = render(
-                *self.params.render_inputs(), self.intrinsics, view.T_cam_world(),
-                backend=config.backend,
-            )  # fmt: skip
-            terms = mapping_loss(out, view.color, view.depth, config.mapping)
-            self.optimizer.zero_grad(set_to_none=True)
-            terms.total.backward()
-            self.optimizer.step()
-            value = float(terms.total.detach())
-            stats.iters += 1
-            stats.loss += value
-            stats.color += terms.color
-            stats.depth += terms.depth
-            stats.illum += terms.illum
-            stats.w_illum += (terms.weights or {}).get("w_illum", 0.0)
-            stats.first_loss = value if it == 0 else stats.first_loss
-            stats.last_loss = value
+            self._step(view, stats)
             self.iterations += 1
             if every > 0 and self.iterations % every == 0:
                 stats.removed += self.cleanup()
-        if stats.iters:
-            for name in ("loss", "color", "depth", "illum", "w_illum"):
-                setattr(stats, name, getattr(stats, name) / stats.iters)
-        return stats
+        return stats.averaged()
+
+    def refine(self, views: list[View], iters: int, rng: np.random.Generator) -> MappingStats:
+        """Run `iters` mapping iterations over `views`, each view once per shuffled pass.
+
+        Used after a pruning stage and after the last frame, so that every keyframe (not only
+        the recent, overlapping ones) pulls the surviving Gaussians into the holes. These
+        iterations do not advance the cyclic-cleanup count; one cleanup runs at the end.
+        """
+        stats = MappingStats()
+        order: list[int] = []
+        for _ in range(iters):
+            if len(self.params) == 0 or not views:
+                break
+            if not order:
+                order = [int(i) for i in rng.permutation(len(views))]
+            self._step(views[order.pop()], stats)
+        if stats.iters and self.config.prune.opacity_every > 0:
+            stats.removed += self.cleanup()
+        return stats.averaged()
+
+    def _step(self, view: View, stats: MappingStats) -> None:
+        """One Adam step of the mapping loss on one view; adds its losses to `stats`."""
+        out = render(
+            *self.params.render_inputs(), self.intrinsics, view.T_cam_world(),
+            backend=self.config.backend,
+        )  # fmt: skip
+        terms = mapping_loss(out, view.color, view.depth, self.config.mapping)
+        self.optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        self.optimizer.step()
+        value = float(terms.total.detach())
+        stats.first_loss = value if stats.iters == 0 else stats.first_loss
+        stats.last_loss = value
+        stats.iters += 1
+        stats.loss += value
+        stats.color += terms.color
+        stats.depth += terms.depth
+        stats.illum += terms.illum
+        stats.w_illum += (terms.weights or {}).get("w_illum", 0.0)

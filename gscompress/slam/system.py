@@ -32,7 +32,7 @@ from gscompress.camera import Intrinsics
 from gscompress.datasets.base import Frame
 from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap
-from gscompress.ops.select import keep_count, top_k
+from gscompress.ops.select import keep_count, strategy_scores, top_k
 from gscompress.render import render
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
@@ -42,7 +42,7 @@ from gscompress.slam.tracker import TrackResult, constant_velocity, track
 
 log = logging.getLogger(__name__)
 
-PHASES = ("tracking", "densification", "mapping", "pwas", "pruning")
+PHASES = ("tracking", "densification", "mapping", "pwas", "pruning", "refinement")
 """The timed phases of a frame (milliseconds in `FrameResult.ms`)."""
 
 
@@ -59,9 +59,11 @@ class FrameResult:
         gaussians: Gaussians in the map after the frame.
         added: Gaussians added by densification.
         removed: Gaussians removed (cyclic cleanup and pruning stage).
-        event: "prune-stage-K" when a PWAS pruning stage ran after this frame, else None.
+        event: "prune-stage-K" when a pruning stage ran after this frame, else None.
         tracking: the tracking outcome (None for the first frame and for ground-truth poses).
         mapping: the mapping statistics.
+        refinement: the refinement after a pruning stage and/or after the last frame
+            (`prune.refine_iters`, `mapping.final_iters`), None when there was none.
         psnr: PSNR (dB) of the frame rendered after mapping, all pixels.
         next_id: the id the next new Gaussian will get (for resuming).
         ms: milliseconds per phase (see PHASES) and "total".
@@ -79,6 +81,7 @@ class FrameResult:
     tracking: TrackResult | None
     mapping: MappingStats
     psnr: float
+    refinement: MappingStats | None = None
     next_id: int = 0
     ms: dict[str, float] = field(default_factory=dict)
 
@@ -101,6 +104,10 @@ class FrameResult:
             "next_id": self.next_id,
             "ms": {k: round(v, 3) for k, v in self.ms.items()},
         }
+        if self.refinement is not None:
+            record["refine_iters"] = self.refinement.iters
+            record["loss_refine"] = self.refinement.loss
+            record["loss_refine_last"] = self.refinement.last_loss
         if self.tracking is not None:
             record["loss_tracking"] = self.tracking.loss
             record["loss_tracking_initial"] = self.tracking.first_loss
@@ -170,6 +177,7 @@ class SlamSystem:
         self.stages = (
             stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
         )
+        self.total_frames = total_frames
 
     # ------------------------------------------------------------------ state
 
@@ -296,9 +304,15 @@ class SlamSystem:
         event = None
         stage = self.stages.get(position)
         if stage is not None:
-            removed += self.prune_to(self.config.prune.keep)
+            removed += self.prune_to(self.config.prune.keep, stage=stage)
             event = f"prune-stage-{stage}"
         ms["pruning"] = 1e3 * (time.perf_counter() - clock)
+
+        clock = time.perf_counter()
+        refinement = self._refine(current, position, stage is not None, keyframe)
+        if refinement is not None:
+            removed += refinement.removed
+        ms["refinement"] = 1e3 * (time.perf_counter() - clock)
         ms["total"] = 1e3 * (time.perf_counter() - start)
 
         self.poses.append(T_world_cam)
@@ -317,21 +331,29 @@ class SlamSystem:
             tracking=tracking,
             mapping=mapping,
             psnr=psnr,
+            refinement=refinement,
             next_id=self.next_id,
             ms=ms,
         )
 
-    def prune_to(self, keep: float) -> int:
-        """Keep the top `keep` fraction of the map by PWAS score; returns how many were removed.
+    def prune_to(self, keep: float, by: str | None = None, *, stage: int = 0) -> int:
+        """Keep the top `keep` fraction of the map by a score; returns how many were removed.
 
-        Exactly `keep_count(N, keep)` Gaussians survive; ties go to the lower id.
+        Exactly `keep_count(N, keep)` Gaussians survive, ranked as `gsc prune` ranks a map
+        (`gscompress.ops.select.strategy_scores`, ties to the lower id).
+
+        Args:
+            keep: fraction kept, in (0, 1].
+            by: "pwas", "opacity", "alpha-t" or "random"; None: `prune.by` of the config.
+            stage: stage number, mixed into the seed of "random".
         """
         n = len(self.mapper)
         if n == 0:
             return 0
-        params = self.mapper.params
-        scores = params.sums.score().cpu().numpy()
-        index = top_k(scores, params.ids.cpu().numpy(), keep_count(n, keep))
+        gaussians = self.gaussian_map()
+        by = self.config.prune.by if by is None else by
+        scores = strategy_scores(gaussians, by, seed=self.config.seed * 1000 + stage)
+        index = top_k(scores, gaussians.ids.astype(np.int64), keep_count(n, keep))
         return self.mapper.keep(torch.from_numpy(index).to(self.device))
 
     # ------------------------------------------------------------------ phases
@@ -390,6 +412,19 @@ class SlamSystem:
         if not self.config.isotropic:
             new = new.as_anisotropic()
         return self.add_gaussians(new, renumber=False)
+
+    def _refine(
+        self, current: View, position: int, pruned: bool, keyframe: bool
+    ) -> MappingStats | None:
+        """Refinement over all keyframes after a pruning stage and/or after the last frame."""
+        iters = self.config.prune.refine_iters if pruned else 0
+        if self.total_frames is not None and position == self.total_frames - 1:
+            iters += self.config.mapping.final_iters
+        if iters == 0:
+            return None
+        views = self.keyframes if keyframe else [*self.keyframes, current]
+        rng = np.random.default_rng([self.config.seed, position, 1])
+        return self.mapper.refine(views, iters, rng)
 
     def _accumulate_pwas(self, current: View) -> float:
         """Add this frame's PWAS terms at the final mapped state; returns the frame's PSNR."""
