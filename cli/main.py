@@ -28,6 +28,7 @@ COMMANDS: dict[str, str] = {
     "slam": "slam:slam",
     "eval": "eval:eval_command",
     "merge": "merge:merge",
+    "experiment": "experiment:experiment",
 }
 
 

@@ -62,3 +62,15 @@ class AtomicFile:
         """Close and remove the temporary file."""
         self.file.close()
         self.tmp_path.unlink(missing_ok=True)
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write a UTF-8 text file under a temporary name and rename it into place."""
+    out = AtomicFile(Path(path))
+    try:
+        out.file.write(text.encode("utf-8"))
+        out.commit()
+    except BaseException:
+        out.discard()
+        raise
+    return out.path

@@ -75,6 +75,7 @@ def slam_file(
     no_prune: bool = False,
     inject: str | Path | None = None,
     resume: bool = False,
+    config: Any = None,
     command: str = "",
     force: bool = False,
     progress: Progress | None = None,
@@ -107,6 +108,7 @@ def slam_file(
             frame must be this run's.
         resume: continue the interrupted run whose log (or unfinished file) is at `dst`, with
             the config, frames and size recorded in it; the other options must be left unset.
+        config: a ready `SlamConfig` to use instead of preset + `config_path` + options.
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called after every frame with (frames done, total, the frame's stats).
@@ -122,7 +124,8 @@ def slam_file(
     if keep is not None:
         check_ratio(keep, "--keep")
     if resume:
-        given = {"--config": config_path, "--size": size, "--keep": keep, "--inject": inject}
+        given = {"--config": config_path or config, "--size": size, "--keep": keep,
+                 "--inject": inject}  # fmt: skip
         clashing = [name for name, value in given.items() if value is not None]
         clashing += ["--no-prune"] if no_prune else []
         if clashing:
@@ -130,10 +133,11 @@ def slam_file(
             raise InputError(f"--resume continues with the log's own settings; drop {dropped}")
         run = _resume_run(seq, dst, device, sequence)
     else:
-        run = _fresh_run(
-            seq, dst, preset, config_path, frames, size, device, keep, no_prune, inject,
-            force, sequence,
-        )  # fmt: skip
+        if config is None:
+            from gscompress.slam.config import resolve_config
+
+            config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
+        run = _fresh_run(seq, dst, config, frames, device, inject, force, sequence)
     run.meta.command = command
     return _loop(run, dst, progress)
 
@@ -153,25 +157,19 @@ def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> An
 def _fresh_run(
     seq: str | Path | None,
     dst: str | Path,
-    preset: str,
-    config_path: str | Path | None,
+    config: Any,
     frames: str,
-    size: tuple[int, int] | None,
     device: str,
-    keep: float | None,
-    no_prune: bool,
     inject: str | Path | None,
     force: bool,
     sequence: Any,
 ) -> _Run:
     """A run from the first frame, optionally starting with another agent's share."""
-    from gscompress.slam.config import resolve_config
     from gscompress.slam.system import SlamSystem
 
     inputs: list[str | Path] = [seq] if sequence is None and seq is not None else []
     inputs += [inject] if inject is not None else []
     check_output(dst, inputs, force)
-    config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
     sequence = _open(seq, sequence, config, frames)
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     meta = LogMetadata(

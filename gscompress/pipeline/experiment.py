@@ -1,0 +1,559 @@
+"""`gsc experiment`: the paper's protocol on any sequence, in one command (DESIGN.md section 5).
+
+Runs, each a log under DIR/runs/ with a JSON record of its settings and results beside it:
+- Table 3: the whole sequence without and with PWAS pruning.
+- Table 4, for each seed: agent A on the odd frames, agent B on the even frames (both with
+  pruning), and B again with A's share injected at the start of its run (`gsc slam --inject`,
+  so that B's tracking and mapping both use it) for every strategy at the main budget, plus B
+  with A's whole map as the upper bound.
+- Rate-distortion: B with A's share at every sweep budget for every strategy (on the first
+  `sweep_seeds` seeds).
+
+Every SLAM run is scored by `evaluate_log` on its own frames at its estimated poses. A rerun
+reuses every run whose record matches its settings (and those of the runs it depends on), so an
+interrupted experiment continues where it stopped and a changed setting redoes only what it
+touches.
+
+Outputs in DIR: results.json (a list of rows), results.csv, results.md (tables laid out like
+the paper's) and plots/ (rate-distortion, importance distribution, top-down importance map).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress import __version__
+from gscompress.errors import InputError
+from gscompress.io.files import write_text_atomic
+from gscompress.io.mcap_log import LogReader
+from gscompress.ops.budget import Budget
+from gscompress.ops.select import STRATEGIES, strategy_scores
+
+log = logging.getLogger(__name__)
+
+ROW_KEYS = (
+    "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
+    "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes", "share_gaussians",
+    "share_bytes", "seconds_per_frame", "log",
+)  # fmt: skip
+"""Columns of results.csv (every row of results.json has them)."""
+
+
+@dataclass(frozen=True)
+class ExperimentSettings:
+    """What an experiment runs.
+
+    Attributes:
+        preset: SLAM preset of every run.
+        config_path: optional YAML config on top of the preset.
+        budget: the main share budget (Table 4): a fraction ("0.2") or bytes ("2MB").
+        keep: PWAS keep ratio of the pruning stages.
+        seeds: seeds of the two-agent protocol (SLAM seed and random selection seed).
+        sweep: budgets of the rate-distortion sweep.
+        sweep_seeds: how many of the seeds the sweep runs on.
+        strategies: share strategies compared.
+        size: working size (W, H), or None for the config's.
+        every: evaluate every N-th frame.
+        lpips: compute LPIPS.
+        device: torch device.
+    """
+
+    preset: str = "cpu"
+    config_path: str | None = None
+    budget: str = "0.2"
+    keep: float = 0.3
+    seeds: int = 3
+    sweep: tuple[str, ...] = ("0.05", "0.1", "0.2", "0.4")
+    sweep_seeds: int = 1
+    strategies: tuple[str, ...] = ("random", "opacity", "alpha-t", "pwas")
+    size: tuple[int, int] | None = None
+    every: int = 1
+    lpips: bool = True
+    device: str = "auto"
+
+    def check(self) -> None:
+        """Refuse settings that cannot run."""
+        Budget.parse(self.budget)
+        for b in self.sweep:
+            Budget.parse(b)
+        if self.seeds < 1 or not 0 <= self.sweep_seeds <= self.seeds:
+            raise InputError("--seeds must be >= 1 and --sweep-seeds between 0 and --seeds")
+        unknown = sorted(set(self.strategies) - set(STRATEGIES))
+        if unknown or not self.strategies:
+            raise InputError(f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}")
+        if "random" not in self.strategies or "pwas" not in self.strategies:
+            raise InputError("the strategies must include random and pwas (they are compared)")
+
+
+@dataclass
+class _Record:
+    """One finished step: its log, its settings key and what it reported."""
+
+    path: Path
+    key: str
+    result: dict[str, Any] = field(default_factory=dict)
+
+
+class _Runner:
+    """Runs the steps of an experiment, reusing those whose records match."""
+
+    def __init__(
+        self,
+        seq: Path,
+        out: Path,
+        settings: ExperimentSettings,
+        progress: Callable[[str, int, int], object] | None,
+        total: int,
+    ) -> None:
+        self.seq, self.settings, self.progress, self.total = seq, settings, progress, total
+        self.runs = out / "runs"
+        self.runs.mkdir(parents=True, exist_ok=True)
+        self.done = 0
+        self.reused = 0
+
+    def _key(self, spec: dict[str, Any]) -> str:
+        text = json.dumps({"tool": __version__, **spec}, sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def _step(self, name: str, spec: dict[str, Any], work: Callable[[Path], dict]) -> _Record:
+        """Run `work(log path)` unless a record with the same key exists."""
+        path = self.runs / f"{name}.mcap"
+        record_path = self.runs / f"{name}.json"
+        key = self._key(spec)
+        if self.progress is not None:
+            self.progress(name, self.done, self.total)
+        if path.is_file() and record_path.is_file():
+            try:
+                saved = json.loads(record_path.read_text())
+            except json.JSONDecodeError:
+                saved = {}
+            if saved.get("key") == key:
+                self.done += 1
+                self.reused += 1
+                return _Record(path, key, saved["result"])
+        result = work(path)
+        record = {"key": key, "spec": spec, "result": result}
+        write_text_atomic(record_path, json.dumps(record, indent=1, default=str))
+        self.done += 1
+        return _Record(path, key, result)
+
+    def slam(self, name: str, config: Any, frames: str, inject: _Record | None = None) -> _Record:
+        """A SLAM run on `frames`, evaluated on them."""
+        from gscompress.pipeline.evaluate import evaluate_log
+        from gscompress.pipeline.slam_run import slam_file
+
+        s = self.settings
+        spec = {
+            "kind": "slam", "sequence": str(self.seq.resolve()), "config": config.to_dict(),
+            "frames": frames, "inject": inject.key if inject else None, "every": s.every,
+            "lpips": s.lpips,
+        }  # fmt: skip
+
+        def work(path: Path) -> dict[str, Any]:
+            run = slam_file(self.seq, path, config=config, frames=frames, device=s.device,
+                            inject=inject.path if inject else None, force=True)  # fmt: skip
+            scores = evaluate_log(path, self.seq, every=s.every, lpips=s.lpips, device=s.device)
+            scores.pop("per_frame", None)
+            return {"slam": run, "eval": scores}
+
+        return self._step(name, spec, work)
+
+    def share(self, name: str, source: _Record, budget: str, strategy: str, seed: int) -> _Record:
+        """A share of `source`'s map."""
+        from gscompress.pipeline.offline import share_log
+
+        spec = {"kind": "share", "source": source.key, "budget": budget, "strategy": strategy,
+                "seed": seed}  # fmt: skip
+        return self._step(
+            name,
+            spec,
+            lambda path: share_log(
+                source.path, path, budget, strategy=strategy, seed=seed, force=True
+            ),
+        )
+
+
+def plan_size(settings: ExperimentSettings) -> int:
+    """How many steps an experiment has (for progress)."""
+    s = settings
+    main = 2 + len(s.strategies) + 1  # A, B, B+share per strategy, B+full
+    shares = len(s.strategies) + 1
+    extra_budgets = [b for b in s.sweep if Budget.parse(b) != Budget.parse(s.budget)]
+    sweep = s.sweep_seeds * len(extra_budgets) * len(s.strategies) * 2
+    return 2 + s.seeds * (main + shares) + sweep
+
+
+def run_experiment(
+    seq: str | Path,
+    out_dir: str | Path,
+    settings: ExperimentSettings,
+    progress: Callable[[str, int, int], object] | None = None,
+) -> dict[str, Any]:
+    """Run (or continue) the two-agent experiment on a sequence and write its report.
+
+    Args:
+        seq: the sequence folder.
+        out_dir: the experiment folder (created; reruns reuse its finished runs).
+        settings: what to run.
+        progress: called with (step name, steps done, steps in total) before each step.
+
+    Returns:
+        Paths of the outputs, row count, steps run and reused, and the PWAS-vs-random verdicts.
+    """
+    from gscompress.slam.config import resolve_config
+
+    settings.check()
+    seq, out = Path(seq), Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output folder is a file: {out}")
+    s = settings
+    base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
+    runner = _Runner(seq, out, s, progress, plan_size(s))
+    rows: list[dict[str, Any]] = []
+
+    full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), "all")
+    pruned = runner.slam("full_pwas", base, "all")
+    rows.append(_row("full, no pruning", "table3", full))
+    rows.append(_row("full, PWAS pruning", "table3", pruned))
+
+    budgets = [s.budget] + [b for b in s.sweep if Budget.parse(b) != Budget.parse(s.budget)]
+    for seed in range(s.seeds):
+        config = base.with_overrides(seed=seed)
+        a = runner.slam(f"s{seed}_agent_a", config, "odd")
+        b = runner.slam(f"s{seed}_agent_b", config, "even")
+        rows.append(_row("agent A (odd frames)", "table4", a, seed))
+        rows.append(_row("agent B (even frames)", "table4", b, seed))
+        for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
+            table = "table4" if budget == s.budget else "sweep"
+            for strategy in s.strategies:
+                tag = f"s{seed}_{strategy}_{_slug(budget)}"
+                share = runner.share(f"{tag}_share", a, budget, strategy, seed)
+                got = runner.slam(f"{tag}_agent_b", config, "even", inject=share)
+                rows.append(_row(f"B + {strategy} {budget}", table, got, seed, strategy, budget,
+                                 share))  # fmt: skip
+        whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
+        got = runner.slam(f"s{seed}_full_agent_b", config, "even", inject=whole)
+        rows.append(_row("B + A's full map", "table4", got, seed, "full", "1", whole))
+    verdicts = _verdicts(rows, s)
+    paths = _write_reports(out, seq, s, rows, verdicts, full.path, pruned.path)
+    return {
+        **paths,
+        "rows": len(rows),
+        "steps": runner.total,
+        "reused": runner.reused,
+        "verdicts": verdicts,
+    }
+
+
+def _slug(budget: str) -> str:
+    return budget.replace(".", "p").replace("%", "pct").replace(" ", "")
+
+
+def _row(
+    name: str,
+    table: str,
+    run: _Record,
+    seed: int | None = None,
+    strategy: str = "",
+    budget: str = "",
+    share: _Record | None = None,
+) -> dict[str, Any]:
+    """A results row from a SLAM run's record (and the share it received)."""
+    ev, slam = run.result["eval"], run.result["slam"]
+    row = {key: ev.get(key) for key in ROW_KEYS}
+    row.update(
+        name=name, table=table, seed=seed, strategy=strategy, budget=budget,
+        frames=ev.get("frames"), seconds_per_frame=slam.get("seconds_per_frame"),
+        share_gaussians=share.result.get("selected") if share else None,
+        share_bytes=share.result.get("bytes") if share else None,
+        log=f"runs/{run.path.name}",
+    )  # fmt: skip
+    return row
+
+
+def _same_budget(a: str, b: str) -> bool:
+    return bool(a) and bool(b) and Budget.parse(a) == Budget.parse(b)
+
+
+def _sweep_rows(rows: list[dict[str, Any]], s: ExperimentSettings, budget: str) -> list[dict]:
+    """Rows of B with a share at `budget` on the sweep seeds (the main budget's included)."""
+    return [
+        r for r in rows
+        if r["table"] in ("table4", "sweep") and r["strategy"] in s.strategies
+        and r["seed"] is not None and r["seed"] < s.sweep_seeds
+        and _same_budget(r["budget"], budget)
+    ]  # fmt: skip
+
+
+def _mean(values: Sequence[Any]) -> float | None:
+    numbers = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    return float(np.mean(numbers)) if numbers else None
+
+
+def _verdicts(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, Any]:
+    """PWAS against random: per seed at the main budget, and per budget in the sweep."""
+
+    def pick(table: str, strategy: str, budget: str, seed: int) -> dict[str, Any] | None:
+        for row in rows:
+            if (row["table"], row["strategy"], row["budget"], row["seed"]) == (
+                table, strategy, budget, seed,
+            ):  # fmt: skip
+                return row
+        return None
+
+    psnr_wins = ate_wins = 0
+    per_seed = []
+    for seed in range(s.seeds):
+        p, r = pick("table4", "pwas", s.budget, seed), pick("table4", "random", s.budget, seed)
+        assert p is not None and r is not None
+        psnr_win = (p["psnr"] or 0) > (r["psnr"] or 0)
+        ate_win = (p["ate_rmse_cm"] or math.inf) < (r["ate_rmse_cm"] or math.inf)
+        psnr_wins += psnr_win
+        ate_wins += ate_win
+        per_seed.append({"seed": seed, "pwas_beats_random_psnr": psnr_win,
+                         "pwas_beats_random_ate": ate_win})  # fmt: skip
+    sweep = []
+    for budget in s.sweep:
+        group = _sweep_rows(rows, s, budget)
+        mp = _mean([r["psnr"] for r in group if r["strategy"] == "pwas"])
+        mr = _mean([r["psnr"] for r in group if r["strategy"] == "random"])
+        if mp is None or mr is None:
+            continue
+        sweep.append({"budget": budget, "pwas_psnr": mp, "random_psnr": mr,
+                      "pwas_at_or_above_random": mp >= mr})  # fmt: skip
+    return {
+        "budget": s.budget,
+        "seeds": s.seeds,
+        "pwas_beats_random_psnr": psnr_wins,
+        "pwas_beats_random_ate": ate_wins,
+        "per_seed": per_seed,
+        "sweep": sweep,
+    }
+
+
+# ------------------------------------------------------------------------------------ reports
+
+
+def _fmt(value: Any, spec: str = ".2f") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return format(value, spec)
+
+
+def _write_reports(
+    out: Path,
+    seq: Path,
+    s: ExperimentSettings,
+    rows: list[dict[str, Any]],
+    verdicts: dict[str, Any],
+    full_log: Path,
+    pruned_log: Path,
+) -> dict[str, str]:
+    """results.json, results.csv, results.md and plots/*.png."""
+    write_text_atomic(out / "results.json", json.dumps(rows, indent=1, default=str))
+    write_text_atomic(out / "results.csv", _csv(rows))
+    plots = _plots(out / "plots", rows, s, full_log)
+    write_text_atomic(out / "results.md", _markdown(seq, s, rows, verdicts, plots, out))
+    return {
+        "results_md": str(out / "results.md"),
+        "results_csv": str(out / "results.csv"),
+        "results_json": str(out / "results.json"),
+        "plots": ", ".join(str(p) for p in plots),
+    }
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    import io
+
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=ROW_KEYS, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in ROW_KEYS})
+    return buffer.getvalue()
+
+
+def _markdown(
+    seq: Path,
+    s: ExperimentSettings,
+    rows: list[dict[str, Any]],
+    verdicts: dict[str, Any],
+    plots: list[Path],
+    out: Path,
+) -> str:
+    lines = [
+        f"# gsc experiment: {seq.name}",
+        "",
+        f"Preset `{s.preset}`"
+        + (f" + `{s.config_path}`" if s.config_path else "")
+        + f", keep {s.keep}, budget {s.budget}, seeds {s.seeds}, evaluated every {s.every} "
+        "frame(s) of each run's own frames at its estimated poses (PSNR/SSIM on valid-depth "
+        "pixels; ATE RMSE after SE(3) alignment, cm). gscompress " + __version__ + ".",
+        "",
+        "## Table 3: PWAS pruning over the whole sequence",
+        "",
+        "| Method | Gaussians | Reduction | PSNR | SSIM | LPIPS | ATE RMSE (cm) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    t3 = [r for r in rows if r["table"] == "table3"]
+    base = t3[0]["gaussians"] or 1
+    for r in t3:
+        reduction = 100.0 * (1 - (r["gaussians"] or 0) / base)
+        lines.append(
+            f"| {r['name']} | {r['gaussians']} | {reduction:.1f}% | {_fmt(r['psnr'])} | "
+            f"{_fmt(r['ssim'], '.3f')} | {_fmt(r['lpips'], '.3f')} | "
+            f"{_fmt(r['ate_rmse_cm'], '.3f')} |"
+        )
+    lines += [
+        "",
+        f"## Table 4: sharing at budget {s.budget} (B maps the even frames, A the odd ones)",
+        "",
+        "| Seed | Method | ATE RMSE (cm) | PSNR | SSIM | LPIPS | Gaussians | Shared "
+        "| Bytes shared |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    t4 = [r for r in rows if r["table"] == "table4"]
+    for r in t4:
+        lines.append(
+            f"| {r['seed']} | {r['name']} | {_fmt(r['ate_rmse_cm'], '.3f')} | {_fmt(r['psnr'])} | "
+            f"{_fmt(r['ssim'], '.3f')} | {_fmt(r['lpips'], '.3f')} | {r['gaussians']} | "
+            f"{_fmt(r['share_gaussians'], 'd')} | {_fmt(r['share_bytes'], 'd')} |"
+        )
+    lines += ["", f"Mean over {s.seeds} seed(s):", "",
+              "| Method | ATE RMSE (cm) | PSNR | SSIM | LPIPS | Gaussians | Bytes shared |",
+              "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name in dict.fromkeys(r["name"] for r in t4):
+        group = [r for r in t4 if r["name"] == name]
+        lines.append(
+            f"| {name} | {_fmt(_mean([r['ate_rmse_cm'] for r in group]), '.3f')} | "
+            f"{_fmt(_mean([r['psnr'] for r in group]))} | "
+            f"{_fmt(_mean([r['ssim'] for r in group]), '.3f')} | "
+            f"{_fmt(_mean([r['lpips'] for r in group]), '.3f')} | "
+            f"{_fmt(_mean([r['gaussians'] for r in group]), '.0f')} | "
+            f"{_fmt(_mean([r['share_bytes'] for r in group]), '.0f')} |"
+        )
+    v = verdicts
+    lines += [
+        "",
+        f"PWAS beats random at {s.budget}: on PSNR in {v['pwas_beats_random_psnr']} of "
+        f"{s.seeds} seed(s), on ATE in {v['pwas_beats_random_ate']} of {s.seeds}.",
+        "",
+        "## Rate-distortion (B with A's share, mean over the sweep seeds)",
+        "",
+        "| Budget | Strategy | PSNR | ATE RMSE (cm) | Gaussians shared | Bytes shared |",
+        "|---|---|---|---|---|---|",
+    ]
+    for budget in s.sweep:
+        for strategy in s.strategies:
+            group = [r for r in _sweep_rows(rows, s, budget) if r["strategy"] == strategy]
+            if group:
+                lines.append(
+                    f"| {budget} | {strategy} | {_fmt(_mean([r['psnr'] for r in group]))} | "
+                    f"{_fmt(_mean([r['ate_rmse_cm'] for r in group]), '.3f')} | "
+                    f"{_fmt(_mean([r['share_gaussians'] for r in group]), '.0f')} | "
+                    f"{_fmt(_mean([r['share_bytes'] for r in group]), '.0f')} |"
+                )
+    lines += ["", "## Plots", ""]
+    lines += [f"![{p.stem}]({p.relative_to(out)})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def _plots(
+    folder: Path, rows: list[dict[str, Any]], s: ExperimentSettings, full_log: Path
+) -> list[Path]:
+    """Rate-distortion curves, importance histogram and top-down importance map (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for strategy in s.strategies:
+        points = []
+        for budget in s.sweep:
+            group = [r for r in _sweep_rows(rows, s, budget) if r["strategy"] == strategy]
+            if group:
+                points.append((_mean([r["share_bytes"] for r in group]) or 0.0,
+                               _mean([r["psnr"] for r in group]),
+                               _mean([r["ate_rmse_cm"] for r in group])))  # fmt: skip
+        points.sort()
+        if points:
+            x = [p[0] / 1e6 for p in points]
+            axes[0].plot(x, [p[1] for p in points], marker="o", label=strategy)
+            axes[1].plot(x, [p[2] for p in points], marker="o", label=strategy)
+    for ax, label in zip(axes, ("PSNR of agent B (dB)", "ATE RMSE of agent B (cm)"), strict=True):
+        ax.set_xlabel("share size (MB)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.suptitle("Rate-distortion: B with A's share")
+    fig.tight_layout()
+    paths.append(_save(fig, folder / "rate_distortion.png"))
+
+    with LogReader(full_log) as reader:
+        gaussians = reader.read_map()
+    scores = strategy_scores(gaussians, "pwas")
+    kept = np.sort(scores)[::-1][: max(1, round(s.keep * len(scores)))]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    positive = scores[scores > 0]
+    low, high = (positive.min(), positive.max()) if len(positive) else (1e-6, 1.0)
+    bins = list(np.logspace(np.log10(low), np.log10(max(high, low * 1.01)), 50))
+    ax.hist(positive, bins=bins, alpha=0.6, label=f"all ({len(scores)})")
+    ax.hist(kept[kept > 0], bins=bins, alpha=0.6, label=f"kept at {s.keep:g} ({len(kept)})")
+    ax.set_xscale("log")
+    ax.set_xlabel("PWAS importance")
+    ax.set_ylabel("Gaussians")
+    ax.set_title("Importance before and after pruning (unpruned run's map)")
+    ax.legend()
+    fig.tight_layout()
+    paths.append(_save(fig, folder / "importance_hist.png"))
+
+    plan = _plan_view(gaussians.means)
+    fig, ax = plt.subplots(figsize=(6, 6))
+    order = np.argsort(scores)
+    shown = ax.scatter(plan[order, 0], plan[order, 1], c=np.log10(scores[order] + 1e-12), s=1,
+                       cmap="turbo")  # fmt: skip
+    fig.colorbar(shown, ax=ax, label="log10 PWAS importance")
+    ax.set_aspect("equal")
+    ax.set_title("Top-down view coloured by importance")
+    ax.set_xlabel("m")
+    ax.set_ylabel("m")
+    fig.tight_layout()
+    paths.append(_save(fig, folder / "importance_topdown.png"))
+    return paths
+
+
+def _plan_view(means: np.ndarray) -> np.ndarray:
+    """[N, 2] coordinates on the plane of the two largest principal axes (the floor plan).
+
+    Indoor maps are wider than they are tall, so the axis of least spread is taken as up.
+    """
+    centred = means - means.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred[:: max(1, len(centred) // 20000)], full_matrices=False)
+    return centred @ vt[:2].T
+
+
+def _save(fig: Any, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def settings_dict(settings: ExperimentSettings) -> dict[str, Any]:
+    """The settings as plain values (for the command's JSON output)."""
+    return asdict(settings)

@@ -1,0 +1,81 @@
+"""`gsc experiment` end to end on the tiny preset: tables, plots, and reuse on a rerun."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.errors import InputError
+from gscompress.io.mcap_log import LogReader
+from gscompress.pipeline.experiment import ROW_KEYS, ExperimentSettings, plan_size
+from gscompress_cli.main import cli
+
+REQUIRED = ("name", "ate_rmse_cm", "psnr", "ssim", "lpips", "gaussians", "bytes")
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
+    root = tmp_path_factory.mktemp("exp")
+    seq = write_synthetic_sequence(root / "room", 4, (64, 48))
+    out = root / "exp"
+    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    return seq, out, json.loads(r.output)
+
+
+def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, dict]) -> None:
+    _seq, out, result = experiment
+    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), lpips=False)
+    assert result["steps"] == plan_size(settings) and result["reused"] == 0
+    rows = json.loads((out / "results.json").read_text())
+    assert all(set(REQUIRED) <= set(row) for row in rows)
+    tables = [row["table"] for row in rows]
+    assert tables.count("table3") == 2
+    assert tables.count("table4") == 2 + 4 + 1  # A, B, four strategies, the full map
+    assert tables.count("sweep") == 4  # four strategies at 0.5 (0.2 is Table 4's)
+    for row in rows:
+        with LogReader(out / row["log"]) as log:
+            assert log.read_map().__len__() == row["gaussians"]
+    by_name = {(r["name"], r["table"]): r for r in rows}
+    pwas, full = by_name[("B + pwas 0.2", "table4")], by_name[("B + A's full map", "table4")]
+    a = by_name[("agent A (odd frames)", "table4")]
+    assert pwas["share_gaussians"] == round(0.2 * a["gaussians"])
+    assert full["share_gaussians"] == a["gaussians"] and full["share_bytes"] > pwas["share_bytes"]
+    with open(out / "results.csv", newline="") as f:
+        assert set(next(iter(csv.DictReader(f)))) == set(ROW_KEYS)
+    md = (out / "results.md").read_text()
+    assert "## Table 3" in md and "## Table 4" in md and "Rate-distortion" in md
+    for name in ("rate_distortion", "importance_hist", "importance_topdown"):
+        assert (out / "plots" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert result["verdicts"]["seeds"] == 1 and len(result["verdicts"]["sweep"]) == 2
+
+
+def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
+    experiment: tuple[Path, Path, dict],
+) -> None:
+    seq, out, first = experiment
+    base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
+            "--no-lpips", "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5"])
+    assert r.exit_code == 0, r.output
+    again = json.loads(r.output)
+    assert again["reused"] == again["steps"] == first["steps"]
+    # a new sweep budget: only its shares and B runs are new (four strategies x 2 steps)
+    r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5,0.3"])
+    assert r.exit_code == 0, r.output
+    third = json.loads(r.output)
+    assert third["steps"] - third["reused"] == 8
+
+
+def test_bad_settings_are_refused() -> None:
+    with pytest.raises(InputError, match="random and pwas"):
+        ExperimentSettings(strategies=("opacity",)).check()
+    r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--sweep", "2"])
+    assert r.exit_code == 2 and "unit" in r.output
