@@ -1,8 +1,9 @@
-"""The embedded demo: synthetic sequence -> SLAM with PWAS -> prune -> share -> PLY.
+"""The embedded demo: synthetic sequence -> SLAM with PWAS -> eval -> prune -> share -> PLY.
 
 Runs every step through the `gsc` command line, as a user would, and prints each command:
 `gsc synth` makes the project's synthetic RGB-D sequence, `gsc slam` maps it (cpu preset) and
-scores every Gaussian, then the offline commands prune the map, cut a 20% share for another agent
+scores every Gaussian, `gsc eval` reports its ATE, PSNR, SSIM and LPIPS, then the offline
+commands prune the map, cut a 20% share for another agent
 and export PLY files for splat viewers.
 
 Usage: python examples/demo.py [--out demo_out] [--frames 40] [--size 160x120]
@@ -40,6 +41,7 @@ def main() -> None:
     gsc("synth", seq, "--frames", opts.frames, "--size", opts.size)
     gsc("slam", seq, "-o", out / "map.mcap", "--size", opts.size)
     gsc("info", out / "map.mcap")
+    gsc("eval", out / "map.mcap", "--seq", seq)
     gsc("prune", out / "map.mcap", "--keep", "0.3", "-o", out / "map_pruned.mcap")
     gsc(
         "share", "--budget", "0.2", out / "map.mcap", out / "share.mcap", "--ply", out / "share.ply"
