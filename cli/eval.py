@@ -9,17 +9,21 @@ import click
 
 from gscompress.pipeline import evaluate_log
 
-from .options import FrameSubset, emit, json_option, progress_bar, size_option
+from .options import (
+    FrameSubset,
+    backend_option,
+    device_option,
+    emit,
+    json_option,
+    progress_bar,
+    seq_option,
+    size_option,
+)
 
 
 @click.command("eval")
 @click.argument("src", metavar="LOG.mcap", type=click.Path(path_type=Path))
-@click.option(
-    "--seq",
-    type=click.Path(path_type=Path),
-    required=True,
-    help="The RGB-D sequence the log was made from (TUM or Replica layout).",
-)
+@seq_option(help="The RGB-D sequence the log was made from (TUM or Replica layout).")
 @click.option(
     "--frames",
     type=FrameSubset(),
@@ -34,16 +38,8 @@ from .options import FrameSubset, emit, json_option, progress_bar, size_option
     help="Render every N-th frame that has an estimated pose (ATE uses all of them).",
 )
 @size_option(help="Render at this size WxH [default: the log's working size].")
-@click.option(
-    "--backend",
-    type=click.Choice(["auto", "cpu", "torch", "gsplat"]),
-    default="auto",
-    show_default=True,
-    help="Render backend.",
-)
-@click.option(
-    "--device", default="auto", show_default=True, help="Torch device to render on (cpu, cuda)."
-)
+@backend_option
+@device_option
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (reported as not asked for).")
 @json_option
 def eval_command(

@@ -8,9 +8,14 @@ import click
 
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
 
-from .options import emit, json_option, progress_bar, size_option
-
-PRESET_NAMES = ("tiny", "cpu", "paper", "paper-tum")
+from .options import (
+    device_option,
+    emit,
+    json_option,
+    progress_bar,
+    size_option,
+    slam_config_options,
+)
 
 
 def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tuple[str, ...]:
@@ -42,14 +47,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "--keep", type=float, default=0.3, show_default=True,
     help="Fraction kept at each PWAS pruning stage.",
 )  # fmt: skip
-@click.option(
-    "--preset", type=click.Choice(PRESET_NAMES), default="cpu", show_default=True,
-    help="SLAM preset of every run (tiny: seconds, for a smoke test).",
-)  # fmt: skip
-@click.option(
-    "--config", "config_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None, help="YAML config applied on top of the preset.",
-)  # fmt: skip
+@slam_config_options
 @click.option(
     "--seeds", type=click.IntRange(min=1), default=3, show_default=True,
     help="Seeds of the two-agent runs (SLAM seed and random share seed).",
@@ -72,7 +70,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     help="Evaluate every N-th frame of each run.",
 )  # fmt: skip
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
-@click.option("--device", default="auto", show_default=True, help="Torch device (auto, cpu, cuda).")
+@device_option
 @json_option
 def experiment(
     seq: Path,

@@ -11,12 +11,14 @@ from gscompress.pipeline import merge_logs
 from .options import (
     FrameSubset,
     command_line,
+    device_option,
     emit,
     force_option,
     json_option,
     output_option,
     progress_bar,
     seed_option,
+    seq_option,
     size_option,
 )
 
@@ -25,12 +27,7 @@ from .options import (
 @click.argument("receiver", metavar="RECEIVER.mcap", type=click.Path(path_type=Path))
 @click.argument("share", metavar="SHARE.mcap", type=click.Path(path_type=Path))
 @output_option("Output log (.mcap): the receiver's log with the merged, refined map.")
-@click.option(
-    "--seq",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="The receiver's RGB-D sequence (needed to refine; not with --iters 0).",
-)
+@seq_option(False, "The receiver's RGB-D sequence (needed to refine; not with --iters 0).")
 @click.option(
     "--frames",
     type=FrameSubset(),
@@ -45,7 +42,7 @@ from .options import (
     show_default=True,
     help="Refinement iterations on the receiver's keyframes (0: concatenate only).",
 )
-@click.option("--device", default="auto", show_default=True, help="Torch device (auto, cpu, cuda).")
+@device_option
 @seed_option
 @force_option
 @json_option

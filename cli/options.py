@@ -159,3 +159,59 @@ def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
     return click.option(
         "-o", "--output", "dst", required=True, type=click.Path(path_type=Path), help=help
     )
+
+
+def seq_option(required: bool = True, help: str = "RGB-D sequence folder (TUM or Replica).") -> Any:
+    """`--seq FOLDER`: the sequence a command renders or refines against."""
+    return click.option(
+        "--seq",
+        type=click.Path(path_type=Path),  # a missing folder is reported by open_sequence
+        required=required,
+        default=None,
+        help=help,
+    )
+
+
+def device_option(f: F) -> F:
+    """`--device auto|cpu|cuda` (auto: cuda when available)."""
+    return click.option(
+        "--device",
+        type=click.Choice(["auto", "cpu", "cuda"]),
+        default="auto",
+        show_default=True,
+        help="Torch device (auto: cuda when available).",
+    )(f)
+
+
+def backend_option(f: F) -> F:
+    """`--backend auto|cpu|torch|gsplat`: the renderer."""
+    return click.option(
+        "--backend",
+        type=click.Choice(["auto", "cpu", "torch", "gsplat"]),
+        default="auto",
+        show_default=True,
+        help="Render backend (auto: gsplat on CUDA, else the C++ CPU kernel, else pure torch).",
+    )(f)
+
+
+PRESET_NAMES = ("tiny", "cpu", "paper", "paper-tum")
+"""The SLAM presets (`gscompress.slam.config.PRESETS`, named here so that --help needs no torch)."""
+
+
+def slam_config_options(f: F) -> F:
+    """`--preset NAME` and `--config FILE.yaml` (passed as `preset`, `config_path`)."""
+    f = click.option(
+        "--config",
+        "config_path",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        default=None,
+        help="YAML config applied on top of the preset (any subset of --save-config's keys).",
+    )(f)
+    return click.option(
+        "--preset",
+        type=click.Choice(PRESET_NAMES),
+        default="cpu",
+        show_default=True,
+        help="Starting configuration: tiny (tests, seconds), cpu (160x120, ~1-2 s/frame on 2 "
+        "cores), paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU).",
+    )(f)

@@ -10,24 +10,21 @@ from gscompress.pipeline import score_file
 
 from .options import (
     FrameSubset,
+    backend_option,
     command_line,
     emit,
     force_option,
     json_option,
     output_option,
     progress_bar,
+    seq_option,
     size_option,
 )
 
 
 @click.command("score")
 @click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option(
-    "--seq",
-    type=click.Path(exists=True, file_okay=False, path_type=Path),
-    required=True,
-    help="RGB-D sequence folder (TUM or Replica layout).",
-)
+@seq_option()
 @click.option(
     "--poses",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
@@ -49,13 +46,7 @@ from .options import (
     show_default=True,
     help="Distance scale of the PWAS proximity weight, metres.",
 )
-@click.option(
-    "--backend",
-    type=click.Choice(["auto", "cpu", "torch", "gsplat"]),
-    default="auto",
-    show_default=True,
-    help="Render backend.",
-)
+@backend_option
 @output_option()
 @force_option
 @json_option

@@ -13,14 +13,14 @@ from tqdm import tqdm
 from .options import (
     Ratio,
     command_line,
+    device_option,
     emit,
     force_option,
     frames_option,
     json_option,
     size_option,
+    slam_config_options,
 )
-
-PRESET_NAMES = ("tiny", "cpu", "paper", "paper-tum")
 
 
 def _stop(signum: int, frame: object) -> None:
@@ -38,21 +38,7 @@ def _stop(signum: int, frame: object) -> None:
     default=None,
     help="Output log (.mcap). Required unless only --save-config is asked for.",
 )
-@click.option(
-    "--preset",
-    type=click.Choice(PRESET_NAMES),
-    default="cpu",
-    show_default=True,
-    help="Starting configuration: tiny (tests), cpu (reduced size, ~2 s/frame on 2 cores), "
-    "paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU).",
-)
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="YAML config applied on top of the preset (any subset of --save-config's keys).",
-)
+@slam_config_options
 @click.option(
     "--save-config",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -61,13 +47,7 @@ def _stop(signum: int, frame: object) -> None:
 )
 @frames_option
 @size_option(help="Working image size WxH (default: the config's; the cpu preset uses 160x120).")
-@click.option(
-    "--device",
-    type=click.Choice(["auto", "cpu", "cuda"]),
-    default="auto",
-    show_default=True,
-    help="Torch device (auto: cuda when available).",
-)
+@device_option
 @click.option(
     "--keep",
     type=Ratio(),

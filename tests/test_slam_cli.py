@@ -136,3 +136,10 @@ def test_keyboard_interrupt_leaves_a_readable_log_of_the_frames_done(tmp_path):
         assert log.metadata.results["interrupted"] and log.metadata.results["frames"] == 3
         final = log.read_map()
     assert len(final) > 0 and final.has_importance
+
+
+def test_cli_preset_names_are_the_presets() -> None:
+    from gscompress.slam.config import PRESETS
+    from gscompress_cli.options import PRESET_NAMES
+
+    assert set(PRESET_NAMES) == set(PRESETS)
