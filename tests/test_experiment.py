@@ -79,3 +79,13 @@ def test_bad_settings_are_refused() -> None:
         ExperimentSettings(strategies=("opacity",)).check()
     r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--sweep", "2"])
     assert r.exit_code == 2 and "unit" in r.output
+
+
+def test_budgets_written_differently_are_the_same_budget() -> None:
+    from gscompress.pipeline.experiment import _same_budget
+
+    assert _same_budget("0.2", "20%") and _same_budget("2MB", "2000kB")
+    assert not _same_budget("0.2", "0.3") and not _same_budget("0.2", "")
+    # the main budget written as a percentage is not run twice in the sweep
+    settings = ExperimentSettings(budget="20%", sweep=("0.2", "0.4"), seeds=1)
+    assert plan_size(settings) == plan_size(ExperimentSettings(sweep=("0.4",), seeds=1))

@@ -188,7 +188,7 @@ def plan_size(settings: ExperimentSettings) -> int:
     s = settings
     main = 2 + len(s.strategies) + 1  # A, B, B+share per strategy, B+full
     shares = len(s.strategies) + 1
-    extra_budgets = [b for b in s.sweep if Budget.parse(b) != Budget.parse(s.budget)]
+    extra_budgets = [b for b in s.sweep if not _same_budget(b, s.budget)]
     sweep = s.sweep_seeds * len(extra_budgets) * len(s.strategies) * 2
     return 2 + s.seeds * (main + shares) + sweep
 
@@ -226,7 +226,7 @@ def run_experiment(
     rows.append(_row("full, no pruning", "table3", full))
     rows.append(_row("full, PWAS pruning", "table3", pruned))
 
-    budgets = [s.budget] + [b for b in s.sweep if Budget.parse(b) != Budget.parse(s.budget)]
+    budgets = [s.budget] + [b for b in s.sweep if not _same_budget(b, s.budget)]
     for seed in range(s.seeds):
         config = base.with_overrides(seed=seed)
         a = runner.slam(f"s{seed}_agent_a", config, "odd")
@@ -282,7 +282,11 @@ def _row(
 
 
 def _same_budget(a: str, b: str) -> bool:
-    return bool(a) and bool(b) and Budget.parse(a) == Budget.parse(b)
+    """Whether two written budgets mean the same (`0.2` and `20%` do)."""
+    if not a or not b:
+        return False
+    x, y = Budget.parse(a), Budget.parse(b)
+    return (x.ratio, x.budget_bytes) == (y.ratio, y.budget_bytes)
 
 
 def _sweep_rows(rows: list[dict[str, Any]], s: ExperimentSettings, budget: str) -> list[dict]:
