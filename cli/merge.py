@@ -19,6 +19,7 @@ from .options import (
     progress_bar,
     seed_option,
     seq_option,
+    share_transform_option,
     size_option,
 )
 
@@ -44,6 +45,7 @@ from .options import (
 )
 @device_option
 @seed_option
+@share_transform_option
 @force_option
 @json_option
 def merge(
@@ -56,6 +58,7 @@ def merge(
     iters: int,
     device: str,
     seed: int,
+    share_transform: Path | None,
     force: bool,
     as_json: bool,
 ) -> None:
@@ -89,6 +92,7 @@ def merge(
             iters=iters,
             device=device,
             seed=seed,
+            share_transform=share_transform,
             command=command_line(),
             force=force,
             progress=progress,

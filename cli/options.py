@@ -215,3 +215,15 @@ def slam_config_options(f: F) -> F:
         help="Starting configuration: tiny (tests, seconds), cpu (160x120, ~1-2 s/frame on 2 "
         "cores), paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU).",
     )(f)
+
+
+def share_transform_option(f: F) -> F:
+    """`--share-transform FILE`: the rigid transform from a share's world frame to ours."""
+    return click.option(
+        "--share-transform",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        help="Text file with the rigid transform from the share's world frame to the receiver's "
+        "(16 numbers of a 4x4 matrix, or `tx ty tz qx qy qz qw`), for agents whose frames "
+        "differ; without it the two logs' recorded world frames must agree.",
+    )(f)

@@ -18,6 +18,7 @@ from .options import (
     force_option,
     frames_option,
     json_option,
+    share_transform_option,
     size_option,
     slam_config_options,
 )
@@ -66,6 +67,7 @@ def _stop(signum: int, frame: object) -> None:
     help="Start the map with another agent's share (a `gsc share` log in the same world "
     "frame): its Gaussians, ids and PWAS sums, so tracking uses them from the first frame.",
 )
+@share_transform_option
 @click.option(
     "--resume",
     is_flag=True,
@@ -86,6 +88,7 @@ def slam(
     keep: float | None,
     no_prune: bool,
     inject: Path | None,
+    share_transform: Path | None,
     resume: bool,
     force: bool,
     as_json: bool,
@@ -159,6 +162,7 @@ def slam(
                 keep=keep,
                 no_prune=no_prune,
                 inject=inject,
+                share_transform=share_transform,
                 resume=resume,
                 command=command_line(),
                 force=force,

@@ -120,3 +120,50 @@ def test_gsc_merge_command(agents: dict[str, Path]) -> None:
     assert result["refine_iters"] == 5 and Path(result["output"]) == out
     r = CliRunner().invoke(cli, [str(a) for a in args])
     assert r.exit_code == 1 and r.output.startswith("Error: ") and "--force" in r.output
+
+
+def test_transform_map_moves_means_and_orientations_rigidly() -> None:
+    from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
+    from gscompress.ops.merge import transform_map
+
+    gaussians = random_map(30, seed=5, isotropic=False)
+    angle = 0.7
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                  [0, 0, 1]])  # fmt: skip
+    T = make_transform(R, [1.0, -2.0, 0.5])
+    moved = transform_map(gaussians, T)
+    np.testing.assert_allclose(moved.means, gaussians.means @ R.T + T[:3, 3], atol=1e-5)
+    np.testing.assert_allclose(
+        quat_to_rotmat(moved.quats), R @ quat_to_rotmat(gaussians.quats), atol=1e-6
+    )
+    back = transform_map(moved, invert_transform(T))
+    np.testing.assert_allclose(back.means, gaussians.means, atol=1e-5)
+    assert np.array_equal(back.ids, gaussians.ids) and back.log_scales is moved.log_scales
+    with pytest.raises(MapError, match="rigid"):
+        transform_map(gaussians, np.diag([2.0, 1.0, 1.0, 1.0]))
+
+
+def test_merge_across_world_frames_with_an_explicit_transform(
+    agents: dict[str, Path], tmp_path: Path
+) -> None:
+    from gscompress.io.trajectory import read_transform
+
+    other_seq = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=2)
+    other = tmp_path / "other.mcap"
+    slam_file(other_seq, other, preset="tiny")
+    transform = tmp_path / "T.txt"
+    transform.write_text("# share frame -> receiver frame\n0.5 0 0  0 0 0 1\n")
+    out = tmp_path / "merged.mcap"
+    result = merge_logs(agents["b"], other, out, iters=0, share_transform=transform)
+    with LogReader(other) as log:
+        shared = log.read_map()
+    with LogReader(out) as log:
+        merged = log.read_map()
+        step = log.metadata.provenance[-1]["operation"]
+    tail = merged.select(np.arange(result["receiver"], len(merged)))
+    np.testing.assert_allclose(tail.means, shared.means + np.array([0.5, 0, 0]), atol=1e-6)
+    assert step["share_world_frame"] == "ground-truth:other" and step["transform"][0][3] == 0.5
+    for text, message in (("1 2 3", "expected 16 numbers"), ("a b", "numbers only")):
+        transform.write_text(text)
+        with pytest.raises(InputError, match=message):
+            read_transform(transform)

@@ -84,6 +84,15 @@ def parse_tum_trajectory(text: str, source: str = "<text>") -> Trajectory:
     return Trajectory(np.asarray(stamps, dtype=np.float64), pose_from_tum(np.asarray(rows)))
 
 
+def _read_text(path: Path, what: str) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{what} file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read {what} file {path}: {exc}") from None
+
+
 def read_tum_trajectory(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file (see `parse_tum_trajectory`).
 
@@ -91,13 +100,34 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
         InputError: the file is missing, unreadable, or has a malformed row.
     """
     path = Path(path)
+    return parse_tum_trajectory(_read_text(path, "trajectory"), source=str(path))
+
+
+def read_transform(path: str | Path) -> np.ndarray:
+    """A [4, 4] rigid transform from a text file: 16 numbers (row-major 4x4) or 7 numbers in
+    TUM order `tx ty tz qx qy qz qw`; `#` starts a comment.
+
+    Raises:
+        InputError: missing file, another count of numbers, or non-finite values.
+    """
+    path = Path(path)
+    words = [w for line in _read_text(path, "transform").splitlines()
+             for w in line.split("#")[0].split()]  # fmt: skip
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"trajectory file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read trajectory file {path}: {exc}") from None
-    return parse_tum_trajectory(text, source=str(path))
+        values = np.array([float(w) for w in words])
+    except ValueError:
+        raise InputError(f"{path}: a transform file holds numbers only") from None
+    if not np.all(np.isfinite(values)) or len(values) not in (7, 16):
+        raise InputError(
+            f"{path}: expected 16 numbers (a 4x4 matrix) or 7 (tx ty tz qx qy qz qw), "
+            f"got {len(values)}{' with non-finite values' if len(values) in (7, 16) else ''}"
+        )
+    if len(values) == 7:
+        return pose_from_tum(values)
+    T = values.reshape(4, 4)
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise InputError(f"{path}: the last row of a rigid transform is 0 0 0 1")
+    return T
 
 
 def format_tum_trajectory(

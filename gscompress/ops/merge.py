@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.camera import Intrinsics
+from gscompress.camera import Intrinsics, quat_to_rotmat, rotmat_to_quat
 from gscompress.errors import MapError
 from gscompress.gaussians import GaussianMap
 
@@ -37,6 +37,31 @@ def check_same_world(receiver: str, share: str, what: str) -> None:
             f"{what}: the share is expressed in {share!r} but the receiver in {receiver!r}; "
             "maps whose world frames are not known to agree cannot be combined"
         )
+
+
+def transform_map(gaussians: GaussianMap, T_new_old: np.ndarray) -> GaussianMap:
+    """The map expressed in another frame: means and orientations moved by a rigid transform.
+
+    Args:
+        gaussians: the map (SH degree 0: higher bands would need rotating too).
+        T_new_old: [4, 4] rigid transform taking points of the map's frame to the new frame.
+
+    Raises:
+        MapError: not a rigid transform, or a map with higher SH bands.
+    """
+    T = np.asarray(T_new_old, dtype=np.float64)
+    R = T[:3, :3]
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(
+        R @ R.T, np.eye(3), atol=1e-6
+    ) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-6):  # fmt: skip
+        raise MapError("the transform is not a finite rigid 4x4 transform (rotation + shift)")
+    if gaussians.sh_degree > 0:
+        raise MapError("moving a map with SH degree > 0 needs its SH rotated; not supported")
+    if len(gaussians) == 0:
+        return gaussians
+    means = gaussians.means.astype(np.float64) @ R.T + T[:3, 3]
+    quats = rotmat_to_quat(R @ quat_to_rotmat(gaussians.quats))
+    return replace(gaussians, means=means.astype(np.float32), quats=quats.astype(np.float32))
 
 
 def merge_maps(receiver: GaussianMap, share: GaussianMap) -> tuple[GaussianMap, int]:

@@ -23,6 +23,33 @@ from gscompress.ops.merge import check_same_world
 from gscompress.pipeline.offline import rewrite_map, seconds_to_ns
 
 
+def read_share(
+    share: str | Path, receiver_world: str, what: str, transform: str | Path | None = None
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """A share's map in the receiver's world frame, and what to record of it.
+
+    Without `transform` the share's recorded world frame must be the receiver's; with it, the
+    share is moved by the transform in the file (share frame -> receiver frame) instead.
+
+    Raises:
+        MapError: world frames unknown or different (without a transform).
+    """
+    from gscompress.io.trajectory import read_transform
+    from gscompress.ops.merge import transform_map
+
+    with LogReader(share) as share_log:
+        shared = share_log.read_map()
+        world = share_log.metadata.world_frame
+    record: dict[str, Any] = {"share": Path(share).name, "share_sha256": sha256(share)}
+    if transform is None:
+        check_same_world(receiver_world, world, what)
+    else:
+        T = read_transform(transform)
+        shared = transform_map(shared, T)
+        record.update(share_world_frame=world, transform=np.round(T, 12).tolist())
+    return shared, record
+
+
 def merge_logs(
     receiver: str | Path,
     share: str | Path,
@@ -34,6 +61,7 @@ def merge_logs(
     iters: int = 200,
     device: str = "auto",
     seed: int = 0,
+    share_transform: str | Path | None = None,
     command: str = "",
     force: bool = False,
     progress: Callable[[int, int], object] | None = None,
@@ -50,6 +78,8 @@ def merge_logs(
         iters: refinement iterations on the receiver's keyframes (0: concatenate only).
         device: torch device, or "auto".
         seed: seed of the view choice.
+        share_transform: a file with the rigid transform from the share's world frame to the
+            receiver's (4x4 or TUM `tx ty tz qx qy qz qw`), for maps whose frames differ.
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called with (iterations done, iterations) during refinement.
@@ -66,13 +96,10 @@ def merge_logs(
         raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
     inputs = [receiver, share] + ([seq] if seq is not None else [])
     check_output(dst, inputs, force)
-    with LogReader(share) as share_log:
-        shared = share_log.read_map()
-        share_world = share_log.metadata.world_frame
     with LogReader(receiver) as receiver_log:
         meta = receiver_log.metadata
         receiver_log.require_snapshots()
-    check_same_world(meta.world_frame, share_world, "merge")
+    shared, share_record = read_share(share, meta.world_frame, "merge", share_transform)
 
     def merge(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         merged, offset = merge_maps(own, shared)
@@ -89,13 +116,7 @@ def merge_logs(
             results.update({f"refine_{k}": v for k, v in stats.items()})
         return merged, results
 
-    operation = {
-        "name": "merge",
-        "share": Path(share).name,
-        "share_sha256": sha256(share),
-        "iters": iters,
-        "seed": seed,
-    }
+    operation = {"name": "merge", **share_record, "iters": iters, "seed": seed}
     out = rewrite_map(receiver, dst, operation, merge, command=command, force=force)
     return out
 

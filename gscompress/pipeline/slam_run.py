@@ -16,20 +16,18 @@ from typing import Any
 import numpy as np
 
 from gscompress.errors import InputError
-from gscompress.io.files import check_output, sha256
+from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
     TOPIC_STATS,
     LogMetadata,
-    LogReader,
     LogWriter,
     decode_pose,
     pointcloud_to_gaussians,
 )
 from gscompress.io.recover import Record, read_messages, unfinished_files
-from gscompress.ops.merge import check_same_world
 from gscompress.ops.select import check_ratio
 from gscompress.pipeline.offline import seconds_to_ns
 
@@ -74,6 +72,7 @@ def slam_file(
     keep: float | None = None,
     no_prune: bool = False,
     inject: str | Path | None = None,
+    share_transform: str | Path | None = None,
     resume: bool = False,
     config: Any = None,
     command: str = "",
@@ -105,7 +104,9 @@ def slam_file(
         keep: PWAS keep ratio of the pruning stages, overriding the config's.
         no_prune: skip the PWAS pruning stages (cyclic opacity cleanup still runs).
         inject: a share log whose Gaussians (with ids and PWAS sums) start the map; its world
-            frame must be this run's.
+            frame must be this run's, unless `share_transform` is given.
+        share_transform: a file with the rigid transform from the share's world frame to this
+            run's (4x4 or TUM `tx ty tz qx qy qz qw`).
         resume: continue the interrupted run whose log (or unfinished file) is at `dst`, with
             the config, frames and size recorded in it; the other options must be left unset.
         config: a ready `SlamConfig` to use instead of preset + `config_path` + options.
@@ -137,7 +138,9 @@ def slam_file(
             from gscompress.slam.config import resolve_config
 
             config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
-        run = _fresh_run(seq, dst, config, frames, device, inject, force, sequence)
+        if share_transform is not None and inject is None:
+            raise InputError("a share transform needs --inject")
+        run = _fresh_run(seq, dst, config, frames, device, inject, share_transform, force, sequence)
     run.meta.command = command
     return _loop(run, dst, progress)
 
@@ -161,6 +164,7 @@ def _fresh_run(
     frames: str,
     device: str,
     inject: str | Path | None,
+    share_transform: str | Path | None,
     force: bool,
     sequence: Any,
 ) -> _Run:
@@ -179,14 +183,17 @@ def _fresh_run(
         world_frame=world_frame_of(sequence, config),
     )
     if inject is not None:
-        with LogReader(inject) as share_log:
-            share = share_log.read_map()
-            share_meta = share_log.metadata
-        check_same_world(meta.world_frame, share_meta.world_frame, "--inject")
+        from gscompress.pipeline.merge import read_share
+
+        share, record = read_share(inject, meta.world_frame, "--inject", share_transform)
         injected = system.add_gaussians(share, renumber=False)
-        operation = {"name": "inject", "gaussians": injected}
+        operation = {"name": "inject", "gaussians": injected, **record}
         meta.provenance.append(
-            {"operation": operation, "parent": Path(inject).name, "parent_sha256": sha256(inject)}
+            {
+                "operation": operation,
+                "parent": record["share"],
+                "parent_sha256": record["share_sha256"],
+            }
         )
         meta.results["injected"] = injected
     return _Run(config, sequence, system, meta, inputs)
