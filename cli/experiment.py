@@ -66,6 +66,11 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 )  # fmt: skip
 @size_option(help="Working size WxH of every run [default: the preset's].")
 @click.option(
+    "--frames", default="all", show_default=True,
+    help="Frames of the experiment: all or START:STOP:STEP; A gets the odd positions among "
+    "them, B the even ones.",
+)  # fmt: skip
+@click.option(
     "--every", type=click.IntRange(min=1), default=1, show_default=True,
     help="Evaluate every N-th frame of each run.",
 )  # fmt: skip
@@ -84,6 +89,7 @@ def experiment(
     sweep_seeds: int,
     strategies: str,
     size: tuple[int, int] | None,
+    frames: str,
     every: int,
     no_lpips: bool,
     device: str,
@@ -120,6 +126,7 @@ def experiment(
         sweep_seeds=min(sweep_seeds, seeds),
         strategies=tuple(s.strip() for s in strategies.split(",") if s.strip()),
         size=size,
+        frames=frames,
         every=every,
         lpips=not no_lpips,
         device=device,

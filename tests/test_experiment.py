@@ -89,3 +89,18 @@ def test_budgets_written_differently_are_the_same_budget() -> None:
     # the main budget written as a percentage is not run twice in the sweep
     settings = ExperimentSettings(budget="20%", sweep=("0.2", "0.4"), seeds=1)
     assert plan_size(settings) == plan_size(ExperimentSettings(sweep=("0.4",), seeds=1))
+
+
+def test_agent_frames_split_the_experiment_frames() -> None:
+    from gscompress.datasets.base import parse_frames
+
+    assert ExperimentSettings().agent_frames() == ("odd", "even")
+    a, b = ExperimentSettings(frames="10:30").agent_frames()
+    assert list(parse_frames(a).apply(100)) == list(range(11, 30, 2))
+    assert list(parse_frames(b).apply(100)) == list(range(10, 30, 2))
+    a, b = ExperimentSettings(frames="::3").agent_frames()
+    assert list(parse_frames(a).apply(20)) == [3, 9, 15] and list(parse_frames(b).apply(20)) == [
+        0, 6, 12, 18,
+    ]  # fmt: skip
+    with pytest.raises(InputError):
+        ExperimentSettings(frames="odd").check()

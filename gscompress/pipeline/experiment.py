@@ -66,6 +66,8 @@ class ExperimentSettings:
         every: evaluate every N-th frame.
         lpips: compute LPIPS.
         device: torch device.
+        frames: the frames the experiment uses (`all` or `START:STOP:STEP`); agent A gets the
+            odd positions among them, agent B the even ones.
     """
 
     preset: str = "cpu"
@@ -80,9 +82,23 @@ class ExperimentSettings:
     every: int = 1
     lpips: bool = True
     device: str = "auto"
+    frames: str = "all"
+
+    def agent_frames(self) -> tuple[str, str]:
+        """The frame subsets of agents A and B (odd and even positions within `frames`)."""
+        from gscompress.datasets.base import parse_frames
+
+        base = parse_frames(self.frames)
+        if base.spec == "all":
+            return "odd", "even"
+        if base.spec in ("odd", "even") or (base.start or 0) < 0 or (base.stop or 0) < 0:
+            raise InputError("--frames for an experiment is all or START:STOP:STEP (from 0)")
+        start, stop, step = base.start or 0, "" if base.stop is None else base.stop, base.step
+        return f"{start + step}:{stop}:{2 * step}", f"{start}:{stop}:{2 * step}"
 
     def check(self) -> None:
         """Refuse settings that cannot run."""
+        self.agent_frames()
         Budget.parse(self.budget)
         for b in self.sweep:
             Budget.parse(b)
@@ -221,16 +237,17 @@ def run_experiment(
     runner = _Runner(seq, out, s, progress, plan_size(s))
     rows: list[dict[str, Any]] = []
 
-    full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), "all")
-    pruned = runner.slam("full_pwas", base, "all")
+    frames_a, frames_b = s.agent_frames()
+    full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
+    pruned = runner.slam("full_pwas", base, s.frames)
     rows.append(_row("full, no pruning", "table3", full))
     rows.append(_row("full, PWAS pruning", "table3", pruned))
 
     budgets = [s.budget] + [b for b in s.sweep if not _same_budget(b, s.budget)]
     for seed in range(s.seeds):
         config = base.with_overrides(seed=seed)
-        a = runner.slam(f"s{seed}_agent_a", config, "odd")
-        b = runner.slam(f"s{seed}_agent_b", config, "even")
+        a = runner.slam(f"s{seed}_agent_a", config, frames_a)
+        b = runner.slam(f"s{seed}_agent_b", config, frames_b)
         rows.append(_row("agent A (odd frames)", "table4", a, seed))
         rows.append(_row("agent B (even frames)", "table4", b, seed))
         for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
@@ -238,11 +255,11 @@ def run_experiment(
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
                 share = runner.share(f"{tag}_share", a, budget, strategy, seed)
-                got = runner.slam(f"{tag}_agent_b", config, "even", inject=share)
+                got = runner.slam(f"{tag}_agent_b", config, frames_b, inject=share)
                 rows.append(_row(f"B + {strategy} {budget}", table, got, seed, strategy, budget,
                                  share))  # fmt: skip
         whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
-        got = runner.slam(f"s{seed}_full_agent_b", config, "even", inject=whole)
+        got = runner.slam(f"s{seed}_full_agent_b", config, frames_b, inject=whole)
         rows.append(_row("B + A's full map", "table4", got, seed, "full", "1", whole))
     verdicts = _verdicts(rows, s)
     paths = _write_reports(out, seq, s, rows, verdicts, full.path, pruned.path)
@@ -398,6 +415,7 @@ def _markdown(
     lines = [
         f"# gsc experiment: {seq.name}",
         "",
+        f"Frames `{s.frames}` (A: `{s.agent_frames()[0]}`, B: `{s.agent_frames()[1]}`). "
         f"Preset `{s.preset}`"
         + (f" + `{s.config_path}`" if s.config_path else "")
         + f", keep {s.keep}, budget {s.budget}, seeds {s.seeds}, evaluated every {s.every} "
