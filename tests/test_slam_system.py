@@ -261,3 +261,30 @@ def test_refinement_lowers_the_loss_over_the_keyframes(seq):
         system.process(seq.frame(i))
     stats = system.mapper.refine(system.keyframes, 30, np.random.default_rng(0))
     assert stats.iters == 30 and stats.last_loss < stats.first_loss
+
+
+def _hole_pixels(system, views):
+    """Valid-depth pixels whose rendered silhouette is below 0.5, summed over `views`."""
+    total = 0
+    with torch.no_grad():
+        inputs = system.mapper.params.render_inputs()
+        for view in views:
+            out = render(*inputs, system.intrinsics, view.T_cam_world())
+            total += int(((out.silhouette < 0.5) & (view.depth > 0)).sum())
+    return total
+
+
+def test_refill_after_a_stage_fills_the_holes_it_opened(seq):
+    # no scheduled stage: the test prunes and refills by hand after frame 2
+    config = preset("tiny").with_overrides(**{"prune.stages": (), "prune.refill": True})
+    system = SlamSystem(config, seq.intrinsics, total_frames=4)
+    for i in range(3):
+        system.process(seq.frame(i))
+    views = system.keyframes
+    system.prune_to(0.1)
+    holes = _hole_pixels(system, views)
+    assert holes > 100  # keeping 10% opens holes
+    n = len(system)
+    stats = system._refine(views[-1], 2, pruned=True, keyframe=True)
+    assert stats is not None and stats.iters == 0 and stats.added == len(system) - n > 0
+    assert _hole_pixels(system, views) < holes / 4

@@ -34,6 +34,7 @@ class MappingStats:
         loss, color, depth, illum, w_illum: mean total loss, its terms and the illum weight.
         first_loss, last_loss: total loss of the first and the last iteration.
         removed: Gaussians removed by the cyclic cleanup during these iterations.
+        added: Gaussians added before these iterations (refill after a pruning stage).
     """
 
     iters: int = 0
@@ -45,6 +46,7 @@ class MappingStats:
     first_loss: float = 0.0
     last_loss: float = 0.0
     removed: int = 0
+    added: int = 0
 
     def averaged(self) -> MappingStats:
         """These stats with the summed losses divided by the iterations (in place)."""

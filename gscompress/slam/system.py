@@ -57,7 +57,7 @@ class FrameResult:
         T_world_cam: [4, 4] estimated camera-to-world pose.
         keyframe: whether the frame became a keyframe.
         gaussians: Gaussians in the map after the frame.
-        added: Gaussians added by densification.
+        added: Gaussians added by densification (and by the refill after a pruning stage).
         removed: Gaussians removed (cyclic cleanup and pruning stage).
         event: "prune-stage-K" when a pruning stage ran after this frame, else None.
         tracking: the tracking outcome (None for the first frame and for ground-truth poses).
@@ -106,6 +106,7 @@ class FrameResult:
         }
         if self.refinement is not None:
             record["refine_iters"] = self.refinement.iters
+            record["refill_added"] = self.refinement.added
             record["loss_refine"] = self.refinement.loss
             record["loss_refine_last"] = self.refinement.last_loss
         if self.tracking is not None:
@@ -280,7 +281,7 @@ class SlamSystem:
         current = View(position, color, depth, T_world_cam)
 
         clock = time.perf_counter()
-        added = self._densify(current, frame)
+        added = self._densify(current)
         ms["densification"] = 1e3 * (time.perf_counter() - clock)
 
         clock = time.perf_counter()
@@ -312,6 +313,7 @@ class SlamSystem:
         refinement = self._refine(current, position, stage is not None, keyframe)
         if refinement is not None:
             removed += refinement.removed
+            added += refinement.added
         ms["refinement"] = 1e3 * (time.perf_counter() - clock)
         ms["total"] = 1e3 * (time.perf_counter() - start)
 
@@ -382,10 +384,10 @@ class SlamSystem:
         )  # fmt: skip
         return result.T_world_cam, result
 
-    def _densify(self, current: View, frame: Frame) -> int:
-        """Add Gaussians for the pixels of the frame the map does not explain yet."""
+    def _densify(self, current: View) -> int:
+        """Add Gaussians for the pixels of the view the map does not explain yet."""
         settings = self.config.densify
-        depth = frame.depth
+        depth = current.depth.cpu().numpy()
         if len(self.mapper) == 0:
             mask = depth > 0
         else:
@@ -406,7 +408,7 @@ class SlamSystem:
                 float(depth.max()) / self.config.prune.scene_radius_depth_ratio
             )
         new = gaussians_from_rgbd(
-            frame.color, depth, self.intrinsics, current.T_world_cam, mask=mask,
+            current.color.cpu().numpy(), depth, self.intrinsics, current.T_world_cam, mask=mask,
             stride=settings.stride, first_id=self.next_id, opacity=settings.opacity,
         )  # fmt: skip
         if not self.config.isotropic:
@@ -420,11 +422,16 @@ class SlamSystem:
         iters = self.config.prune.refine_iters if pruned else 0
         if self.total_frames is not None and position == self.total_frames - 1:
             iters += self.config.mapping.final_iters
-        if iters == 0:
-            return None
         views = self.keyframes if keyframe else [*self.keyframes, current]
+        added = 0
+        if pruned and self.config.prune.refill:
+            added = sum(self._densify(view) for view in views)
+        if iters == 0 and not added:
+            return None
         rng = np.random.default_rng([self.config.seed, position, 1])
-        return self.mapper.refine(views, iters, rng)
+        stats = self.mapper.refine(views, iters, rng)
+        stats.added = added
+        return stats
 
     def _accumulate_pwas(self, current: View) -> float:
         """Add this frame's PWAS terms at the final mapped state; returns the frame's PSNR."""
