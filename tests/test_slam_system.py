@@ -108,6 +108,19 @@ def test_cleanup_removes_transparent_and_huge_gaussians(seq):
     assert set(mapper.params.ids.tolist()) == set(g.ids[13:].tolist())
 
 
+def test_refinement_ends_removing_transparent_but_not_huge_gaussians(seq):
+    frame = seq.frame(0)
+    g = gaussians_from_rgbd(frame.color, frame.depth, seq.intrinsics, frame.T_world_cam)
+    g.opacity_logits[:10] = -30.0  # stays transparent after one step
+    g.log_scales[10:13] = np.log(5.0)
+    mapper = Mapper(preset("tiny"), seq.intrinsics, torch.device("cpu"))
+    mapper.add(g)
+    mapper.scene_radius = 1.0
+    view = View(0, torch.from_numpy(frame.color), torch.from_numpy(frame.depth), frame.T_world_cam)
+    stats = mapper.refine([view], 1, np.random.default_rng(0))
+    assert stats.removed == 10 and set(mapper.params.ids.tolist()) == set(g.ids[10:].tolist())
+
+
 def test_densification_mask_rule():
     depth = np.full((4, 6), 2.0, np.float32)
     depth[0, 0] = 0.0

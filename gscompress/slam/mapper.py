@@ -99,13 +99,13 @@ class Mapper:
         self.params.keep(index, self.optimizer)
         return before - len(self.params)
 
-    def cleanup(self) -> int:
-        """Remove Gaussians with opacity < alpha_min or a huge scale; returns how many."""
+    def cleanup(self, huge: bool = True) -> int:
+        """Remove Gaussians with opacity < alpha_min (and, with `huge`, a huge scale)."""
         prune = self.config.prune
         with torch.no_grad():
             opacity = torch.sigmoid(self.params.opacity_logits)
             drop = opacity < prune.alpha_min
-            if prune.huge_fraction > 0 and self.scene_radius is not None:
+            if huge and prune.huge_fraction > 0 and self.scene_radius is not None:
                 largest = torch.exp(self.params.log_scales.max(dim=1).values)
                 drop |= largest > prune.huge_fraction * self.scene_radius
         if not bool(drop.any()):
@@ -142,7 +142,9 @@ class Mapper:
 
         Used after a pruning stage and after the last frame, so that every keyframe (not only
         the recent, overlapping ones) pulls the surviving Gaussians into the holes. These
-        iterations do not advance the cyclic-cleanup count; one cleanup runs at the end.
+        iterations do not advance the cyclic-cleanup count; at the end only transparent
+        Gaussians are removed: the large ones are what covers the holes, and with no mapping
+        left to fill the gaps, removing them cost about 2 dB PSNR on a pruned synthetic map.
         """
         stats = MappingStats()
         order: list[int] = []
@@ -153,7 +155,7 @@ class Mapper:
                 order = [int(i) for i in rng.permutation(len(views))]
             self._step(views[order.pop()], stats)
         if stats.iters and self.config.prune.opacity_every > 0:
-            stats.removed += self.cleanup()
+            stats.removed += self.cleanup(huge=False)
         return stats.averaged()
 
     def _step(self, view: View, stats: MappingStats) -> None:
