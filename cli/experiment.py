@@ -74,6 +74,15 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "--every", type=click.IntRange(min=1), default=1, show_default=True,
     help="Evaluate every N-th frame of each run.",
 )  # fmt: skip
+@click.option(
+    "--mode", type=click.Choice(["merge", "inject"]), default="merge", show_default=True,
+    help="How B receives a share: merged into its finished map and refined (the paper's "
+    "protocol; B's poses do not change), or injected before its first frame (a new B run).",
+)  # fmt: skip
+@click.option(
+    "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
+    help="Refinement iterations of each merge on B's keyframes.",
+)  # fmt: skip
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
 @device_option
 @json_option
@@ -91,6 +100,8 @@ def experiment(
     size: tuple[int, int] | None,
     frames: str,
     every: int,
+    mode: str,
+    merge_iters: int,
     no_lpips: bool,
     device: str,
     as_json: bool,
@@ -99,9 +110,10 @@ def experiment(
 
     \b
     - Table 3: the whole sequence without and with PWAS pruning.
-    - Table 4, per seed: agent A maps the odd frames, agent B the even ones; B runs again
-      with A's share (random, opacity, alpha-t, PWAS at --budget) injected from its first
-      frame, and with A's whole map (the upper bound).
+    - Table 4, per seed: agent A maps the odd frames, agent B the even ones; B receives A's
+      share (random, opacity, alpha-t, PWAS at --budget) and A's whole map (the upper
+      bound): merged into B's map and refined on B's keyframes (--mode merge), or injected
+      before B's first frame so that its tracking uses it too (--mode inject).
     - Rate-distortion: PSNR and ATE of B against the share size, per strategy.
     Every run is scored with `gsc eval` on its own frames. Outputs: results.md (tables like the
     paper's), results.csv, results.json, plots/*.png; each run's log stays in runs/. A rerun
@@ -128,6 +140,8 @@ def experiment(
         size=size,
         frames=frames,
         every=every,
+        mode=mode,
+        merge_iters=merge_iters,
         lpips=not no_lpips,
         device=device,
     )

@@ -104,3 +104,18 @@ def test_agent_frames_split_the_experiment_frames() -> None:
     ]  # fmt: skip
     with pytest.raises(InputError):
         ExperimentSettings(frames="odd").check()
+
+
+def test_inject_mode_runs_b_again_with_the_share(experiment: tuple[Path, Path, dict]) -> None:
+    seq, out, _ = experiment
+    args = ["experiment", str(seq), "-o", str(out.parent / "inject"), "--preset", "tiny",
+            "--seeds", "1", "--sweep", "0.2", "--strategies", "random,pwas", "--mode", "inject",
+            "--no-lpips", "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    rows = json.loads((out.parent / "inject" / "results.json").read_text())
+    pwas = next(r for r in rows if r["name"] == "B + pwas 0.2")
+    with LogReader(out.parent / "inject" / pwas["log"]) as log:
+        step = log.metadata.provenance[-1]
+        frames = log.metadata.results["frames"]
+    assert step["operation"]["name"] == "inject" and frames == 2  # a new SLAM run of B

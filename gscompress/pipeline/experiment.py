@@ -3,9 +3,11 @@
 Runs, each a log under DIR/runs/ with a JSON record of its settings and results beside it:
 - Table 3: the whole sequence without and with PWAS pruning.
 - Table 4, for each seed: agent A on the odd frames, agent B on the even frames (both with
-  pruning), and B again with A's share injected at the start of its run (`gsc slam --inject`,
-  so that B's tracking and mapping both use it) for every strategy at the main budget, plus B
-  with A's whole map as the upper bound.
+  pruning), and B receiving A's share for every strategy at the main budget, plus B with A's
+  whole map as the upper bound. B receives a share as the paper's protocol does (`mode`
+  "merge", the default): concatenated into B's finished map and refined on B's keyframes
+  (`gsc merge`; B's poses, so its ATE, do not change), or (`mode` "inject") injected before B's
+  first frame (`gsc slam --inject`), so that B's tracking and mapping both use it.
 - Rate-distortion: B with A's share at every sweep budget for every strategy (on the first
   `sweep_seeds` seeds).
 
@@ -68,6 +70,9 @@ class ExperimentSettings:
         device: torch device.
         frames: the frames the experiment uses (`all` or `START:STOP:STEP`); agent A gets the
             odd positions among them, agent B the even ones.
+        mode: how B receives a share: "merge" (into its finished map, then refined) or
+            "inject" (before its first frame).
+        merge_iters: refinement iterations of a merge.
     """
 
     preset: str = "cpu"
@@ -83,6 +88,8 @@ class ExperimentSettings:
     lpips: bool = True
     device: str = "auto"
     frames: str = "all"
+    mode: str = "merge"
+    merge_iters: int = 200
 
     def agent_frames(self) -> tuple[str, str]:
         """The frame subsets of agents A and B (odd and even positions within `frames`)."""
@@ -99,6 +106,8 @@ class ExperimentSettings:
     def check(self) -> None:
         """Refuse settings that cannot run."""
         self.agent_frames()
+        if self.mode not in ("merge", "inject") or self.merge_iters < 0:
+            raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
         Budget.parse(self.budget)
         for b in self.sweep:
             Budget.parse(b)
@@ -184,6 +193,32 @@ class _Runner:
 
         return self._step(name, spec, work)
 
+    def receive(
+        self, name: str, receiver: _Record, share: _Record, config: Any, frames: str, seed: int
+    ) -> _Record:
+        """Agent B with a share: merged into B's map and refined, or injected into a new run."""
+        from gscompress.pipeline.evaluate import evaluate_log
+        from gscompress.pipeline.merge import merge_logs
+
+        s = self.settings
+        if s.mode == "inject":
+            return self.slam(name, config, frames, inject=share)
+        spec = {
+            "kind": "merge", "receiver": receiver.key, "share": share.key, "frames": frames,
+            "iters": s.merge_iters, "seed": seed, "every": s.every, "lpips": s.lpips,
+        }  # fmt: skip
+
+        def work(path: Path) -> dict[str, Any]:
+            merged = merge_logs(
+                receiver.path, share.path, path, seq=self.seq, frames=frames,
+                iters=s.merge_iters, device=s.device, seed=seed, force=True,
+            )  # fmt: skip
+            scores = evaluate_log(path, self.seq, every=s.every, lpips=s.lpips, device=s.device)
+            scores.pop("per_frame", None)
+            return {"merge": merged, "slam": receiver.result["slam"], "eval": scores}
+
+        return self._step(name, spec, work)
+
     def share(self, name: str, source: _Record, budget: str, strategy: str, seed: int) -> _Record:
         """A share of `source`'s map."""
         from gscompress.pipeline.offline import share_log
@@ -255,11 +290,11 @@ def run_experiment(
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
                 share = runner.share(f"{tag}_share", a, budget, strategy, seed)
-                got = runner.slam(f"{tag}_agent_b", config, frames_b, inject=share)
+                got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed)
                 rows.append(_row(f"B + {strategy} {budget}", table, got, seed, strategy, budget,
                                  share))  # fmt: skip
         whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
-        got = runner.slam(f"s{seed}_full_agent_b", config, frames_b, inject=whole)
+        got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed)
         rows.append(_row("B + A's full map", "table4", got, seed, "full", "1", whole))
     verdicts = _verdicts(rows, s)
     paths = _write_reports(out, seq, s, rows, verdicts, full.path, pruned.path)
@@ -404,6 +439,15 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     return buffer.getvalue()
 
 
+def _receive_text(s: ExperimentSettings) -> str:
+    if s.mode == "inject":
+        return "B's run starts with the share injected. "
+    return (
+        f"B merges a share into its map and refines it ({s.merge_iters} iterations on its "
+        "keyframes; B's poses, so its ATE, do not change). "
+    )
+
+
 def _markdown(
     seq: Path,
     s: ExperimentSettings,
@@ -415,8 +459,9 @@ def _markdown(
     lines = [
         f"# gsc experiment: {seq.name}",
         "",
-        f"Frames `{s.frames}` (A: `{s.agent_frames()[0]}`, B: `{s.agent_frames()[1]}`). "
-        f"Preset `{s.preset}`"
+        f"Frames `{s.frames}` (A: `{s.agent_frames()[0]}`, B: `{s.agent_frames()[1]}`); "
+        + _receive_text(s)
+        + f"Preset `{s.preset}`"
         + (f" + `{s.config_path}`" if s.config_path else "")
         + f", keep {s.keep}, budget {s.budget}, seeds {s.seeds}, evaluated every {s.every} "
         "frame(s) of each run's own frames at its estimated poses (PSNR/SSIM on valid-depth "
