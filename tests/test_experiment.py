@@ -38,14 +38,18 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert all(set(REQUIRED) <= set(row) for row in rows)
     tables = [row["table"] for row in rows]
     assert tables.count("table3") == 2
-    assert tables.count("table4") == 2 + 4 + 1  # A, B, four strategies, the full map
+    # A, B, B refined without a share, four strategies, the full map
+    assert tables.count("table4") == 2 + 1 + 4 + 1
     assert tables.count("sweep") == 4  # four strategies at 0.5 (0.2 is Table 4's)
     for row in rows:
         with LogReader(out / row["log"]) as log:
             assert log.read_map().__len__() == row["gaussians"]
     by_name = {(r["name"], r["table"]): r for r in rows}
     pwas, full = by_name[("B + pwas 0.2", "table4")], by_name[("B + A's full map", "table4")]
-    a = by_name[("agent A (odd frames)", "table4")]
+    a, b = by_name[("agent A (odd frames)", "table4")], by_name[("agent B (even frames)", "table4")]
+    alone = by_name[("B refined, no share", "table4")]
+    assert alone["gaussians"] == b["gaussians"] and alone["share_gaussians"] is None
+    assert pwas["gaussians"] == b["gaussians"] + pwas["share_gaussians"]  # a merge drops none
     assert pwas["share_gaussians"] == round(0.2 * a["gaussians"])
     assert full["share_gaussians"] == a["gaussians"] and full["share_bytes"] > pwas["share_bytes"]
     with open(out / "results.csv", newline="") as f:

@@ -194,23 +194,35 @@ class _Runner:
         return self._step(name, spec, work)
 
     def receive(
-        self, name: str, receiver: _Record, share: _Record, config: Any, frames: str, seed: int
+        self,
+        name: str,
+        receiver: _Record,
+        share: _Record | None,
+        config: Any,
+        frames: str,
+        seed: int,
     ) -> _Record:
-        """Agent B with a share: merged into B's map and refined, or injected into a new run."""
+        """Agent B with a share: merged into B's map and refined, or injected into a new run.
+
+        With `share` None (merge mode only): B's map refined the same way without a share, the
+        control that separates what the share brings from what the refinement brings.
+        """
         from gscompress.pipeline.evaluate import evaluate_log
         from gscompress.pipeline.merge import merge_logs
 
         s = self.settings
         if s.mode == "inject":
+            assert share is not None
             return self.slam(name, config, frames, inject=share)
         spec = {
-            "kind": "merge", "receiver": receiver.key, "share": share.key, "frames": frames,
+            "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
+            "frames": frames,
             "iters": s.merge_iters, "seed": seed, "every": s.every, "lpips": s.lpips,
         }  # fmt: skip
 
         def work(path: Path) -> dict[str, Any]:
             merged = merge_logs(
-                receiver.path, share.path, path, seq=self.seq, frames=frames,
+                receiver.path, share.path if share else None, path, seq=self.seq, frames=frames,
                 iters=s.merge_iters, device=s.device, seed=seed, force=True,
             )  # fmt: skip
             scores = evaluate_log(path, self.seq, every=s.every, lpips=s.lpips, device=s.device)
@@ -238,6 +250,7 @@ def plan_size(settings: ExperimentSettings) -> int:
     """How many steps an experiment has (for progress)."""
     s = settings
     main = 2 + len(s.strategies) + 1  # A, B, B+share per strategy, B+full
+    main += s.mode == "merge"  # B refined without a share (the control)
     shares = len(s.strategies) + 1
     extra_budgets = [b for b in s.sweep if not _same_budget(b, s.budget)]
     sweep = s.sweep_seeds * len(extra_budgets) * len(s.strategies) * 2
@@ -285,6 +298,9 @@ def run_experiment(
         b = runner.slam(f"s{seed}_agent_b", config, frames_b)
         rows.append(_row("agent A (odd frames)", "table4", a, seed))
         rows.append(_row("agent B (even frames)", "table4", b, seed))
+        if s.mode == "merge":
+            alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
+            rows.append(_row("B refined, no share", "table4", alone, seed, "none"))
         for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
@@ -510,10 +526,15 @@ def _markdown(
             f"{_fmt(_mean([r['share_bytes'] for r in group]), '.0f')} |"
         )
     v = verdicts
+    ate_text = (
+        "ATE: a merge leaves B's poses as they were (compare ATE with --mode inject)."
+        if s.mode == "merge"
+        else f"On ATE in {v['pwas_beats_random_ate']} of {s.seeds}."
+    )
     lines += [
         "",
         f"PWAS beats random at {s.budget}: on PSNR in {v['pwas_beats_random_psnr']} of "
-        f"{s.seeds} seed(s), on ATE in {v['pwas_beats_random_ate']} of {s.seeds}.",
+        f"{s.seeds} seed(s). {ate_text}",
         "",
         "## Rate-distortion (B with A's share, mean over the sweep seeds)",
         "",

@@ -52,7 +52,7 @@ def read_share(
 
 def merge_logs(
     receiver: str | Path,
-    share: str | Path,
+    share: str | Path | None,
     dst: str | Path,
     *,
     seq: str | Path | None = None,
@@ -70,7 +70,9 @@ def merge_logs(
 
     Args:
         receiver: the receiving agent's SLAM log (map, poses, config).
-        share: a share (`gsc share`) or any log whose last snapshot is the map to inject.
+        share: a share (`gsc share`) or any log whose last snapshot is the map to inject;
+            None refines the receiver's map alone (the control of a merge: the same refinement
+            without a share).
         dst: the output log.
         seq: the receiver's sequence (needed when `iters` > 0).
         frames: the receiver's frame subset (default: the one recorded in its log).
@@ -94,18 +96,22 @@ def merge_logs(
         raise InputError(f"--iters must be >= 0, got {iters}")
     if iters > 0 and seq is None:
         raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
-    inputs = [receiver, share] + ([seq] if seq is not None else [])
+    inputs = [receiver] + [p for p in (share, seq) if p is not None]
     check_output(dst, inputs, force)
     with LogReader(receiver) as receiver_log:
         meta = receiver_log.metadata
         receiver_log.require_snapshots()
-    shared, share_record = read_share(share, meta.world_frame, "merge", share_transform)
+    shared: GaussianMap | None = None
+    share_record: dict[str, Any] = {"share": None}
+    if share is not None:
+        shared, share_record = read_share(share, meta.world_frame, "merge", share_transform)
 
     def merge(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
-        merged, offset = merge_maps(own, shared)
+        received = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)
+        merged, offset = merge_maps(own, received)
         results: dict[str, Any] = {
             "receiver": len(own),
-            "share": len(shared),
+            "share": len(received),
             "gaussians": len(merged),
             "id_offset": offset,
         }
