@@ -38,7 +38,7 @@ def main() -> None:
     out.mkdir(parents=True)
     seq = out / "synthetic"
 
-    gsc("synth", seq, "--frames", opts.frames, "--size", opts.size)
+    gsc("synth", seq, "--frames", opts.frames, "--size", opts.size, "--supersample", 2)
     gsc("slam", seq, "-o", out / "map.mcap", "--size", opts.size)
     gsc("info", out / "map.mcap")
     gsc("eval", out / "map.mcap", "--seq", seq)
