@@ -35,6 +35,8 @@ def format_info(info: dict[str, Any]) -> str:
     ]
     if info["sequence"]:
         lines.append(f"sequence  {info['sequence']}  frames {info['frames'] or 'all'}")
+    if info["world_frame"]:
+        lines.append(f"world     {info['world_frame']}")
     lines.append("channels")
     for c in info["channels"]:
         lines.append(f"  {c['topic']:<22} {c['messages']:>7}  {c['schema']} ({c['encoding']})")

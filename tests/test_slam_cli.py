@@ -79,6 +79,8 @@ def test_offline_commands_accept_the_log(slam_log, tmp_path):
     r = run("info", slam_log, "--json")
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["map"]["has_importance"]
+    assert json.loads(r.output)["world_frame"] == "ground-truth:room"
+    assert "world     ground-truth:room" in run("info", slam_log).output
     r = run("prune", slam_log, "--keep", "0.5", "-o", tmp_path / "p.mcap")
     assert r.exit_code == 0, r.output
     r = run("share", "--budget", "0.2", slam_log, tmp_path / "s.mcap")

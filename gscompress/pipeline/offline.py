@@ -222,6 +222,7 @@ def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
         "command": meta.command,
         "sequence": meta.sequence,
         "frames": meta.frames,
+        "world_frame": meta.world_frame,
         "channels": channels,
         "snapshots": snapshots,
         "provenance": meta.provenance,
