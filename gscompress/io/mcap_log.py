@@ -426,6 +426,32 @@ class LogWriter:
             self._file.discard()
 
 
+def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "log") -> Snapshot:
+    """Decode one `/gaussians` message (a record of any reader) into a validated map.
+
+    Raises:
+        LogFormatError: not a protobuf foxglove.PointCloud, corrupt, or a malformed cloud.
+    """
+    if schema is None or schema.name != "foxglove.PointCloud" or schema.encoding != "protobuf":
+        name = schema.name if schema else "no schema"
+        raise LogFormatError(f"{source}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud")
+    cloud = PointCloud()
+    try:
+        cloud.ParseFromString(message.data)
+        gaussians = pointcloud_to_gaussians(cloud, source=source)
+    except DecodeError:
+        raise LogFormatError(f"{source}: a corrupt {TOPIC_GAUSSIANS} message") from None
+    except MapError as exc:
+        raise LogFormatError(str(exc)) from None
+    return Snapshot(
+        gaussians=gaussians,
+        log_time_ns=message.log_time,
+        message_bytes=len(message.data),
+        point_stride=cloud.point_stride,
+        precision=columns_precision(f.name for f in cloud.fields),
+    )
+
+
 def decode_pose(schema: Schema | None, message: McapMessage, source: str = "log") -> np.ndarray:
     """[4, 4] camera-to-world of a foxglove.PoseInFrame message.
 
@@ -589,25 +615,7 @@ class LogReader:
 
     def decode_snapshot(self, schema: Schema | None, message: McapMessage) -> Snapshot:
         """Decode one `/gaussians` message into a validated map and how it was stored."""
-        if schema is None or schema.name != "foxglove.PointCloud" or schema.encoding != "protobuf":
-            name = schema.name if schema else "no schema"
-            raise LogFormatError(
-                f"{self.path}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud"
-            )
-        with self._guard():
-            cloud = PointCloud()
-            cloud.ParseFromString(message.data)
-        try:
-            gaussians = pointcloud_to_gaussians(cloud, source=str(self.path))
-        except MapError as exc:
-            raise LogFormatError(str(exc)) from None
-        return Snapshot(
-            gaussians=gaussians,
-            log_time_ns=message.log_time,
-            message_bytes=len(message.data),
-            point_stride=cloud.point_stride,
-            precision=columns_precision(f.name for f in cloud.fields),
-        )
+        return decode_snapshot(schema, message, str(self.path))
 
 
 @dataclass(frozen=True)

@@ -98,9 +98,12 @@ def merge_logs(
         raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
     inputs = [receiver] + [p for p in (share, seq) if p is not None]
     check_output(dst, inputs, force)
+    from gscompress.pipeline.evaluate import read_poses
+
     with LogReader(receiver) as receiver_log:
         meta = receiver_log.metadata
         receiver_log.require_snapshots()
+        pose_ns, poses = read_poses(receiver_log, TOPIC_POSE) if iters > 0 else (None, None)
     shared: GaussianMap | None = None
     share_record: dict[str, Any] = {"share": None}
     if share is not None:
@@ -117,8 +120,9 @@ def merge_logs(
         }
         if iters > 0:
             assert seq is not None
-            merged, stats = _refine(merged, receiver, meta, seq, frames, size, iters, device,
-                                    seed, progress)  # fmt: skip
+            assert pose_ns is not None and poses is not None
+            merged, stats = _refine(merged, receiver, meta, pose_ns, poses, seq, frames, size,
+                                    iters, device, seed, progress)  # fmt: skip
             results.update({f"refine_{k}": v for k, v in stats.items()})
         return merged, results
 
@@ -131,6 +135,8 @@ def _refine(
     merged: GaussianMap,
     receiver: str | Path,
     meta: Any,
+    pose_ns: np.ndarray,
+    poses: np.ndarray,
     seq: str | Path,
     frames: str | None,
     size: tuple[int, int] | None,
@@ -139,10 +145,10 @@ def _refine(
     seed: int,
     progress: Callable[[int, int], object] | None,
 ) -> tuple[GaussianMap, dict[str, Any]]:
-    """Refine `merged` on the receiver's keyframes at its estimated poses."""
+    """Refine `merged` on the receiver's keyframes at its estimated poses (log times, poses)."""
     from gscompress.datasets import open_sequence
     from gscompress.ops.merge import refine
-    from gscompress.pipeline.evaluate import match_times, read_poses
+    from gscompress.pipeline.evaluate import match_times
     from gscompress.slam.config import SlamConfig, preset
     from gscompress.slam.keyframes import View, is_keyframe
     from gscompress.slam.system import resolve_device
@@ -151,8 +157,6 @@ def _refine(
     if size is None and config.size is not None:
         size = config.size
     sequence = open_sequence(seq, size=size, frames=frames or meta.frames or "all")
-    with LogReader(receiver) as receiver_log:
-        pose_ns, poses = read_poses(receiver_log, TOPIC_POSE)
     if len(pose_ns) == 0:
         raise LogFormatError(f"{receiver} has no {TOPIC_POSE}: refinement needs its poses")
     frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)

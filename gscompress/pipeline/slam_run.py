@@ -25,7 +25,7 @@ from gscompress.io.mcap_log import (
     LogMetadata,
     LogWriter,
     decode_pose,
-    pointcloud_to_gaussians,
+    decode_snapshot,
 )
 from gscompress.io.recover import Record, read_messages, unfinished_files
 from gscompress.ops.select import check_ratio
@@ -250,12 +250,11 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     run = _Run(config, sequence, system, meta, [seq] if seq is not None else [], start=done)
     run.carried, run.leftovers = carried, leftovers
-    run.meta.provenance = meta.provenance
     if done == 0:
         run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
         return run
     assert last is not None
-    gaussians = pointcloud_to_gaussians(_parse_cloud(last), source=str(sources[0]))
+    gaussians = decode_snapshot(last[0], last[2], str(sources[0])).gaussians
     pose_records = by_topic[TOPIC_POSE][:done]
     stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
     poses = [decode_pose(r[0], r[2], str(sources[0])) for r in pose_records]
@@ -271,7 +270,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         keyframes,
         mapping_iterations=sum(int(s.get("mapping_iters", 0)) for s in stats),
         next_id=next_id,
-        first_depth=sequence.frame(0).depth,
+        first_depth=keyframes[0].depth.cpu().numpy(),  # position 0 is always a keyframe
     )
     if sequence.has_ground_truth:
         _, gt = sequence.ground_truth()
@@ -279,14 +278,6 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     run.t_ns = cut
     log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
     return run
-
-
-def _parse_cloud(record: Record) -> Any:
-    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-
-    cloud = PointCloud()
-    cloud.ParseFromString(record[2].data)
-    return cloud
 
 
 def _json(record: Record) -> dict[str, Any]:
