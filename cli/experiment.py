@@ -6,9 +6,12 @@ from pathlib import Path
 
 import click
 
+from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
 
 from .options import (
+    BudgetParam,
+    Ratio,
     device_option,
     emit,
     json_option,
@@ -19,18 +22,11 @@ from .options import (
 
 
 def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tuple[str, ...]:
-    from gscompress.errors import GscError
-    from gscompress.ops.budget import Budget
-
+    """Comma-separated budgets, each checked as `--budget` is (kept as written)."""
     items = tuple(v.strip() for v in value.split(",") if v.strip())
-    try:
-        for item in items:
-            Budget.parse(item)
-    except GscError as exc:
-        raise click.BadParameter(str(exc)) from None
     if not items:
         raise click.BadParameter("give at least one budget")
-    return items
+    return tuple(str(BudgetParam().convert(item, param, ctx)) for item in items)
 
 
 @click.command("experiment")
@@ -40,11 +36,11 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     help="Experiment folder: runs/, results.md/.csv/.json and plots/ (a rerun reuses runs).",
 )  # fmt: skip
 @click.option(
-    "--budget", default="0.2", show_default=True,
+    "--budget", type=BudgetParam(), default="0.2", show_default=True,
     help="Main share budget (Table 4): a fraction (0.2, 20%) or bytes (2MB).",
 )  # fmt: skip
 @click.option(
-    "--keep", type=float, default=0.3, show_default=True,
+    "--keep", type=Ratio(), default=0.3, show_default=True,
     help="Fraction kept at each PWAS pruning stage.",
 )  # fmt: skip
 @slam_config_options
@@ -89,7 +85,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 def experiment(
     seq: Path,
     out_dir: Path,
-    budget: str,
+    budget: Budget,
     keep: float,
     preset: str,
     config_path: Path | None,
@@ -124,14 +120,10 @@ def experiment(
       gsc experiment demo_seq -o exp --preset tiny --seeds 1    # a smoke test, ~1 min
       gsc experiment data/office -o exp_office --seeds 3        # cpu preset
     """
-    from gscompress.errors import InputError
-
-    if not 0.0 < keep <= 1.0:
-        raise click.BadParameter(f"must be in (0, 1], got {keep}", param_hint="--keep")
     settings = ExperimentSettings(
         preset=preset,
         config_path=str(config_path) if config_path else None,
-        budget=budget,
+        budget=str(budget),
         keep=keep,
         seeds=seeds,
         sweep=sweep,
@@ -145,8 +137,6 @@ def experiment(
         lpips=not no_lpips,
         device=device,
     )
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"output folder is a file: {out_dir}")
     with progress_bar("experiment", "run", hidden=as_json) as bar:
 
         def progress(name: str, done: int, total: int) -> None:

@@ -172,9 +172,17 @@ class _Runner:
         self.done += 1
         return _Record(path, key, result)
 
+    def _score(self, log_path: Path) -> dict[str, Any]:
+        """`gsc eval` of a run on its own frames (without the per-frame list)."""
+        from gscompress.pipeline.evaluate import evaluate_log
+
+        s = self.settings
+        scores = evaluate_log(log_path, self.seq, every=s.every, lpips=s.lpips, device=s.device)
+        scores.pop("per_frame", None)
+        return scores
+
     def slam(self, name: str, config: Any, frames: str, inject: _Record | None = None) -> _Record:
         """A SLAM run on `frames`, evaluated on them."""
-        from gscompress.pipeline.evaluate import evaluate_log
         from gscompress.pipeline.slam_run import slam_file
 
         s = self.settings
@@ -187,8 +195,7 @@ class _Runner:
         def work(path: Path) -> dict[str, Any]:
             run = slam_file(self.seq, path, config=config, frames=frames, device=s.device,
                             inject=inject.path if inject else None, force=True)  # fmt: skip
-            scores = evaluate_log(path, self.seq, every=s.every, lpips=s.lpips, device=s.device)
-            scores.pop("per_frame", None)
+            scores = self._score(path)
             return {"slam": run, "eval": scores}
 
         return self._step(name, spec, work)
@@ -207,7 +214,6 @@ class _Runner:
         With `share` None (merge mode only): B's map refined the same way without a share, the
         control that separates what the share brings from what the refinement brings.
         """
-        from gscompress.pipeline.evaluate import evaluate_log
         from gscompress.pipeline.merge import merge_logs
 
         s = self.settings
@@ -225,8 +231,7 @@ class _Runner:
                 receiver.path, share.path if share else None, path, seq=self.seq, frames=frames,
                 iters=s.merge_iters, device=s.device, seed=seed, force=True,
             )  # fmt: skip
-            scores = evaluate_log(path, self.seq, every=s.every, lpips=s.lpips, device=s.device)
-            scores.pop("per_frame", None)
+            scores = self._score(path)
             return {"merge": merged, "slam": receiver.result["slam"], "eval": scores}
 
         return self._step(name, spec, work)
