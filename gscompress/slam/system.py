@@ -248,9 +248,7 @@ class SlamSystem:
         self.keyframes = list(keyframes)
         self.mapper.iterations = int(mapping_iterations)
         self.next_id = max(self.next_id, int(next_id))
-        if np.any(first_depth > 0):
-            ratio = self.config.prune.scene_radius_depth_ratio
-            self.mapper.scene_radius = float(first_depth.max()) / ratio
+        self._init_scene_radius(first_depth)
 
     # ------------------------------------------------------------------ one frame
 
@@ -384,6 +382,12 @@ class SlamSystem:
         )  # fmt: skip
         return result.T_world_cam, result
 
+    def _init_scene_radius(self, depth: np.ndarray) -> None:
+        """Scene radius (for the huge-Gaussian cleanup) from the first valid depth map."""
+        if self.mapper.scene_radius is None and np.any(depth > 0):
+            ratio = self.config.prune.scene_radius_depth_ratio
+            self.mapper.scene_radius = float(depth.max()) / ratio
+
     def _densify(self, current: View) -> int:
         """Add Gaussians for the pixels of the view the map does not explain yet."""
         settings = self.config.densify
@@ -403,10 +407,7 @@ class SlamSystem:
                 silhouette_max=settings.silhouette_max,
                 depth_error_factor=settings.depth_error_factor,
             )
-        if self.mapper.scene_radius is None and np.any(depth > 0):
-            self.mapper.scene_radius = (
-                float(depth.max()) / self.config.prune.scene_radius_depth_ratio
-            )
+        self._init_scene_radius(depth)
         new = gaussians_from_rgbd(
             current.color.cpu().numpy(), depth, self.intrinsics, current.T_world_cam, mask=mask,
             stride=settings.stride, first_id=self.next_id, opacity=settings.opacity,
