@@ -171,6 +171,7 @@ def test_inject_starts_the_map_with_the_share(
         first = log.read_map(0)
         step = log.metadata.provenance[-1]
     assert step["operation"]["name"] == "inject" and step["parent"] == "share.mcap"
+    assert step["operation"]["own_ids_from"] == int(shared.ids.max()) + 1
     # the first snapshot (a checkpoint after two frames) still holds share Gaussians, with
     # their PWAS sums carried on (never smaller than what the share brought)
     common, in_first, in_share = np.intersect1d(first.ids, shared.ids, return_indices=True)

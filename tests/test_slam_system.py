@@ -200,6 +200,22 @@ def test_add_gaussians_renumbers_or_refuses_clashing_ids(seq):
     np.testing.assert_allclose(system.gaussian_map().importance_sum[-5:], extra.importance_sum)
 
 
+def test_a_received_share_is_kept_out_of_the_stage_ranking(seq):
+    system = SlamSystem(preset("tiny"), seq.intrinsics)
+    share = replace(random_map(12, seed=2), ids=np.arange(500, 512))
+    share.importance_sum[:] = 0.0  # the lowest possible scores: a ranking would drop them first
+    assert system.receive(share) == 12 and system.own_ids_from == 512
+    system.process(seq.frame(0))
+    with pytest.raises(MapError, match="before the first frame"):
+        system.receive(replace(share, ids=np.arange(900, 912)))
+    before = system.gaussian_map()
+    own = before.ids >= 512
+    system.prune_to(0.3)
+    after = system.gaussian_map()
+    assert set(before.ids[~own]) <= set(after.ids)
+    assert np.count_nonzero(after.ids >= 512) == keep_count(int(own.sum()), 0.3)
+
+
 def test_stage_events_follow_the_schedule(seq):
     system = SlamSystem(preset("tiny"), seq.intrinsics, total_frames=6)
     events = {}

@@ -186,8 +186,13 @@ def _fresh_run(
         from gscompress.pipeline.merge import read_share
 
         share, record = read_share(inject, meta.world_frame, "--inject", share_transform)
-        injected = system.add_gaussians(share, renumber=False)
-        operation = {"name": "inject", "gaussians": injected, **record}
+        injected = system.receive(share)
+        operation = {
+            "name": "inject",
+            "gaussians": injected,
+            "own_ids_from": system.own_ids_from,
+            **record,
+        }
         meta.provenance.append(
             {
                 "operation": operation,
@@ -271,6 +276,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         mapping_iterations=sum(int(s.get("mapping_iters", 0)) for s in stats),
         next_id=next_id,
         first_depth=keyframes[0].depth.cpu().numpy(),  # position 0 is always a keyframe
+        own_ids_from=_own_ids_from(meta.provenance),
     )
     if sequence.has_ground_truth:
         _, gt = sequence.ground_truth()
@@ -278,6 +284,12 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     run.t_ns = cut
     log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
     return run
+
+
+def _own_ids_from(provenance: list[dict[str, Any]]) -> int:
+    """The `own_ids_from` an injection recorded in a log's provenance (0: none)."""
+    steps = [p.get("operation", {}) for p in provenance]
+    return max([int(s.get("own_ids_from", 0)) for s in steps if s.get("name") == "inject"] + [0])
 
 
 def _json(record: Record) -> dict[str, Any]:
