@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 import shlex
 import sys
@@ -13,6 +12,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import click
 
 from gscompress.errors import InputError
+from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
 
 if TYPE_CHECKING:
@@ -84,7 +84,7 @@ def command_line() -> str:
 
 def emit(result: dict[str, Any], as_json: bool, text: str) -> None:
     """Print a command's result: the JSON object with --json, else the text."""
-    click.echo(json.dumps(result, indent=2, sort_keys=True) if as_json else text)
+    click.echo(json_text(result, indent=2, sort_keys=True) if as_json else text)
 
 
 class Size(click.ParamType):

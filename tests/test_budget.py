@@ -24,7 +24,7 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import read_ply
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.select import select_count, strategy_scores, top_k
-from gscompress.pipeline import log_info, share_log
+from gscompress.pipeline import log_info, prune_log, share_log
 
 
 def write_log(path, gaussians):
@@ -326,3 +326,17 @@ def test_select_count_matches_top_k():
     g = random_map(50, seed=1)
     kept, index = select_count(g, 7)
     assert len(kept) == 7 and index.tolist() == top_k(g.importance, g.ids, 7).tolist()
+
+
+def test_pruning_an_fp16_share_keeps_it_fp16(tmp_path):
+    src = write_log(tmp_path / "a.mcap", random_map(200, 4))
+    share = tmp_path / "s.mcap"
+    share_log(src, share, 0.5, precision="fp16")
+    pruned = tmp_path / "p.mcap"
+    prune_log(share, pruned, 0.5)
+    assert log_info(pruned)["map"]["precision"] == "fp16"
+    kept, received = read_map(pruned), read_map(share)
+    where = {int(i): k for k, i in enumerate(received.ids)}
+    index = [where[int(i)] for i in kept.ids]
+    assert len(kept) == 50
+    np.testing.assert_array_equal(kept.opacity_logits, received.opacity_logits[index])

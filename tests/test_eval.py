@@ -10,6 +10,7 @@ from click.testing import CliRunner
 from gscompress.camera import make_transform
 from gscompress.datasets import open_sequence
 from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.io.files import json_text
 from gscompress.io.mcap_log import (
     CAMERA_FRAME,
     TOPIC_GAUSSIANS,
@@ -203,6 +204,18 @@ def test_cli_json(gt_log, seq_dir):
             "depth_l1_cm", "gaussians", "bytes", "frames_evaluated")  # fmt: skip
     assert set(keys) <= set(result)
     assert result["lpips"] is None and "not asked" in result["lpips_reason"]
+
+
+def test_json_output_is_strict_json_even_for_infinite_psnr():
+    text = json_text({"psnr": float("inf"), "per_frame": [{"psnr": float("nan")}, 1.5]})
+
+    def refuse(name):
+        raise ValueError(name)
+
+    assert json.loads(text, parse_constant=refuse) == {
+        "psnr": None,
+        "per_frame": [{"psnr": None}, 1.5],
+    }
 
 
 def test_cli_text_table(gt_log, seq_dir):

@@ -6,12 +6,33 @@ A crash or an error never leaves a half-written file under the final name.
 from __future__ import annotations
 
 import hashlib
+import json
+import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from gscompress.errors import OutputError
+
+
+def json_text(value: Any, **options: Any) -> str:
+    """Standard JSON of `value`: non-finite floats (a PSNR of identical images) become null.
+
+    `json.dumps` would write them as `Infinity`/`NaN`, which strict readers (jq, browsers,
+    pandas' default engine) reject. `options` go to `json.dumps` (`default=str` is set).
+    """
+
+    def clean(v: Any) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list | tuple):
+            return [clean(x) for x in v]
+        return v
+
+    return json.dumps(clean(value), allow_nan=False, default=str, **options)
 
 
 def sha256(path: str | Path) -> str:

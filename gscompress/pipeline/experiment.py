@@ -36,7 +36,7 @@ import numpy as np
 
 from gscompress import __version__
 from gscompress.errors import InputError
-from gscompress.io.files import write_text_atomic
+from gscompress.io.files import json_text, write_text_atomic
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES, strategy_scores
@@ -168,7 +168,7 @@ class _Runner:
                 return _Record(path, key, saved["result"])
         result = work(path)
         record = {"key": key, "spec": spec, "result": result}
-        write_text_atomic(record_path, json.dumps(record, indent=1, default=str))
+        write_text_atomic(record_path, json_text(record, indent=1))
         self.done += 1
         return _Record(path, key, result)
 
@@ -437,7 +437,7 @@ def _write_reports(
     pruned_log: Path,
 ) -> dict[str, str]:
     """results.json, results.csv, results.md and plots/*.png."""
-    write_text_atomic(out / "results.json", json.dumps(rows, indent=1, default=str))
+    write_text_atomic(out / "results.json", json_text(rows, indent=1))
     write_text_atomic(out / "results.csv", _csv(rows))
     plots = _plots(out / "plots", rows, s, full_log)
     write_text_atomic(out / "results.md", _markdown(seq, s, rows, verdicts, plots, out))

@@ -84,7 +84,8 @@ def rewrite_map(
     """Copy a log, replacing its map (the last snapshot) by `transform(map)`.
 
     Every other message passes through unchanged; the output's provenance gains `operation` and
-    its results are what `transform` returns beside the new map.
+    its results are what `transform` returns beside the new map. The new map is stored at the
+    precision of the one it replaces (an fp16 share stays fp16).
     """
     check_output(dst, [src], force)
     with LogReader(src) as log_in:
@@ -98,8 +99,9 @@ def rewrite_map(
                     out.copy_message(schema, channel, message)
                     continue
                 if snapshot == last:
-                    new_map, meta.results = transform(log_in.decode_map(schema, message))
-                    out.write_gaussians(new_map, message.log_time)
+                    stored = log_in.decode_snapshot(schema, message)
+                    new_map, meta.results = transform(stored.gaussians)
+                    out.write_gaussians(new_map, message.log_time, stored.precision)
                 else:
                     out.copy_message(schema, channel, message)
                 snapshot += 1
