@@ -41,6 +41,7 @@ def test_partial_file_applies_on_top_of_its_preset(tmp_path):
         ("mapping:\n  final_iters: -2\n", "refinement iterations"),
         ("size: [80]\n", "size"),
         ("isotropic: 1\n", "true or false"),
+        ("prune:\n  refill: all\n", "prune.refill must be one of off, current, keyframes"),
         ("preset: nope\n", "unknown SLAM preset"),
         ("- 1\n", "mapping"),
         ("mapping: [1\n", "cannot read config"),
@@ -51,6 +52,16 @@ def test_bad_files_are_refused_with_a_clear_message(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(InputError, match=message):
         load_config(path)
+
+
+@pytest.mark.parametrize(
+    "text, refill",
+    [("true", "keyframes"), ("false", "off"), ("off", "off"), ("current", "current")],
+)
+def test_refill_reads_its_modes_and_the_old_booleans(tmp_path, text, refill):
+    path = tmp_path / "c.yaml"
+    path.write_text(f"prune:\n  refill: {text}\n")
+    assert load_config(path).prune.refill == refill
 
 
 def test_resolve_config_applies_command_line_overrides(tmp_path):

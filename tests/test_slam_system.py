@@ -305,7 +305,7 @@ def _hole_pixels(system, views):
 
 def test_refill_after_a_stage_fills_the_holes_it_opened(seq):
     # no scheduled stage: the test prunes and refills by hand after frame 2
-    config = preset("tiny").with_overrides(**{"prune.stages": (), "prune.refill": True})
+    config = preset("tiny").with_overrides(**{"prune.stages": (), "prune.refill": "keyframes"})
     system = SlamSystem(config, seq.intrinsics, total_frames=4)
     for i in range(3):
         system.process(seq.frame(i))
@@ -317,3 +317,20 @@ def test_refill_after_a_stage_fills_the_holes_it_opened(seq):
     stats = system._refine(views[-1], 2, pruned=True, keyframe=True)
     assert stats is not None and stats.iters == 0 and stats.added == len(system) - n > 0
     assert _hole_pixels(system, views) < holes / 4
+
+
+def test_refill_of_the_current_view_fills_only_its_holes(seq):
+    added = {}
+    for refill in ("current", "keyframes"):
+        config = preset("tiny").with_overrides(**{"prune.stages": (), "prune.refill": refill})
+        system = SlamSystem(config, seq.intrinsics, total_frames=4)
+        for i in range(3):
+            system.process(seq.frame(i))
+        current = system.keyframes[-1]
+        system.prune_to(0.1)
+        holes = _hole_pixels(system, [current])
+        stats = system._refine(current, 2, pruned=True, keyframe=True)
+        assert stats is not None
+        added[refill] = stats.added
+        assert _hole_pixels(system, [current]) < holes / 4
+    assert 0 < added["current"] < added["keyframes"]  # the older keyframe's holes stay

@@ -146,6 +146,10 @@ class DensifyConfig:
     opacity: float = 0.5
 
 
+REFILL = ("off", "current", "keyframes")
+"""Values of `PruneConfig.refill`."""
+
+
 @dataclass(frozen=True)
 class PruneConfig:
     """Cyclic removal and stage-wise PWAS pruning (paper Eq. 9-10).
@@ -166,12 +170,14 @@ class PruneConfig:
         refine_iters: mapping iterations right after each stage over all keyframes so far and
             the current frame, each once per shuffled pass, so that the survivors fill the
             holes left in views the camera will not see again (0: none).
-        refill: right after each stage (before its refinement), densify every keyframe so far
-            and the current frame where the pruned map leaves a hole (`densify` rules), so
-            views the camera has left keep no empty patches; the added Gaussians count.
-            Off in every preset: on the synthetic room at 160x120 (cpu preset), refill with
-            60 `refine_iters` gained 0.76 dB PSNR (24.79 against 24.03 dB) but kept 11122
-            Gaussians instead of 6228, 57% fewer than unpruned instead of 76% (bench/pruning.py).
+        refill: right after each stage (before its refinement), densify views where the pruned
+            map leaves a hole (`densify` rules); the added Gaussians count. "off"; "current":
+            the frame just mapped, so the next frame is tracked against a map without holes;
+            "keyframes": every keyframe so far and the current frame, so views the camera has
+            left keep no empty patches. "keyframes" is off in every preset: on the synthetic
+            room at 160x120 (cpu preset), it gained 0.76 dB PSNR with 60 `refine_iters` (24.79
+            against 24.03 dB) but kept 11122 Gaussians instead of 6228, 57% fewer than unpruned
+            instead of 76% (bench/pruning.py).
     """
 
     opacity_every: int = 100
@@ -182,7 +188,7 @@ class PruneConfig:
     keep: float = 0.3
     by: str = "pwas"
     refine_iters: int = 0
-    refill: bool = False
+    refill: str = "off"
 
 
 @dataclass(frozen=True)
@@ -284,6 +290,8 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
         ):
             return (int(value[0]), int(value[1]))
         raise InputError(f"config {where}: expected [W, H] of positive integers or null")
+    if key == "refill" and isinstance(value, bool):  # files from before the three modes
+        return "keyframes" if value else "off"
     if isinstance(old, bool):
         if not isinstance(value, bool):
             raise InputError(f"config {where}: expected true or false, got {value!r}")
@@ -343,6 +351,7 @@ def check_config(config: SlamConfig) -> None:
     need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")
     need(0.0 < p.keep <= 1.0, "prune.keep must be in (0, 1]")
     need(p.by in STRATEGIES, f"prune.by must be one of {', '.join(STRATEGIES)}")
+    need(p.refill in REFILL, f"prune.refill must be one of {', '.join(REFILL)}")
     need(p.refine_iters >= 0 and m.final_iters >= 0, "refinement iterations must be >= 0")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
     need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")

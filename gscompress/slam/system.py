@@ -453,8 +453,9 @@ class SlamSystem:
             iters += self.config.mapping.final_iters
         views = self.keyframes if keyframe else [*self.keyframes, current]
         added = 0
-        if pruned and self.config.prune.refill:
-            added = sum(self._densify(view) for view in views)
+        refill = self.config.prune.refill if pruned else "off"
+        if refill != "off":
+            added = sum(self._densify(v) for v in (views if refill == "keyframes" else [current]))
         if iters == 0 and not added:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
