@@ -216,6 +216,15 @@ def test_a_received_share_is_kept_out_of_the_stage_ranking(seq):
     assert np.count_nonzero(after.ids >= 512) == keep_count(int(own.sum()), 0.3)
 
 
+def test_a_received_share_does_not_stand_in_for_the_runs_own_densification(seq):
+    frame = seq.frame(0)
+    cover = gaussians_from_rgbd(frame.color, frame.depth, seq.intrinsics, frame.T_world_cam)
+    alone = SlamSystem(preset("tiny"), seq.intrinsics).process(frame).added
+    system = SlamSystem(preset("tiny"), seq.intrinsics)
+    system.receive(replace(cover, ids=np.arange(len(cover)) + 10**6))
+    assert system.process(frame).added == alone == np.count_nonzero(frame.depth > 0)
+
+
 def test_stage_events_follow_the_schedule(seq):
     system = SlamSystem(preset("tiny"), seq.intrinsics, total_frames=6)
     events = {}
