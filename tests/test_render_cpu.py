@@ -132,3 +132,21 @@ def test_falls_back_to_torch_without_a_compiler(monkeypatch):
         assert out.backend == "torch"
     finally:
         cpu_backend.load_extension.cache_clear()
+
+
+def test_a_lock_left_by_a_killed_build_is_cleared(tmp_path):
+    import subprocess
+    import sys
+
+    stale = tmp_path / "lock"
+    stale.write_text("")  # what torch leaves when a build is killed midway
+    with cpu_backend._build_lock(tmp_path):
+        assert not stale.exists()
+        # another process cannot enter while this one builds
+        probe = (
+            "import fcntl, sys; f = open(sys.argv[1], 'w')\n"
+            "try: fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)\n"
+            "except BlockingIOError: sys.exit(3)"
+        )
+        held = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "gsc.lock")])
+        assert held.returncode == 3

@@ -9,6 +9,7 @@ C++ compiler `load_extension()` returns None and the caller falls back to the pu
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import logging
@@ -17,6 +18,7 @@ import platform
 import shutil
 import sys
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -57,6 +59,28 @@ def _build_flags() -> tuple[list[str], str]:
     return [*_CFLAGS, "-march=native"], cpu
 
 
+@contextlib.contextmanager
+def _build_lock(build_dir: Path) -> Iterator[None]:
+    """Hold an OS lock on a build directory and clear the `lock` file a killed build left.
+
+    torch's build waits forever on a `lock` file, which a build killed midway (Ctrl-C on the
+    first run) leaves behind. Our builds take `gsc.lock` with flock first, which the OS releases
+    when a process dies, so a `lock` found while holding it is stale and is removed.
+    """
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: torch's own lock only
+        yield
+        return
+    with open(build_dir / "gsc.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            (build_dir / "lock").unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def _cache_root() -> Path:
     """Where the compiled extensions are kept."""
     if "GSCOMPRESS_CACHE_DIR" in os.environ:
@@ -95,14 +119,15 @@ def load_extension() -> ModuleType | None:
         from torch.utils import cpp_extension
 
         build_dir.mkdir(parents=True, exist_ok=True)
-        return cpp_extension.load(
-            name=name,
-            sources=[str(_SOURCE)],
-            extra_cflags=cflags,
-            extra_ldflags=_LDFLAGS,
-            build_directory=str(build_dir),
-            verbose=False,
-        )
+        with _build_lock(build_dir):
+            return cpp_extension.load(
+                name=name,
+                sources=[str(_SOURCE)],
+                extra_cflags=cflags,
+                extra_ldflags=_LDFLAGS,
+                build_directory=str(build_dir),
+                verbose=False,
+            )
     except Exception as exc:  # a build failure must not take rendering down
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         warnings.warn(
