@@ -153,6 +153,30 @@ def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: 
     assert 2 <= done <= FRAMES and frames_in(out) == list(range(done))
 
 
+def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
+    seq_dir: Path, config_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from gscompress.slam.system import SlamSystem
+
+    process, seen = SlamSystem.process, []
+
+    def interrupted_process(self, frame):
+        if len(self.poses) == 2:
+            os.kill(os.getpid(), signal.SIGINT)  # lands while this frame is being processed
+        result = process(self, frame)
+        seen.append(result.gaussians)
+        return result
+
+    monkeypatch.setattr(SlamSystem, "process", interrupted_process)
+    out = tmp_path / "stopped.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config_file)
+    assert frames_in(out) == [0, 1, 2]  # the frame finished, and no later one started
+    with LogReader(out) as log:
+        assert log.metadata.results["interrupted"] is True
+        assert log.metadata.results["gaussians"] == len(log.read_map()) == seen[-1]
+
+
 def test_inject_starts_the_map_with_the_share(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:

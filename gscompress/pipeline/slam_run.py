@@ -6,9 +6,12 @@ run (`resume`); the frame loop and the log it writes are the same in all three c
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,6 +53,7 @@ class _Run:
     est_poses: list[np.ndarray] = field(default_factory=list)
     gt_poses: list[np.ndarray] = field(default_factory=list)
     t_ns: int = 0
+    last_stats: dict[str, Any] = field(default_factory=dict)  # of the last frame logged
     leftovers: list[Path] = field(default_factory=list)  # unfinished files to delete at the end
 
 
@@ -292,11 +296,65 @@ def _own_ids_from(provenance: list[dict[str, Any]]) -> int:
     return max([int(s.get("own_ids_from", 0)) for s in steps if s.get("name") == "inject"] + [0])
 
 
+def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> None:
+    """Write one processed frame: poses, stats, and a snapshot at a stage or checkpoint."""
+    total, every = len(run.sequence), run.config.checkpoint_every
+    run.t_ns = seconds_to_ns(frame.timestamp)
+    out.write_pose(result.T_world_cam, run.t_ns)
+    if frame.T_world_cam is not None:
+        out.write_pose(frame.T_world_cam, run.t_ns, ground_truth=True)
+        run.gt_poses.append(frame.T_world_cam)
+        run.est_poses.append(result.T_world_cam)
+    stats = result.stats()
+    checkpoint = every > 0 and (i + 1) % every == 0 and i + 1 < total
+    if checkpoint and not result.event:
+        stats["event"] = "checkpoint"
+    out.write_stats(stats, run.t_ns)
+    if result.event or checkpoint:
+        out.write_gaussians(run.system.gaussian_map(), run.t_ns)
+    out.flush()
+    run.last_stats = stats
+
+
 def _json(record: Record) -> dict[str, Any]:
     import json
 
     value = json.loads(record[2].data)
     return value if isinstance(value, dict) else {}
+
+
+@contextlib.contextmanager
+def _stop_between_frames() -> Iterator[Callable[[], None]]:
+    """Let Ctrl-C and SIGTERM stop a run between frames; yields the check to call after each.
+
+    A signal in the middle of a frame (say, while Gaussians are being removed) would leave the
+    map half-updated and holding part of a frame whose pose is not logged; the map written at
+    the end must be the state after whole frames, the one `--resume` restarts from. So the first
+    signal is noted and the run stops after the frame; a second one stops at once, and then the
+    end writes no map (the last checkpoint stands). Only the main thread can take signals;
+    elsewhere nothing changes.
+    """
+    pending: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+
+    def note(signum: int, frame: object) -> None:
+        if pending:
+            raise KeyboardInterrupt
+        pending.append(signum)
+        log.warning("stopping after this frame (again to stop at once)")
+
+    def check() -> None:
+        if pending:
+            raise KeyboardInterrupt
+
+    previous = {s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield check
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
 
 
 def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:
@@ -305,7 +363,6 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
 
     sequence, system, meta = run.sequence, run.system, run.meta
     total = len(sequence)
-    every = run.config.checkpoint_every
     failure: BaseException | None = None
     start = time.perf_counter()
     with LogWriter(dst, meta, inputs=run.inputs, force=True) as out:
@@ -316,44 +373,38 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             out.write_calibration(sequence.intrinsics, 0)
         out.write_metadata()
         out.flush()
+        whole = True  # the map is the state after whole frames
         try:
-            for i in range(run.start, total):
-                frame = sequence.frame(i)
-                result = system.process(frame)
-                run.t_ns = seconds_to_ns(frame.timestamp)
-                out.write_pose(result.T_world_cam, run.t_ns)
-                if frame.T_world_cam is not None:
-                    out.write_pose(frame.T_world_cam, run.t_ns, ground_truth=True)
-                    run.gt_poses.append(frame.T_world_cam)
-                    run.est_poses.append(result.T_world_cam)
-                stats = result.stats()
-                checkpoint = every > 0 and (i + 1) % every == 0 and i + 1 < total
-                if checkpoint and not result.event:
-                    stats["event"] = "checkpoint"
-                out.write_stats(stats, run.t_ns)
-                if result.event or checkpoint:
-                    out.write_gaussians(system.gaussian_map(), run.t_ns)
-                out.flush()
-                if progress is not None:
-                    progress(i + 1, total, stats)
+            with _stop_between_frames() as check:
+                for i in range(run.start, total):
+                    frame = sequence.frame(i)
+                    whole = False
+                    result = system.process(frame)
+                    whole = True
+                    _log_frame(run, out, frame, result, i)
+                    if progress is not None:
+                        progress(i + 1, total, run.last_stats)
+                    check()
         except (KeyboardInterrupt, Exception) as exc:
             if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
                 raise  # nothing done: no log is better than an empty one
             failure = exc
         done = len(system.poses)
         seconds = time.perf_counter() - start
-        gaussians = system.gaussian_map()
-        out.write_gaussians(gaussians, run.t_ns)
+        gaussians = system.gaussian_map() if whole else None
+        if gaussians is not None:
+            out.write_gaussians(gaussians, run.t_ns)
         meta.results.update(
             {
                 "frames": done,
                 "frames_total": total,
-                "gaussians": len(gaussians),
                 "seconds": round(seconds, 3),
                 "seconds_per_frame": round(seconds / max(done - run.start, 1), 4),
                 "interrupted": failure is not None,
             }
         )
+        if gaussians is not None:
+            meta.results["gaussians"] = len(gaussians)
         if run.start:
             meta.results["resumed_at"] = run.start
         if failure is not None and not isinstance(failure, KeyboardInterrupt):
