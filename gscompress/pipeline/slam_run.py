@@ -53,7 +53,6 @@ class _Run:
     est_poses: list[np.ndarray] = field(default_factory=list)
     gt_poses: list[np.ndarray] = field(default_factory=list)
     t_ns: int = 0
-    last_stats: dict[str, Any] = field(default_factory=dict)  # of the last frame logged
     leftovers: list[Path] = field(default_factory=list)  # unfinished files to delete at the end
 
 
@@ -296,8 +295,11 @@ def _own_ids_from(provenance: list[dict[str, Any]]) -> int:
     return max([int(s.get("own_ids_from", 0)) for s in steps if s.get("name") == "inject"] + [0])
 
 
-def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> None:
-    """Write one processed frame: poses, stats, and a snapshot at a stage or checkpoint."""
+def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> dict[str, Any]:
+    """Write one processed frame: poses, stats, and a snapshot at a stage or checkpoint.
+
+    Returns the frame's `/slam/stats` record.
+    """
     total, every = len(run.sequence), run.config.checkpoint_every
     run.t_ns = seconds_to_ns(frame.timestamp)
     out.write_pose(result.T_world_cam, run.t_ns)
@@ -313,7 +315,7 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> No
     if result.event or checkpoint:
         out.write_gaussians(run.system.gaussian_map(), run.t_ns)
     out.flush()
-    run.last_stats = stats
+    return stats
 
 
 def _json(record: Record) -> dict[str, Any]:
@@ -381,9 +383,9 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
                     whole = False
                     result = system.process(frame)
                     whole = True
-                    _log_frame(run, out, frame, result, i)
+                    stats = _log_frame(run, out, frame, result, i)
                     if progress is not None:
-                        progress(i + 1, total, run.last_stats)
+                        progress(i + 1, total, stats)
                     check()
         except (KeyboardInterrupt, Exception) as exc:
             if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
@@ -391,9 +393,10 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             failure = exc
         done = len(system.poses)
         seconds = time.perf_counter() - start
-        gaussians = system.gaussian_map() if whole else None
-        if gaussians is not None:
+        if whole:  # else the last checkpoint stands (see _stop_between_frames)
+            gaussians = system.gaussian_map()
             out.write_gaussians(gaussians, run.t_ns)
+            meta.results["gaussians"] = len(gaussians)
         meta.results.update(
             {
                 "frames": done,
@@ -403,8 +406,6 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
                 "interrupted": failure is not None,
             }
         )
-        if gaussians is not None:
-            meta.results["gaussians"] = len(gaussians)
         if run.start:
             meta.results["resumed_at"] = run.start
         if failure is not None and not isinstance(failure, KeyboardInterrupt):

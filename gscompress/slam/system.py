@@ -428,25 +428,23 @@ class SlamSystem:
         settings = self.config.densify
         depth = current.depth.cpu().numpy()
         params = self.mapper.params
+        mask = depth > 0  # an empty map explains nothing
         with torch.no_grad():
             inputs = params.render_inputs()
             if self.own_ids_from:  # received Gaussians do not stand in for the run's own
                 own = params.ids >= self.own_ids_from
                 inputs = RenderInputs(*(x[own] for x in inputs))
-        if len(inputs.means) == 0:
-            mask = depth > 0
-        else:
-            with torch.no_grad():
+            if len(inputs.means):
                 out = render(
                     *inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend
                 )
-            mask = densification_mask(
-                out.silhouette.cpu().numpy(),
-                out.depth_normalized.cpu().numpy(),
-                depth,
-                silhouette_max=settings.silhouette_max,
-                depth_error_factor=settings.depth_error_factor,
-            )
+                mask = densification_mask(
+                    out.silhouette.cpu().numpy(),
+                    out.depth_normalized.cpu().numpy(),
+                    depth,
+                    silhouette_max=settings.silhouette_max,
+                    depth_error_factor=settings.depth_error_factor,
+                )
         self._init_scene_radius(depth)
         new = gaussians_from_rgbd(
             current.color.cpu().numpy(), depth, self.intrinsics, current.T_world_cam, mask=mask,
