@@ -9,7 +9,7 @@ import torch
 from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.errors import MapError
-from gscompress.gaussians import random_map
+from gscompress.gaussians import SH_C0, random_map
 from gscompress.ops.select import STRATEGIES, keep_count, strategy_scores
 from gscompress.render import render
 from gscompress.slam.config import TrackingConfig, preset
@@ -223,6 +223,29 @@ def test_a_received_share_does_not_stand_in_for_the_runs_own_densification(seq):
     system = SlamSystem(preset("tiny"), seq.intrinsics)
     system.receive(replace(cover, ids=np.arange(len(cover)) + 10**6))
     assert system.process(frame).added == alone == np.count_nonzero(frame.depth > 0)
+
+
+def test_a_share_that_already_shows_the_frame_is_not_mapped_twice(seq):
+    frame = seq.frame(0)
+    cover = gaussians_from_rgbd(
+        frame.color, frame.depth, seq.intrinsics, frame.T_world_cam, opacity=0.99
+    )
+    config = preset("tiny").with_overrides(**{"densify.received_color_error": 0.3})
+    valid = frame.depth > 0
+    black = np.full_like(cover.sh_dc, -0.5 / SH_C0)  # covers the frame, renders ~0
+    added = {}
+    for name, sh_dc in [("right", cover.sh_dc), ("black", black)]:
+        system = SlamSystem(config, seq.intrinsics)
+        system.receive(replace(cover, sh_dc=sh_dc, ids=np.arange(len(cover)) + 10**6))
+        added[name] = system.process(frame).added
+    assert added["right"] < 0.1 * np.count_nonzero(valid)  # explained: no second layer
+    brightness = frame.color.mean(-1)  # the black share's error at each pixel
+    assert (
+        np.count_nonzero(valid & (brightness > 0.32))
+        <= added["black"]
+        <= np.count_nonzero(valid & (brightness > 0.28))
+    )
+    assert added["black"] > 0.2 * np.count_nonzero(valid)
 
 
 def test_stage_events_follow_the_schedule(seq):

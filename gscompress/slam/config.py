@@ -138,12 +138,17 @@ class DensifyConfig:
         depth_error_factor: also add where the observation is in front of the rendered depth by
             more than this many median depth errors.
         opacity: initial opacity of new Gaussians.
+        received_color_error: with a received share (`gsc slam --inject`), do not add where the
+            whole map, share included, already explains the pixel: covered, no new geometry,
+            and a mean absolute RGB error below this. 0: densify wherever the run's own
+            Gaussians leave the pixel unexplained, whatever the share shows there.
     """
 
     stride: int = 1
     silhouette_max: float = 0.5
     depth_error_factor: float = 50.0
     opacity: float = 0.5
+    received_color_error: float = 0.0
 
 
 REFILL = ("off", "current", "keyframes")
@@ -348,6 +353,7 @@ def check_config(config: SlamConfig) -> None:
     need(k.every >= 1 and k.window >= 0 and k.overlap_samples >= 1, "bad keyframe settings")
     need(d.stride >= 1, "densify.stride must be >= 1")
     need(0.0 < d.opacity < 1.0, "densify.opacity must be in (0, 1)")
+    need(d.received_color_error >= 0.0, "densify.received_color_error must be >= 0")
     need(p.opacity_every >= 0 and p.alpha_min >= 0 and p.huge_fraction >= 0, "bad prune values")
     need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")
     need(0.0 < p.keep <= 1.0, "prune.keep must be in (0, 1]")

@@ -44,7 +44,7 @@ from gscompress.datasets.base import Frame
 from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.select import keep_count, strategy_scores, top_k
-from gscompress.render import render
+from gscompress.render import RenderOutput, render
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, is_keyframe, select_window
@@ -424,27 +424,26 @@ class SlamSystem:
             self.mapper.scene_radius = float(depth.max()) / ratio
 
     def _densify(self, current: View) -> int:
-        """Add Gaussians for the pixels of the view the map does not explain yet."""
+        """Add Gaussians for the pixels of the view the map does not explain yet.
+
+        With a received share, a pixel qualifies when the run's own Gaussians leave it
+        unexplained, and (with `densify.received_color_error` > 0) the whole map does not
+        explain it either: it leaves a hole or new geometry there, or its colour is off by at
+        least that mean absolute RGB error. A sparse share then does not stop the run from
+        mapping, and where a dense one already shows the frame the run adds no second layer.
+        """
         settings = self.config.densify
         depth = current.depth.cpu().numpy()
-        params = self.mapper.params
         mask = depth > 0  # an empty map explains nothing
         with torch.no_grad():
-            inputs = params.render_inputs()
-            if self.own_ids_from:  # received Gaussians do not stand in for the run's own
-                own = params.ids >= self.own_ids_from
-                inputs = RenderInputs(*(x[own] for x in inputs))
-            if len(inputs.means):
-                out = render(
-                    *inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend
-                )
-                mask = densification_mask(
-                    out.silhouette.cpu().numpy(),
-                    out.depth_normalized.cpu().numpy(),
-                    depth,
-                    silhouette_max=settings.silhouette_max,
-                    depth_error_factor=settings.depth_error_factor,
-                )
+            inputs = self.mapper.params.render_inputs()
+            own = self.mapper.params.ids >= self.own_ids_from
+            if own.any():  # received Gaussians do not stand in for the run's own
+                mask = self._unexplained(RenderInputs(*(x[own] for x in inputs)), current)[0]
+            if self.own_ids_from and settings.received_color_error > 0 and len(inputs.means):
+                whole, out = self._unexplained(inputs, current)
+                error = (out.color - current.color).abs().mean(-1).cpu().numpy()
+                mask &= whole | (error >= settings.received_color_error)
         self._init_scene_radius(depth)
         new = gaussians_from_rgbd(
             current.color.cpu().numpy(), depth, self.intrinsics, current.T_world_cam, mask=mask,
@@ -453,6 +452,19 @@ class SlamSystem:
         if not self.config.isotropic:
             new = new.as_anisotropic()
         return self.add_gaussians(new, renumber=False)
+
+    def _unexplained(self, inputs: RenderInputs, current: View) -> tuple[np.ndarray, RenderOutput]:
+        """SplaTAM's densification mask of `inputs` rendered at the view, and the render."""
+        settings = self.config.densify
+        out = render(*inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend)
+        mask = densification_mask(
+            out.silhouette.cpu().numpy(),
+            out.depth_normalized.cpu().numpy(),
+            current.depth.cpu().numpy(),
+            silhouette_max=settings.silhouette_max,
+            depth_error_factor=settings.depth_error_factor,
+        )
+        return mask, out
 
     def _refine(
         self, current: View, position: int, pruned: bool, keyframe: bool
