@@ -248,6 +248,31 @@ def test_a_share_that_already_shows_the_frame_is_not_mapped_twice(seq):
     assert added["black"] > 0.2 * np.count_nonzero(valid)
 
 
+def test_frames_after_a_stage_track_against_the_map_before_it(seq, monkeypatch):
+    config = preset("tiny").with_overrides(
+        **{"prune.stages": (1 / 3,), "prune.track_prestage_frames": 2}
+    )
+    system = SlamSystem(config, seq.intrinsics, total_frames=6)  # the stage: frame 1
+    tracked_against, before_stage = [], []
+
+    def spy_track(gaussians, *args, **kwargs):
+        tracked_against.append(len(gaussians.means))
+        return track(gaussians, *args, **kwargs)
+
+    def spy_prune(*args, **kwargs):
+        before_stage.append(len(system.mapper))
+        return prune_to(*args, **kwargs)
+
+    prune_to = system.prune_to
+    monkeypatch.setattr(system, "prune_to", spy_prune)
+    monkeypatch.setattr("gscompress.slam.system.track", spy_track)
+    results = [system.process(seq.frame(i)) for i in range(5)]
+    assert results[1].event == "prune-stage-1" and len(before_stage) == 1
+    assert results[1].gaussians < before_stage[0]
+    # frames 1-4 are tracked: frames 2 and 3 against the map before the stage, then the live map
+    assert tracked_against[1:] == [before_stage[0], before_stage[0], results[3].gaussians]
+
+
 def test_stage_events_follow_the_schedule(seq):
     system = SlamSystem(preset("tiny"), seq.intrinsics, total_frames=6)
     events = {}

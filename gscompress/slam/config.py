@@ -184,6 +184,10 @@ class PruneConfig:
             against 24.03 dB) but kept 11122 Gaussians instead of 6228, 57% fewer than unpruned
             instead of 76% (bench/pruning.py). "current" did not help on 3dmatch_office_frag1
             (PSNR 24.19 against 24.18 dB, ATE 2.13 against 2.03 cm, 3494 Gaussians).
+        track_prestage_frames: for this many frames after each stage, track against the map
+            as it stood just before the stage (a detached copy, dropped afterwards); mapping,
+            densification, scores and the log use the pruned map. A stage thins the views
+            the camera is in, and tracking against the thinned map is biased (0: off).
     """
 
     opacity_every: int = 100
@@ -195,6 +199,7 @@ class PruneConfig:
     by: str = "pwas"
     refine_iters: int = 0
     refill: str = "off"
+    track_prestage_frames: int = 0
 
 
 @dataclass(frozen=True)
@@ -353,6 +358,7 @@ def check_config(config: SlamConfig) -> None:
     need(k.every >= 1 and k.window >= 0 and k.overlap_samples >= 1, "bad keyframe settings")
     need(d.stride >= 1, "densify.stride must be >= 1")
     need(0.0 < d.opacity < 1.0, "densify.opacity must be in (0, 1)")
+    need(p.track_prestage_frames >= 0, "prune.track_prestage_frames must be >= 0")
     need(d.received_color_error >= 0.0, "densify.received_color_error must be >= 0")
     need(p.opacity_every >= 0 and p.alpha_min >= 0 and p.huge_fraction >= 0, "bad prune values")
     need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")

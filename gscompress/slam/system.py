@@ -189,6 +189,8 @@ class SlamSystem:
         self.next_id = 0
         self.own_ids_from = 0
         """Gaussians with ids below this were received from another agent (`receive`)."""
+        self.prestage: tuple[RenderInputs, int] | None = None
+        """The map before the last stage and how many more frames track against it."""
         self.stages = (
             stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
         )
@@ -334,6 +336,10 @@ class SlamSystem:
         event = None
         stage = self.stages.get(position)
         if stage is not None:
+            frames = self.config.prune.track_prestage_frames
+            if frames:
+                inputs = self.mapper.params.render_inputs()
+                self.prestage = (RenderInputs(*(x.detach().clone() for x in inputs)), frames)
             removed += self.prune_to(self.config.prune.keep, stage=stage)
             event = f"prune-stage-{stage}"
         ms["pruning"] = 1e3 * (time.perf_counter() - clock)
@@ -411,9 +417,13 @@ class SlamSystem:
         guess = self.poses[-1]
         if self.config.tracking.constant_velocity:
             guess = constant_velocity(self.poses[-1], self.poses[-2] if position > 1 else None)
+        inputs = self.mapper.params.render_inputs()
+        if self.prestage is not None:  # the map as it stood before the last stage
+            inputs, left = self.prestage
+            self.prestage = (inputs, left - 1) if left > 1 else None
         result = track(
-            self.mapper.params.render_inputs(), color, depth, self.intrinsics, guess,
-            self.config.tracking, backend=self.config.backend,
+            inputs, color, depth, self.intrinsics, guess, self.config.tracking,
+            backend=self.config.backend,
         )  # fmt: skip
         return result.T_world_cam, result
 
