@@ -337,9 +337,10 @@ class SlamSystem:
         stage = self.stages.get(position)
         if stage is not None:
             frames = self.config.prune.track_prestage_frames
-            if frames:
-                inputs = self.mapper.params.render_inputs()
-                self.prestage = (RenderInputs(*(x.detach().clone() for x in inputs)), frames)
+            if frames and not self.config.tracking.use_ground_truth:
+                with torch.no_grad():  # clone: means, quats are the parameters themselves
+                    inputs = RenderInputs(*(x.clone() for x in self.mapper.params.render_inputs()))
+                self.prestage = (inputs, frames)
             removed += self.prune_to(self.config.prune.keep, stage=stage)
             event = f"prune-stage-{stage}"
         ms["pruning"] = 1e3 * (time.perf_counter() - clock)
@@ -417,10 +418,11 @@ class SlamSystem:
         guess = self.poses[-1]
         if self.config.tracking.constant_velocity:
             guess = constant_velocity(self.poses[-1], self.poses[-2] if position > 1 else None)
-        inputs = self.mapper.params.render_inputs()
         if self.prestage is not None:  # the map as it stood before the last stage
             inputs, left = self.prestage
             self.prestage = (inputs, left - 1) if left > 1 else None
+        else:
+            inputs = self.mapper.params.render_inputs()
         result = track(
             inputs, color, depth, self.intrinsics, guess, self.config.tracking,
             backend=self.config.backend,
