@@ -12,7 +12,12 @@ from click.testing import CliRunner
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import InputError
 from gscompress.io.mcap_log import LogReader
-from gscompress.pipeline.experiment import ROW_KEYS, ExperimentSettings, plan_size
+from gscompress.pipeline.experiment import (
+    ROW_KEYS,
+    ExperimentSettings,
+    plan_size,
+    rate_distortion_curves,
+)
 from gscompress_cli.main import cli
 
 REQUIRED = ("name", "ate_rmse_cm", "psnr", "ssim", "lpips", "gaussians", "bytes")
@@ -59,6 +64,31 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     for name in ("rate_distortion", "importance_hist", "importance_topdown"):
         assert (out / "plots" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert result["verdicts"]["seeds"] == 1 and len(result["verdicts"]["sweep"]) == 2
+
+
+def test_rate_distortion_curves_start_at_b_without_a_share(
+    experiment: tuple[Path, Path, dict],
+) -> None:
+    _seq, out, _result = experiment
+    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), lpips=False)
+    rows = json.loads((out / "results.json").read_text())
+    curves = rate_distortion_curves(rows, settings)
+    assert set(curves) == {"random", "opacity", "alpha-t", "pwas", "full"}
+    alone = next(r for r in rows if r["name"] == "B refined, no share")
+    for strategy in ("random", "opacity", "alpha-t", "pwas"):
+        (x0, psnr0, ate0), *shared = curves[strategy]
+        assert (x0, psnr0, ate0) == (0.0, alone["psnr"], alone["ate_rmse_cm"])
+        sweep = [r for r in rows if r["strategy"] == strategy]
+        assert [p[0] for p in shared] == sorted(r["share_bytes"] for r in sweep)
+        assert [p[1] for p in shared] == [
+            r["psnr"] for r in sorted(sweep, key=lambda r: r["share_bytes"])
+        ]
+    full = next(r for r in rows if r["strategy"] == "full")
+    assert curves["full"] == [(full["share_bytes"], full["psnr"], full["ate_rmse_cm"])]
+    inject = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), mode="inject")
+    b = next(r for r in rows if r["name"] == "agent B (even frames)")
+    assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["psnr"]
+    assert rate_distortion_curves(rows, ExperimentSettings(preset="tiny", sweep_seeds=0)) == {}
 
 
 def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(

@@ -372,6 +372,39 @@ def _sweep_rows(rows: list[dict[str, Any]], s: ExperimentSettings, budget: str) 
     ]  # fmt: skip
 
 
+def rate_distortion_curves(
+    rows: list[dict[str, Any]], s: ExperimentSettings
+) -> dict[str, list[tuple[float, float | None, float | None]]]:
+    """(share bytes, PSNR, ATE cm) of B per strategy over the sweep budgets, means over the
+    sweep seeds, sorted by bytes.
+
+    Each strategy's curve starts at B without a share (0 bytes: "B refined, no share" in merge
+    mode, B's own run in inject mode), the point every share is a gain over; "full" is the one
+    point of A's whole map, the upper end.
+    """
+    seeds = [r for r in rows if r["seed"] is not None and r["seed"] < s.sweep_seeds]
+    reference = "B refined, no share" if s.mode == "merge" else "agent B (even frames)"
+    base = [r for r in seeds if r["name"] == reference]
+
+    def point(group: list[dict[str, Any]]) -> tuple[float, float | None, float | None]:
+        size = _mean([r["share_bytes"] or 0 for r in group]) or 0.0
+        return size, _mean([r["psnr"] for r in group]), _mean([r["ate_rmse_cm"] for r in group])
+
+    curves: dict[str, list[tuple[float, float | None, float | None]]] = {}
+    for strategy in s.strategies:
+        points = [point(base)] if base else []
+        for budget in s.sweep:
+            group = [r for r in _sweep_rows(rows, s, budget) if r["strategy"] == strategy]
+            if group:
+                points.append(point(group))
+        if len(points) > int(bool(base)):
+            curves[strategy] = sorted(points, key=lambda p: p[0])
+    full = [r for r in seeds if r["strategy"] == "full"]
+    if full and curves:
+        curves["full"] = [point(full)]
+    return curves
+
+
 def _mean(values: Sequence[Any]) -> float | None:
     numbers = [float(v) for v in values if v is not None and math.isfinite(float(v))]
     return float(np.mean(numbers)) if numbers else None
@@ -574,21 +607,15 @@ def _plots(
     paths = []
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for strategy in s.strategies:
-        points = []
-        for budget in s.sweep:
-            group = [r for r in _sweep_rows(rows, s, budget) if r["strategy"] == strategy]
-            if group:
-                points.append((_mean([r["share_bytes"] for r in group]) or 0.0,
-                               _mean([r["psnr"] for r in group]),
-                               _mean([r["ate_rmse_cm"] for r in group])))  # fmt: skip
-        points.sort()
-        if points:
-            x = [p[0] / 1e6 for p in points]
-            axes[0].plot(x, [p[1] for p in points], marker="o", label=strategy)
-            axes[1].plot(x, [p[2] for p in points], marker="o", label=strategy)
+    curves = rate_distortion_curves(rows, s)
+    for name, points in curves.items():
+        x = [p[0] / 1e6 for p in points]
+        full = name == "full"
+        style = dict(marker="*", markersize=12, linestyle="none") if full else dict(marker="o")
+        for ax, column in zip(axes, (1, 2), strict=True):
+            ax.plot(x, [p[column] for p in points], label="A's full map" if full else name, **style)
     for ax, label in zip(axes, ("PSNR of agent B (dB)", "ATE RMSE of agent B (cm)"), strict=True):
-        ax.set_xlabel("share size (MB)")
+        ax.set_xlabel("share size (MB; 0 = no share)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         ax.legend()
