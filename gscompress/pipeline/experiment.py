@@ -619,6 +619,8 @@ def _plots(
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         ax.legend()
+    if s.mode == "merge":
+        axes[1].set_title("a merge leaves B's poses as they were", fontsize="medium")
     fig.suptitle("Rate-distortion: B with A's share")
     fig.tight_layout()
     paths.append(_save(fig, folder / "rate_distortion.png"))
