@@ -43,6 +43,11 @@ from gscompress.ops.select import STRATEGIES, strategy_scores
 
 log = logging.getLogger(__name__)
 
+B_ALONE = "agent B (even frames)"
+"""Row name of B's own run (no share)."""
+B_NO_SHARE = "B refined, no share"
+"""Row name of B's map refined like a merge but with nothing merged (merge mode's control)."""
+
 ROW_KEYS = (
     "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
     "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes", "share_gaussians",
@@ -302,10 +307,10 @@ def run_experiment(
         a = runner.slam(f"s{seed}_agent_a", config, frames_a)
         b = runner.slam(f"s{seed}_agent_b", config, frames_b)
         rows.append(_row("agent A (odd frames)", "table4", a, seed))
-        rows.append(_row("agent B (even frames)", "table4", b, seed))
+        rows.append(_row(B_ALONE, "table4", b, seed))
         if s.mode == "merge":
             alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
-            rows.append(_row("B refined, no share", "table4", alone, seed, "none"))
+            rows.append(_row(B_NO_SHARE, "table4", alone, seed, "none"))
         for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
@@ -362,11 +367,15 @@ def _same_budget(a: str, b: str) -> bool:
     return (x.ratio, x.budget_bytes) == (y.ratio, y.budget_bytes)
 
 
-def _sweep_rows(rows: list[dict[str, Any]], s: ExperimentSettings, budget: str) -> list[dict]:
-    """Rows of B with a share at `budget` on the sweep seeds (the main budget's included)."""
+def _sweep_rows(
+    rows: list[dict[str, Any]], s: ExperimentSettings, budget: str, strategy: str | None = None
+) -> list[dict]:
+    """Rows of B with a share at `budget` on the sweep seeds (the main budget's included), of
+    one strategy or (None) of every compared one."""
     return [
         r for r in rows
-        if r["table"] in ("table4", "sweep") and r["strategy"] in s.strategies
+        if r["table"] in ("table4", "sweep")
+        and (r["strategy"] == strategy if strategy else r["strategy"] in s.strategies)
         and r["seed"] is not None and r["seed"] < s.sweep_seeds
         and _same_budget(r["budget"], budget)
     ]  # fmt: skip
@@ -383,7 +392,7 @@ def rate_distortion_curves(
     point of A's whole map, the upper end.
     """
     seeds = [r for r in rows if r["seed"] is not None and r["seed"] < s.sweep_seeds]
-    reference = "B refined, no share" if s.mode == "merge" else "agent B (even frames)"
+    reference = B_NO_SHARE if s.mode == "merge" else B_ALONE
     base = [r for r in seeds if r["name"] == reference]
 
     def point(group: list[dict[str, Any]]) -> tuple[float, float | None, float | None]:
@@ -392,13 +401,11 @@ def rate_distortion_curves(
 
     curves: dict[str, list[tuple[float, float | None, float | None]]] = {}
     for strategy in s.strategies:
-        points = [point(base)] if base else []
-        for budget in s.sweep:
-            group = [r for r in _sweep_rows(rows, s, budget) if r["strategy"] == strategy]
-            if group:
-                points.append(point(group))
-        if len(points) > int(bool(base)):
-            curves[strategy] = sorted(points, key=lambda p: p[0])
+        groups = [_sweep_rows(rows, s, budget, strategy) for budget in s.sweep]
+        shared = [point(group) for group in groups if group]
+        if shared:
+            start = [point(base)] if base else []
+            curves[strategy] = sorted(start + shared, key=lambda p: p[0])
     full = [r for r in seeds if r["strategy"] == "full"]
     if full and curves:
         curves["full"] = [point(full)]
@@ -581,7 +588,7 @@ def _markdown(
     ]
     for budget in s.sweep:
         for strategy in s.strategies:
-            group = [r for r in _sweep_rows(rows, s, budget) if r["strategy"] == strategy]
+            group = _sweep_rows(rows, s, budget, strategy)
             if group:
                 lines.append(
                     f"| {budget} | {strategy} | {_fmt(_mean([r['psnr'] for r in group]))} | "
