@@ -21,6 +21,7 @@ Usage:
     python bench/pruning.py                        # the synthetic room (gsc synth), 60 frames
     python bench/pruning.py /work/shared/data/tsdffusion_tabletop_box
     python bench/pruning.py SEQ --frames 0:120 --set mapping.final_iters=0 --out bench_out/x
+    python bench/pruning.py SEQ --runs unpruned,pwas,pwas@0.5,pwas@0.7   # a keep-ratio sweep
 """
 
 from __future__ import annotations
@@ -48,6 +49,16 @@ RUNS = {
     "opacity": {"prune.by": "opacity"},
 }
 """Run name -> config overrides on top of the shared config."""
+
+
+def run_overrides(name: str) -> dict[str, Any]:
+    """Config overrides of a run name: a key of RUNS, or "RUN@KEEP" (e.g. "pwas@0.5") for that
+    run at another keep ratio, so one call can trace the Gaussians-against-PSNR trade-off."""
+    run, _, keep = name.partition("@")
+    if run not in RUNS or (keep and run == "unpruned"):
+        raise SystemExit(f"unknown run {name!r}: use {', '.join(RUNS)} or pwas@KEEP / opacity@KEEP")
+    return {**RUNS[run], **({"prune.keep": float(keep)} if keep else {})}
+
 
 METRICS = ("ate_rmse_cm", "psnr", "ssim", "depth_l1_cm", "gaussians", "bytes")
 
@@ -186,7 +197,9 @@ def main() -> None:
     parser.add_argument("--frames", default="all")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--set", action="append", default=[], help="dotted.key=yaml_value")
-    parser.add_argument("--runs", default=",".join(RUNS), help="subset of " + ",".join(RUNS))
+    parser.add_argument(
+        "--runs", default=",".join(RUNS), help=f"of {', '.join(RUNS)}; RUN@KEEP for another keep"
+    )
     parser.add_argument("--eval-every", type=int, default=1)
     parser.add_argument("--out", default="bench_out/pruning")
     parser.add_argument("--reuse", action="store_true", help="evaluate existing logs again")
@@ -211,7 +224,7 @@ def main() -> None:
 
     runs: dict[str, dict[str, Any]] = {}
     for run_name in opts.runs.split(","):
-        overrides = {**shared, **RUNS[run_name]}
+        overrides = {**shared, **run_overrides(run_name)}
         runs[run_name] = run_one(run_name, seq, work, overrides, opts)
         print(table_row(run_name, runs[run_name], name), flush=True)
 
