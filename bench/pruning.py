@@ -43,7 +43,7 @@ from gscompress.pipeline import evaluate_log, slam_file
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.slam.system import PHASES
 
-RUNS = {
+RUNS: dict[str, dict[str, Any]] = {
     "unpruned": {"prune.stages": ()},
     "pwas": {"prune.by": "pwas"},
     "opacity": {"prune.by": "opacity"},

@@ -37,6 +37,7 @@ import statistics
 import subprocess
 import sys
 import time
+from typing import Any
 
 import torch
 
@@ -57,7 +58,7 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
-def make_scene(width: int, height: int, n: int, seed: int = 0) -> dict:
+def make_scene(width: int, height: int, n: int, seed: int = 0) -> dict[str, Any]:
     """A random SLAM-like view with ~TARGET_OVERLAP Gaussians per pixel (float32)."""
     g = torch.Generator().manual_seed(seed)
     f = 0.8 * width
@@ -67,7 +68,7 @@ def make_scene(width: int, height: int, n: int, seed: int = 0) -> dict:
     v = (torch.rand(n, generator=g) * 1.04 - 0.02) * height
     means = torch.stack([(u - intr.cx) * z / f, (v - intr.cy) * z / f, z], dim=1)
     shape = torch.exp(0.25 * torch.randn(n, 3, generator=g))  # mild anisotropy
-    scene = {
+    scene: dict[str, Any] = {
         "means": means,
         "quats": torch.randn(n, 4, generator=g),
         "unit_scales": shape * (z / f)[:, None],  # 1 px standard deviation at the centre
@@ -85,7 +86,7 @@ def make_scene(width: int, height: int, n: int, seed: int = 0) -> dict:
     return scene
 
 
-def depth_complexity(scene: dict) -> float:
+def depth_complexity(scene: dict[str, Any]) -> float:
     """Mean over pixels of the number of Gaussians whose alpha reaches 1/255 there.
 
     Each visible Gaussian covers the ellipse d^T conic d <= 2 ln(255 o), of area
@@ -116,7 +117,7 @@ def timed(*fns, iters: int) -> list[tuple[float, float]]:
     return [(1000.0 * statistics.median(b), 1000.0 * min(b)) for b in times]
 
 
-def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict:
+def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict[str, Any]:
     """Run one case with one backend in this process and return its JSON record."""
     scene = make_scene(width, height, n)
     intr = scene["intrinsics"]
@@ -192,7 +193,7 @@ def main() -> None:
         print(json.dumps(worker(int(w), int(h), int(n), backend, args.iters)))
         return
     for width, height, n in QUICK if args.quick else CASES:
-        records = {}
+        records: dict[str, dict[str, Any]] = {}
         for backend in args.backends.split(","):
             if backend == "torch" and n > TORCH_MAX_GAUSSIANS and not args.torch_all:
                 records[backend] = {
