@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from gscompress.errors import InputError
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
 
@@ -117,7 +118,8 @@ def experiment(
 
     \b
     Examples:
-      gsc experiment demo_seq -o exp --preset tiny --seeds 1    # a smoke test, ~1 min
+      gsc experiment demo_seq -o exp --preset tiny --seeds 1 --sweep-seeds 0 \\
+          --frames 0:10 --size 80x60                           # a smoke test, seconds
       gsc experiment data/office -o exp_office --seeds 3        # cpu preset
     """
     settings = ExperimentSettings(
@@ -137,6 +139,10 @@ def experiment(
         lpips=not no_lpips,
         device=device,
     )
+    try:
+        settings.check()
+    except InputError as exc:  # a bad option value: click's usage error, exit code 2
+        raise click.UsageError(str(exc)) from None
     with progress_bar("experiment", "run", hidden=as_json) as bar:
 
         def progress(name: str, done: int, total: int) -> None:

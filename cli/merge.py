@@ -44,7 +44,7 @@ from .options import (
     help="Refinement iterations on the receiver's keyframes (0: concatenate only).",
 )
 @device_option
-@seed_option
+@seed_option("Seed of the random choice of refinement views.")
 @share_transform_option
 @force_option
 @json_option

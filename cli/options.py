@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 import shlex
 import sys
@@ -35,11 +36,9 @@ def json_option(f: F) -> F:
     return click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")(f)
 
 
-def seed_option(f: F) -> F:
-    """`--seed N` for the random strategy."""
-    return click.option(
-        "--seed", type=int, default=0, show_default=True, help="Seed of the random strategy."
-    )(f)
+def seed_option(help: str = "Seed of the random strategy.") -> Callable[[F], F]:
+    """`--seed N` (default 0) for the random choices a command makes."""
+    return click.option("--seed", type=int, default=0, show_default=True, help=help)
 
 
 class Ratio(click.ParamType):
@@ -61,6 +60,23 @@ class Ratio(click.ParamType):
         if not 0.0 < ratio <= 1.0:
             self.fail(f"{value} is outside (0, 1]", param, ctx)
         return ratio
+
+
+class PositiveFloat(click.ParamType):
+    """A finite number above zero (click's FloatRange lets nan through)."""
+
+    name = "float"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> float:
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if not (math.isfinite(number) and number > 0.0):
+            self.fail(f"{value} is not a finite number above 0", param, ctx)
+        return number
 
 
 class BudgetParam(click.ParamType):
@@ -151,7 +167,8 @@ def progress_bar(desc: str, unit: str, total: int | None = None, hidden: bool = 
     from tqdm import tqdm
 
     quiet = logging.getLogger().getEffectiveLevel() > logging.INFO
-    return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet)
+    # delay: a command that fails at once prints its error without an empty bar before it
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet, delay=0.5)
 
 
 def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
@@ -163,11 +180,11 @@ def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
 
 def seq_option(required: bool = True, help: str = "RGB-D sequence folder (TUM or Replica).") -> Any:
     """`--seq FOLDER`: the sequence a command renders or refines against."""
+    # no explicit default when required: click skips the required check of an option with one
     return click.option(
         "--seq",
         type=click.Path(path_type=Path),  # a missing folder is reported by open_sequence
         required=required,
-        default=None,
         help=help,
     )
 

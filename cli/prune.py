@@ -36,7 +36,7 @@ from .options import (
     help="Score to rank by.",
 )
 @output_option()
-@seed_option
+@seed_option()
 @force_option
 @json_option
 def prune(

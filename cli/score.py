@@ -10,6 +10,7 @@ from gscompress.pipeline import score_file
 
 from .options import (
     FrameSubset,
+    PositiveFloat,
     backend_option,
     command_line,
     emit,
@@ -41,7 +42,7 @@ from .options import (
 @size_option(help="Render at this size WxH (default: the sequence's own).")
 @click.option(
     "--sigma-d",
-    type=float,
+    type=PositiveFloat(),
     default=20.0,
     show_default=True,
     help="Distance scale of the PWAS proximity weight, metres.",

@@ -46,7 +46,7 @@ from .options import BudgetParam, command_line, emit, force_option, json_option,
     default=None,
     help="Also write the share as a float32 3DGS PLY file (the values the receiver decodes).",
 )
-@seed_option
+@seed_option()
 @force_option
 @json_option
 def share(

@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import Any
 
 import click
-from tqdm import tqdm
 
 from .options import (
     Ratio,
@@ -18,6 +17,7 @@ from .options import (
     force_option,
     frames_option,
     json_option,
+    progress_bar,
     share_transform_option,
     size_option,
     slam_config_options,
@@ -132,7 +132,7 @@ def slam(
 
     started = time.perf_counter()
     previous_handler = signal.signal(signal.SIGTERM, _stop)
-    with tqdm(desc="slam", unit="frame", leave=False, disable=as_json) as bar:
+    with progress_bar("slam", "frame", hidden=as_json) as bar:
         processed = 0
 
         def progress(done: int, total: int, stats: dict[str, Any]) -> None:
@@ -182,7 +182,8 @@ def slam(
     emit(
         result,
         as_json,
-        f"mapped {result['frames']} frames -> {result['gaussians']} Gaussians in {dst} "
+        f"mapped {result['frames']} frame{'s' if result['frames'] != 1 else ''} -> "
+        f"{result['gaussians']} Gaussians in {dst} "
         f"({result['seconds_per_frame']:.2f} s/frame"
         + (f", ATE RMSE {ate:.2f} cm" if ate is not None else "")
         + ")",

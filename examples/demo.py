@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -33,20 +32,19 @@ def main() -> None:
     parser.add_argument("--size", default="160x120")
     opts = parser.parse_args()
     out: Path = opts.out
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
+    out.mkdir(parents=True, exist_ok=True)  # a rerun replaces the demo's own outputs only
     seq = out / "synthetic"
 
-    gsc("synth", seq, "--frames", opts.frames, "--size", opts.size, "--supersample", 2)
-    gsc("slam", seq, "-o", out / "map.mcap", "--size", opts.size)
+    gsc("synth", seq, "--frames", opts.frames, "--size", opts.size, "--supersample", 2, "--force")
+    gsc("slam", seq, "-o", out / "map.mcap", "--size", opts.size, "--force")
     gsc("info", out / "map.mcap")
     gsc("eval", out / "map.mcap", "--seq", seq)
-    gsc("prune", out / "map.mcap", "--keep", "0.3", "-o", out / "map_pruned.mcap")
+    gsc("prune", out / "map.mcap", "--keep", "0.3", "-o", out / "map_pruned.mcap", "--force")
     gsc(
-        "share", "--budget", "0.2", out / "map.mcap", out / "share.mcap", "--ply", out / "share.ply"
-    )
-    gsc("export-ply", out / "map.mcap", "-o", out / "map.ply")
+        "share", "--budget", "0.2", out / "map.mcap", out / "share.mcap",
+        "--ply", out / "share.ply", "--force",
+    )  # fmt: skip
+    gsc("export-ply", out / "map.mcap", "-o", out / "map.ply", "--force")
     gsc("info", out / "share.mcap")
     print(f"\nDone. Open {out}/*.ply in a 3DGS viewer and {out}/*.mcap in Foxglove.")
 

@@ -51,13 +51,13 @@ def map_message_bytes(path):
         ("20%", 0.2, None),
         (0.5, 0.5, None),
         ("2MB", None, 2_000_000),
-        ("2mb", None, 2_000_000),
+        ("2mB", None, 2_000_000),
         ("500kB", None, 500_000),
         ("500 KB", None, 500_000),
         ("1.5MiB", None, 1_572_864),
         ("1KiB", None, 1024),
         ("1GB", None, 10**9),
-        ("1gib", None, 2**30),
+        ("1giB", None, 2**30),
         ("300000B", None, 300_000),
         ("1e6B", None, 1_000_000),
         ("2.5B", None, 2),  # rounded down: a budget is never exceeded
@@ -74,6 +74,9 @@ def test_budget_parses_fractions_and_byte_units(text, ratio, budget_bytes):
     "text, message",
     [
         ("2", "add a unit, e.g. 2B, 2kB or 2MB"),
+        ("2Mb", "a lowercase b means bits; budgets are bytes, e.g. 2MB"),  # megabits, not bytes
+        ("1kb", "e.g. 1kB"),
+        ("2kib", "e.g. 2kiB"),
         (3, "add a unit"),
         ("1.5", "add a unit"),
         ("0", r"not a fraction in \(0, 1\]"),

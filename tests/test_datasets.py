@@ -82,7 +82,8 @@ def test_parse_frames() -> None:
     assert list(parse_frames("::4").apply(10)) == [0, 4, 8]
     assert list(parse_frames("-3:").apply(10)) == [7, 8, 9]
     assert list(parse_frames(" 5: ").apply(7)) == [5, 6]
-    for bad in ("", "first", "1:2:0", "1:2:-1", "a:b", "1:2:3:4", "-:"):
+    assert list(parse_frames("-2:3").apply(4)) == [2]  # mixed signs depend on the length
+    for bad in ("", "first", "1:2:0", "1:2:-1", "a:b", "1:2:3:4", "-:", "5:2", "3:3", "-2:-5"):
         with pytest.raises(InputError):
             parse_frames(bad)
 

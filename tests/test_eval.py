@@ -206,6 +206,20 @@ def test_cli_json(gt_log, seq_dir):
     assert result["lpips"] is None and "not asked" in result["lpips_reason"]
 
 
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("eval",), "Missing option '--seq'"),  # required even though it has no default
+        (("score", "-o", "x.mcap"), "Missing option '--seq'"),
+        (("score", "-o", "x.mcap", "--seq", ".", "--sigma-d", "nan"), "not a finite number"),
+        (("eval", "--seq", ".", "--frames", "5:2"), "selects no frame"),
+    ],
+)
+def test_bad_or_missing_options_are_usage_errors(gt_log, args, message):
+    r = run(args[0], gt_log, *args[1:])
+    assert r.exit_code == 2 and message in r.output, r.output
+
+
 def test_json_output_is_strict_json_even_for_infinite_psnr():
     text = json_text({"psnr": float("inf"), "per_frame": [{"psnr": float("nan")}, 1.5]})
 

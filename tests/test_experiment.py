@@ -113,6 +113,16 @@ def test_bad_settings_are_refused() -> None:
         ExperimentSettings(strategies=("opacity",)).check()
     r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--sweep", "2"])
     assert r.exit_code == 2 and "unit" in r.output
+    for bad in (["--frames", "odd"], ["--strategies", "random,pwas,nope"]):  # usage errors
+        r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", *bad])
+        assert r.exit_code == 2 and "Error:" in r.output, r.output
+
+
+def test_a_bad_sequence_fails_before_the_output_folder_is_made(tmp_path: Path) -> None:
+    (tmp_path / "notes").mkdir()
+    r = CliRunner().invoke(cli, ["experiment", str(tmp_path / "notes"), "-o", str(tmp_path / "e")])
+    assert r.exit_code == 1 and "not a known RGB-D layout" in r.output
+    assert not (tmp_path / "e").exists()
 
 
 def test_budgets_written_differently_are_the_same_budget() -> None:
@@ -144,7 +154,7 @@ def test_inject_mode_runs_b_again_with_the_share(experiment: tuple[Path, Path, d
     seq, out, _ = experiment
     args = ["experiment", str(seq), "-o", str(out.parent / "inject"), "--preset", "tiny",
             "--seeds", "1", "--sweep", "0.2", "--strategies", "random,pwas", "--mode", "inject",
-            "--no-lpips", "--json"]  # fmt: skip
+            "--sweep-seeds", "0", "--no-lpips", "--json"]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     rows = json.loads((out.parent / "inject" / "results.json").read_text())
@@ -153,3 +163,6 @@ def test_inject_mode_runs_b_again_with_the_share(experiment: tuple[Path, Path, d
         step = log.metadata.provenance[-1]
         frames = log.metadata.results["frames"]
     assert step["operation"]["name"] == "inject" and frames == 2  # a new SLAM run of B
+    # without a sweep there is no rate-distortion table or plot, and results.md says so
+    assert "No sweep was run" in (out.parent / "inject" / "results.md").read_text()
+    assert not (out.parent / "inject" / "plots" / "rate_distortion.png").exists()

@@ -77,15 +77,22 @@ def test_frames_are_textured_everywhere() -> None:
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) > 20
 
 
-def test_refuses_non_empty_output_unless_forced(tmp_path: Path) -> None:
+def test_refuses_non_empty_output_and_force_replaces_only_a_sequence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     out = tmp_path / "seq"
-    out.mkdir()
-    (out / "keep.txt").write_text("x")
+    write_synthetic_sequence(out, frames=3, size=(16, 12))
     with pytest.raises(OutputError, match="not empty"):
         write_synthetic_sequence(out, frames=2, size=(16, 12))
-    assert (out / "keep.txt").exists()
-    write_synthetic_sequence(out, frames=2, size=(16, 12), force=True)
-    assert not (out / "keep.txt").exists() and len(open_sequence(out)) == 2
+    write_synthetic_sequence(out, frames=2, size=(16, 12), force=True)  # an earlier sequence
+    assert len(open_sequence(out)) == 2
+    (out / "notes.txt").write_text("x")  # someone else's file: --force must not delete it
+    with pytest.raises(OutputError, match=r"notes\.txt"):
+        write_synthetic_sequence(out, frames=2, size=(16, 12), force=True)
+    assert (out / "notes.txt").exists() and len(open_sequence(out)) == 2
+    monkeypatch.chdir(out)  # the folder the user is in cannot be swapped out from under them
+    with pytest.raises(OutputError, match="current folder"):
+        write_synthetic_sequence(".", frames=2, size=(16, 12), force=True)
     assert [p.name for p in tmp_path.iterdir()] == ["seq"]  # no temporary folders left
 
 

@@ -145,6 +145,8 @@ def parse_frames(spec: str | FrameSelection) -> FrameSelection:
     step = int(m.group(3)) if m.group(3) else 1
     if step <= 0:
         raise InputError(f"bad frame subset {spec!r}: STEP must be a positive integer")
+    if start is not None and stop is not None and (start < 0) == (stop < 0) and start >= stop:
+        raise InputError(f"bad frame subset {spec!r}: it selects no frame (START >= STOP)")
     return FrameSelection(start, stop, step, spec=text)
 
 

@@ -530,6 +530,12 @@ def synthetic_sequence(
     return SyntheticSequence(frames, size, seed, supersample)
 
 
+SEQUENCE_ENTRIES = frozenset(
+    {"rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json"}
+)
+"""What `write_synthetic_sequence` puts in its folder: the only entries --force replaces."""
+
+
 def write_synthetic_sequence(
     out_dir: str | Path,
     frames: int = 60,
@@ -549,7 +555,8 @@ def write_synthetic_sequence(
         frames: number of frames (30 per second of camera motion).
         size: image size (W, H).
         seed: fixes colours, noise and box placement.
-        force: replace an existing non-empty `out_dir`.
+        force: replace an existing non-empty `out_dir` that holds only a TUM sequence's
+            entries (`SEQUENCE_ENTRIES`), as an earlier run wrote it.
         progress: called with 1 after each frame.
         supersample: colour samples per pixel along each axis (1: one centre sample, the
             default and fastest; 2: 2x2 anti-aliasing at about twice the cost).
@@ -558,13 +565,23 @@ def write_synthetic_sequence(
         The output folder.
 
     Raises:
-        OutputError: `out_dir` is a file, or a non-empty folder without `force`.
+        OutputError: `out_dir` is a file, holds the current folder, is non-empty without
+            `force`, or holds anything besides a sequence's entries.
     """
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise OutputError(f"output path exists and is not a folder: {out}")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise OutputError(f"output folder is not empty: {out} (use --force to replace it)")
+    if out.is_dir() and Path.cwd().resolve().is_relative_to(out.resolve()):
+        raise OutputError(f"cannot replace {out}, which holds the current folder: name a new one")
+    if out.is_dir() and any(out.iterdir()):
+        if not force:
+            raise OutputError(f"output folder is not empty: {out} (use --force to replace it)")
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in SEQUENCE_ENTRIES)
+        if foreign:  # --force replaces a sequence, never a folder of other files
+            raise OutputError(
+                f"{out} holds files that are not a TUM sequence ({', '.join(foreign[:3])}"
+                f"{', ...' if len(foreign) > 3 else ''}); not replacing it even with --force"
+            )
     sequence = SyntheticSequence(frames, size, seed, supersample)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))

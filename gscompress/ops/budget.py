@@ -2,7 +2,9 @@
 
 A budget is written either as a bare fraction in (0, 1] (`0.2`, or a percentage `20%`) or as a
 byte count with a unit: `B`, `kB`, `MB`, `GB` (powers of 1000) or `KiB`, `MiB`, `GiB` (powers of
-1024), case-insensitive, e.g. `2MB`, `500kB`, `1.5MiB`, `300000B`. A fractional byte count is
+1024), e.g. `2MB`, `500kB`, `1.5MiB`, `300000B`; the prefix may be written in either case, but the
+final `B` must be a capital: a lowercase `b` means bits in link speeds (`2Mb` is 250 kB), so it
+is refused rather than read as bytes 8x too many. A fractional byte count is
 rounded down (a budget is never exceeded). A bare number above 1 is refused: it is most likely a
 byte count that lacks its unit.
 
@@ -95,8 +97,8 @@ class Budget:
         """Read a budget from its written form (see the module docstring) or a number.
 
         Raises:
-            InputError: not a number, an unknown unit, a fraction outside (0, 1], a bare number
-                above 1, or a byte count below one byte.
+            InputError: not a number, an unknown unit or one ending in a lowercase b (bits), a
+                fraction outside (0, 1], a bare number above 1, or a byte count below one byte.
         """
         if isinstance(value, Budget):
             return value
@@ -115,6 +117,11 @@ class Budget:
             return cls._from_number(number, text)
         if unit == "%":
             return cls._from_number(number / 100, text, percent=True)
+        if unit.endswith("b"):
+            raise InputError(
+                f"budget {text!r}: a lowercase b means bits; budgets are bytes, e.g. "
+                f"{m.group(1)}{unit[:-1]}B"
+            )
         scale = BYTE_UNITS.get(unit.lower())
         if scale is None:
             raise InputError(

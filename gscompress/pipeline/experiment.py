@@ -284,12 +284,14 @@ def run_experiment(
     Returns:
         Paths of the outputs, row count, steps run and reused, and the PWAS-vs-random verdicts.
     """
+    from gscompress.datasets import open_sequence
     from gscompress.slam.config import resolve_config
 
     settings.check()
     seq, out = Path(seq), Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder is a file: {out}")
+    open_sequence(seq, frames=settings.frames)  # a bad sequence fails before out_dir is made
     s = settings
     base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
     runner = _Runner(seq, out, s, progress, plan_size(s))
@@ -583,10 +585,15 @@ def _markdown(
         "",
         "## Rate-distortion (B with A's share, mean over the sweep seeds)",
         "",
-        "| Budget | Strategy | PSNR | ATE RMSE (cm) | Gaussians shared | Bytes shared |",
-        "|---|---|---|---|---|---|",
     ]
-    for budget in s.sweep:
+    if s.sweep_seeds == 0:
+        lines.append("No sweep was run (`--sweep-seeds 0`).")
+    else:
+        lines += [
+            "| Budget | Strategy | PSNR | ATE RMSE (cm) | Gaussians shared | Bytes shared |",
+            "|---|---|---|---|---|---|",
+        ]
+    for budget in s.sweep if s.sweep_seeds else ():
         for strategy in s.strategies:
             group = _sweep_rows(rows, s, budget, strategy)
             if group:
@@ -601,20 +608,15 @@ def _markdown(
     return "\n".join(lines) + "\n"
 
 
-def _plots(
-    folder: Path, rows: list[dict[str, Any]], s: ExperimentSettings, full_log: Path
-) -> list[Path]:
-    """Rate-distortion curves, importance histogram and top-down importance map (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
+def _plot_rate_distortion(
+    folder: Path,
+    curves: dict[str, list[tuple[float, float | None, float | None]]],
+    s: ExperimentSettings,
+) -> Path:
+    """PSNR and ATE of B against the share's bytes, one curve per strategy."""
     import matplotlib.pyplot as plt
 
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    curves = rate_distortion_curves(rows, s)
     for name, points in curves.items():
         x = [p[0] / 1e6 for p in points]
         full = name == "full"
@@ -630,7 +632,24 @@ def _plots(
         axes[1].set_title("a merge leaves B's poses as they were", fontsize="medium")
     fig.suptitle("Rate-distortion: B with A's share")
     fig.tight_layout()
-    paths.append(_save(fig, folder / "rate_distortion.png"))
+    return _save(fig, folder / "rate_distortion.png")
+
+
+def _plots(
+    folder: Path, rows: list[dict[str, Any]], s: ExperimentSettings, full_log: Path
+) -> list[Path]:
+    """Rate-distortion curves, importance histogram and top-down importance map (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+
+    curves = rate_distortion_curves(rows, s)
+    if curves:  # none without a sweep (--sweep-seeds 0)
+        paths.append(_plot_rate_distortion(folder, curves, s))
 
     with LogReader(full_log) as reader:
         gaussians = reader.read_map()
