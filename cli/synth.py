@@ -33,6 +33,13 @@ def synth(
 
     Writes rgb/, depth/ (uint16, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt and
     intrinsics.json; `gsc slam OUT_DIR` and any TUM reader open it. Same seed, same bytes.
+    --force replaces an earlier sequence, never a folder that holds other files.
+
+    \b
+    Examples:
+      gsc synth room                                # 60 frames, 320x240
+      gsc synth room_small --frames 40 --size 160x120 --supersample 2
+      gsc slam room -o room.mcap                    # then map it
     """
     with progress_bar("synth", "frame", total=frames) as bar:
         out = write_synthetic_sequence(

@@ -513,8 +513,12 @@ class LogReader:
             raise
         except _READ_ERRORS as exc:
             self._stream.close()
+            hint = ""
+            with open(self.path, "rb") as f:
+                if f.read(4) == b"ply\n":
+                    hint = "; it is a PLY file: `gsc import-ply` makes a log of it"
             raise LogFormatError(
-                f"{self.path}: not a readable MCAP file ({_describe(exc)})"
+                f"{self.path}: not a readable MCAP file ({_describe(exc)}){hint}"
             ) from None
 
     def _open(self) -> None:

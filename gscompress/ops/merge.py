@@ -30,12 +30,14 @@ def check_same_world(receiver: str, share: str, what: str) -> None:
     if not receiver or not share:
         raise MapError(
             f"{what}: the world frame of {'the share' if not share else 'the receiver'} is "
-            "unknown; only maps anchored to the same frame can be combined"
+            "unknown; only maps anchored to the same frame can be combined (give the transform "
+            "between the two frames with --share-transform)"
         )
     if receiver != share:
         raise MapError(
             f"{what}: the share is expressed in {share!r} but the receiver in {receiver!r}; "
-            "maps whose world frames are not known to agree cannot be combined"
+            "maps whose world frames are not known to agree cannot be combined (give the "
+            "transform between them with --share-transform)"
         )
 
 
