@@ -247,6 +247,17 @@ def test_output_equal_to_input_and_existing_output(log_path, tmp_path):
     assert r.exit_code == 0 and len(read_map(existing)) == 300
 
 
+def test_an_output_named_for_the_other_format_is_refused(log_path, tmp_path):
+    r = run("prune", log_path, "--keep", "0.3", "-o", tmp_path / "p.ply")
+    assert r.exit_code == 1 and "name it p.mcap (gsc export-ply writes PLY)" in r.output
+    r = run("export-ply", log_path, "-o", tmp_path / "m.mcap")
+    assert r.exit_code == 1 and "writes a PLY file, not an MCAP log" in r.output
+    r = run("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.mcap.mcap")
+    assert r.exit_code == 1 and "name it s.mcap.ply" in r.output
+    written = {p.name for p in tmp_path.iterdir()} - {log_path.name}
+    assert written == set()  # nothing written, the MCAP share included
+
+
 def test_ply_missing_properties(tmp_path):
     from plyfile import PlyData, PlyElement
 

@@ -44,17 +44,30 @@ def sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+SUFFIXES = {".mcap": "an MCAP log", ".ply": "a PLY file"}
+"""The output kinds the tool writes, by file-name suffix."""
+
+
 def check_output(
-    output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False
+    output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False, suffix: str = ""
 ) -> Path:
     """Refuse to write over an input (also through a link), a directory, or an existing file
-    without `force`; the output's directory must exist.
+    without `force`; the output's directory must exist. With `suffix` (".mcap" or ".ply", what
+    is written), a name ending in the other kind's suffix is refused: `-o map.ply` on a command
+    that writes a log is a slip that would leave an MCAP file named .ply.
     """
     output = Path(output)
     for source in map(Path, inputs):
         same = output.exists() and source.exists() and output.samefile(source)
         if same or output.resolve() == source.resolve():
             raise OutputError(f"output {output} is also an input; choose another path")
+    named = output.suffix.lower()
+    if suffix and named in SUFFIXES and named != suffix:
+        raise OutputError(
+            f"{output}: this writes {SUFFIXES[suffix]}, not {SUFFIXES[named]}; name it "
+            f"{output.with_suffix(suffix).name}"
+            + (" (gsc export-ply writes PLY)" if named == ".ply" else "")
+        )
     if output.is_dir():
         raise OutputError(f"{output} is a directory")
     if output.exists() and not force:

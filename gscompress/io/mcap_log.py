@@ -265,7 +265,7 @@ class LogWriter:
         force: bool = False,
         chunk_size: int = 1 << 20,
     ):
-        self.path = check_output(path, inputs, force)
+        self.path = check_output(path, inputs, force, suffix=".mcap")
         self.metadata = metadata
         self._file = AtomicFile(self.path)
         self._mcap = McapWriter(

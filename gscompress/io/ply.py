@@ -61,7 +61,7 @@ def write_ply(
     Returns:
         The output path.
     """
-    path = check_output(path, inputs, force)
+    path = check_output(path, inputs, force, suffix=".ply")
     cols = map_to_columns(gaussians, importance=importance)
     if not importance:
         del cols["id"]

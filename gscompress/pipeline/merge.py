@@ -97,7 +97,7 @@ def merge_logs(
     if iters > 0 and seq is None:
         raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
     inputs = [receiver] + [p for p in (share, seq) if p is not None]
-    check_output(dst, inputs, force)
+    check_output(dst, inputs, force, ".mcap")
     from gscompress.pipeline.evaluate import read_poses
 
     with LogReader(receiver) as receiver_log:

@@ -38,7 +38,7 @@ def import_ply(
     src: str | Path, dst: str | Path, *, command: str = "", force: bool = False
 ) -> dict[str, Any]:
     """Turn a 3DGS PLY map (from any tool) into a one-snapshot gscompress log."""
-    check_output(dst, [src], force)
+    check_output(dst, [src], force, ".mcap")
     gaussians = read_ply(src)
     meta = LogMetadata(command=command).derive({"name": "import-ply"}, src)
     meta.results = {"gaussians": len(gaussians), "scored": gaussians.has_importance}
@@ -87,7 +87,7 @@ def rewrite_map(
     its results are what `transform` returns beside the new map. The new map is stored at the
     precision of the one it replaces (an fp16 share stays fp16).
     """
-    check_output(dst, [src], force)
+    check_output(dst, [src], force, ".mcap")
     with LogReader(src) as log_in:
         last = log_in.require_snapshots() - 1
         meta = log_in.metadata.derive(operation, src)
@@ -146,11 +146,11 @@ def share_log(
     """
     budget = Budget.parse(budget)
     check_precision(precision)
-    outputs = [dst] if ply is None else [dst, ply]
+    outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
         raise InputError("--ply must differ from the MCAP output")
-    for path in outputs:
-        check_output(path, [src], force)
+    for path, suffix in outputs:
+        check_output(path, [src], force, suffix)
     with LogReader(src) as log_in:
         full = log_in.read_map()
         meta = log_in.metadata
@@ -189,7 +189,7 @@ def export_ply(
     force: bool = False,
 ) -> dict[str, Any]:
     """Write one snapshot of a log (default the last, "the map") as a 3DGS PLY file."""
-    check_output(dst, [src], force)
+    check_output(dst, [src], force, ".ply")
     with LogReader(src) as log_in:
         gaussians = log_in.read_map(snapshot)
     write_ply(gaussians, dst, importance=importance, inputs=(src,), force=force)

@@ -44,7 +44,7 @@ def score_file(
     from gscompress.importance import PwasConfig
     from gscompress.ops.score import score_map
 
-    check_output(dst, [src], force)
+    check_output(dst, [src], force, ".mcap")
     if not sigma_d > 0:
         raise InputError(f"--sigma-d must be positive, got {sigma_d}")
     sequence = open_sequence(seq, size=size, frames=frames)

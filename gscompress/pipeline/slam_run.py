@@ -176,7 +176,7 @@ def _fresh_run(
 
     inputs: list[str | Path] = [seq] if sequence is None and seq is not None else []
     inputs += [inject] if inject is not None else []
-    check_output(dst, inputs, force)
+    check_output(dst, inputs, force, ".mcap")
     sequence = _open(seq, sequence, config, frames)
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     meta = LogMetadata(
