@@ -16,7 +16,14 @@ from .options import BudgetParam, command_line, emit, force_option, json_option,
 
 @click.command("share")
 @click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.argument("dst", type=click.Path(path_type=Path))
+@click.argument("dst", type=click.Path(path_type=Path), required=False)
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="The share log (.mcap), as the other commands take it; or give it as DST.",
+)
 @click.option(
     "--budget",
     type=BudgetParam(),
@@ -51,7 +58,8 @@ from .options import BudgetParam, command_line, emit, force_option, json_option,
 @json_option
 def share(
     src: Path,
-    dst: Path,
+    dst: Path | None,
+    output: Path | None,
     budget: Budget,
     strategy: str,
     precision: str,
@@ -60,7 +68,7 @@ def share(
     force: bool,
     as_json: bool,
 ) -> None:
-    """Write the top BUDGET share of the map in SRC to DST (a small gscompress log).
+    """Write the top BUDGET share of the map in SRC to DST or -o (a small gscompress log).
 
     The share holds the selected Gaussians with all their fields, ids and PWAS sums, and records
     its source, strategy, budget, precision, bytes and the selected / total counts.
@@ -73,8 +81,12 @@ def share(
     Examples:
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
       gsc share --budget 2MB agent_a.mcap share.mcap
-      gsc share --budget 2MB --precision fp16 agent_a.mcap share.mcap
+      gsc share --budget 2MB --precision fp16 agent_a.mcap -o share.mcap
     """
+    target = dst if output is None else output
+    if target is None or (dst is not None and output is not None):
+        raise click.UsageError("give the share's path once: as DST or with -o")
+    dst = target
     result = share_log(
         src,
         dst,

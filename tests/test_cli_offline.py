@@ -99,6 +99,11 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
             "total": 1000,
         }
         assert [c.topic for c in s.channels] == ["/gaussians"]
+    r = run("share", log_path, "-o", tmp_path / "o.mcap")  # -o as the other commands take it
+    assert r.exit_code == 0 and read_map(tmp_path / "o.mcap").equals(shared)
+    for paths in ([], [tmp_path / "x.mcap", "-o", tmp_path / "y.mcap"]):
+        r = run("share", log_path, *paths)
+        assert r.exit_code == 2 and "once: as DST or with -o" in r.output
 
 
 def test_export_ply_last_and_chosen_snapshot(log_path, tmp_path):
