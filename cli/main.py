@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
+import sys
 from typing import Any
 
 import click
@@ -30,6 +32,16 @@ COMMANDS: dict[str, str] = {
     "merge": "merge:merge",
     "experiment": "experiment:experiment",
 }
+
+
+def set_threads(n: int) -> None:
+    """Use `n` CPU threads in torch, without importing it for the commands that never need it:
+    the OpenMP/MKL variables are read when torch loads; a torch already loaded is told too."""
+    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[name] = str(n)
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(n)
 
 
 class GscGroup(click.Group):
@@ -59,7 +71,15 @@ class GscGroup(click.Group):
 @click.version_option(__version__, prog_name="gsc")
 @click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
-def cli(verbose: int, quiet: bool) -> None:
+@click.option(
+    "--threads",
+    type=click.IntRange(min=1),
+    default=None,
+    help="CPU threads for torch (default: one per core). Give each job 1 when several run at "
+    "once: threads that outnumber the cores wait on each other, and each job runs several "
+    "times slower.",
+)
+def cli(verbose: int, quiet: bool, threads: int | None) -> None:
     """gsc: compact 3D Gaussian Splatting maps and bandwidth-aware map sharing.
 
     \b
@@ -70,5 +90,7 @@ def cli(verbose: int, quiet: bool) -> None:
       gsc export-ply a.mcap -o a.ply      open the map in any 3DGS viewer
       gsc info a.mcap                     what a log holds
     """
+    if threads is not None:
+        set_threads(threads)
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
