@@ -163,7 +163,11 @@ def test_merge_across_world_frames_with_an_explicit_transform(
     tail = merged.select(np.arange(result["receiver"], len(merged)))
     np.testing.assert_allclose(tail.means, shared.means + np.array([0.5, 0, 0]), atol=1e-6)
     assert step["share_world_frame"] == "ground-truth:other" and step["transform"][0][3] == 0.5
-    for text, message in (("1 2 3", "expected 16 numbers"), ("a b", "numbers only")):
+    for text, message in (
+        ("1 2 3", "expected 16 numbers"),
+        ("a b", "numbers only"),
+        ("0 0 0 0 0 0 0", "quaternion qx qy qz qw is zero"),
+    ):
         transform.write_text(text)
         with pytest.raises(InputError, match=message):
             read_transform(transform)

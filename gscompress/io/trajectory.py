@@ -123,6 +123,8 @@ def read_transform(path: str | Path) -> np.ndarray:
             f"got {len(values)}{' with non-finite values' if len(values) in (7, 16) else ''}"
         )
     if len(values) == 7:
+        if np.linalg.norm(values[3:]) < 1e-6:
+            raise InputError(f"{path}: the quaternion qx qy qz qw is zero, not a rotation")
         return pose_from_tum(values)
     T = values.reshape(4, 4)
     if not np.allclose(T[3], [0, 0, 0, 1]):
