@@ -175,5 +175,5 @@ def test_non_finite_values_are_refused(tmp_path):
     g = random_map(10)
     g.log_scales[0] = np.nan
     path = write_ply(g, tmp_path / "m.ply")
-    with pytest.raises(PlyFormatError, match="non-finite"):
+    with pytest.raises(PlyFormatError, match=r"m\.ply: .*non-finite"):  # names the file
         read_ply(path)

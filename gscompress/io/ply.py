@@ -131,7 +131,9 @@ def read_ply(path: str | Path) -> GaussianMap:
             try:
                 return map_from_columns(cols, str(path)).validate()
             except MapError as exc:
-                raise PlyFormatError(str(exc)) from None
+                message = str(exc)
+                prefix = "" if message.startswith(str(path)) else f"{path}: "
+                raise PlyFormatError(prefix + message) from None
         offset += count * dtype.itemsize
     raise PlyFormatError(f"{path}: no vertex element")
 
