@@ -75,8 +75,10 @@ def main() -> None:
     if opts.threads:
         torch.set_num_threads(opts.threads)
 
-    width, height = (int(v) for v in opts.size.split("x")) if opts.size else (0, 0)
-    size = (width, height) if opts.size else None
+    size = None
+    if opts.size:
+        width, height = opts.size.split("x")
+        size = (int(width), int(height))
     config = resolve_config(
         opts.preset, opts.config, size=size, keep=opts.keep, no_prune=opts.no_prune
     )

@@ -32,7 +32,7 @@ import numpy as np
 
 from gscompress.camera import Intrinsics, make_transform
 from gscompress.datasets.base import Frame
-from gscompress.datasets.tum import write_tum_sequence
+from gscompress.datasets.tum import TUM_ENTRIES, write_tum_sequence
 from gscompress.errors import InputError, OutputError
 
 FPS = 30.0
@@ -530,12 +530,6 @@ def synthetic_sequence(
     return SyntheticSequence(frames, size, seed, supersample)
 
 
-SEQUENCE_ENTRIES = frozenset(
-    {"rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json"}
-)
-"""What `write_synthetic_sequence` puts in its folder: the only entries --force replaces."""
-
-
 def write_synthetic_sequence(
     out_dir: str | Path,
     frames: int = 60,
@@ -556,7 +550,7 @@ def write_synthetic_sequence(
         size: image size (W, H).
         seed: fixes colours, noise and box placement.
         force: replace an existing non-empty `out_dir` that holds only a TUM sequence's
-            entries (`SEQUENCE_ENTRIES`), as an earlier run wrote it.
+            entries (`TUM_ENTRIES`), as an earlier run wrote it.
         progress: called with 1 after each frame.
         supersample: colour samples per pixel along each axis (1: one centre sample, the
             default and fastest; 2: 2x2 anti-aliasing at about twice the cost).
@@ -576,7 +570,7 @@ def write_synthetic_sequence(
     if out.is_dir() and any(out.iterdir()):
         if not force:
             raise OutputError(f"output folder is not empty: {out} (use --force to replace it)")
-        foreign = sorted(p.name for p in out.iterdir() if p.name not in SEQUENCE_ENTRIES)
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in TUM_ENTRIES)
         if foreign:  # --force replaces a sequence, never a folder of other files
             raise OutputError(
                 f"{out} holds files that are not a TUM sequence ({', '.join(foreign[:3])}"

@@ -252,6 +252,12 @@ def open_tum(
     )
 
 
+TUM_ENTRIES = frozenset(
+    {"rgb", "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json"}
+)
+"""Everything `write_tum_sequence` puts in its folder (what `gsc synth --force` may replace)."""
+
+
 def write_tum_sequence(
     sequence: RGBDSequence,
     out_dir: Path,

@@ -593,7 +593,7 @@ def _markdown(
             "| Budget | Strategy | PSNR | ATE RMSE (cm) | Gaussians shared | Bytes shared |",
             "|---|---|---|---|---|---|",
         ]
-    for budget in s.sweep if s.sweep_seeds else ():
+    for budget in s.sweep:  # no rows without sweep seeds (_sweep_rows)
         for strategy in s.strategies:
             group = _sweep_rows(rows, s, budget, strategy)
             if group:
