@@ -10,6 +10,7 @@ import click
 from gscompress.pipeline import evaluate_log
 
 from .options import (
+    INPUT_FILE,
     FrameSubset,
     backend_option,
     device_option,
@@ -22,7 +23,7 @@ from .options import (
 
 
 @click.command("eval")
-@click.argument("src", metavar="LOG.mcap", type=click.Path(path_type=Path))
+@click.argument("src", metavar="LOG.mcap", type=INPUT_FILE)
 @seq_option(help="The RGB-D sequence the log was made from (TUM or Replica layout).")
 @click.option(
     "--frames",

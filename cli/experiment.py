@@ -11,6 +11,7 @@ from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
 
 from .options import (
+    INPUT_FOLDER,
     BudgetParam,
     Ratio,
     device_option,
@@ -31,7 +32,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 
 
 @click.command("experiment")
-@click.argument("seq", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("seq", type=INPUT_FOLDER)
 @click.option(
     "-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
     help="Experiment folder: runs/, results.md/.csv/.json and plots/ (a rerun reuses runs).",

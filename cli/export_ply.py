@@ -8,11 +8,11 @@ import click
 
 from gscompress.pipeline import export_ply as run_export
 
-from .options import emit, force_option, json_option, output_option
+from .options import INPUT_FILE, emit, force_option, json_option, output_option
 
 
 @click.command("export-ply")
-@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("src", type=INPUT_FILE)
 @output_option("Output PLY file.")
 @click.option(
     "--snapshot",

@@ -8,11 +8,11 @@ import click
 
 from gscompress.pipeline import import_ply as run_import
 
-from .options import command_line, emit, force_option, json_option, output_option
+from .options import INPUT_FILE, command_line, emit, force_option, json_option, output_option
 
 
 @click.command("import-ply")
-@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("src", type=INPUT_FILE)
 @output_option()
 @force_option
 @json_option

@@ -9,11 +9,11 @@ import click
 
 from gscompress.pipeline import log_info
 
-from .options import emit, json_option
+from .options import INPUT_FILE, emit, json_option
 
 
 @click.command("info")
-@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("src", type=INPUT_FILE)
 @json_option
 def info(src: Path, as_json: bool) -> None:
     """Show the channels, snapshots, map, importance scores, bytes and provenance of SRC.

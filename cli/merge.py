@@ -9,6 +9,7 @@ import click
 from gscompress.pipeline import merge_logs
 
 from .options import (
+    INPUT_FILE,
     FrameSubset,
     command_line,
     device_option,
@@ -25,8 +26,8 @@ from .options import (
 
 
 @click.command("merge")
-@click.argument("receiver", metavar="RECEIVER.mcap", type=click.Path(path_type=Path))
-@click.argument("share", metavar="SHARE.mcap", type=click.Path(path_type=Path))
+@click.argument("receiver", metavar="RECEIVER.mcap", type=INPUT_FILE)
+@click.argument("share", metavar="SHARE.mcap", type=INPUT_FILE)
 @output_option("Output log (.mcap): the receiver's log with the merged, refined map.")
 @seq_option(False, "The receiver's RGB-D sequence (needed to refine; not with --iters 0).")
 @click.option(

@@ -21,6 +21,11 @@ if TYPE_CHECKING:
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+INPUT_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
+"""An input file: a missing one is a usage error (exit 2), the same for every command."""
+INPUT_FOLDER = click.Path(exists=True, file_okay=False, path_type=Path)
+"""An input folder (a sequence), checked like INPUT_FILE."""
+
 
 def force_option(f: F) -> F:
     """`--force`: allow overwriting existing outputs (never an input)."""
@@ -183,7 +188,7 @@ def seq_option(required: bool = True, help: str = "RGB-D sequence folder (TUM or
     # no explicit default when required: click skips the required check of an option with one
     return click.option(
         "--seq",
-        type=click.Path(path_type=Path),  # a missing folder is reported by open_sequence
+        type=INPUT_FOLDER,
         required=required,
         help=help,
     )
@@ -220,7 +225,7 @@ def slam_config_options(f: F) -> F:
     f = click.option(
         "--config",
         "config_path",
-        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        type=INPUT_FILE,
         default=None,
         help="YAML config applied on top of the preset (any subset of --save-config's keys).",
     )(f)
@@ -238,7 +243,7 @@ def share_transform_option(f: F) -> F:
     """`--share-transform FILE`: the rigid transform from a share's world frame to ours."""
     return click.option(
         "--share-transform",
-        type=click.Path(dir_okay=False, path_type=Path),
+        type=INPUT_FILE,
         default=None,
         help="Text file with the rigid transform from the share's world frame to the receiver's "
         "(16 numbers of a 4x4 matrix, or `tx ty tz qx qy qz qw`), for agents whose frames "

@@ -10,6 +10,7 @@ from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import prune_log
 
 from .options import (
+    INPUT_FILE,
     Ratio,
     command_line,
     emit,
@@ -21,7 +22,7 @@ from .options import (
 
 
 @click.command("prune")
-@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("src", type=INPUT_FILE)
 @click.option(
     "--keep",
     type=Ratio(),

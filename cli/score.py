@@ -9,6 +9,7 @@ import click
 from gscompress.pipeline import score_file
 
 from .options import (
+    INPUT_FILE,
     FrameSubset,
     PositiveFloat,
     backend_option,
@@ -24,11 +25,11 @@ from .options import (
 
 
 @click.command("score")
-@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("src", type=INPUT_FILE)
 @seq_option()
 @click.option(
     "--poses",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=INPUT_FILE,
     default=None,
     help="TUM trajectory of the views (default: the ground truth).",
 )

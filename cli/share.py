@@ -11,11 +11,19 @@ from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import share_log
 
-from .options import BudgetParam, command_line, emit, force_option, json_option, seed_option
+from .options import (
+    INPUT_FILE,
+    BudgetParam,
+    command_line,
+    emit,
+    force_option,
+    json_option,
+    seed_option,
+)
 
 
 @click.command("share")
-@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("src", type=INPUT_FILE)
 @click.argument("dst", type=click.Path(path_type=Path), required=False)
 @click.option(
     "-o",

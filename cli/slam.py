@@ -10,6 +10,8 @@ from typing import Any
 import click
 
 from .options import (
+    INPUT_FILE,
+    INPUT_FOLDER,
     Ratio,
     command_line,
     device_option,
@@ -30,7 +32,7 @@ def _stop(signum: int, frame: object) -> None:
 
 
 @click.command("slam")
-@click.argument("seq", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("seq", type=INPUT_FOLDER)
 @click.option(
     "-o",
     "--output",
@@ -62,7 +64,7 @@ def _stop(signum: int, frame: object) -> None:
 )
 @click.option(
     "--inject",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=INPUT_FILE,
     default=None,
     help="Start the map with another agent's share (a `gsc share` log in the same world "
     "frame): its Gaussians, ids and PWAS sums, so tracking uses them from the first frame.",

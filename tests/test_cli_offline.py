@@ -233,6 +233,37 @@ def test_ratio_outside_range(log_path, tmp_path, value):
     assert not (tmp_path / "o.mcap").exists()
 
 
+MISSING_INPUTS = [
+    ("info", "{x}"),
+    ("prune", "{x} -o {o}.mcap"),
+    ("share", "{x} -o {o}.mcap"),
+    ("export-ply", "{x} -o {o}.ply"),
+    ("import-ply", "{x} -o {o}.mcap"),
+    ("eval", "{x} --seq {d}"),
+    ("eval", "{log} --seq {x}"),
+    ("score", "{x} --seq {d} -o {o}.mcap"),
+    ("score", "{log} --seq {x} -o {o}.mcap"),
+    ("merge", "{x} {log} --iters 0 -o {o}.mcap"),
+    ("merge", "{log} {x} --iters 0 -o {o}.mcap"),
+    ("merge", "{log} {log} --seq {x} -o {o}.mcap"),
+    ("merge", "{log} {log} --share-transform {x} --iters 0 -o {o}.mcap"),
+    ("slam", "{x} -o {o}.mcap"),
+    ("slam", "{d} --inject {x} -o {o}.mcap"),
+    ("experiment", "{x} -o {o}"),
+]
+
+
+@pytest.mark.parametrize(("command", "args"), MISSING_INPUTS)
+def test_a_missing_input_is_a_usage_error_naming_it(log_path, tmp_path, command, args):
+    """Every command: exit 2 (as for any bad argument), the path named, nothing written."""
+    missing, out = tmp_path / "nosuch", tmp_path / "out"
+    values = {"x": missing, "o": out, "log": log_path, "d": tmp_path}
+    r = run(command, *args.format(**values).split())
+    assert r.exit_code == 2, r.output
+    assert "nosuch" in r.output and "does not exist" in r.output, r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
+
+
 def test_output_equal_to_input_and_existing_output(log_path, tmp_path):
     original = log_path.read_bytes()
     r = run("prune", log_path, "--keep", "0.3", "-o", log_path, "--force")

@@ -247,8 +247,8 @@ def one_line_error(r):
 
 
 def test_cli_errors_are_one_line(gt_log, seq_dir, tmp_path):
-    assert "no such file" in one_line_error(run("eval", tmp_path / "x.mcap", "--seq", seq_dir))
-    assert "not found" in one_line_error(run("eval", gt_log, "--seq", tmp_path / "noseq"))
+    # a missing log or sequence is a usage error (exit 2): tests/test_cli_offline.py
+    assert "not a known RGB-D layout" in one_line_error(run("eval", gt_log, "--seq", tmp_path))
     # a log without a map
     nomap = tmp_path / "nomap.mcap"
     with LogWriter(nomap, LogMetadata()) as w:
