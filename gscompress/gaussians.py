@@ -44,6 +44,13 @@ _FLOAT_FIELDS = (
 )
 
 
+def _own(array: Any, dtype: type[np.generic]) -> np.ndarray:
+    """`array` as a contiguous, writable array of `dtype` (a copy when it was a read-only view,
+    such as a field of a file's buffer that needed no conversion: one row, or none)."""
+    out = np.ascontiguousarray(array, dtype=dtype)
+    return out if out.flags.writeable else out.copy()
+
+
 @dataclass(eq=False)
 class GaussianMap:
     """A set of N 3D Gaussians with raw parameters, ids and importance sums.
@@ -74,8 +81,8 @@ class GaussianMap:
 
     def __post_init__(self) -> None:
         for name in _FLOAT_FIELDS:
-            setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float32))
-        self.ids = np.ascontiguousarray(self.ids, dtype=np.uint32)
+            setattr(self, name, _own(getattr(self, name), np.float32))
+        self.ids = _own(self.ids, np.uint32)
         self._check_shapes()
 
     @classmethod

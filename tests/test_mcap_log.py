@@ -60,6 +60,17 @@ def test_empty_map_round_trip(tmp_path):
     assert len(read_map(path)) == 0
 
 
+@pytest.mark.parametrize("n", [0, 1, 2])
+def test_a_read_map_owns_writable_arrays(tmp_path, n):
+    """A field view of the file's buffer needing no conversion (0 or 1 rows) is copied."""
+    path = tmp_path / "m.mcap"
+    with LogWriter(path, LogMetadata()) as log:
+        log.write_gaussians(random_map(n, seed=n), 0)
+    back = read_map(path)
+    for name, value in vars(back).items():
+        assert value.flags.writeable, name
+    back.opacity_logits[...] = 1.0  # raises on a read-only array
+
 def test_full_profile_and_metadata(tmp_path):
     path = tmp_path / "run.mcap"
     meta = LogMetadata(
