@@ -71,6 +71,7 @@ def test_a_read_map_owns_writable_arrays(tmp_path, n):
         assert value.flags.writeable, name
     back.opacity_logits[...] = 1.0  # raises on a read-only array
 
+
 def test_full_profile_and_metadata(tmp_path):
     path = tmp_path / "run.mcap"
     meta = LogMetadata(
