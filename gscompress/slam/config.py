@@ -228,7 +228,8 @@ class SlamConfig:
     Attributes:
         preset: the preset these values started from (informational).
         size: working image size (W, H), or None for the sequence's own.
-        isotropic: one scale per Gaussian (SplaTAM) instead of three.
+        isotropic: one scale per Gaussian (SplaTAM) instead of three and a rotation. False
+            gives higher PSNR unpruned but no smaller PWAS pruning cost (README, Table 3).
         backend: render backend (`gscompress.render.BACKENDS`).
         seed: seed of the random choices (window views).
         init_from_ground_truth: put the first frame at its ground-truth pose when the sequence
