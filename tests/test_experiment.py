@@ -152,17 +152,35 @@ def test_agent_frames_split_the_experiment_frames() -> None:
 
 def test_inject_mode_runs_b_again_with_the_share(experiment: tuple[Path, Path, dict]) -> None:
     seq, out, _ = experiment
-    args = ["experiment", str(seq), "-o", str(out.parent / "inject"), "--preset", "tiny",
+    inject = out.parent / "inject"
+    args = ["experiment", str(seq), "-o", str(inject), "--preset", "tiny",
             "--seeds", "1", "--sweep", "0.2", "--strategies", "random,pwas", "--mode", "inject",
             "--sweep-seeds", "0", "--no-lpips", "--json"]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
-    rows = json.loads((out.parent / "inject" / "results.json").read_text())
+    rows = json.loads((inject / "results.json").read_text())
     pwas = next(r for r in rows if r["name"] == "B + pwas 0.2")
-    with LogReader(out.parent / "inject" / pwas["log"]) as log:
+    with LogReader(inject / pwas["log"]) as log:
         step = log.metadata.provenance[-1]
         frames = log.metadata.results["frames"]
     assert step["operation"]["name"] == "inject" and frames == 2  # a new SLAM run of B
     # without a sweep there is no rate-distortion table or plot, and results.md says so
-    assert "No sweep was run" in (out.parent / "inject" / "results.md").read_text()
-    assert not (out.parent / "inject" / "plots" / "rate_distortion.png").exists()
+    assert "No sweep was run" in (inject / "results.md").read_text()
+    assert not (inject / "plots" / "rate_distortion.png").exists()
+
+
+def test_both_modes_share_one_folder_without_overwriting_runs(
+    experiment: tuple[Path, Path, dict],
+) -> None:
+    seq, out, first = experiment
+    base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, [*base, "--mode", "inject", "--strategies", "random,pwas"])
+    assert r.exit_code == 0, r.output
+    inject = json.loads(r.output)
+    # A, B and the shares are reused; only B's runs with a share are new (2 x 2 budgets + full)
+    assert inject["steps"] - inject["reused"] == 5
+    r = CliRunner().invoke(cli, base)  # back to merge mode: every merge run is still there
+    assert r.exit_code == 0, r.output
+    again = json.loads(r.output)
+    assert again["reused"] == again["steps"] == first["steps"]

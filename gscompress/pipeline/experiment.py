@@ -222,9 +222,9 @@ class _Runner:
         from gscompress.pipeline.merge import merge_logs
 
         s = self.settings
-        if s.mode == "inject":
+        if s.mode == "inject":  # its own name: both modes' runs can share one folder
             assert share is not None
-            return self.slam(name, config, frames, inject=share)
+            return self.slam(f"{name}_inject", config, frames, inject=share)
         spec = {
             "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
             "frames": frames,
