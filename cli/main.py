@@ -44,8 +44,24 @@ def set_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
+class OneLineUsageError(click.UsageError):
+    """A usage error shown as one line (exit code 2), naming where to find help."""
+
+    def show(self, file: Any = None) -> None:
+        hint = f" (see '{self.ctx.command_path} --help')" if self.ctx is not None else ""
+        click.echo(f"Error: {self.format_message()}{hint}", file=file, err=True)
+
+
+def one_line(exc: click.UsageError) -> click.UsageError:
+    """`exc` as a one-line usage error; a bare `gsc` still prints its help."""
+    if isinstance(exc, OneLineUsageError) or type(exc).__name__ == "NoArgsIsHelpError":
+        return exc
+    return OneLineUsageError(exc.format_message(), exc.ctx)
+
+
 class GscGroup(click.Group):
-    """A group that imports each command on first use and reports GscError on one line."""
+    """A group that imports each command on first use and reports GscError and usage errors
+    on one line."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS)
@@ -59,12 +75,20 @@ class GscGroup(click.Group):
         command: click.Command = getattr(module, attr)
         return command
 
+    def make_context(self, *args: Any, **kwargs: Any) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except click.UsageError as exc:
+            raise one_line(exc) from None
+
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
         except GscError as exc:
             message = " ".join(str(exc).split())
             raise click.ClickException(message) from None
+        except click.UsageError as exc:
+            raise one_line(exc) from None
 
 
 @click.group(cls=GscGroup, context_settings={"help_option_names": ["-h", "--help"]})

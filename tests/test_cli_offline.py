@@ -264,6 +264,25 @@ def test_a_missing_input_is_a_usage_error_naming_it(log_path, tmp_path, command,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
 
 
+@pytest.mark.parametrize(
+    ("args", "where"),
+    [
+        (["prune", "{log}", "--keep", "1.5", "-o", "{o}"], "gsc prune"),
+        (["share", "{log}"], "gsc share"),
+        (["slam", "{d}", "--frames", "bogus", "-o", "{o}"], "gsc slam"),
+        (["nosuch-command"], "gsc"),
+        (["--threads", "0", "info", "{log}"], "gsc"),
+    ],
+)
+def test_a_usage_error_is_one_line_pointing_to_help(log_path, tmp_path, args, where):
+    values = {"log": log_path, "o": tmp_path / "o.mcap", "d": tmp_path}
+    r = CliRunner().invoke(cli, [a.format(**values) for a in args], prog_name="gsc")
+    assert r.exit_code == 2, r.output
+    lines = [line for line in r.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("Error: "), r.output
+    assert lines[0].endswith(f"(see '{where} --help')"), r.output
+
+
 def test_output_equal_to_input_and_existing_output(log_path, tmp_path):
     original = log_path.read_bytes()
     r = run("prune", log_path, "--keep", "0.3", "-o", log_path, "--force")
