@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from .options import (
     INPUT_FILE,
@@ -74,7 +75,8 @@ def _stop(signum: int, frame: object) -> None:
     "--resume",
     is_flag=True,
     help="Continue the interrupted run whose log (or unfinished file, after a kill) is at -o, "
-    "with the settings recorded in it.",
+    "with the settings recorded in it (so no --preset, --config, --frames, --size, --keep, "
+    "--no-prune or --inject).",
 )
 @force_option
 @json_option
@@ -132,6 +134,10 @@ def slam(
     if dst is None:
         raise InputError("give an output log with -o OUT.mcap")
 
+    # what was not given stays None, so that --resume can refuse settings it would not use
+    ctx = click.get_current_context()
+    given = {name: ctx.get_parameter_source(name) != ParameterSource.DEFAULT
+             for name in ("preset", "frames")}  # fmt: skip
     started = time.perf_counter()
     previous_handler = signal.signal(signal.SIGTERM, _stop)
     with progress_bar("slam", "frame", hidden=as_json) as bar:
@@ -156,9 +162,9 @@ def slam(
             result = slam_file(
                 seq,
                 dst,
-                preset=preset,
+                preset=preset if given["preset"] else None,
                 config_path=config_path,
-                frames=str(frames),
+                frames=str(frames) if given["frames"] else None,
                 size=size,
                 device=device,
                 keep=keep,

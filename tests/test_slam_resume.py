@@ -78,6 +78,8 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
         slam_file(seq_dir, out, resume=True)
     with pytest.raises(InputError, match="drop --keep"):
         slam_file(seq_dir, out, resume=True, keep=0.5)
+    with pytest.raises(InputError, match="drop --preset, --frames"):
+        slam_file(seq_dir, out, resume=True, preset="tiny", frames="0:4")
 
 
 def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> None:
@@ -127,7 +129,10 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
     done_before = len(read_messages(leftover).messages)
     assert done_before > 0
 
-    r = CliRunner().invoke(cli, ["slam", str(seq_dir), "-o", str(out), "--resume", "--json"])
+    resume = ["slam", str(seq_dir), "-o", str(out), "--resume", "--json"]
+    r = CliRunner().invoke(cli, [*resume, "--frames", "0:4"])  # settings come from the log
+    assert r.exit_code == 1 and "drop --frames" in r.output, r.output
+    r = CliRunner().invoke(cli, resume)
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
     assert result["frames"] == FRAMES and result["resumed_at"] >= 2

@@ -67,9 +67,9 @@ def slam_file(
     seq: str | Path | None,
     dst: str | Path,
     *,
-    preset: str = "cpu",
+    preset: str | None = None,
     config_path: str | Path | None = None,
-    frames: str = "all",
+    frames: str | None = None,
     size: tuple[int, int] | None = None,
     device: str = "auto",
     keep: float | None = None,
@@ -99,9 +99,9 @@ def slam_file(
     Args:
         seq: the sequence folder (None when `sequence` is given).
         dst: the output log (.mcap).
-        preset: starting configuration (`gscompress.slam.config.PRESETS`).
+        preset: starting configuration (`gscompress.slam.config.PRESETS`; None: "cpu").
         config_path: a YAML config applied on top of the preset.
-        frames: frame subset (all, odd, even, START:STOP:STEP).
+        frames: frame subset (all, odd, even, START:STOP:STEP; None: all).
         size: working size (W, H), overriding the config's.
         device: torch device, or "auto".
         keep: PWAS keep ratio of the pruning stages, overriding the config's.
@@ -128,8 +128,9 @@ def slam_file(
     if keep is not None:
         check_ratio(keep, "--keep")
     if resume:
-        given = {"--config": config_path or config, "--size": size, "--keep": keep,
-                 "--inject": inject}  # fmt: skip
+        given = {"--preset": preset, "--config": config_path or config, "--frames": frames,
+                 "--size": size, "--keep": keep, "--inject": inject,
+                 "--share-transform": share_transform}  # fmt: skip
         clashing = [name for name, value in given.items() if value is not None]
         clashing += ["--no-prune"] if no_prune else []
         if clashing:
@@ -140,10 +141,14 @@ def slam_file(
         if config is None:
             from gscompress.slam.config import resolve_config
 
-            config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
+            config = resolve_config(
+                preset or "cpu", config_path, size=size, keep=keep, no_prune=no_prune
+            )
         if share_transform is not None and inject is None:
             raise InputError("a share transform needs --inject")
-        run = _fresh_run(seq, dst, config, frames, device, inject, share_transform, force, sequence)
+        run = _fresh_run(
+            seq, dst, config, frames or "all", device, inject, share_transform, force, sequence
+        )
     run.meta.command = command
     return _loop(run, dst, progress)
 
