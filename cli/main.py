@@ -99,7 +99,8 @@ class GscGroup(click.Group):
     "--threads",
     type=click.IntRange(min=1),
     default=None,
-    help="CPU threads for torch (default: one per core). Give each job 1 when several run at "
+    help="CPU threads for torch and for synth's frame writers (default: one per core). Give "
+    "each job 1 when several run at "
     "once: threads that outnumber the cores wait on each other, and each job runs several "
     "times slower.",
 )

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ from gscompress.datasets.synthetic import (
     ROOM_MAX,
     synthetic_sequence,
     write_synthetic_sequence,
+    writer_threads,
 )
 from gscompress.errors import OutputError
 from gscompress_cli.main import cli
@@ -123,3 +126,27 @@ def test_supersampling_changes_colour_only() -> None:
     assert not np.array_equal(one.color, four.color)
     # averaging 2x2 samples smooths the texture: less pixel-to-pixel variation
     assert np.abs(np.diff(four.color, axis=1)).mean() < np.abs(np.diff(one.color, axis=1)).mean()
+
+
+def test_synth_writes_with_as_many_threads_as_gsc_threads(tmp_path, monkeypatch):
+    from gscompress.datasets import synthetic
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "9")
+    assert writer_threads() == 4  # capped
+    monkeypatch.setenv("OMP_NUM_THREADS", "junk")
+    assert writer_threads() == min(4, os.cpu_count() or 1)
+    used = []
+    real = synthetic.write_tum_sequence
+    monkeypatch.setattr(
+        synthetic, "write_tum_sequence", lambda *a, **k: used.append(k["workers"]) or real(*a, **k)
+    )
+    torch = sys.modules.get("torch")  # gsc --threads also sets a loaded torch's threads
+    before = torch.get_num_threads() if torch is not None else 0
+    try:
+        args = ["--threads", "1", "synth", str(tmp_path / "s"), "--frames", "2", "--size", "16x12"]
+        r = CliRunner().invoke(cli, args)
+    finally:
+        if torch is not None:
+            torch.set_num_threads(before)
+    assert r.exit_code == 0, r.output
+    assert used == [1]

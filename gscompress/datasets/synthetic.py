@@ -530,6 +530,14 @@ def synthetic_sequence(
     return SyntheticSequence(frames, size, seed, supersample)
 
 
+def writer_threads(limit: int = 4) -> int:
+    """Frame-writing threads: OMP_NUM_THREADS when set (as `gsc --threads N` sets it), else the
+    cores, at most `limit`."""
+    value = os.environ.get("OMP_NUM_THREADS", "")
+    n = int(value) if value.isdigit() and int(value) > 0 else (os.cpu_count() or 1)
+    return min(limit, n)
+
+
 def write_synthetic_sequence(
     out_dir: str | Path,
     frames: int = 60,
@@ -585,7 +593,7 @@ def write_synthetic_sequence(
             tmp,
             extra={"generator": f"gscompress synth (seed {sequence.seed}, {frames} frames)"},
             progress=progress,
-            workers=min(4, os.cpu_count() or 1),
+            workers=writer_threads(),
         )
         os.chmod(tmp, 0o755)
         if out.is_dir():
