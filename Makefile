@@ -4,6 +4,9 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 # A pinned CPU build here; on a GPU machine pass e.g. TORCH_SPEC="torch" to keep your CUDA build.
 TORCH_SPEC ?= torch==2.13.0
+# Extra pip arguments for torch, e.g. TORCH_PIP_ARGS=--index-url=https://download.pytorch.org/whl/cpu
+# where pip's default index would pick the CUDA build (this workplace's pip config finds a CPU one).
+TORCH_PIP_ARGS ?=
 STAMP := $(VENV)/.installed-stamp
 JS := tests/js
 
@@ -11,7 +14,7 @@ JS := tests/js
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q "$(TORCH_SPEC)"
+	$(PY) -m pip install -q $(TORCH_PIP_ARGS) "$(TORCH_SPEC)"
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
