@@ -125,6 +125,18 @@ def test_a_bad_sequence_fails_before_the_output_folder_is_made(tmp_path: Path) -
     assert not (tmp_path / "e").exists()
 
 
+def test_a_folder_of_other_files_is_not_written_into(
+    experiment: tuple[Path, Path, dict], tmp_path: Path
+) -> None:
+    seq, _, _ = experiment
+    (tmp_path / "results.md").write_text("mine")
+    (tmp_path / "notes.txt").write_text("mine")
+    r = CliRunner().invoke(cli, ["experiment", str(seq), "-o", str(tmp_path), "--preset", "tiny"])
+    assert r.exit_code == 1 and "not an experiment's (notes.txt)" in r.output, r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "results.md"]
+    assert (tmp_path / "results.md").read_text() == "mine"
+
+
 def test_budgets_written_differently_are_the_same_budget() -> None:
     from gscompress.pipeline.experiment import _same_budget
 

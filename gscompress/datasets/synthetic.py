@@ -34,6 +34,7 @@ from gscompress.camera import Intrinsics, make_transform
 from gscompress.datasets.base import Frame
 from gscompress.datasets.tum import TUM_ENTRIES, write_tum_sequence
 from gscompress.errors import InputError, OutputError
+from gscompress.io.files import check_only_entries
 
 FPS = 30.0
 LOOP_SECONDS = 20.0
@@ -578,12 +579,8 @@ def write_synthetic_sequence(
     if out.is_dir() and any(out.iterdir()):
         if not force:
             raise OutputError(f"output folder is not empty: {out} (use --force to replace it)")
-        foreign = sorted(p.name for p in out.iterdir() if p.name not in TUM_ENTRIES)
-        if foreign:  # --force replaces a sequence, never a folder of other files
-            raise OutputError(
-                f"{out} holds files that are not a TUM sequence ({', '.join(foreign[:3])}"
-                f"{', ...' if len(foreign) > 3 else ''}); not replacing it even with --force"
-            )
+        # --force replaces a sequence, never a folder of other files
+        check_only_entries(out, TUM_ENTRIES, "a TUM sequence", "not replacing it even with --force")
     sequence = SyntheticSequence(frames, size, seed, supersample)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))

@@ -98,6 +98,18 @@ class AtomicFile:
         self.tmp_path.unlink(missing_ok=True)
 
 
+def check_only_entries(folder: Path, allowed: frozenset[str], what: str, action: str) -> None:
+    """Refuse a folder holding anything besides `allowed` entries (what gsc itself wrote there).
+
+    Raises:
+        OutputError: naming up to three foreign entries, "not {what}", then `action`.
+    """
+    foreign = sorted(p.name for p in folder.iterdir() if p.name not in allowed)
+    if foreign:
+        listed = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise OutputError(f"{folder} holds files that are not {what} ({listed}); {action}")
+
+
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write a UTF-8 text file under a temporary name and rename it into place."""
     out = AtomicFile(Path(path))

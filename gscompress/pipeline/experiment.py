@@ -36,7 +36,7 @@ import numpy as np
 
 from gscompress import __version__
 from gscompress.errors import InputError
-from gscompress.io.files import json_text, write_text_atomic
+from gscompress.io.files import check_only_entries, json_text, write_text_atomic
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES, strategy_scores
@@ -256,6 +256,10 @@ class _Runner:
         )
 
 
+EXPERIMENT_ENTRIES = frozenset({"runs", "plots", "results.md", "results.csv", "results.json"})
+"""Everything an experiment puts in its folder (what a rerun may write over)."""
+
+
 def plan_size(settings: ExperimentSettings) -> int:
     """How many steps an experiment has (for progress)."""
     s = settings
@@ -291,6 +295,8 @@ def run_experiment(
     seq, out = Path(seq), Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder is a file: {out}")
+    if out.is_dir():  # a rerun continues its own folder; nothing else is written over
+        check_only_entries(out, EXPERIMENT_ENTRIES, "an experiment's", "give a new or empty folder")
     open_sequence(seq, frames=settings.frames)  # a bad sequence fails before out_dir is made
     s = settings
     base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
