@@ -54,7 +54,8 @@ class OneLineUsageError(click.UsageError):
 
 def one_line(exc: click.UsageError) -> click.UsageError:
     """`exc` as a one-line usage error; a bare `gsc` still prints its help."""
-    if isinstance(exc, OneLineUsageError) or type(exc).__name__ == "NoArgsIsHelpError":
+    shown_as_is = (OneLineUsageError, getattr(click.exceptions, "NoArgsIsHelpError", ()))
+    if isinstance(exc, shown_as_is):  # (NoArgsIsHelpError: click >= 8.2)
         return exc
     return OneLineUsageError(exc.format_message(), exc.ctx)
 

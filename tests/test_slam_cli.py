@@ -148,16 +148,14 @@ def test_cli_preset_names_are_the_presets() -> None:
     assert set(PRESET_NAMES) == set(PRESETS)
 
 
-def test_threads_option_sets_torch_and_openmp_threads(seq_dir, tmp_path, monkeypatch):
+def test_threads_option_sets_torch_and_openmp_threads(
+    seq_dir, tmp_path, monkeypatch, threads_restored
+):
     import torch
 
-    before = torch.get_num_threads()
     monkeypatch.setenv("OMP_NUM_THREADS", "7")
-    try:
-        r = run("--threads", "1", "slam", seq_dir, "-o", tmp_path / "t.mcap", "--preset", "tiny",
-                "--size", "32x24", "--frames", "0:2")  # fmt: skip
-        assert r.exit_code == 0, r.output
-        assert torch.get_num_threads() == 1 and os.environ["OMP_NUM_THREADS"] == "1"
-    finally:
-        torch.set_num_threads(before)
+    r = run("--threads", "1", "slam", seq_dir, "-o", tmp_path / "t.mcap", "--preset", "tiny",
+            "--size", "32x24", "--frames", "0:2")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert torch.get_num_threads() == 1 and os.environ["OMP_NUM_THREADS"] == "1"
     assert run("--threads", "0", "info", tmp_path / "t.mcap").exit_code == 2

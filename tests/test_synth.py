@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -128,7 +127,7 @@ def test_supersampling_changes_colour_only() -> None:
     assert np.abs(np.diff(four.color, axis=1)).mean() < np.abs(np.diff(one.color, axis=1)).mean()
 
 
-def test_synth_writes_with_as_many_threads_as_gsc_threads(tmp_path, monkeypatch):
+def test_synth_writes_with_as_many_threads_as_gsc_threads(tmp_path, monkeypatch, threads_restored):
     from gscompress.datasets import synthetic
 
     monkeypatch.setenv("OMP_NUM_THREADS", "9")
@@ -140,13 +139,7 @@ def test_synth_writes_with_as_many_threads_as_gsc_threads(tmp_path, monkeypatch)
     monkeypatch.setattr(
         synthetic, "write_tum_sequence", lambda *a, **k: used.append(k["workers"]) or real(*a, **k)
     )
-    torch = sys.modules.get("torch")  # gsc --threads also sets a loaded torch's threads
-    before = torch.get_num_threads() if torch is not None else 0
-    try:
-        args = ["--threads", "1", "synth", str(tmp_path / "s"), "--frames", "2", "--size", "16x12"]
-        r = CliRunner().invoke(cli, args)
-    finally:
-        if torch is not None:
-            torch.set_num_threads(before)
+    args = ["--threads", "1", "synth", str(tmp_path / "s"), "--frames", "2", "--size", "16x12"]
+    r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     assert used == [1]
