@@ -15,6 +15,7 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline.experiment import (
     ROW_KEYS,
     ExperimentSettings,
+    paired_difference,
     plan_size,
     rate_distortion_curves,
 )
@@ -64,6 +65,11 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     for name in ("rate_distortion", "importance_hist", "importance_topdown"):
         assert (out / "plots" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert result["verdicts"]["seeds"] == 1 and len(result["verdicts"]["sweep"]) == 2
+    first = result["verdicts"]["sweep"][0]  # one seed: a difference, no standard error
+    pwas, random = (by_name[(f"B + {k} 0.2", "table4")]["psnr"] for k in ("pwas", "random"))
+    assert first["pairs"] == 1 and first["psnr_difference_se"] is None
+    assert first["psnr_difference"] == pytest.approx(pwas - random)
+    assert "PWAS minus random, paired by seed" in md and "ATE RMSE (cm) | PWAS lower" not in md
 
 
 def test_rate_distortion_curves_start_at_b_without_a_share(
@@ -89,6 +95,26 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
     b = next(r for r in rows if r["name"] == "agent B (even frames)")
     assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["psnr"]
     assert rate_distortion_curves(rows, ExperimentSettings(preset="tiny", sweep_seeds=0)) == {}
+
+
+def test_pwas_minus_random_is_paired_by_seed() -> None:
+    def row(seed: int, strategy: str, psnr: float | None) -> dict:
+        return {"seed": seed, "strategy": strategy, "psnr": psnr}
+
+    group = [
+        row(0, "pwas", 25.0), row(0, "random", 24.9), row(1, "random", 25.3),
+        row(1, "pwas", 25.2), row(2, "pwas", 24.9), row(2, "random", 24.6),
+        row(2, "opacity", 30.0),  # another strategy: not compared
+        row(3, "pwas", 26.0),  # no random run for seed 3
+        row(4, "pwas", None), row(4, "random", 24.0),  # no PSNR for PWAS
+        row(5, "pwas", float("nan")), row(5, "random", 24.0),
+    ]  # fmt: skip
+    d = paired_difference(group, "psnr")  # differences +0.1, -0.1, +0.3
+    assert (d["pairs"], d["positive"], d["negative"]) == (3, 2, 1)
+    assert d["mean"] == pytest.approx(0.1)
+    assert d["se"] == pytest.approx(0.2 / 3**0.5)
+    none = paired_difference(group[6:8], "psnr")
+    assert none == {"pairs": 0, "mean": None, "se": None, "positive": 0, "negative": 0}
 
 
 def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
@@ -192,6 +218,7 @@ def test_both_modes_share_one_folder_without_overwriting_runs(
     inject = json.loads(r.output)
     # A, B and the shares are reused; only B's runs with a share are new (2 x 2 budgets + full)
     assert inject["steps"] - inject["reused"] == 5
+    assert "ATE RMSE (cm) | PWAS lower" in (out / "results.md").read_text()  # B's poses move
     r = CliRunner().invoke(cli, base)  # back to merge mode: every merge run is still there
     assert r.exit_code == 0, r.output
     again = json.loads(r.output)

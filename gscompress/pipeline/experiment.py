@@ -425,6 +425,29 @@ def _mean(values: Sequence[Any]) -> float | None:
     return float(np.mean(numbers)) if numbers else None
 
 
+def paired_difference(group: list[dict[str, Any]], key: str) -> dict[str, Any]:
+    """PWAS minus random in `key`, paired by seed, over the rows of one budget.
+
+    Seeds without a finite value for both strategies are left out. Returns the number of pairs,
+    the mean difference, its standard error (sample standard deviation / sqrt(pairs); None
+    below two pairs) and how many differences are positive and negative.
+    """
+    values: dict[int, dict[str, float]] = {}
+    for row in group:
+        value = row.get(key)
+        if row["strategy"] in ("pwas", "random") and value is not None and math.isfinite(value):
+            values.setdefault(row["seed"], {})[row["strategy"]] = float(value)
+    diffs = np.array([v["pwas"] - v["random"] for v in values.values() if len(v) == 2])
+    n = len(diffs)
+    return {
+        "pairs": n,
+        "mean": float(diffs.mean()) if n else None,
+        "se": float(diffs.std(ddof=1) / math.sqrt(n)) if n > 1 else None,
+        "positive": int((diffs > 0).sum()),
+        "negative": int((diffs < 0).sum()),
+    }
+
+
 def _verdicts(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, Any]:
     """PWAS against random: per seed at the main budget, and per budget in the sweep."""
 
@@ -454,8 +477,14 @@ def _verdicts(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, An
         mr = _mean([r["psnr"] for r in group if r["strategy"] == "random"])
         if mp is None or mr is None:
             continue
+        psnr = paired_difference(group, "psnr")
+        ate = paired_difference(group, "ate_rmse_cm")
         sweep.append({"budget": budget, "pwas_psnr": mp, "random_psnr": mr,
-                      "pwas_at_or_above_random": mp >= mr})  # fmt: skip
+                      "pwas_at_or_above_random": mp >= mr, "pairs": psnr["pairs"],
+                      "psnr_difference": psnr["mean"], "psnr_difference_se": psnr["se"],
+                      "pwas_higher_psnr": psnr["positive"],
+                      "ate_difference_cm": ate["mean"], "ate_difference_se_cm": ate["se"],
+                      "pwas_lower_ate": ate["negative"]})  # fmt: skip
     return {
         "budget": s.budget,
         "seeds": s.seeds,
@@ -473,6 +502,12 @@ def _fmt(value: Any, spec: str = ".2f") -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "n/a"
     return format(value, spec)
+
+
+def _plus_minus(mean: float | None, se: float | None, spec: str) -> str:
+    if mean is None:
+        return "n/a"
+    return format(mean, "+" + spec) + ("" if se is None else " ± " + format(se, spec))
 
 
 def _write_reports(
@@ -609,6 +644,29 @@ def _markdown(
                     f"{_fmt(_mean([r['share_gaussians'] for r in group]), '.0f')} | "
                     f"{_fmt(_mean([r['share_bytes'] for r in group]), '.0f')} |"
                 )
+    if v["sweep"]:
+        inject = s.mode == "inject"
+        lines += [
+            "",
+            "PWAS minus random, paired by seed (mean ± standard error over the seeds; a mean "
+            "within about two standard errors of 0 is not resolved by this many seeds):",
+            "",
+            "| Budget | Seeds | PSNR (dB) | PWAS higher |"
+            + (" ATE RMSE (cm) | PWAS lower |" if inject else ""),
+            "|---|---|---|---|" + ("---|---|" if inject else ""),
+        ]
+        for b in v["sweep"]:
+            lines.append(
+                f"| {b['budget']} | {b['pairs']} | "
+                f"{_plus_minus(b['psnr_difference'], b['psnr_difference_se'], '.2f')} | "
+                f"{b['pwas_higher_psnr']} of {b['pairs']} |"
+                + (
+                    f" {_plus_minus(b['ate_difference_cm'], b['ate_difference_se_cm'], '.3f')}"
+                    f" | {b['pwas_lower_ate']} of {b['pairs']} |"
+                    if inject
+                    else ""
+                )
+            )
     lines += ["", "## Plots", ""]
     lines += [f"![{p.stem}]({p.relative_to(out)})" for p in plots]
     return "\n".join(lines) + "\n"
