@@ -505,9 +505,10 @@ def _fmt(value: Any, spec: str = ".2f") -> str:
 
 
 def _plus_minus(mean: float | None, se: float | None, spec: str) -> str:
-    if mean is None:
-        return "n/a"
-    return format(mean, "+" + spec) + ("" if se is None else " ± " + format(se, spec))
+    """`mean ± se` (`mean` alone without a standard error; n/a without a mean)."""
+    if mean is None or se is None:
+        return _fmt(mean, "+" + spec)
+    return f"{mean:+{spec}} ± {se:{spec}}"
 
 
 def _write_reports(
@@ -656,17 +657,17 @@ def _markdown(
             "|---|---|---|---|" + ("---|---|" if inject else ""),
         ]
         for b in v["sweep"]:
-            lines.append(
-                f"| {b['budget']} | {b['pairs']} | "
-                f"{_plus_minus(b['psnr_difference'], b['psnr_difference_se'], '.2f')} | "
-                f"{b['pwas_higher_psnr']} of {b['pairs']} |"
-                + (
-                    f" {_plus_minus(b['ate_difference_cm'], b['ate_difference_se_cm'], '.3f')}"
-                    f" | {b['pwas_lower_ate']} of {b['pairs']} |"
-                    if inject
-                    else ""
-                )
-            )
+            cells = [
+                b["budget"], b["pairs"],
+                _plus_minus(b["psnr_difference"], b["psnr_difference_se"], ".2f"),
+                f"{b['pwas_higher_psnr']} of {b['pairs']}",
+            ]  # fmt: skip
+            if inject:
+                cells += [
+                    _plus_minus(b["ate_difference_cm"], b["ate_difference_se_cm"], ".3f"),
+                    f"{b['pwas_lower_ate']} of {b['pairs']}",
+                ]
+            lines.append("| " + " | ".join(str(c) for c in cells) + " |")
     lines += ["", "## Plots", ""]
     lines += [f"![{p.stem}]({p.relative_to(out)})" for p in plots]
     return "\n".join(lines) + "\n"
