@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import signal
-import time
 from pathlib import Path
 from typing import Any
 
@@ -138,7 +137,6 @@ def slam(
     ctx = click.get_current_context()
     given = {name: ctx.get_parameter_source(name) != ParameterSource.DEFAULT
              for name in ("preset", "frames")}  # fmt: skip
-    started = time.perf_counter()
     previous_handler = signal.signal(signal.SIGTERM, _stop)
     with progress_bar("slam", "frame", hidden=as_json) as bar:
         processed = 0
@@ -147,13 +145,12 @@ def slam(
             nonlocal processed
             processed += 1
             bar.total = total
-            elapsed = time.perf_counter() - started
             bar.set_postfix(
                 frame=stats["frame"],
                 gaussians=stats["gaussians"],
                 track=f"{stats.get('loss_tracking', 0.0):.4f}",
                 map=f"{stats.get('loss_mapping', 0.0):.4f}",
-                s_per_frame=f"{elapsed / processed:.2f}",
+                s_per_frame=f"{stats['seconds'] / processed:.2f}",
                 refresh=False,
             )
             bar.update(done - bar.n)

@@ -14,7 +14,7 @@ import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, MissingDependencyError
-from gscompress.render import RenderOutput, render
+from gscompress.render import RenderOutput, render, resolve_backend
 from gscompress.render.projection import bin_tiles, project_gaussians
 
 INTR = Intrinsics(fx=28.0, fy=27.0, cx=15.5, cy=11.5, width=32, height=24)
@@ -411,7 +411,14 @@ def test_gsplat_backend_without_gsplat_raises(monkeypatch):
 
 
 def test_auto_picks_a_cpu_backend_for_cpu_tensors():
-    assert run(make_scene(10), backend="auto").backend in ("cpu", "torch")
+    picked = resolve_backend("auto", torch.device("cpu"))
+    assert picked in ("cpu", "torch")
+    assert run(make_scene(10), backend="auto").backend == picked
+    assert resolve_backend("torch", torch.device("meta")) == "torch"
+    with pytest.raises(InputError, match="needs CPU tensors"):
+        resolve_backend("cpu", torch.device("meta"))
+    with pytest.raises(InputError, match="unknown render backend"):
+        resolve_backend("vulkan", torch.device("cpu"))
 
 
 # --- gsplat (CUDA) ----------------------------------------------------------------------------

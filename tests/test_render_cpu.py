@@ -17,6 +17,7 @@ from test_render import (
 )
 
 from gscompress.render import cpu as cpu_backend
+from gscompress.render import resolve_backend
 
 INPUTS = (*ARGS, "T_cam_world")
 TOL = {torch.float64: 1e-10, torch.float32: 1e-5}
@@ -130,6 +131,7 @@ def test_falls_back_to_torch_without_a_compiler(monkeypatch):
         with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler"):
             out = run(make_scene(50, seed=10), backend="cpu")
         assert out.backend == "torch"
+        assert resolve_backend("cpu", torch.device("cpu")) == "torch"
     finally:
         cpu_backend.load_extension.cache_clear()
 

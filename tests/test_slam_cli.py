@@ -141,6 +141,37 @@ def test_keyboard_interrupt_leaves_a_readable_log_of_the_frames_done(tmp_path):
     assert len(final) > 0 and final.has_importance
 
 
+def test_render_kernels_are_ready_before_the_first_timed_frame(monkeypatch, tmp_path):
+    """A first-use build of the C++ kernels (about 30 s) must not count as frame 0's time."""
+    from gscompress.render import cpu as cpu_backend
+    from gscompress.slam.system import SlamSystem
+
+    events: list[str] = []
+    load, process = cpu_backend.load_extension, SlamSystem.process
+
+    def loading():  # type: ignore[no-untyped-def]
+        events.append("kernels")
+        return load()
+
+    def processing(self, frame):  # type: ignore[no-untyped-def]
+        events.append("frame")
+        return process(self, frame)
+
+    monkeypatch.setattr(cpu_backend, "load_extension", loading)
+    monkeypatch.setattr(SlamSystem, "process", processing)
+    seconds: list[float] = []
+
+    def progress(done, total, stats):  # type: ignore[no-untyped-def]
+        seconds.append(stats["seconds"])
+
+    sequence = synthetic_sequence(2, (32, 24))
+    result = slam_file(None, tmp_path / "run.mcap", preset="tiny", sequence=sequence,
+                       progress=progress)  # fmt: skip
+    assert events[0] == "kernels" and events.count("frame") == 2
+    # the bar's s/frame and the summary's come from one clock, started after the build
+    assert len(seconds) == 2 and 0 < seconds[0] < seconds[1] <= result["seconds"] + 1e-3
+
+
 def test_cli_preset_names_are_the_presets() -> None:
     from gscompress.slam.config import PRESETS
     from gscompress_cli.options import PRESET_NAMES

@@ -115,7 +115,9 @@ def slam_file(
         config: a ready `SlamConfig` to use instead of preset + `config_path` + options.
         command: the command line, for the metadata.
         force: overwrite `dst`.
-        progress: called after every frame with (frames done, total, the frame's stats).
+        progress: called after every frame with (frames done, total, the frame's stats plus
+            `seconds`, the wall time of this call's frames so far, the figure behind the
+            result's `seconds_per_frame`).
         sequence: an already opened `RGBDSequence` (e.g. an in-memory synthetic one) instead
             of `seq`; `frames` and `size` are then not applied to it.
 
@@ -367,10 +369,12 @@ def _stop_between_frames() -> Iterator[Callable[[], None]]:
 def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:
     """Process the frames from `run.start` on, writing the log as they are done."""
     from gscompress.metrics import ate_rmse_cm
+    from gscompress.render import resolve_backend
 
     sequence, system, meta = run.sequence, run.system, run.meta
     total = len(sequence)
     failure: BaseException | None = None
+    resolve_backend(run.config.backend, system.device)  # a first-use kernel build is not timed
     start = time.perf_counter()
     with LogWriter(dst, meta, inputs=run.inputs, force=True) as out:
         if run.carried:
@@ -390,7 +394,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
                     whole = True
                     stats = _log_frame(run, out, frame, result, i)
                     if progress is not None:
-                        progress(i + 1, total, stats)
+                        progress(i + 1, total, {**stats, "seconds": time.perf_counter() - start})
                     check()
         except (KeyboardInterrupt, Exception) as exc:
             if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):

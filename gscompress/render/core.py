@@ -93,10 +93,7 @@ def render(
     _check_inputs(means, quats, scales, opacities, colors, intrinsics, T_cam_world, background)
     if not near > 0:
         raise InputError(f"near must be positive, got {near}")
-    if backend not in BACKENDS:
-        raise InputError(f"unknown render backend {backend!r}; choose one of {BACKENDS}")
-    if backend == "auto":
-        backend = _auto_backend(means.device)
+    backend = resolve_backend(backend, means.device)
     if backend == "gsplat":
         from gscompress.render.gsplat_backend import render_gsplat
 
@@ -107,13 +104,9 @@ def render(
 
     ext = None
     if backend == "cpu":
-        if means.device.type != "cpu":
-            raise InputError(f"backend='cpu' needs CPU tensors, got {means.device}")
         from gscompress.render.cpu import load_extension
 
         ext = load_extension()
-        if ext is None:
-            backend = "torch"
 
     width, height = intrinsics.width, intrinsics.height
     proj = project_gaussians(means, quats, scales, T_cam_world, intrinsics, near)
@@ -167,10 +160,30 @@ def gsplat_available() -> bool:
     return importlib.util.find_spec("gsplat") is not None
 
 
-def _auto_backend(device: torch.device) -> str:
-    if device.type == "cuda":
-        return "gsplat" if gsplat_available() else "torch"
-    return "cpu" if device.type == "cpu" else "torch"
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """The backend `render` uses for `backend` and tensors on `device`, ready to run.
+
+    "auto" becomes gsplat for CUDA tensors when installed, else cpu on the CPU, else torch;
+    "cpu" builds the C++ kernels on first use (about 30 s, once per machine) and becomes torch
+    when they cannot be built. Calling this before a timed loop keeps the build out of it.
+
+    Raises:
+        InputError: an unknown backend, or "cpu" for tensors elsewhere.
+    """
+    if backend not in BACKENDS:
+        raise InputError(f"unknown render backend {backend!r}; choose one of {BACKENDS}")
+    if backend == "auto":
+        if device.type == "cuda":
+            return "gsplat" if gsplat_available() else "torch"
+        backend = "cpu" if device.type == "cpu" else "torch"
+    if backend == "cpu":
+        if device.type != "cpu":
+            raise InputError(f"backend='cpu' needs CPU tensors, got {device}")
+        from gscompress.render.cpu import load_extension
+
+        if load_extension() is None:
+            return "torch"
+    return backend
 
 
 def _check_inputs(
