@@ -99,7 +99,8 @@ def slam_file(
     Args:
         seq: the sequence folder (None when `sequence` is given).
         dst: the output log (.mcap).
-        preset: starting configuration (`gscompress.slam.config.PRESETS`; None: "cpu").
+        preset: starting configuration (`gscompress.slam.config.PRESETS`; None: the
+            default, `DEFAULT_PRESET`).
         config_path: a YAML config applied on top of the preset.
         frames: frame subset (all, odd, even, START:STOP:STEP; None: all).
         size: working size (W, H), overriding the config's.
@@ -141,10 +142,10 @@ def slam_file(
         run = _resume_run(seq, dst, device, sequence)
     else:
         if config is None:
-            from gscompress.slam.config import resolve_config
+            from gscompress.slam.config import DEFAULT_PRESET, resolve_config
 
             config = resolve_config(
-                preset or "cpu", config_path, size=size, keep=keep, no_prune=no_prune
+                preset or DEFAULT_PRESET, config_path, size=size, keep=keep, no_prune=no_prune
             )
         if share_transform is not None and inject is None:
             raise InputError("a share transform needs --inject")
