@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import signal
+import time
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,17 @@ from .options import (
     size_option,
     slam_config_options,
 )
+
+
+def _start_at_loop(bar: Any, frames_before: int, seconds: float) -> None:
+    """Start the tqdm bar's count and clock where the SLAM loop's start, `seconds` ago.
+
+    The bar was made before the set-up (sequence, a resumed log's replay, a first-use build of
+    the render kernels); left alone, its rate and ETA would count that as the first frame's time
+    and the frames a resumed log already holds as done in this run.
+    """
+    bar.n = bar.last_print_n = bar.initial = frames_before
+    bar.start_t = bar.last_print_t = time.time() - seconds
 
 
 def _stop(signum: int, frame: object) -> None:
@@ -144,6 +156,8 @@ def slam(
         def progress(done: int, total: int, stats: dict[str, Any]) -> None:
             nonlocal processed
             processed += 1
+            if processed == 1:
+                _start_at_loop(bar, done - 1, stats["seconds"])
             bar.total = total
             bar.set_postfix(
                 frame=stats["frame"],

@@ -172,6 +172,47 @@ def test_render_kernels_are_ready_before_the_first_timed_frame(monkeypatch, tmp_
     assert len(seconds) == 2 and 0 < seconds[0] < seconds[1] <= result["seconds"] + 1e-3
 
 
+def test_progress_bar_counts_only_the_frames_this_run_does(monkeypatch, caplog, seq_dir, tmp_path):
+    """The bar's rate and ETA start with the frame loop: a slow set-up (a first-use kernel build,
+    here a sleep) is not the first frame's time, and the frames of a resumed log are not done by
+    this run."""
+    import logging
+    import time
+
+    import gscompress.render as render
+    import gscompress_cli.slam as slam_command
+
+    resolve, make_bar = render.resolve_backend, slam_command.progress_bar
+    ready: list[float] = []
+
+    def slow_resolve(*args, **kwargs):  # type: ignore[no-untyped-def]
+        time.sleep(0.5)
+        ready.append(time.time())
+        return resolve(*args, **kwargs)
+
+    bars = []
+
+    def kept_bar(*args, **kwargs):  # type: ignore[no-untyped-def]
+        bars.append(make_bar(*args, **kwargs))
+        return bars[-1]
+
+    def stop_after_two(done, total, stats):  # type: ignore[no-untyped-def]
+        if done == 2:
+            raise KeyboardInterrupt
+
+    out = tmp_path / "run.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, preset="tiny", progress=stop_after_two)
+    monkeypatch.setattr(render, "resolve_backend", slow_resolve)
+    monkeypatch.setattr(slam_command, "progress_bar", kept_bar)
+    caplog.set_level(logging.INFO)  # the bar shows at gsc's default level, not under -q
+    r = run("slam", seq_dir, "-o", out, "--resume")
+    assert r.exit_code == 0, r.output
+    (bar,) = bars
+    assert bar.initial == 2 and bar.n == 6  # 4 frames done by this run, counted from 2
+    assert bar.start_t >= ready[-1] - 0.05  # the clock started after the set-up
+
+
 def test_cli_preset_names_are_the_presets() -> None:
     from gscompress.slam.config import PRESETS
     from gscompress_cli.options import PRESET_NAMES
