@@ -109,6 +109,8 @@ def run_one(
             "frames": frames,
             "gaussians_max": max(s["gaussians"] for s in stats),
             "seconds_per_frame": wall,
+            "device": result.get("device"),
+            "render_backend": result.get("render_backend"),
             "cpu_seconds_per_frame": round(cpu_s / frames, 4) if cpu_s is not None else None,
             "ms": breakdown(stats, wall),
             "stage_positions": [

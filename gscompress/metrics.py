@@ -210,7 +210,7 @@ def _gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> torc
 def _blur(x: torch.Tensor, win: torch.Tensor) -> torch.Tensor:
     """Separable 'valid' Gaussian filter of [B, C, H, W] per channel."""
     c = x.shape[1]
-    k = win.to(x.dtype)
+    k = win.to(device=x.device, dtype=x.dtype)
     x = F.conv2d(x, k.view(1, 1, 1, -1).repeat(c, 1, 1, 1), groups=c)
     return F.conv2d(x, k.view(1, 1, -1, 1).repeat(c, 1, 1, 1), groups=c)
 

@@ -6,6 +6,7 @@ import os
 import jsonschema
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_sequence
@@ -13,6 +14,7 @@ from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogRe
 from gscompress.metrics import ate_rmse_cm
 from gscompress.ops.select import keep_count
 from gscompress.pipeline import slam_file
+from gscompress.render import resolve_backend
 from gscompress.slam.config import load_config, preset
 from gscompress_cli.main import cli
 from gscompress_schemas import load_schema
@@ -72,6 +74,8 @@ def test_log_has_poses_stats_snapshots_and_metadata(slam_log):
     assert np.isfinite(ate) and ate < 10.0
     assert meta.results["ate_rmse_cm"] == pytest.approx(ate)
     assert meta.results["frames"] == 6 and not meta.results["interrupted"]
+    device = torch.device(meta.results["device"])  # auto: what this machine has
+    assert meta.results["render_backend"] == resolve_backend("auto", device)
     assert meta.config["preset"] == "tiny" and meta.sequence == "room" and meta.frames == "all"
     assert meta.command.startswith("gsc")
 

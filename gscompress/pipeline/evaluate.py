@@ -220,7 +220,7 @@ def evaluate_log(
         views(),
         sequence.intrinsics,
         backend=backend,
-        device=resolve_device(device),
+        device=resolve_device(device, backend),
         lpips=lpips,
         progress=step,
     )

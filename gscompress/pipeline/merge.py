@@ -164,7 +164,7 @@ def _refine(
     positions = np.flatnonzero(match >= 0)
     if len(positions) == 0:
         raise InputError(f"no frame of {sequence.name} has a pose in {receiver}")
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(device, config.backend)
     views = [
         View.from_frame(k, sequence.frame(int(p)), poses[match[p]], torch_device)
         for k, p in enumerate(positions)

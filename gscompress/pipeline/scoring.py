@@ -43,6 +43,7 @@ def score_file(
     from gscompress.datasets import open_sequence
     from gscompress.importance import PwasConfig
     from gscompress.ops.score import score_map
+    from gscompress.slam.system import resolve_device
 
     check_output(dst, [src], force, ".mcap")
     if not sigma_d > 0:
@@ -50,11 +51,13 @@ def score_file(
     sequence = open_sequence(seq, size=size, frames=frames)
     stamps, T_world_cams = view_poses(sequence, poses)
     config = PwasConfig(sigma_d=sigma_d)
+    device = resolve_device("auto", backend)  # the GPU when there is one, as gsc slam
 
     def score(gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         scored = score_map(
-            gaussians, T_world_cams, sequence.intrinsics, config, backend=backend, progress=progress
-        )
+            gaussians, T_world_cams, sequence.intrinsics, config, backend=backend, device=device,
+            progress=progress,
+        )  # fmt: skip
         seen = int(np.count_nonzero(scored.importance_weight > 0))
         return scored, {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen}
 

@@ -375,7 +375,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
     sequence, system, meta = run.sequence, run.system, run.meta
     total = len(sequence)
     failure: BaseException | None = None
-    resolve_backend(run.config.backend, system.device)  # a first-use kernel build is not timed
+    # resolved now so that a first-use kernel build is not timed; recorded with the timings
+    backend = resolve_backend(run.config.backend, system.device)
     start = time.perf_counter()
     with LogWriter(dst, meta, inputs=run.inputs, force=True) as out:
         if run.carried:
@@ -414,6 +415,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
                 "seconds": round(seconds, 3),
                 "seconds_per_frame": round(seconds / max(done - run.start, 1), 4),
                 "interrupted": failure is not None,
+                "device": str(system.device),
+                "render_backend": backend,
             }
         )
         if run.start:

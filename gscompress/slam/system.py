@@ -131,10 +131,15 @@ class FrameResult:
         return {k: v for k, v in record.items() if not isinstance(v, float) or np.isfinite(v)}
 
 
-def resolve_device(device: str | torch.device) -> torch.device:
-    """`auto` -> cuda when available else cpu; anything else as torch understands it."""
+def resolve_device(device: str | torch.device, backend: str = "auto") -> torch.device:
+    """`auto` -> the device the render `backend` runs on ("cpu": the CPU, "gsplat": CUDA), or
+    for the other backends cuda when available, else cpu; anything else as torch understands it.
+    """
     if str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        if backend == "gsplat" and not torch.cuda.is_available():
+            raise InputError("backend 'gsplat' renders on CUDA, but torch sees no CUDA device")
+        cuda = backend == "gsplat" or (backend != "cpu" and torch.cuda.is_available())
+        return torch.device("cuda" if cuda else "cpu")
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda asked for, but torch sees no CUDA device")
@@ -180,7 +185,7 @@ class SlamSystem:
     ) -> None:
         self.config = config
         self.intrinsics = intrinsics
-        self.device = resolve_device(device)
+        self.device = resolve_device(device, config.backend)
         self.mapper = Mapper(config, intrinsics, self.device)
         self.keyframes: list[View] = []
         self.poses: list[np.ndarray] = []
