@@ -86,8 +86,9 @@ def dense_render(scene, intr=INTR, near=0.01, background=None):
     )
     cov = Rg @ torch.diag_embed(scales**2) @ Rg.transpose(1, 2)
     cov_c = T[:3, :3] @ cov @ T[:3, :3].T
-    limx = (intr.cx / intr.fx + 0.15 * W / intr.fx, (W - intr.cx) / intr.fx + 0.15 * W / intr.fx)
-    limy = (intr.cy / intr.fy + 0.15 * H / intr.fy, (H - intr.cy) / intr.fy + 0.15 * H / intr.fy)
+    # border: the outer pixel edges at -0.5 and W - 0.5 (pixel centres at 0 .. W - 1)
+    limx = ((intr.cx + 0.5 + 0.15 * W) / intr.fx, (W - 0.5 - intr.cx + 0.15 * W) / intr.fx)
+    limy = ((intr.cy + 0.5 + 0.15 * H) / intr.fy, (H - 0.5 - intr.cy + 0.15 * H) / intr.fy)
     xc = zs * torch.clamp(p[:, 0] / zs, -limx[0], limx[1])
     yc = zs * torch.clamp(p[:, 1] / zs, -limy[0], limy[1])
     J = torch.zeros(len(q), 2, 3, dtype=means.dtype)
@@ -437,28 +438,52 @@ def _has_gsplat_cuda() -> bool:
 gpu = pytest.mark.skipif(not _has_gsplat_cuda(), reason="needs CUDA and gsplat")
 
 
+def faint(scene: dict[str, torch.Tensor], seed: int = 99) -> dict[str, torch.Tensor]:
+    """The scene with opacities drawn in [0.05, 0.35]. Below 0.353 a Gaussian's alpha is under
+    1/255 (skipped) beyond 3 sigma, so gsplat's opacity-sized tile footprints (up to 3.33 sigma)
+    and the 3-sigma footprints of the other backends composite the same Gaussians everywhere."""
+    g = torch.Generator().manual_seed(seed)
+    o = 0.05 + 0.3 * torch.rand(scene["opacities"].shape, generator=g, dtype=torch.float64)
+    return dict(scene, opacities=o.to(scene["opacities"].dtype))
+
+
+def cuda_scene(scene: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.float().cuda().requires_grad_(True) for k, v in scene.items()}
+
+
 @pytest.mark.gpu
 @gpu
-def test_gsplat_matches_torch_backend():
-    scene = {k: v.float().cuda() for k, v in make_scene(300, seed=13).items()}
+@pytest.mark.parametrize("seed", [13, 21])
+def test_gsplat_equals_torch_backend_values_and_gradients(seed):
+    scene = cuda_scene(faint(make_scene(300, seed=seed)))
     bg = torch.tensor([0.1, 0.2, 0.3], device="cuda")
     ours = run(scene, backend="torch", want_contribution=True, background=bg)
     theirs = run(scene, backend="gsplat", want_contribution=True, background=bg)
     assert theirs.backend == "gsplat"
-    # Tile footprints and the stopping test differ in corner cases: compare typical pixels.
-    for key in ("color", "depth", "silhouette"):
-        diff = (getattr(ours, key) - getattr(theirs, key)).abs()
-        assert diff.median() < 1e-4 and diff.mean() < 1e-2, key
-    rel = (ours.contribution - theirs.contribution).abs().sum() / ours.contribution.sum()
-    assert rel < 1e-2
+    for key in ("color", "depth", "silhouette", "depth_normalized", "contribution"):
+        assert_rel_close(getattr(theirs, key), getattr(ours, key), 1e-5, key)
+    weights = {k: v.cuda() for k, v in loss_weights(torch.float32).items()}
+    inputs = [scene[k] for k in (*ARGS, "T_cam_world")]
+    grads = torch.autograd.grad(outputs_loss(theirs, weights), inputs)
+    ref = torch.autograd.grad(outputs_loss(ours, weights), inputs)
+    for name, got, expected in zip((*ARGS, "T_cam_world"), grads, ref, strict=True):
+        assert expected.abs().max() > 0, name
+        assert_rel_close(got, expected, 1e-4, name)
 
 
 @pytest.mark.gpu
 @gpu
-def test_gsplat_contribution_is_alpha_T_sum_and_gradients_flow():
-    scene = {k: v.float().cuda().requires_grad_(True) for k, v in make_scene(200, 14).items()}
-    out = run(scene, backend="gsplat", want_contribution=True)
-    assert torch.isclose(out.contribution.sum(), out.silhouette.sum(), rtol=1e-3)
-    loss = out.color.sum() + out.depth.sum() + out.silhouette.sum()
-    grads = torch.autograd.grad(loss, [scene[k] for k in (*ARGS, "T_cam_world")])
-    assert all(torch.isfinite(g).all() and g.abs().sum() > 0 for g in grads)
+def test_gsplat_differs_only_where_opacity_exceeds_the_cap():
+    # A tenth of this scene has opacity 0.999, capped at 0.99 before gsplat: there alpha is
+    # 0.99 G instead of min(0.99, 0.999 G), slightly fainter edges; the rest agrees as above.
+    scene = cuda_scene(make_scene(300, seed=13))
+    ours = run(scene, backend="torch", want_contribution=True)
+    theirs = run(scene, backend="gsplat", want_contribution=True)
+    for key in ("color", "depth", "silhouette"):
+        assert_rel_close(getattr(theirs, key), getattr(ours, key), 2e-2, key)
+    rel = (ours.contribution - theirs.contribution).abs().sum() / ours.contribution.sum()
+    assert rel < 2e-3
+    # an opaque Gaussian lets 1% through on every backend (opacity capped at 0.99 for gsplat)
+    solo = cuda_scene(stacked_scene(torch.float32, opacity=0.999, count=1))
+    for out in (run(solo, backend="gsplat"), run(solo, backend="torch")):
+        assert out.silhouette[5, 10].item() == pytest.approx(0.99, abs=1e-4)

@@ -12,7 +12,10 @@ o > 0.99 that gives alpha = 0.99 G instead of min(0.99, o G): slightly fainter e
 
 Other known differences from the torch/cpu backends, all at the level of single pixels or
 rounding: gsplat stops compositing when T would become <= 1e-4 (we stop at < 1e-4), and recent
-gsplat versions size a Gaussian's tile footprint from its opacity instead of 3 sigma.
+gsplat versions size a Gaussian's tile footprint from its opacity (up to 3.33 sigma) instead of
+3 sigma. With gsplat 1.5.3 on an H100, values agree with the pure-torch backend to 1e-5 and
+gradients to 1e-4 relative (tests/test_render.py, opacities up to 0.35, where both footprints
+hold every pixel with alpha >= 1/255; with opacities up to 0.99, measured within 1e-4 and 1e-5).
 """
 
 from __future__ import annotations

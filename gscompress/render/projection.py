@@ -10,8 +10,9 @@ Conventions (the rasterizer's spec; `gscompress.render` documents the compositin
   Jacobian at the Gaussian's centre). The 0.3 px^2 added to the diagonal is the usual low-pass
   dilation of 3DGS / gsplat (`eps2d`): it keeps every splat at least about a pixel wide, so
   tiny or distant Gaussians cannot alias between pixel centres. Like gsplat, the Jacobian is
-  evaluated with `x/z`, `y/z` clamped to 0.3 tan(fov/2) beyond the image border, which bounds
-  the footprint of Gaussians far outside the view.
+  evaluated with `x/z`, `y/z` clamped to 0.3 tan(fov/2) beyond the image border (the outer
+  pixel edges, u = -0.5 and u = width - 0.5), which bounds the footprint of Gaussians far
+  outside the view.
 - The radius is `ceil(3 sqrt(lambda_max))` px of the dilated 2D covariance.
 - A Gaussian is binned to every 16x16 tile whose pixel centres span
   `[16 t, 16 t + 15]` intersects `[u - r, u + r]` (and likewise in `v`); within a tile the list
@@ -136,9 +137,12 @@ def project_gaussians(
     M = [row * scales for row in rotation_rows(quats)]  # 3 x [N, 3], rows of R S
     WM = [W[i, 0] * M[0] + W[i, 1] * M[1] + W[i, 2] * M[2] for i in range(3)]  # 3 x [N, 3]
 
+    # The image's border runs along the outer pixel edges, u = -0.5 and u = width - 0.5.
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    u = torch.clamp(x / z_safe, -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x)
-    v = torch.clamp(y / z_safe, -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y)
+    u_lo, u_hi = (cx + 0.5) / fx + 0.3 * tan_x, (width - 0.5 - cx) / fx + 0.3 * tan_x
+    v_lo, v_hi = (cy + 0.5) / fy + 0.3 * tan_y, (height - 0.5 - cy) / fy + 0.3 * tan_y
+    u = torch.clamp(x / z_safe, -u_lo, u_hi)
+    v = torch.clamp(y / z_safe, -v_lo, v_hi)
     # Rows of J W R S with the pinhole Jacobian J = [[fx/z, 0, -fx u/z], [0, fy/z, -fy v/z]].
     inv_z = (1.0 / z_safe)[:, None]  # [N, 1]
     row_u = (fx * inv_z) * (WM[0] - u[:, None] * WM[2])  # [N, 3]
