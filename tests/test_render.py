@@ -14,7 +14,7 @@ import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, MissingDependencyError
-from gscompress.render import RenderOutput, render, resolve_backend
+from gscompress.render import RenderOutput, render, resolve_backend, resolve_device
 from gscompress.render.projection import bin_tiles, project_gaussians
 
 INTR = Intrinsics(fx=28.0, fy=27.0, cx=15.5, cy=11.5, width=32, height=24)
@@ -420,6 +420,20 @@ def test_auto_picks_a_cpu_backend_for_cpu_tensors():
         resolve_backend("cpu", torch.device("meta"))
     with pytest.raises(InputError, match="unknown render backend"):
         resolve_backend("vulkan", torch.device("cpu"))
+
+
+def test_auto_device_follows_the_render_backend():
+    cuda = torch.cuda.is_available()
+    assert resolve_device("auto", "cpu") == torch.device("cpu")  # the C++ kernels need the CPU
+    assert resolve_device("auto", "torch").type == ("cuda" if cuda else "cpu")
+    assert resolve_device("cpu", "torch") == torch.device("cpu")
+    if cuda:
+        assert resolve_device("auto", "gsplat").type == "cuda"
+    else:
+        with pytest.raises(InputError, match="gsplat' renders on CUDA"):
+            resolve_device("auto", "gsplat")
+        with pytest.raises(InputError, match="torch sees no CUDA device"):
+            resolve_device("cuda")
 
 
 # --- gsplat (CUDA) ----------------------------------------------------------------------------

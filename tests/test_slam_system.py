@@ -8,7 +8,7 @@ import torch
 
 from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
 from gscompress.datasets.synthetic import synthetic_sequence
-from gscompress.errors import InputError, MapError
+from gscompress.errors import MapError
 from gscompress.gaussians import SH_C0, random_map
 from gscompress.ops.select import STRATEGIES, keep_count, strategy_scores
 from gscompress.render import render
@@ -17,7 +17,7 @@ from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, overlap_fraction, sample_points, select_window
 from gscompress.slam.mapper import Mapper
 from gscompress.slam.params import GaussianParams
-from gscompress.slam.system import SlamSystem, resolve_device, stage_positions
+from gscompress.slam.system import SlamSystem, stage_positions
 from gscompress.slam.tracker import constant_velocity, orthonormalize, track
 
 SIZE = (64, 48)
@@ -391,17 +391,3 @@ def test_refill_of_the_current_view_fills_only_its_holes(seq):
         added[refill] = stats.added
         assert _hole_pixels(system, [current]) < holes / 4
     assert 0 < added["current"] < added["keyframes"]  # the older keyframe's holes stay
-
-
-def test_auto_device_follows_the_render_backend():
-    cuda = torch.cuda.is_available()
-    assert resolve_device("auto", "cpu") == torch.device("cpu")  # the C++ kernels need the CPU
-    assert resolve_device("auto", "torch").type == ("cuda" if cuda else "cpu")
-    assert resolve_device("cpu", "torch") == torch.device("cpu")
-    if cuda:
-        assert resolve_device("auto", "gsplat").type == "cuda"
-    else:
-        with pytest.raises(InputError, match="gsplat' renders on CUDA"):
-            resolve_device("auto", "gsplat")
-        with pytest.raises(InputError, match="torch sees no CUDA device"):
-            resolve_device("cuda")

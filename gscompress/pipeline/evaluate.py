@@ -145,7 +145,7 @@ def evaluate_log(
     """
     from gscompress.datasets import open_sequence
     from gscompress.ops.evaluate import EvalView, evaluate_map
-    from gscompress.slam.system import resolve_device
+    from gscompress.render import resolve_device
 
     if every < 1:
         raise InputError(f"--every must be a positive integer, got {every}")

@@ -149,9 +149,9 @@ def _refine(
     from gscompress.datasets import open_sequence
     from gscompress.ops.merge import refine
     from gscompress.pipeline.evaluate import match_times
+    from gscompress.render import resolve_device
     from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
     from gscompress.slam.keyframes import View, is_keyframe
-    from gscompress.slam.system import resolve_device
 
     config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
     if size is None and config.size is not None:

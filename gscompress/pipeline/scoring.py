@@ -43,7 +43,7 @@ def score_file(
     from gscompress.datasets import open_sequence
     from gscompress.importance import PwasConfig
     from gscompress.ops.score import score_map
-    from gscompress.slam.system import resolve_device
+    from gscompress.render import resolve_device
 
     check_output(dst, [src], force, ".mcap")
     if not sigma_d > 0:

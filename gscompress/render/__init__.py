@@ -25,6 +25,6 @@ results do not depend on the number of threads. gsplat differs in corner cases (
 `gscompress.render.gsplat_backend`).
 """
 
-from gscompress.render.core import BACKENDS, RenderOutput, render, resolve_backend
+from gscompress.render.core import BACKENDS, RenderOutput, render, resolve_backend, resolve_device
 
-__all__ = ["BACKENDS", "RenderOutput", "render", "resolve_backend"]
+__all__ = ["BACKENDS", "RenderOutput", "render", "resolve_backend", "resolve_device"]

@@ -186,6 +186,21 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     return backend
 
 
+def resolve_device(device: str | torch.device, backend: str = "auto") -> torch.device:
+    """`auto` -> the device the render `backend` runs on ("cpu": the CPU, "gsplat": CUDA), or
+    for the other backends cuda when available, else cpu; anything else as torch understands it.
+    """
+    if str(device) == "auto":
+        if backend == "gsplat" and not torch.cuda.is_available():
+            raise InputError("backend 'gsplat' renders on CUDA, but torch sees no CUDA device")
+        cuda = backend == "gsplat" or (backend != "cpu" and torch.cuda.is_available())
+        return torch.device("cuda" if cuda else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda asked for, but torch sees no CUDA device")
+    return dev
+
+
 def _check_inputs(
     means: torch.Tensor,
     quats: torch.Tensor,

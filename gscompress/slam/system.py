@@ -44,7 +44,7 @@ from gscompress.datasets.base import Frame
 from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.select import keep_count, strategy_scores, top_k
-from gscompress.render import RenderOutput, render
+from gscompress.render import RenderOutput, render, resolve_device
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, is_keyframe, select_window
@@ -129,21 +129,6 @@ class FrameResult:
         if self.event:
             record["event"] = self.event
         return {k: v for k, v in record.items() if not isinstance(v, float) or np.isfinite(v)}
-
-
-def resolve_device(device: str | torch.device, backend: str = "auto") -> torch.device:
-    """`auto` -> the device the render `backend` runs on ("cpu": the CPU, "gsplat": CUDA), or
-    for the other backends cuda when available, else cpu; anything else as torch understands it.
-    """
-    if str(device) == "auto":
-        if backend == "gsplat" and not torch.cuda.is_available():
-            raise InputError("backend 'gsplat' renders on CUDA, but torch sees no CUDA device")
-        cuda = backend == "gsplat" or (backend != "cpu" and torch.cuda.is_available())
-        return torch.device("cuda" if cuda else "cpu")
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda asked for, but torch sees no CUDA device")
-    return dev
 
 
 def stage_positions(total_frames: int, stages: tuple[float, ...]) -> dict[int, int]:
