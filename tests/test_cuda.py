@@ -7,19 +7,13 @@ reference in test_render.py.
 from __future__ import annotations
 
 import pytest
-import torch
+from test_render import gpu
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log, slam_file
-from gscompress.render.core import gsplat_available
 
-pytestmark = [
-    pytest.mark.gpu,
-    pytest.mark.skipif(
-        not (torch.cuda.is_available() and gsplat_available()), reason="needs CUDA and gsplat"
-    ),
-]
+pytestmark = [pytest.mark.gpu, gpu]
 
 
 def test_slam_on_cuda_maps_as_well_as_on_the_cpu(tmp_path):

@@ -191,10 +191,11 @@ def resolve_device(device: str | torch.device, backend: str = "auto") -> torch.d
     for the other backends cuda when available, else cpu; anything else as torch understands it.
     """
     if str(device) == "auto":
-        if backend == "gsplat" and not torch.cuda.is_available():
+        if backend != "cpu" and torch.cuda.is_available():
+            return torch.device("cuda")
+        if backend == "gsplat":
             raise InputError("backend 'gsplat' renders on CUDA, but torch sees no CUDA device")
-        cuda = backend == "gsplat" or (backend != "cpu" and torch.cuda.is_available())
-        return torch.device("cuda" if cuda else "cpu")
+        return torch.device("cpu")
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda asked for, but torch sees no CUDA device")
