@@ -43,7 +43,9 @@ def json_option(f: F) -> F:
 
 def seed_option(help: str = "Seed of the random strategy.") -> Callable[[F], F]:
     """`--seed N` (default 0) for the random choices a command makes."""
-    return click.option("--seed", type=int, default=0, show_default=True, help=help)
+    return click.option(
+        "--seed", type=click.IntRange(min=0), default=0, show_default=True, help=help
+    )
 
 
 class Ratio(click.ParamType):

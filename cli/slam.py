@@ -58,7 +58,8 @@ def _stop(signum: int, frame: object) -> None:
     "--save-config",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Write the resolved config (preset + --config + options) as YAML.",
+    help="Write the resolved config (preset + --config + options) as YAML; with -o, once the "
+    "run has passed its checks and mapped its first frame.",
 )
 @frames_option
 @size_option(help="Working image size WxH (default: the config's; the cpu preset uses 160x120).")
@@ -129,21 +130,27 @@ def slam(
     checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
     even a killed run resumes with --resume, redoing at most that many frames.
     """
-    from gscompress.errors import InputError
     from gscompress.io.files import check_output
+    from gscompress.io.recover import unfinished_files
     from gscompress.pipeline import slam_file
     from gscompress.slam.config import resolve_config
     from gscompress.slam.config import save_config as write_config
 
     if save_config is not None:
+        if resume:
+            raise click.UsageError(
+                "--save-config does not go with --resume (the log holds its config)"
+            )
         config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
-        check_output(save_config, [p for p in (config_path, seq) if p is not None], force)
-        write_config(config, save_config)
+        check_output(save_config, [p for p in (config_path, seq, dst) if p is not None], force)
         if dst is None:
+            write_config(config, save_config)
             click.echo(f"wrote {save_config}")
             return
     if dst is None:
-        raise InputError("give an output log with -o OUT.mcap")
+        raise click.UsageError("give an output log with -o OUT.mcap (or only --save-config)")
+    if resume and not dst.exists() and not unfinished_files(dst):
+        raise click.UsageError(f"--resume: there is no log {dst} nor an unfinished run of it")
 
     # what was not given stays None, so that --resume can refuse settings it would not use
     ctx = click.get_current_context()
@@ -158,6 +165,8 @@ def slam(
             processed += 1
             if processed == 1:
                 _start_at_loop(bar, done - 1, stats["seconds"])
+                if save_config is not None:  # written once the run has passed its checks
+                    write_config(config, save_config)
             bar.total = total
             bar.set_postfix(
                 frame=stats["frame"],

@@ -8,7 +8,7 @@ import click
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 
-from .options import force_option, progress_bar, size_option
+from .options import force_option, progress_bar, seed_option, size_option
 
 
 @click.command()
@@ -17,7 +17,7 @@ from .options import force_option, progress_bar, size_option
     "--frames", type=click.IntRange(min=1), default=60, show_default=True, help="Frame count."
 )
 @size_option(default="320x240", help="Image size WxH.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Scene seed.")
+@seed_option(help="Scene seed.")
 @click.option(
     "--supersample",
     type=click.IntRange(1, 4),

@@ -161,6 +161,21 @@ def _truncated(src, dst):
     dst.write_bytes(src.read_bytes()[: src.stat().st_size // 2])
 
 
+def _cut_short(src, dst):
+    dst.write_bytes(src.read_bytes()[:10])  # the magic and two bytes: no record to seek through
+
+
+def _corrupt_chunk(src, dst):
+    """16 bytes flipped in the first zstd block of the log's largest chunk: zstd finds the
+    damage before the chunk's CRC is checked."""
+    with LogReader(src) as log:
+        chunk = max(log._summary.chunk_indexes, key=lambda c: c.compressed_size)
+    data = bytearray(src.read_bytes())
+    at = chunk.chunk_start_offset + chunk.chunk_length - chunk.compressed_size + 12
+    data[at : at + 16] = bytes(b ^ 0x5A for b in data[at : at + 16])
+    dst.write_bytes(bytes(data))
+
+
 def _no_gaussians(src, dst):
     with LogWriter(dst, LogMetadata()) as log:
         log.write_pose(np.eye(4), 0)
@@ -193,7 +208,9 @@ def _newer_profile(src, dst):
     "make_input, message",
     [
         (_not_mcap, "not a readable MCAP"),
-        (_truncated, "MCAP"),
+        (_truncated, "MCAP file is truncated"),
+        (_cut_short, "MCAP file is truncated"),
+        (_corrupt_chunk, "MCAP"),
         (_no_gaussians, "no /gaussians channel"),
         (_bad_stride, "not a multiple of point_stride"),
         (_non_finite, "non-finite"),

@@ -151,6 +151,23 @@ def test_a_bad_sequence_fails_before_the_output_folder_is_made(tmp_path: Path) -
     assert not (tmp_path / "e").exists()
 
 
+def test_frames_that_leave_an_agent_nothing_or_a_folder_in_the_sequence_fail_at_once(
+    experiment: tuple[Path, Path, dict], tmp_path: Path
+) -> None:
+    seq, _, _ = experiment
+    r = CliRunner().invoke(
+        cli, ["experiment", str(seq), "-o", str(tmp_path / "e"), "--frames", "0:1"]
+    )
+    assert r.exit_code == 1 and "leaves agent A (1:1:2) no frame" in r.output, r.output
+    r = CliRunner().invoke(cli, ["experiment", str(seq), "-o", str(seq / "e")])
+    assert r.exit_code == 1 and "inside the sequence folder" in r.output, r.output
+    assert not (tmp_path / "e").exists() and not (seq / "e").exists()
+    r = CliRunner().invoke(
+        cli, ["experiment", str(seq), "-o", str(tmp_path / "e"), "--frames", "x"]
+    )
+    assert r.exit_code == 2 and "takes all or START:STOP:STEP" in r.output, r.output
+
+
 def test_a_folder_of_other_files_is_not_written_into(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:

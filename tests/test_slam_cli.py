@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 
 import jsonschema
 import numpy as np
@@ -122,7 +123,42 @@ def test_bad_config_and_missing_output_are_one_line_errors(seq_dir, tmp_path):
     assert r.exit_code == 1 and "unknown key 'mapping.iterz'" in r.output
     assert not (tmp_path / "x.mcap").exists()
     r = run("slam", seq_dir)
-    assert r.exit_code == 1 and "-o OUT.mcap" in r.output
+    assert r.exit_code == 2 and "-o OUT.mcap" in r.output
+    r = run("slam", seq_dir, "-o", tmp_path / "none.mcap", "--resume")
+    assert r.exit_code == 2 and "no log" in r.output
+    cfg.write_text("preset: tiny\nseed: -1\n")
+    r = run("slam", seq_dir, "--config", cfg, "-o", tmp_path / "x.mcap")
+    assert r.exit_code == 1 and "seed must be >= 0" in r.output
+    r = run("synth", tmp_path / "huge", "--size", "9000x10")
+    assert r.exit_code == 1 and "at most 8192 pixels per side" in r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
+
+
+def test_no_output_lands_in_the_sequence_and_save_config_waits_for_the_run(
+    seq_dir, slam_log, tmp_path
+):
+    seq = tmp_path / "room"
+    shutil.copytree(seq_dir, seq)
+    before = {p: p.read_bytes() for p in seq.rglob("*") if p.is_file()}
+    for args in (
+        ("slam", seq, "--preset", "tiny", "-o", seq / "depth.txt"),
+        ("slam", seq, "--save-config", seq / "rgb.txt"),
+        ("score", slam_log, "--seq", seq, "-o", seq / "groundtruth.txt"),
+        ("merge", slam_log, slam_log, "--seq", seq, "-o", seq / "rgb" / "x.mcap"),
+    ):
+        r = run(*args, "--force")
+        assert r.exit_code == 1 and "inside the input folder" in r.output, (args, r.output)
+    assert {p: p.read_bytes() for p in seq.rglob("*") if p.is_file()} == before
+    # a config asked for beside a run is written only once the run has passed its checks
+    out, cfg = tmp_path / "o.mcap", tmp_path / "c.yaml"
+    r = run("slam", seq, "--preset", "tiny", "--frames", "20:30", "-o", out, "--save-config", cfg)
+    assert r.exit_code == 1 and "selects none" in r.output
+    r = run("slam", seq, "--preset", "tiny", "-o", out, "--save-config", out)
+    assert r.exit_code == 1 and "also an input" in r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["room"]
+    r = run("slam", seq, "--preset", "tiny", "--frames", "0:2", "-o", out, "--save-config", cfg)
+    assert r.exit_code == 0, r.output
+    assert load_config(cfg) == preset("tiny")
 
 
 def test_keyboard_interrupt_leaves_a_readable_log_of_the_frames_done(tmp_path):

@@ -335,8 +335,12 @@ class FileSequence:
         )
 
 
+MAX_SIDE = 8192
+"""Largest image width or height accepted: beyond it one frame's buffers no longer fit in memory."""
+
+
 def check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
-    """Validate a working size (W, H)."""
+    """Validate a working size (W, H): positive, at most MAX_SIDE per side."""
     if size is None:
         return None
     try:
@@ -345,6 +349,8 @@ def check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
         raise InputError(f"size must be (width, height), got {size!r}") from None
     if w <= 0 or h <= 0:
         raise InputError(f"size must be positive, got {w}x{h}")
+    if max(w, h) > MAX_SIDE:
+        raise InputError(f"size {w}x{h} is too large: at most {MAX_SIDE} pixels per side")
     return w, h
 
 

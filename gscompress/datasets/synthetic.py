@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from gscompress.camera import Intrinsics, make_transform
-from gscompress.datasets.base import Frame
+from gscompress.datasets.base import Frame, check_size
 from gscompress.datasets.tum import TUM_ENTRIES, write_tum_sequence
 from gscompress.errors import InputError, OutputError
 from gscompress.io.files import check_only_entries
@@ -470,8 +470,11 @@ class SyntheticSequence:
         if frames <= 0:
             raise InputError(f"frames must be positive, got {frames}")
         w, h = size
+        check_size(size)
         if w < 8 or h < 8:
             raise InputError(f"size must be at least 8x8, got {w}x{h}")
+        if seed < 0:
+            raise InputError(f"seed must be >= 0, got {seed}")
         if not 1 <= supersample <= 4:
             raise InputError(f"supersample must be 1 to 4, got {supersample}")
         self.supersample = int(supersample)

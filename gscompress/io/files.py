@@ -51,16 +51,19 @@ SUFFIXES = {".mcap": "an MCAP log", ".ply": "a PLY file"}
 def check_output(
     output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False, suffix: str = ""
 ) -> Path:
-    """Refuse to write over an input (also through a link), a directory, or an existing file
-    without `force`; the output's directory must exist. With `suffix` (".mcap" or ".ply", what
-    is written), a name ending in the other kind's suffix is refused: `-o map.ply` on a command
-    that writes a log is a slip that would leave an MCAP file named .ply.
+    """Refuse to write over an input (also through a link) or into an input folder (a
+    sequence), onto a directory, or over an existing file without `force`; the output's
+    directory must exist. With `suffix` (".mcap" or ".ply", what is written), a name ending in
+    the other kind's suffix is refused: `-o map.ply` on a command that writes a log is a slip
+    that would leave an MCAP file named .ply.
     """
     output = Path(output)
     for source in map(Path, inputs):
         same = output.exists() and source.exists() and output.samefile(source)
         if same or output.resolve() == source.resolve():
             raise OutputError(f"output {output} is also an input; choose another path")
+        if source.is_dir() and source.resolve() in output.resolve().parents:
+            raise OutputError(f"output {output} is inside the input folder {source}")
     named = output.suffix.lower()
     if suffix and named in SUFFIXES and named != suffix:
         raise OutputError(

@@ -42,6 +42,7 @@ from mcap.records import Message as McapMessage
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
+from zstandard import ZstdError
 
 from gscompress import __version__
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat, rotmat_to_quat
@@ -86,7 +87,13 @@ _NUMERIC_TYPES: dict[int, np.dtype] = {
 }
 _NUMERIC_CODES = {dtype: code for code, dtype in _NUMERIC_TYPES.items()}
 
-_READ_ERRORS = (McapError, DecodeError, struct.error, EOFError, ValueError, KeyError, IndexError)
+_READ_ERRORS = (
+    McapError, DecodeError, struct.error, EOFError, ValueError, KeyError, IndexError, OSError,
+    ZstdError,
+)  # fmt: skip
+"""What reading a damaged MCAP file raises (an OSError: a seek before the start)."""
+
+_MAGIC = b"\x89MCAP0\r\n"
 
 
 # ---------------------------------------------------------------------- metadata
@@ -523,6 +530,16 @@ class LogReader:
 
     def _open(self) -> None:
         size = self.path.stat().st_size
+        self._stream.seek(max(0, size - len(_MAGIC)))
+        if self._stream.read(len(_MAGIC)) != _MAGIC:
+            self._stream.seek(0)
+            if self._stream.read(len(_MAGIC)) == _MAGIC:
+                raise LogFormatError(
+                    f"{self.path}: MCAP file is truncated (no footer: cut short or still being "
+                    "written); `gsc slam --resume` continues a SLAM log, `mcap recover` saves "
+                    "other logs' messages"
+                )
+        self._stream.seek(0)
         self._reader = SeekingReader(self._stream, validate_crcs=True, record_size_limit=size)
         summary = self._reader.get_summary()
         if summary is None:
@@ -701,6 +718,8 @@ class _ReadGuard:
 
 def _describe(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, (KeyError, IndexError)):  # their text alone is a bare key or index
+        text = f"{type(exc).__name__}: {text}"
     return text[:200]
 
 

@@ -100,11 +100,15 @@ class ExperimentSettings:
         """The frame subsets of agents A and B (odd and even positions within `frames`)."""
         from gscompress.datasets.base import parse_frames
 
-        base = parse_frames(self.frames)
+        usage = f"--frames {self.frames!r}: an experiment takes all or START:STOP:STEP (from 0)"
+        try:
+            base = parse_frames(self.frames)
+        except InputError:
+            raise InputError(usage) from None
         if base.spec == "all":
             return "odd", "even"
         if base.spec in ("odd", "even") or (base.start or 0) < 0 or (base.stop or 0) < 0:
-            raise InputError("--frames for an experiment is all or START:STOP:STEP (from 0)")
+            raise InputError(usage)
         start, stop, step = base.start or 0, "" if base.stop is None else base.stop, base.step
         return f"{start + step}:{stop}:{2 * step}", f"{start}:{stop}:{2 * step}"
 
@@ -297,7 +301,18 @@ def run_experiment(
         raise InputError(f"output folder is a file: {out}")
     if out.is_dir():  # a rerun continues its own folder; nothing else is written over
         check_only_entries(out, EXPERIMENT_ENTRIES, "an experiment's", "give a new or empty folder")
-    open_sequence(seq, frames=settings.frames)  # a bad sequence fails before out_dir is made
+    if seq.resolve() == out.resolve() or seq.resolve() in out.resolve().parents:
+        raise InputError(f"output folder {out} is inside the sequence folder {seq}")
+    # a bad sequence, or a frame subset that leaves an agent no frame, fails before out_dir
+    open_sequence(seq, frames=settings.frames)
+    for agent, frames in zip("AB", settings.agent_frames(), strict=True):
+        try:
+            open_sequence(seq, frames=frames)
+        except InputError:
+            raise InputError(
+                f"--frames {settings.frames} leaves agent {agent} ({frames}) no frame of "
+                f"{seq}; an experiment needs at least two frames"
+            ) from None
     s = settings
     base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
     runner = _Runner(seq, out, s, progress, plan_size(s))

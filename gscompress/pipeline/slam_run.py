@@ -230,10 +230,11 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     meta = contents.metadata
     if not meta.config:
         raise InputError(f"{sources[0]} records no SLAM config: not a `gsc slam` log")
+    if "frames" not in meta.results and contents.finished:
+        raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
     if contents.finished and not meta.results.get("interrupted", False):
         raise InputError(
-            f"{dst} is a finished run of {meta.results.get('frames', '?')} frames; "
-            "nothing to resume"
+            f"{dst} is a finished run of {meta.results['frames']} frames; nothing to resume"
         )
     config = SlamConfig.from_dict(meta.config)
     sequence = _open(seq, sequence, config, meta.frames or "all")

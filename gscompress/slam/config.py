@@ -360,6 +360,7 @@ def check_config(config: SlamConfig) -> None:
     need(0.0 < t.lr_final_fraction <= 1.0, "tracking.lr_final_fraction must be in (0, 1]")
     need(t.iters >= 0 and m.iters >= 0 and m.first_frame_iters >= 0, "iterations must be >= 0")
     need(config.checkpoint_every >= 0, "checkpoint_every must be >= 0")
+    need(config.seed >= 0, "seed must be >= 0")
     need(
         all(v > 0 for v in (t.lr_rotation, t.lr_translation, t.gamma_color, t.gamma_depth, t.rho)),
         "tracking learning rates, gammas and rho must be positive",
