@@ -131,7 +131,7 @@ def slam(
     even a killed run resumes with --resume, redoing at most that many frames.
     """
     from gscompress.io.files import check_output
-    from gscompress.io.recover import unfinished_files
+    from gscompress.io.recover import resume_sources
     from gscompress.pipeline import slam_file
     from gscompress.slam.config import resolve_config
     from gscompress.slam.config import save_config as write_config
@@ -149,7 +149,7 @@ def slam(
             return
     if dst is None:
         raise click.UsageError("give an output log with -o OUT.mcap (or only --save-config)")
-    if resume and not dst.exists() and not unfinished_files(dst):
+    if resume and not resume_sources(dst):
         raise click.UsageError(f"--resume: there is no log {dst} nor an unfinished run of it")
 
     # what was not given stays None, so that --resume can refuse settings it would not use

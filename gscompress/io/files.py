@@ -48,6 +48,12 @@ SUFFIXES = {".mcap": "an MCAP log", ".ply": "a PLY file"}
 """The output kinds the tool writes, by file-name suffix."""
 
 
+def is_within(path: str | Path, folder: str | Path) -> bool:
+    """Whether `path` is `folder` or lies inside it (links resolved)."""
+    path, folder = Path(path).resolve(), Path(folder).resolve()
+    return path == folder or folder in path.parents
+
+
 def check_output(
     output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False, suffix: str = ""
 ) -> Path:
@@ -62,7 +68,7 @@ def check_output(
         same = output.exists() and source.exists() and output.samefile(source)
         if same or output.resolve() == source.resolve():
             raise OutputError(f"output {output} is also an input; choose another path")
-        if source.is_dir() and source.resolve() in output.resolve().parents:
+        if source.is_dir() and is_within(output, source):
             raise OutputError(f"output {output} is inside the input folder {source}")
     named = output.suffix.lower()
     if suffix and named in SUFFIXES and named != suffix:

@@ -21,6 +21,7 @@ into place only when complete. Readers treat every file as untrusted.
 from __future__ import annotations
 
 import json
+import os
 import struct
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -93,7 +94,15 @@ _READ_ERRORS = (
 )  # fmt: skip
 """What reading a damaged MCAP file raises (an OSError: a seek before the start)."""
 
-_MAGIC = b"\x89MCAP0\r\n"
+MAGIC = b"\x89MCAP0\r\n"
+"""The 8 bytes an MCAP file starts and, when closed properly, ends with."""
+
+
+def closed_properly(stream: IO[bytes]) -> bool:
+    """Whether the MCAP file open in `stream` ends with its magic (its writer closed it)."""
+    size = stream.seek(0, os.SEEK_END)
+    stream.seek(max(size - len(MAGIC), 0))
+    return stream.read() == MAGIC
 
 
 # ---------------------------------------------------------------------- metadata
@@ -530,10 +539,9 @@ class LogReader:
 
     def _open(self) -> None:
         size = self.path.stat().st_size
-        self._stream.seek(max(0, size - len(_MAGIC)))
-        if self._stream.read(len(_MAGIC)) != _MAGIC:
+        if not closed_properly(self._stream):
             self._stream.seek(0)
-            if self._stream.read(len(_MAGIC)) == _MAGIC:
+            if self._stream.read(len(MAGIC)) == MAGIC:
                 raise LogFormatError(
                     f"{self.path}: MCAP file is truncated (no footer: cut short or still being "
                     "written); `gsc slam --resume` continues a SLAM log, `mcap recover` saves "

@@ -17,12 +17,9 @@ from mcap.reader import StreamReader
 from mcap.records import Channel, Message, Metadata, Schema
 
 from gscompress.errors import LogFormatError
-from gscompress.io.mcap_log import METADATA_NAME, LogMetadata, LogReader
+from gscompress.io.mcap_log import METADATA_NAME, LogMetadata, LogReader, closed_properly
 
 Record = tuple[Schema | None, Channel, Message]
-
-MAGIC = b"\x89MCAP0\r\n"
-"""The 8 bytes an MCAP file starts and, when closed properly, ends with."""
 
 
 @dataclass
@@ -47,6 +44,13 @@ def unfinished_files(path: str | Path) -> list[Path]:
     return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
 
 
+def resume_sources(path: str | Path) -> list[Path]:
+    """What `gsc slam --resume` can continue from: the log at `path` if it is there, then the
+    unfinished files of killed writers of it, newest first."""
+    path = Path(path)
+    return ([path] if path.is_file() else []) + unfinished_files(path)
+
+
 def read_messages(path: str | Path) -> LogContents:
     """Read a finished log, or an unfinished one up to its last complete record.
 
@@ -57,8 +61,7 @@ def read_messages(path: str | Path) -> LogContents:
     if not path.is_file():
         raise LogFormatError(f"{path}: no such file")
     with open(path, "rb") as stream:
-        stream.seek(max(path.stat().st_size - len(MAGIC), 0))
-        finished = stream.read() == MAGIC  # a closed MCAP ends with its magic
+        finished = closed_properly(stream)
     if not finished:
         return _read_unfinished(path)
     with LogReader(path) as log:

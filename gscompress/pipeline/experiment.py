@@ -36,7 +36,7 @@ import numpy as np
 
 from gscompress import __version__
 from gscompress.errors import InputError
-from gscompress.io.files import check_only_entries, json_text, write_text_atomic
+from gscompress.io.files import check_only_entries, is_within, json_text, write_text_atomic
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES, strategy_scores
@@ -301,18 +301,15 @@ def run_experiment(
         raise InputError(f"output folder is a file: {out}")
     if out.is_dir():  # a rerun continues its own folder; nothing else is written over
         check_only_entries(out, EXPERIMENT_ENTRIES, "an experiment's", "give a new or empty folder")
-    if seq.resolve() == out.resolve() or seq.resolve() in out.resolve().parents:
+    if is_within(out, seq):
         raise InputError(f"output folder {out} is inside the sequence folder {seq}")
-    # a bad sequence, or a frame subset that leaves an agent no frame, fails before out_dir
-    open_sequence(seq, frames=settings.frames)
-    for agent, frames in zip("AB", settings.agent_frames(), strict=True):
-        try:
-            open_sequence(seq, frames=frames)
-        except InputError:
-            raise InputError(
-                f"--frames {settings.frames} leaves agent {agent} ({frames}) no frame of "
-                f"{seq}; an experiment needs at least two frames"
-            ) from None
+    # a bad sequence, or frames too few to give agent A (the odd positions) one, fail before
+    # out_dir is made
+    if len(open_sequence(seq, frames=settings.frames)) < 2:
+        raise InputError(
+            f"--frames {settings.frames} leaves agent A ({settings.agent_frames()[0]}) no frame "
+            f"of {seq}; an experiment needs at least two frames"
+        )
     s = settings
     base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
     runner = _Runner(seq, out, s, progress, plan_size(s))

@@ -45,7 +45,7 @@ def score_file(
     from gscompress.ops.score import score_map
     from gscompress.render import resolve_device
 
-    check_output(dst, [src, seq, *([poses] if poses is not None else [])], force, ".mcap")
+    check_output(dst, [p for p in (src, seq, poses) if p is not None], force, ".mcap")
     if not sigma_d > 0:
         raise InputError(f"--sigma-d must be positive, got {sigma_d}")
     sequence = open_sequence(seq, size=size, frames=frames)

@@ -30,7 +30,7 @@ from gscompress.io.mcap_log import (
     decode_pose,
     decode_snapshot,
 )
-from gscompress.io.recover import Record, read_messages, unfinished_files
+from gscompress.io.recover import Record, read_messages, resume_sources
 from gscompress.ops.select import check_ratio
 from gscompress.pipeline.offline import seconds_to_ns
 
@@ -222,8 +222,8 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     from gscompress.slam.system import SlamSystem
 
     dst = Path(dst)
-    leftovers = unfinished_files(dst)
-    sources = ([dst] if dst.is_file() else []) + leftovers
+    sources = resume_sources(dst)
+    leftovers = [p for p in sources if p != dst]
     if not sources:
         raise InputError(f"--resume: there is no log {dst} nor an unfinished run of it")
     contents = read_messages(sources[0])
