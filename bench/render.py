@@ -1,9 +1,14 @@
-"""Benchmark of `gscompress.render.render`: C++ (cpu) vs pure-torch backends, same scenes.
+"""Benchmark of `gscompress.render.render`: each backend against pure torch, same scenes.
 
 Prints one JSON object per case and backend on stdout:
 
-    python bench/render.py            # 160x120/10k, 320x240/50k, 640x480/200k
-    python bench/render.py --quick    # 320x240/50k only
+    python bench/render.py                  # C++ (cpu) and pure torch on the CPU
+    python bench/render.py --device cuda    # gsplat and pure torch on the GPU
+    python bench/render.py --quick          # 320x240/50k only
+
+Cases: 160x120/10k, 320x240/50k, 640x480/200k Gaussians. `speedup_vs_torch` is the ratio of
+pure torch's forward+backward time to the backend's, both measured in the same call on the same
+device.
 
 Scenes look like a SLAM map seen by its camera: float32 Gaussians spread uniformly over the
 view at 2-5 m depth, mildly anisotropic and randomly rotated, with opacities in [0.3, 0.95].
@@ -18,12 +23,14 @@ require grad (the forward of a training step); `ms_forward_contribution` is the 
 both alike; `ms_forward_backward` adds the backward of a loss over colour, depth and silhouette;
 the `*_min` fields are the fastest iteration of each.
 The machine's load average is recorded with each case: figures taken while other processes
-compete for the cores are not comparable.
+compete for the cores are not comparable. On CUDA every timed call ends with
+`torch.cuda.synchronize()`, so the times are the GPU's work, not just its launch.
 
 Memory: every case and backend runs in a fresh subprocess; `peak_rss_mb` is that process's
 `resource.getrusage(RUSAGE_SELF).ru_maxrss` at the end (whole process: Python, torch, scene,
 render), and `baseline_rss_mb` the same figure just before the first render, so the renderer's
-own peak is roughly the difference.
+own peak is roughly the difference. On CUDA `peak_cuda_mb` is `torch.cuda.max_memory_allocated`
+over the timed iterations, scene included.
 """
 
 from __future__ import annotations
@@ -47,11 +54,12 @@ from gscompress.render.projection import bin_tiles, project_gaussians
 
 CASES = [(160, 120, 10_000), (320, 240, 50_000), (640, 480, 200_000)]
 QUICK = [(320, 240, 50_000)]
-BACKENDS = ("cpu", "torch")
+BACKENDS = {"cpu": ("cpu", "torch"), "cuda": ("gsplat", "torch")}
 TARGET_OVERLAP = 25.0
 TORCH_MAX_GAUSSIANS = 50_000
 """Largest case the pure-torch backend runs on unless --torch-all: at 640x480 / 200k it was
-measured at about 20 s per forward+backward and 12.5 GB peak RSS on the 2-core machine."""
+measured at about 20 s per forward+backward and 12.5 GB peak RSS on the 2-core machine. On
+CUDA it runs every case."""
 
 
 def rss_mb() -> float:
@@ -104,29 +112,37 @@ def depth_complexity(scene: dict[str, Any]) -> float:
     return float(area.sum()) / (intr.width * intr.height)
 
 
-def timed(*fns, iters: int) -> list[tuple[float, float]]:
-    """(median, min) milliseconds of each function, calls interleaved so drift hits all alike."""
+def timed(*fns, iters: int, sync=lambda: None) -> list[tuple[float, float]]:
+    """(median, min) milliseconds of each function, calls interleaved so drift hits all alike.
+
+    `sync` runs after each call and inside its time (CUDA: wait for the queued kernels)."""
     for fn in fns * 2:
         fn()
+    sync()
     times: list[list[float]] = [[] for _ in fns]
     for _ in range(iters):
         for fn, bucket in zip(fns, times, strict=True):
             t0 = time.perf_counter()
             fn()
+            sync()
             bucket.append(time.perf_counter() - t0)
     return [(1000.0 * statistics.median(b), 1000.0 * min(b)) for b in times]
 
 
-def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict[str, Any]:
-    """Run one case with one backend in this process and return its JSON record."""
+def worker(
+    width: int, height: int, n: int, backend: str, iters: int, device: str
+) -> dict[str, Any]:
+    """Run one case with one backend on `device` in this process and return its JSON record."""
     scene = make_scene(width, height, n)
     intr = scene["intrinsics"]
+    cuda = device == "cuda"
+    sync = torch.cuda.synchronize if cuda else lambda: None
     if backend == "cpu":
         from gscompress.render.cpu import load_extension
 
         if load_extension() is None:
             return {"backend": backend, "skipped": "the C++ extension could not be built"}
-    params = {k: scene[k].clone().requires_grad_(True) for k in
+    params = {k: scene[k].to(device).requires_grad_(True) for k in
               ("means", "quats", "scales", "opacities", "colors", "T_cam_world")}  # fmt: skip
     baseline = rss_mb()
 
@@ -151,6 +167,7 @@ def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict[st
         intersections = len(bin_tiles(proj, width, height).ids)
     record = {
         "backend": backend,
+        "device": torch.cuda.get_device_name() if cuda else "cpu",
         "width": width,
         "height": height,
         "gaussians": n,
@@ -163,8 +180,10 @@ def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict[st
         "iters": iters,
         "load_average_1min": round(os.getloadavg()[0], 2),
     }
-    fwd, fwd_contribution = timed(forward, lambda: forward(True), iters=iters)
-    (fwd_bwd,) = timed(forward_backward, iters=iters)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    fwd, fwd_contribution = timed(forward, lambda: forward(True), iters=iters, sync=sync)
+    (fwd_bwd,) = timed(forward_backward, iters=iters, sync=sync)
     record["ms_forward"] = round(fwd[0], 2)
     record["ms_forward_contribution"] = round(fwd_contribution[0], 2)
     record["ms_forward_backward"] = round(fwd_bwd[0], 2)
@@ -175,6 +194,8 @@ def worker(width: int, height: int, n: int, backend: str, iters: int) -> dict[st
     record["ms_forward_backward_min"] = round(fwd_bwd[1], 2)
     record["peak_rss_mb"] = round(rss_mb(), 1)
     record["baseline_rss_mb"] = round(baseline, 1)
+    if cuda:
+        record["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated() / 2**20, 1)
     return record
 
 
@@ -185,27 +206,36 @@ def main() -> None:
     parser.add_argument(
         "--torch-all", action="store_true", help="also run pure torch on the largest case"
     )
-    parser.add_argument("--backends", default=",".join(BACKENDS), help="comma-separated")
+    parser.add_argument(
+        "--device", choices=sorted(BACKENDS), default="cpu",
+        help="cpu: C++ and pure torch; cuda: gsplat and pure torch on the GPU",
+    )  # fmt: skip
+    parser.add_argument("--backends", help="comma-separated (default: the device's pair)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         w, h, n, backend = args.worker.split(",")
-        print(json.dumps(worker(int(w), int(h), int(n), backend, args.iters)))
+        print(json.dumps(worker(int(w), int(h), int(n), backend, args.iters, args.device)))
         return
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: torch sees no CUDA device")
+    backends = args.backends.split(",") if args.backends else BACKENDS[args.device]
     for width, height, n in QUICK if args.quick else CASES:
         records: dict[str, dict[str, Any]] = {}
-        for backend in args.backends.split(","):
-            if backend == "torch" and n > TORCH_MAX_GAUSSIANS and not args.torch_all:
+        for backend in backends:
+            too_big = args.device == "cpu" and n > TORCH_MAX_GAUSSIANS and not args.torch_all
+            if backend == "torch" and too_big:
                 records[backend] = {
                     "skipped": "too slow and too big for a routine run (about 20 s per "
                     "iteration and 12.5 GB peak RSS when measured); --torch-all runs it"
                 }
             else:
                 # Pure torch is 10-100x slower: fewer iterations keep the run short.
-                iters = args.iters if backend != "torch" else max(3, args.iters // 3)
+                slow = backend == "torch" and args.device == "cpu"
+                iters = max(3, args.iters // 3) if slow else args.iters
                 proc = subprocess.run(
                     [sys.executable, __file__, "--worker", f"{width},{height},{n},{backend}",
-                     "--iters", str(iters)],
+                     "--iters", str(iters), "--device", args.device],
                     capture_output=True, text=True, check=False,
                 )  # fmt: skip
                 if proc.returncode != 0:

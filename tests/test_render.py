@@ -7,7 +7,9 @@ import `make_scene` and `dense_render` from here.
 
 from __future__ import annotations
 
+import importlib.machinery
 import sys
+import types
 
 import pytest
 import torch
@@ -411,6 +413,23 @@ def test_gsplat_backend_without_gsplat_raises(monkeypatch):
         run(make_scene(10), backend="gsplat")
 
 
+def test_gsplat_without_its_cuda_kernels_is_a_clear_error(monkeypatch):
+    # gsplat sets _C to None when it finds no CUDA toolkit to build its kernels with
+    backend = types.ModuleType("gsplat.cuda._backend")
+    backend._C = None  # type: ignore[attr-defined]
+    for name in ("gsplat", "gsplat.cuda"):
+        module = types.ModuleType(name)
+        module.__spec__ = importlib.machinery.ModuleSpec(name, None)
+        module.rasterization = None  # type: ignore[attr-defined]
+        monkeypatch.setitem(sys.modules, name, module)
+    monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", backend)
+    for asked in ("gsplat", "auto"):  # auto on CUDA picks an installed gsplat
+        with pytest.raises(MissingDependencyError, match="CUDA kernels could not be loaded"):
+            resolve_backend(asked, torch.device("cuda"))  # as before a timed loop
+    with pytest.raises(MissingDependencyError, match="CUDA kernels could not be loaded"):
+        run(make_scene(10), backend="gsplat")
+
+
 def test_auto_picks_a_cpu_backend_for_cpu_tensors():
     picked = resolve_backend("auto", torch.device("cpu"))
     assert picked in ("cpu", "torch")
@@ -474,6 +493,9 @@ def test_gsplat_equals_torch_backend_values_and_gradients(seed):
     ours = run(scene, backend="torch", want_contribution=True, background=bg)
     theirs = run(scene, backend="gsplat", want_contribution=True, background=bg)
     assert theirs.backend == "gsplat"
+    # the same Gaussians count as visible (PWAS weights), those across the image edge included
+    assert theirs.visible.sum() > 100 and not theirs.visible.all()
+    assert torch.equal(theirs.radii, ours.radii)
     for key in ("color", "depth", "silhouette", "depth_normalized", "contribution"):
         assert_rel_close(getattr(theirs, key), getattr(ours, key), 1e-5, key)
     weights = {k: v.cuda() for k, v in loss_weights(torch.float32).items()}

@@ -25,9 +25,9 @@ def fake_render(color, depth, silhouette):
         depth=depth,
         depth_normalized=depth / silhouette.clamp_min(1e-10),
         silhouette=silhouette,
-        radii=torch.zeros(0, dtype=torch.int32),
         contribution=None,
         backend="torch",
+        radii_of=lambda: torch.zeros(0, dtype=torch.int32),
     )
 
 

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -87,45 +86,48 @@ def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> No
         slam_file(seq_dir, tmp_path / "none.mcap", resume=True)
 
 
-def _gsc(*args: object) -> list[str]:
-    return [sys.executable, "-m", "gscompress_cli", *map(str, args)]
+SIGNAL_AFTER = """
+import os, sys
+from gscompress.slam.system import SlamSystem
+from gscompress_cli.main import cli
+
+signum, after = int(sys.argv[1]), int(sys.argv[2])
+process, done = SlamSystem.process, []
+
+def process_then_signal(self, frame):
+    result = process(self, frame)
+    done.append(frame)
+    if len(done) == after:  # inside the frame, before it is logged
+        os.kill(os.getpid(), signum)
+    return result
+
+SlamSystem.process = process_then_signal
+cli(sys.argv[3:], prog_name="gsc")
+"""
 
 
-def _wait_for(predicate, proc: subprocess.Popen, timeout: float = 120.0) -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert proc.poll() is None, "the run ended before it could be stopped"
-        assert time.monotonic() < deadline, "the run made no progress"
-        time.sleep(0.1)
+def _gsc_signalled(signum: int, after: int, *args: object) -> list[str]:
+    """`gsc ARGS` in a process that sends itself `signum` while mapping frame `after` - 1:
+    the same moment on a slow CPU and a fast GPU, where polling the log from outside raced
+    a run that finished first."""
+    return [sys.executable, "-c", SIGNAL_AFTER, str(int(signum)), str(after), *map(str, args)]
 
 
 def _checkpoints(path: Path) -> int:
-    files = unfinished_files(path)
-    if not files:
-        return 0
-    try:
-        contents = read_messages(files[0])
-    except Exception:
-        return 0
-    return sum(1 for _, channel, _ in contents.messages if channel.topic == TOPIC_GAUSSIANS)
+    return sum(1 for _, channel, _ in read_messages(path).messages
+               if channel.topic == TOPIC_GAUSSIANS)  # fmt: skip
 
 
 def test_killed_run_resumes_to_the_same_number_of_frames(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "killed.mcap"
-    proc = subprocess.Popen(
-        _gsc("slam", seq_dir, "-o", out, "--config", config_file),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        _wait_for(lambda: _checkpoints(out) >= 1, proc)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+    cmd = _gsc_signalled(signal.SIGKILL, 4, "slam", seq_dir, "-o", out, "--config", config_file)
+    proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert not out.exists()  # nothing half-written under the final name
     (leftover,) = unfinished_files(out)
+    assert _checkpoints(leftover) >= 1  # frames 0-2 were flushed, checkpoint_every 2
     done_before = len(read_messages(leftover).messages)
     assert done_before > 0
 
@@ -142,20 +144,15 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
 
 def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: Path) -> None:
     out = tmp_path / "term.mcap"
-    proc = subprocess.Popen(
-        _gsc("slam", seq_dir, "-o", out, "--config", config_file),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
-    _wait_for(lambda: _checkpoints(out) >= 1, proc)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    assert b"--resume" in err
+    cmd = _gsc_signalled(signal.SIGTERM, 4, "slam", seq_dir, "-o", out, "--config", config_file)
+    proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
+    assert proc.returncode == 130, proc.stderr
+    assert b"--resume" in proc.stderr
     with LogReader(out) as log:
         assert log.metadata.results["interrupted"] is True
         done = log.metadata.results["frames"]
-    assert 2 <= done <= FRAMES and frames_in(out) == list(range(done))
+    # the signal came while frame 3 was being mapped: the run stopped after that frame
+    assert done == 4 and frames_in(out) == [0, 1, 2, 3]
 
 
 def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import torch
 
@@ -30,18 +32,25 @@ class RenderOutput:
         depth: [H, W] sum_i w_i z_i (camera z, not normalised).
         depth_normalized: [H, W] depth / max(silhouette, 1e-10): the expected depth.
         silhouette: [H, W] sum_i w_i = 1 - T_final (accumulated opacity).
-        radii: [N] int32 screen radius in pixels; 0 for a Gaussian that is not rendered.
         contribution: [N] sum over pixels of alpha_i T_i (no gradient), or None when not asked.
         backend: the backend that produced this output ("torch", "cpu" or "gsplat").
+        radii_of: computes `radii` when first read (gsplat projects again for them, so that
+            renders nobody asks about visibility, tracking and mapping ones, do not pay).
     """
 
     color: torch.Tensor
     depth: torch.Tensor
     depth_normalized: torch.Tensor
     silhouette: torch.Tensor
-    radii: torch.Tensor
     contribution: torch.Tensor | None
     backend: str
+    radii_of: Callable[[], torch.Tensor] = field(repr=False, compare=False)
+
+    @cached_property
+    def radii(self) -> torch.Tensor:
+        """[N] int32 3-sigma screen radius in pixels, the same rule on every backend; 0 for a
+        Gaussian that touches no tile of the image."""
+        return self.radii_of()
 
     @property
     def visible(self) -> torch.Tensor:
@@ -125,7 +134,13 @@ def render(
             want_contribution,
         )  # fmt: skip
     return finish_output(
-        image[..., :3], image[..., 3], T_final, proj.radii, contribution, background, backend
+        image[..., :3],
+        image[..., 3],
+        T_final,
+        lambda: proj.radii,
+        contribution,
+        background,
+        backend,
     )
 
 
@@ -133,7 +148,7 @@ def finish_output(
     color: torch.Tensor,
     depth: torch.Tensor,
     T_final: torch.Tensor,
-    radii: torch.Tensor,
+    radii_of: Callable[[], torch.Tensor],
     contribution: torch.Tensor | None,
     background: torch.Tensor | None,
     backend: str,
@@ -147,9 +162,9 @@ def finish_output(
         depth=depth,
         depth_normalized=depth / torch.clamp(silhouette, min=DEPTH_EPS),
         silhouette=silhouette,
-        radii=radii,
         contribution=contribution,
         backend=backend,
+        radii_of=radii_of,
     )
 
 
@@ -165,17 +180,21 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
     "auto" becomes gsplat for CUDA tensors when installed, else cpu on the CPU, else torch;
     "cpu" builds the C++ kernels on first use (about 30 s, once per machine) and becomes torch
-    when they cannot be built. Calling this before a timed loop keeps the build out of it.
+    when they cannot be built; "gsplat" loads gsplat's CUDA kernels, which gsplat builds on
+    first use when it has no prebuilt ones (minutes). Calling this before a timed loop keeps
+    either build out of it.
 
     Raises:
         InputError: an unknown backend, or "cpu" for tensors elsewhere.
+        MissingDependencyError: gsplat's CUDA kernels cannot be loaded or built.
     """
     if backend not in BACKENDS:
         raise InputError(f"unknown render backend {backend!r}; choose one of {BACKENDS}")
     if backend == "auto":
         if device.type == "cuda":
-            return "gsplat" if gsplat_available() else "torch"
-        backend = "cpu" if device.type == "cpu" else "torch"
+            backend = "gsplat" if gsplat_available() else "torch"
+        else:
+            backend = "cpu" if device.type == "cpu" else "torch"
     if backend == "cpu":
         if device.type != "cpu":
             raise InputError(f"backend='cpu' needs CPU tensors, got {device}")
@@ -183,6 +202,10 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
         if load_extension() is None:
             return "torch"
+    if backend == "gsplat":
+        from gscompress.render.gsplat_backend import load_gsplat
+
+        load_gsplat()
     return backend
 
 

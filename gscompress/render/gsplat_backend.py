@@ -13,19 +13,48 @@ o > 0.99 that gives alpha = 0.99 G instead of min(0.99, o G): slightly fainter e
 Other known differences from the torch/cpu backends, all at the level of single pixels or
 rounding: gsplat stops compositing when T would become <= 1e-4 (we stop at < 1e-4), and recent
 gsplat versions size a Gaussian's tile footprint from its opacity (up to 3.33 sigma) instead of
-3 sigma. With gsplat 1.5.3 on an H100, values agree with the pure-torch backend to 1e-5 and
-gradients to 1e-4 relative (tests/test_render.py, opacities up to 0.35, where both footprints
-hold every pixel with alpha >= 1/255; with opacities up to 0.99, measured within 1e-4 and 1e-5).
+3 sigma. That footprint decides only which pixels gsplat composites: the returned `radii`, and
+so which Gaussians count as visible (the frames in a PWAS weight), come from gscompress's own
+projection, run when they are first read, so a map scores alike on every backend. With gsplat
+1.5.3 on an H100, values agree with the pure-torch backend to 1e-5 and gradients to 1e-4
+relative (tests/test_render.py, opacities up to 0.35, where both footprints hold every pixel
+with alpha >= 1/255; with opacities up to 0.99, measured within 1e-4 and 1e-5).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
 
 import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, MissingDependencyError
 from gscompress.render.core import RenderOutput, finish_output
+from gscompress.render.projection import project_gaussians
 from gscompress.render.torch_backend import ALPHA_MAX
+
+
+def load_gsplat() -> Callable[..., Any]:
+    """gsplat's `rasterization`, with its CUDA kernels loaded (gsplat builds them on first use
+    if it has no prebuilt ones).
+
+    Raises:
+        MissingDependencyError: gsplat is not installed or its kernels cannot be loaded.
+    """
+    try:
+        from gsplat import rasterization
+        from gsplat.cuda._backend import _C
+    except ImportError as exc:
+        raise MissingDependencyError(
+            "backend='gsplat' needs the gsplat package: pip install gscompress[gpu]"
+        ) from exc
+    if _C is None:
+        raise MissingDependencyError(
+            "gsplat is installed but its CUDA kernels could not be loaded or built (see "
+            "gsplat's messages above); --backend cpu or torch renders without them"
+        )
+    return rasterization
 
 
 def render_gsplat(
@@ -51,12 +80,7 @@ def render_gsplat(
         MissingDependencyError: gsplat is not installed.
         InputError: the tensors are not on a CUDA device.
     """
-    try:
-        from gsplat import rasterization
-    except ImportError as exc:
-        raise MissingDependencyError(
-            "backend='gsplat' needs the gsplat package: pip install gscompress[gpu]"
-        ) from exc
+    rasterization = load_gsplat()
     if means.device.type != "cuda":
         raise InputError(f"backend='gsplat' needs CUDA tensors, got {means.device}")
 
@@ -99,10 +123,15 @@ def render_gsplat(
     T_final = 1.0 - alphas[0, ..., 0].to(dtype)  # [H, W]
     if not grad_wanted:
         rendered, T_final = rendered.detach(), T_final.detach()
-    radii = meta["radii"][0]  # [N] or [N, 2] (per-axis radii in recent gsplat)
-    if radii.dim() == 2:
-        radii = radii.max(dim=-1).values
+    del meta  # gsplat's radii are opacity-sized; the other backends' 3-sigma ones are used
+    inputs = [t.detach() for t in (means, quats, scales, T_cam_world)]
+
+    def radii_of() -> torch.Tensor:
+        with torch.no_grad():
+            means, quats, scales, T_cam_world = inputs
+            return project_gaussians(means, quats, scales, T_cam_world, intrinsics, near).radii
+
     return finish_output(
-        rendered[..., :3], rendered[..., -1], T_final, radii.to(torch.int32), contribution,
+        rendered[..., :3], rendered[..., -1], T_final, radii_of, contribution,
         background, "gsplat",
     )  # fmt: skip
