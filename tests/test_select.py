@@ -95,3 +95,18 @@ def test_pwas_without_scores_says_how_to_get_them():
         strategy_scores(g, "alpha-t")
     with pytest.raises(InputError, match="unknown strategy"):
         strategy_scores(g, "size")
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, True])
+def test_a_bad_seed_is_an_input_error_not_numpys(seed):
+    # library callers reach here without the CLI's IntRange check
+    with pytest.raises(InputError, match="seed must be an integer >= 0"):
+        select_top(random_map(10), 0.5, "random", seed=seed)
+
+
+def test_refinement_checks_its_seed_before_anything_else():
+    from gscompress.ops.merge import refine
+    from gscompress.slam.config import resolve_config
+
+    with pytest.raises(InputError, match="seed must be an integer >= 0"):
+        refine(random_map(10), [], None, resolve_config("tiny"), 0, seed=-3)  # type: ignore[arg-type]

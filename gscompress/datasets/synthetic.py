@@ -35,6 +35,7 @@ from gscompress.datasets.base import Frame, check_size
 from gscompress.datasets.tum import TUM_ENTRIES, write_tum_sequence
 from gscompress.errors import InputError, OutputError
 from gscompress.io.files import check_only_entries
+from gscompress.seeds import check_seed
 
 FPS = 30.0
 LOOP_SECONDS = 20.0
@@ -473,8 +474,7 @@ class SyntheticSequence:
         check_size(size)
         if w < 8 or h < 8:
             raise InputError(f"size must be at least 8x8, got {w}x{h}")
-        if seed < 0:
-            raise InputError(f"seed must be >= 0, got {seed}")
+        check_seed(seed)
         if not 1 <= supersample <= 4:
             raise InputError(f"supersample must be 1 to 4, got {supersample}")
         self.supersample = int(supersample)

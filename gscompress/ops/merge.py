@@ -21,6 +21,7 @@ import numpy as np
 from gscompress.camera import Intrinsics, quat_to_rotmat, rotmat_to_quat
 from gscompress.errors import MapError
 from gscompress.gaussians import GaussianMap
+from gscompress.seeds import seeded_rng
 
 MAX_ID = np.iinfo(np.uint32).max
 
@@ -115,11 +116,13 @@ def refine(
 
     Raises:
         MapError: a map with higher SH bands (they would be dropped), or no views.
+        InputError: a negative seed.
     """
     import torch
 
     from gscompress.slam.mapper import Mapper
 
+    rng = seeded_rng(seed)
     if iters <= 0 or len(gaussians) == 0:
         return gaussians, {"iters": 0}
     if gaussians.sh_degree > 0:
@@ -132,7 +135,6 @@ def refine(
     config = config.with_overrides(**{"prune.opacity_every": 0, "isotropic": gaussians.isotropic})
     mapper = Mapper(config, intrinsics, torch.device(device))
     mapper.add(gaussians)
-    rng = np.random.default_rng(seed)
     losses = []
     for _ in range(iters):
         view = views[int(rng.integers(len(views)))]

@@ -21,6 +21,7 @@ import numpy as np
 
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
+from gscompress.seeds import seeded_rng
 
 
 class Strategy(str, Enum):
@@ -59,7 +60,7 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
     """[N] float64 scores for `strategy`; higher is more important.
 
     Raises:
-        InputError: unknown strategy.
+        InputError: unknown strategy, or a negative seed for the random one.
         BudgetError: the map has no scores for a score-based strategy.
     """
     try:
@@ -83,7 +84,7 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
         return gaussians.alpha_t_sum.astype(np.float64)
     if strategy is Strategy.OPACITY:
         return gaussians.opacity_logits.astype(np.float64)
-    return np.random.default_rng(seed).random(len(gaussians))
+    return seeded_rng(seed).random(len(gaussians))
 
 
 def top_k(scores: np.ndarray, ids: np.ndarray, k: int) -> np.ndarray:
