@@ -407,27 +407,56 @@ def test_bad_inputs_raise_input_error():
         run(scene, near=0.0)
 
 
-def test_gsplat_backend_without_gsplat_raises(monkeypatch):
+@pytest.fixture()
+def gsplat_reloaded():
+    """Forget the loaded-or-failed outcome of gsplat's kernels before and after the test."""
+    from gscompress.render.gsplat_backend import gsplat_kernels
+
+    gsplat_kernels.cache_clear()
+    yield
+    gsplat_kernels.cache_clear()
+
+
+def test_gsplat_backend_without_gsplat_raises(monkeypatch, gsplat_reloaded):
     monkeypatch.setitem(sys.modules, "gsplat", None)  # makes `import gsplat` fail
     with pytest.raises(MissingDependencyError, match=r"pip install gscompress\[gpu\]"):
+        resolve_backend("gsplat", torch.device("cuda"))
+    assert resolve_backend("auto", torch.device("cuda")) == "torch"
+    with pytest.raises(InputError, match="needs CUDA tensors"):  # the device is checked first
         run(make_scene(10), backend="gsplat")
 
 
-def test_gsplat_without_its_cuda_kernels_is_a_clear_error(monkeypatch):
-    # gsplat sets _C to None when it finds no CUDA toolkit to build its kernels with
-    backend = types.ModuleType("gsplat.cuda._backend")
-    backend._C = None  # type: ignore[attr-defined]
+@pytest.mark.parametrize("failure", ["no CUDA toolkit", "build fails"])
+def test_gsplat_without_its_cuda_kernels(monkeypatch, caplog, gsplat_reloaded, failure):
     for name in ("gsplat", "gsplat.cuda"):
         module = types.ModuleType(name)
         module.__spec__ = importlib.machinery.ModuleSpec(name, None)
         module.rasterization = None  # type: ignore[attr-defined]
         monkeypatch.setitem(sys.modules, name, module)
+    backend = types.ModuleType("gsplat.cuda._backend")
+    attempts: list[str] = []
+    if failure == "no CUDA toolkit":  # gsplat then sets _C to None
+        backend._C = None  # type: ignore[attr-defined]
+        expected = "no CUDA toolkit"
+    else:  # torch's extension build raises while gsplat.cuda._backend is imported
+
+        def build(name: str) -> object:
+            attempts.append(name)
+            raise RuntimeError("Error building extension 'gsplat_cuda'")
+
+        backend.__getattr__ = build  # type: ignore[attr-defined]
+        expected = "RuntimeError: Error building extension"
     monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", backend)
-    for asked in ("gsplat", "auto"):  # auto on CUDA picks an installed gsplat
-        with pytest.raises(MissingDependencyError, match="CUDA kernels could not be loaded"):
-            resolve_backend(asked, torch.device("cuda"))  # as before a timed loop
-    with pytest.raises(MissingDependencyError, match="CUDA kernels could not be loaded"):
-        run(make_scene(10), backend="gsplat")
+    cuda = torch.device("cuda")
+    for _ in range(2):
+        with pytest.raises(
+            MissingDependencyError, match=f"could not be loaded or built.*{expected}"
+        ):
+            resolve_backend("gsplat", cuda)  # as before a timed loop
+        assert resolve_backend("auto", cuda) == "torch"  # as the cpu backend falls back
+    # one attempt and one warning, not one per render
+    assert len(attempts) == (failure == "build fails")
+    assert sum("could not be loaded" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_auto_picks_a_cpu_backend_for_cpu_tensors():

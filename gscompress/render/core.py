@@ -133,14 +133,9 @@ def render(
             proj.means2d, proj.conics, opacities, features, bins, width, height,
             want_contribution,
         )  # fmt: skip
+    radii = proj.radii  # the closure keeps only these, not the projection's autograd graph
     return finish_output(
-        image[..., :3],
-        image[..., 3],
-        T_final,
-        lambda: proj.radii,
-        contribution,
-        background,
-        backend,
+        image[..., :3], image[..., 3], T_final, lambda: radii, contribution, background, backend
     )
 
 
@@ -178,18 +173,19 @@ def gsplat_available() -> bool:
 def resolve_backend(backend: str, device: torch.device) -> str:
     """The backend `render` uses for `backend` and tensors on `device`, ready to run.
 
-    "auto" becomes gsplat for CUDA tensors when installed, else cpu on the CPU, else torch;
-    "cpu" builds the C++ kernels on first use (about 30 s, once per machine) and becomes torch
-    when they cannot be built; "gsplat" loads gsplat's CUDA kernels, which gsplat builds on
-    first use when it has no prebuilt ones (minutes). Calling this before a timed loop keeps
-    either build out of it.
+    "auto" becomes gsplat for CUDA tensors when installed, else cpu on the CPU, else torch.
+    "cpu" builds the C++ kernels on first use (about 30 s, once per machine) and "gsplat" loads
+    gsplat's CUDA kernels, which gsplat builds on first use when it has no prebuilt ones
+    (minutes); calling this before a timed loop keeps either build out of it. When they cannot
+    be built, "cpu" and an "auto" that picked gsplat become torch (with a warning).
 
     Raises:
-        InputError: an unknown backend, or "cpu" for tensors elsewhere.
-        MissingDependencyError: gsplat's CUDA kernels cannot be loaded or built.
+        InputError: an unknown backend, or "cpu" / "gsplat" for tensors on the other device.
+        MissingDependencyError: "gsplat" asked for, and it or its kernels cannot be loaded.
     """
     if backend not in BACKENDS:
         raise InputError(f"unknown render backend {backend!r}; choose one of {BACKENDS}")
+    asked = backend
     if backend == "auto":
         if device.type == "cuda":
             backend = "gsplat" if gsplat_available() else "torch"
@@ -203,8 +199,12 @@ def resolve_backend(backend: str, device: torch.device) -> str:
         if load_extension() is None:
             return "torch"
     if backend == "gsplat":
-        from gscompress.render.gsplat_backend import load_gsplat
+        if device.type != "cuda":
+            raise InputError(f"backend='gsplat' needs CUDA tensors, got {device}")
+        from gscompress.render.gsplat_backend import gsplat_kernels, load_gsplat
 
+        if asked == "auto" and gsplat_kernels()[0] is None:
+            return "torch"
         load_gsplat()
     return backend
 

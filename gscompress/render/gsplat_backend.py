@@ -23,6 +23,8 @@ with alpha >= 1/255; with opacities up to 0.99, measured within 1e-4 and 1e-5).
 
 from __future__ import annotations
 
+import functools
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -34,26 +36,46 @@ from gscompress.render.core import RenderOutput, finish_output
 from gscompress.render.projection import project_gaussians
 from gscompress.render.torch_backend import ALPHA_MAX
 
+logger = logging.getLogger(__name__)
+
+
+@functools.cache
+def gsplat_kernels() -> tuple[Callable[..., Any] | None, str | None]:
+    """(gsplat's `rasterization`, None) once its CUDA kernels are loaded, else (None, why).
+
+    gsplat loads or builds its kernels when `gsplat.cuda._backend` is imported (minutes on
+    first use without prebuilt ones). The outcome is kept, so a failed build is neither retried
+    nor reported again by later renders.
+    """
+    try:
+        from gsplat import rasterization
+    except ImportError:
+        return None, "backend='gsplat' needs the gsplat package: pip install gscompress[gpu]"
+    try:
+        from gsplat.cuda._backend import _C
+    except Exception as exc:  # a failed build raises the compiler's error
+        reason = f" ({type(exc).__name__}: {(str(exc).splitlines() or [''])[0]})"
+    else:
+        if _C is not None:
+            return rasterization, None
+        reason = " (gsplat found no CUDA toolkit to build them with)"
+    why = (
+        f"gsplat is installed but its CUDA kernels could not be loaded or built{reason}; "
+        "--backend torch renders on CUDA without them"
+    )
+    logger.warning(why)
+    return None, why
+
 
 def load_gsplat() -> Callable[..., Any]:
-    """gsplat's `rasterization`, with its CUDA kernels loaded (gsplat builds them on first use
-    if it has no prebuilt ones).
+    """gsplat's `rasterization`, its CUDA kernels loaded.
 
     Raises:
         MissingDependencyError: gsplat is not installed or its kernels cannot be loaded.
     """
-    try:
-        from gsplat import rasterization
-        from gsplat.cuda._backend import _C
-    except ImportError as exc:
-        raise MissingDependencyError(
-            "backend='gsplat' needs the gsplat package: pip install gscompress[gpu]"
-        ) from exc
-    if _C is None:
-        raise MissingDependencyError(
-            "gsplat is installed but its CUDA kernels could not be loaded or built (see "
-            "gsplat's messages above); --backend cpu or torch renders without them"
-        )
+    rasterization, why = gsplat_kernels()
+    if rasterization is None:
+        raise MissingDependencyError(why)
     return rasterization
 
 
@@ -77,12 +99,12 @@ def render_gsplat(
     sum_i alpha_i T_i f_i, so its gradient w.r.t. f_i is sum over pixels of alpha_i T_i.
 
     Raises:
-        MissingDependencyError: gsplat is not installed.
         InputError: the tensors are not on a CUDA device.
+        MissingDependencyError: gsplat or its CUDA kernels cannot be loaded.
     """
-    rasterization = load_gsplat()
     if means.device.type != "cuda":
         raise InputError(f"backend='gsplat' needs CUDA tensors, got {means.device}")
+    rasterization = load_gsplat()
 
     dtype, device = means.dtype, means.device
     n = means.shape[0]
@@ -124,7 +146,8 @@ def render_gsplat(
     if not grad_wanted:
         rendered, T_final = rendered.detach(), T_final.detach()
     del meta  # gsplat's radii are opacity-sized; the other backends' 3-sigma ones are used
-    inputs = [t.detach() for t in (means, quats, scales, T_cam_world)]
+    # copies: an optimizer step may change the parameters in place before radii are read
+    inputs = [t.detach().clone() for t in (means, quats, scales, T_cam_world)]
 
     def radii_of() -> torch.Tensor:
         with torch.no_grad():
