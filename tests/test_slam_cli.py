@@ -207,7 +207,7 @@ def test_render_kernels_are_ready_before_the_first_timed_frame(monkeypatch, tmp_
         return process(self, frame)
 
     monkeypatch.setattr(cpu_backend, "load_extension", recorded(cpu_backend.load_extension))
-    monkeypatch.setattr(gsplat_backend, "load_gsplat", recorded(gsplat_backend.load_gsplat))
+    monkeypatch.setattr(gsplat_backend, "gsplat_kernels", recorded(gsplat_backend.gsplat_kernels))
     monkeypatch.setattr(SlamSystem, "process", processing)
     seconds: list[float] = []
 

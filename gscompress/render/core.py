@@ -10,7 +10,7 @@ from functools import cached_property
 import torch
 
 from gscompress.camera import Intrinsics
-from gscompress.errors import InputError
+from gscompress.errors import InputError, MissingDependencyError
 from gscompress.render.projection import bin_tiles, project_gaussians
 from gscompress.render.torch_backend import composite_torch
 
@@ -201,11 +201,13 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     if backend == "gsplat":
         if device.type != "cuda":
             raise InputError(f"backend='gsplat' needs CUDA tensors, got {device}")
-        from gscompress.render.gsplat_backend import gsplat_kernels, load_gsplat
+        from gscompress.render.gsplat_backend import gsplat_kernels
 
-        if asked == "auto" and gsplat_kernels()[0] is None:
-            return "torch"
-        load_gsplat()
+        rasterization, why = gsplat_kernels()
+        if rasterization is None:
+            if asked == "auto":
+                return "torch"
+            raise MissingDependencyError(why)
     return backend
 
 

@@ -129,7 +129,7 @@ def render_gsplat(
         if want_contribution:
             ones = torch.ones(n, 1, dtype=torch.float32, device=device, requires_grad=True)
             features = torch.cat([features, ones], dim=1)  # [N, 4]
-        rendered, alphas, meta = rasterization(
+        rendered, alphas, _meta = rasterization(  # _meta's radii are opacity-sized: unused
             means.float(), quats.float(), scales.float(),
             opacities.float().clamp(max=ALPHA_MAX), features,
             T_cam_world.float()[None], K[None], width, height,
@@ -145,7 +145,6 @@ def render_gsplat(
     T_final = 1.0 - alphas[0, ..., 0].to(dtype)  # [H, W]
     if not grad_wanted:
         rendered, T_final = rendered.detach(), T_final.detach()
-    del meta  # gsplat's radii are opacity-sized; the other backends' 3-sigma ones are used
     # copies: an optimizer step may change the parameters in place before radii are read
     inputs = [t.detach().clone() for t in (means, quats, scales, T_cam_world)]
 
