@@ -11,9 +11,10 @@
 //   per-Gaussian arrays (those cache misses dominated an earlier version).
 // - Tiles of 16x16 pixels are handed to threads with OpenMP dynamic scheduling. Within a tile
 //   the loop runs Gaussian by Gaussian (front to back in the forward, back to front in the
-//   backward); for each Gaussian only the tile rows where its alpha can reach 1/255 are
-//   visited, and each row is one branch-free SIMD computation over its 16 pixels, with the
-//   per-pixel state (T, accumulated features, ...) in tile-local vectors.
+//   backward); for each Gaussian only the tile rows, and the register-wide segments of a row
+//   (8 pixels of float on AVX2, 16 on AVX-512), where its alpha can reach 1/255 are visited.
+//   Each segment is one branch-free SIMD computation, with the per-pixel state (T,
+//   accumulated features, ...) in tile-local vectors.
 // - The forward stores per pixel the final transmittance and the number of list entries it
 //   consumed, so the backward is a single back-to-front pass that recovers T by division.
 // - Per-Gaussian sums (contribution, gradients) are reduced over the pixels of a tile into the
@@ -35,7 +36,6 @@
 namespace {
 
 constexpr int kTile = 16;
-constexpr int kPix = kTile * kTile;
 constexpr int kCh = 4;     // composited features: r, g, b, depth
 
 template <typename scalar_t>
@@ -45,41 +45,57 @@ struct Rules {
   static constexpr scalar_t t_min = scalar_t(1e-4);
 };
 
-// One tile row of 16 pixels as a GCC vector: the compiler maps it onto whatever SIMD the build
-// targets (one AVX-512 register of floats, two AVX2 registers, four SSE registers, ...).
+// The build target's SIMD register width in bytes. Vectors are exactly one register wide: GCC
+// splits wider generic vectors into pieces, but turns their comparisons and selects into scalar
+// code (an earlier version with 16-float rows ran mostly scalar on AVX2).
+#if defined(__AVX512F__)
+constexpr int kVecBytes = 64;
+#elif defined(__AVX__)
+constexpr int kVecBytes = 32;
+#else
+constexpr int kVecBytes = 16;
+#endif
+
+// One register of lanes (8 floats on AVX2); a tile row of 16 pixels is kSegs of them.
 template <typename S>
 struct Simd;
 template <>
 struct Simd<float> {
-  typedef float V __attribute__((vector_size(kTile * sizeof(float))));
-  typedef int32_t I __attribute__((vector_size(kTile * sizeof(int32_t))));
+  typedef float V __attribute__((vector_size(kVecBytes)));
+  typedef int32_t I __attribute__((vector_size(kVecBytes)));
   typedef int32_t Int;
 };
 template <>
 struct Simd<double> {
-  typedef double V __attribute__((vector_size(kTile * sizeof(double))));
-  typedef int64_t I __attribute__((vector_size(kTile * sizeof(int64_t))));
+  typedef double V __attribute__((vector_size(kVecBytes)));
+  typedef int64_t I __attribute__((vector_size(kVecBytes)));
   typedef int64_t Int;
 };
+template <typename S>
+constexpr int kLanes = kVecBytes / int(sizeof(S));
+template <typename S>
+constexpr int kSegs = kTile / kLanes<S>;
+static_assert(kTile % kLanes<double> == 0 && kTile % kLanes<float> == 0, "tile rows split evenly");
 
 template <typename V, typename S>
 inline V splat(S s) {
   return V{} + s;
 }
 
-// Sum of the 16 lanes, as a tree (a sequential loop over lanes is a long dependency chain).
+// Sum of a vector's lanes, as a tree (a sequential loop over lanes is a long dependency chain).
 template <typename V>
 inline auto hsum(const V& v) {
   using S = std::remove_cv_t<std::remove_reference_t<decltype(v[0])>>;
-  alignas(sizeof(V)) S lanes[kTile];
+  constexpr int n = int(sizeof(V) / sizeof(S));
+  alignas(sizeof(V)) S lanes[n];
   std::memcpy(lanes, &v, sizeof(V));
-  for (int half = kTile / 2; half >= 1; half /= 2) {
+  for (int half = n / 2; half >= 1; half /= 2) {
     for (int i = 0; i < half; ++i) lanes[i] += lanes[i + half];
   }
   return lanes[0];
 }
 
-// exp(x) for x <= 0, accurate to about 1 ulp, on a whole row (libm's exp does not vectorise).
+// exp(x) for x <= 0, accurate to about 1 ulp, on a whole vector (libm's exp does not vectorise).
 // x is clamped at -30: there alpha = o exp(x) is far below 1/255, so the clamp never changes a
 // composited value, and it keeps every product in masked-out lanes away from denormals, which
 // are very slow to compute with.
@@ -211,6 +227,30 @@ void reduce_entries(const scalar_t* slots, const int64_t* ids, int64_t n_entries
   }
 }
 
+// The columns of one entry within a tile: the row segments [v0, v1) that hold its columns
+// [x0, x1) (tile-local), and per segment which lanes lie in them, their x offset from the
+// centre and a dx^2 (shared by every row the entry visits).
+template <typename scalar_t>
+struct EntryColumns {
+  using V = typename Simd<scalar_t>::V;
+  using I = typename Simd<scalar_t>::I;
+  static constexpr int L = kLanes<scalar_t>;
+  int v0, v1;
+  I in_x[kSegs<scalar_t>];
+  V dx[kSegs<scalar_t>], a_dx_dx[kSegs<scalar_t>];
+
+  EntryColumns(const V& lane, int tile_x, int x0, int x1, scalar_t mx, scalar_t a)
+      : v0(x0 / L), v1((x1 + L - 1) / L) {
+    for (int sg = v0; sg < v1; ++sg) {
+      const V xs = lane + scalar_t(tile_x + sg * L);
+      in_x[sg] = (xs > scalar_t(tile_x + x0) - scalar_t(0.5)) &
+                 (xs < scalar_t(tile_x + x1) - scalar_t(0.5));
+      dx[sg] = xs - mx;
+      a_dx_dx[sg] = a * dx[sg] * dx[sg];
+    }
+  }
+};
+
 template <typename scalar_t>
 void forward_impl(const scalar_t* packed, const int64_t* offsets, int width, int height,
                   int tiles_x, int tiles_y, scalar_t* out_feats, scalar_t* out_T,
@@ -219,28 +259,31 @@ void forward_impl(const scalar_t* packed, const int64_t* offsets, int width, int
   using V = typename Simd<scalar_t>::V;
   using I = typename Simd<scalar_t>::I;
   using int_t = typename Simd<scalar_t>::Int;
+  constexpr int L = kLanes<scalar_t>, NS = kSegs<scalar_t>;
   const int n_tiles = tiles_x * tiles_y;
 
 #pragma omp parallel num_threads(n_threads)
   {
-    // Per-pixel state, one vector per tile row.
-    V T[kTile];
-    V acc[kCh][kTile];
-    I alive[kTile];  // all ones while the pixel is still compositing
-    I last[kTile];   // list entries consumed (index of the last composited one + 1)
+    // Per-pixel state, one vector per segment of a tile row (index ly * NS + segment).
+    V T[kTile * NS];
+    V acc[kCh][kTile * NS];
+    I alive[kTile * NS];  // all ones while the pixel is still compositing
+    I last[kTile * NS];   // list entries consumed (index of the last composited one + 1)
     V lane;
-    for (int lx = 0; lx < kTile; ++lx) lane[lx] = scalar_t(lx);
+    for (int lx = 0; lx < L; ++lx) lane[lx] = scalar_t(lx);
 
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < n_tiles; ++t) {
       const int tile_x = (t % tiles_x) * kTile, tile_y = (t / tiles_x) * kTile;
       const int tw = std::min(kTile, width - tile_x), th = std::min(kTile, height - tile_y);
-      const V xs = lane + scalar_t(tile_x);
       for (int ly = 0; ly < kTile; ++ly) {
-        T[ly] = splat<V>(scalar_t(1));
-        for (int ch = 0; ch < kCh; ++ch) acc[ch][ly] = V{};
-        alive[ly] = (lane < scalar_t(tw)) & splat<I>(int_t(ly < th ? -1 : 0));
-        last[ly] = I{};
+        for (int sg = 0; sg < NS; ++sg) {
+          const int v = ly * NS + sg;
+          T[v] = splat<V>(scalar_t(1));
+          for (int ch = 0; ch < kCh; ++ch) acc[ch][v] = V{};
+          alive[v] = (lane < scalar_t(tw - sg * L)) & splat<I>(int_t(ly < th ? -1 : 0));
+          last[v] = I{};
+        }
       }
       int n_active = tw * th;
       const int64_t begin = offsets[t], end = offsets[t + 1];
@@ -251,31 +294,32 @@ void forward_impl(const scalar_t* packed, const int64_t* offsets, int width, int
         int x0, x1, y0, y1;
         if (!entry_rect(e, tile_x, tile_y, tw, th, x0, x1, y0, y1)) continue;
         const scalar_t mx = e[kMx], my = e[kMy], a = e[kA], b = e[kB], c = e[kC], o = e[kO];
+        const EntryColumns<scalar_t> col(lane, tile_x, x0, x1, mx, a);
         const I k1 = splat<I>(int_t(s - begin + 1));
-        const I in_x = (xs > scalar_t(tile_x + x0) - scalar_t(0.5)) &
-                       (xs < scalar_t(tile_x + x1) - scalar_t(0.5));
-        const V dx = xs - mx;
-        const V a_dx_dx = a * dx * dx;
         V lane_w{};
         I lane_stop{};
         for (int ly = y0; ly < y1; ++ly) {
           const scalar_t dy = scalar_t(tile_y + ly) - my;
-          // Same operation order as the torch oracle, so both round alike.
-          const V power = scalar_t(-0.5) * (a_dx_dx + c * dy * dy) - b * dx * dy;
-          const V oG = o * vexp(power);
-          const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
-          const V Tp = T[ly];
-          const V T_next = Tp * (scalar_t(1) - alpha);
-          const I hit = in_x & alive[ly] & (alpha >= R::alpha_min);
-          const I stop = hit & (T_next < R::t_min);
-          const I use = hit & ~stop;
-          const V w = use ? alpha * Tp : V{};
-          for (int ch = 0; ch < kCh; ++ch) acc[ch][ly] += w * e[kF0 + ch];
-          T[ly] = use ? T_next : Tp;
-          last[ly] = use ? k1 : last[ly];
-          alive[ly] &= ~stop;
-          lane_w += w;
-          lane_stop -= stop;  // stop is -1 where a pixel stops
+          for (int sg = col.v0; sg < col.v1; ++sg) {
+            const int v = ly * NS + sg;
+            // Same operation order as the torch oracle, so both round alike.
+            const V dx = col.dx[sg];
+            const V power = scalar_t(-0.5) * (col.a_dx_dx[sg] + c * dy * dy) - b * dx * dy;
+            const V oG = o * vexp(power);
+            const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
+            const V Tp = T[v];
+            const V T_next = Tp * (scalar_t(1) - alpha);
+            const I hit = col.in_x[sg] & alive[v] & (alpha >= R::alpha_min);
+            const I stop = hit & (T_next < R::t_min);
+            const I use = hit & ~stop;
+            const V w = use ? alpha * Tp : V{};
+            for (int ch = 0; ch < kCh; ++ch) acc[ch][v] += w * e[kF0 + ch];
+            T[v] = use ? T_next : Tp;
+            last[v] = use ? k1 : last[v];
+            alive[v] &= ~stop;
+            lane_w += w;
+            lane_stop -= stop;  // stop is -1 where a pixel stops
+          }
         }
         n_active -= int(hsum(lane_stop));
         if (entry_weight) entry_weight[s] = hsum(lane_w);
@@ -283,10 +327,11 @@ void forward_impl(const scalar_t* packed, const int64_t* offsets, int width, int
 
       for (int ly = 0; ly < th; ++ly) {
         for (int lx = 0; lx < tw; ++lx) {
+          const int v = ly * NS + lx / L, l = lx % L;
           const int64_t q = int64_t(tile_y + ly) * width + (tile_x + lx);
-          for (int ch = 0; ch < kCh; ++ch) out_feats[kCh * q + ch] = acc[ch][ly][lx];
-          out_T[q] = T[ly][lx];
-          out_last[q] = int32_t(last[ly][lx]);
+          for (int ch = 0; ch < kCh; ++ch) out_feats[kCh * q + ch] = acc[ch][v][l];
+          out_T[q] = T[v][l];
+          out_last[q] = int32_t(last[v][l]);
         }
       }
     }
@@ -305,36 +350,39 @@ void backward_impl(const scalar_t* packed, const int64_t* offsets, int width, in
   using V = typename Simd<scalar_t>::V;
   using I = typename Simd<scalar_t>::I;
   using int_t = typename Simd<scalar_t>::Int;
+  constexpr int L = kLanes<scalar_t>, NS = kSegs<scalar_t>;
   const int n_tiles = tiles_x * tiles_y;
 
 #pragma omp parallel num_threads(n_threads)
   {
-    // Per-pixel state, one vector per tile row.
-    V T[kTile];        // transmittance after the current Gaussian
-    V gT_end[kTile];   // dL/dT_final * T_final
-    V gF[kCh][kTile];  // dL/d(composited features)
-    V S[kCh][kTile];   // sum over the Gaussians behind of w_j f_j
-    I last[kTile];     // list entries consumed by the pixel in the forward
+    // Per-pixel state, one vector per segment of a tile row (index ly * NS + segment).
+    V T[kTile * NS];        // transmittance after the current Gaussian
+    V gT_end[kTile * NS];   // dL/dT_final * T_final
+    V gF[kCh][kTile * NS];  // dL/d(composited features)
+    V S[kCh][kTile * NS];   // sum over the Gaussians behind of w_j f_j
+    I last[kTile * NS];     // list entries consumed by the pixel in the forward
     V lane;
-    for (int lx = 0; lx < kTile; ++lx) lane[lx] = scalar_t(lx);
+    for (int lx = 0; lx < L; ++lx) lane[lx] = scalar_t(lx);
 
 #pragma omp for schedule(dynamic, 1)
     for (int t = 0; t < n_tiles; ++t) {
       const int tile_x = (t % tiles_x) * kTile, tile_y = (t / tiles_x) * kTile;
       const int tw = std::min(kTile, width - tile_x), th = std::min(kTile, height - tile_y);
-      const V xs = lane + scalar_t(tile_x);
       int32_t k_max = 0;
-      for (int ly = 0; ly < kTile; ++ly) {
-        T[ly] = splat<V>(scalar_t(1));
-        gT_end[ly] = V{};
-        last[ly] = I{};
-        for (int ch = 0; ch < kCh; ++ch) gF[ch][ly] = S[ch][ly] = V{};
-        for (int lx = 0; lx < tw && ly < th; ++lx) {
+      for (int v = 0; v < kTile * NS; ++v) {
+        T[v] = splat<V>(scalar_t(1));
+        gT_end[v] = V{};
+        last[v] = I{};
+        for (int ch = 0; ch < kCh; ++ch) gF[ch][v] = S[ch][v] = V{};
+      }
+      for (int ly = 0; ly < th; ++ly) {
+        for (int lx = 0; lx < tw; ++lx) {
+          const int v = ly * NS + lx / L, l = lx % L;
           const int64_t q = int64_t(tile_y + ly) * width + (tile_x + lx);
-          T[ly][lx] = T_final[q];
-          gT_end[ly][lx] = grad_T[q] * T_final[q];
-          for (int ch = 0; ch < kCh; ++ch) gF[ch][ly][lx] = grad_feats[kCh * q + ch];
-          last[ly][lx] = last_in[q];
+          T[v][l] = T_final[q];
+          gT_end[v][l] = grad_T[q] * T_final[q];
+          for (int ch = 0; ch < kCh; ++ch) gF[ch][v][l] = grad_feats[kCh * q + ch];
+          last[v][l] = last_in[q];
           k_max = std::max(k_max, last_in[q]);
         }
       }
@@ -346,45 +394,45 @@ void backward_impl(const scalar_t* packed, const int64_t* offsets, int width, in
         int x0, x1, y0, y1;
         if (!entry_rect(e, tile_x, tile_y, tw, th, x0, x1, y0, y1)) continue;
         const scalar_t mx = e[kMx], my = e[kMy], a = e[kA], b = e[kB], c = e[kC], o = e[kO];
+        const EntryColumns<scalar_t> col(lane, tile_x, x0, x1, mx, a);
         const I k = splat<I>(int_t(s - begin));
-        const I in_x = (xs > scalar_t(tile_x + x0) - scalar_t(0.5)) &
-                       (xs < scalar_t(tile_x + x1) - scalar_t(0.5));
-        const V dx = xs - mx;
-        const V a_dx_dx = a * dx * dx;
-        const V a_dx = a * dx, b_dx = b * dx;
         // Per-lane partial gradients, summed over the lanes once per entry.
         V d_mx{}, d_my{}, d_a{}, d_b{}, d_c{}, d_o{};
         V d_f[kCh] = {};
         for (int ly = y0; ly < y1; ++ly) {
           const scalar_t dy = scalar_t(tile_y + ly) - my;
-          const V power = scalar_t(-0.5) * (a_dx_dx + c * dy * dy) - b * dx * dy;
-          const V G = vexp(power);
-          const V oG = o * G;
-          const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
-          const I hit = in_x & (k < last[ly]) & (alpha >= R::alpha_min);
-          const V one_minus = scalar_t(1) - alpha;
-          const V T_before = T[ly] / one_minus;
-          const V w = hit ? alpha * T_before : V{};
-          // dL/dalpha: this Gaussian's own term, minus what it hides behind it, minus its
-          // share of the final transmittance.
-          V own{}, behind = gT_end[ly];
-          for (int ch = 0; ch < kCh; ++ch) {
-            own += gF[ch][ly] * e[kF0 + ch];
-            behind += gF[ch][ly] * S[ch][ly];
-            d_f[ch] += w * gF[ch][ly];
-            S[ch][ly] += w * e[kF0 + ch];
+          for (int sg = col.v0; sg < col.v1; ++sg) {
+            const int v = ly * NS + sg;
+            const V dx = col.dx[sg];
+            const V power = scalar_t(-0.5) * (col.a_dx_dx[sg] + c * dy * dy) - b * dx * dy;
+            const V G = vexp(power);
+            const V oG = o * G;
+            const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
+            const I hit = col.in_x[sg] & (k < last[v]) & (alpha >= R::alpha_min);
+            const V one_minus = scalar_t(1) - alpha;
+            const V T_before = T[v] / one_minus;
+            const V w = hit ? alpha * T_before : V{};
+            // dL/dalpha: this Gaussian's own term, minus what it hides behind it, minus its
+            // share of the final transmittance.
+            V own{}, behind = gT_end[v];
+            for (int ch = 0; ch < kCh; ++ch) {
+              own += gF[ch][v] * e[kF0 + ch];
+              behind += gF[ch][v] * S[ch][v];
+              d_f[ch] += w * gF[ch][v];
+              S[ch][v] += w * e[kF0 + ch];
+            }
+            T[v] = hit ? T_before : T[v];
+            // The clamp at 0.99 passes no gradient once it bites.
+            const I pass = hit & (oG <= R::alpha_max);
+            const V d_alpha = pass ? T_before * own - behind / one_minus : V{};
+            d_o += d_alpha * G;
+            const V d_pow = d_alpha * alpha;
+            d_a += scalar_t(-0.5) * d_pow * dx * dx;
+            d_b -= d_pow * dx * dy;
+            d_c += scalar_t(-0.5) * d_pow * dy * dy;
+            d_mx += d_pow * (a * dx + b * dy);
+            d_my += d_pow * (b * dx + c * dy);
           }
-          T[ly] = hit ? T_before : T[ly];
-          // The clamp at 0.99 passes no gradient once it bites.
-          const I pass = hit & (oG <= R::alpha_max);
-          const V d_alpha = pass ? T_before * own - behind / one_minus : V{};
-          d_o += d_alpha * G;
-          const V d_pow = d_alpha * alpha;
-          d_a += scalar_t(-0.5) * d_pow * dx * dx;
-          d_b -= d_pow * dx * dy;
-          d_c += scalar_t(-0.5) * d_pow * dy * dy;
-          d_mx += d_pow * (a_dx + b * dy);
-          d_my += d_pow * (b_dx + c * dy);
         }
         scalar_t* dst = entry_grads + s * kGradSlots;
         dst[0] = hsum(d_mx);
