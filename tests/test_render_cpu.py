@@ -1,4 +1,5 @@
-"""The C++ compositing kernels against the pure-torch oracle: values, gradients, contribution."""
+"""The C++ kernels (projection, compositing) against the pure-torch oracle: values, gradients,
+contribution."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import pytest
 import torch
 from test_render import (
     ARGS,
+    INTR,
     _pose_function,
     assert_rel_close,
     loss_weights,
@@ -92,8 +94,64 @@ def test_results_do_not_depend_on_thread_count():
         torch.set_num_threads(before)
     assert torch.equal(one.color, two.color)
     assert torch.equal(one.contribution, two.contribution)
-    for key in ("opacities", "colors"):  # direct kernel outputs, before any torch reduction
+    # direct kernel outputs, before any torch reduction (the pose's sum is the projection's)
+    for key in ("opacities", "colors", "means", "quats", "scales", "T_cam_world"):
         assert torch.equal(g_one[key], g_two[key]), key
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpu_projection_equals_torch(extension, dtype):
+    """The C++ projection alone against `project_gaussians`, on Gaussians behind the camera,
+    nearer than `near`, far outside the view (the Jacobian's clamp bites) and degenerate ones:
+    the same values bit for bit (same operations in the same order) and the same gradients of
+    every input, the camera pose included."""
+    from gscompress.render.cpu import project_cpu
+    from gscompress.render.projection import project_gaussians
+
+    scene = make_scene(400, seed=11, dtype=dtype)
+    scene["means"][:40] *= 6.0  # well beyond the clamp limits of x/z, y/z
+    scene["scales"][40:50, 1:] = 0.0  # flat: a positive definite 2D covariance only by eps2d
+    names = ("means", "quats", "scales", "T_cam_world")
+    g = torch.Generator().manual_seed(12)
+    results = []
+    for project in (project_gaussians, lambda *a: project_cpu(extension, *a)):
+        inputs = [scene[k].detach().clone().requires_grad_(True) for k in names]
+        proj = project(*inputs, INTR, 0.1)
+        g.manual_seed(12)
+        loss = sum(
+            (x * torch.randn(x.shape, generator=g, dtype=torch.float64).to(dtype)).sum()
+            for x in (proj.means2d, proj.conics, proj.depths)
+        )
+        results.append((proj, torch.autograd.grad(loss, inputs)))
+    (ref, g_ref), (ours, g_ours) = results
+    assert (ref.radii == 0).sum() > 40 and (ref.radii > 0).sum() > 100
+    assert torch.equal(ours.radii, ref.radii)
+    for key in ("means2d", "conics", "depths"):
+        assert torch.equal(getattr(ours, key), getattr(ref, key)), key
+    for key, a, b in zip(names, g_ours, g_ref, strict=True):
+        assert b.abs().max() > 0, key
+        assert_rel_close(a, b, TOL[dtype], f"grad {key}")
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_cpu_tile_bins_equal_torch(extension, dtype):
+    """The C++ binning gives `bin_tiles`'s lists exactly, depth ties (by index) included."""
+    from gscompress.camera import Intrinsics
+    from gscompress.render.cpu import bin_tiles_cpu
+    from gscompress.render.projection import bin_tiles, project_gaussians
+
+    scene = make_scene(2000, seed=13, dtype=dtype, scale=0.5)
+    intr = Intrinsics(fx=70.0, fy=68.0, cx=49.5, cy=37.5, width=100, height=75)  # partial tiles
+    means = scene["means"].clone()
+    means[100:200] = means[:100]  # exact duplicates: equal depths in the same tiles
+    proj = project_gaussians(
+        means, scene["quats"], scene["scales"], scene["T_cam_world"], intr, 0.01
+    )
+    ref = bin_tiles(proj, intr.width, intr.height)
+    ours = bin_tiles_cpu(extension, proj, intr.width, intr.height)
+    assert (ref.tiles_x, ref.tiles_y) == (ours.tiles_x, ours.tiles_y) == (7, 5)
+    assert len(ref.ids) > 2000
+    assert torch.equal(ours.offsets, ref.offsets) and torch.equal(ours.ids, ref.ids)
 
 
 def test_gradcheck_camera_pose_cpu():

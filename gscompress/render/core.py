@@ -118,8 +118,14 @@ def render(
         ext = load_extension()
 
     width, height = intrinsics.width, intrinsics.height
-    proj = project_gaussians(means, quats, scales, T_cam_world, intrinsics, near)
-    bins = bin_tiles(proj, width, height)
+    if ext is not None:
+        from gscompress.render.cpu import bin_tiles_cpu, project_cpu
+
+        proj = project_cpu(ext, means, quats, scales, T_cam_world, intrinsics, near)
+        bins = bin_tiles_cpu(ext, proj, width, height)
+    else:
+        proj = project_gaussians(means, quats, scales, T_cam_world, intrinsics, near)
+        bins = bin_tiles(proj, width, height)
     features = torch.cat([colors, proj.depths[:, None]], dim=1)  # [N, 4] r g b z
     if ext is not None:
         from gscompress.render.cpu import composite_cpu

@@ -1,4 +1,5 @@
-"""C++/OpenMP compositing kernels (forward and backward) for the cpu backend.
+"""C++/OpenMP kernels of the cpu backend: EWA projection and tile compositing, each with its
+backward, and tile binning.
 
 The extension is compiled on first use with `torch.utils.cpp_extension.load` into a cache
 directory keyed on the source, the flags, torch, Python and (for the -march=native build on
@@ -25,11 +26,12 @@ from typing import Any
 
 import torch
 
-from gscompress.render.projection import TileBins
+from gscompress.camera import Intrinsics
+from gscompress.render.projection import Projection, TileBins, tile_grid
 
 logger = logging.getLogger(__name__)
 
-_SOURCE = Path(__file__).with_name("composite.cpp")
+_SOURCES = tuple(Path(__file__).with_name(n) for n in ("composite.cpp", "project.cpp"))
 # -ffp-contract=off keeps the forward, the backward and the torch oracle rounding alike.
 _CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off"]
 _LDFLAGS = ["-fopenmp"]
@@ -106,7 +108,8 @@ def load_extension() -> ModuleType | None:
         return None
     cflags, cpu = _build_flags()
     key = hashlib.sha256()
-    key.update(_SOURCE.read_bytes())
+    for source in _SOURCES:
+        key.update(source.read_bytes())
     key.update(" ".join(cflags + _LDFLAGS).encode())
     key.update(f"{torch.__version__}|{sys.version}|{platform.machine()}|{compiler}".encode())
     key.update(cpu.encode())
@@ -122,7 +125,7 @@ def load_extension() -> ModuleType | None:
         with _build_lock(build_dir):
             return cpp_extension.load(
                 name=name,
-                sources=[str(_SOURCE)],
+                sources=[str(source) for source in _SOURCES],
                 extra_cflags=cflags,
                 extra_ldflags=_LDFLAGS,
                 build_directory=str(build_dir),
@@ -196,3 +199,65 @@ def composite_cpu(
         features.contiguous(), bins, width, height, want_contribution,
     )  # fmt: skip
     return image, T_final, (contribution if want_contribution else None)
+
+
+class _Project(torch.autograd.Function):
+    """Autograd wrapper of the C++ projection: the backward recomputes it per Gaussian."""
+
+    @staticmethod
+    def forward(
+        ctx: Any,
+        ext: ModuleType,
+        camera: tuple[float, float, float, float, int, int, float],
+        means: torch.Tensor,
+        quats: torch.Tensor,
+        scales: torch.Tensor,
+        T_cam_world: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        means2d, conics, depths, radii = ext.project_forward(
+            means, quats, scales, T_cam_world, *camera
+        )
+        ctx.ext, ctx.camera = ext, camera
+        ctx.save_for_backward(means, quats, scales, T_cam_world)
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(
+        ctx: Any, g_means2d: torch.Tensor, g_conics: torch.Tensor, g_depths: torch.Tensor, _: Any
+    ) -> tuple[Any, ...]:
+        grads = ctx.ext.project_backward(
+            *ctx.saved_tensors, *ctx.camera,
+            g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous(),
+        )  # fmt: skip
+        return None, None, *grads
+
+
+def project_cpu(
+    ext: ModuleType,
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    T_cam_world: torch.Tensor,
+    intrinsics: Intrinsics,
+    near: float,
+) -> Projection:
+    """C++ counterpart of `gscompress.render.projection.project_gaussians` (same contract)."""
+    i = intrinsics
+    camera = (i.fx, i.fy, i.cx, i.cy, i.width, i.height, near)
+    means2d, conics, depths, radii = _Project.apply(
+        ext, camera, means.contiguous(), quats.contiguous(), scales.contiguous(),
+        T_cam_world.contiguous(),
+    )  # fmt: skip
+    return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
+
+
+def bin_tiles_cpu(ext: ModuleType, projection: Projection, width: int, height: int) -> TileBins:
+    """C++ counterpart of `gscompress.render.projection.bin_tiles` (the same lists)."""
+    tiles_x, tiles_y = tile_grid(width, height)
+    offsets, ids = ext.bin_tiles(
+        projection.means2d.detach().contiguous(), projection.radii.contiguous(),
+        projection.depths.detach().contiguous(), tiles_x, tiles_y,
+    )  # fmt: skip
+    return TileBins(tiles_x=tiles_x, tiles_y=tiles_y, offsets=offsets, ids=ids)

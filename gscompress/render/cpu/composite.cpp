@@ -542,8 +542,24 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor packed, torch::Tenso
 
 }  // namespace
 
+// project.cpp
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats,
+                                           torch::Tensor scales, torch::Tensor T, double fx,
+                                           double fy, double cx, double cy, int64_t width,
+                                           int64_t height, double near);
+std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats,
+                                            torch::Tensor scales, torch::Tensor T, double fx,
+                                            double fy, double cx, double cy, int64_t width,
+                                            int64_t height, double near, torch::Tensor g_means2d,
+                                            torch::Tensor g_conics, torch::Tensor g_depths);
+std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii,
+                                     torch::Tensor depths, int64_t tiles_x, int64_t tiles_y);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "gscompress tile compositing kernels (forward and backward)";
+  m.doc() = "gscompress cpu render kernels: EWA projection, tile binning, compositing";
   m.def("composite_forward", &composite_forward, "front-to-back compositing");
   m.def("composite_backward", &composite_backward, "back-to-front gradients");
+  m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians");
+  m.def("project_backward", &project_backward, "gradients of the projection");
+  m.def("bin_tiles", &bin_tiles, "tile lists, front to back");
 }
