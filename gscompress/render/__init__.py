@@ -19,9 +19,10 @@ The rules every backend follows (projection and binning: `gscompress.render.proj
   silhouette = sum_i w_i (computed as 1 - T_final), depth_normalized = depth / silhouette.
 - contribution_i = sum over pixels of w_i.
 
-The torch and cpu backends share the projection and binning code and agree to rounding
-(tested: 1e-10 relative in float64, 1e-5 in float32, values and gradients); the cpu backend's
-results do not depend on the number of threads. gsplat differs in corner cases (see
+The cpu backend's C++ projection and binning repeat the torch code's operations in the same
+order (the same values and lists, bit for bit), and its compositing agrees with torch's to
+rounding (tested: 1e-10 relative in float64, 1e-5 in float32, values and gradients); its results
+do not depend on the number of threads. gsplat differs in corner cases (see
 `gscompress.render.gsplat_backend`).
 """
 

@@ -1,4 +1,5 @@
-"""EWA projection of 3D Gaussians and 16x16 tile binning, shared by the torch and cpu backends.
+"""EWA projection of 3D Gaussians and 16x16 tile binning: the torch backend's, and the oracle of
+the cpu backend's C++ versions (`gscompress/render/cpu/project.cpp`).
 
 Conventions (the rasterizer's spec; `gscompress.render` documents the compositing half):
 
