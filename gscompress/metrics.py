@@ -236,10 +236,13 @@ def ssim_maps(
     win = _gaussian_window()
     c1 = (SSIM_K[0] * data_range) ** 2
     c2 = (SSIM_K[1] * data_range) ** 2
-    mu_x, mu_y = _blur(x, win), _blur(y, win)
-    sxx = _blur(x * x, win) - mu_x**2
-    syy = _blur(y * y, win) - mu_y**2
-    sxy = _blur(x * y, win) - mu_x * mu_y
+    # One blur of the five maps stacked as channels: a fifth of the convolution calls, whose
+    # fixed cost dominates at SLAM image sizes.
+    stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [B, 5C, H, W]
+    mu_x, mu_y, b_xx, b_yy, b_xy = _blur(stacked, win).split(x.shape[1], dim=1)
+    sxx = b_xx - mu_x**2
+    syy = b_yy - mu_y**2
+    sxy = b_xy - mu_x * mu_y
     cs = (2 * sxy + c2) / (sxx + syy + c2)
     lum = (2 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1)
     return lum * cs, cs
