@@ -12,9 +12,8 @@
 // sort by depth per tile).
 //
 // The backward recomputes each Gaussian's forward quantities instead of saving them. The
-// gradient of the camera transform is a sum over all Gaussians: each Gaussian writes its own
-// terms, and they are added in index order at the end, so the result does not depend on the
-// thread count.
+// gradient of the camera transform is a sum over all Gaussians, taken in double over fixed
+// chunks of them and then over the chunks in order, so it does not depend on the thread count.
 
 #include <torch/extension.h>
 
@@ -154,119 +153,127 @@ void forward_impl(const S* means, const S* quats, const S* scales, const S* T, c
     S r = std::ceil(S(3) * std::sqrt(std::max(lam, S(0))));
     if (!(o.ok && std::isfinite(r))) r = 0;
     r = std::min(r, S(1 << 30));
-    int32_t ri = int32_t(r);
-    int64_t x0, x1, y0, y1;
-    tile_range(mu, S(ri), tiles_x, x0, x1);
-    tile_range(mv, S(ri), tiles_y, y0, y1);
+    const int32_t ri = int32_t(r);
+    int64_t x0 = 0, x1 = 0, y0 = 0, y1 = 0;
+    if (ri > 0) {  // (a culled centre may be NaN, which must not reach an integer conversion)
+      tile_range(mu, S(ri), tiles_x, x0, x1);
+      tile_range(mv, S(ri), tiles_y, y0, y1);
+    }
     radii[g] = (x1 > x0 && y1 > y0) ? ri : 0;
   }
 }
 
-// Per-Gaussian slots of the camera transform's gradient: W (9, row-major) then t (3).
+// The camera transform's gradient, W (9, row-major) then t (3), is summed in double over fixed
+// chunks of Gaussians (in parallel), and the chunks' sums are added in order by the caller.
 constexpr int kPoseSlots = 12;
+constexpr int64_t kChunk = 1024;
 
 template <typename S>
 void backward_impl(const S* means, const S* quats, const S* scales, const S* T, const Camera& cam,
                    int64_t n, const S* g_means2d, const S* g_conics, const S* g_depths,
-                   S* d_means, S* d_quats, S* d_scales, S* pose_slots, int n_threads) {
+                   S* d_means, S* d_quats, S* d_scales, double* chunk_sums, int n_threads) {
   S W[3][3], t[3];
   for (int i = 0; i < 3; ++i) {
     for (int k = 0; k < 3; ++k) W[i][k] = T[4 * i + k];
     t[i] = T[4 * i + 3];
   }
+  const int64_t n_chunks = (n + kChunk - 1) / kChunk;
 #pragma omp parallel for schedule(static) num_threads(n_threads)
-  for (int64_t g = 0; g < n; ++g) {
-    const S* m = means + 3 * g;
-    Proj<S> o;
-    project_one(m, quats + 4 * g, scales + 3 * g, W, t, cam, o);
-    const S fx = S(cam.fx), fy = S(cam.fy);
-    // conics = (syy, -sxy, sxx) / ds, ds = det where ok (else the constant 1)
-    const S ga = g_conics[3 * g], gb = g_conics[3 * g + 1], gc = g_conics[3 * g + 2];
-    const S inv = S(1) / o.ds;
-    S d_sxx = gc * inv, d_syy = ga * inv, d_sxy = -gb * inv;
-    if (o.ok) {
-      const S d_det = -(ga * o.syy - gb * o.sxy + gc * o.sxx) * inv * inv;
-      d_sxx += d_det * o.syy;
-      d_syy += d_det * o.sxx;
-      d_sxy -= S(2) * d_det * o.sxy;
-    }
-    // s_xx = |ru|^2 + eps, s_xy = ru . rv, s_yy = |rv|^2 + eps
-    S d_ru[3], d_rv[3];
-    for (int c = 0; c < 3; ++c) {
-      d_ru[c] = S(2) * o.ru[c] * d_sxx + o.rv[c] * d_sxy;
-      d_rv[c] = S(2) * o.rv[c] * d_syy + o.ru[c] * d_sxy;
-    }
-    // ru = Fu (WM0 - u WM2), rv = Fv (WM1 - v WM2)
-    S d_WM[3][3] = {};
-    S d_Fu = 0, d_Fv = 0, d_u = 0, d_v = 0;
-    for (int c = 0; c < 3; ++c) {
-      d_Fu += d_ru[c] * (o.WM[0][c] - o.u * o.WM[2][c]);
-      d_Fv += d_rv[c] * (o.WM[1][c] - o.v * o.WM[2][c]);
-      d_WM[0][c] += d_ru[c] * o.Fu;
-      d_WM[1][c] += d_rv[c] * o.Fv;
-      d_WM[2][c] -= d_ru[c] * o.Fu * o.u + d_rv[c] * o.Fv * o.v;
-      d_u -= d_ru[c] * o.Fu * o.WM[2][c];
-      d_v -= d_rv[c] * o.Fv * o.WM[2][c];
-    }
-    // Fu = fx / zs, Fv = fy / zs; u = clamp(x / zs), v = clamp(y / zs); means2d = f p / zs + c
-    const S d_iz = fx * d_Fu + fy * d_Fv;
-    const S gu = g_means2d[2 * g], gv = g_means2d[2 * g + 1];
-    const S izs2 = S(1) / (o.zs * o.zs);
-    S d_p[3] = {0, 0, 0};
-    S d_zs = -d_iz * izs2;
-    if (o.u_free) {
-      d_p[0] += d_u / o.zs;
-      d_zs -= d_u * o.p[0] * izs2;
-    }
-    if (o.v_free) {
-      d_p[1] += d_v / o.zs;
-      d_zs -= d_v * o.p[1] * izs2;
-    }
-    d_p[0] += gu * fx / o.zs;
-    d_p[1] += gv * fy / o.zs;
-    d_zs -= (gu * fx * o.p[0] + gv * fy * o.p[1]) * izs2;
-    d_p[2] = g_depths[g] + (o.in_front ? d_zs : S(0));
-    // WM[i] = sum_k W[i][k] M[k]; M[k][c] = R[k][c] s[c]
-    S* dW = pose_slots + kPoseSlots * g;
-    S d_M[3][3];
-    for (int k = 0; k < 3; ++k) {
+  for (int64_t chunk = 0; chunk < n_chunks; ++chunk) {
+    double* sum = chunk_sums + kPoseSlots * chunk;
+    std::fill(sum, sum + kPoseSlots, 0.0);
+    for (int64_t g = chunk * kChunk; g < std::min(n, (chunk + 1) * kChunk); ++g) {
+      const S* m = means + 3 * g;
+      Proj<S> o;
+      project_one(m, quats + 4 * g, scales + 3 * g, W, t, cam, o);
+      const S fx = S(cam.fx), fy = S(cam.fy);
+      // conics = (syy, -sxy, sxx) / ds, ds = det where ok (else the constant 1)
+      const S ga = g_conics[3 * g], gb = g_conics[3 * g + 1], gc = g_conics[3 * g + 2];
+      const S inv = S(1) / o.ds;
+      S d_sxx = gc * inv, d_syy = ga * inv, d_sxy = -gb * inv;
+      if (o.ok) {
+        const S d_det = -(ga * o.syy - gb * o.sxy + gc * o.sxx) * inv * inv;
+        d_sxx += d_det * o.syy;
+        d_syy += d_det * o.sxx;
+        d_sxy -= S(2) * d_det * o.sxy;
+      }
+      // s_xx = |ru|^2 + eps, s_xy = ru . rv, s_yy = |rv|^2 + eps
+      S d_ru[3], d_rv[3];
       for (int c = 0; c < 3; ++c) {
-        d_M[k][c] = d_WM[0][c] * W[0][k] + d_WM[1][c] * W[1][k] + d_WM[2][c] * W[2][k];
+        d_ru[c] = S(2) * o.ru[c] * d_sxx + o.rv[c] * d_sxy;
+        d_rv[c] = S(2) * o.rv[c] * d_syy + o.ru[c] * d_sxy;
       }
-    }
-    for (int i = 0; i < 3; ++i) {
+      // ru = Fu (WM0 - u WM2), rv = Fv (WM1 - v WM2)
+      S d_WM[3][3] = {};
+      S d_Fu = 0, d_Fv = 0, d_u = 0, d_v = 0;
+      for (int c = 0; c < 3; ++c) {
+        d_Fu += d_ru[c] * (o.WM[0][c] - o.u * o.WM[2][c]);
+        d_Fv += d_rv[c] * (o.WM[1][c] - o.v * o.WM[2][c]);
+        d_WM[0][c] += d_ru[c] * o.Fu;
+        d_WM[1][c] += d_rv[c] * o.Fv;
+        d_WM[2][c] -= d_ru[c] * o.Fu * o.u + d_rv[c] * o.Fv * o.v;
+        d_u -= d_ru[c] * o.Fu * o.WM[2][c];
+        d_v -= d_rv[c] * o.Fv * o.WM[2][c];
+      }
+      // Fu = fx / zs, Fv = fy / zs; u = clamp(x / zs), v = clamp(y / zs); means2d = f p / zs + c
+      const S d_iz = fx * d_Fu + fy * d_Fv;
+      const S gu = g_means2d[2 * g], gv = g_means2d[2 * g + 1];
+      const S izs2 = S(1) / (o.zs * o.zs);
+      S d_p[3] = {0, 0, 0};
+      S d_zs = -d_iz * izs2;
+      if (o.u_free) {
+        d_p[0] += d_u / o.zs;
+        d_zs -= d_u * o.p[0] * izs2;
+      }
+      if (o.v_free) {
+        d_p[1] += d_v / o.zs;
+        d_zs -= d_v * o.p[1] * izs2;
+      }
+      d_p[0] += gu * fx / o.zs;
+      d_p[1] += gv * fy / o.zs;
+      d_zs -= (gu * fx * o.p[0] + gv * fy * o.p[1]) * izs2;
+      d_p[2] = g_depths[g] + (o.in_front ? d_zs : S(0));
+      // WM[i] = sum_k W[i][k] M[k]; M[k][c] = R[k][c] s[c]
+      S d_M[3][3];
       for (int k = 0; k < 3; ++k) {
-        S acc = d_p[i] * m[k];  // p = W m + t
-        for (int c = 0; c < 3; ++c) acc += d_WM[i][c] * o.M[k][c];
-        dW[3 * i + k] = acc;
+        for (int c = 0; c < 3; ++c) {
+          d_M[k][c] = d_WM[0][c] * W[0][k] + d_WM[1][c] * W[1][k] + d_WM[2][c] * W[2][k];
+        }
       }
-      dW[9 + i] = d_p[i];
-    }
-    for (int k = 0; k < 3; ++k) {
-      d_means[3 * g + k] = d_p[0] * W[0][k] + d_p[1] * W[1][k] + d_p[2] * W[2][k];
-    }
-    S d_R[3][3];
-    for (int c = 0; c < 3; ++c) {
-      S ds_c = 0;
+      for (int i = 0; i < 3; ++i) {
+        for (int k = 0; k < 3; ++k) {
+          S acc = d_p[i] * m[k];  // p = W m + t
+          for (int c = 0; c < 3; ++c) acc += d_WM[i][c] * o.M[k][c];
+          sum[3 * i + k] += double(acc);
+        }
+        sum[9 + i] += double(d_p[i]);
+      }
       for (int k = 0; k < 3; ++k) {
-        d_R[k][c] = d_M[k][c] * scales[3 * g + c];
-        ds_c += d_M[k][c] * o.R[k][c];
+        d_means[3 * g + k] = d_p[0] * W[0][k] + d_p[1] * W[1][k] + d_p[2] * W[2][k];
       }
-      d_scales[3 * g + c] = ds_c;
+      S d_R[3][3];
+      for (int c = 0; c < 3; ++c) {
+        S ds_c = 0;
+        for (int k = 0; k < 3; ++k) {
+          d_R[k][c] = d_M[k][c] * scales[3 * g + c];
+          ds_c += d_M[k][c] * o.R[k][c];
+        }
+        d_scales[3 * g + c] = ds_c;
+      }
+      // R of the normalised quaternion (w, x, y, z), then through the normalisation
+      const S w = o.qn[0], x = o.qn[1], y = o.qn[2], z = o.qn[3];
+      const S dw = 2 * (-z * d_R[0][1] + y * d_R[0][2] + z * d_R[1][0] - x * d_R[1][2] -
+                        y * d_R[2][0] + x * d_R[2][1]);
+      const S dx = 2 * (y * d_R[0][1] + z * d_R[0][2] + y * d_R[1][0] - 2 * x * d_R[1][1] -
+                        w * d_R[1][2] + z * d_R[2][0] + w * d_R[2][1] - 2 * x * d_R[2][2]);
+      const S dy = 2 * (-2 * y * d_R[0][0] + x * d_R[0][1] + w * d_R[0][2] + x * d_R[1][0] +
+                        z * d_R[1][2] - w * d_R[2][0] + z * d_R[2][1] - 2 * y * d_R[2][2]);
+      const S dz = 2 * (-2 * z * d_R[0][0] - w * d_R[0][1] + x * d_R[0][2] + w * d_R[1][0] -
+                        2 * z * d_R[1][1] + y * d_R[1][2] + x * d_R[2][0] + y * d_R[2][1]);
+      const S dqn[4] = {dw, dx, dy, dz};
+      const S dot = w * dw + x * dx + y * dy + z * dz;
+      for (int k = 0; k < 4; ++k) d_quats[4 * g + k] = (dqn[k] - o.qn[k] * dot) / o.qnorm;
     }
-    // R of the normalised quaternion (w, x, y, z), then through the normalisation
-    const S w = o.qn[0], x = o.qn[1], y = o.qn[2], z = o.qn[3];
-    const S dw = 2 * (-z * d_R[0][1] + y * d_R[0][2] + z * d_R[1][0] - x * d_R[1][2] -
-                      y * d_R[2][0] + x * d_R[2][1]);
-    const S dx = 2 * (y * d_R[0][1] + z * d_R[0][2] + y * d_R[1][0] - 2 * x * d_R[1][1] -
-                      w * d_R[1][2] + z * d_R[2][0] + w * d_R[2][1] - 2 * x * d_R[2][2]);
-    const S dy = 2 * (-2 * y * d_R[0][0] + x * d_R[0][1] + w * d_R[0][2] + x * d_R[1][0] +
-                      z * d_R[1][2] - w * d_R[2][0] + z * d_R[2][1] - 2 * y * d_R[2][2]);
-    const S dz = 2 * (-2 * z * d_R[0][0] - w * d_R[0][1] + x * d_R[0][2] + w * d_R[1][0] -
-                      2 * z * d_R[1][1] + y * d_R[1][2] + x * d_R[2][0] + y * d_R[2][1]);
-    const S dqn[4] = {dw, dx, dy, dz};
-    const S dot = w * dw + x * dx + y * dy + z * dz;
-    for (int k = 0; k < 4; ++k) d_quats[4 * g + k] = (dqn[k] - o.qn[k] * dot) / o.qnorm;
   }
 }
 
@@ -369,16 +376,16 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
   const Camera cam(fx, fy, cx, cy, int(width), int(height), near);
   const int n_threads = std::max(1, at::get_num_threads());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
-    std::vector<scalar_t> slots(size_t(n) * kPoseSlots);
+    std::vector<double> chunk_sums(size_t((n + kChunk - 1) / kChunk) * kPoseSlots);
     backward_impl<scalar_t>(means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                             scales.data_ptr<scalar_t>(), T.data_ptr<scalar_t>(), cam, n,
                             g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
                             g_depths.data_ptr<scalar_t>(), d_means.data_ptr<scalar_t>(),
                             d_quats.data_ptr<scalar_t>(), d_scales.data_ptr<scalar_t>(),
-                            slots.data(), n_threads);
+                            chunk_sums.data(), n_threads);
     double sum[kPoseSlots] = {};
-    for (int64_t g = 0; g < n; ++g) {
-      for (int j = 0; j < kPoseSlots; ++j) sum[j] += double(slots[kPoseSlots * g + j]);
+    for (size_t c = 0; c < chunk_sums.size(); c += kPoseSlots) {
+      for (int j = 0; j < kPoseSlots; ++j) sum[j] += chunk_sums[c + j];
     }
     scalar_t* dT = d_T.data_ptr<scalar_t>();
     for (int i = 0; i < 3; ++i) {
@@ -410,6 +417,6 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii,
                        offsets.data_ptr<int64_t>(), ids, n_threads);
   });
   auto out = torch::empty({int64_t(ids.size())}, offsets.options());
-  std::memcpy(out.data_ptr<int64_t>(), ids.data(), ids.size() * sizeof(int64_t));
+  if (!ids.empty()) std::memcpy(out.data_ptr<int64_t>(), ids.data(), ids.size() * sizeof(int64_t));
   return {offsets, out};
 }
