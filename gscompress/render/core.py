@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -111,34 +112,23 @@ def render(
             want_contribution=want_contribution, near=near, background=background,
         )  # fmt: skip
 
-    ext = None
+    project, bin_, composite = project_gaussians, bin_tiles, composite_torch
     if backend == "cpu":
-        from gscompress.render.cpu import load_extension
+        from gscompress.render import cpu
 
-        ext = load_extension()
+        ext = cpu.load_extension()  # cached: resolve_backend has built or loaded it
+        if ext is not None:
+            project = functools.partial(cpu.project_cpu, ext)
+            bin_ = functools.partial(cpu.bin_tiles_cpu, ext)
+            composite = functools.partial(cpu.composite_cpu, ext)
 
     width, height = intrinsics.width, intrinsics.height
-    if ext is not None:
-        from gscompress.render.cpu import bin_tiles_cpu, project_cpu
-
-        proj = project_cpu(ext, means, quats, scales, T_cam_world, intrinsics, near)
-        bins = bin_tiles_cpu(ext, proj, width, height)
-    else:
-        proj = project_gaussians(means, quats, scales, T_cam_world, intrinsics, near)
-        bins = bin_tiles(proj, width, height)
+    proj = project(means, quats, scales, T_cam_world, intrinsics, near)
+    bins = bin_(proj, width, height)
     features = torch.cat([colors, proj.depths[:, None]], dim=1)  # [N, 4] r g b z
-    if ext is not None:
-        from gscompress.render.cpu import composite_cpu
-
-        image, T_final, contribution = composite_cpu(
-            ext, proj.means2d, proj.conics, opacities, features, bins, width, height,
-            want_contribution,
-        )  # fmt: skip
-    else:
-        image, T_final, contribution = composite_torch(
-            proj.means2d, proj.conics, opacities, features, bins, width, height,
-            want_contribution,
-        )  # fmt: skip
+    image, T_final, contribution = composite(
+        proj.means2d, proj.conics, opacities, features, bins, width, height, want_contribution
+    )
     radii = proj.radii  # the closure keeps only these, not the projection's autograd graph
     return finish_output(
         image[..., :3], image[..., 3], T_final, lambda: radii, contribution, background, backend

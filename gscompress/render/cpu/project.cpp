@@ -46,6 +46,18 @@ struct Camera {
   }
 };
 
+// The rotation W and translation t of a [4, 4] row-major world-to-camera transform.
+template <typename S>
+struct Pose {
+  S W[3][3], t[3];
+  explicit Pose(const S* T) {
+    for (int i = 0; i < 3; ++i) {
+      for (int k = 0; k < 3; ++k) W[i][k] = T[4 * i + k];
+      t[i] = T[4 * i + 3];
+    }
+  }
+};
+
 // Every forward quantity of one Gaussian that the backward needs.
 template <typename S>
 struct Proj {
@@ -129,11 +141,9 @@ inline void tile_range(S c, S r, int n, int64_t& lo, int64_t& hi) {
 template <typename S>
 void forward_impl(const S* means, const S* quats, const S* scales, const S* T, const Camera& cam,
                   int64_t n, S* means2d, S* conics, S* depths, int32_t* radii, int n_threads) {
-  S W[3][3], t[3];
-  for (int i = 0; i < 3; ++i) {
-    for (int k = 0; k < 3; ++k) W[i][k] = T[4 * i + k];
-    t[i] = T[4 * i + 3];
-  }
+  const Pose<S> pose(T);
+  const auto& W = pose.W;
+  const auto& t = pose.t;
   const int tiles_x = (cam.width + kTile - 1) / kTile, tiles_y = (cam.height + kTile - 1) / kTile;
 #pragma omp parallel for schedule(static) num_threads(n_threads)
   for (int64_t g = 0; g < n; ++g) {
@@ -172,11 +182,9 @@ template <typename S>
 void backward_impl(const S* means, const S* quats, const S* scales, const S* T, const Camera& cam,
                    int64_t n, const S* g_means2d, const S* g_conics, const S* g_depths,
                    S* d_means, S* d_quats, S* d_scales, double* chunk_sums, int n_threads) {
-  S W[3][3], t[3];
-  for (int i = 0; i < 3; ++i) {
-    for (int k = 0; k < 3; ++k) W[i][k] = T[4 * i + k];
-    t[i] = T[4 * i + 3];
-  }
+  const Pose<S> pose(T);
+  const auto& W = pose.W;
+  const auto& t = pose.t;
   const int64_t n_chunks = (n + kChunk - 1) / kChunk;
 #pragma omp parallel for schedule(static) num_threads(n_threads)
   for (int64_t chunk = 0; chunk < n_chunks; ++chunk) {
