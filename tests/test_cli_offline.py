@@ -7,6 +7,8 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
 
 from gscompress.gaussians import random_map
 from gscompress.io.mcap_log import (
@@ -18,6 +20,7 @@ from gscompress.io.mcap_log import (
 )
 from gscompress.io.ply import read_ply, write_ply
 from gscompress_cli.main import cli
+from gscompress_schemas import PROFILE
 
 
 def run(*args):
@@ -176,6 +179,34 @@ def _corrupt_chunk(src, dst):
     dst.write_bytes(bytes(data))
 
 
+def _corrupt_lz4_chunk(src, dst):
+    """The log re-chunked with lz4 (as other MCAP tools may write it), then the frame
+    descriptor of its largest chunk's lz4 data flipped: lz4 itself rejects the chunk."""
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        writer = Writer(out, compression=CompressionType.LZ4)
+        writer.start(PROFILE, "another tool")
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.id not in channels:
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+    with LogReader(dst) as log:
+        chunk = max(log._summary.chunk_indexes, key=lambda c: c.compressed_size)
+    data = bytearray(dst.read_bytes())
+    at = chunk.chunk_start_offset + chunk.chunk_length - chunk.compressed_size + 4
+    data[at] ^= 0xFF
+    dst.write_bytes(bytes(data))
+
+
 def _no_gaussians(src, dst):
     with LogWriter(dst, LogMetadata()) as log:
         log.write_pose(np.eye(4), 0)
@@ -211,6 +242,7 @@ def _newer_profile(src, dst):
         (_truncated, "MCAP file is truncated"),
         (_cut_short, "MCAP file is truncated"),
         (_corrupt_chunk, "MCAP"),
+        (_corrupt_lz4_chunk, "corrupt MCAP data (LZ4"),
         (_no_gaussians, "no /gaussians channel"),
         (_bad_stride, "not a multiple of point_stride"),
         (_non_finite, "non-finite"),

@@ -94,6 +94,20 @@ _READ_ERRORS = (
 )  # fmt: skip
 """What reading a damaged MCAP file raises (an OSError: a seek before the start)."""
 
+
+def is_read_error(exc: BaseException) -> bool:
+    """Whether `exc` is what a damaged or truncated MCAP file raises while it is read.
+
+    Besides `_READ_ERRORS`, the lz4 package (which `mcap` uses for lz4-compressed chunks, as
+    other tools may write) raises a bare RuntimeError whose message starts with "LZ4".
+    """
+    if isinstance(exc, GscError):
+        return False
+    return isinstance(exc, _READ_ERRORS) or (
+        isinstance(exc, RuntimeError) and str(exc).startswith("LZ4")
+    )
+
+
 MAGIC = b"\x89MCAP0\r\n"
 """The 8 bytes an MCAP file starts and, when closed properly, ends with."""
 
@@ -524,11 +538,10 @@ class LogReader:
         self._stream: IO[bytes] = open(self.path, "rb")
         try:
             self._open()
-        except GscError:
+        except Exception as exc:
             self._stream.close()
-            raise
-        except _READ_ERRORS as exc:
-            self._stream.close()
+            if not is_read_error(exc):
+                raise
             hint = ""
             with open(self.path, "rb") as f:
                 if f.read(4) == b"ply\n":
@@ -720,7 +733,7 @@ class _ReadGuard:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object
     ) -> None:
-        if exc is not None and isinstance(exc, _READ_ERRORS) and not isinstance(exc, GscError):
+        if exc is not None and is_read_error(exc):
             raise LogFormatError(f"{self.path}: corrupt MCAP data ({_describe(exc)})") from None
 
 

@@ -12,12 +12,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.exceptions import McapError
 from mcap.reader import StreamReader
 from mcap.records import Channel, Message, Metadata, Schema
 
 from gscompress.errors import LogFormatError
-from gscompress.io.mcap_log import METADATA_NAME, LogMetadata, LogReader, closed_properly
+from gscompress.io.mcap_log import (
+    METADATA_NAME,
+    LogMetadata,
+    LogReader,
+    closed_properly,
+    is_read_error,
+)
 
 Record = tuple[Schema | None, Channel, Message]
 
@@ -89,8 +94,10 @@ def _read_unfinished(path: Path) -> LogContents:
                 elif isinstance(record, Message) and record.channel_id in channels:
                     channel = channels[record.channel_id]
                     out.messages.append((schemas.get(channel.schema_id), channel, record))
-        except (McapError, EOFError, ValueError, KeyError, IndexError):
-            pass  # the tail a killed writer left half-written
+        except Exception as exc:
+            if not is_read_error(exc):
+                raise
+            # the tail a killed writer left half-written
     if metadata is None:
         raise LogFormatError(f"{path}: no gscompress metadata record; nothing to resume from")
     out.metadata = LogMetadata.from_record(dict(metadata.metadata), str(path))
