@@ -29,6 +29,7 @@ import importlib
 import importlib.util
 import os
 import pickle
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -207,8 +208,8 @@ def _gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> torc
     return g / g.sum()
 
 
-def _blur(x: torch.Tensor, win: torch.Tensor) -> torch.Tensor:
-    """Separable 'valid' Gaussian filter of [B, C, H, W] per channel."""
+def blur(x: torch.Tensor, win: torch.Tensor) -> torch.Tensor:
+    """Separable 'valid' Gaussian filter of [B, C, H, W] per channel (rows, then columns)."""
     c = x.shape[1]
     k = win.to(device=x.device, dtype=x.dtype)
     x = F.conv2d(x, k.view(1, 1, 1, -1).repeat(c, 1, 1, 1), groups=c)
@@ -216,7 +217,10 @@ def _blur(x: torch.Tensor, win: torch.Tensor) -> torch.Tensor:
 
 
 def ssim_maps(
-    x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0
+    x: torch.Tensor,
+    y: torch.Tensor,
+    data_range: float = 1.0,
+    blur_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = blur,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-position SSIM and contrast-structure maps of two image batches (differentiable).
 
@@ -228,6 +232,8 @@ def ssim_maps(
         x: [B, C, H, W] images (H, W >= 11).
         y: [B, C, H, W] reference images.
         data_range: peak value (1.0 for images in [0, 1]).
+        blur_fn: the filter, `blur` or a kernel with its contract (the SLAM loss passes the
+            cpu backend's `gscompress.render.cpu.blur_cpu`).
 
     Returns:
         (ssim [B, C, H - 10, W - 10], cs [B, C, H - 10, W - 10]): SSIM and its
@@ -239,7 +245,7 @@ def ssim_maps(
     # One blur of the five maps stacked as channels: a fifth of the convolution calls, whose
     # fixed cost dominates at SLAM image sizes.
     stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [B, 5C, H, W]
-    mu_x, mu_y, b_xx, b_yy, b_xy = _blur(stacked, win).split(x.shape[1], dim=1)
+    mu_x, mu_y, b_xx, b_yy, b_xy = blur_fn(stacked, win).split(x.shape[1], dim=1)
     sxx = b_xx - mu_x**2
     syy = b_yy - mu_y**2
     sxy = b_xy - mu_x * mu_y

@@ -1,8 +1,9 @@
-"""The C++ kernels (projection, compositing) against the pure-torch oracle: values, gradients,
-contribution."""
+"""The C++ kernels (projection, compositing, the SSIM filter) against the pure-torch oracle:
+values, gradients, contribution."""
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import pytest
@@ -18,9 +19,12 @@ from test_render import (
     run,
 )
 
+from gscompress import metrics
 from gscompress.camera import Intrinsics
+from gscompress.render import RenderOutput, render, resolve_backend
 from gscompress.render import cpu as cpu_backend
-from gscompress.render import render, resolve_backend
+from gscompress.slam.config import preset
+from gscompress.slam.losses import mapping_loss
 
 INPUTS = (*ARGS, "T_cam_world")
 TOL = {torch.float64: 1e-10, torch.float32: 1e-5}
@@ -262,3 +266,53 @@ def test_a_lock_left_by_a_killed_build_is_cleared(tmp_path):
         )
         held = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "gsc.lock")])
         assert held.returncode == 3
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("shape", [(1, 15, 120, 160), (2, 3, 11, 11), (1, 4, 23, 37)])
+def test_cpu_blur_equals_torch_values_and_gradients(extension, dtype, shape):
+    """The SSIM filter's C++ kernel against the grouped convolutions of `metrics.blur`: values
+    and gradients, at the SLAM loss's size, at the smallest image the window allows and at odd
+    sizes; threads change nothing. The window is not symmetric here (SSIM's is), so that a
+    flipped filter would show."""
+    g = torch.Generator().manual_seed(sum(shape))
+    x = torch.rand(shape, generator=g, dtype=dtype)
+    weights = torch.rand((*shape[:2], shape[2] - 10, shape[3] - 10), generator=g, dtype=dtype)
+    window = torch.rand(11, generator=g, dtype=torch.float64)
+    results = []
+    for fn in (metrics.blur, functools.partial(cpu_backend.blur_cpu, extension)):
+        xi = x.clone().requires_grad_(True)
+        out = fn(xi, window)
+        (grad,) = torch.autograd.grad((out * weights).sum(), xi)
+        results.append((out, grad))
+    (ours, g_ours), (ref, g_ref) = results[1], results[0]
+    assert ours.shape == ref.shape == weights.shape
+    assert_rel_close(ours, ref, TOL[dtype], "blur")
+    assert_rel_close(g_ours, g_ref, TOL[dtype], "blur gradient")
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = cpu_backend.blur_cpu(extension, x, window)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one, ours)
+
+
+def test_mapping_loss_with_the_cpu_filter_equals_torch(extension):
+    """The SLAM mapping loss (whose SSIM filter is the C++ kernel on cpu renders) equals the
+    all-torch loss, value and gradients."""
+    g = torch.Generator().manual_seed(3)
+    color_gt, depth_gt = torch.rand(40, 48, 3, generator=g), torch.rand(40, 48, generator=g) + 1
+    config = preset("cpu").mapping
+    grads = {}
+    for backend in ("cpu", "torch"):
+        color = torch.rand(40, 48, 3, generator=torch.Generator().manual_seed(4))
+        color.requires_grad_(True)
+        out = RenderOutput(
+            color, depth_gt * 1.1, depth_gt, torch.ones(40, 48), None, backend, lambda: None
+        )
+        terms = mapping_loss(out, color_gt, depth_gt, config)
+        grads[backend] = (terms.total.detach(), torch.autograd.grad(terms.total, color)[0])
+    assert config.ssim_weight > 0
+    assert_rel_close(grads["cpu"][0], grads["torch"][0], 1e-6, "loss")
+    assert_rel_close(grads["cpu"][1], grads["torch"][1], 1e-5, "loss gradient")

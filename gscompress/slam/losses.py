@@ -38,6 +38,7 @@ the size of the colour loss, capped at tau.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -165,12 +166,20 @@ def fuse_target(
     return (e * color_gt + (1.0 - e) * color_render.detach()).detach()
 
 
-def ssim_map(image: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    """Differentiable SSIM map (window 11, sigma 1.5; `gscompress.metrics`) of [H, W, 3] images."""
+def ssim_map(image: torch.Tensor, reference: torch.Tensor, backend: str = "torch") -> torch.Tensor:
+    """Differentiable SSIM map (window 11, sigma 1.5; `gscompress.metrics`) of [H, W, 3] images.
+
+    With the cpu render backend the filter is its C++ kernel (equal to torch's to rounding).
+    """
     x = image.permute(2, 0, 1)[None]
     y = reference.permute(2, 0, 1)[None]
-    s, _ = ssim_maps(x, y, 1.0)
-    return s
+    if backend == "cpu":
+        from gscompress.render import cpu
+
+        ext = cpu.load_extension()  # cached; a cpu render implies it loaded
+        if ext is not None:
+            return ssim_maps(x, y, 1.0, functools.partial(cpu.blur_cpu, ext))[0]
+    return ssim_maps(x, y, 1.0)[0]
 
 
 def mapping_loss(
@@ -187,7 +196,7 @@ def mapping_loss(
     l1 = (out.color - color_gt).abs().mean()
     if config.ssim_weight > 0 and min(color_gt.shape[:2]) >= 11:
         l_color = (1.0 - config.ssim_weight) * l1 + config.ssim_weight * (
-            1.0 - ssim_map(out.color, color_gt).mean()
+            1.0 - ssim_map(out.color, color_gt, out.backend).mean()
         )
     else:
         l_color = l1

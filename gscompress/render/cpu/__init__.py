@@ -31,7 +31,7 @@ from gscompress.render.projection import Projection, TileBins, tile_grid
 
 logger = logging.getLogger(__name__)
 
-_SOURCES = tuple(Path(__file__).with_name(n) for n in ("composite.cpp", "project.cpp"))
+_SOURCES = tuple(Path(__file__).with_name(n) for n in ("composite.cpp", "project.cpp", "blur.cpp"))
 # -ffp-contract=off keeps the forward, the backward and the torch oracle rounding alike.
 _CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off"]
 _LDFLAGS = ["-fopenmp"]
@@ -251,6 +251,31 @@ def project_cpu(
         T_cam_world.contiguous(),
     )  # fmt: skip
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
+
+
+class _Blur(torch.autograd.Function):
+    """Autograd wrapper of the C++ separable filter: the backward is the transposed filter."""
+
+    @staticmethod
+    def forward(ctx: Any, ext: ModuleType, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        ctx.ext, ctx.size = ext, x.shape[-2:]
+        ctx.save_for_backward(k)
+        return ext.blur_forward(x, k)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[Any, ...]:
+        (k,) = ctx.saved_tensors
+        return None, ctx.ext.blur_backward(grad.contiguous(), k, *ctx.size), None
+
+
+def blur_cpu(ext: ModuleType, x: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
+    """C++ counterpart of `gscompress.metrics.blur` (same contract; the window gets no
+    gradient)."""
+    b, c, h, w = x.shape
+    k = window.detach().to(dtype=x.dtype).contiguous()
+    out = _Blur.apply(ext, x.reshape(b * c, h, w).contiguous(), k)
+    return out.reshape(b, c, *out.shape[-2:])
 
 
 def bin_tiles_cpu(ext: ModuleType, projection: Projection, width: int, height: int) -> TileBins:
