@@ -201,13 +201,14 @@ class PruneConfig:
             1.401; with 40 (every frame after a stage; ATE against unpruned): ICL 1.232 cm
             (+3.8%), office 1.758 (-4.6%), tabletop 0.577 (-0.7%), but the synthetic room
             0.616 (+19%, against 0.460 with 3), so 3 stays; over seeds 0-2 (README) 3 misses
-            10% only on ICL (+23.5%) and 20 or 40 only on the synthetic room (+31%). Two mixes of old and new, for 40
-            frames, were worse (tried at 6786aaf, not kept): the live map plus the Gaussians
-            the stage removed, frozen (ICL 1.245, office 2.188, tabletop 0.571, synthetic
-            0.649 cm), and the map before the stage plus the Gaussians added since (1.377,
-            1.847, 0.763, 0.594). Frozen and live Gaussians drawn together disagree where the
-            live ones have moved on; why the synthetic room loses with the pre-stage map
-            alone is not known (covering the newly mapped parts did not help).
+            10% only on ICL (+23.5%) and 20 or 40 only on the synthetic room (+31%). Two
+            mixes of old and new, for 40 frames, were worse (tried at 6786aaf, not kept): the
+            live map plus the Gaussians the stage removed, frozen (ICL 1.245, office 2.188,
+            tabletop 0.571, synthetic 0.649 cm), and the map before the stage plus the
+            Gaussians added since (1.377, 1.847, 0.763, 0.594). Frozen and live Gaussians
+            drawn together disagree where the live ones have moved on; why the synthetic room
+            loses with the pre-stage map alone is not known (covering the newly mapped parts
+            did not help).
     """
 
     opacity_every: int = 100
