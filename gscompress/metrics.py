@@ -29,7 +29,6 @@ import importlib
 import importlib.util
 import os
 import pickle
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -201,8 +200,8 @@ def psnr(image: Any, reference: Any, mask: Any = None, data_range: float = 1.0) 
     return float(10.0 * torch.log10(data_range**2 / mse))
 
 
-def _gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> torch.Tensor:
-    """[size] normalised 1-D Gaussian, centred."""
+def gaussian_window(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> torch.Tensor:
+    """[size] normalised 1-D Gaussian, centred (float64; SSIM's window by default)."""
     coords = torch.arange(size, dtype=torch.float64) - size // 2
     g = torch.exp(-(coords**2) / (2 * sigma**2))
     return g / g.sum()
@@ -216,11 +215,13 @@ def blur(x: torch.Tensor, win: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, k.view(1, 1, -1, 1).repeat(c, 1, 1, 1), groups=c)
 
 
+def ssim_constants(data_range: float) -> tuple[float, float]:
+    """SSIM's stabilising constants (C1, C2) = ((K1 L)^2, (K2 L)^2) for data range L."""
+    return (SSIM_K[0] * data_range) ** 2, (SSIM_K[1] * data_range) ** 2
+
+
 def ssim_maps(
-    x: torch.Tensor,
-    y: torch.Tensor,
-    data_range: float = 1.0,
-    blur_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = blur,
+    x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-position SSIM and contrast-structure maps of two image batches (differentiable).
 
@@ -232,20 +233,17 @@ def ssim_maps(
         x: [B, C, H, W] images (H, W >= 11).
         y: [B, C, H, W] reference images.
         data_range: peak value (1.0 for images in [0, 1]).
-        blur_fn: the filter, `blur` or a kernel with its contract (the SLAM loss passes the
-            cpu backend's `gscompress.render.cpu.blur_cpu`).
 
     Returns:
         (ssim [B, C, H - 10, W - 10], cs [B, C, H - 10, W - 10]): SSIM and its
         contrast-structure factor at each window position.
     """
-    win = _gaussian_window()
-    c1 = (SSIM_K[0] * data_range) ** 2
-    c2 = (SSIM_K[1] * data_range) ** 2
+    win = gaussian_window()
+    c1, c2 = ssim_constants(data_range)
     # One blur of the five maps stacked as channels: a fifth of the convolution calls, whose
     # fixed cost dominates at SLAM image sizes.
     stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # [B, 5C, H, W]
-    mu_x, mu_y, b_xx, b_yy, b_xy = blur_fn(stacked, win).split(x.shape[1], dim=1)
+    mu_x, mu_y, b_xx, b_yy, b_xy = blur(stacked, win).split(x.shape[1], dim=1)
     sxx = b_xx - mu_x**2
     syy = b_yy - mu_y**2
     sxy = b_xy - mu_x * mu_y

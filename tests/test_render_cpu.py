@@ -3,7 +3,6 @@ values, gradients, contribution."""
 
 from __future__ import annotations
 
-import functools
 import warnings
 
 import pytest
@@ -24,7 +23,7 @@ from gscompress.camera import Intrinsics
 from gscompress.render import RenderOutput, render, resolve_backend
 from gscompress.render import cpu as cpu_backend
 from gscompress.slam.config import preset
-from gscompress.slam.losses import mapping_loss
+from gscompress.slam.losses import depth_edges, mapping_loss
 
 INPUTS = (*ARGS, "T_cam_world")
 TOL = {torch.float64: 1e-10, torch.float32: 1e-5}
@@ -103,7 +102,7 @@ def test_partial_tiles_equal_torch(dtype):
 def test_portable_build_equals_torch(monkeypatch, tmp_path):
     """The build without -march=native (any CPU that cannot be identified, or not x86-64) uses
     16-byte vectors: 4 float lanes, 4 segments a tile row (8 for double). Built afresh into a
-    temporary cache, it renders as the torch oracle does."""
+    temporary cache, it renders as the torch oracle does, and its SSIM equals torch's."""
     monkeypatch.setattr(cpu_backend, "_cpu_signature", lambda: None)
     monkeypatch.setenv("GSCOMPRESS_CACHE_DIR", str(tmp_path))
     assert cpu_backend._build_flags() == (list(cpu_backend._CFLAGS), "generic")
@@ -114,6 +113,7 @@ def test_portable_build_equals_torch(monkeypatch, tmp_path):
         intr = Intrinsics(fx=32.0, fy=30.0, cx=18.0, cy=10.0, width=37, height=21)
         for dtype in (torch.float64, torch.float32):
             _compare_backends(make_scene(300, seed=15, dtype=dtype), intr, TOL[dtype])
+            _compare_ssim(cpu_backend.load_extension(), (3, 23, 37), dtype)
     finally:
         cpu_backend.load_extension.cache_clear()
 
@@ -268,51 +268,94 @@ def test_a_lock_left_by_a_killed_build_is_cleared(tmp_path):
         assert held.returncode == 3
 
 
-@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-@pytest.mark.parametrize("shape", [(1, 15, 120, 160), (2, 3, 11, 11), (1, 4, 23, 37)])
-def test_cpu_blur_equals_torch_values_and_gradients(extension, dtype, shape):
-    """The SSIM filter's C++ kernel against the grouped convolutions of `metrics.blur`: values
-    and gradients, at the SLAM loss's size, at the smallest image the window allows and at odd
-    sizes; threads change nothing. The window is not symmetric here (SSIM's is), so that a
-    flipped filter would show."""
-    g = torch.Generator().manual_seed(sum(shape))
-    x = torch.rand(shape, generator=g, dtype=dtype)
-    weights = torch.rand((*shape[:2], shape[2] - 10, shape[3] - 10), generator=g, dtype=dtype)
-    window = torch.rand(11, generator=g, dtype=torch.float64)
-    results = []
-    for fn in (metrics.blur, functools.partial(cpu_backend.blur_cpu, extension)):
-        xi = x.clone().requires_grad_(True)
-        out = fn(xi, window)
-        (grad,) = torch.autograd.grad((out * weights).sum(), xi)
-        results.append((out, grad))
-    (ours, g_ours), (ref, g_ref) = results[1], results[0]
-    assert ours.shape == ref.shape == weights.shape
-    assert_rel_close(ours, ref, TOL[dtype], "blur")
-    assert_rel_close(g_ours, g_ref, TOL[dtype], "blur gradient")
+def _one_thread(fn):
+    """fn() computed with torch (and the kernels) on one thread."""
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        one = cpu_backend.blur_cpu(extension, x, window)
+        return fn()
     finally:
         torch.set_num_threads(before)
-    assert torch.equal(one, ours)
 
 
-def test_mapping_loss_with_the_cpu_filter_equals_torch(extension):
-    """The SLAM mapping loss (whose SSIM filter is the C++ kernel on cpu renders) equals the
-    all-torch loss, value and gradients."""
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("shape", [(15, 120, 160), (3, 11, 11), (4, 23, 37)])
+def test_cpu_blur_equals_torch_values_and_gradients(extension, dtype, shape):
+    """The SSIM filter's C++ kernel and its transpose against the grouped convolutions of
+    `metrics.blur` and their autograd: at the SLAM loss's size, at the smallest image the window
+    allows and at odd sizes; threads change nothing. The window is not symmetric here (SSIM's
+    is), so that a flipped filter would show."""
+    g = torch.Generator().manual_seed(sum(shape))
+    x = torch.rand(shape, generator=g, dtype=dtype)
+    weights = torch.rand((shape[0], shape[1] - 10, shape[2] - 10), generator=g, dtype=dtype)
+    window = torch.rand(11, generator=g, dtype=torch.float64)
+    xi = x.clone().requires_grad_(True)
+    ref = metrics.blur(xi[None], window)[0]
+    (g_ref,) = torch.autograd.grad((ref * weights).sum(), xi)
+    k = window.to(dtype)
+    ours = extension.blur_forward(x, k)
+    g_ours = extension.blur_backward(weights, k, shape[1], shape[2])
+    assert ours.shape == weights.shape and g_ours.shape == x.shape
+    assert_rel_close(ours, ref, TOL[dtype], "blur")
+    assert_rel_close(g_ours, g_ref, TOL[dtype], "blur gradient")
+    assert torch.equal(_one_thread(lambda: extension.blur_forward(x, k)), ours)
+    assert torch.equal(
+        _one_thread(lambda: extension.blur_backward(weights, k, shape[1], shape[2])), g_ours
+    )
+
+
+def _compare_ssim(extension, shape: tuple[int, int, int], dtype: torch.dtype) -> None:
+    """The fused C++ mean SSIM against `metrics.ssim_maps` and autograd (value and gradient with
+    respect to the first image); the result does not depend on the thread count."""
+    g = torch.Generator().manual_seed(7 + sum(shape))
+    y = torch.rand(shape, generator=g, dtype=dtype)
+    x = (0.7 * y + 0.3 * torch.rand(shape, generator=g, dtype=dtype)).requires_grad_(True)
+    ref = metrics.ssim_maps(x[None], y[None])[0].mean()
+    (g_ref,) = torch.autograd.grad(ref, x)
+    assert 0.2 < float(ref.detach()) < 0.99  # neither trivial nor saturated
+
+    def ours() -> tuple[torch.Tensor, torch.Tensor]:
+        value = cpu_backend.ssim_mean_cpu(extension, x, y)
+        return value, torch.autograd.grad(value * 1.5, x)[0]  # a gradient other than 1
+
+    value, grad = ours()
+    assert_rel_close(value, ref, TOL[dtype], "ssim")
+    assert_rel_close(grad, 1.5 * g_ref, TOL[dtype], "ssim gradient")
+    v1, g1 = _one_thread(ours)
+    assert torch.equal(v1, value) and torch.equal(g1, grad)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("shape", [(3, 120, 160), (3, 11, 11), (2, 23, 37)])
+def test_cpu_ssim_equals_torch_values_and_gradients(extension, dtype, shape):
+    """The mapping loss's SSIM kernel at the loss's size, the smallest size and odd sizes."""
+    _compare_ssim(extension, shape, dtype)
+    y = torch.rand(shape, dtype=dtype, requires_grad=True)
+    with pytest.raises(ValueError, match="first image"):
+        cpu_backend.ssim_mean_cpu(extension, torch.rand(shape, dtype=dtype), y)
+
+
+def test_mapping_loss_with_the_cpu_ssim_equals_torch(extension):
+    """The SLAM mapping loss (whose SSIM is the fused C++ kernel on cpu renders) equals the
+    all-torch loss, value and gradients, with its depth edges computed or passed in."""
     g = torch.Generator().manual_seed(3)
     color_gt, depth_gt = torch.rand(40, 48, 3, generator=g), torch.rand(40, 48, generator=g) + 1
+    depth_gt[:5, :7] = 0.0  # some pixels without depth
     config = preset("cpu").mapping
     grads = {}
-    for backend in ("cpu", "torch"):
+    for backend, edges in (
+        ("cpu", None), ("cpu", depth_edges(depth_gt, config.illum_edge_sigma)), ("torch", None),
+    ):  # fmt: skip
         color = torch.rand(40, 48, 3, generator=torch.Generator().manual_seed(4))
         color.requires_grad_(True)
         out = RenderOutput(
             color, depth_gt * 1.1, depth_gt, torch.ones(40, 48), None, backend, lambda: None
         )
-        terms = mapping_loss(out, color_gt, depth_gt, config)
-        grads[backend] = (terms.total.detach(), torch.autograd.grad(terms.total, color)[0])
-    assert config.ssim_weight > 0
+        terms = mapping_loss(out, color_gt, depth_gt, config, edges)
+        key = backend if edges is None else "cpu, edges given"
+        grads[key] = (terms.total.detach(), torch.autograd.grad(terms.total, color)[0])
+    assert config.ssim_weight > 0 and config.illum_tau > 0
+    assert torch.equal(grads["cpu"][0], grads["cpu, edges given"][0])
+    assert torch.equal(grads["cpu"][1], grads["cpu, edges given"][1])
     assert_rel_close(grads["cpu"][0], grads["torch"][0], 1e-6, "loss")
     assert_rel_close(grads["cpu"][1], grads["torch"][1], 1e-5, "loss gradient")

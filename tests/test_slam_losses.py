@@ -11,6 +11,7 @@ from gscompress.slam.losses import (
     depth_edges,
     fuse_target,
     mapping_loss,
+    masked_median,
     tracking_loss,
     tracking_mask,
 )
@@ -95,6 +96,19 @@ def test_tracking_leaves_out_depth_outliers(scene):
     assert kept.depth < 0.1 and everything.depth > kept.depth + 4.0 / everything.pixels
 
 
+def test_masked_median_equals_the_median_of_the_masked_values():
+    """Odd and even counts, a single pixel and all pixels: torch's median (the lower middle
+    value) of values[mask], with values above and below the masked ones left out."""
+    g = torch.Generator().manual_seed(5)
+    values = torch.randn(6, 7, generator=g)
+    order = torch.randperm(values.numel(), generator=g)
+    for count in (1, 2, 3, 10, 11, values.numel()):
+        mask = torch.zeros(values.numel(), dtype=torch.bool)
+        mask[order[:count]] = True
+        mask = mask.reshape(values.shape)
+        assert torch.equal(masked_median(values, mask, count), values[mask].median())
+
+
 def test_tracking_loss_is_zero_without_pixels(scene):
     color_gt, depth_gt, color, depth, _ = scene
     out = fake_render(color, depth, torch.full((H, W), 0.5))
@@ -126,7 +140,7 @@ def test_fuse_target_is_render_on_flat_geometry_and_observation_on_edges():
     color_gt = torch.rand(H, W, 3, generator=g)
     depth = torch.full((H, W), 1.5)
     depth[:, 16:] = 3.0
-    target = fuse_target(render_color, color_gt, depth, 0.05)
+    target = fuse_target(render_color, color_gt, depth_edges(depth, 0.05))
     assert not target.requires_grad
     flat = depth_edges(depth, 0.05) == 0
     torch.testing.assert_close(target[flat], render_color.detach()[flat])

@@ -10,7 +10,7 @@ occlusion test, as in SplaTAM). The most recent keyframe is always in the window
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,6 +18,7 @@ import torch
 
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.slam.config import KeyframeConfig
+from gscompress.slam.losses import depth_edges
 
 
 @dataclass
@@ -35,6 +36,7 @@ class View:
     color: torch.Tensor
     depth: torch.Tensor
     T_world_cam: np.ndarray
+    _edges: dict[float, torch.Tensor] = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def from_frame(cls, index: int, frame: Any, T_world_cam: np.ndarray, device: Any) -> View:
@@ -42,6 +44,12 @@ class View:
         color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(device)
         depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(device)
         return cls(index, color, depth, np.asarray(T_world_cam, dtype=np.float64))
+
+    def edges(self, sigma: float) -> torch.Tensor:
+        """[H, W] `depth_edges` of the observed depth, computed once per sigma."""
+        if sigma not in self._edges:
+            self._edges[sigma] = depth_edges(self.depth, sigma)
+        return self._edges[sigma]
 
     def T_cam_world(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """[4, 4] world-to-camera tensor on the view's device."""

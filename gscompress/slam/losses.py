@@ -38,7 +38,6 @@ the size of the colour loss, capped at tau.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import torch
@@ -68,6 +67,17 @@ class LossTerms:
     illum: float = 0.0
     weights: dict[str, float] | None = None
     pixels: int = 0
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor, count: int) -> torch.Tensor:
+    """Mean of `values` where `mask` holds (`count` = mask.sum() > 0); no gradient elsewhere."""
+    return torch.where(mask, values, 0.0).sum() / count
+
+
+def masked_median(values: torch.Tensor, mask: torch.Tensor, count: int) -> torch.Tensor:
+    """`values[mask].median()` (the lower middle value) without gathering the masked values."""
+    filled = torch.where(mask, values, torch.inf).flatten()
+    return filled.kthvalue((count + 1) // 2).values
 
 
 def tracking_mask(
@@ -103,17 +113,20 @@ def tracking_loss(
     """
     mask = tracking_mask(out.silhouette, depth_gt, config.silhouette_min)
     depth_error = (out.depth_normalized - depth_gt).abs()
-    if config.outlier_factor > 0 and bool(mask.any()):
+    count = int(mask.sum())
+    if config.outlier_factor > 0 and count:
         # SplaTAM's outlier rule: depth errors far above the median are unmodelled geometry
         # (depth edges, missing surfaces), not pose error
-        limit = config.outlier_factor * depth_error.detach()[mask].median()
+        limit = config.outlier_factor * masked_median(depth_error.detach(), mask, count)
         mask = mask & (depth_error.detach() <= limit)
-    count = int(mask.sum())
+        count = int(mask.sum())
     if count == 0:
         zero = out.color.sum() * 0.0
         return LossTerms(total=zero, color=0.0, depth=0.0, weights={}, pixels=0)
-    l_color = (out.color - color_gt).abs().mean(dim=-1)[mask].mean()
-    l_depth = depth_error[mask].mean()
+    # masked sums rather than boolean indexing: the same means without a gather and a scatter
+    # per term and iteration
+    l_color = masked_mean((out.color - color_gt).abs().mean(dim=-1), mask, count)
+    l_depth = masked_mean(depth_error, mask, count)
     w_im, w_depth = adaptive_weights(l_color, l_depth, config)
     balance = config.balance_weight * (torch.log(w_depth / w_im) - torch.log(
         torch.as_tensor(config.rho, dtype=w_im.dtype)
@@ -148,42 +161,47 @@ def depth_edges(depth: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 def fuse_target(
-    color_render: torch.Tensor, color_gt: torch.Tensor, depth_gt: torch.Tensor, sigma: float
+    color_render: torch.Tensor, color_gt: torch.Tensor, edges: torch.Tensor
 ) -> torch.Tensor:
     """Phi: the illumination pseudo-target I_fuse = e I_gt + (1 - e) sg(I_render).
 
     Args:
         color_render: [H, W, 3] rendered colour.
         color_gt: [H, W, 3] observed colour.
-        depth_gt: [H, W] observed depth (the guide), 0 = invalid.
-        sigma: relative depth step per pixel at which e = 1 - 1/e (`depth_edges`).
+        edges: [H, W] edge strength e of the observed depth (`depth_edges`).
 
     Returns:
         [H, W, 3] target without gradient: the render on flat geometry, the observation on
         depth discontinuities.
     """
-    e = depth_edges(depth_gt, sigma)[..., None]
+    e = edges[..., None]
     return (e * color_gt + (1.0 - e) * color_render.detach()).detach()
 
 
-def ssim_map(image: torch.Tensor, reference: torch.Tensor, backend: str = "torch") -> torch.Tensor:
-    """Differentiable SSIM map (window 11, sigma 1.5; `gscompress.metrics`) of [H, W, 3] images.
+def ssim_mean(image: torch.Tensor, reference: torch.Tensor, backend: str = "torch") -> torch.Tensor:
+    """Mean SSIM (window 11, sigma 1.5; `gscompress.metrics`) of [H, W, 3] images in [0, 1],
+    differentiable in `image`.
 
-    With the cpu render backend the filter is its C++ kernel (equal to torch's to rounding).
+    Renders of the cpu backend use its fused C++ kernel (equal to the torch maps to rounding),
+    which replaces some forty small tensor operations per mapping iteration.
     """
-    x = image.permute(2, 0, 1)[None]
-    y = reference.permute(2, 0, 1)[None]
-    if backend == "cpu":
+    x = image.permute(2, 0, 1)
+    y = reference.permute(2, 0, 1)
+    if backend == "cpu" and not reference.requires_grad:
         from gscompress.render import cpu
 
         ext = cpu.load_extension()  # cached; a cpu render implies it loaded
         if ext is not None:
-            return ssim_maps(x, y, 1.0, functools.partial(cpu.blur_cpu, ext))[0]
-    return ssim_maps(x, y, 1.0)[0]
+            return cpu.ssim_mean_cpu(ext, x, y)
+    return ssim_maps(x[None], y[None], 1.0)[0].mean()
 
 
 def mapping_loss(
-    out: RenderOutput, color_gt: torch.Tensor, depth_gt: torch.Tensor, config: MappingConfig
+    out: RenderOutput,
+    color_gt: torch.Tensor,
+    depth_gt: torch.Tensor,
+    config: MappingConfig,
+    edges: torch.Tensor | None = None,
 ) -> LossTerms:
     """Paper Eq. 2-3 on one rendered view (see the module docstring).
 
@@ -192,20 +210,25 @@ def mapping_loss(
         color_gt: [H, W, 3] observed colour.
         depth_gt: [H, W] observed depth, 0 = invalid.
         config: mapping settings (weights, SSIM share, tau, edge sigma).
+        edges: `depth_edges(depth_gt, config.illum_edge_sigma)` when the caller keeps it (a
+            view's is the same at every iteration); computed here when None.
     """
     l1 = (out.color - color_gt).abs().mean()
     if config.ssim_weight > 0 and min(color_gt.shape[:2]) >= 11:
         l_color = (1.0 - config.ssim_weight) * l1 + config.ssim_weight * (
-            1.0 - ssim_map(out.color, color_gt, out.backend).mean()
+            1.0 - ssim_mean(out.color, color_gt, out.backend)
         )
     else:
         l_color = l1
     valid = depth_gt > 0
-    l_depth = (out.depth - depth_gt).abs()[valid].mean() if bool(valid.any()) else l1 * 0.0
+    count = int(valid.sum())
+    l_depth = masked_mean((out.depth - depth_gt).abs(), valid, count) if count else l1 * 0.0
     total = config.color_weight * l_color + config.depth_weight * l_depth
     l_illum_value, w_illum_value = 0.0, 0.0
     if config.illum_tau > 0:
-        target = fuse_target(out.color, color_gt, depth_gt, config.illum_edge_sigma)
+        if edges is None:
+            edges = depth_edges(depth_gt, config.illum_edge_sigma)
+        target = fuse_target(out.color, color_gt, edges)
         l_illum = (out.color - target).abs().mean()
         w_illum = torch.clamp(l_illum.detach() / (l_color.detach() + EPS), max=config.illum_tau)
         total = total + w_illum * l_illum

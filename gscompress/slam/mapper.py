@@ -164,7 +164,8 @@ class Mapper:
             *self.params.render_inputs(), self.intrinsics, view.T_cam_world(),
             backend=self.config.backend,
         )  # fmt: skip
-        terms = mapping_loss(out, view.color, view.depth, self.config.mapping)
+        m = self.config.mapping
+        terms = mapping_loss(out, view.color, view.depth, m, view.edges(m.illum_edge_sigma))
         self.optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         self.optimizer.step()

@@ -27,11 +27,12 @@ from typing import Any
 import torch
 
 from gscompress.camera import Intrinsics
+from gscompress.metrics import gaussian_window, ssim_constants
 from gscompress.render.projection import Projection, TileBins, tile_grid
 
 logger = logging.getLogger(__name__)
 
-_SOURCES = tuple(Path(__file__).with_name(n) for n in ("composite.cpp", "project.cpp", "blur.cpp"))
+_SOURCES = tuple(Path(__file__).with_name(n) for n in ("composite.cpp", "project.cpp", "ssim.cpp"))
 # -ffp-contract=off keeps the forward, the backward and the torch oracle rounding alike.
 _CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off"]
 _LDFLAGS = ["-fopenmp"]
@@ -253,29 +254,34 @@ def project_cpu(
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
 
 
-class _Blur(torch.autograd.Function):
-    """Autograd wrapper of the C++ separable filter: the backward is the transposed filter."""
+class _Ssim(torch.autograd.Function):
+    """Autograd wrapper of the fused C++ mean SSIM; the gradient reaches the first image only."""
 
     @staticmethod
-    def forward(ctx: Any, ext: ModuleType, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-        ctx.ext, ctx.size = ext, x.shape[-2:]
-        ctx.save_for_backward(k)
-        return ext.blur_forward(x, k)
+    def forward(
+        ctx: Any, ext: ModuleType, x: torch.Tensor, y: torch.Tensor, k: torch.Tensor,
+        constants: tuple[float, float],
+    ) -> torch.Tensor:  # fmt: skip
+        mean, filtered = ext.ssim_forward(x, y, k, *constants)
+        ctx.ext, ctx.constants = ext, constants
+        ctx.save_for_backward(x, y, k, filtered)
+        return mean
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx: Any, grad: torch.Tensor) -> tuple[Any, ...]:
-        (k,) = ctx.saved_tensors
-        return None, ctx.ext.blur_backward(grad.contiguous(), k, *ctx.size), None
+        x, y, k, filtered = ctx.saved_tensors
+        dx = ctx.ext.ssim_backward(x, y, k, filtered, grad, *ctx.constants)
+        return None, dx, None, None, None
 
 
-def blur_cpu(ext: ModuleType, x: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
-    """C++ counterpart of `gscompress.metrics.blur` (same contract; the window gets no
-    gradient)."""
-    b, c, h, w = x.shape
-    k = window.detach().to(dtype=x.dtype).contiguous()
-    out = _Blur.apply(ext, x.reshape(b * c, h, w).contiguous(), k)
-    return out.reshape(b, c, *out.shape[-2:])
+def ssim_mean_cpu(ext: ModuleType, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """C++ counterpart of `gscompress.metrics.ssim_maps(x[None], y[None])[0].mean()` for [C, H,
+    W] images in [0, 1], differentiable in x; y (the observation) gets no gradient."""
+    if y.requires_grad:
+        raise ValueError("ssim_mean_cpu differentiates only its first image")
+    k = gaussian_window().to(dtype=x.dtype)
+    return _Ssim.apply(ext, x.contiguous(), y.to(x.dtype).contiguous(), k, ssim_constants(1.0))
 
 
 def bin_tiles_cpu(ext: ModuleType, projection: Projection, width: int, height: int) -> TileBins:

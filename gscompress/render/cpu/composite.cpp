@@ -554,12 +554,16 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
                                             torch::Tensor g_conics, torch::Tensor g_depths);
 std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii,
                                      torch::Tensor depths, int64_t tiles_x, int64_t tiles_y);
-// blur.cpp
+// ssim.cpp
 torch::Tensor blur_forward(torch::Tensor x, torch::Tensor k);
 torch::Tensor blur_backward(torch::Tensor grad, torch::Tensor k, int64_t H, int64_t W);
+std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch::Tensor k,
+                                        double c1, double c2);
+torch::Tensor ssim_backward(torch::Tensor x, torch::Tensor y, torch::Tensor k,
+                            torch::Tensor filtered, torch::Tensor grad, double c1, double c2);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "gscompress cpu kernels: EWA projection, tile binning, compositing, SSIM filter";
+  m.doc() = "gscompress cpu kernels: EWA projection, tile binning, compositing, SSIM";
   m.def("composite_forward", &composite_forward, "front-to-back compositing");
   m.def("composite_backward", &composite_backward, "back-to-front gradients");
   m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians");
@@ -567,4 +571,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "tile lists, front to back");
   m.def("blur_forward", &blur_forward, "separable valid Gaussian filter (SSIM)");
   m.def("blur_backward", &blur_backward, "gradient of the separable filter");
+  m.def("ssim_forward", &ssim_forward, "mean SSIM and its filtered maps");
+  m.def("ssim_backward", &ssim_backward, "gradient of mean SSIM with respect to x");
 }
