@@ -1,8 +1,10 @@
-"""The C++ kernels (projection, compositing, the SSIM filter) against the pure-torch oracle:
+"""The C++ kernels (projection, binning, compositing, SSIM) against the pure-torch oracle:
 values, gradients, contribution."""
 
 from __future__ import annotations
 
+import os
+import shutil
 import warnings
 
 import pytest
@@ -31,12 +33,16 @@ TOL = {torch.float64: 1e-10, torch.float32: 1e-5}
 
 @pytest.fixture(scope="module", autouse=True)
 def extension():
-    """Build (or load) the extension once for this module; skip without a compiler."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    """Build (or load) the extension once for this module. Skip without a compiler; with one, a
+    failed build fails the tests (the backend would fall back to torch and hide it)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         ext = cpu_backend.load_extension()
     if ext is None:
-        pytest.skip("the C++ render kernels could not be built (no compiler?)")
+        if shutil.which(os.environ.get("CXX", "c++")) is None:
+            pytest.skip("no C++ compiler: the C++ render kernels cannot be built")
+        why = "; ".join(str(w.message) for w in caught) or "see the first warning of this run"
+        pytest.fail(f"the C++ render kernels failed to build: {why}")
     return ext
 
 
