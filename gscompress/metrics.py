@@ -227,7 +227,9 @@ def ssim_maps(
 
     The building block of `ssim`, `ms_ssim` and the SLAM colour loss, so that the metric and
     the loss are the same function: Gaussian window 11 (sigma 1.5), K1 = 0.01, K2 = 0.03,
-    'valid' convolution per channel. Works on any device and floating dtype.
+    'valid' convolution per channel. Works on any device and floating dtype. (Renders of the
+    cpu backend take their loss's mean SSIM from a C++ kernel tested against this function,
+    `gscompress.render.cpu.ssim_mean_cpu`.)
 
     Args:
         x: [B, C, H, W] images (H, W >= 11).

@@ -339,6 +339,15 @@ def test_cpu_ssim_equals_torch_values_and_gradients(extension, dtype, shape):
     y = torch.rand(shape, dtype=dtype, requires_grad=True)
     with pytest.raises(ValueError, match="first image"):
         cpu_backend.ssim_mean_cpu(extension, torch.rand(shape, dtype=dtype), y)
+    x = torch.rand(shape, dtype=dtype)
+    y = y.detach()
+    k = metrics.gaussian_window().to(dtype)
+    _, filtered = extension.ssim_forward(x, y, k, 1e-4, 9e-4)
+    one = torch.ones((), dtype=dtype)
+    with pytest.raises(RuntimeError, match="same size"):  # the bound kernel checks its inputs
+        extension.ssim_backward(x, y[:1].contiguous(), k, filtered, one, 1e-4, 9e-4)
+    with pytest.raises(RuntimeError, match="filtered must be"):
+        extension.ssim_backward(x, y, k, filtered[:3].contiguous(), one, 1e-4, 9e-4)
 
 
 def test_mapping_loss_with_the_cpu_ssim_equals_torch(extension):

@@ -46,7 +46,8 @@ class View:
         return cls(index, color, depth, np.asarray(T_world_cam, dtype=np.float64))
 
     def edges(self, sigma: float) -> torch.Tensor:
-        """[H, W] `depth_edges` of the observed depth, computed once per sigma."""
+        """[H, W] `depth_edges` of the observed depth, computed once per sigma and kept with the
+        view (the mapping loss needs it at every iteration; `depth` is never changed in place)."""
         if sigma not in self._edges:
             self._edges[sigma] = depth_edges(self.depth, sigma)
         return self._edges[sigma]

@@ -75,7 +75,12 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor, count: int) -> torch.T
 
 
 def masked_median(values: torch.Tensor, mask: torch.Tensor, count: int) -> torch.Tensor:
-    """`values[mask].median()` (the lower middle value) without gathering the masked values."""
+    """`values[mask].median()` (the lower middle value) without gathering the masked values.
+
+    `count` = mask.sum() must be > 0. Unlike `median()`, a NaN among the masked values does not
+    make the result NaN: `kthvalue` orders NaN above every number, so NaN pixels count as the
+    largest (and the tracking outlier rule then leaves them out).
+    """
     filled = torch.where(mask, values, torch.inf).flatten()
     return filled.kthvalue((count + 1) // 2).values
 

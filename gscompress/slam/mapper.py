@@ -165,7 +165,8 @@ class Mapper:
             backend=self.config.backend,
         )  # fmt: skip
         m = self.config.mapping
-        terms = mapping_loss(out, view.color, view.depth, m, view.edges(m.illum_edge_sigma))
+        edges = view.edges(m.illum_edge_sigma) if m.illum_tau > 0 else None
+        terms = mapping_loss(out, view.color, view.depth, m, edges)
         self.optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         self.optimizer.step()

@@ -1,5 +1,5 @@
 """C++/OpenMP kernels of the cpu backend: EWA projection and tile compositing, each with its
-backward, and tile binning.
+backward, tile binning, and the mean SSIM of the mapping loss with its gradient.
 
 The extension is compiled on first use with `torch.utils.cpp_extension.load` into a cache
 directory keyed on the source, the flags, torch, Python and (for the -march=native build on

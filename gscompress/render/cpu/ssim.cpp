@@ -224,10 +224,13 @@ torch::Tensor ssim_backward(torch::Tensor x, torch::Tensor y, torch::Tensor k,
                             torch::Tensor filtered, torch::Tensor grad, double c1, double c2) {
   check(x, k);
   check(y, k);
+  TORCH_CHECK(x.sizes() == y.sizes(), "x and y must have the same size");
   const int64_t C = x.size(0), H = x.size(1), W = x.size(2), K = k.size(0);
+  TORCH_CHECK(H >= K && W >= K, "the image must be at least as large as the filter");
   const int64_t H2 = H - K + 1, W2 = W - K + 1, plane = H2 * W2;
-  TORCH_CHECK(filtered.is_contiguous() && filtered.sizes() == at::IntArrayRef({5, C, H2, W2}),
+  TORCH_CHECK(filtered.sizes() == at::IntArrayRef({5, C, H2, W2}),
               "filtered must be ssim_forward's [5, C, H2, W2]");
+  check(filtered.flatten(0, 1), k);
   const double g = grad.item<double>() / double(C * plane);
   auto d_filtered = torch::empty({3, C, H2, W2}, x.options());  // d mu_x, d E[x^2], d E[xy]
   auto d_maps = torch::empty({3, C, H, W}, x.options());
