@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import shutil
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -122,6 +123,23 @@ def test_portable_build_equals_torch(monkeypatch, tmp_path):
             _compare_ssim(cpu_backend.load_extension(), (3, 23, 37), dtype)
     finally:
         cpu_backend.load_extension.cache_clear()
+
+
+def test_checkouts_of_the_same_sources_build_apart(tmp_path):
+    """Two copies of the kernels' sources get different build directories (a shared one made
+    each rebuild after the other), the same copy the same one, and an edit a new one."""
+    copies = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        copies.append(tuple(Path(shutil.copy(s, tmp_path / name)) for s in cpu_backend._SOURCES))
+
+    def key(sources: tuple[Path, ...]) -> str:
+        return cpu_backend._cache_key(sources, ["-O3"], "generic", "c++")
+
+    assert key(copies[0]) == key(copies[0]) != key(copies[1])
+    before = key(copies[1])
+    copies[1][0].write_text(copies[1][0].read_text() + "\n// edited\n")
+    assert key(copies[1]) != before
 
 
 def test_deep_scene_reaches_the_stopping_rule():

@@ -2,10 +2,11 @@
 backward, tile binning, and the mean SSIM of the mapping loss with its gradient.
 
 The extension is compiled on first use with `torch.utils.cpp_extension.load` into a cache
-directory keyed on the source, the flags, torch, Python and (for the -march=native build on
-x86-64) the CPU model and feature flags (`$GSCOMPRESS_CACHE_DIR` or `$XDG_CACHE_HOME/gscompress`,
-default `~/.cache/gscompress`), so later processes load it in well under a second. Without a
-C++ compiler `load_extension()` returns None and the caller falls back to the pure-torch backend.
+directory keyed on the sources and their location, the flags, torch, Python and (for the
+-march=native build on x86-64) the CPU model and feature flags (`$GSCOMPRESS_CACHE_DIR` or
+`$XDG_CACHE_HOME/gscompress`, default `~/.cache/gscompress`), so later processes load it in well
+under a second. Without a C++ compiler `load_extension()` returns None and the caller falls back
+to the pure-torch backend.
 """
 
 from __future__ import annotations
@@ -92,6 +93,23 @@ def _cache_root() -> Path:
     return (Path(xdg) if xdg else Path.home() / ".cache") / "gscompress"
 
 
+def _cache_key(sources: tuple[Path, ...], cflags: list[str], cpu: str, compiler: str) -> str:
+    """16 hex digits naming one build: the sources' bytes and location, flags, toolchain, CPU.
+
+    The location counts because the build directory's ninja file names the sources by path: two
+    checkouts of the same sources sharing one cache would otherwise rebuild in turn, 1-2 minutes
+    each time (seen when alternating runs of two worktrees).
+    """
+    key = hashlib.sha256()
+    for source in sources:
+        key.update(source.read_bytes())
+        key.update(str(source.resolve()).encode())
+    key.update(" ".join(cflags + _LDFLAGS).encode())
+    key.update(f"{torch.__version__}|{sys.version}|{platform.machine()}|{compiler}".encode())
+    key.update(cpu.encode())
+    return key.hexdigest()[:16]
+
+
 @functools.cache
 def load_extension() -> ModuleType | None:
     """The compiled kernels, building them on first use; None when no compiler is available.
@@ -108,13 +126,7 @@ def load_extension() -> ModuleType | None:
         )
         return None
     cflags, cpu = _build_flags()
-    key = hashlib.sha256()
-    for source in _SOURCES:
-        key.update(source.read_bytes())
-    key.update(" ".join(cflags + _LDFLAGS).encode())
-    key.update(f"{torch.__version__}|{sys.version}|{platform.machine()}|{compiler}".encode())
-    key.update(cpu.encode())
-    digest = key.hexdigest()[:16]
+    digest = _cache_key(_SOURCES, cflags, cpu, compiler)
     build_dir = _cache_root() / f"ext-{digest}"
     name = f"gsc_composite_{digest}"
     if not (build_dir / f"{name}.so").exists():
