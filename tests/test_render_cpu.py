@@ -47,6 +47,16 @@ def extension():
     return ext
 
 
+def _on_threads(n, fn):
+    """fn() computed with torch (and the kernels) on n threads; the count is restored after."""
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(n)
+        return fn()
+    finally:
+        torch.set_num_threads(before)
+
+
 def _render_and_grads(scene, backend, **kw):
     scene = {k: v.detach().clone().requires_grad_(True) for k, v in scene.items()}
     out = run(scene, backend=backend, **kw)
@@ -165,14 +175,8 @@ def test_contribution_does_not_change_other_outputs():
 def test_results_do_not_depend_on_thread_count():
     """Per-Gaussian sums are reduced in list order, so threads change nothing, bit for bit."""
     scene = make_scene(300, seed=5)
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one, g_one = _render_and_grads(scene, "cpu", want_contribution=True)
-        torch.set_num_threads(2)
-        two, g_two = _render_and_grads(scene, "cpu", want_contribution=True)
-    finally:
-        torch.set_num_threads(before)
+    one, g_one = _on_threads(1, lambda: _render_and_grads(scene, "cpu", want_contribution=True))
+    two, g_two = _on_threads(2, lambda: _render_and_grads(scene, "cpu", want_contribution=True))
     assert torch.equal(one.color, two.color)
     assert torch.equal(one.contribution, two.contribution)
     # direct kernel outputs, before any torch reduction (the pose's sum is the projection's)
@@ -292,16 +296,6 @@ def test_a_lock_left_by_a_killed_build_is_cleared(tmp_path):
         assert held.returncode == 3
 
 
-def _one_thread(fn):
-    """fn() computed with torch (and the kernels) on one thread."""
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        return fn()
-    finally:
-        torch.set_num_threads(before)
-
-
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("shape", [(15, 120, 160), (3, 11, 11), (4, 23, 37)])
 def test_cpu_blur_equals_torch_values_and_gradients(extension, dtype, shape):
@@ -322,9 +316,9 @@ def test_cpu_blur_equals_torch_values_and_gradients(extension, dtype, shape):
     assert ours.shape == weights.shape and g_ours.shape == x.shape
     assert_rel_close(ours, ref, TOL[dtype], "blur")
     assert_rel_close(g_ours, g_ref, TOL[dtype], "blur gradient")
-    assert torch.equal(_one_thread(lambda: extension.blur_forward(x, k)), ours)
+    assert torch.equal(_on_threads(1, lambda: extension.blur_forward(x, k)), ours)
     assert torch.equal(
-        _one_thread(lambda: extension.blur_backward(weights, k, shape[1], shape[2])), g_ours
+        _on_threads(1, lambda: extension.blur_backward(weights, k, shape[1], shape[2])), g_ours
     )
 
 
@@ -345,7 +339,7 @@ def _compare_ssim(extension, shape: tuple[int, int, int], dtype: torch.dtype) ->
     value, grad = ours()
     assert_rel_close(value, ref, TOL[dtype], "ssim")
     assert_rel_close(grad, 1.5 * g_ref, TOL[dtype], "ssim gradient")
-    v1, g1 = _one_thread(ours)
+    v1, g1 = _on_threads(1, ours)
     assert torch.equal(v1, value) and torch.equal(g1, grad)
 
 

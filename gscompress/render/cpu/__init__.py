@@ -287,12 +287,19 @@ class _Ssim(torch.autograd.Function):
         return None, dx, None, None, None
 
 
+@functools.cache
+def _ssim_window(dtype: torch.dtype) -> torch.Tensor:
+    """SSIM's window in `dtype`, made once (the mapping loss asks at every iteration); the
+    kernels only read it."""
+    return gaussian_window().to(dtype=dtype).contiguous()
+
+
 def ssim_mean_cpu(ext: ModuleType, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """C++ counterpart of `gscompress.metrics.ssim_maps(x[None], y[None])[0].mean()` for [C, H,
     W] images in [0, 1], differentiable in x; y (the observation) gets no gradient."""
     if y.requires_grad:
         raise ValueError("ssim_mean_cpu differentiates only its first image")
-    k = gaussian_window().to(dtype=x.dtype)
+    k = _ssim_window(x.dtype)
     return _Ssim.apply(ext, x.contiguous(), y.to(x.dtype).contiguous(), k, ssim_constants(1.0))
 
 

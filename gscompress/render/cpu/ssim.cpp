@@ -36,6 +36,15 @@ void check(const torch::Tensor& x, const torch::Tensor& k) {
   }
 }
 
+// x and y: the images SSIM compares, [C, H, W] each and at least as large as the filter.
+void check_pair(const torch::Tensor& x, const torch::Tensor& y, const torch::Tensor& k) {
+  check(x, k);
+  check(y, k);
+  TORCH_CHECK(x.sizes() == y.sizes(), "x and y must have the same size");
+  TORCH_CHECK(x.size(1) >= k.size(0) && x.size(2) >= k.size(0),
+              "the image must be at least as large as the filter");
+}
+
 template <typename S>
 void forward_channel(const S* __restrict__ x, const S* __restrict__ k, int K, int H, int W,
                      S* __restrict__ row, S* __restrict__ out) {
@@ -175,11 +184,8 @@ torch::Tensor blur_backward(torch::Tensor grad, torch::Tensor k, int64_t H, int6
 
 std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch::Tensor k,
                                         double c1, double c2) {
-  check(x, k);
-  check(y, k);
-  TORCH_CHECK(x.sizes() == y.sizes(), "x and y must have the same size");
+  check_pair(x, y, k);
   const int64_t C = x.size(0), H = x.size(1), W = x.size(2), K = k.size(0);
-  TORCH_CHECK(H >= K && W >= K, "the image must be at least as large as the filter");
   const int64_t H2 = H - K + 1, W2 = W - K + 1;
   auto filtered = torch::empty({5, C, H2, W2}, x.options());  // mu_x, mu_y, E[x^2], E[y^2], E[xy]
   std::vector<double> row_sums(static_cast<size_t>(C * H2));
@@ -222,11 +228,8 @@ std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch:
 
 torch::Tensor ssim_backward(torch::Tensor x, torch::Tensor y, torch::Tensor k,
                             torch::Tensor filtered, torch::Tensor grad, double c1, double c2) {
-  check(x, k);
-  check(y, k);
-  TORCH_CHECK(x.sizes() == y.sizes(), "x and y must have the same size");
+  check_pair(x, y, k);
   const int64_t C = x.size(0), H = x.size(1), W = x.size(2), K = k.size(0);
-  TORCH_CHECK(H >= K && W >= K, "the image must be at least as large as the filter");
   const int64_t H2 = H - K + 1, W2 = W - K + 1, plane = H2 * W2;
   TORCH_CHECK(filtered.sizes() == at::IntArrayRef({5, C, H2, W2}),
               "filtered must be ssim_forward's [5, C, H2, W2]");
