@@ -18,7 +18,14 @@ from gscompress.slam.keyframes import View, overlap_fraction, sample_points, sel
 from gscompress.slam.mapper import Mapper
 from gscompress.slam.params import GaussianParams
 from gscompress.slam.system import SlamSystem, stage_positions
-from gscompress.slam.tracker import constant_velocity, orthonormalize, track
+from gscompress.slam.tracker import (
+    PoseAdam,
+    constant_velocity,
+    orthonormalize,
+    pose_gradient,
+    pose_increment,
+    track,
+)
 
 SIZE = (64, 48)
 
@@ -79,6 +86,38 @@ def test_constant_velocity_stays_rigid_over_a_long_run():
     R_last = poses[-1][:3, :3]
     np.testing.assert_allclose(R_last.T @ R_last, np.eye(3), atol=1e-12)
     assert np.linalg.det(orthonormalize(np.diag([1.0, 1.0, -1.0, 1.0]))[:3, :3]) > 0
+
+
+def test_pose_gradient_matches_finite_differences():
+    # L(x) = sum(W * (pose_increment(x) @ T0)): dL/dT = W, so pose_gradient must give dL/dx
+    rng = np.random.default_rng(3)
+    T0 = make_transform(quat_to_rotmat(rng.normal(size=4)), rng.normal(size=3))
+    W = rng.normal(size=(4, 4))
+    for x in (np.zeros(6), rng.normal(0, 0.2, 6)):
+        h = 1e-6
+        numeric = [
+            (np.sum(W * (pose_increment(x + h * e) @ T0))
+             - np.sum(W * (pose_increment(x - h * e) @ T0))) / (2 * h)
+            for e in np.eye(6)
+        ]  # fmt: skip
+        np.testing.assert_allclose(pose_gradient(x, T0, W), numeric, rtol=1e-6, atol=1e-8)
+
+
+def test_pose_adam_follows_torch_adam_and_exponential_lr():
+    rng = np.random.default_rng(4)
+    grads = rng.normal(size=(25, 6)) * np.logspace(-4, 1, 6)
+    lr, gamma = np.array([2e-3, 2e-3, 2e-3, 1e-3, 1e-3, 1e-3]), 0.93
+    q = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    tau = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    optimizer = torch.optim.Adam([{"params": [q], "lr": 2e-3}, {"params": [tau], "lr": 1e-3}])
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma)
+    adam, x = PoseAdam(lr, gamma), np.zeros(6)
+    for g in grads:
+        q.grad, tau.grad = torch.tensor(g[:3]), torch.tensor(g[3:])
+        optimizer.step()
+        scheduler.step()
+        x = adam.step(x, g)
+        np.testing.assert_allclose(x, torch.cat([q, tau]).detach().numpy(), rtol=1e-12, atol=1e-16)
 
 
 def test_mapping_reduces_the_loss(seq):
