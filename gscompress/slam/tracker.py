@@ -10,6 +10,8 @@ with (qx, qy, qz) and tau starting at zero. Near zero, 2 (qx, qy, qz) is the rot
 the Adam learning rates act like SplaTAM's on the world-to-camera quaternion and translation.
 They may decay geometrically over the iterations (`TrackingConfig.lr_final_fraction`).
 The Gaussians are rendered from detached tensors: only the six pose numbers get gradients.
+Those six numbers, their gradient (from dL/dT_cam_world by `pose_gradient`) and Adam's
+update (`PoseAdam`) live in numpy, not in torch's autograd and optimizer.
 The pose after the last iteration is returned. (SplaTAM returns the pose of lowest loss seen;
 with a mask that changes with the pose, losses of different poses are sums over different
 pixels, and on low-resolution maps the lowest one was measured to be a worse pose than the

@@ -1,0 +1,133 @@
+"""Benchmark of a tracking iteration and of its pose update: numpy against torch autograd.
+
+    python bench/tracking.py                  # 160x120, 5000 Gaussians, torch's thread count
+    python bench/tracking.py --threads 1 --gaussians 20000
+
+Prints one JSON object per case, in ms per tracking iteration (median and fastest round):
+- `pose_numpy`: what `gscompress.slam.tracker.track` does around the render per iteration: the
+  pose increment, `pose_gradient` from a given dL/dT and a `PoseAdam` step.
+- `pose_autograd`: the same update with the six numbers as torch leaves: the quaternion
+  rotation as torch operations (`gscompress.render.projection.rotation_rows`), autograd back
+  from dL/dT, torch's Adam and ExponentialLR (the tracker's way before session 18). Its row
+  carries `x_vs_numpy`, the ratio of its time to `pose_numpy`'s in this call.
+- `track_iteration`: a whole `track` call on a fixed random scene (render, loss, backward and
+  pose update, cpu backend) divided by its iterations; its row carries `pose_autograd_share`,
+  the fraction of an iteration that the autograd pose update would add.
+The cases run interleaved round by round, so that load from other processes affects all alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from gscompress.camera import Intrinsics
+from gscompress.render.projection import rotation_rows
+from gscompress.slam.config import preset
+from gscompress.slam.params import RenderInputs
+from gscompress.slam.tracker import PoseAdam, pose_gradient, pose_increment, track
+
+
+def _pose_numpy(g_T: np.ndarray, T0: np.ndarray) -> Callable[[], None]:
+    adam, state = PoseAdam(np.full(6, 1e-3), 0.99), {"x": np.zeros(6)}
+
+    def run() -> None:
+        x = state["x"]
+        torch.tensor(pose_increment(x) @ T0, dtype=torch.float32)  # what the render receives
+        state["x"] = adam.step(x, pose_gradient(x, T0, g_T))
+
+    return run
+
+
+def _pose_autograd(g_T: np.ndarray, T0: np.ndarray) -> Callable[[], None]:
+    q = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    tau = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    optimizer = torch.optim.Adam([{"params": [q], "lr": 1e-3}, {"params": [tau], "lr": 1e-3}])
+    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, 0.99)
+    T0_t, g_t = torch.from_numpy(T0), torch.from_numpy(g_T).float()
+    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64)
+
+    def run() -> None:
+        R = torch.stack(rotation_rows(torch.cat([q.new_ones(1), q])[None]), dim=1)[0]
+        delta = torch.cat([torch.cat([R, tau[:, None]], dim=1), bottom])
+        T = (delta @ T0_t).float()
+        optimizer.zero_grad(set_to_none=True)
+        T.backward(g_t)
+        optimizer.step()
+        scheduler.step()
+
+    return run
+
+
+def _track_iteration(n: int) -> tuple[Callable[[], None], int]:
+    g = torch.Generator().manual_seed(0)
+    extent, offset = torch.tensor([4.0, 3.0, 2.0]), torch.tensor([-2.0, -1.5, 2.0])
+    inputs = RenderInputs(
+        torch.rand(n, 3, generator=g) * extent + offset,
+        torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
+        torch.full((n, 3), 0.03), torch.full((n,), 0.8), torch.rand(n, 3, generator=g),
+    )  # fmt: skip
+    intrinsics = Intrinsics(fx=130.0, fy=130.0, cx=80.0, cy=60.0, width=160, height=120)
+    color = torch.rand(120, 160, 3, generator=g)
+    depth = torch.full((120, 160), 3.0)
+    config = preset("cpu").tracking
+
+    def run() -> None:
+        track(inputs, color, depth, intrinsics, np.eye(4), config, backend="cpu")
+
+    return run, config.iters
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--gaussians", type=int, default=5000, help="Gaussians of the scene")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--calls", type=int, default=400, help="pose updates per round")
+    opts = parser.parse_args()
+    if opts.threads:
+        torch.set_num_threads(opts.threads)
+    rng = np.random.default_rng(0)
+    g_T, T0 = rng.normal(size=(4, 4)), np.eye(4)
+    track_once, iters = _track_iteration(opts.gaussians)
+    cases: dict[str, tuple[Callable[[], None], int, int]] = {  # fn, calls per round, per-iteration
+        "pose_numpy": (_pose_numpy(g_T, T0), opts.calls, 1),
+        "pose_autograd": (_pose_autograd(g_T, T0), opts.calls, 1),
+        "track_iteration": (track_once, 3, iters),
+    }
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    for fn, calls, _ in cases.values():
+        for _ in range(max(calls // 10, 1)):
+            fn()
+    for _ in range(opts.rounds):
+        for name, (fn, calls, per) in cases.items():
+            start = time.perf_counter()
+            for _ in range(calls):
+                fn()
+            times[name].append((time.perf_counter() - start) / (calls * per) * 1e3)
+    median = {name: statistics.median(ms) for name, ms in times.items()}
+    for name, ms in times.items():
+        row: dict[str, object] = {
+            "case": name,
+            "threads": torch.get_num_threads(),
+            "ms_per_iteration": round(median[name], 4),
+            "ms_per_iteration_min": round(min(ms), 4),
+            "load_average": round(os.getloadavg()[0], 2),
+        }
+        if name == "pose_autograd":
+            row["x_vs_numpy"] = round(median[name] / median["pose_numpy"], 1)
+        if name == "track_iteration":
+            row["gaussians"] = opts.gaussians
+            row["pose_autograd_share"] = round(median["pose_autograd"] / median[name], 3)
+        print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()
