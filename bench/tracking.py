@@ -13,6 +13,9 @@ Prints one JSON object per case, in ms per tracking iteration (median and fastes
 - `track_iteration`: a whole `track` call on a fixed random scene (render, loss, backward and
   pose update, cpu backend) divided by its iterations; its row carries `pose_autograd_share`,
   the fraction of an iteration that the autograd pose update would add.
+- `project_backward_all` / `project_backward_camera`: the C++ projection's backward on the
+  scene with every gradient, and with the camera's only (what tracking asks for since session
+  18); the second row carries `x_vs_all`.
 The cases run interleaved round by round, so that load from other processes affects all alike.
 """
 
@@ -29,6 +32,7 @@ import numpy as np
 import torch
 
 from gscompress.camera import Intrinsics
+from gscompress.render import cpu as cpu_backend
 from gscompress.render.projection import rotation_rows
 from gscompress.slam.config import preset
 from gscompress.slam.params import RenderInputs
@@ -66,15 +70,38 @@ def _pose_autograd(g_T: np.ndarray, T0: np.ndarray) -> Callable[[], None]:
     return run
 
 
-def _track_iteration(n: int) -> tuple[Callable[[], None], int]:
+INTRINSICS = Intrinsics(fx=130.0, fy=130.0, cx=80.0, cy=60.0, width=160, height=120)
+
+
+def _scene(n: int) -> RenderInputs:
+    """n random Gaussians 2-4 m in front of an identity camera (the bench's fixed map)."""
     g = torch.Generator().manual_seed(0)
     extent, offset = torch.tensor([4.0, 3.0, 2.0]), torch.tensor([-2.0, -1.5, 2.0])
-    inputs = RenderInputs(
+    return RenderInputs(
         torch.rand(n, 3, generator=g) * extent + offset,
         torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
         torch.full((n, 3), 0.03), torch.full((n,), 0.8), torch.rand(n, 3, generator=g),
     )  # fmt: skip
-    intrinsics = Intrinsics(fx=130.0, fy=130.0, cx=80.0, cy=60.0, width=160, height=120)
+
+
+def _project_backward(n: int, want_params: bool) -> Callable[[], None]:
+    """The C++ projection's backward on the scene, with or without the per-Gaussian grads."""
+    ext = cpu_backend.load_extension()
+    inputs, i = _scene(n), INTRINSICS
+    g = torch.Generator().manual_seed(1)
+    grads = [torch.randn(n, k, generator=g) for k in (2, 3)] + [torch.randn(n, generator=g)]
+    args = (*inputs[:3], torch.eye(4), i.fx, i.fy, i.cx, i.cy, i.width, i.height, 0.1)
+
+    def run() -> None:
+        assert ext is not None
+        ext.project_backward(*args, *grads, want_params)
+
+    return run
+
+
+def _track_iteration(n: int) -> tuple[Callable[[], None], int]:
+    g = torch.Generator().manual_seed(2)
+    inputs, intrinsics = _scene(n), INTRINSICS
     color = torch.rand(120, 160, 3, generator=g)
     depth = torch.full((120, 160), 3.0)
     config = preset("cpu").tracking
@@ -94,6 +121,8 @@ def main() -> None:
     opts = parser.parse_args()
     if opts.threads:
         torch.set_num_threads(opts.threads)
+    if cpu_backend.load_extension() is None:
+        raise SystemExit("the C++ kernels are not available (no compiler?): nothing to time")
     rng = np.random.default_rng(0)
     g_T, T0 = rng.normal(size=(4, 4)), np.eye(4)
     track_once, iters = _track_iteration(opts.gaussians)
@@ -101,6 +130,8 @@ def main() -> None:
         "pose_numpy": (_pose_numpy(g_T, T0), opts.calls, 1),
         "pose_autograd": (_pose_autograd(g_T, T0), opts.calls, 1),
         "track_iteration": (track_once, 3, iters),
+        "project_backward_all": (_project_backward(opts.gaussians, True), opts.calls, 1),
+        "project_backward_camera": (_project_backward(opts.gaussians, False), opts.calls, 1),
     }
     times: dict[str, list[float]] = {name: [] for name in cases}
     for fn, calls, _ in cases.values():
@@ -123,6 +154,8 @@ def main() -> None:
         }
         if name == "pose_autograd":
             row["x_vs_numpy"] = round(median[name] / median["pose_numpy"], 1)
+        if name == "project_backward_camera":
+            row["x_vs_all"] = round(median["project_backward_all"] / median[name], 2)
         if name == "track_iteration":
             row["gaussians"] = opts.gaussians
             row["pose_autograd_share"] = round(median["pose_autograd"] / median[name], 3)

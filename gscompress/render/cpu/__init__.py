@@ -240,11 +240,15 @@ class _Project(torch.autograd.Function):
     def backward(
         ctx: Any, g_means2d: torch.Tensor, g_conics: torch.Tensor, g_depths: torch.Tensor, _: Any
     ) -> tuple[Any, ...]:
-        grads = ctx.ext.project_backward(
+        # tracking renders detached Gaussians: then only the camera's gradient is computed
+        want_params = any(ctx.needs_input_grad[2:5])
+        d_means, d_quats, d_scales, d_T = ctx.ext.project_backward(
             *ctx.saved_tensors, *ctx.camera,
-            g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous(),
+            g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous(), want_params,
         )  # fmt: skip
-        return None, None, *grads
+        if not want_params:
+            d_means = d_quats = d_scales = None
+        return None, None, d_means, d_quats, d_scales, d_T
 
 
 def project_cpu(

@@ -551,7 +551,8 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
                                             torch::Tensor scales, torch::Tensor T, double fx,
                                             double fy, double cx, double cy, int64_t width,
                                             int64_t height, double near, torch::Tensor g_means2d,
-                                            torch::Tensor g_conics, torch::Tensor g_depths);
+                                            torch::Tensor g_conics, torch::Tensor g_depths,
+                                            bool want_params);
 std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii,
                                      torch::Tensor depths, int64_t tiles_x, int64_t tiles_y);
 // ssim.cpp
@@ -567,7 +568,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_forward", &composite_forward, "front-to-back compositing");
   m.def("composite_backward", &composite_backward, "back-to-front gradients");
   m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians");
-  m.def("project_backward", &project_backward, "gradients of the projection");
+  m.def("project_backward", &project_backward,
+        "gradients of the projection (want_params false: the camera's only)");
   m.def("bin_tiles", &bin_tiles, "tile lists, front to back");
   m.def("blur_forward", &blur_forward, "separable valid Gaussian filter (SSIM)");
   m.def("blur_backward", &blur_backward, "gradient of the separable filter");

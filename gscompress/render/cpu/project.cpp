@@ -175,6 +175,8 @@ void forward_impl(const S* means, const S* quats, const S* scales, const S* T, c
 
 // The camera transform's gradient, W (9, row-major) then t (3), is summed in double over fixed
 // chunks of Gaussians (in parallel), and the chunks' sums are added in order by the caller.
+// With d_means == nullptr the per-Gaussian gradients (means, quats, scales) are skipped: the
+// camera's gradient does not depend on them, so it comes out the same bit for bit.
 constexpr int kPoseSlots = 12;
 constexpr int64_t kChunk = 1024;
 
@@ -256,6 +258,7 @@ void backward_impl(const S* means, const S* quats, const S* scales, const S* T, 
         }
         sum[9 + i] += double(d_p[i]);
       }
+      if (d_means == nullptr) continue;  // only the camera's gradient is wanted (tracking)
       for (int k = 0; k < 3; ++k) {
         d_means[3 * g + k] = d_p[0] * W[0][k] + d_p[1] * W[1][k] + d_p[2] * W[2][k];
       }
@@ -369,7 +372,8 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
                                             torch::Tensor scales, torch::Tensor T, double fx,
                                             double fy, double cx, double cy, int64_t width,
                                             int64_t height, double near, torch::Tensor g_means2d,
-                                            torch::Tensor g_conics, torch::Tensor g_depths) {
+                                            torch::Tensor g_conics, torch::Tensor g_depths,
+                                            bool want_params) {
   check(means, quats, scales, T);
   const auto n = means.size(0);
   for (const auto* x : {&g_means2d, &g_conics, &g_depths}) {
@@ -377,9 +381,11 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
     TORCH_CHECK(x->is_contiguous() && x->device().is_cpu(), "gradients must be contiguous CPU");
   }
   auto opts = means.options();
-  auto d_means = torch::empty({n, 3}, opts);
-  auto d_quats = torch::empty({n, 4}, opts);
-  auto d_scales = torch::empty({n, 3}, opts);
+  // without want_params only d_T is computed; the others come back empty
+  const int64_t rows = want_params ? n : 0;
+  auto d_means = torch::empty({rows, 3}, opts);
+  auto d_quats = torch::empty({rows, 4}, opts);
+  auto d_scales = torch::empty({rows, 3}, opts);
   auto d_T = torch::zeros({4, 4}, opts);
   const Camera cam(fx, fy, cx, cy, int(width), int(height), near);
   const int n_threads = std::max(1, at::get_num_threads());
@@ -388,8 +394,10 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
     backward_impl<scalar_t>(means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                             scales.data_ptr<scalar_t>(), T.data_ptr<scalar_t>(), cam, n,
                             g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
-                            g_depths.data_ptr<scalar_t>(), d_means.data_ptr<scalar_t>(),
-                            d_quats.data_ptr<scalar_t>(), d_scales.data_ptr<scalar_t>(),
+                            g_depths.data_ptr<scalar_t>(),
+                            want_params ? d_means.data_ptr<scalar_t>() : nullptr,
+                            want_params ? d_quats.data_ptr<scalar_t>() : nullptr,
+                            want_params ? d_scales.data_ptr<scalar_t>() : nullptr,
                             chunk_sums.data(), n_threads);
     double sum[kPoseSlots] = {};
     for (size_t c = 0; c < chunk_sums.size(); c += kPoseSlots) {
