@@ -227,6 +227,11 @@ def test_cpu_projection_equals_torch(extension, dtype):
         weighted(project_cpu(extension, *fixed, pose, INTR, 0.1)), [pose]
     )
     assert torch.equal(g_pose, g_ours[3])
+    # and one Gaussian parameter alone still gets its gradient
+    scales = scene["scales"].detach().clone().requires_grad_(True)
+    proj = project_cpu(extension, *fixed[:2], scales, scene["T_cam_world"].detach(), INTR, 0.1)
+    (g_scales,) = torch.autograd.grad(weighted(proj), [scales])
+    assert torch.equal(g_scales, g_ours[2])
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

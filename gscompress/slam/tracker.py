@@ -183,9 +183,10 @@ def track(
         if done == 0:
             first_loss = last_loss
         terms.total.backward()
-        g_T = T_cam_world.grad  # None when no Gaussian reaches the image
-        if g_T is not None:
-            x = adam.step(x, pose_gradient(x, T0, g_T.cpu().double().numpy()))
+        # (the renderers give a zero gradient, not None, when no Gaussian is in view)
+        grad = T_cam_world.grad
+        g_T = np.zeros((4, 4)) if grad is None else grad.cpu().double().numpy()
+        x = adam.step(x, pose_gradient(x, T0, g_T))
         done += 1
     T_cam_world = pose_increment(x) @ T0
     return TrackResult(
