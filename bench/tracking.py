@@ -12,13 +12,15 @@ Prints one JSON object per case, in ms per tracking iteration (median and fastes
   with the rotation built by the renderer's batched code (a review timed that about 13% slower
   than the old tracker's own code). Its row carries `x_vs_numpy`, the ratio of its time to
   `pose_numpy`'s in this call.
-- `track_iteration`: a whole `track` call on a fixed random scene (render, loss, backward and
+- `track_iteration`: a whole `track` call on the scene (render, loss, backward and
   pose update, cpu backend) divided by its iterations; its row carries `pose_autograd_extra`,
   (pose_autograd - pose_numpy) / track_iteration: what the autograd update would add.
 - `project_backward_all` / `project_backward_camera`: the C++ projection's backward on the
   scene with every gradient, and with the camera's only (what tracking asks for since session
   18); the second row carries `x_vs_all`.
-The cases run interleaved round by round, so that load from other processes affects all alike.
+The scene is `bench/render.py`'s random SLAM-like view at 160x120 with `--gaussians` of them,
+observed as it renders from the identity pose, where tracking starts. The cases run
+interleaved round by round, so that load from other processes affects all alike.
 """
 
 from __future__ import annotations
@@ -29,12 +31,15 @@ import os
 import statistics
 import time
 from collections.abc import Callable
+from types import ModuleType
 
 import numpy as np
 import torch
+from render import make_scene  # bench/render.py (this folder is on sys.path when run)
 
 from gscompress.camera import Intrinsics
 from gscompress.render import cpu as cpu_backend
+from gscompress.render import render
 from gscompress.render.projection import rotation_rows
 from gscompress.slam.config import preset
 from gscompress.slam.params import RenderInputs
@@ -72,40 +77,31 @@ def _pose_autograd(g_T: np.ndarray, T0: np.ndarray) -> Callable[[], None]:
     return run
 
 
-INTRINSICS = Intrinsics(fx=130.0, fy=130.0, cx=80.0, cy=60.0, width=160, height=120)
+def _scene(n: int) -> tuple[RenderInputs, Intrinsics]:
+    """`bench/render.py`'s SLAM-like random view at 160x120 (about 25 Gaussians per pixel)."""
+    scene = make_scene(160, 120, n)
+    keys = ("means", "quats", "scales", "opacities", "colors")
+    return RenderInputs(*(scene[k] for k in keys)), scene["intrinsics"]
 
 
-def _scene(n: int) -> RenderInputs:
-    """n random Gaussians 2-4 m in front of an identity camera (the bench's fixed map)."""
-    g = torch.Generator().manual_seed(0)
-    extent, offset = torch.tensor([4.0, 3.0, 2.0]), torch.tensor([-2.0, -1.5, 2.0])
-    return RenderInputs(
-        torch.rand(n, 3, generator=g) * extent + offset,
-        torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1),
-        torch.full((n, 3), 0.03), torch.full((n,), 0.8), torch.rand(n, 3, generator=g),
-    )  # fmt: skip
-
-
-def _project_backward(n: int, want_params: bool) -> Callable[[], None]:
+def _project_backward(ext: ModuleType, n: int, want_params: bool) -> Callable[[], None]:
     """The C++ projection's backward on the scene, with or without the per-Gaussian grads."""
-    ext = cpu_backend.load_extension()
-    inputs, i = _scene(n), INTRINSICS
+    inputs, i = _scene(n)
     g = torch.Generator().manual_seed(1)
     grads = [torch.randn(n, k, generator=g) for k in (2, 3)] + [torch.randn(n, generator=g)]
     args = (*inputs[:3], torch.eye(4), i.fx, i.fy, i.cx, i.cy, i.width, i.height, 0.1)
 
     def run() -> None:
-        assert ext is not None
         ext.project_backward(*args, *grads, want_params)
 
     return run
 
 
 def _track_iteration(n: int) -> tuple[Callable[[], None], int]:
-    g = torch.Generator().manual_seed(2)
-    inputs, intrinsics = _scene(n), INTRINSICS
-    color = torch.rand(120, 160, 3, generator=g)
-    depth = torch.full((120, 160), 3.0)
+    inputs, intrinsics = _scene(n)
+    with torch.no_grad():
+        observed = render(*inputs, intrinsics, torch.eye(4), backend="cpu")
+    color, depth = observed.color, observed.depth_normalized
     config = preset("cpu").tracking
 
     def run() -> None:
@@ -123,7 +119,8 @@ def main() -> None:
     opts = parser.parse_args()
     if opts.threads:
         torch.set_num_threads(opts.threads)
-    if cpu_backend.load_extension() is None:
+    ext = cpu_backend.load_extension()
+    if ext is None:
         raise SystemExit("the C++ kernels are not available (no compiler?): nothing to time")
     rng = np.random.default_rng(0)
     g_T, T0 = rng.normal(size=(4, 4)), np.eye(4)
@@ -132,8 +129,8 @@ def main() -> None:
         "pose_numpy": (_pose_numpy(g_T, T0), opts.calls, 1),
         "pose_autograd": (_pose_autograd(g_T, T0), opts.calls, 1),
         "track_iteration": (track_once, 3, iters),
-        "project_backward_all": (_project_backward(opts.gaussians, True), opts.calls, 1),
-        "project_backward_camera": (_project_backward(opts.gaussians, False), opts.calls, 1),
+        "project_backward_all": (_project_backward(ext, opts.gaussians, True), opts.calls, 1),
+        "project_backward_camera": (_project_backward(ext, opts.gaussians, False), opts.calls, 1),
     }
     times: dict[str, list[float]] = {name: [] for name in cases}
     for fn, calls, _ in cases.values():
