@@ -15,10 +15,11 @@
 //   (8 pixels of float on AVX2, 16 on AVX-512, starting at the Gaussian's first column), where
 //   its alpha can reach 1/255 are visited. Each segment is one branch-free SIMD computation,
 //   with the per-pixel state (T, accumulated features, ...) in tile-local arrays.
-// - The work of a segment is one long chain of dependent operations (the exponential's
-//   polynomial above all), and a core overlaps only so much of one chain with the next: the
-//   segments of a Gaussian (distinct pixels) are computed kInterleave at a time, statement by
-//   statement, which made the kernels 1.2x (forward) and 1.4x (backward) faster on AVX2.
+// - A segment's alpha is one long chain of dependent operations (the exponential's polynomial
+//   above all), and a core overlaps only so much of one chain with the next. The alphas of a
+//   Gaussian's segments (distinct pixels) are computed kInterleave at a time, statement by
+//   statement; with FMA in the polynomial this made the forward 1.3x and the backward 1.4x
+//   faster on AVX2 (office's tracking renders, 1 thread).
 // - The forward stores per pixel the final transmittance and the number of list entries it
 //   consumed, so the backward is a single back-to-front pass that recovers T by division.
 // - Per-Gaussian sums (contribution, gradients) are reduced over the pixels of a tile into the
@@ -63,7 +64,7 @@ constexpr int kVecBytes = 32;
 constexpr int kVecBytes = 16;
 #endif
 
-// One register of lanes (8 floats on AVX2); a tile row of 16 pixels is kSegs of them.
+// One register of lanes (8 floats on AVX2); a Gaussian covers at most kSegs of them in a row.
 template <typename S>
 struct Simd;
 template <>
@@ -105,24 +106,28 @@ inline auto hsum(const V& v) {
 // a * b + c, rounded once where the target has FMA. Used only inside vexp, whose polynomial is
 // this file's own: everything the torch oracle computes too keeps the oracle's operations (the
 // build turns off contraction, -ffp-contract=off), so both round alike.
-template <typename V>
-inline V fmadd(const V& a, const V& b, const V& c) {
-#if defined(__FMA__) || defined(__AVX512F__)
-  constexpr bool is_float = std::is_same_v<std::remove_cv_t<decltype(a[0] + 0)>, float>;
-  static_assert(sizeof(V) == 32 || sizeof(V) == 64, "FMA targets have 32- or 64-byte vectors");
-  if constexpr (sizeof(V) == 32 && is_float) {
-    return V(_mm256_fmadd_ps(__m256(a), __m256(b), __m256(c)));
-  } else if constexpr (sizeof(V) == 32) {
-    return V(_mm256_fmadd_pd(__m256d(a), __m256d(b), __m256d(c)));
-  } else if constexpr (is_float) {
-    return V(_mm512_fmadd_ps(__m512(a), __m512(b), __m512(c)));
-  } else {
-    return V(_mm512_fmadd_pd(__m512d(a), __m512d(b), __m512d(c)));
-  }
-#else
-  return a * b + c;
-#endif
+using VF = Simd<float>::V;
+using VD = Simd<double>::V;
+#if defined(__AVX512F__)
+inline VF fmadd(VF a, VF b, VF c) {
+  return VF(_mm512_fmadd_ps(__m512(a), __m512(b), __m512(c)));
 }
+inline VD fmadd(VD a, VD b, VD c) {
+  return VD(_mm512_fmadd_pd(__m512d(a), __m512d(b), __m512d(c)));
+}
+#elif defined(__FMA__)
+inline VF fmadd(VF a, VF b, VF c) {
+  return VF(_mm256_fmadd_ps(__m256(a), __m256(b), __m256(c)));
+}
+inline VD fmadd(VD a, VD b, VD c) {
+  return VD(_mm256_fmadd_pd(__m256d(a), __m256d(b), __m256d(c)));
+}
+#else
+template <typename V>
+inline V fmadd(V a, V b, V c) {
+  return a * b + c;
+}
+#endif
 
 // exp(x) for x <= 0, accurate to about 1 ulp, in place on K whole vectors (libm's exp does not
 // vectorise). The K vectors go through it statement by statement: the polynomial is a long chain
@@ -151,7 +156,7 @@ inline void vexp(Simd<float>::V* x) {
   EACH {
     const V y = fmadd(p[k], r[k] * r[k], r[k]) + 1.0f;
     const I bits = (__builtin_convertvector(n[k], I) + 127) << 23;
-    x[k] = y * reinterpret_cast<const V&>(bits);
+    x[k] = y * V(bits);
   }
 }
 
@@ -175,7 +180,7 @@ inline void vexp(Simd<double>::V* x) {
   EACH {
     const V y = fmadd(p[k], r[k] * r[k], r[k]) + 1.0;
     const I bits = (__builtin_convertvector(n[k], I) + 1023) << 52;
-    x[k] = y * reinterpret_cast<const V&>(bits);
+    x[k] = y * V(bits);
   }
 }
 
@@ -260,8 +265,8 @@ void reduce_entries(const scalar_t* slots, const int64_t* ids, int64_t n_entries
   }
 }
 
-// Row stride of the per-pixel state: a tile row plus one register of padding, so that a
-// register-wide segment may start at any column of the row.
+// Row stride of the per-pixel state: a tile row plus padding (L - 1 columns would do), so that
+// a register-wide segment may start at any column of the row.
 template <typename S>
 constexpr int kStride = kTile + kLanes<S>;
 
@@ -277,13 +282,13 @@ inline void store(S* p, const V& v) {
 }
 
 // Row segments computed side by side (see vexp); 4 was the fastest of 1, 2, 3, 4, 6 and 8 on
-// AVX2 (more spill registers).
+// AVX2 (beyond 4, registers spill).
 constexpr int kInterleave = 4;
 
 // The columns [x0, x1) (tile-local) of one entry within a tile, as register-wide segments that
 // start at x0 (a footprint at most a register wide takes one segment per row wherever it lies);
-// per segment which lanes lie in [x0, x1), their x offset from the centre and a dx^2 (shared by
-// every row the entry visits).
+// per segment which lanes lie in [x0, x1), their x offset dx from the centre and a dx^2 (shared
+// by every row the entry visits).
 template <typename scalar_t>
 struct EntryColumns {
   using V = typename Simd<scalar_t>::V;
@@ -315,14 +320,15 @@ struct Segments {
 
   Segments(const EntryColumns<scalar_t>& col, int first, int y0, int tile_y, scalar_t my,
            scalar_t b, scalar_t c) {
+    int ly = y0 + first / col.n_segs, si = first % col.n_segs;
     EACH {
-      const int ly = y0 + (first + k) / col.n_segs;
-      sg[k] = (first + k) % col.n_segs;
-      p[k] = ly * kStride<scalar_t> + col.x0 + sg[k] * kLanes<scalar_t>;
+      sg[k] = si;
+      p[k] = ly * kStride<scalar_t> + col.x0 + si * kLanes<scalar_t>;
       dy[k] = scalar_t(tile_y + ly) - my;
-      dx[k] = col.dx[sg[k]];
+      dx[k] = col.dx[si];
       // Same operation order as the torch oracle, so both round alike.
-      G[k] = scalar_t(-0.5) * (col.a_dx_dx[sg[k]] + c * dy[k] * dy[k]) - b * dx[k] * dy[k];
+      G[k] = scalar_t(-0.5) * (col.a_dx_dx[si] + c * dy[k] * dy[k]) - b * dx[k] * dy[k];
+      if (++si == col.n_segs) si = 0, ++ly;
     }
     vexp<K>(G);
   }
@@ -364,15 +370,11 @@ void forward_impl(const scalar_t* packed, const int64_t* offsets, int width, int
     for (int t = 0; t < n_tiles; ++t) {
       const int tile_x = (t % tiles_x) * kTile, tile_y = (t / tiles_x) * kTile;
       const int tw = std::min(kTile, width - tile_x), th = std::min(kTile, height - tile_y);
-      for (int ly = 0; ly < kTile; ++ly) {
-        for (int lx = 0; lx < RS; ++lx) {
-          const int p = ly * RS + lx;
-          T[p] = scalar_t(1);
-          for (int ch = 0; ch < kCh; ++ch) acc[ch][p] = scalar_t(0);
-          alive[p] = (lx < tw && ly < th) ? int_t(-1) : int_t(0);
-          last[p] = 0;
-        }
-      }
+      std::fill(T, T + kTile * RS, scalar_t(1));
+      for (int ch = 0; ch < kCh; ++ch) std::fill(acc[ch], acc[ch] + kTile * RS, scalar_t(0));
+      std::fill(last, last + kTile * RS, int_t(0));
+      std::fill(alive, alive + kTile * RS, int_t(0));
+      for (int ly = 0; ly < th; ++ly) std::fill(alive + ly * RS, alive + ly * RS + tw, int_t(-1));
       int n_active = tw * th;
       const int64_t begin = offsets[t], end = offsets[t + 1];
       if (entry_weight) std::fill(entry_weight + begin, entry_weight + end, scalar_t(0));
