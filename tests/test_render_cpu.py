@@ -118,8 +118,9 @@ def test_partial_tiles_equal_torch(dtype):
 @pytest.mark.slow
 def test_portable_build_equals_torch(monkeypatch, tmp_path):
     """The build without -march=native (any CPU that cannot be identified, or not x86-64) uses
-    16-byte vectors: 4 float lanes, 4 segments a tile row (8 for double). Built afresh into a
-    temporary cache, it renders as the torch oracle does, and its SSIM equals torch's."""
+    16-byte vectors: 4 float lanes, so a Gaussian spans up to 4 segments of a tile row (8 for
+    double), and no FMA. Built afresh into a temporary cache, it renders as the torch oracle
+    does, and its SSIM equals torch's."""
     monkeypatch.setattr(cpu_backend, "_cpu_signature", lambda: None)
     monkeypatch.setenv("GSCOMPRESS_CACHE_DIR", str(tmp_path))
     assert cpu_backend._build_flags() == (list(cpu_backend._CFLAGS), "generic")
