@@ -281,3 +281,28 @@ def test_threads_option_sets_torch_and_openmp_threads(
     assert r.exit_code == 0, r.output
     assert torch.get_num_threads() == 1 and os.environ["OMP_NUM_THREADS"] == "1"
     assert run("--threads", "0", "info", tmp_path / "t.mcap").exit_code == 2
+
+
+def test_slam_and_merge_do_not_import_torch_dynamo(seq_dir, tmp_path):
+    """torch.optim's first use imports torch._dynamo, seconds of start-up on a 2-core machine
+    (as long as importing torch itself); the map's own Adam keeps `gsc slam` and `gsc merge`
+    from paying it. A fresh interpreter, since other tests may have imported it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from gscompress_cli.main import cli\n"
+        f"a, b = {str(tmp_path / 'a.mcap')!r}, {str(tmp_path / 'm.mcap')!r}\n"
+        f"args = [['slam', {str(seq_dir)!r}, '--preset', 'tiny', '-o', a],\n"
+        f"        ['merge', a, a, '--seq', {str(seq_dir)!r}, '--iters', '2', '-o', b]]\n"
+        "for argv in args:\n"
+        "    try:\n"
+        "        cli(argv)\n"
+        "    except SystemExit as e:\n"
+        "        assert not e.code, e.code\n"
+        "print('dynamo' if 'torch._dynamo' in sys.modules else 'no dynamo')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().endswith("no dynamo"), done.stdout[-2000:]

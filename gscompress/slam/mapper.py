@@ -1,12 +1,13 @@
 """Mapping: optimise the Gaussians over a window of views with fixed poses (paper Eq. 2-3).
 
-The `Mapper` owns the map's leaf tensors and one Adam optimizer that lives for the whole run
-(one parameter group per tensor, with its own learning rate). Gaussians are added by
-densification and removed by pruning between or during iterations; the optimizer's moments
-follow their Gaussians (`gscompress.slam.params.resize_adam_rows`). Each iteration renders one
-view: the current frame, or with probability 1 - `current_frame_share` a keyframe of the window.
-Every `opacity_every` mapping iterations (counted over the run) Gaussians with opacity below
-`alpha_min` and huge ones are removed (paper Eq. 9, SplaTAM's cleanup).
+The `Mapper` owns the map's leaf tensors and one Adam optimizer (`gscompress.slam.params.Adam`)
+that lives for the whole run (one parameter group per tensor, with its own learning rate).
+Gaussians are added by densification and removed by pruning between or during iterations; the
+optimizer's moments follow their Gaussians (`gscompress.slam.params.resize_adam_rows`). Each
+iteration renders one view: the current frame, or with probability 1 - `current_frame_share` a
+keyframe of the window. Every `opacity_every` mapping iterations (counted over the run)
+Gaussians with opacity below `alpha_min` and huge ones are removed (paper Eq. 9, SplaTAM's
+cleanup).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from gscompress.render import render
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.keyframes import View
 from gscompress.slam.losses import mapping_loss
-from gscompress.slam.params import GaussianParams
+from gscompress.slam.params import Adam, GaussianParams
 
 
 @dataclass
@@ -80,7 +81,7 @@ class Mapper:
         ]
         if not config.isotropic:
             groups.append({"params": [p.quats], "lr": m.lr_quats, "name": "quats"})
-        self.optimizer = torch.optim.Adam(groups, eps=1e-15)
+        self.optimizer = Adam(groups, eps=1e-15)
         self.iterations = 0
         self.scene_radius: float | None = None
 
@@ -167,7 +168,7 @@ class Mapper:
         m = self.config.mapping
         edges = view.edges(m.illum_edge_sigma) if m.illum_tau > 0 else None
         terms = mapping_loss(out, view.color, view.depth, m, edges)
-        self.optimizer.zero_grad(set_to_none=True)
+        self.optimizer.zero_grad()
         terms.total.backward()
         self.optimizer.step()
         value = float(terms.total.detach())

@@ -7,13 +7,16 @@ unnormalised quaternions) become the renderer's inputs; `gscompress.ops.score` u
 (densification, later injection of a share) and removing them (pruning) replace the leaf
 tensors; `resize_adam_rows` moves the optimizer's per-Gaussian state along, so that the Adam
 moments of every surviving Gaussian stay attached to it and new Gaussians start from zero.
+
+`Adam` is the map's optimizer: torch's Adam update without torch.optim, whose first use imports
+torch._dynamo (1-4 s on a 2-core machine, paid by every `gsc slam` and `gsc merge`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -64,8 +67,64 @@ def activate(
     )
 
 
+class Adam:
+    """`torch.optim.Adam` (no weight decay, no amsgrad) on groups of tensors, without torch.optim.
+
+    The same operations in the same order as torch's single-tensor CPU implementation, so the
+    parameters come out bit for bit the same (tested). The attributes that
+    `resize_adam_rows` works on are torch's: `param_groups` (dicts with "params" and "lr") and
+    `state` (per parameter: "step", "exp_avg", "exp_avg_sq", created at its first step).
+
+    Args:
+        groups: dicts with "params" (a list of leaf tensors), "lr" and any other keys (kept).
+        betas: decay rates of the first and second moments.
+        eps: added to the second moment's root.
+    """
+
+    def __init__(
+        self,
+        groups: list[dict[str, Any]],
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-8,
+    ) -> None:
+        self.param_groups = [dict(group, params=list(group["params"])) for group in groups]
+        self.betas = betas
+        self.eps = eps
+        self.state: dict[torch.Tensor, dict[str, Any]] = {}
+
+    def zero_grad(self) -> None:
+        """Drop every parameter's gradient (set it to None)."""
+        for group in self.param_groups:
+            for p in group["params"]:
+                p.grad = None
+
+    @torch.no_grad()
+    def step(self) -> None:
+        """One update of every parameter that has a gradient."""
+        beta1, beta2 = self.betas
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                state = self.state.get(p)
+                if not state:
+                    state = self.state[p] = {
+                        "step": 0,
+                        "exp_avg": torch.zeros_like(p),
+                        "exp_avg_sq": torch.zeros_like(p),
+                    }
+                state["step"] += 1
+                step = float(state["step"])
+                exp_avg, exp_avg_sq = state["exp_avg"], state["exp_avg_sq"]
+                exp_avg.lerp_(p.grad, 1 - beta1)
+                exp_avg_sq.mul_(beta2).addcmul_(p.grad, p.grad, value=1 - beta2)
+                step_size = group["lr"] / (1 - beta1**step)
+                denom = (exp_avg_sq.sqrt() / (1 - beta2**step) ** 0.5).add_(self.eps)
+                p.addcdiv_(exp_avg, denom, value=-step_size)
+
+
 def resize_adam_rows(
-    optimizer: torch.optim.Optimizer,
+    optimizer: Adam,
     old: torch.Tensor,
     new: torch.Tensor,
     rows: Callable[[torch.Tensor], torch.Tensor],
@@ -155,7 +214,7 @@ class GaussianParams:
             alpha_t_sum=self.sums.alpha_t_sum.cpu().numpy(),
         )
 
-    def append(self, gaussians: GaussianMap, optimizer: torch.optim.Optimizer | None) -> None:
+    def append(self, gaussians: GaussianMap, optimizer: Adam | None) -> None:
         """Add Gaussians at the end (their Adam state starts at zero, sums as given)."""
         if self.isotropic and not gaussians.isotropic:
 
@@ -181,7 +240,7 @@ class GaussianParams:
         self.ids = torch.cat([self.ids, extra.ids])
         self.sums = self.sums.extend(extra.sums)
 
-    def keep(self, index: torch.Tensor, optimizer: torch.optim.Optimizer | None) -> None:
+    def keep(self, index: torch.Tensor, optimizer: Adam | None) -> None:
         """Keep only the Gaussians at `index` (bool mask [N] or indices), with their state."""
 
         def rows(x: torch.Tensor) -> torch.Tensor:
@@ -193,7 +252,7 @@ class GaussianParams:
 
     def _replace(
         self,
-        optimizer: torch.optim.Optimizer | None,
+        optimizer: Adam | None,
         names: tuple[str, ...],
         values: Callable[[torch.Tensor], torch.Tensor],
         state_rows: Callable[[torch.Tensor], torch.Tensor],
