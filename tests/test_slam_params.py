@@ -20,6 +20,12 @@ def test_activation_matches_the_map_and_score():
         torch.testing.assert_close(value, getattr(inputs, name))
 
 
+def groups(params, lrs=(1e-2, 1e-2, 1e-2, 1e-2)):
+    """One optimizer group per trained tensor of an isotropic map, as the mapper makes them."""
+    names = ("means", "sh_dc", "opacity_logits", "log_scales")
+    return [{"params": [getattr(params, n)], "lr": lr} for n, lr in zip(names, lrs, strict=True)]
+
+
 def step_with_row_gradients(params, optimizer):
     """One Adam step where each Gaussian's gradient is its id (so state rows are traceable)."""
     optimizer.zero_grad()
@@ -34,11 +40,7 @@ def step_with_row_gradients(params, optimizer):
 
 def test_adam_rows_follow_their_gaussians_through_remove_and_add():
     params = GaussianParams.from_map(random_map(40, seed=0))
-    opt = Adam(
-        [{"params": [params.means], "lr": 1e-2}, {"params": [params.sh_dc], "lr": 1e-2},
-         {"params": [params.opacity_logits], "lr": 1e-2},
-         {"params": [params.log_scales], "lr": 1e-2}]
-    )  # fmt: skip
+    opt = Adam(groups(params))
     for _ in range(3):
         step_with_row_gradients(params, opt)
     before = {
@@ -87,11 +89,7 @@ def test_adam_equals_torch_adam_bit_for_bit_through_remove_and_add():
     runs = []
     for make in (lambda g: torch.optim.Adam(g, eps=1e-15), lambda g: Adam(g, eps=1e-15)):
         params = GaussianParams.from_map(random_map(60, seed=4))
-        opt = make(
-            [{"params": [params.means], "lr": 1e-3}, {"params": [params.sh_dc], "lr": 2e-2},
-             {"params": [params.opacity_logits], "lr": 5e-2},
-             {"params": [params.log_scales], "lr": 1e-3}]
-        )  # fmt: skip
+        opt = make(groups(params, (1e-3, 2e-2, 5e-2, 1e-3)))
         weights = torch.Generator().manual_seed(0)
         for step in range(12):
             if step == 4:
