@@ -310,16 +310,17 @@ struct EntryColumns {
 };
 
 // K row segments of one entry (visits first .. first + K - 1 of its (y1 - y0) * n_segs, row by
-// row): where their state lies, their offsets from the centre and the Gaussian G = exp(power).
+// row): where their state lies, their offsets from the centre, the Gaussian G = exp(power), oG =
+// o G and alpha = min(oG, alpha_max), computed alike for the forward and the backward.
 template <typename scalar_t, int K>
 struct Segments {
   using V = typename Simd<scalar_t>::V;
   int sg[K], p[K];
   scalar_t dy[K];
-  V dx[K], G[K];
+  V dx[K], G[K], oG[K], alpha[K];
 
   Segments(const EntryColumns<scalar_t>& col, int first, int y0, int tile_y, scalar_t my,
-           scalar_t b, scalar_t c) {
+           scalar_t b, scalar_t c, scalar_t o) {
     int ly = y0 + first / col.n_segs, si = first % col.n_segs;
     EACH {
       sg[k] = si;
@@ -331,6 +332,10 @@ struct Segments {
       if (++si == col.n_segs) si = 0, ++ly;
     }
     vexp<K>(G);
+    EACH {
+      oG[k] = o * G[k];
+      alpha[k] = oG[k] > Rules<scalar_t>::alpha_max ? splat<V>(Rules<scalar_t>::alpha_max) : oG[k];
+    }
   }
 };
 
@@ -390,11 +395,10 @@ void forward_impl(const scalar_t* packed, const int64_t* offsets, int width, int
         I lane_stop{};
         interleaved((y1 - y0) * col.n_segs, [&](auto k_const, int first) {
           constexpr int K = decltype(k_const)::value;
-          const Segments<scalar_t, K> seg(col, first, y0, tile_y, my, b, c);
+          const Segments<scalar_t, K> seg(col, first, y0, tile_y, my, b, c, o);
           EACH {
             const int p = seg.p[k];
-            const V oG = o * seg.G[k];
-            const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
+            const V alpha = seg.alpha[k];
             const V Tp = load<V>(T + p);
             const V T_next = Tp * (scalar_t(1) - alpha);
             const I live = load<I>(alive + p);
@@ -493,13 +497,11 @@ void backward_impl(const scalar_t* packed, const int64_t* offsets, int width, in
         V d_f[kCh] = {};
         interleaved((y1 - y0) * col.n_segs, [&](auto k_const, int first) {
           constexpr int K = decltype(k_const)::value;
-          const Segments<scalar_t, K> seg(col, first, y0, tile_y, my, b, c);
+          const Segments<scalar_t, K> seg(col, first, y0, tile_y, my, b, c, o);
           EACH {
             const int p = seg.p[k];
-            const V G = seg.G[k], dx = seg.dx[k];
+            const V G = seg.G[k], oG = seg.oG[k], alpha = seg.alpha[k], dx = seg.dx[k];
             const scalar_t dy = seg.dy[k];
-            const V oG = o * G;
-            const V alpha = oG > R::alpha_max ? splat<V>(R::alpha_max) : oG;
             const I in_list = index < load<I>(last + p);
             const I hit = col.in_x[seg.sg[k]] & in_list & (alpha >= R::alpha_min);
             const V one_minus = scalar_t(1) - alpha;
