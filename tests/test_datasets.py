@@ -241,3 +241,23 @@ def test_replica_layout_built_in_tmp(tmp_path: Path) -> None:
     np.savetxt(scene / "traj.txt", np.tile(np.eye(4).ravel(), (2, 1)))
     with pytest.raises(DatasetError, match="has 2 poses but frame 2 needs one"):
         open_sequence(scene, intrinsics=K)
+
+
+def test_replica_traj_errors_name_their_line(tmp_path: Path) -> None:
+    from gscompress.datasets.replica import read_replica_traj
+
+    eye = " ".join(str(v) for v in np.eye(4).ravel())
+    cases = {
+        "1 2 3": r"traj.txt:3: expected 16 finite",
+        eye.replace("0.0", "nan", 1): r"traj.txt:3: expected 16 finite",
+        eye[: -len("1.0")] + "1.1": r"traj.txt:3: last row",
+        eye.replace("0.0", "x", 1): r"traj.txt:3: not a number",
+    }
+    path = tmp_path / "traj.txt"
+    for bad, message in cases.items():
+        path.write_text(f"{eye}\n# a comment\n{bad}\n{eye}\n")
+        with pytest.raises(DatasetError, match=message):
+            read_replica_traj(path)
+    path.write_text(f"{eye}\n\n{eye} # trailing comment\n")
+    poses = read_replica_traj(path)
+    assert poses.shape == (2, 4, 4) and np.array_equal(poses[1], np.eye(4))

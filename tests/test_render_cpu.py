@@ -403,3 +403,27 @@ def test_mapping_loss_with_the_cpu_ssim_equals_torch(extension):
     assert torch.equal(grads["cpu"][1], grads["cpu, edges given"][1])
     assert_rel_close(grads["cpu"][0], grads["torch"][0], 1e-6, "loss")
     assert_rel_close(grads["cpu"][1], grads["torch"][1], 1e-5, "loss gradient")
+
+
+def test_a_finished_build_is_imported_directly(extension, monkeypatch, tmp_path):
+    """A later process imports the build named by its directory without torch's loader (which
+    imports setuptools and runs ninja). Only a build marked finished is taken: a link killed
+    midway leaves a truncated file, and loading one kills the process (SIGBUS)."""
+    so = Path(extension.__file__)
+    name = so.stem.split(".")[0]
+    assert (so.parent / cpu_backend._BUILT).exists()  # marked by the build this run loaded
+    monkeypatch.setattr("torch.utils.cpp_extension.load", _no_torch_loader)
+    cpu_backend.load_extension.cache_clear()
+    try:
+        again = cpu_backend.load_extension()
+        assert again is not None and Path(again.__file__) == so
+    finally:
+        cpu_backend.load_extension.cache_clear()
+    shutil.copy(so, tmp_path / so.name)
+    assert cpu_backend._load_built(tmp_path, name) is None  # not marked finished
+    (tmp_path / cpu_backend._BUILT).write_text("")
+    assert cpu_backend._load_built(tmp_path, name) is not None
+
+
+def _no_torch_loader(**_: object) -> None:
+    raise AssertionError("torch's extension loader was used")
