@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 import warnings
 from pathlib import Path
 
@@ -422,8 +423,34 @@ def test_a_finished_build_is_imported_directly(extension, monkeypatch, tmp_path)
     shutil.copy(so, tmp_path / so.name)
     assert cpu_backend._load_built(tmp_path, name) is None  # not marked finished
     (tmp_path / cpu_backend._BUILT).write_text("")
+    os.utime(tmp_path / cpu_backend._BUILT, (0, 0))
     assert cpu_backend._load_built(tmp_path, name) is not None
+    assert (tmp_path / cpu_backend._BUILT).stat().st_mtime > 0  # its last use, for pruning
 
 
 def _no_torch_loader(**_: object) -> None:
     raise AssertionError("torch's extension loader was used")
+
+
+def test_builds_unused_for_30_days_are_removed(tmp_path):
+    old_day = time.time() - 31 * 86400
+
+    def build(name: str, mtime: float, marked: bool = True) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        files = [folder / "x.so", *([folder / cpu_backend._BUILT] if marked else [])]
+        for f in files:
+            f.write_text("")
+            os.utime(f, (mtime, mtime))
+        return folder
+
+    stale = build("ext-00000000000000aa", old_day)
+    stale_unmarked = build("ext-00000000000000bb", old_day, marked=False)
+    recent = build("ext-00000000000000cc", time.time() - 2 * 86400)
+    used = build("ext-00000000000000dd", old_day)
+    os.utime(used / cpu_backend._BUILT)  # loaded today
+    current = build("ext-00000000000000ee", old_day)
+    other = build("ext-not-a-build", old_day)
+    cpu_backend._prune_cache(tmp_path, keep=current)
+    assert not stale.exists() and not stale_unmarked.exists()
+    assert recent.exists() and used.exists() and current.exists() and other.exists()

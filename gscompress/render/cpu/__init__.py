@@ -5,8 +5,8 @@ The extension is compiled on first use with `torch.utils.cpp_extension.load` int
 directory keyed on the sources and their location, the flags, torch, Python and (for the
 -march=native build on x86-64) the CPU model and feature flags (`$GSCOMPRESS_CACHE_DIR` or
 `$XDG_CACHE_HOME/gscompress`, default `~/.cache/gscompress`); later processes import the finished
-build directly. Without a C++ compiler `load_extension()` returns None and the caller falls back
-to the pure-torch backend.
+build directly. Each new build removes the builds no process has loaded for 30 days. Without a
+C++ compiler `load_extension()` returns None and the caller falls back to the pure-torch backend.
 """
 
 from __future__ import annotations
@@ -18,8 +18,10 @@ import importlib.util
 import logging
 import os
 import platform
+import re
 import shutil
 import sys
+import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -134,7 +136,27 @@ def _load_built(build_dir: Path, name: str) -> ModuleType | None:
         spec.loader.exec_module(module)
     except ImportError:  # e.g. a library it links against has moved: torch's loader decides
         return None
+    with contextlib.suppress(OSError):  # the time of last use, for `_prune_cache`
+        os.utime(build_dir / _BUILT)
     return module
+
+
+def _prune_cache(root: Path, keep: Path, unused_days: float = 30.0) -> None:
+    """Remove the builds in `root` other than `keep` that no process has loaded for this long.
+
+    Every change of the sources, flags, torch or CPU makes a new build of about 2 MB, and a
+    checkout whose sources are edited makes one per edit. Runs after each new build, so rarely.
+    A build's last use is its marker's time (touched at each direct load), else its library's.
+    """
+    limit = time.time() - unused_days * 86400
+    for old in root.glob("ext-*"):
+        if old == keep or not re.fullmatch(r"ext-[0-9a-f]{16}", old.name) or not old.is_dir():
+            continue
+        with contextlib.suppress(OSError):  # e.g. removed meanwhile by another process
+            stamps = [old / _BUILT, *old.glob("*.so")]
+            times = [p.stat().st_mtime for p in stamps if p.exists()]
+            if max(times, default=0.0) < limit:
+                shutil.rmtree(old, ignore_errors=True)
 
 
 @functools.cache
@@ -176,7 +198,8 @@ def load_extension() -> ModuleType | None:
                 verbose=False,
             )
             (build_dir / _BUILT).write_text(f"{name}.so\n")
-            return module
+        _prune_cache(build_dir.parent, keep=build_dir)
+        return module
     except Exception as exc:  # a build failure must not take rendering down
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         warnings.warn(
