@@ -81,6 +81,12 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
     help="Refinement iterations of each merge on B's keyframes.",
 )  # fmt: skip
+@click.option(
+    "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+    help="Runs at once, each in its own process with an equal share of the torch threads "
+    "(`gsc --threads`, default one per core); a run starts as soon as the runs it reads have "
+    "finished. The results are the same as with 1.",
+)  # fmt: skip
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
 @device_option
 @json_option
@@ -100,6 +106,7 @@ def experiment(
     every: int,
     mode: str,
     merge_iters: int,
+    jobs: int,
     no_lpips: bool,
     device: str,
     as_json: bool,
@@ -122,6 +129,7 @@ def experiment(
       gsc experiment demo_seq -o exp --preset tiny --seeds 1 --sweep-seeds 0 \\
           --frames 0:10 --size 80x60                           # a smoke test, seconds
       gsc experiment data/office -o exp_office --seeds 3        # cpu preset
+      gsc --threads 8 experiment data/office -o exp_office --jobs 4   # 4 runs at a time
     """
     settings = ExperimentSettings(
         preset=preset,
@@ -151,7 +159,7 @@ def experiment(
             bar.set_postfix_str(name, refresh=False)
             bar.update(done - bar.n)
 
-        result = run_experiment(seq, out_dir, settings, progress=progress)
+        result = run_experiment(seq, out_dir, settings, progress=progress, jobs=jobs)
     v = result["verdicts"]
     emit(
         result,

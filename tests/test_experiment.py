@@ -72,6 +72,32 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert "PWAS minus random, paired by seed" in md and "ATE RMSE (cm) | PWAS lower" not in md
 
 
+def test_parallel_runs_give_the_same_rows(
+    experiment: tuple[Path, Path, dict], threads_restored: None
+) -> None:
+    """--jobs 2: the steps run in two worker processes, each as soon as the logs it reads
+    exist, and the rows are those of the runs made one after another with as many threads."""
+    import torch
+
+    seq, out, first = experiment
+    parallel = out.parent / "parallel"
+    threads = 2 * torch.get_num_threads()  # each worker gets what the fixture's runs had
+    args = ["--threads", str(threads), "experiment", str(seq), "-o", str(parallel),
+            "--preset", "tiny", "--seeds", "1", "--sweep", "0.2,0.5", "--no-lpips", "--json",
+            "--jobs", "2"]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output)
+    assert result["steps"] == first["steps"] and result["reused"] == 0
+    ours, theirs = (json.loads((d / "results.json").read_text()) for d in (parallel, out))
+    timing = {"seconds_per_frame"}
+    assert [{k: v for k, v in row.items() if k not in timing} for row in ours] == [
+        {k: v for k, v in row.items() if k not in timing} for row in theirs
+    ]
+    again = CliRunner().invoke(cli, args)  # a rerun reuses them all, in parallel mode too
+    assert again.exit_code == 0 and json.loads(again.output)["reused"] == first["steps"]
+
+
 def test_rate_distortion_curves_start_at_b_without_a_share(
     experiment: tuple[Path, Path, dict],
 ) -> None:

@@ -14,7 +14,8 @@ Runs, each a log under DIR/runs/ with a JSON record of its settings and results 
 Every SLAM run is scored by `evaluate_log` on its own frames at its estimated poses. A rerun
 reuses every run whose record matches its settings (and those of the runs it depends on), so an
 interrupted experiment continues where it stopped and a changed setting redoes only what it
-touches.
+touches. With `jobs` > 1 the runs go on in worker processes, each started once the logs it reads
+exist.
 
 Outputs in DIR: results.json (a list of rows), results.csv, results.md (tables laid out like
 the paper's) and plots/ (rate-distortion, importance distribution, top-down importance map).
@@ -22,13 +23,26 @@ the paper's) and plots/ (rate-distortion, importance distribution, top-down impo
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import functools
 import hashlib
 import json
 import logging
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+import multiprocessing
+import os
+import signal
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import (
+    CancelledError,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+    wait,
+)
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -131,15 +145,76 @@ class ExperimentSettings:
 
 @dataclass
 class _Record:
-    """One finished step: its log, its settings key and what it reported."""
+    """One step: its log, its settings key and what it reported (waited for when running in a
+    worker process)."""
 
     path: Path
     key: str
-    result: dict[str, Any] = field(default_factory=dict)
+    _result: dict[str, Any] | None = None
+    _future: Future[dict[str, Any]] | None = None
+
+    @property
+    def result(self) -> dict[str, Any]:
+        if self._result is None:
+            assert self._future is not None
+            self._result = self._future.result()
+        return self._result
+
+
+def _score(log_path: Path, seq: Path, every: int, lpips: bool, device: str) -> dict[str, Any]:
+    """`gsc eval` of a run on its own frames (without the per-frame list)."""
+    from gscompress.pipeline.evaluate import evaluate_log
+
+    scores = evaluate_log(log_path, seq, every=every, lpips=lpips, device=device)
+    scores.pop("per_frame", None)
+    return scores
+
+
+# The steps' work, as module functions of plain arguments so that worker processes can run them.
+
+
+def _slam_job(
+    path: Path, seq: Path, config: Any, frames: str, inject: Path | None, s: ExperimentSettings
+) -> dict[str, Any]:
+    from gscompress.pipeline.slam_run import slam_file
+
+    run = slam_file(seq, path, config=config, frames=frames, device=s.device, inject=inject,
+                    force=True)  # fmt: skip
+    return {"slam": run, "eval": _score(path, seq, s.every, s.lpips, s.device)}
+
+
+def _merge_job(
+    path: Path, seq: Path, receiver: Path, share: Path | None, frames: str, seed: int,
+    s: ExperimentSettings,
+) -> dict[str, Any]:  # fmt: skip
+    from gscompress.pipeline.merge import merge_logs
+
+    merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
+                        device=s.device, seed=seed, force=True)  # fmt: skip
+    return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
+
+
+def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) -> dict[str, Any]:
+    from gscompress.pipeline.offline import share_log
+
+    return share_log(source, path, budget, strategy=strategy, seed=seed, force=True)
+
+
+def _init_worker(threads: int) -> None:
+    """A worker process: its share of the threads; Ctrl-C is for the run it is in (which
+    stops after its frame, as `gsc slam` does), not for a worker waiting for work."""
+    import torch
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    torch.set_num_threads(threads)
 
 
 class _Runner:
-    """Runs the steps of an experiment, reusing those whose records match."""
+    """Runs the steps of an experiment, reusing those whose records match.
+
+    With `jobs` > 1 the steps run in that many worker processes, each as soon as the steps it
+    reads have finished, with the torch threads of this process shared among them.
+    """
 
     def __init__(
         self,
@@ -148,66 +223,120 @@ class _Runner:
         settings: ExperimentSettings,
         progress: Callable[[str, int, int], object] | None,
         total: int,
+        jobs: int = 1,
     ) -> None:
         self.seq, self.settings, self.progress, self.total = seq, settings, progress, total
         self.runs = out / "runs"
         self.runs.mkdir(parents=True, exist_ok=True)
         self.done = 0
         self.reused = 0
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._pool: ProcessPoolExecutor | None = None
+        self._waiters: ThreadPoolExecutor | None = None
+        if jobs > 1:
+            import torch
+
+            threads = max(1, torch.get_num_threads() // jobs)
+            spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
+            self._pool = ProcessPoolExecutor(jobs, spawn, _init_worker, (threads,))
+            # one waiting thread per step: each starts its job once the steps it reads are done
+            # (they were submitted before it, so they are under way: no waiting in a circle)
+            self._waiters = ThreadPoolExecutor(max(1, total))
+
+    def close(self, cancel: bool) -> None:
+        """Wait for the steps under way; with `cancel`, start no more and stop the SLAM runs
+        under way after their frame (a stopped run keeps no record, so a rerun redoes it)."""
+        if cancel:
+            self._stopping.set()
+            if self._pool is not None:  # a worker between runs ignores it, a merge too
+                for process in list(self._pool._processes.values()):
+                    if process.pid is not None:
+                        with contextlib.suppress(OSError):  # ended meanwhile
+                            os.kill(process.pid, signal.SIGINT)
+        for pool in (self._waiters, self._pool):
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=cancel)
 
     def _key(self, spec: dict[str, Any]) -> str:
         text = json.dumps({"tool": __version__, **spec}, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
-    def _step(self, name: str, spec: dict[str, Any], work: Callable[[Path], dict]) -> _Record:
-        """Run `work(log path)` unless a record with the same key exists."""
+    def _step(
+        self,
+        name: str,
+        spec: dict[str, Any],
+        job: functools.partial[dict[str, Any]],
+        after: Sequence[_Record] = (),
+        extra: Callable[[], dict[str, Any]] | None = None,
+    ) -> _Record:
+        """Run `job(log path)` unless a record with the same key exists; `after`: the steps
+        whose logs it reads; `extra()`: what the record adds to the job's result."""
         path = self.runs / f"{name}.mcap"
         record_path = self.runs / f"{name}.json"
         key = self._key(spec)
-        if self.progress is not None:
-            self.progress(name, self.done, self.total)
         if path.is_file() and record_path.is_file():
             try:
                 saved = json.loads(record_path.read_text())
             except json.JSONDecodeError:
                 saved = {}
             if saved.get("key") == key:
-                self.done += 1
                 self.reused += 1
+                self._finished(name)
                 return _Record(path, key, saved["result"])
-        result = work(path)
+        if self._pool is None or self._waiters is None:
+            if self.progress is not None:
+                self.progress(name, self.done, self.total)
+            result = self._record(name, spec, key, job(path), extra)
+            return _Record(path, key, result)
+
+        def run() -> dict[str, Any]:
+            for step in after:
+                _ = step.result  # waits; a failed step fails this one
+            if self._stopping.is_set():
+                raise CancelledError
+            assert self._pool is not None
+            future = self._pool.submit(job, path)
+            while not wait([future], timeout=0.2).done:
+                if self._stopping.is_set() and future.cancel():  # queued, not started
+                    raise CancelledError
+            return self._record(name, spec, key, future.result(), extra)
+
+        return _Record(path, key, _future=self._waiters.submit(run))
+
+    def _record(
+        self,
+        name: str,
+        spec: dict[str, Any],
+        key: str,
+        result: dict[str, Any],
+        extra: Callable[[], dict[str, Any]] | None,
+    ) -> dict[str, Any]:
+        result = {**result, **(extra() if extra else {})}
         record = {"key": key, "spec": spec, "result": result}
-        write_text_atomic(record_path, json_text(record, indent=1))
-        self.done += 1
-        return _Record(path, key, result)
+        write_text_atomic(self.runs / f"{name}.json", json_text(record, indent=1))
+        self._finished(name)
+        return result
 
-    def _score(self, log_path: Path) -> dict[str, Any]:
-        """`gsc eval` of a run on its own frames (without the per-frame list)."""
-        from gscompress.pipeline.evaluate import evaluate_log
-
-        s = self.settings
-        scores = evaluate_log(log_path, self.seq, every=s.every, lpips=s.lpips, device=s.device)
-        scores.pop("per_frame", None)
-        return scores
+    def _finished(self, name: str) -> None:
+        with self._lock:
+            self.done += 1
+            if self.progress is not None:
+                self.progress(name, self.done, self.total)
 
     def slam(self, name: str, config: Any, frames: str, inject: _Record | None = None) -> _Record:
         """A SLAM run on `frames`, evaluated on them."""
-        from gscompress.pipeline.slam_run import slam_file
-
         s = self.settings
         spec = {
             "kind": "slam", "sequence": str(self.seq.resolve()), "config": config.to_dict(),
             "frames": frames, "inject": inject.key if inject else None, "every": s.every,
             "lpips": s.lpips,
         }  # fmt: skip
-
-        def work(path: Path) -> dict[str, Any]:
-            run = slam_file(self.seq, path, config=config, frames=frames, device=s.device,
-                            inject=inject.path if inject else None, force=True)  # fmt: skip
-            scores = self._score(path)
-            return {"slam": run, "eval": scores}
-
-        return self._step(name, spec, work)
+        job = functools.partial(
+            _slam_job, seq=self.seq, config=config, frames=frames,
+            inject=inject.path if inject else None, s=s,
+        )  # fmt: skip
+        return self._step(name, spec, job, after=[inject] if inject else [])
 
     def receive(
         self,
@@ -223,8 +352,6 @@ class _Runner:
         With `share` None (merge mode only): B's map refined the same way without a share, the
         control that separates what the share brings from what the refinement brings.
         """
-        from gscompress.pipeline.merge import merge_logs
-
         s = self.settings
         if s.mode == "inject":  # its own name: both modes' runs can share one folder
             assert share is not None
@@ -234,30 +361,21 @@ class _Runner:
             "frames": frames,
             "iters": s.merge_iters, "seed": seed, "every": s.every, "lpips": s.lpips,
         }  # fmt: skip
-
-        def work(path: Path) -> dict[str, Any]:
-            merged = merge_logs(
-                receiver.path, share.path if share else None, path, seq=self.seq, frames=frames,
-                iters=s.merge_iters, device=s.device, seed=seed, force=True,
-            )  # fmt: skip
-            scores = self._score(path)
-            return {"merge": merged, "slam": receiver.result["slam"], "eval": scores}
-
-        return self._step(name, spec, work)
+        job = functools.partial(
+            _merge_job, seq=self.seq, receiver=receiver.path,
+            share=share.path if share else None, frames=frames, seed=seed, s=s,
+        )  # fmt: skip
+        after = [receiver, share] if share else [receiver]
+        return self._step(name, spec, job, after, extra=lambda: {"slam": receiver.result["slam"]})
 
     def share(self, name: str, source: _Record, budget: str, strategy: str, seed: int) -> _Record:
         """A share of `source`'s map."""
-        from gscompress.pipeline.offline import share_log
-
         spec = {"kind": "share", "source": source.key, "budget": budget, "strategy": strategy,
                 "seed": seed}  # fmt: skip
-        return self._step(
-            name,
-            spec,
-            lambda path: share_log(
-                source.path, path, budget, strategy=strategy, seed=seed, force=True
-            ),
+        job = functools.partial(
+            _share_job, source=source.path, budget=budget, strategy=strategy, seed=seed
         )
+        return self._step(name, spec, job, after=[source])
 
 
 EXPERIMENT_ENTRIES = frozenset({"runs", "plots", "results.md", "results.csv", "results.json"})
@@ -280,6 +398,7 @@ def run_experiment(
     out_dir: str | Path,
     settings: ExperimentSettings,
     progress: Callable[[str, int, int], object] | None = None,
+    jobs: int = 1,
 ) -> dict[str, Any]:
     """Run (or continue) the two-agent experiment on a sequence and write its report.
 
@@ -287,7 +406,10 @@ def run_experiment(
         seq: the sequence folder.
         out_dir: the experiment folder (created; reruns reuse its finished runs).
         settings: what to run.
-        progress: called with (step name, steps done, steps in total) before each step.
+        progress: called with (step name, steps done, steps in total) as steps start and end.
+        jobs: steps run at once, each in a worker process with its share of the torch threads
+            (1: one after another in this process). With as many threads per step, the results
+            are the same.
 
     Returns:
         Paths of the outputs, row count, steps run and reused, and the PWAS-vs-random verdicts.
@@ -312,37 +434,17 @@ def run_experiment(
         )
     s = settings
     base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
-    runner = _Runner(seq, out, s, progress, plan_size(s))
-    rows: list[dict[str, Any]] = []
-
-    frames_a, frames_b = s.agent_frames()
-    full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
-    pruned = runner.slam("full_pwas", base, s.frames)
-    rows.append(_row("full, no pruning", "table3", full))
-    rows.append(_row("full, PWAS pruning", "table3", pruned))
-
-    budgets = [s.budget] + [b for b in s.sweep if not _same_budget(b, s.budget)]
-    for seed in range(s.seeds):
-        config = base.with_overrides(seed=seed)
-        a = runner.slam(f"s{seed}_agent_a", config, frames_a)
-        b = runner.slam(f"s{seed}_agent_b", config, frames_b)
-        rows.append(_row("agent A (odd frames)", "table4", a, seed))
-        rows.append(_row(B_ALONE, "table4", b, seed))
-        if s.mode == "merge":
-            alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
-            rows.append(_row(B_NO_SHARE, "table4", alone, seed, "none"))
-        for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
-            table = "table4" if budget == s.budget else "sweep"
-            for strategy in s.strategies:
-                tag = f"s{seed}_{strategy}_{_slug(budget)}"
-                share = runner.share(f"{tag}_share", a, budget, strategy, seed)
-                got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed)
-                rows.append(_row(f"B + {strategy} {budget}", table, got, seed, strategy, budget,
-                                 share))  # fmt: skip
-        whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
-        got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed)
-        rows.append(_row("B + A's full map", "table4", got, seed, "full", "1", whole))
+    runner = _Runner(seq, out, s, progress, plan_size(s), jobs)
+    try:
+        with _sigterm_interrupts(jobs > 1):
+            planned = _plan(runner, base)
+            rows = [_row(*args) for args in planned]  # waits for every step
+    except BaseException:
+        runner.close(cancel=True)
+        raise
+    runner.close(cancel=False)
     verdicts = _verdicts(rows, s)
+    full, pruned = planned[0][2], planned[1][2]  # Table 3's runs
     paths = _write_reports(out, seq, s, rows, verdicts, full.path, pruned.path)
     return {
         **paths,
@@ -351,6 +453,58 @@ def run_experiment(
         "reused": runner.reused,
         "verdicts": verdicts,
     }
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts(active: bool) -> Iterator[None]:
+    """SIGTERM as Ctrl-C while runs go on in worker processes: the runner then stops them,
+    instead of this process ending and leaving them behind. (A run in this process handles both
+    signals itself.)"""
+    if not active or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _plan(runner: _Runner, base: Any) -> list[tuple[Any, ...]]:
+    """Start every step of the experiment; the arguments of `_row` for each results row."""
+    s = runner.settings
+    rows: list[tuple[Any, ...]] = []
+    frames_a, frames_b = s.agent_frames()
+    full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
+    pruned = runner.slam("full_pwas", base, s.frames)
+    rows.append(("full, no pruning", "table3", full))
+    rows.append(("full, PWAS pruning", "table3", pruned))
+
+    budgets = [s.budget] + [b for b in s.sweep if not _same_budget(b, s.budget)]
+    for seed in range(s.seeds):
+        config = base.with_overrides(seed=seed)
+        a = runner.slam(f"s{seed}_agent_a", config, frames_a)
+        b = runner.slam(f"s{seed}_agent_b", config, frames_b)
+        rows.append(("agent A (odd frames)", "table4", a, seed))
+        rows.append((B_ALONE, "table4", b, seed))
+        if s.mode == "merge":
+            alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
+            rows.append((B_NO_SHARE, "table4", alone, seed, "none"))
+        for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
+            table = "table4" if budget == s.budget else "sweep"
+            for strategy in s.strategies:
+                tag = f"s{seed}_{strategy}_{_slug(budget)}"
+                share = runner.share(f"{tag}_share", a, budget, strategy, seed)
+                got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed)
+                rows.append((f"B + {strategy} {budget}", table, got, seed, strategy, budget, share))
+        whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
+        got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed)
+        rows.append(("B + A's full map", "table4", got, seed, "full", "1", whole))
+    return rows
 
 
 def _slug(budget: str) -> str:
