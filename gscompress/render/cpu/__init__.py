@@ -38,8 +38,8 @@ logger = logging.getLogger(__name__)
 
 _SOURCES = tuple(Path(__file__).with_name(n) for n in ("composite.cpp", "project.cpp", "ssim.cpp"))
 # -ffp-contract=off keeps the forward, the backward and the torch oracle rounding alike.
-_CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off"]
-_LDFLAGS = ["-fopenmp"]
+_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off")
+_LDFLAGS = ("-fopenmp",)  # tuples: torch's loader appends its libraries to the lists it is given
 
 
 def _cpu_signature() -> str | None:
@@ -107,7 +107,7 @@ def _cache_key(sources: tuple[Path, ...], cflags: list[str], cpu: str, compiler:
     for source in sources:
         key.update(source.read_bytes())
         key.update(str(source.resolve()).encode())
-    key.update(" ".join(cflags + _LDFLAGS).encode())
+    key.update(" ".join([*cflags, *_LDFLAGS]).encode())
     key.update(f"{torch.__version__}|{sys.version}|{platform.machine()}|{compiler}".encode())
     key.update(cpu.encode())
     return key.hexdigest()[:16]
@@ -192,8 +192,8 @@ def load_extension() -> ModuleType | None:
             module = cpp_extension.load(
                 name=name,
                 sources=[str(source) for source in _SOURCES],
-                extra_cflags=cflags,
-                extra_ldflags=_LDFLAGS,
+                extra_cflags=list(cflags),
+                extra_ldflags=list(_LDFLAGS),
                 build_directory=str(build_dir),
                 verbose=False,
             )
