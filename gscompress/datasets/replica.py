@@ -42,6 +42,7 @@ def find_replica_scene(path: Path) -> Path | None:
 
 def read_replica_traj(path: Path) -> np.ndarray:
     """[N, 4, 4] camera-to-world poses from a NICE-SLAM traj.txt (16 numbers per line)."""
+    not_a_pose = "expected 16 finite numbers (a 4x4 pose)"
     rows: list[list[float]] = []
     linenos: list[int] = []
     try:
@@ -57,19 +58,21 @@ def read_replica_traj(path: Path) -> np.ndarray:
         except ValueError:
             raise DatasetError(f"{path}:{lineno}: not a number") from None
         if len(values) != 16:
-            raise DatasetError(f"{path}:{lineno}: expected 16 finite numbers (a 4x4 pose)")
+            raise DatasetError(f"{path}:{lineno}: {not_a_pose}")
         rows.append(values)
         linenos.append(lineno)
     poses = np.array(rows, dtype=np.float64).reshape(-1, 4, 4)
-    # Checked on the whole array at once: a per-line check cost 0.4 s on a 2000-pose trajectory.
-    bad = ~np.isfinite(poses).all(axis=(1, 2))
-    if bad.any():
-        lineno = linenos[int(np.argmax(bad))]
-        raise DatasetError(f"{path}:{lineno}: expected 16 finite numbers (a 4x4 pose)")
-    bad = ~np.isclose(poses[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-6).all(axis=1)
-    if bad.any():
-        lineno = linenos[int(np.argmax(bad))]
-        raise DatasetError(f"{path}:{lineno}: last row of the pose is not 0 0 0 1")
+    # Checked on the whole array at once: per line they took 0.15-0.2 s for 2000 poses.
+    checks = (
+        (np.isfinite(poses).all(axis=(1, 2)), not_a_pose),
+        (
+            np.isclose(poses[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-6).all(axis=1),
+            "last row of the pose is not 0 0 0 1",
+        ),
+    )
+    for ok, message in checks:  # the first failing check, at its first line
+        if not ok.all():
+            raise DatasetError(f"{path}:{linenos[int(np.argmin(ok))]}: {message}")
     return poses
 
 

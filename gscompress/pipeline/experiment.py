@@ -287,7 +287,7 @@ class _Runner:
         if self._pool is None or self._waiters is None:
             if self.progress is not None:
                 self.progress(name, self.done, self.total)
-            result = self._record(name, spec, key, job(path), extra)
+            result = self._record(name, record_path, spec, key, job(path), extra)
             return _Record(path, key, result)
 
         def run() -> dict[str, Any]:
@@ -300,13 +300,14 @@ class _Runner:
             while not wait([future], timeout=0.2).done:
                 if self._stopping.is_set() and future.cancel():  # queued, not started
                     raise CancelledError
-            return self._record(name, spec, key, future.result(), extra)
+            return self._record(name, record_path, spec, key, future.result(), extra)
 
         return _Record(path, key, _future=self._waiters.submit(run))
 
     def _record(
         self,
         name: str,
+        record_path: Path,
         spec: dict[str, Any],
         key: str,
         result: dict[str, Any],
@@ -314,7 +315,7 @@ class _Runner:
     ) -> dict[str, Any]:
         result = {**result, **(extra() if extra else {})}
         record = {"key": key, "spec": spec, "result": result}
-        write_text_atomic(self.runs / f"{name}.json", json_text(record, indent=1))
+        write_text_atomic(record_path, json_text(record, indent=1))
         self._finished(name)
         return result
 

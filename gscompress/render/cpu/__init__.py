@@ -145,7 +145,8 @@ def _prune_cache(root: Path, keep: Path, unused_days: float = 30.0) -> None:
     """Remove the builds in `root` other than `keep` that no process has loaded for this long.
 
     Every change of the sources, flags, torch or CPU makes a new build of about 2 MB, and a
-    checkout whose sources are edited makes one per edit. Runs after each new build, so rarely.
+    checkout whose sources are edited makes one per edit. Runs only when torch's loader was used
+    (a new build, or a build made before the marker existed), so rarely.
     A build's last use is its marker's time (touched at each direct load), else its library's.
     """
     limit = time.time() - unused_days * 86400
