@@ -174,6 +174,18 @@ def test_densification_mask_rule():
     expected[3, 5] = True
     np.testing.assert_array_equal(mask, expected)
 
+    residual = np.zeros((4, 6), np.float32)
+    residual[0, 0] = residual[1, 0] = residual[0, 3] = 0.5  # no depth; empty; covered
+    residual[0, 4] = 0.1499  # just below the threshold
+    residual[0, 5] = 0.15
+    with_color = densification_mask(
+        silhouette, rendered, depth, color_residual=residual, color_error=0.15
+    )
+    expected[0, 3] = expected[0, 5] = True
+    np.testing.assert_array_equal(with_color, expected)
+    with pytest.raises(ValueError, match="color_residual"):
+        densification_mask(silhouette, rendered, depth, color_error=0.15)
+
 
 def test_keyframe_overlap_and_window(seq):
     f0, f5 = seq.frame(0), seq.frame(5)
@@ -285,6 +297,32 @@ def test_a_share_that_already_shows_the_frame_is_not_mapped_twice(seq):
         <= np.count_nonzero(valid & (brightness > 0.28))
     )
     assert added["black"] > 0.2 * np.count_nonzero(valid)
+
+
+def test_colour_densification_adds_where_the_map_shows_the_wrong_colour(seq):
+    frame = seq.frame(0)
+    cover = gaussians_from_rgbd(
+        frame.color, frame.depth, seq.intrinsics, frame.T_world_cam, opacity=0.99
+    )
+    valid = frame.depth > 0
+    black = replace(cover, sh_dc=np.full_like(cover.sh_dc, -0.5 / SH_C0))  # renders ~0
+    added = {}
+    for error in (0.0, 0.3):
+        for name, gaussians in [("right", cover), ("black", black)]:
+            config = preset("tiny").with_overrides(**{"densify.color_error": error})
+            system = SlamSystem(config, seq.intrinsics)
+            system.add_gaussians(gaussians)
+            added[name, error] = system.process(frame).added
+    assert added["right", 0.0] == added["black", 0.0] < 0.02 * np.count_nonzero(valid)
+    # the right colours, blurred over the texture's noise: a few edge pixels
+    assert added["right", 0.3] < 0.1 * np.count_nonzero(valid)
+    brightness = frame.color.mean(-1)  # the black map's error at each pixel
+    assert (
+        np.count_nonzero(valid & (brightness > 0.32))
+        <= added["black", 0.3]
+        <= np.count_nonzero(valid & (brightness > 0.28))
+    )
+    assert added["black", 0.3] > 0.2 * np.count_nonzero(valid)
 
 
 def test_frames_after_a_stage_track_against_the_map_before_it(seq, monkeypatch):

@@ -1,6 +1,7 @@
 """New Gaussians from RGB-D pixels (SplaTAM-style initialisation and densification).
 
-`densification_mask` picks the pixels of a frame that the map does not explain yet;
+`densification_mask` picks the pixels of a frame that the map does not explain yet (SplaTAM's
+silhouette and depth rule, optionally also where the rendered colour is far off);
 `gaussians_from_rgbd` turns selected pixels into Gaussians.
 
 Each selected pixel with valid depth becomes one isotropic Gaussian at its back-projected point,
@@ -75,13 +76,17 @@ def densification_mask(
     *,
     silhouette_max: float = 0.5,
     depth_error_factor: float = 50.0,
+    color_residual: np.ndarray | None = None,
+    color_error: float = 0.0,
 ) -> np.ndarray:
-    """[H, W] bool: observed pixels the map does not explain yet (SplaTAM's rule).
+    """[H, W] bool: observed pixels the map does not explain yet (SplaTAM's rule, plus colour).
 
     A pixel with a depth measurement qualifies when the rendered silhouette is below
     `silhouette_max` (nothing there yet), or when the observed surface lies in front of the
     rendered one by more than `depth_error_factor` times the median depth error over the
-    observed, well-covered pixels (new geometry in front of the map).
+    observed, well-covered pixels (new geometry in front of the map). With `color_error` > 0
+    it also qualifies when its `color_residual` is at least `color_error` (detail the map does
+    not hold there yet, although it covers the pixel).
 
     Args:
         silhouette: [H, W] rendered accumulated opacity.
@@ -89,6 +94,9 @@ def densification_mask(
         depth: [H, W] observed depth, 0 = invalid.
         silhouette_max: silhouette threshold.
         depth_error_factor: multiple of the median depth error.
+        color_residual: [H, W] mean absolute RGB error of the render; needed when
+            `color_error` > 0.
+        color_error: colour threshold in RGB units (0-1); 0 leaves colour out.
     """
     valid = depth > 0
     empty = silhouette < silhouette_max
@@ -98,4 +106,8 @@ def densification_mask(
         error = np.abs(rendered_depth - depth)
         threshold = depth_error_factor * float(np.median(error[covered]))
         front = covered & (rendered_depth > depth) & (error > threshold)
+    if color_error > 0:
+        if color_residual is None:
+            raise ValueError("color_error > 0 needs color_residual")
+        front |= covered & (color_residual >= color_error)
     return valid & (empty | front)

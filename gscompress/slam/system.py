@@ -44,7 +44,7 @@ from gscompress.datasets.base import Frame
 from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.select import keep_count, strategy_scores, top_k
-from gscompress.render import RenderOutput, render, resolve_device
+from gscompress.render import render, resolve_device
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, is_keyframe, select_window
@@ -443,8 +443,7 @@ class SlamSystem:
             if own.any():  # received Gaussians do not stand in for the run's own
                 mask = self._unexplained(RenderInputs(*(x[own] for x in inputs)), current)[0]
             if self.own_ids_from and settings.received_color_error > 0 and len(inputs.means):
-                whole, out = self._unexplained(inputs, current)
-                error = (out.color - current.color).abs().mean(-1).cpu().numpy()
+                whole, error = self._unexplained(inputs, current)
                 mask &= whole | (error >= settings.received_color_error)
         self._init_scene_radius(depth)
         new = gaussians_from_rgbd(
@@ -455,18 +454,22 @@ class SlamSystem:
             new = new.as_anisotropic()
         return self.add_gaussians(new, renumber=False)
 
-    def _unexplained(self, inputs: RenderInputs, current: View) -> tuple[np.ndarray, RenderOutput]:
-        """SplaTAM's densification mask of `inputs` rendered at the view, and the render."""
+    def _unexplained(self, inputs: RenderInputs, current: View) -> tuple[np.ndarray, np.ndarray]:
+        """The densification mask of `inputs` rendered at the view (`densify` rules), and the
+        render's [H, W] mean absolute RGB error."""
         settings = self.config.densify
         out = render(*inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend)
+        residual = (out.color - current.color).abs().mean(-1).cpu().numpy()
         mask = densification_mask(
             out.silhouette.cpu().numpy(),
             out.depth_normalized.cpu().numpy(),
             current.depth.cpu().numpy(),
             silhouette_max=settings.silhouette_max,
             depth_error_factor=settings.depth_error_factor,
+            color_residual=residual,
+            color_error=settings.color_error,
         )
-        return mask, out
+        return mask, residual
 
     def _refine(
         self, current: View, position: int, pruned: bool, keyframe: bool
