@@ -75,5 +75,11 @@ def test_resolve_config_applies_command_line_overrides(tmp_path):
 def test_example_configs_equal_their_presets(name):
     from pathlib import Path
 
+    import yaml
+
     path = Path(__file__).parents[1] / "examples" / "configs" / f"{name}.yaml"
     assert load_config(path, "tiny") == preset(name), f"regenerate {path} with save_config"
+    # every key written out, so that the example shows each setting there is
+    assert yaml.safe_load(path.read_text()) == yaml.safe_load(
+        yaml.safe_dump(preset(name).to_dict())
+    ), f"regenerate {path} with save_config"

@@ -139,15 +139,12 @@ class DensifyConfig:
             more than this many median depth errors.
         opacity: initial opacity of new Gaussians.
         color_error: also add where the map covers the pixel (silhouette at least
-            `silhouette_max`) but its rendered colour is off from the observed one by at least
-            this mean absolute RGB error (0-1 units): detail the map does not hold yet. 0 (every
-            preset): SplaTAM's rule alone. At 0.15 on the cpu preset (bench/pruning.py, 2
-            threads, README "Pruning") the maps are sharper and larger: PSNR unpruned / with
-            PWAS pruning +1.49 / +3.00 dB on tabletop, +0.42 / +1.67 on office, +2.19 / +3.31
-            on ICL 0:120 and +1.55 / +2.80 on the synthetic room, for 1.5 / 2.8x, 1.3 / 2.6x,
-            1.1 / 1.6x and 1.6 / 2.1x the final Gaussians. ATE moved -6% to +12% on the real
-            sequences but rose 28% on the synthetic room (0.482 -> 0.620 cm with pruning), past
-            its 0.5 cm target, so it stays off.
+            `silhouette_max`) but its render is off from the observed colour by at least this
+            mean absolute RGB error (0-1 units): detail the map does not hold yet. The render
+            is not divided by its silhouette, so a thinly covered bright pixel can qualify too.
+            0 (every preset): SplaTAM's rule alone. At 0.15 on the cpu preset PWAS-pruned maps
+            gained 1.7-3.3 dB for 1.6-2.8x the Gaussians, but the synthetic room's ATE rose 29%
+            past its 0.5 cm target (README, "Densifying where the colour is wrong").
         received_color_error: with a received share (`gsc slam --inject`), do not add where the
             whole map, share included, already explains the pixel: covered, no new geometry,
             and a mean absolute RGB error below this. 0: densify wherever the run's own
