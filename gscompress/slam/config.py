@@ -9,7 +9,8 @@ Three presets:
   30-60 (tuned on the synthetic room and two real sequences with bench/slam.py), and a final
   refinement of 150 iterations over all keyframes after the last frame (`mapping.final_iters`;
   on the synthetic room +1.0 dB PSNR unpruned and +1.6 dB with PWAS pruning, for about 5% of
-  the run's time, bench/pruning.py).
+  the run's time, bench/pruning.py). Besides SplaTAM's rule it densifies where the map covers a
+  pixel but shows it in the wrong colour (`densify.color_error` 0.25).
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
 
@@ -142,9 +143,11 @@ class DensifyConfig:
             `silhouette_max`) but its render is off from the observed colour by at least this
             mean absolute RGB error (0-1 units): detail the map does not hold yet. The render
             is not divided by its silhouette, so a thinly covered bright pixel can qualify too.
-            0 (every preset): SplaTAM's rule alone. At 0.15 on the cpu preset PWAS-pruned maps
-            gained 1.7-3.3 dB for 1.6-2.8x the Gaussians, but the synthetic room's ATE rose 29%
-            past its 0.5 cm target (README, "Densifying where the colour is wrong").
+            0: SplaTAM's rule alone (the default, and every preset but cpu). The cpu preset uses
+            0.25: PWAS-pruned maps gained 1.0-2.4 dB for 17-69% more Gaussians on four
+            sequences, with ATE -5% to +4% (the synthetic room over 3 seeds 0.503 -> 0.482 cm
+            on the mean); 0.15 gained more but raised the synthetic room's ATE 29% (README,
+            "Densifying where the colour is wrong").
         received_color_error: with a received share (`gsc slam --inject`), do not add where the
             whole map, share included, already explains the pixel: covered, no new geometry,
             and a mean absolute RGB error below this. 0: densify wherever the run's own
@@ -432,6 +435,7 @@ PRESETS: dict[str, SlamConfig] = {
             final_iters=150,
         ),
         keyframes=KeyframeConfig(every=5, window=8, overlap_samples=800),
+        densify=DensifyConfig(color_error=0.25),
     ),
     "tiny": SlamConfig(
         preset="tiny",
