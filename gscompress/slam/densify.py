@@ -106,8 +106,9 @@ def densification_mask(
         error = np.abs(rendered_depth - depth)
         threshold = depth_error_factor * float(np.median(error[covered]))
         front = covered & (rendered_depth > depth) & (error > threshold)
+    off_colour = np.zeros_like(valid)
     if color_error > 0:
         if color_residual is None:
             raise ValueError("color_error > 0 needs color_residual")
-        front |= covered & (color_residual >= color_error)
-    return valid & (empty | front)
+        off_colour = covered & (color_residual >= color_error)
+    return valid & (empty | front | off_colour)
