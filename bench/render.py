@@ -5,10 +5,13 @@ Prints one JSON object per case and backend on stdout:
     python bench/render.py                  # C++ (cpu) and pure torch on the CPU
     python bench/render.py --device cuda    # gsplat and pure torch on the GPU
     python bench/render.py --quick          # 320x240/50k only
+    python bench/render.py --march native,x86-64-v3   # the C++ kernels built for two targets
 
 Cases: 160x120/10k, 320x240/50k, 640x480/200k Gaussians. `speedup_vs_torch` is the ratio of
 pure torch's forward+backward time to the backend's, both measured in the same call on the same
-device.
+device. `--march A,B` runs the C++ backend once per `$GSCOMPRESS_MARCH` target (see
+`gscompress.render.cpu`), each record naming its `march`; `speedup_vs_march_A` (fwd+bwd) and
+`forward_speedup_vs_march_A` compare each with the first target's run of the same case.
 
 Scenes look like a SLAM map seen by its camera: float32 Gaussians spread uniformly over the
 view at 2-5 m depth, mildly anisotropic and randomly rotated, with opacities in [0.3, 0.95].
@@ -50,6 +53,7 @@ import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.render import render
+from gscompress.render.cpu import MARCH_ENV
 from gscompress.render.projection import bin_tiles, project_gaussians
 
 CASES = [(160, 120, 10_000), (320, 240, 50_000), (640, 480, 200_000)]
@@ -211,6 +215,11 @@ def main() -> None:
         help="cpu: C++ and pure torch; cuda: gsplat and pure torch on the GPU",
     )  # fmt: skip
     parser.add_argument("--backends", help="comma-separated (default: the device's pair)")
+    parser.add_argument(
+        "--march",
+        help="comma-separated $GSCOMPRESS_MARCH targets to build and time the C++ backend for "
+        "(e.g. native,x86-64-v3; default: the usual build only)",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -220,12 +229,19 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: torch sees no CUDA device")
     backends = args.backends.split(",") if args.backends else BACKENDS[args.device]
+    marches = args.march.split(",") if args.march else []
+    # (label, backend, march): the C++ backend once per target when --march is given.
+    runs = [
+        (f"{b}@{m}" if m else b, b, m)
+        for b in backends
+        for m in (marches if b == "cpu" and marches else [None])
+    ]
     for width, height, n in QUICK if args.quick else CASES:
         records: dict[str, dict[str, Any]] = {}
-        for backend in backends:
+        for label, backend, march in runs:
             too_big = args.device == "cpu" and n > TORCH_MAX_GAUSSIANS and not args.torch_all
             if backend == "torch" and too_big:
-                records[backend] = {
+                records[label] = {
                     "skipped": "too slow and too big for a routine run (about 20 s per "
                     "iteration and 12.5 GB peak RSS when measured); --torch-all runs it"
                 }
@@ -233,21 +249,30 @@ def main() -> None:
                 # Pure torch is 10-100x slower: fewer iterations keep the run short.
                 slow = backend == "torch" and args.device == "cpu"
                 iters = max(3, args.iters // 3) if slow else args.iters
+                env = dict(os.environ, **({MARCH_ENV: march} if march else {}))
                 proc = subprocess.run(
                     [sys.executable, __file__, "--worker", f"{width},{height},{n},{backend}",
                      "--iters", str(iters), "--device", args.device],
-                    capture_output=True, text=True, check=False,
+                    capture_output=True, text=True, check=False, env=env,
                 )  # fmt: skip
                 if proc.returncode != 0:
                     tail = proc.stderr.strip().splitlines()[-1:] or ["no output"]
-                    records[backend] = {"skipped": f"worker failed: {tail[0]}"}
+                    records[label] = {"skipped": f"worker failed: {tail[0]}"}
                 else:
-                    records[backend] = json.loads(proc.stdout.strip().splitlines()[-1])
-        base = records.get("torch", {}).get("ms_forward_backward")
-        for backend, rec in records.items():
+                    records[label] = json.loads(proc.stdout.strip().splitlines()[-1])
+                if march:
+                    records[label]["march"] = march
+        base = records.get("torch", {})
+        first = records.get(f"cpu@{marches[0]}", {}) if marches else {}
+        for (_, backend, march), rec in zip(runs, records.values(), strict=True):
             rec = {"backend": backend, "width": width, "height": height, "gaussians": n, **rec}
-            if base and "ms_forward_backward" in rec:
-                rec["speedup_vs_torch"] = round(base / rec["ms_forward_backward"], 2)
+            for key, ref, field in (
+                ("speedup_vs_torch", base, "ms_forward_backward"),
+                (f"speedup_vs_march_{marches[0]}" if march else "", first, "ms_forward_backward"),
+                (f"forward_speedup_vs_march_{marches[0]}" if march else "", first, "ms_forward"),
+            ):
+                if key and field in ref and field in rec:
+                    rec[key] = round(ref[field] / rec[field], 2)
             print(json.dumps(rec), flush=True)
 
 

@@ -24,6 +24,7 @@ from test_render import (
 
 from gscompress import metrics
 from gscompress.camera import Intrinsics
+from gscompress.errors import InputError
 from gscompress.render import RenderOutput, render, resolve_backend
 from gscompress.render import cpu as cpu_backend
 from gscompress.slam.config import preset
@@ -135,6 +136,30 @@ def test_portable_build_equals_torch(monkeypatch, tmp_path):
             _compare_ssim(cpu_backend.load_extension(), (3, 23, 37), dtype)
     finally:
         cpu_backend.load_extension.cache_clear()
+
+
+def test_march_override_picks_the_build_target(monkeypatch):
+    """$GSCOMPRESS_MARCH: `generic` gives the portable flags, a named target its own -march and
+    a key that does not depend on the CPU, `native` (or unset) the usual build; anything that
+    is not a plain target name is refused before it reaches the compiler's command line."""
+    monkeypatch.setattr(cpu_backend, "_cpu_signature", lambda: "model name: X\nflags: avx2")
+    monkeypatch.setattr(cpu_backend.platform, "machine", lambda: "x86_64")
+    native = ([*cpu_backend._CFLAGS, "-march=native"], "model name: X\nflags: avx2")
+    monkeypatch.delenv(cpu_backend.MARCH_ENV, raising=False)
+    assert cpu_backend._build_flags() == native
+    for value, expected in [
+        ("native", native),
+        (" native ", native),
+        ("", native),
+        ("generic", (list(cpu_backend._CFLAGS), "generic")),
+        ("x86-64-v3", ([*cpu_backend._CFLAGS, "-march=x86-64-v3"], "march=x86-64-v3")),
+    ]:
+        monkeypatch.setenv(cpu_backend.MARCH_ENV, value)
+        assert cpu_backend._build_flags() == expected, value
+    for bad in ("x86-64 -O0", "-v3", "a;b", "$(x)"):
+        monkeypatch.setenv(cpu_backend.MARCH_ENV, bad)
+        with pytest.raises(InputError, match="GSCOMPRESS_MARCH"):
+            cpu_backend._build_flags()
 
 
 def test_checkouts_of_the_same_sources_build_apart(tmp_path):

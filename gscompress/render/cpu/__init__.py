@@ -7,6 +7,11 @@ directory keyed on the sources and their location, the flags, torch, Python and 
 `$XDG_CACHE_HOME/gscompress`, default `~/.cache/gscompress`); later processes import the finished
 build directly. Each new build removes the builds no process has loaded for 30 days. Without a
 C++ compiler `load_extension()` returns None and the caller falls back to the pure-torch backend.
+
+`$GSCOMPRESS_MARCH` picks another target than the build machine's: `generic` for portable
+flags, or a compiler target such as `x86-64-v3` (AVX2 with FMA) to build, test or time another
+vector width than the CPU's widest (`bench/render.py --march`). A target whose instructions the
+CPU lacks builds, but the process dies with an illegal instruction on the first render.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from typing import Any
 import torch
 
 from gscompress.camera import Intrinsics
+from gscompress.errors import InputError
 from gscompress.metrics import gaussian_window, ssim_constants
 from gscompress.render.projection import Projection, TileBins, tile_grid
 
@@ -52,6 +58,11 @@ def _cpu_signature() -> str | None:
     return "\n".join(sorted(set(lines))) or None
 
 
+MARCH_ENV = "GSCOMPRESS_MARCH"
+"""Environment variable naming the `-march` target of the build: `native` (the default),
+`generic` (portable flags) or a target of the compiler's, e.g. `x86-64-v3` (AVX2 and FMA)."""
+
+
 def _build_flags() -> tuple[list[str], str]:
     """Compiler flags and the CPU part of the cache key.
 
@@ -59,7 +70,22 @@ def _build_flags() -> tuple[list[str], str]:
     the cache key includes the CPU's model and feature flags: a home directory shared between
     different machines then holds one build per CPU type instead of a build that crashes.
     Elsewhere (not x86-64, or the CPU cannot be identified) the build uses portable flags.
+    `$GSCOMPRESS_MARCH` overrides the target (see `MARCH_ENV`): a named one is keyed by its
+    name alone, as it does not depend on the CPU that builds it.
+
+    Raises:
+        InputError: a `$GSCOMPRESS_MARCH` that is not a plain target name.
     """
+    march = os.environ.get(MARCH_ENV, "").strip() or "native"
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]*", march):
+        raise InputError(
+            f"{MARCH_ENV}={march!r} is not a -march target; use native, generic or a name "
+            "such as x86-64-v3"
+        )
+    if march == "generic":
+        return list(_CFLAGS), "generic"
+    if march != "native":
+        return [*_CFLAGS, f"-march={march}"], f"march={march}"
     cpu = _cpu_signature() if platform.machine() in ("x86_64", "AMD64") else None
     if cpu is None:
         return list(_CFLAGS), "generic"
@@ -203,9 +229,10 @@ def load_extension() -> ModuleType | None:
         return module
     except Exception as exc:  # a build failure must not take rendering down
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        target = f" for {MARCH_ENV}={os.environ[MARCH_ENV]}" if os.environ.get(MARCH_ENV) else ""
         warnings.warn(
-            f"building the C++ render kernels failed ({first_line}): the cpu render backend "
-            "falls back to pure torch",
+            f"building the C++ render kernels{target} failed ({first_line}): the cpu render "
+            "backend falls back to pure torch",
             RuntimeWarning,
             stacklevel=3,
         )

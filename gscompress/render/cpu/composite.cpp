@@ -12,7 +12,7 @@
 // - Tiles of 16x16 pixels are handed to threads with OpenMP dynamic scheduling. Within a tile
 //   the loop runs Gaussian by Gaussian (front to back in the forward, back to front in the
 //   backward); for each Gaussian only the tile rows, and the register-wide segments of a row
-//   (8 pixels of float on AVX2, 16 on AVX-512, starting at the Gaussian's first column), where
+//   (8 pixels of float on AVX2 and AVX-512, starting at the Gaussian's first column), where
 //   its alpha can reach 1/255 are visited. Each segment is one branch-free SIMD computation,
 //   with the per-pixel state (T, accumulated features, ...) in tile-local arrays.
 // - A segment's alpha is one long chain of dependent operations (the exponential's polynomial
@@ -29,7 +29,7 @@
 #include <torch/extension.h>
 
 #include <omp.h>
-#if defined(__FMA__) || defined(__AVX512F__)
+#if defined(__FMA__)
 #include <immintrin.h>
 #endif
 
@@ -53,12 +53,14 @@ struct Rules {
   static constexpr scalar_t t_min = scalar_t(1e-4);
 };
 
-// The build target's SIMD register width in bytes. Vectors are exactly one register wide: GCC
-// splits wider generic vectors into pieces, but turns their comparisons and selects into scalar
-// code (an earlier version with 16-float rows ran mostly scalar on AVX2).
-#if defined(__AVX512F__)
-constexpr int kVecBytes = 64;
-#elif defined(__AVX__)
+// The vector width in bytes: one register of the build target, at most 32. Vectors are never
+// wider than a register: GCC splits wider generic vectors into pieces, but turns their
+// comparisons and selects into scalar code (an earlier version with 16-float rows ran mostly
+// scalar on AVX2). AVX-512 targets use 32 bytes too: with 16-float rows a segment spans a whole
+// tile row, while most footprints are a few pixels wide, and on a Xeon with AVX-512 the
+// forward + backward ran 1.20-1.25x faster as an AVX2 build than with 64-byte vectors and
+// 1.04-1.07x faster again at 32 bytes with the native target (`bench/render.py --march`).
+#if defined(__AVX__)
 constexpr int kVecBytes = 32;
 #else
 constexpr int kVecBytes = 16;
@@ -108,14 +110,7 @@ inline auto hsum(const V& v) {
 // build turns off contraction, -ffp-contract=off), so both round alike.
 using VF = Simd<float>::V;
 using VD = Simd<double>::V;
-#if defined(__AVX512F__)
-inline VF fmadd(VF a, VF b, VF c) {
-  return VF(_mm512_fmadd_ps(__m512(a), __m512(b), __m512(c)));
-}
-inline VD fmadd(VD a, VD b, VD c) {
-  return VD(_mm512_fmadd_pd(__m512d(a), __m512d(b), __m512d(c)));
-}
-#elif defined(__FMA__)
+#if defined(__FMA__)
 inline VF fmadd(VF a, VF b, VF c) {
   return VF(_mm256_fmadd_ps(__m256(a), __m256(b), __m256(c)));
 }
