@@ -203,6 +203,11 @@ def worker(
     return record
 
 
+def runs_label(backend: str, march: str | None) -> str:
+    """The key of one run's record: the backend, and the build target when --march names one."""
+    return f"{backend}@{march}" if march else backend
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="only 320x240 with 50k Gaussians")
@@ -232,7 +237,7 @@ def main() -> None:
     marches = args.march.split(",") if args.march else []
     # (label, backend, march): the C++ backend once per target when --march is given.
     runs = [
-        (f"{b}@{m}" if m else b, b, m)
+        (runs_label(b, m), b, m)
         for b in backends
         for m in (marches if b == "cpu" and marches else [None])
     ]
@@ -262,16 +267,18 @@ def main() -> None:
                     records[label] = json.loads(proc.stdout.strip().splitlines()[-1])
                 if march:
                     records[label]["march"] = march
-        base = records.get("torch", {})
-        first = records.get(f"cpu@{marches[0]}", {}) if marches else {}
+        # (key, baseline record, timing): each ratio is the baseline's time over the run's.
+        ratios = [("speedup_vs_torch", records.get("torch", {}), "ms_forward_backward")]
+        if marches:
+            first = records.get(runs_label("cpu", marches[0]), {})
+            ratios += [
+                (f"speedup_vs_march_{marches[0]}", first, "ms_forward_backward"),
+                (f"forward_speedup_vs_march_{marches[0]}", first, "ms_forward"),
+            ]
         for (_, backend, march), rec in zip(runs, records.values(), strict=True):
             rec = {"backend": backend, "width": width, "height": height, "gaussians": n, **rec}
-            for key, ref, field in (
-                ("speedup_vs_torch", base, "ms_forward_backward"),
-                (f"speedup_vs_march_{marches[0]}" if march else "", first, "ms_forward_backward"),
-                (f"forward_speedup_vs_march_{marches[0]}" if march else "", first, "ms_forward"),
-            ):
-                if key and field in ref and field in rec:
+            for key, ref, field in ratios if march else ratios[:1]:
+                if field in ref and field in rec:
                     rec[key] = round(ref[field] / rec[field], 2)
             print(json.dumps(rec), flush=True)
 
