@@ -9,6 +9,7 @@ import click
 from gscompress.errors import InputError
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
+from gscompress.pipeline.merge import REFINE_VIEWS
 
 from .options import (
     INPUT_FOLDER,
@@ -79,7 +80,12 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 )  # fmt: skip
 @click.option(
     "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
-    help="Refinement iterations of each merge on B's keyframes.",
+    help="Refinement iterations of each merge.",
+)  # fmt: skip
+@click.option(
+    "--merge-views", type=click.Choice(REFINE_VIEWS), default="frames", show_default=True,
+    help="What each merge refines on: all of B's frames, or B's keyframes only (`gsc merge "
+    "--views`).",
 )  # fmt: skip
 @click.option(
     "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
@@ -106,6 +112,7 @@ def experiment(
     every: int,
     mode: str,
     merge_iters: int,
+    merge_views: str,
     jobs: int,
     no_lpips: bool,
     device: str,
@@ -145,6 +152,7 @@ def experiment(
         every=every,
         mode=mode,
         merge_iters=merge_iters,
+        merge_views=merge_views,
         lpips=not no_lpips,
         device=device,
     )

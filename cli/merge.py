@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from gscompress.pipeline import merge_logs
+from gscompress.pipeline.merge import REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,
@@ -42,10 +43,18 @@ from .options import (
     type=click.IntRange(min=0),
     default=200,
     show_default=True,
-    help="Refinement iterations on the receiver's keyframes (0: concatenate only).",
+    help="Refinement iterations on the receiver's views (0: concatenate only).",
+)
+@click.option(
+    "--views",
+    type=click.Choice(REFINE_VIEWS),
+    default="frames",
+    show_default=True,
+    help="Refine on every frame of the receiver (its --frames subset) or on its keyframes "
+    "only (fewer views to load; 200 iterations on 5 keyframes overfit them).",
 )
 @device_option
-@seed_option("Seed of the random choice of refinement views.")
+@seed_option("Seed of the order of the refinement views.")
 @share_transform_option
 @force_option
 @json_option
@@ -57,6 +66,7 @@ def merge(
     frames: object,
     size: tuple[int, int] | None,
     iters: int,
+    views: str,
     device: str,
     seed: int,
     share_transform: Path | None,
@@ -67,7 +77,8 @@ def merge(
 
     Every Gaussian of both maps is kept with its parameters, id and PWAS sums (the share's ids
     move past the receiver's when they clash; the offset is reported). The merged map is then
-    refined on the receiver's own keyframes at its estimated poses with a fresh optimizer.
+    refined on the receiver's own frames (--views) at its estimated poses with a fresh optimizer,
+    each view once per shuffled pass.
     Both maps must be in the same world frame (agents anchored at the ground-truth pose of
     their first frame on one sequence are). `gsc slam --inject` is the other path: the share
     enters before the receiver maps, so its tracking benefits too.
@@ -91,6 +102,7 @@ def merge(
             frames=None if frames is None else str(frames),
             size=size,
             iters=iters,
+            views=views,
             device=device,
             seed=seed,
             share_transform=share_transform,

@@ -71,13 +71,26 @@ def test_merge_refines_and_keeps_every_gaussian_and_sum(agents: dict[str, Path])
     for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
         assert np.array_equal(getattr(merged, name), getattr(expected, name))
     assert not np.array_equal(merged.means, expected.means)
-    assert result["refine_iters"] == 30 and result["refine_views"] >= 1
+    assert result["refine_iters"] == 30 and result["refine_views"] == 4  # all of B's frames
     # provenance names both inputs; the receiver's poses and stats are all there
     step = meta.provenance[-1]
     assert step["parent"] == "b.mcap" and step["operation"]["share"] == "share.mcap"
     assert step["operation"]["name"] == "merge" and len(step["operation"]["share_sha256"]) == 64
     assert counts["/camera/pose"] == 4 and meta.world_frame == "ground-truth:room"
     assert offset >= 0
+
+
+def test_merge_refines_on_keyframes_only_when_asked(agents: dict[str, Path]) -> None:
+    out = agents["root"] / "keyframes.mcap"
+    result = merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=4,
+                        views="keyframes")  # fmt: skip
+    assert result["refine_views"] == 2  # B's 4 frames, a keyframe every 2 in the tiny preset
+    with LogReader(out) as log:
+        assert log.metadata.provenance[-1]["operation"]["views"] == "keyframes"
+    with pytest.raises(InputError, match="--views"):
+        merge_logs(agents["b"], agents["share"], agents["root"] / "x.mcap", seq=agents["seq"],
+                   views="all")  # fmt: skip
+    assert not (agents["root"] / "x.mcap").exists()
 
 
 def test_merge_without_refinement_is_exact_concatenation(agents: dict[str, Path]) -> None:

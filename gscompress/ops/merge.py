@@ -97,7 +97,7 @@ def refine(
     seed: int = 0,
     progress: Callable[[int], object] | None = None,
 ) -> tuple[GaussianMap, dict[str, Any]]:
-    """Optimise a map on fixed views for `iters` iterations, one random view each.
+    """Optimise a map on fixed views for `iters` iterations, each view once per shuffled pass.
 
     Args:
         gaussians: the map (SH degree 0: the SLAM parameterisation).
@@ -106,7 +106,7 @@ def refine(
         config: a `SlamConfig` (mapping loss and learning rates are taken from it).
         iters: iterations.
         device: torch device of the views.
-        seed: seed of the view choice.
+        seed: seed of the view order.
         progress: called with 1 after each iteration.
 
     Returns:
@@ -135,12 +135,14 @@ def refine(
     config = config.with_overrides(**{"prune.opacity_every": 0, "isotropic": gaussians.isotropic})
     mapper = Mapper(config, intrinsics, torch.device(device))
     mapper.add(gaussians)
-    losses = []
-    for _ in range(iters):
-        view = views[int(rng.integers(len(views)))]
-        losses.append(mapper.optimize(view, [], 1, rng).loss)
+    losses: list[float] = []
+
+    def step(loss: float) -> None:
+        losses.append(loss)
         if progress is not None:
             progress(1)
+
+    mapper.refine(list(views), iters, rng, on_step=step)
     refined = mapper.params.to_map()
     tenth = max(iters // 10, 1)
     stats = {

@@ -5,7 +5,7 @@ Runs, each a log under DIR/runs/ with a JSON record of its settings and results 
 - Table 4, for each seed: agent A on the odd frames, agent B on the even frames (both with
   pruning), and B receiving A's share for every strategy at the main budget, plus B with A's
   whole map as the upper bound. B receives a share as the paper's protocol does (`mode`
-  "merge", the default): concatenated into B's finished map and refined on B's keyframes
+  "merge", the default): concatenated into B's finished map and refined on B's frames
   (`gsc merge`; B's poses, so its ATE, do not change), or (`mode` "inject") injected before B's
   first frame (`gsc slam --inject`), so that B's tracking and mapping both use it.
 - Rate-distortion: B with A's share at every sweep budget for every strategy (on the first
@@ -54,6 +54,7 @@ from gscompress.io.files import check_only_entries, is_within, json_text, write_
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES, strategy_scores
+from gscompress.pipeline.merge import REFINE_VIEWS
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +93,7 @@ class ExperimentSettings:
         mode: how B receives a share: "merge" (into its finished map, then refined) or
             "inject" (before its first frame).
         merge_iters: refinement iterations of a merge.
+        merge_views: what a merge refines on: B's "frames" (all) or "keyframes".
     """
 
     preset: str = "cpu"
@@ -109,6 +111,7 @@ class ExperimentSettings:
     frames: str = "all"
     mode: str = "merge"
     merge_iters: int = 200
+    merge_views: str = "frames"
 
     def agent_frames(self) -> tuple[str, str]:
         """The frame subsets of agents A and B (odd and even positions within `frames`)."""
@@ -131,6 +134,8 @@ class ExperimentSettings:
         self.agent_frames()
         if self.mode not in ("merge", "inject") or self.merge_iters < 0:
             raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
+        if self.merge_views not in REFINE_VIEWS:
+            raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
         Budget.parse(self.budget)
         for b in self.sweep:
             Budget.parse(b)
@@ -190,7 +195,7 @@ def _merge_job(
     from gscompress.pipeline.merge import merge_logs
 
     merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
-                        device=s.device, seed=seed, force=True)  # fmt: skip
+                        views=s.merge_views, device=s.device, seed=seed, force=True)  # fmt: skip
     return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
@@ -359,8 +364,8 @@ class _Runner:
             return self.slam(f"{name}_inject", config, frames, inject=share)
         spec = {
             "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
-            "frames": frames,
-            "iters": s.merge_iters, "seed": seed, "every": s.every, "lpips": s.lpips,
+            "frames": frames, "iters": s.merge_iters, "views": s.merge_views, "seed": seed,
+            "every": s.every, "lpips": s.lpips,
         }  # fmt: skip
         job = functools.partial(
             _merge_job, seq=self.seq, receiver=receiver.path,
@@ -716,7 +721,7 @@ def _receive_text(s: ExperimentSettings) -> str:
         return "B's run starts with the share injected. "
     return (
         f"B merges a share into its map and refines it ({s.merge_iters} iterations on its "
-        "keyframes; B's poses, so its ATE, do not change). "
+        f"{s.merge_views}; B's poses, so its ATE, do not change). "
     )
 
 

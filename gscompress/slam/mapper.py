@@ -12,6 +12,7 @@ cleanup).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,7 +139,13 @@ class Mapper:
                 stats.removed += self.cleanup()
         return stats.averaged()
 
-    def refine(self, views: list[View], iters: int, rng: np.random.Generator) -> MappingStats:
+    def refine(
+        self,
+        views: list[View],
+        iters: int,
+        rng: np.random.Generator,
+        on_step: Callable[[float], object] | None = None,
+    ) -> MappingStats:
         """Run `iters` mapping iterations over `views`, each view once per shuffled pass.
 
         Used after a pruning stage and after the last frame, so that every keyframe (not only
@@ -146,6 +153,7 @@ class Mapper:
         iterations do not advance the cyclic-cleanup count; at the end only transparent
         Gaussians are removed: the large ones are what covers the holes, and with no mapping
         left to fill the gaps, removing them cost about 2 dB PSNR on a pruned synthetic map.
+        `on_step` is called with each iteration's total loss (`gsc merge`'s progress).
         """
         stats = MappingStats()
         order: list[int] = []
@@ -155,6 +163,8 @@ class Mapper:
             if not order:
                 order = [int(i) for i in rng.permutation(len(views))]
             self._step(views[order.pop()], stats)
+            if on_step is not None:
+                on_step(stats.last_loss)
         if stats.iters and self.config.prune.opacity_every > 0:
             stats.removed += self.cleanup(huge=False)
         return stats.averaged()
