@@ -17,6 +17,25 @@ from gscompress.render.torch_backend import composite_torch
 
 logger = logging.getLogger(__name__)
 
+
+def _warm_up_vector_math() -> None:
+    """Call torch's vectorised transcendental functions once, on one thread, at import.
+
+    With torch 2.13's CPU build on an AVX-512 Xeon, the first torch.exp of a process that ran
+    on two threads (2048 elements or more) sometimes came back with one thread's half of the
+    tensor off by up to 1.5e-4 relative; every later call was exact to rounding. In `gsc slam`
+    that first call is the activation of the scales at frame 0, so a quarter of the runs (9 of
+    36 processes) took a different course. A first call below torch's parallel grain (one
+    thread, still vectorised) made it 0 of 36. The same is done for the other functions the
+    maps and losses use.
+    """
+    x = torch.linspace(0.5, 1.5, 1024)
+    for fn in (torch.exp, torch.log, torch.sqrt, torch.sigmoid, torch.tanh):
+        fn(x)
+
+
+_warm_up_vector_math()
+
 BACKENDS = ("auto", "torch", "cpu", "gsplat")
 """Accepted values of `render(..., backend=...)`."""
 
