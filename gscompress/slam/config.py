@@ -3,13 +3,14 @@
 Three presets:
 
 - `tiny`: for tests and smoke runs (a handful of iterations; seconds for a few 64x48 frames).
-- `cpu` (the default of `gsc slam`): 160x120 and iteration counts sized for a 2-core CPU at
-  about 1-1.5 s per frame (40 tracking / 15 mapping iterations), with higher colour and scale
-  learning rates than SplaTAM's because there are 15 mapping iterations per frame instead of
-  30-60 (tuned on the synthetic room and two real sequences with bench/slam.py), and a final
-  refinement of 150 iterations over all keyframes after the last frame (`mapping.final_iters`;
-  on the synthetic room +1.0 dB PSNR unpruned and +1.6 dB with PWAS pruning, for about 5% of
-  the run's time, bench/pruning.py). Besides SplaTAM's rule it densifies where the map covers a
+- `cpu` (the default of `gsc slam`): 160x120 and iteration counts sized for a 2-core CPU
+  (40 tracking / 15 mapping iterations; 0.35-0.5 s per frame on the project's 2-core Xeon),
+  with higher colour and scale learning rates than SplaTAM's because there are 15 mapping
+  iterations per frame instead of 30-60 (tuned on the synthetic room and two real sequences
+  with bench/slam.py), and a final refinement of 400 iterations over all keyframes after the
+  last frame (`mapping.final_iters`; against 150 iterations, +0.6 to +2.1 dB PSNR on the four
+  real sequences and +0.2 on the synthetic room, for 0.02-0.06 s per frame; 800 gave less
+  than 400 on tabletop and office). Besides SplaTAM's rule it densifies where the map covers a
   pixel but shows it in the wrong colour (`densify.color_error` 0.25).
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
@@ -432,7 +433,7 @@ PRESETS: dict[str, SlamConfig] = {
             lr_means=2e-4,
             lr_colors=2e-2,
             lr_log_scales=5e-3,
-            final_iters=150,
+            final_iters=400,
         ),
         keyframes=KeyframeConfig(every=5, window=8, overlap_samples=800),
         densify=DensifyConfig(color_error=0.25),
