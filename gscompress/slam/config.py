@@ -147,8 +147,8 @@ class DensifyConfig:
             0: SplaTAM's rule alone (the default, and every preset but cpu). The cpu preset uses
             0.25: PWAS-pruned maps gained 1.0-2.4 dB for 17-69% more Gaussians on four
             sequences, with ATE -5% to +4% (the synthetic room over 3 seeds 0.503 -> 0.482 cm
-            on the mean); 0.15 gained more but raised the synthetic room's ATE 29% (README,
-            "Densifying where the colour is wrong").
+            on the mean); 0.15 gained more but raised the synthetic room's ATE 29%
+            (docs/performance-history.md, "Densifying where the colour is wrong").
         received_color_error: with a received share (`gsc slam --inject`), do not add where the
             whole map, share included, already explains the pixel: covered, no new geometry,
             and a mean absolute RGB error below this. 0: densify wherever the run's own
@@ -200,27 +200,26 @@ class PruneConfig:
             against 24.03 dB) but kept 11122 Gaussians instead of 6228, 57% fewer than unpruned
             instead of 76% (bench/pruning.py). "current" did not help on 3dmatch_office_frag1
             (PSNR 24.19 against 24.18 dB, ATE 2.13 against 2.03 cm, 3494 Gaussians).
-        track_prestage_frames: for this many frames after each stage, track against the map
-            as it stood just before the stage (a detached copy, dropped afterwards; not kept
-            across `--resume`); mapping, densification, scores and the log use the pruned
-            map (0: off). A stage thins the view the camera is in: against a ground-truth-pose
-            map pruned to 30%, tracking from the true pose settled 0.6-0.8 cm away (0.26 cm
-            unpruned), and the frame-to-frame error of the frames after each stage jumped
-            (synthetic room: 1.2-1.5 cm against 0.1 cm). With 3 (cpu preset, seed 0), PWAS
-            pruning's ATE: synthetic room 0.425 -> 0.460 cm (unpruned 0.518), tabletop 0.498
-            -> 0.540 (0.581), office 2.031 -> 1.929 (1.843; seed 1: 2.054 -> 1.906 against
-            1.768), ICL 0:120 1.471 -> 1.449 (1.187); with 8: 0.496, 0.582, 1.895 / 1.944,
-            1.401; with 40 (every frame after a stage; ATE against unpruned): ICL 1.232 cm
-            (+3.8%), office 1.758 (-4.6%), tabletop 0.577 (-0.7%), but the synthetic room
-            0.616 (+19%, against 0.460 with 3), so 3 stays; over seeds 0-2 (README) 3 misses
-            10% only on ICL (+23.5%) and 20 or 40 only on the synthetic room (+31%). Two
-            mixes of old and new, for 40 frames, were worse (tried at 6786aaf, not kept): the
-            live map plus the Gaussians the stage removed, frozen (ICL 1.245, office 2.188,
-            tabletop 0.571, synthetic 0.649 cm), and the map before the stage plus the
-            Gaussians added since (1.377, 1.847, 0.763, 0.594). Frozen and live Gaussians
-            drawn together disagree where the live ones have moved on; why the synthetic room
-            loses with the pre-stage map alone is not known (covering the newly mapped parts
-            did not help).
+        track_prestage_frames: for this many frames after each stage, track against the map as it
+            stood just before the stage (a detached copy, dropped afterwards; not kept across
+            `--resume`); mapping, densification, scores and the log use the pruned map (0: off). A
+            stage thins the view the camera is in: against a ground-truth-pose map pruned to 30%,
+            tracking from the true pose settled 0.6-0.8 cm away (0.26 cm unpruned), and the
+            frame-to-frame error of the frames after each stage jumped (synthetic room: 1.2-1.5 cm
+            against 0.1 cm). With 3 (cpu preset, seed 0), PWAS pruning's ATE: synthetic room 0.425
+            -> 0.460 cm (unpruned 0.518), tabletop 0.498 -> 0.540 (0.581), office 2.031 -> 1.929
+            (1.843; seed 1: 2.054 -> 1.906 against 1.768), ICL 0:120 1.471 -> 1.449 (1.187); with 8:
+            0.496, 0.582, 1.895 / 1.944, 1.401; with 40 (every frame after a stage; ATE against
+            unpruned): ICL 1.232 cm (+3.8%), office 1.758 (-4.6%), tabletop 0.577 (-0.7%), but the
+            synthetic room 0.616 (+19%, against 0.460 with 3), so 3 stays; over seeds 0-2
+            (docs/performance-history.md) 3 misses 10% only on ICL (+23.5%) and 20 or 40 only on the
+            synthetic room (+31%). Two mixes of old and new, for 40 frames, were worse (tried at
+            6786aaf, not kept): the live map plus the Gaussians the stage removed, frozen (ICL
+            1.245, office 2.188, tabletop 0.571, synthetic 0.649 cm), and the map before the stage
+            plus the Gaussians added since (1.377, 1.847, 0.763, 0.594). Frozen and live Gaussians
+            drawn together disagree where the live ones have moved on; why the synthetic room loses
+            with the pre-stage map alone is not known (covering the newly mapped parts did not
+            help).
     """
 
     opacity_every: int = 100
@@ -243,7 +242,8 @@ class SlamConfig:
         preset: the preset these values started from (informational).
         size: working image size (W, H), or None for the sequence's own.
         isotropic: one scale per Gaussian (SplaTAM) instead of three and a rotation. False
-            gives higher PSNR unpruned but no smaller PWAS pruning cost (README, Table 3).
+            gives higher PSNR unpruned but no smaller PWAS pruning cost
+            (docs/performance-history.md, "Anisotropic Gaussians").
         backend: render backend (`gscompress.render.BACKENDS`).
         seed: seed of the random choices (window views).
         init_from_ground_truth: put the first frame at its ground-truth pose when the sequence
