@@ -167,7 +167,16 @@ def experiment(
             bar.set_postfix_str(name, refresh=False)
             bar.update(done - bar.n)
 
-        result = run_experiment(seq, out_dir, settings, progress=progress, jobs=jobs)
+        try:
+            result = run_experiment(seq, out_dir, settings, progress=progress, jobs=jobs)
+        except KeyboardInterrupt:
+            bar.close()
+            click.echo(
+                f"Interrupted: the finished runs are kept in {out_dir / 'runs'}; the same "
+                "command reuses them and redoes the rest",
+                err=True,
+            )
+            raise SystemExit(130) from None
     v = result["verdicts"]
     emit(
         result,

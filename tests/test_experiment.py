@@ -266,3 +266,67 @@ def test_both_modes_share_one_folder_without_overwriting_runs(
     assert r.exit_code == 0, r.output
     again = json.loads(r.output)
     assert again["reused"] == again["steps"] == first["steps"]
+
+
+def _children(pid: int) -> set[int]:
+    """The live child processes of `pid` (from /proc; zombies left out)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            state, ppid = stat.read_text().rsplit(")", 1)[1].split()[:2]
+        except (OSError, IndexError, ValueError):
+            continue  # ended meanwhile
+        if int(ppid) == pid and state != "Z":
+            found.add(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="reads /proc (Linux)")
+def test_sigterm_stops_the_workers_and_a_rerun_goes_on(tmp_path: Path) -> None:
+    """SIGTERM (or Ctrl-C) to `gsc experiment --jobs 2` while runs are under way: the command
+    ends with 130 and says how to go on, no worker outlives it, the runs it finished keep their
+    records, and the same command reuses them."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    seq = write_synthetic_sequence(tmp_path / "room", 16, (64, 48))
+    out = tmp_path / "exp"
+    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
+            "--sweep-seeds", "0", "--no-lpips", "--json"]  # fmt: skip
+    cmd = [sys.executable, "-m", "gscompress_cli", "--threads", "2", *args, "--jobs", "2"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 300
+        while not list((out / "runs").glob("*.json")):  # the first run has finished
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.1)
+        workers = _children(proc.pid)
+        assert workers  # the pool's workers (and the resource tracker)
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert b"Interrupted" in stderr and b"reuses them" in stderr
+    time.sleep(1.0)  # an orphan is reaped by its new parent
+    assert not [pid for pid in workers if _alive(pid)]
+    records = sorted(p.stem for p in (out / "runs").glob("*.json"))
+    total = plan_size(ExperimentSettings(preset="tiny", seeds=1, sweep_seeds=0, lpips=False))
+    assert 0 < len(records) < total  # stopped part-way, nothing recorded for the runs it cut
+    for name in records:
+        with LogReader(out / "runs" / f"{name}.mcap") as log:
+            assert len(log.read_map()) > 0
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output)
+    assert result["steps"] == total and result["reused"] >= len(records)

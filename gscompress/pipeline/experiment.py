@@ -43,6 +43,7 @@ from concurrent.futures import (
     wait,
 )
 from dataclasses import asdict, dataclass
+from multiprocessing.queues import SimpleQueue
 from pathlib import Path
 from typing import Any
 
@@ -205,12 +206,14 @@ def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) 
     return share_log(source, path, budget, strategy=strategy, seed=seed, force=True)
 
 
-def _init_worker(threads: int) -> None:
+def _init_worker(threads: int, pids: SimpleQueue[int]) -> None:
     """A worker process: its share of the threads; Ctrl-C is for the run it is in (which
-    stops after its frame, as `gsc slam` does), not for a worker waiting for work."""
+    stops after its frame, as `gsc slam` does), not for a worker waiting for work. Its pid goes
+    to `pids`, so that the runner can signal exactly its own workers."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    pids.put(os.getpid())
     torch.set_num_threads(threads)
 
 
@@ -238,13 +241,18 @@ class _Runner:
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._pool: ProcessPoolExecutor | None = None
+        self._worker_pids: SimpleQueue[int] | None = None
+        self._workers: set[int] = set()
         self._waiters: ThreadPoolExecutor | None = None
         if jobs > 1:
             import torch
 
             threads = max(1, torch.get_num_threads() // jobs)
             spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
-            self._pool = ProcessPoolExecutor(jobs, spawn, _init_worker, (threads,))
+            self._worker_pids = spawn.SimpleQueue()  # each worker's pid, sent as it starts
+            self._pool = ProcessPoolExecutor(
+                jobs, spawn, _init_worker, (threads, self._worker_pids)
+            )
             # one waiting thread per step: each starts its job once the steps it reads are done
             # (they were submitted before it, so they are under way: no waiting in a circle)
             self._waiters = ThreadPoolExecutor(max(1, total))
@@ -254,11 +262,12 @@ class _Runner:
         under way after their frame (a stopped run keeps no record, so a rerun redoes it)."""
         if cancel:
             self._stopping.set()
-            if self._pool is not None:  # a worker between runs ignores it, a merge too
-                for process in list(self._pool._processes.values()):
-                    if process.pid is not None:
-                        with contextlib.suppress(OSError):  # ended meanwhile
-                            os.kill(process.pid, signal.SIGINT)
+            if self._worker_pids is not None:  # a worker between runs ignores it, a merge too
+                while not self._worker_pids.empty():
+                    self._workers.add(self._worker_pids.get())
+                for pid in self._workers:
+                    with contextlib.suppress(OSError):  # ended meanwhile
+                        os.kill(pid, signal.SIGINT)
         for pool in (self._waiters, self._pool):
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=cancel)
@@ -442,7 +451,7 @@ def run_experiment(
     base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
     runner = _Runner(seq, out, s, progress, plan_size(s), jobs)
     try:
-        with _sigterm_interrupts(jobs > 1):
+        with _sigterm_interrupts():
             planned = _plan(runner, base)
             rows = [_row(*args) for args in planned]  # waits for every step
     except BaseException:
@@ -462,11 +471,11 @@ def run_experiment(
 
 
 @contextlib.contextmanager
-def _sigterm_interrupts(active: bool) -> Iterator[None]:
-    """SIGTERM as Ctrl-C while runs go on in worker processes: the runner then stops them,
-    instead of this process ending and leaving them behind. (A run in this process handles both
-    signals itself.)"""
-    if not active or threading.current_thread() is not threading.main_thread():
+def _sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM as Ctrl-C: the runner stops the runs in worker processes instead of this process
+    ending and leaving them behind, and the command ends as on Ctrl-C. (A SLAM run in this
+    process handles both signals itself, stopping after its frame.)"""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
 
