@@ -9,7 +9,7 @@ import click
 from gscompress.errors import InputError
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
-from gscompress.pipeline.merge import REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
 
 from .options import (
     INPUT_FOLDER,
@@ -83,7 +83,8 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     help="Refinement iterations of each merge.",
 )  # fmt: skip
 @click.option(
-    "--merge-views", type=click.Choice(REFINE_VIEWS), default="frames", show_default=True,
+    "--merge-views", type=click.Choice(REFINE_VIEWS), default=DEFAULT_REFINE_VIEWS,
+    show_default=True,
     help="What each merge refines on: all of B's frames, or B's keyframes only (`gsc merge "
     "--views`).",
 )  # fmt: skip

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from gscompress.pipeline import merge_logs
-from gscompress.pipeline.merge import REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,
@@ -48,7 +48,7 @@ from .options import (
 @click.option(
     "--views",
     type=click.Choice(REFINE_VIEWS),
-    default="frames",
+    default=DEFAULT_REFINE_VIEWS,
     show_default=True,
     help="Refine on every frame of the receiver (its --frames subset) or on its keyframes "
     "only (fewer views to load; 200 iterations on 5 keyframes overfit them).",

@@ -55,7 +55,7 @@ from gscompress.io.files import check_only_entries, is_within, json_text, write_
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES, strategy_scores
-from gscompress.pipeline.merge import REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ class ExperimentSettings:
     frames: str = "all"
     mode: str = "merge"
     merge_iters: int = 200
-    merge_views: str = "frames"
+    merge_views: str = DEFAULT_REFINE_VIEWS
 
     def agent_frames(self) -> tuple[str, str]:
         """The frame subsets of agents A and B (odd and even positions within `frames`)."""
