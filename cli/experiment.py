@@ -125,8 +125,9 @@ def experiment(
     - Table 3: the whole sequence without and with PWAS pruning.
     - Table 4, per seed: agent A maps the odd frames, agent B the even ones; B receives A's
       share (random, opacity, alpha-t, PWAS at --budget) and A's whole map (the upper
-      bound): merged into B's map and refined on B's keyframes (--mode merge), or injected
-      before B's first frame so that its tracking uses it too (--mode inject).
+      bound): merged into B's map and refined on B's frames (--mode merge; --merge-views
+      keyframes for its keyframes only), or injected before B's first frame so that its
+      tracking uses it too (--mode inject).
     - Rate-distortion: PSNR and ATE of B against the share size, per strategy.
     Every run is scored with `gsc eval` on its own frames. Outputs: results.md (tables like the
     paper's), results.csv, results.json, plots/*.png; each run's log stays in runs/. A rerun

@@ -1,8 +1,9 @@
 """The `gsc` click group.
 
 Commands are loaded lazily from their own modules, so that `gsc info` never pays for importing
-torch or the SLAM code. A `GscError` becomes a one-line message and exit code 1; anything else is
-a bug and keeps its traceback.
+torch or the SLAM code. A `GscError`, or an error of the file system (`OSError`: no space, no
+permission), becomes a one-line message and exit code 1; anything else is a bug and keeps its
+traceback.
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ from __future__ import annotations
 import importlib
 import logging
 import os
+import re
 import sys
+from pathlib import Path
 from typing import Any
 
 import click
@@ -90,6 +93,21 @@ class GscGroup(click.Group):
             raise click.ClickException(message) from None
         except click.UsageError as exc:
             raise one_line(exc) from None
+        except OSError as exc:  # the file system said no: a full disk, a read-only folder...
+            if exc.errno is None:
+                raise
+            raise click.ClickException(os_error_message(exc)) from None
+
+
+def os_error_message(exc: OSError) -> str:
+    """One line for an error of the file system, naming the file the user asked for rather
+    than the temporary one it was being written under (`.NAME.PID.tmp`, `.NAME.XXXX.tmp`)."""
+    reason = exc.strerror or str(exc)
+    if exc.filename is None:
+        return reason
+    path = Path(os.fsdecode(exc.filename))
+    temporary = re.fullmatch(r"\.(.+)\.\w+\.tmp", path.name)
+    return f"{path.with_name(temporary[1]) if temporary else path}: {reason}"
 
 
 @click.group(cls=GscGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -142,7 +142,8 @@ def slam(
                 "--save-config does not go with --resume (the log holds its config)"
             )
         config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
-        check_output(save_config, [p for p in (config_path, seq, dst) if p is not None], force)
+        inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
+        check_output(save_config, inputs, force, ".yaml")
         if dst is None:
             write_config(config, save_config)
             click.echo(f"wrote {save_config}")

@@ -306,3 +306,42 @@ def test_slam_and_merge_do_not_import_torch_dynamo(seq_dir, tmp_path):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().endswith("no dynamo"), done.stdout[-2000:]
+
+
+def test_force_never_writes_over_a_file_the_command_reads(seq_dir, slam_log, tmp_path):
+    config = tmp_path / "my.yaml"
+    config.write_text("tracking:\n  iters: 2\n")
+    transform = tmp_path / "T.txt"
+    transform.write_text("0 0 0 0 0 0 1\n")
+    share = tmp_path / "share.mcap"
+    r = run("share", slam_log, share, "--budget", "0.5")
+    assert r.exit_code == 0, r.output
+    kept = {p: p.read_bytes() for p in (config, transform, share, slam_log)}
+    inject = ("--inject", share, "--share-transform", transform)
+    for args in (
+        ("slam", seq_dir, "--preset", "tiny", "--config", config, "-o", config),
+        ("slam", seq_dir, "--preset", "tiny", *inject, "-o", transform),
+        ("slam", seq_dir, "--preset", "tiny", *inject, "-o", tmp_path / "b.mcap",
+         "--save-config", share),
+        ("merge", slam_log, share, "--iters", "0", "--share-transform", transform, "-o", transform),
+    ):  # fmt: skip
+        r = run(*args, "--force")
+        assert r.exit_code == 1 and "also an input" in r.output, (args, r.output)
+    r = run("slam", seq_dir, "--save-config", slam_log, "--force")  # a config over a log
+    assert r.exit_code == 1 and "writes a YAML config, not an MCAP log" in r.output
+    assert {p: p.read_bytes() for p in kept} == kept
+
+
+def test_a_file_system_refusal_is_a_one_line_error(seq_dir, slam_log, tmp_path):
+    long_name = tmp_path / ("a" * 300 + ".mcap")  # longer than any file system allows
+    for args in (("prune", slam_log, "--keep", "0.5", "-o", long_name),
+                 ("slam", seq_dir, "--preset", "tiny", "-o", long_name)):  # fmt: skip
+        r = run(*args)
+        assert r.exit_code == 1 and isinstance(r.exception, SystemExit), r.exception
+        assert r.output.count("\n") == 1 and "File name too long" in r.output, r.output
+    if os.geteuid() != 0:  # the superuser writes anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o555)
+        r = run("prune", slam_log, "--keep", "0.5", "-o", locked / "p.mcap")
+        assert r.exit_code == 1 and "cannot write in" in r.output, r.output
+        assert not list(locked.iterdir())

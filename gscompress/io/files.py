@@ -44,7 +44,7 @@ def sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-SUFFIXES = {".mcap": "an MCAP log", ".ply": "a PLY file"}
+SUFFIXES = {".mcap": "an MCAP log", ".ply": "a PLY file", ".yaml": "a YAML config"}
 """The output kinds the tool writes, by file-name suffix."""
 
 
@@ -59,9 +59,9 @@ def check_output(
 ) -> Path:
     """Refuse to write over an input (also through a link) or into an input folder (a
     sequence), onto a directory, or over an existing file without `force`; the output's
-    directory must exist. With `suffix` (".mcap" or ".ply", what is written), a name ending in
-    the other kind's suffix is refused: `-o map.ply` on a command that writes a log is a slip
-    that would leave an MCAP file named .ply.
+    directory must exist and be writable. With `suffix` (".mcap", ".ply" or ".yaml", what is
+    written), a name ending in another kind's suffix is refused: `-o map.ply` on a command that
+    writes a log is a slip that would leave an MCAP file named .ply.
     """
     output = Path(output)
     for source in map(Path, inputs):
@@ -83,6 +83,8 @@ def check_output(
         raise OutputError(f"{output} exists; pass --force to overwrite it")
     if not output.parent.exists():
         raise OutputError(f"directory {output.parent} does not exist")
+    if not os.access(output.parent, os.W_OK | os.X_OK):  # before any work is done
+        raise OutputError(f"cannot write in {output.parent} (permission denied or read-only)")
     return output
 
 

@@ -107,7 +107,7 @@ def merge_logs(
         raise InputError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {views!r}")
     if iters > 0 and seq is None:
         raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
-    inputs = [receiver] + [p for p in (share, seq) if p is not None]
+    inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
     check_output(dst, inputs, force, ".mcap")
     from gscompress.pipeline.evaluate import read_poses
 

@@ -149,9 +149,11 @@ def slam_file(
             )
         if share_transform is not None and inject is None:
             raise InputError("a share transform needs --inject")
+        inputs = [p for p in (seq if sequence is None else None, config_path) if p is not None]
         run = _fresh_run(
-            seq, dst, config, frames or "all", device, inject, share_transform, force, sequence
-        )
+            dst, config, frames or "all", device, inject, share_transform, force, seq, sequence,
+            inputs,
+        )  # fmt: skip
     run.meta.command = command
     return _loop(run, dst, progress)
 
@@ -169,7 +171,6 @@ def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> An
 
 
 def _fresh_run(
-    seq: str | Path | None,
     dst: str | Path,
     config: Any,
     frames: str,
@@ -177,14 +178,16 @@ def _fresh_run(
     inject: str | Path | None,
     share_transform: str | Path | None,
     force: bool,
+    seq: str | Path | None,
     sequence: Any,
+    inputs: list[str | Path],
 ) -> _Run:
-    """A run from the first frame, optionally starting with another agent's share."""
+    """A run from the first frame, optionally starting with another agent's share; `inputs`:
+    the files and folders it reads besides the share (never written over)."""
     from gscompress.slam.system import SlamSystem
 
-    inputs: list[str | Path] = [seq] if sequence is None and seq is not None else []
-    inputs += [inject] if inject is not None else []
-    check_output(dst, inputs, force, ".mcap")
+    shares = [p for p in (inject, share_transform) if p is not None]
+    check_output(dst, [*inputs, *shares], force, ".mcap")
     sequence = _open(seq, sequence, config, frames)
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     meta = LogMetadata(

@@ -34,6 +34,7 @@ import yaml
 
 from gscompress.errors import InputError
 from gscompress.importance import PwasConfig
+from gscompress.io.files import write_text_atomic
 from gscompress.ops.select import STRATEGIES
 
 
@@ -493,14 +494,9 @@ def load_config(path: str | Path, base: str | SlamConfig = DEFAULT_PRESET) -> Sl
 
 def save_config(config: SlamConfig, path: str | Path) -> Path:
     """Write the full config as YAML (readable back with `load_config`)."""
-    path = Path(path)
     text = yaml.safe_dump(config.to_dict(), sort_keys=False, default_flow_style=False)
-    path.write_text(
-        "# gscompress SLAM config (gsc slam --config FILE); any subset of keys may be given\n"
-        + text,
-        encoding="utf-8",
-    )
-    return path
+    header = "# gscompress SLAM config (gsc slam --config FILE); any subset of keys may be given\n"
+    return write_text_atomic(path, header + text)
 
 
 def resolve_config(
