@@ -120,7 +120,20 @@ def test_merge_refuses_unknown_or_different_world_frames(
         merge_logs(agents["b"], other, tmp_path / "x.mcap", iters=0)
     with pytest.raises(InputError, match="--seq"):
         merge_logs(agents["b"], agents["share"], tmp_path / "x.mcap", iters=5)
+    with pytest.raises(InputError, match="the receiver log itself"):
+        merge_logs(agents["b"], agents["b"], tmp_path / "x.mcap", iters=0)
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_merge_warns_when_refining_on_another_sequence(
+    agents: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    other = write_synthetic_sequence(tmp_path / "other", 8, (64, 48), seed=5)
+    merge_logs(agents["b"], agents["share"], tmp_path / "x.mcap", seq=other, iters=1)
+    assert "recorded from sequence 'room', not 'other'" in caplog.text
+    caplog.clear()
+    merge_logs(agents["b"], agents["share"], tmp_path / "y.mcap", seq=agents["seq"], iters=1)
+    assert "recorded from sequence" not in caplog.text
 
 
 def test_gsc_merge_command(agents: dict[str, Path]) -> None:

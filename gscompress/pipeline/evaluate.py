@@ -43,6 +43,13 @@ POSE_MATCH_TOLERANCE_NS = 1_000_000
 """Largest |log time - frame timestamp| (ns) at which a logged pose belongs to a frame."""
 
 
+def warn_other_sequence(log_path: str | Path, recorded: str | None, given: str) -> None:
+    """Warn when a log is rendered against another sequence than the one it was recorded from
+    (its poses would then be compared with frames they do not belong to)."""
+    if recorded and recorded != given:
+        log.warning("%s was recorded from sequence %r, not %r", log_path, recorded, given)
+
+
 def read_poses(reader: LogReader, topic: str) -> tuple[np.ndarray, np.ndarray]:
     """The foxglove.PoseInFrame messages of `topic` in a log.
 
@@ -169,9 +176,7 @@ def evaluate_log(
         w, h = meta.config["size"]
         size = (int(w), int(h))
     sequence = open_sequence(seq, size=size, frames=frames)
-    if meta.sequence and meta.sequence != sequence.name:
-        log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
-                    sequence.name)  # fmt: skip
+    warn_other_sequence(log_path, meta.sequence, sequence.name)
 
     frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
     est_index = match_times(frame_ns, est_ns)

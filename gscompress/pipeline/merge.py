@@ -107,6 +107,8 @@ def merge_logs(
         raise InputError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {views!r}")
     if iters > 0 and seq is None:
         raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
+    if share is not None and Path(share).exists() and Path(share).samefile(receiver):
+        raise InputError(f"{share} is the receiver log itself: merging it would double its map")
     inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
     check_output(dst, inputs, force, ".mcap")
     from gscompress.pipeline.evaluate import read_poses
@@ -161,7 +163,7 @@ def _refine(
     (log times, poses)."""
     from gscompress.datasets import open_sequence
     from gscompress.ops.merge import refine
-    from gscompress.pipeline.evaluate import match_times
+    from gscompress.pipeline.evaluate import match_times, warn_other_sequence
     from gscompress.render import resolve_device
     from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
     from gscompress.slam.keyframes import View, is_keyframe
@@ -170,6 +172,7 @@ def _refine(
     if size is None and config.size is not None:
         size = config.size
     sequence = open_sequence(seq, size=size, frames=frames or meta.frames or "all")
+    warn_other_sequence(receiver, meta.sequence, sequence.name)
     if len(pose_ns) == 0:
         raise LogFormatError(f"{receiver} has no {TOPIC_POSE}: refinement needs its poses")
     frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
