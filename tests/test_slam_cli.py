@@ -293,9 +293,10 @@ def test_slam_and_merge_do_not_import_torch_dynamo(seq_dir, tmp_path):
     code = (
         "import sys\n"
         "from gscompress_cli.main import cli\n"
-        f"a, b = {str(tmp_path / 'a.mcap')!r}, {str(tmp_path / 'm.mcap')!r}\n"
+        f"a, s, b = [{str(tmp_path)!r} + n for n in ('/a.mcap', '/s.mcap', '/m.mcap')]\n"
         f"args = [['slam', {str(seq_dir)!r}, '--preset', 'tiny', '-o', a],\n"
-        f"        ['merge', a, a, '--seq', {str(seq_dir)!r}, '--iters', '2', '-o', b]]\n"
+        "        ['share', a, s, '--budget', '0.5'],\n"
+        f"        ['merge', a, s, '--seq', {str(seq_dir)!r}, '--iters', '2', '-o', b]]\n"
         "for argv in args:\n"
         "    try:\n"
         "        cli(argv)\n"

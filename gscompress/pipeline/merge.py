@@ -107,10 +107,10 @@ def merge_logs(
         raise InputError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {views!r}")
     if iters > 0 and seq is None:
         raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
-    if share is not None and Path(share).exists() and Path(share).samefile(receiver):
-        raise InputError(f"{share} is the receiver log itself: merging it would double its map")
     inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
     check_output(dst, inputs, force, ".mcap")
+    if share is not None and Path(share).exists() and Path(share).samefile(receiver):
+        raise InputError(f"{share} is the receiver log itself: merging it would double its map")
     from gscompress.pipeline.evaluate import read_poses
 
     with LogReader(receiver) as receiver_log:
