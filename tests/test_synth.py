@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,24 @@ def test_refuses_non_empty_output_and_force_replaces_only_a_sequence(
     with pytest.raises(OutputError, match=r"notes\.txt"):
         write_synthetic_sequence(out, frames=2, size=(16, 12), force=True)
     assert (out / "notes.txt").exists() and len(open_sequence(out)) == 2
+    (out / "notes.txt").unlink()
+    for kept in (out / "rgb" / "README.txt", out / "depth" / "originals" / "raw.png"):
+        kept.parent.mkdir(exist_ok=True)
+        kept.write_text("x")  # nested in the frame folders, and not in the listings
+        with pytest.raises(OutputError, match="does not list"):
+            write_synthetic_sequence(out, frames=2, size=(16, 12), force=True)
+        assert kept.exists()
+        if kept.parent.name == "originals":
+            shutil.rmtree(kept.parent)
+        else:
+            kept.unlink()
+    link = tmp_path / "link"
+    link.symlink_to(out)
+    with pytest.raises(OutputError, match="is a link"):
+        write_synthetic_sequence(link, frames=2, size=(16, 12), force=True)
+    link.unlink()
+    write_synthetic_sequence(out, frames=3, size=(16, 12), force=True)  # clean again: replaced
+    assert len(open_sequence(out)) == 3
     monkeypatch.chdir(out)  # the folder the user is in cannot be swapped out from under them
     with pytest.raises(OutputError, match="current folder"):
         write_synthetic_sequence(".", frames=2, size=(16, 12), force=True)

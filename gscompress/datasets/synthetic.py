@@ -542,6 +542,32 @@ def writer_threads(limit: int = 4) -> int:
     return min(limit, n)
 
 
+def _check_replaceable(out: Path) -> None:
+    """Refuse to replace (`--force`) a folder holding anything a TUM sequence's listings do not
+    name: files besides `TUM_ENTRIES` at the top, or in rgb/ and depth/ anything but the images
+    that rgb.txt and depth.txt list (a user's notes or originals kept beside the frames)."""
+    action = "not replacing it even with --force"
+    check_only_entries(out, TUM_ENTRIES, "a TUM sequence", action)
+    for images in ("rgb", "depth"):
+        folder, listing = out / images, out / f"{images}.txt"
+        if not folder.exists():
+            continue
+        try:
+            lines = listing.read_text(encoding="utf-8").splitlines() if listing.is_file() else []
+        except (OSError, UnicodeDecodeError):
+            lines = []
+        listed = {line.split()[-1] for line in lines if line.strip() and not line.startswith("#")}
+        foreign = sorted(
+            p.name for p in folder.iterdir()
+            if not p.is_file() or f"{images}/{p.name}" not in listed
+        )  # fmt: skip
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+            raise OutputError(
+                f"{folder} holds files that {listing.name} does not list ({shown}); {action}"
+            )
+
+
 def write_synthetic_sequence(
     out_dir: str | Path,
     frames: int = 60,
@@ -575,6 +601,8 @@ def write_synthetic_sequence(
             `force`, or holds anything besides a sequence's entries.
     """
     out = Path(out_dir)
+    if out.is_symlink():  # replacing it would leave the folder it points to as it was
+        raise OutputError(f"{out} is a link: name the folder it points to")
     if out.exists() and not out.is_dir():
         raise OutputError(f"output path exists and is not a folder: {out}")
     if out.is_dir() and Path.cwd().resolve().is_relative_to(out.resolve()):
@@ -582,8 +610,7 @@ def write_synthetic_sequence(
     if out.is_dir() and any(out.iterdir()):
         if not force:
             raise OutputError(f"output folder is not empty: {out} (use --force to replace it)")
-        # --force replaces a sequence, never a folder of other files
-        check_only_entries(out, TUM_ENTRIES, "a TUM sequence", "not replacing it even with --force")
+        _check_replaceable(out)
     sequence = SyntheticSequence(frames, size, seed, supersample)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
