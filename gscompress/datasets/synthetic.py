@@ -32,9 +32,9 @@ import numpy as np
 
 from gscompress.camera import Intrinsics, make_transform
 from gscompress.datasets.base import Frame, check_size
-from gscompress.datasets.tum import TUM_ENTRIES, write_tum_sequence
-from gscompress.errors import InputError, OutputError
-from gscompress.io.files import check_only_entries
+from gscompress.datasets.tum import TUM_ENTRIES, read_file_list, write_tum_sequence
+from gscompress.errors import DatasetError, InputError, OutputError
+from gscompress.io.files import check_only_entries, some_names
 from gscompress.seeds import check_seed
 
 FPS = 30.0
@@ -553,18 +553,15 @@ def _check_replaceable(out: Path) -> None:
         if not folder.exists():
             continue
         try:
-            lines = listing.read_text(encoding="utf-8").splitlines() if listing.is_file() else []
-        except (OSError, UnicodeDecodeError):
-            lines = []
-        listed = {line.split()[-1] for line in lines if line.strip() and not line.startswith("#")}
-        foreign = sorted(
-            p.name for p in folder.iterdir()
-            if not p.is_file() or f"{images}/{p.name}" not in listed
-        )  # fmt: skip
+            listed = {name for _, name in read_file_list(listing)}
+        except DatasetError:  # missing or unreadable: it names nothing
+            listed = set()
+        foreign = [p.name for p in folder.iterdir()
+                   if not p.is_file() or f"{images}/{p.name}" not in listed]  # fmt: skip
         if foreign:
-            shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
             raise OutputError(
-                f"{folder} holds files that {listing.name} does not list ({shown}); {action}"
+                f"{folder} holds files that {listing.name} does not list "
+                f"({some_names(foreign)}); {action}"
             )
 
 

@@ -115,10 +115,17 @@ def check_only_entries(folder: Path, allowed: frozenset[str], what: str, action:
     Raises:
         OutputError: naming up to three foreign entries, "not {what}", then `action`.
     """
-    foreign = sorted(p.name for p in folder.iterdir() if p.name not in allowed)
+    foreign = [p.name for p in folder.iterdir() if p.name not in allowed]
     if foreign:
-        listed = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-        raise OutputError(f"{folder} holds files that are not {what} ({listed}); {action}")
+        raise OutputError(
+            f"{folder} holds files that are not {what} ({some_names(foreign)}); {action}"
+        )
+
+
+def some_names(names: Sequence[str], shown: int = 3) -> str:
+    """The first `shown` of `names` in sorted order, comma-separated, "..." when there are more."""
+    ordered = sorted(names)
+    return ", ".join(ordered[:shown]) + (", ..." if len(ordered) > shown else "")
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:

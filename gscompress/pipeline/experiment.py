@@ -242,7 +242,6 @@ class _Runner:
         self._stopping = threading.Event()
         self._pool: ProcessPoolExecutor | None = None
         self._worker_pids: SimpleQueue[int] | None = None
-        self._workers: set[int] = set()
         self._waiters: ThreadPoolExecutor | None = None
         if jobs > 1:
             import torch
@@ -263,9 +262,10 @@ class _Runner:
         if cancel:
             self._stopping.set()
             if self._worker_pids is not None:  # a worker between runs ignores it, a merge too
+                workers = set()
                 while not self._worker_pids.empty():
-                    self._workers.add(self._worker_pids.get())
-                for pid in self._workers:
+                    workers.add(self._worker_pids.get())
+                for pid in workers:
                     with contextlib.suppress(OSError):  # ended meanwhile
                         os.kill(pid, signal.SIGINT)
         for pool in (self._waiters, self._pool):

@@ -149,10 +149,9 @@ def slam_file(
             )
         if share_transform is not None and inject is None:
             raise InputError("a share transform needs --inject")
-        inputs = [p for p in (seq if sequence is None else None, config_path) if p is not None]
         run = _fresh_run(
-            dst, config, frames or "all", device, inject, share_transform, force, seq, sequence,
-            inputs,
+            seq, dst, config, frames or "all", device, inject, share_transform, force, sequence,
+            config_path,
         )  # fmt: skip
     run.meta.command = command
     return _loop(run, dst, progress)
@@ -171,6 +170,7 @@ def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> An
 
 
 def _fresh_run(
+    seq: str | Path | None,
     dst: str | Path,
     config: Any,
     frames: str,
@@ -178,16 +178,16 @@ def _fresh_run(
     inject: str | Path | None,
     share_transform: str | Path | None,
     force: bool,
-    seq: str | Path | None,
     sequence: Any,
-    inputs: list[str | Path],
+    config_path: str | Path | None,
 ) -> _Run:
-    """A run from the first frame, optionally starting with another agent's share; `inputs`:
-    the files and folders it reads besides the share (never written over)."""
+    """A run from the first frame, optionally starting with another agent's share; no file
+    it reads (sequence, config, share, transform) is written over."""
     from gscompress.slam.system import SlamSystem
 
-    shares = [p for p in (inject, share_transform) if p is not None]
-    check_output(dst, [*inputs, *shares], force, ".mcap")
+    reads = (seq if sequence is None else None, config_path, inject, share_transform)
+    inputs = [p for p in reads if p is not None]
+    check_output(dst, inputs, force, ".mcap")
     sequence = _open(seq, sequence, config, frames)
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     meta = LogMetadata(
