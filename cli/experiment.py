@@ -48,7 +48,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 )  # fmt: skip
 @slam_config_options
 @click.option(
-    "--seeds", type=click.IntRange(min=1), default=3, show_default=True,
+    "--seeds", type=click.IntRange(1, 1000), default=3, show_default=True,
     help="Seeds of the two-agent runs (SLAM seed and random share seed).",
 )  # fmt: skip
 @click.option(
@@ -89,7 +89,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "--views`).",
 )  # fmt: skip
 @click.option(
-    "--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+    "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
     help="Runs at once, each in its own process with an equal share of the torch threads "
     "(`gsc --threads`, default one per core); a run starts as soon as the runs it reads have "
     "finished. The results are the same as with 1.",

@@ -1,8 +1,9 @@
 """The `gsc` click group.
 
 Commands are loaded lazily from their own modules, so that `gsc info` never pays for importing
-torch or the SLAM code. A `GscError`, or an error of the file system (`OSError`: no space, no
-permission), becomes a one-line message and exit code 1; anything else is a bug and keeps its
+torch or the SLAM code. Options that do not go together (`OptionError`) are a usage error,
+exit code 2; any other `GscError`, or an error of the file system (`OSError`: no space, no
+permission), is a one-line message and exit code 1; anything else is a bug and keeps its
 traceback.
 """
 
@@ -19,7 +20,8 @@ from typing import Any
 import click
 
 from gscompress import __version__
-from gscompress.errors import GscError
+from gscompress.errors import GscError, OptionError
+from gscompress.interrupts import sigterm_interrupts
 
 # command name -> "module:function" inside this package
 COMMANDS: dict[str, str] = {
@@ -48,10 +50,17 @@ def set_threads(n: int) -> None:
 
 
 class OneLineUsageError(click.UsageError):
-    """A usage error shown as one line (exit code 2), naming where to find help."""
+    """A usage error shown as one line (exit code 2), naming where to find help: the help of
+    `command_path`, by default that of the context's command."""
+
+    def __init__(
+        self, message: str, ctx: click.Context | None = None, command_path: str | None = None
+    ):
+        super().__init__(message, ctx)
+        self.command_path = command_path or (ctx.command_path if ctx is not None else None)
 
     def show(self, file: Any = None) -> None:
-        hint = f" (see '{self.ctx.command_path} --help')" if self.ctx is not None else ""
+        hint = f" (see '{self.command_path} --help')" if self.command_path else ""
         click.echo(f"Error: {self.format_message()}{hint}", file=file, err=True)
 
 
@@ -64,8 +73,8 @@ def one_line(exc: click.UsageError) -> click.UsageError:
 
 
 class GscGroup(click.Group):
-    """A group that imports each command on first use and reports GscError and usage errors
-    on one line."""
+    """A group that imports each command on first use, reports GscError and usage errors on one
+    line, and ends on Ctrl-C or SIGTERM with exit code 130 (temporary outputs removed)."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted(COMMANDS)
@@ -87,7 +96,14 @@ class GscGroup(click.Group):
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
-            return super().invoke(ctx)
+            with sigterm_interrupts():
+                return super().invoke(ctx)
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM; slam and experiment say more themselves
+            click.echo("Interrupted: outputs are only written once complete", err=True)
+            raise SystemExit(130) from None
+        except OptionError as exc:  # options that do not go together: a usage error, as click's
+            command = f"{ctx.command_path} {ctx.invoked_subcommand}"
+            raise OneLineUsageError(" ".join(str(exc).split()), ctx, command) from None
         except GscError as exc:
             message = " ".join(str(exc).split())
             raise click.ClickException(message) from None

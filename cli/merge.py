@@ -117,6 +117,7 @@ def merge(
     if result.get("refine_iters"):
         text += (
             f" (refined {result['refine_iters']} iterations on {result['refine_views']} "
-            f"views: loss {result['refine_loss_first']:.4f} -> {result['refine_loss_last']:.4f})"
+            f"views: mean loss {result['refine_loss_before']:.4f} -> "
+            f"{result['refine_loss_after']:.4f})"
         )
     emit(result, as_json, text)

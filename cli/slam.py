@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -36,11 +35,6 @@ def _start_at_loop(bar: Any, frames_before: int, seconds: float) -> None:
     """
     bar.n = bar.last_print_n = bar.initial = frames_before
     bar.start_t = bar.last_print_t = time.time() - seconds
-
-
-def _stop(signum: int, frame: object) -> None:
-    """SIGTERM ends a run like Ctrl-C: the log of the frames done so far is closed."""
-    raise KeyboardInterrupt
 
 
 @click.command("slam")
@@ -157,7 +151,6 @@ def slam(
     ctx = click.get_current_context()
     given = {name: ctx.get_parameter_source(name) != ParameterSource.DEFAULT
              for name in ("preset", "frames")}  # fmt: skip
-    previous_handler = signal.signal(signal.SIGTERM, _stop)
     with progress_bar("slam", "frame", hidden=as_json) as bar:
         processed = 0
 
@@ -205,8 +198,6 @@ def slam(
                 err=True,
             )
             raise SystemExit(130) from None
-        finally:
-            signal.signal(signal.SIGTERM, previous_handler)
     ate = result.get("ate_rmse_cm")
     emit(
         result,

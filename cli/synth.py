@@ -14,7 +14,7 @@ from .options import force_option, progress_bar, seed_option, size_option
 @click.command()
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option(
-    "--frames", type=click.IntRange(min=1), default=60, show_default=True, help="Frame count."
+    "--frames", type=click.IntRange(1, 100_000), default=60, show_default=True, help="Frame count."
 )
 @size_option(default="320x240", help="Image size WxH.")
 @seed_option(help="Scene seed.")

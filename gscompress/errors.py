@@ -13,6 +13,11 @@ class InputError(GscError):
     """A bad argument or option value (a ratio outside (0, 1], an unknown strategy, ...)."""
 
 
+class OptionError(InputError):
+    """Options that do not go together, or an option's value outside what it takes: the CLI
+    reports it as a usage error (exit code 2), as click does for the options it checks."""
+
+
 class OutputError(GscError):
     """An output path that may not be written (exists, equals an input, ...)."""
 

@@ -187,6 +187,11 @@ def test_frames_that_leave_an_agent_nothing_or_a_folder_in_the_sequence_fail_at_
     assert r.exit_code == 1 and "leaves agent A (1:1:2) no frame" in r.output, r.output
     r = CliRunner().invoke(cli, ["experiment", str(seq), "-o", str(seq / "e")])
     assert r.exit_code == 1 and "inside the sequence folder" in r.output, r.output
+    for option in ("--jobs", "--seeds"):  # huge counts: a usage error, not an overflow
+        r = CliRunner().invoke(
+            cli, ["experiment", str(seq), "-o", str(tmp_path / "e"), option, str(10**22)]
+        )
+        assert r.exit_code == 2 and "is not in the range 1<=x<=" in r.output, r.output
     assert not (tmp_path / "e").exists() and not (seq / "e").exists()
     r = CliRunner().invoke(
         cli, ["experiment", str(seq), "-o", str(tmp_path / "e"), "--frames", "x"]

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -197,3 +199,35 @@ def test_merge_across_world_frames_with_an_explicit_transform(
         transform.write_text(text)
         with pytest.raises(InputError, match=message):
             read_transform(transform)
+
+
+def test_refinement_loss_is_compared_on_the_same_views(agents: dict[str, Path]) -> None:
+    """The reported losses are means over all the views before and after refining: the one
+    before depends on the map and views only, not on how long the refinement runs."""
+    b, share, seq = agents["b"], agents["share"], agents["seq"]
+    runs = [
+        merge_logs(b, share, agents["root"] / f"loss{n}.mcap", seq=seq, iters=n) for n in (1, 40)
+    ]
+    assert runs[0]["refine_loss_before"] == runs[1]["refine_loss_before"]
+    assert runs[1]["refine_loss_after"] < 0.9 * runs[1]["refine_loss_before"]
+    assert runs[1]["refine_loss_after"] < runs[0]["refine_loss_after"]
+
+
+def test_gsc_merge_usage_errors_and_sigterm(
+    agents: dict[str, Path], tmp_path: Path, terminated: Any
+) -> None:
+    """Options that do not go together exit 2 naming merge's help; SIGTERM while refining ends
+    with 130 and leaves neither the output nor its temporary file."""
+    out = tmp_path / "m.mcap"
+    base = ["merge", str(agents["b"]), str(agents["share"]), "-o", str(out)]
+    r = CliRunner().invoke(cli, [*base, "--iters", "5"])
+    assert r.exit_code == 2 and "pass --seq" in r.output and "merge --help" in r.output
+    r = CliRunner().invoke(
+        cli, ["merge", str(agents["b"]), str(agents["b"]), "-o", str(out), "--iters", "0"]
+    )
+    assert r.exit_code == 2 and "the receiver log itself" in r.output
+    cmd = [sys.executable, "-m", "gscompress_cli", *base, "--seq", str(agents["seq"]),
+           "--iters", "100000"]  # fmt: skip
+    code, stderr = terminated(cmd, lambda: any(tmp_path.glob(".m.mcap.*.tmp")))
+    assert code == 130 and "Interrupted" in stderr.splitlines()[-1], stderr
+    assert list(tmp_path.iterdir()) == []

@@ -129,8 +129,8 @@ def test_bad_config_and_missing_output_are_one_line_errors(seq_dir, tmp_path):
     cfg.write_text("preset: tiny\nseed: -1\n")
     r = run("slam", seq_dir, "--config", cfg, "-o", tmp_path / "x.mcap")
     assert r.exit_code == 1 and "seed must be >= 0" in r.output
-    r = run("synth", tmp_path / "huge", "--size", "9000x10")
-    assert r.exit_code == 1 and "at most 8192 pixels per side" in r.output
+    r = run("slam", seq_dir, "-o", tmp_path / "x.mcap", "--share-transform", cfg)
+    assert r.exit_code == 2 and "needs --inject (see 'cli slam --help')" in r.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
 
 

@@ -133,7 +133,7 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
 
     resume = ["slam", str(seq_dir), "-o", str(out), "--resume", "--json"]
     r = CliRunner().invoke(cli, [*resume, "--frames", "0:4"])  # settings come from the log
-    assert r.exit_code == 1 and "drop --frames" in r.output, r.output
+    assert r.exit_code == 2 and "drop --frames" in r.output, r.output
     r = CliRunner().invoke(cli, resume)
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)

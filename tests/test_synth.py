@@ -5,7 +5,9 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -162,3 +164,31 @@ def test_synth_writes_with_as_many_threads_as_gsc_threads(tmp_path, monkeypatch,
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     assert used == [1]
+
+
+def test_sigterm_ends_synth_with_130_and_leaves_no_temporary_folder(
+    tmp_path: Path, terminated: Any
+) -> None:
+    """SIGTERM while frames are being written: exit code 130 as on Ctrl-C, one line saying so,
+    and neither the sequence nor its hidden temporary folder is left behind."""
+    out = tmp_path / "room"
+    cmd = [sys.executable, "-m", "gscompress_cli", "synth", str(out), "--frames", "2000",
+           "--size", "64x48"]  # fmt: skip
+
+    def writing() -> bool:  # a frame is in the temporary folder
+        return any(tmp.glob("rgb/*.png") for tmp in tmp_path.glob(".room.*.tmp"))
+
+    code, stderr = terminated(cmd, writing)
+    assert code == 130 and "Interrupted" in stderr.splitlines()[-1], stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_huge_or_conflicting_values_are_usage_errors(tmp_path: Path) -> None:
+    for args, says in (
+        (["--frames", "9223372036854775808"], "not in the range 1<=x<=100000"),
+        (["--size", "4x4"], "at least 8x8"),
+        (["--size", "9000x10"], "at most 8192 pixels per side"),
+    ):
+        r = CliRunner().invoke(cli, ["synth", str(tmp_path / "x"), *args])
+        assert r.exit_code == 2 and says in r.output and "synth --help" in r.output, r.output
+    assert list(tmp_path.iterdir()) == []

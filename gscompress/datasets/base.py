@@ -19,7 +19,7 @@ import numpy as np
 from PIL import Image
 
 from gscompress.camera import Intrinsics
-from gscompress.errors import DatasetError, InputError
+from gscompress.errors import DatasetError, InputError, OptionError
 
 
 @dataclass(frozen=True)
@@ -346,11 +346,11 @@ def check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
     try:
         w, h = (int(v) for v in size)
     except (TypeError, ValueError):
-        raise InputError(f"size must be (width, height), got {size!r}") from None
+        raise OptionError(f"size must be (width, height), got {size!r}") from None
     if w <= 0 or h <= 0:
-        raise InputError(f"size must be positive, got {w}x{h}")
+        raise OptionError(f"size must be positive, got {w}x{h}")
     if max(w, h) > MAX_SIDE:
-        raise InputError(f"size {w}x{h} is too large: at most {MAX_SIDE} pixels per side")
+        raise OptionError(f"size {w}x{h} is too large: at most {MAX_SIDE} pixels per side")
     return w, h
 
 

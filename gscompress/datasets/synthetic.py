@@ -33,7 +33,7 @@ import numpy as np
 from gscompress.camera import Intrinsics, make_transform
 from gscompress.datasets.base import Frame, check_size
 from gscompress.datasets.tum import TUM_ENTRIES, read_file_list, write_tum_sequence
-from gscompress.errors import DatasetError, InputError, OutputError
+from gscompress.errors import DatasetError, InputError, OptionError, OutputError
 from gscompress.io.files import check_only_entries, some_names
 from gscompress.seeds import check_seed
 
@@ -469,14 +469,14 @@ class SyntheticSequence:
         supersample: int = 1,
     ) -> None:
         if frames <= 0:
-            raise InputError(f"frames must be positive, got {frames}")
+            raise OptionError(f"frames must be positive, got {frames}")
         w, h = size
         check_size(size)
         if w < 8 or h < 8:
-            raise InputError(f"size must be at least 8x8, got {w}x{h}")
+            raise OptionError(f"size must be at least 8x8, got {w}x{h}")
         check_seed(seed)
         if not 1 <= supersample <= 4:
-            raise InputError(f"supersample must be 1 to 4, got {supersample}")
+            raise OptionError(f"supersample must be 1 to 4, got {supersample}")
         self.supersample = int(supersample)
         self._n = int(frames)
         self._intrinsics = default_intrinsics(int(w), int(h))

@@ -111,8 +111,8 @@ def refine(
 
     Returns:
         The refined map (same Gaussians, same order, same ids and sums) and
-        {"iters", "loss_first", "loss_last"} (mean mapping loss over the first and the last
-        tenth of the iterations).
+        {"iters", "loss_before", "loss_after"}: the mean mapping loss over all the views
+        before and after the refinement.
 
     Raises:
         MapError: a map with higher SH bands (they would be dropped), or no views.
@@ -135,19 +135,8 @@ def refine(
     config = config.with_overrides(**{"prune.opacity_every": 0, "isotropic": gaussians.isotropic})
     mapper = Mapper(config, intrinsics, torch.device(device))
     mapper.add(gaussians)
-    losses: list[float] = []
-
-    def step(loss: float) -> None:
-        losses.append(loss)
-        if progress is not None:
-            progress(1)
-
-    mapper.refine(list(views), iters, rng, on_step=step)
-    refined = mapper.params.to_map()
-    tenth = max(iters // 10, 1)
-    stats = {
-        "iters": iters,
-        "loss_first": float(np.mean(losses[:tenth])),
-        "loss_last": float(np.mean(losses[-tenth:])),
-    }
-    return refined, stats
+    views = list(views)
+    loss_before = mapper.loss(views)
+    mapper.refine(views, iters, rng, on_step=None if progress is None else lambda _: progress(1))
+    stats = {"iters": iters, "loss_before": loss_before, "loss_after": mapper.loss(views)}
+    return mapper.params.to_map(), stats

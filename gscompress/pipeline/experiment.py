@@ -34,7 +34,7 @@ import multiprocessing
 import os
 import signal
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import (
     CancelledError,
     Future,
@@ -51,6 +51,7 @@ import numpy as np
 
 from gscompress import __version__
 from gscompress.errors import InputError
+from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import check_only_entries, is_within, json_text, write_text_atomic
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
@@ -243,6 +244,7 @@ class _Runner:
         self._pool: ProcessPoolExecutor | None = None
         self._worker_pids: SimpleQueue[int] | None = None
         self._waiters: ThreadPoolExecutor | None = None
+        jobs = min(jobs, total)  # no more workers than steps
         if jobs > 1:
             import torch
 
@@ -451,7 +453,7 @@ def run_experiment(
     base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
     runner = _Runner(seq, out, s, progress, plan_size(s), jobs)
     try:
-        with _sigterm_interrupts():
+        with sigterm_interrupts():
             planned = _plan(runner, base)
             rows = [_row(*args) for args in planned]  # waits for every step
     except BaseException:
@@ -468,25 +470,6 @@ def run_experiment(
         "reused": runner.reused,
         "verdicts": verdicts,
     }
-
-
-@contextlib.contextmanager
-def _sigterm_interrupts() -> Iterator[None]:
-    """SIGTERM as Ctrl-C: the runner stops the runs in worker processes instead of this process
-    ending and leaving them behind, and the command ends as on Ctrl-C. (A SLAM run in this
-    process handles both signals itself, stopping after its frame.)"""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum: int, frame: object) -> None:
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _plan(runner: _Runner, base: Any) -> list[tuple[Any, ...]]:

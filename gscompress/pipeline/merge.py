@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError, LogFormatError
+from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import TOPIC_POSE, LogReader
@@ -102,15 +102,15 @@ def merge_logs(
     from gscompress.ops.merge import merge_maps
 
     if iters < 0:
-        raise InputError(f"--iters must be >= 0, got {iters}")
+        raise OptionError(f"--iters must be >= 0, got {iters}")
     if views not in REFINE_VIEWS:
-        raise InputError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {views!r}")
+        raise OptionError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {views!r}")
     if iters > 0 and seq is None:
-        raise InputError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
+        raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
     inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
     check_output(dst, inputs, force, ".mcap")
     if share is not None and Path(share).exists() and Path(share).samefile(receiver):
-        raise InputError(f"{share} is the receiver log itself: merging it would double its map")
+        raise OptionError(f"{share} is the receiver log itself: merging it would double its map")
     from gscompress.pipeline.evaluate import read_poses
 
     with LogReader(receiver) as receiver_log:

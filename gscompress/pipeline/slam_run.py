@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError
+from gscompress.errors import InputError, OptionError
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -138,7 +138,7 @@ def slam_file(
         clashing += ["--no-prune"] if no_prune else []
         if clashing:
             dropped = ", ".join(clashing)
-            raise InputError(f"--resume continues with the log's own settings; drop {dropped}")
+            raise OptionError(f"--resume continues with the log's own settings; drop {dropped}")
         run = _resume_run(seq, dst, device, sequence)
     else:
         if config is None:
@@ -148,7 +148,7 @@ def slam_file(
                 preset or DEFAULT_PRESET, config_path, size=size, keep=keep, no_prune=no_prune
             )
         if share_transform is not None and inject is None:
-            raise InputError("a share transform needs --inject")
+            raise OptionError("a share transform needs --inject")
         run = _fresh_run(
             seq, dst, config, frames or "all", device, inject, share_transform, force, sequence,
             config_path,

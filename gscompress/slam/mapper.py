@@ -23,7 +23,7 @@ from gscompress.gaussians import SH_C0, GaussianMap
 from gscompress.render import render
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.keyframes import View
-from gscompress.slam.losses import mapping_loss
+from gscompress.slam.losses import LossTerms, mapping_loss
 from gscompress.slam.params import Adam, GaussianParams
 
 
@@ -169,15 +169,25 @@ class Mapper:
             stats.removed += self.cleanup(huge=False)
         return stats.averaged()
 
-    def _step(self, view: View, stats: MappingStats) -> None:
-        """One Adam step of the mapping loss on one view; adds its losses to `stats`."""
+    def loss(self, views: list[View]) -> float:
+        """The mean mapping loss of the map over `views`, without a step (`gsc merge` reports
+        it before and after its refinement, on the same views)."""
+        with torch.no_grad():
+            return sum(float(self._terms(view).total) for view in views) / max(len(views), 1)
+
+    def _terms(self, view: View) -> LossTerms:
+        """The mapping loss terms of the map on one view."""
         out = render(
             *self.params.render_inputs(), self.intrinsics, view.T_cam_world(),
             backend=self.config.backend,
         )  # fmt: skip
         m = self.config.mapping
         edges = view.edges(m.illum_edge_sigma) if m.illum_tau > 0 else None
-        terms = mapping_loss(out, view.color, view.depth, m, edges)
+        return mapping_loss(out, view.color, view.depth, m, edges)
+
+    def _step(self, view: View, stats: MappingStats) -> None:
+        """One Adam step of the mapping loss on one view; adds its losses to `stats`."""
+        terms = self._terms(view)
         self.optimizer.zero_grad()
         terms.total.backward()
         self.optimizer.step()
