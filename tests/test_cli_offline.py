@@ -109,6 +109,22 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
         assert r.exit_code == 2 and "once: as DST or with -o" in r.output
 
 
+def test_share_whose_ply_cannot_be_written_leaves_no_mcap(log_path, tmp_path, monkeypatch):
+    """The share is written whole or not at all: a PLY refused by the file system (as on a
+    read-only mount that passes the permission check) takes the fresh MCAP with it."""
+    import errno
+
+    from gscompress.pipeline import offline
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system", str(tmp_path / "s.ply"))
+
+    monkeypatch.setattr(offline, "write_ply", refuse)
+    r = run("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.ply")
+    assert r.exit_code == 1 and r.output == f"Error: {tmp_path / 's.ply'}: Read-only file system\n"
+    assert list(tmp_path.iterdir()) == [log_path]
+
+
 def test_export_ply_last_and_chosen_snapshot(log_path, tmp_path):
     r = run("export-ply", log_path, "-o", tmp_path / "a.ply")
     assert r.exit_code == 0, r.output

@@ -199,8 +199,9 @@ def test_corrupt_image_and_bad_lists(tum_dir: Path) -> None:
 
 def test_intrinsics_resolution(tum_dir: Path, tmp_path: Path) -> None:
     (tum_dir / "intrinsics.json").unlink()
-    with pytest.raises(DatasetError, match="no intrinsics"):
+    with pytest.raises(DatasetError, match="no intrinsics") as failure:
         open_sequence(tum_dir)
+    assert "add an intrinsics.json (a JSON object of fx, fy, cx, cy," in str(failure.value)
     k_file = tmp_path / "k.json"
     k_file.write_text(json.dumps({"fx": 30, "fy": 31, "cx": 19.5, "cy": 14.5, "width": 40,
                                   "height": 30, "depth_scale": 5000}))  # fmt: skip

@@ -138,6 +138,25 @@ def test_newer_major_profile_is_refused():
     assert LogMetadata.from_record(record).profile_version == f"{major}.9"
 
 
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("provenance", "[1]"),
+        ("provenance", '[{"operation": "prune", "parent": "a", "parent_sha256": "0"}]'),
+        ("provenance", '{"operation": {}}'),
+        ("config", "[]"),
+        ("results", '"done"'),
+    ],
+)
+def test_metadata_of_the_wrong_shape_is_a_format_error(field, value):
+    """Hand-edited metadata is refused when read, not met later as a crash (`gsc info`)."""
+    record = LogMetadata(command="c").derive({"name": "prune"}, __file__).to_record()
+    assert LogMetadata.from_record(record).provenance[-1]["operation"] == {"name": "prune"}
+    record[field] = value
+    with pytest.raises(LogFormatError, match="metadata config and results must be JSON"):
+        LogMetadata.from_record(record)
+
+
 def test_writer_exception_leaves_no_file(tmp_path):
     path = tmp_path / "x.mcap"
     with pytest.raises(RuntimeError):

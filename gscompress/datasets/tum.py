@@ -236,8 +236,8 @@ def open_tum(
         found = freiburg_intrinsics(path.resolve().name)
         if found is None:
             raise DatasetError(
-                f"no intrinsics for {path}: add intrinsics.json (fx fy cx cy width height "
-                f"depth_scale), name the folder after freiburg1/2/3, or pass an intrinsics file"
+                f"no intrinsics for {path}: add an intrinsics.json (a JSON object of fx, fy, cx, "
+                f"cy, width, height, optionally depth_scale) or name the folder after freiburg1/2/3"
             )
         native = found
     if depth_scale is None and (path / "intrinsics.json").is_file() and intrinsics is not None:

@@ -190,6 +190,21 @@ class LogMetadata:
                     values[key] = json.loads(record[key])
         except json.JSONDecodeError as exc:
             raise LogFormatError(f"{source}: metadata field is not JSON ({exc})") from None
+        steps = values.get("provenance", [])
+        well_formed = isinstance(steps, list) and all(
+            isinstance(step, dict)
+            and isinstance(step.get("operation"), dict)
+            and isinstance(step.get("parent"), str)
+            and isinstance(step.get("parent_sha256"), str)
+            for step in steps
+        )
+        if not well_formed or not all(
+            isinstance(values.get(key, {}), dict) for key in ("config", "results")
+        ):
+            raise LogFormatError(
+                f"{source}: metadata config and results must be JSON objects, provenance a list "
+                "of steps {operation, parent, parent_sha256}"
+            )
         return cls(**values)
 
     def derive(self, operation: dict[str, Any], parent: str | Path) -> LogMetadata:

@@ -174,9 +174,12 @@ def share_log(
             raise AssertionError(f"share message of {written} B exceeds {budget.budget_bytes} B")
         out_meta.results["bytes"] = written  # the metadata record is written on close
     if ply is not None:
-        # the receiver's values: what the share decodes to (float16-rounded at fp16)
-        received = shared if precision == "fp32" else read_map(dst)
-        write_ply(received, ply, inputs=(src,), force=force)
+        try:  # the receiver's values: what the share decodes to (float16-rounded at fp16)
+            received = shared if precision == "fp32" else read_map(dst)
+            write_ply(received, ply, inputs=(src,), force=force)
+        except BaseException:  # a share is written whole or not at all
+            Path(dst).unlink(missing_ok=True)
+            raise
     return {"output": str(dst), "ply": None if ply is None else str(ply), **out_meta.results}
 
 
