@@ -92,7 +92,9 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
     help="Runs at once, each in its own process with an equal share of the torch threads "
     "(`gsc --threads`, default one per core); a run starts as soon as the runs it reads have "
-    "finished. The results are the same as with 1.",
+    "finished. The figures match a --jobs 1 table only at the same threads per run (`gsc "
+    "--threads 4 ... --jobs 2` as `gsc --threads 2 ... --jobs 1`): thread counts change "
+    "the rounding.",
 )  # fmt: skip
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
 @device_option

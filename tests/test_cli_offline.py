@@ -107,6 +107,9 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
     for paths in ([], [tmp_path / "x.mcap", "-o", tmp_path / "y.mcap"]):
         r = run("share", log_path, *paths)
         assert r.exit_code == 2 and "once: as DST or with -o" in r.output
+    same = tmp_path / "q.mcap"
+    r = run("share", log_path, same, "--ply", same)
+    assert r.exit_code == 2 and "--ply must differ" in r.output and not same.exists()
 
 
 def test_share_whose_ply_cannot_be_written_leaves_no_mcap(log_path, tmp_path, monkeypatch):

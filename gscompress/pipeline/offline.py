@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError
+from gscompress.errors import OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import check_precision
 from gscompress.io.files import check_output, sha256
@@ -140,7 +140,8 @@ def share_log(
         force: overwrite existing outputs.
 
     Raises:
-        InputError: bad budget, precision or strategy, or --ply equal to the MCAP output.
+        InputError: bad budget, precision or strategy (OptionError: --ply equal to the MCAP
+            output).
         BudgetError: the budget holds no Gaussian.
         MapError: at fp16, a selected value beyond the float16 range.
     """
@@ -148,7 +149,7 @@ def share_log(
     check_precision(precision)
     outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
-        raise InputError("--ply must differ from the MCAP output")
+        raise OptionError("--ply must differ from the MCAP output")
     for path, suffix in outputs:
         check_output(path, [src], force, suffix)
     with LogReader(src) as log_in:
