@@ -6,7 +6,6 @@ from pathlib import Path
 
 import click
 
-from gscompress.errors import InputError
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
@@ -160,10 +159,6 @@ def experiment(
         lpips=not no_lpips,
         device=device,
     )
-    try:
-        settings.check()
-    except InputError as exc:  # a bad option value: click's usage error, exit code 2
-        raise click.UsageError(str(exc)) from None
     with progress_bar("experiment", "run", hidden=as_json) as bar:
 
         def progress(name: str, done: int, total: int) -> None:

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from gscompress import __version__
-from gscompress.errors import InputError
+from gscompress.errors import InputError, OptionError
 from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import check_only_entries, is_within, json_text, write_text_atomic
 from gscompress.io.mcap_log import LogReader
@@ -132,7 +132,13 @@ class ExperimentSettings:
         return f"{start + step}:{stop}:{2 * step}", f"{start}:{stop}:{2 * step}"
 
     def check(self) -> None:
-        """Refuse settings that cannot run."""
+        """Refuse settings that cannot run (an OptionError: each comes from an option)."""
+        try:
+            self._check()
+        except InputError as exc:
+            raise OptionError(str(exc)) from None
+
+    def _check(self) -> None:
         self.agent_frames()
         if self.mode not in ("merge", "inject") or self.merge_iters < 0:
             raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
