@@ -29,20 +29,23 @@ def threads_restored() -> Iterator[None]:
 
 
 @pytest.fixture
-def terminated() -> Callable[..., tuple[int, str]]:
-    """Run a command, send it SIGTERM once `ready()` holds; its exit code and stderr."""
-    return _terminated
+def terminated(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., tuple[int, str]]:
+    """Run a command, send it SIGTERM once `ready(stderr so far)` holds; its exit code and
+    stderr."""
+    log = tmp_path_factory.mktemp("terminated") / "stderr.txt"
 
+    def run(cmd: list[str], ready: Callable[[str], bool], timeout: float = 300) -> tuple[int, str]:
+        with open(log, "w+", encoding="utf-8") as stderr:
+            proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr, text=True)
+            try:
+                deadline = time.monotonic() + timeout
+                while not ready(log.read_text(encoding="utf-8")):
+                    assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
+                    time.sleep(0.05)
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(timeout=timeout)
+            finally:
+                proc.kill()
+        return proc.returncode, log.read_text(encoding="utf-8")
 
-def _terminated(cmd: list[str], ready: Callable[[], bool], timeout: float = 300) -> tuple[int, str]:
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + timeout
-        while not ready():
-            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGTERM)
-        _, stderr = proc.communicate(timeout=timeout)
-    finally:
-        proc.kill()
-    return proc.returncode, stderr
+    return run

@@ -175,7 +175,7 @@ def test_sigterm_ends_synth_with_130_and_leaves_no_temporary_folder(
     cmd = [sys.executable, "-m", "gscompress_cli", "synth", str(out), "--frames", "2000",
            "--size", "64x48"]  # fmt: skip
 
-    def writing() -> bool:  # a frame is in the temporary folder
+    def writing(stderr: str) -> bool:  # a frame is in the temporary folder
         return any(tmp.glob("rgb/*.png") for tmp in tmp_path.glob(".room.*.tmp"))
 
     code, stderr = terminated(cmd, writing)
