@@ -1,6 +1,6 @@
 """The gscompress MCAP log profile: writer and reader.
 
-One profile serves SLAM logs, pruned logs and shares (DESIGN.md section 6):
+One profile serves SLAM logs, pruned logs and shares:
 
 - `/gaussians`: foxglove.PointCloud, one message per map snapshot; the last one is "the map".
   Packed little-endian fields named as in 3DGS PLY (see `gscompress.io.columns`), plus the PWAS

@@ -1,10 +1,10 @@
 """Render a map from known views and score the renders against the observations.
 
-The image half of `gsc eval` (DESIGN.md section 8): every view is rendered once without
-gradients, the render's colour is clamped to [0, 1] (what an 8-bit image of it would hold), and
-PSNR, SSIM, MS-SSIM, LPIPS and depth L1 are computed against the observed frame on the pixels
-with valid observed depth (depth > 0), then averaged over the views (the mean of per-view
-values, as SplaTAM and the 3DGS papers report them).
+The image half of `gsc eval` (the trajectory half, ATE, is `gscompress.metrics`): every view
+is rendered once without gradients, the render's colour is clamped to [0, 1] (what an 8-bit
+image of it would hold), and PSNR, SSIM, MS-SSIM, LPIPS and depth L1 are computed against the
+observed frame on the pixels with valid observed depth (depth > 0), then averaged over the views
+(the mean of per-view values, as SplaTAM and the 3DGS papers report them).
 
 A metric that cannot be computed for these images is reported as unavailable with the reason,
 never as a made-up number: MS-SSIM needs images of at least 161 pixels on each side, SSIM at

@@ -1,4 +1,4 @@
-"""Merging another agent's share into a map, and refining the result (DESIGN.md section 5).
+"""Merging another agent's share into a map, and refining the result.
 
 `merge_maps` is exact: every Gaussian of both maps, with all its parameters and PWAS sums, is
 in the result. Ids stay as they are unless the two maps share some; then the share's ids are

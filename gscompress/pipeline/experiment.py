@@ -1,4 +1,4 @@
-"""`gsc experiment`: the paper's protocol on any sequence, in one command (DESIGN.md section 5).
+"""`gsc experiment`: the paper's protocol on any sequence, in one command.
 
 Runs, each a log under DIR/runs/ with a JSON record of its settings and results beside it:
 - Table 3: the whole sequence without and with PWAS pruning.

@@ -1,4 +1,4 @@
-"""`gsc slam`: a sequence through the SLAM system into a log (DESIGN.md section 6).
+"""`gsc slam`: a sequence through the SLAM system into a log (`gscompress.io.mcap_log`).
 
 A run starts fresh, from another agent's share (`inject`), or from the log of an interrupted
 run (`resume`); the frame loop and the log it writes are the same in all three cases.
@@ -83,7 +83,7 @@ def slam_file(
     progress: Progress | None = None,
     sequence: Any = None,
 ) -> dict[str, Any]:
-    """Run SLAM over a sequence and write the log (DESIGN.md section 6).
+    """Run SLAM over a sequence and write the log.
 
     The log holds the calibration, one `/camera/pose` (+ `/tf`) and `/slam/stats` record per
     frame, `/camera/pose_gt` where the sequence has ground truth, a `/gaussians` snapshot after

@@ -1,4 +1,4 @@
-"""The SLAM system: one RGB-D frame at a time (DESIGN.md section 4).
+"""The SLAM system: one RGB-D frame at a time.
 
 Per frame: constant-velocity pose guess -> tracking (pose only) -> densification (new Gaussians
 where the map does not explain the frame) -> mapping (Gaussians only, over a window of
