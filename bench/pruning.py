@@ -11,6 +11,13 @@ reduction, PSNR/ATE differences to the unpruned run, per-phase time breakdown) a
 `pruning.png` (per-frame mapping loss and Gaussian count of the three runs, pruning stages
 marked). Prints a Markdown table row per run.
 
+`--offline 0.4,0.3` adds a bound on what pruning by removal can keep: the unpruned run's final
+map is pruned after the fact to each keep ratio by PWAS and by opacity (`gsc prune`), and each
+pruned map and the unpruned one itself are refined alike (`--refine-iters` iterations on every
+frame at the run's poses, `gsc merge`'s refinement with nothing merged) and evaluated. Unlike the
+online runs, whose later frames regrow different numbers of Gaussians after each stage, the two
+scores are compared at exactly the same count, chosen from a map that saw every frame.
+
 Time: per-phase means over all frames from each frame's `ms` record in `/slam/stats`
 (tracking, densification, mapping, pwas, pruning, refinement); "logging" is the run's wall
 time per frame minus the mean in-frame total (log writing, frame loading, snapshots). This
@@ -22,6 +29,7 @@ Usage:
     python bench/pruning.py /work/shared/data/tsdffusion_tabletop_box
     python bench/pruning.py SEQ --frames 0:120 --set mapping.final_iters=0 --out bench_out/x
     python bench/pruning.py SEQ --runs unpruned,pwas,pwas@0.5,pwas@0.7   # a keep-ratio sweep
+    python bench/pruning.py SEQ --runs unpruned --reuse --offline 0.4,0.3 --refine-iters 1000
 """
 
 from __future__ import annotations
@@ -39,7 +47,7 @@ import yaml
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
-from gscompress.pipeline import evaluate_log, slam_file
+from gscompress.pipeline import evaluate_log, merge_logs, prune_log, slam_file
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.slam.system import PHASES
 
@@ -183,6 +191,27 @@ def plot(runs: dict[str, dict[str, Any]], title: str, path: Path) -> Path:
     return path
 
 
+def offline_bound(
+    unpruned: dict[str, Any], seq: Path, work: Path, keeps: list[float], opts: argparse.Namespace
+) -> dict[str, dict[str, Any]]:
+    """The unpruned run's final map pruned afterwards to each keep by PWAS and by opacity, each
+    and the unpruned map refined alike on every frame, and evaluated (see the module doc)."""
+    source = Path(unpruned["log"])
+    maps = {"unpruned": source}
+    for keep in keeps:
+        for by in ("pwas", "opacity"):
+            maps[f"{by}@{keep:g}"] = pruned = work / f"offline_{by}@{keep:g}.mcap"
+            prune_log(source, pruned, keep, by=by, force=True)
+    out: dict[str, dict[str, Any]] = {}
+    for name, log_path in maps.items():
+        refined = work / f"offline_{name}_refined.mcap"
+        merge_logs(log_path, None, refined, seq=seq, iters=opts.refine_iters, force=True)
+        evaluation = evaluate_log(refined, seq, lpips=False, every=opts.eval_every)
+        out[name] = {k: evaluation.get(k) for k in ("psnr", "ssim", "gaussians")}
+        out[name]["psnr_delta_db"] = round(out[name]["psnr"] - out["unpruned"]["psnr"], 3)
+    return out
+
+
 def table_row(name: str, run: dict[str, Any], seq: str) -> str:
     """One Markdown row: sequence, run, Gaussians, PSNR, SSIM, ATE, s/frame."""
     ate = run["ate_rmse_cm"]
@@ -206,6 +235,10 @@ def main() -> None:
     parser.add_argument("--out", default="bench_out/pruning")
     parser.add_argument("--reuse", action="store_true", help="evaluate existing logs again")
     parser.add_argument("--threads", type=int, default=None, help="torch threads")
+    parser.add_argument(
+        "--offline", default="", help="keep ratios (e.g. 0.4,0.3) of the after-the-fact bound"
+    )
+    parser.add_argument("--refine-iters", type=int, default=1000, help="for --offline")
     opts = parser.parse_args()
     if opts.threads:
         torch.set_num_threads(opts.threads)
@@ -230,6 +263,17 @@ def main() -> None:
         runs[run_name] = run_one(run_name, seq, work, overrides, opts)
         print(table_row(run_name, runs[run_name], name), flush=True)
 
+    offline: dict[str, dict[str, Any]] = {}
+    if opts.offline:
+        if "unpruned" not in runs:
+            raise SystemExit("--offline prunes the unpruned run's map: include it in --runs")
+        keeps = [float(k) for k in opts.offline.split(",")]
+        offline = offline_bound(runs["unpruned"], seq, work, keeps, opts)
+        print(f"| run, refined {opts.refine_iters} iterations | Gaussians | PSNR dB | change |")
+        for run_name, row in offline.items():
+            print(f"| {run_name} | {row['gaussians']} | {row['psnr']:.2f} | "
+                  f"{row['psnr_delta_db']:+.2f} |", flush=True)  # fmt: skip
+
     report = {
         "sequence": str(seq),
         "frames": opts.frames,
@@ -239,6 +283,7 @@ def main() -> None:
         "config": resolve_config(opts.preset).with_overrides(**shared).to_dict(),
         "runs": runs,
         "versus_unpruned": compare(runs),
+        "offline": {"refine_iters": opts.refine_iters, "runs": offline} if offline else None,
         "plot": str(plot(runs, name, work / "pruning.png")),
     }
     (work / "pruning.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
