@@ -62,22 +62,32 @@ def format_info(info: dict[str, Any]) -> str:
                 f"q25 {q['q25']:.4g}  median {q['q50']:.4g}  q75 {q['q75']:.4g}  "
                 f"q95 {q['q95']:.4g}  max {q['q100']:.4g}"
             )
-            counts = m["importance_histogram"]["counts"]
-            peak = max(counts) or 1
-            bars = "".join(" ▁▂▃▄▅▆▇█"[round(8 * c / peak)] for c in counts)
-            lines.append(f"histogram |{bars}|")
+            log = m["importance_histogram_log"]
+            peak = max(log["counts"]) or 1
+            bars = "".join(" ▁▂▃▄▅▆▇█"[round(8 * c / peak)] for c in log["counts"])
+            zeros = f"; {log['zeros']} at 0" if log["zeros"] else ""
+            lines.append(
+                f"histogram |{bars}| log scale, {log['edges'][0]:.4g} to {log['edges'][-1]:.4g}"
+                + zeros
+            )
         else:
             lines.append("importance none (run `gsc score` or `gsc slam` to get PWAS scores)")
     for step in info["provenance"]:
         op = step["operation"]
-        params = " ".join(f"{k}={v}" for k, v in op.items() if k != "name")
+        params = " ".join(f"{k}={_value(v)}" for k, v in op.items() if k != "name")
         lines.append(
             f"from      {op.get('name', '?')} {params} <- {step['parent']} "
             f"(sha256 {step['parent_sha256'][:12]})"
         )
     if info["results"]:
-        lines.append("results   " + " ".join(f"{k}={v}" for k, v in info["results"].items()))
+        results = info["results"].items()
+        lines.append("results   " + " ".join(f"{k}={_value(v)}" for k, v in results))
     return "\n".join(lines)
+
+
+def _value(v: Any) -> str:
+    """A value for reading: floats to 6 significant digits (`--json` gives them whole)."""
+    return f"{v:.6g}" if isinstance(v, float) else str(v)
 
 
 def _size(n: int) -> str:

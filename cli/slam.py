@@ -162,9 +162,9 @@ def slam(
                 if save_config is not None:  # written once the run has passed its checks
                     write_config(config, save_config)
             bar.total = total
-            bar.set_postfix(
-                frame=stats["frame"],
-                gaussians=stats["gaussians"],
+            bar.set_postfix(  # counts as text: tqdm would show 10000 as "1e+4"
+                frame=str(stats["frame"]),
+                gaussians=str(stats["gaussians"]),
                 track=f"{stats.get('loss_tracking', 0.0):.4f}",
                 map=f"{stats.get('loss_mapping', 0.0):.4f}",
                 s_per_frame=f"{stats['seconds'] / processed:.2f}",

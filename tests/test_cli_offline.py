@@ -465,3 +465,23 @@ def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
     assert f"bytes     {result['bytes']} B" in r.output and "54 B per Gaussian" in r.output
     r = run("share", "--help")
     assert "2MB" in r.output and "1.5MiB" in r.output and "--precision" in r.output
+
+
+def test_info_histogram_is_log_scaled_so_a_long_tail_does_not_hide_the_shape(tmp_path):
+    """PWAS scores span decades. A linear histogram of scores that are log-uniform over 0.01-100
+    with one at 0 puts three quarters in its first bin; the log-scaled one spreads them evenly
+    and counts the zero apart. The text line shows the log one with its range."""
+    g = random_map(1001)
+    g.importance_sum[:] = np.concatenate([[0.0], np.logspace(-2, 2, 1000)])
+    g.importance_weight[:] = 1.0
+    with LogWriter(tmp_path / "m.mcap", LogMetadata()) as log:
+        log.write_gaussians(g, 0)
+    info = json.loads(run("info", tmp_path / "m.mcap", "--json").output)["map"]
+    linear, log = info["importance_histogram"], info["importance_histogram_log"]
+    assert linear["counts"][0] > 750  # the three decades below 10 of the four
+    assert log["zeros"] == 1 and sum(log["counts"]) == 1000
+    assert max(log["counts"]) - min(log["counts"]) <= 2  # 100 per bin, give or take an edge
+    assert np.allclose(np.diff(np.log10(log["edges"])), 0.4)
+    text = run("info", tmp_path / "m.mcap").output
+    line = next(x for x in text.splitlines() if x.startswith("histogram"))
+    assert line == "histogram |██████████| log scale, 0.01 to 100; 1 at 0", line

@@ -346,3 +346,28 @@ def test_a_file_system_refusal_is_a_one_line_error(seq_dir, slam_log, tmp_path):
         r = run("prune", slam_log, "--keep", "0.5", "-o", locked / "p.mcap")
         assert r.exit_code == 1 and "cannot write in" in r.output, r.output
         assert not list(locked.iterdir())
+
+
+def test_progress_bar_shows_counts_as_numbers(monkeypatch, seq_dir, tmp_path):
+    """tqdm shortens a round count to scientific notation ("gaussians=1e+4"); the bar must show
+    the count as it is."""
+    import gscompress.pipeline as pipeline
+    import gscompress_cli.slam as slam_command
+
+    make_bar = slam_command.progress_bar
+    bars = []
+
+    def kept_bar(*args, **kwargs):  # type: ignore[no-untyped-def]
+        bars.append(make_bar(*args, **kwargs))
+        return bars[-1]
+
+    def fake_slam_file(*args, progress, **kwargs):  # type: ignore[no-untyped-def]
+        progress(1, 1, {"frame": 10000, "gaussians": 20000, "seconds": 1.0})
+        return {"frames": 1, "gaussians": 20000, "seconds_per_frame": 1.0}
+
+    monkeypatch.setattr(slam_command, "progress_bar", kept_bar)
+    monkeypatch.setattr(pipeline, "slam_file", fake_slam_file)
+    r = run("slam", seq_dir, "-o", tmp_path / "run.mcap")
+    assert r.exit_code == 0, r.output
+    (bar,) = bars
+    assert "frame=10000" in bar.postfix and "gaussians=20000" in bar.postfix, bar.postfix

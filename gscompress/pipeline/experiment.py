@@ -57,6 +57,7 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES, strategy_scores
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
+from gscompress.pipeline.offline import log_edges
 
 log = logging.getLogger(__name__)
 
@@ -892,8 +893,7 @@ def _plots(
     kept = np.sort(scores)[::-1][: max(1, round(s.keep * len(scores)))]
     fig, ax = plt.subplots(figsize=(6, 4))
     positive = scores[scores > 0]
-    low, high = (positive.min(), positive.max()) if len(positive) else (1e-6, 1.0)
-    bins = list(np.logspace(np.log10(low), np.log10(max(high, low * 1.01)), 50))
+    bins = list(log_edges(positive, 49))
     ax.hist(positive, bins=bins, alpha=0.6, label=f"all ({len(scores)})")
     ax.hist(kept[kept > 0], bins=bins, alpha=0.6, label=f"kept at {s.keep:g} ({len(kept)})")
     ax.set_xscale("log")

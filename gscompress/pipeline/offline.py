@@ -263,8 +263,27 @@ def map_summary(gaussians: GaussianMap, histogram_bins: int = 10) -> dict[str, A
         }
         counts, edges = np.histogram(scores, bins=histogram_bins)
         summary["importance_histogram"] = {"counts": counts.tolist(), "edges": edges.tolist()}
+        # scores span decades (a few Gaussians dominate), so the linear bins put nearly all
+        # in the first; the log-spaced ones show the shape (zero scores counted apart)
+        positive = scores[scores > 0]
+        counts, edges = np.histogram(positive, bins=log_edges(positive, histogram_bins))
+        summary["importance_histogram_log"] = {
+            "counts": counts.tolist(),
+            "edges": edges.tolist(),
+            "zeros": int(len(scores) - len(positive)),
+        }
         summary["scored"] = int(np.count_nonzero(gaussians.importance_weight > 0))
     return summary
+
+
+def log_edges(positive: np.ndarray, bins: int) -> np.ndarray:
+    """`bins` + 1 log-spaced histogram edges from the smallest to the largest of these positive
+    scores (a span of 1% when they are all equal, [1e-6, 1] when there are none)."""
+    low, high = (float(positive.min()), float(positive.max())) if len(positive) else (1e-6, 1.0)
+    high = max(high, low * 1.01)
+    edges = np.logspace(np.log10(low), np.log10(high), bins + 1)
+    edges[[0, -1]] = low, high  # exactly: 10 ** log10(x) may round off x and leave it out
+    return edges
 
 
 def seconds_to_ns(seconds: float) -> int:
