@@ -63,13 +63,14 @@ def format_info(info: dict[str, Any]) -> str:
                 f"q95 {q['q95']:.4g}  max {q['q100']:.4g}"
             )
             log = m["importance_histogram_log"]
-            peak = max(log["counts"]) or 1
-            bars = "".join(" ▁▂▃▄▅▆▇█"[round(8 * c / peak)] for c in log["counts"])
-            zeros = f"; {log['zeros']} at 0" if log["zeros"] else ""
-            lines.append(
-                f"histogram |{bars}| log scale, {log['edges'][0]:.4g} to {log['edges'][-1]:.4g}"
-                + zeros
-            )
+            peak = max(log["counts"])
+            if peak == 0:
+                lines.append("histogram every score is 0")
+            else:
+                bars = "".join(" ▁▂▃▄▅▆▇█"[round(8 * c / peak)] for c in log["counts"])
+                low, high = log["edges"][0], log["edges"][-1]
+                zeros = f"; {log['zeros']} at 0" if log["zeros"] else ""
+                lines.append(f"histogram |{bars}| log scale, {low:.4g} to {high:.4g}{zeros}")
         else:
             lines.append("importance none (run `gsc score` or `gsc slam` to get PWAS scores)")
     for step in info["provenance"]:

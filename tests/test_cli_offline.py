@@ -485,3 +485,7 @@ def test_info_histogram_is_log_scaled_so_a_long_tail_does_not_hide_the_shape(tmp
     text = run("info", tmp_path / "m.mcap").output
     line = next(x for x in text.splitlines() if x.startswith("histogram"))
     assert line == "histogram |██████████| log scale, 0.01 to 100; 1 at 0", line
+    g.importance_sum[:] = 0.0  # scored, every score 0: no range to make up
+    with LogWriter(tmp_path / "z.mcap", LogMetadata()) as log:
+        log.write_gaussians(g, 0)
+    assert "histogram every score is 0" in run("info", tmp_path / "z.mcap").output
