@@ -182,7 +182,7 @@ def test_keyboard_interrupt_leaves_a_readable_log_of_the_frames_done(tmp_path):
 
 
 def test_render_kernels_are_ready_before_the_first_timed_frame(monkeypatch, tmp_path):
-    """A first-use build of the render kernels (C++: about 30 s; gsplat's CUDA ones: minutes)
+    """A first-use build of the render kernels (C++: under a minute; gsplat's CUDA ones: minutes)
     must not count as frame 0's time, on whichever backend the run picks."""
     from gscompress.render import cpu as cpu_backend
     from gscompress.render import gsplat_backend

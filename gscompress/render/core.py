@@ -189,7 +189,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     """The backend `render` uses for `backend` and tensors on `device`, ready to run.
 
     "auto" becomes gsplat for CUDA tensors when installed, else cpu on the CPU, else torch.
-    "cpu" builds the C++ kernels on first use (about 30 s, once per machine) and "gsplat" loads
+    "cpu" builds the C++ kernels on first use (under a minute, once per machine) and "gsplat" loads
     gsplat's CUDA kernels, which gsplat builds on first use when it has no prebuilt ones
     (minutes); calling this before a timed loop keeps either build out of it. When they cannot
     be built, "cpu" and an "auto" that picked gsplat become torch (with a warning).

@@ -209,7 +209,7 @@ def load_extension() -> ModuleType | None:
     if built is not None:
         return built
     if not (build_dir / f"{name}.so").exists():
-        logger.info("building the C++ render kernels in %s (first use, about 30 s)", build_dir)
+        logger.info("building the C++ render kernels in %s (first use, under a minute)", build_dir)
     try:
         from torch.utils import cpp_extension
 
