@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from gscompress.pipeline import merge_logs
-from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS, REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,
@@ -53,6 +53,14 @@ from .options import (
     help="Refine on every frame of the receiver (its --frames subset) or on its keyframes "
     "only (fewer views to load; 200 iterations on 5 keyframes overfit them).",
 )
+@click.option(
+    "--lr-final",
+    type=click.FloatRange(0.0, 1.0, min_open=True),
+    default=DEFAULT_LR_FINAL,
+    show_default=True,
+    help="The refinement's learning rates (the receiver's mapping ones) decay geometrically to "
+    "this fraction by its last iteration; 1 keeps them constant.",
+)
 @device_option
 @seed_option("Seed of the order of the refinement views.")
 @share_transform_option
@@ -67,6 +75,7 @@ def merge(
     size: tuple[int, int] | None,
     iters: int,
     views: str,
+    lr_final: float,
     device: str,
     seed: int,
     share_transform: Path | None,
@@ -103,6 +112,7 @@ def merge(
             size=size,
             iters=iters,
             views=views,
+            lr_final=lr_final,
             device=device,
             seed=seed,
             share_transform=share_transform,

@@ -235,3 +235,42 @@ def test_gsc_merge_usage_errors_and_sigterm(
     code, stderr = terminated(cmd, refining)
     assert code == 130 and "Interrupted" in stderr.splitlines()[-1], stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_refinement_learning_rates_decay_to_the_fraction_and_are_restored(
+    agents: dict[str, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every rate falls geometrically from its mapping value to lr_final times it at the last
+    iteration; the optimizer's rates are the mapping ones again afterwards. The merge records
+    the fraction, and a fraction outside (0, 1] is a usage error."""
+    from gscompress.slam.params import Adam
+
+    seen: list[list[float]] = []
+    optimizers: list[Adam] = []
+    step = Adam.step
+
+    def recording_step(self: Adam) -> None:
+        seen.append([group["lr"] for group in self.param_groups])
+        if self not in optimizers:
+            optimizers.append(self)
+        step(self)
+
+    monkeypatch.setattr(Adam, "step", recording_step)
+    out = agents["root"] / "decay.mcap"
+    merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=5, lr_final=0.01)
+    rates = np.array(seen)
+    assert rates.shape[0] == 5
+    ratios = rates / rates[0]
+    assert np.allclose(ratios, np.logspace(0, -2, 5)[:, None])  # 1, 0.316, 0.1, 0.0316, 0.01
+    (optimizer,) = optimizers
+    assert [g["lr"] for g in optimizer.param_groups] == list(rates[0])
+    with LogReader(out) as log:
+        assert log.metadata.provenance[-1]["operation"]["lr_final"] == 0.01
+    seen.clear()
+    merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=1.0,
+               force=True)  # fmt: skip
+    assert np.all(np.array(seen) == np.array(seen)[0])  # constant, exactly
+    for bad in ("0", "1.5"):
+        r = CliRunner().invoke(cli, ["merge", str(agents["b"]), str(agents["share"]), "-o",
+                                     str(agents["root"] / "x.mcap"), "--lr-final", bad])  # fmt: skip
+        assert r.exit_code == 2 and "--lr-final" in r.output, r.output

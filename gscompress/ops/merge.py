@@ -95,6 +95,7 @@ def refine(
     *,
     device: Any = "cpu",
     seed: int = 0,
+    lr_final_fraction: float = 1.0,
     progress: Callable[[int], object] | None = None,
 ) -> tuple[GaussianMap, dict[str, Any]]:
     """Optimise a map on fixed views for `iters` iterations, each view once per shuffled pass.
@@ -107,6 +108,8 @@ def refine(
         iters: iterations.
         device: torch device of the views.
         seed: seed of the view order.
+        lr_final_fraction: the learning rates (the config's mapping ones) decay geometrically
+            to this fraction of their value at the last iteration (1: constant).
         progress: called with 1 after each iteration.
 
     Returns:
@@ -132,7 +135,13 @@ def refine(
         )
     if not views:
         raise MapError("no views to refine on")
-    config = config.with_overrides(**{"prune.opacity_every": 0, "isotropic": gaussians.isotropic})
+    config = config.with_overrides(
+        **{
+            "prune.opacity_every": 0,
+            "isotropic": gaussians.isotropic,
+            "mapping.refine_lr_final_fraction": lr_final_fraction,
+        }
+    )
     mapper = Mapper(config, intrinsics, torch.device(device))
     mapper.add(gaussians)
     views = list(views)

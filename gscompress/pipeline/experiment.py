@@ -56,7 +56,7 @@ from gscompress.io.files import check_only_entries, is_within, json_text, write_
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES, strategy_scores
-from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS, REFINE_VIEWS
 from gscompress.pipeline.offline import log_edges
 
 log = logging.getLogger(__name__)
@@ -97,6 +97,7 @@ class ExperimentSettings:
             "inject" (before its first frame).
         merge_iters: refinement iterations of a merge.
         merge_views: what a merge refines on: B's "frames" (all) or "keyframes".
+        merge_lr_final: a merge's learning rates decay to this fraction over its refinement.
     """
 
     preset: str = "cpu"
@@ -115,6 +116,7 @@ class ExperimentSettings:
     mode: str = "merge"
     merge_iters: int = 200
     merge_views: str = DEFAULT_REFINE_VIEWS
+    merge_lr_final: float = DEFAULT_LR_FINAL
 
     def agent_frames(self) -> tuple[str, str]:
         """The frame subsets of agents A and B (odd and even positions within `frames`)."""
@@ -145,6 +147,8 @@ class ExperimentSettings:
             raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
         if self.merge_views not in REFINE_VIEWS:
             raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
+        if not 0.0 < self.merge_lr_final <= 1.0:
+            raise InputError("a merge's final learning-rate fraction must be in (0, 1]")
         Budget.parse(self.budget)
         for b in self.sweep:
             Budget.parse(b)
@@ -204,7 +208,8 @@ def _merge_job(
     from gscompress.pipeline.merge import merge_logs
 
     merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
-                        views=s.merge_views, device=s.device, seed=seed, force=True)  # fmt: skip
+                        views=s.merge_views, lr_final=s.merge_lr_final, device=s.device,
+                        seed=seed, force=True)  # fmt: skip
     return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
@@ -382,8 +387,8 @@ class _Runner:
             return self.slam(f"{name}_inject", config, frames, inject=share)
         spec = {
             "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
-            "frames": frames, "iters": s.merge_iters, "views": s.merge_views, "seed": seed,
-            "every": s.every, "lpips": s.lpips,
+            "frames": frames, "iters": s.merge_iters, "views": s.merge_views,
+            "lr_final": s.merge_lr_final, "seed": seed, "every": s.every, "lpips": s.lpips,
         }  # fmt: skip
         job = functools.partial(
             _merge_job, seq=self.seq, receiver=receiver.path,
@@ -720,7 +725,8 @@ def _receive_text(s: ExperimentSettings) -> str:
         return "B's run starts with the share injected. "
     return (
         f"B merges a share into its map and refines it ({s.merge_iters} iterations on its "
-        f"{s.merge_views}; B's poses, so its ATE, do not change). "
+        f"{s.merge_views}, the learning rates decaying to {s.merge_lr_final:g} of their start; "
+        "B's poses, so its ATE, do not change). "
     )
 
 

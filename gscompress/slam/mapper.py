@@ -157,14 +157,22 @@ class Mapper:
         """
         stats = MappingStats()
         order: list[int] = []
-        for _ in range(iters):
-            if len(self.params) == 0 or not views:
-                break
-            if not order:
-                order = [int(i) for i in rng.permutation(len(views))]
-            self._step(views[order.pop()], stats)
-            if on_step is not None:
-                on_step(stats.last_loss)
+        base = [group["lr"] for group in self.optimizer.param_groups]
+        gamma = self.config.mapping.refine_lr_final_fraction ** (1.0 / max(iters - 1, 1))
+        try:
+            for k in range(iters):
+                if len(self.params) == 0 or not views:
+                    break
+                if not order:
+                    order = [int(i) for i in rng.permutation(len(views))]
+                for group, lr in zip(self.optimizer.param_groups, base, strict=True):
+                    group["lr"] = lr * gamma**k
+                self._step(views[order.pop()], stats)
+                if on_step is not None:
+                    on_step(stats.last_loss)
+        finally:  # the per-frame mapping goes on at its own rates
+            for group, lr in zip(self.optimizer.param_groups, base, strict=True):
+                group["lr"] = lr
         if stats.iters and self.config.prune.opacity_every > 0:
             stats.removed += self.cleanup(huge=False)
         return stats.averaged()
