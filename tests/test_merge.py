@@ -270,7 +270,7 @@ def test_refinement_learning_rates_decay_to_the_fraction_and_are_restored(
     merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=1.0,
                force=True)  # fmt: skip
     assert np.all(np.array(seen) == np.array(seen)[0])  # constant, exactly
+    base = ["merge", str(agents["b"]), str(agents["share"]), "-o", str(agents["root"] / "x.mcap")]
     for bad in ("0", "1.5"):
-        r = CliRunner().invoke(cli, ["merge", str(agents["b"]), str(agents["share"]), "-o",
-                                     str(agents["root"] / "x.mcap"), "--lr-final", bad])  # fmt: skip
+        r = CliRunner().invoke(cli, [*base, "--lr-final", bad])
         assert r.exit_code == 2 and "--lr-final" in r.output, r.output

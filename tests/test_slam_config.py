@@ -39,7 +39,6 @@ def test_partial_file_applies_on_top_of_its_preset(tmp_path):
         ("prune:\n  by: size\n", "prune.by must be one of pwas, opacity, random, alpha-t"),
         ("prune:\n  refine_iters: -1\n", "refinement iterations"),
         ("mapping:\n  final_iters: -2\n", "refinement iterations"),
-        ("mapping:\n  refine_lr_final_fraction: 0\n", "refine_lr_final_fraction"),
         ("size: [80]\n", "size"),
         ("isotropic: 1\n", "true or false"),
         ("prune:\n  refill: all\n", "prune.refill must be one of off, current, keyframes"),

@@ -135,17 +135,12 @@ def refine(
         )
     if not views:
         raise MapError("no views to refine on")
-    config = config.with_overrides(
-        **{
-            "prune.opacity_every": 0,
-            "isotropic": gaussians.isotropic,
-            "mapping.refine_lr_final_fraction": lr_final_fraction,
-        }
-    )
+    config = config.with_overrides(**{"prune.opacity_every": 0, "isotropic": gaussians.isotropic})
     mapper = Mapper(config, intrinsics, torch.device(device))
     mapper.add(gaussians)
     views = list(views)
     loss_before = mapper.loss(views)
-    mapper.refine(views, iters, rng, on_step=None if progress is None else lambda _: progress(1))
+    on_step = None if progress is None else lambda _: progress(1)
+    mapper.refine(views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction)
     stats = {"iters": iters, "loss_before": loss_before, "loss_after": mapper.loss(views)}
     return mapper.params.to_map(), stats

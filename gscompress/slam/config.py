@@ -97,9 +97,6 @@ class MappingConfig:
         final_iters: global refinement after the last frame: this many iterations over all
             keyframes and the last frame, each once per shuffled pass (0: none). Pruned and
             unpruned runs get it alike; its time is the last frame's "refinement" phase.
-        refine_lr_final_fraction: in a refinement (after a pruning stage, after the last frame,
-            and `gsc merge`'s), every learning rate decays geometrically to this fraction of its
-            value at the last iteration (1: constant, as in the per-frame mapping).
     """
 
     iters: int = 60
@@ -116,7 +113,6 @@ class MappingConfig:
     illum_edge_sigma: float = 0.05
     current_frame_share: float = 0.5
     final_iters: int = 0
-    refine_lr_final_fraction: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -409,8 +405,6 @@ def check_config(config: SlamConfig) -> None:
     need(p.refill in REFILL, f"prune.refill must be one of {', '.join(REFILL)}")
     need(p.track_prestage_frames >= 0, "prune.track_prestage_frames must be >= 0")
     need(p.refine_iters >= 0 and m.final_iters >= 0, "refinement iterations must be >= 0")
-    fraction = m.refine_lr_final_fraction
-    need(0.0 < fraction <= 1.0, "mapping.refine_lr_final_fraction must be in (0, 1]")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
     need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")
     from gscompress.render import BACKENDS

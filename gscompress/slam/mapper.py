@@ -145,6 +145,7 @@ class Mapper:
         iters: int,
         rng: np.random.Generator,
         on_step: Callable[[float], object] | None = None,
+        lr_final_fraction: float = 1.0,
     ) -> MappingStats:
         """Run `iters` mapping iterations over `views`, each view once per shuffled pass.
 
@@ -153,12 +154,14 @@ class Mapper:
         iterations do not advance the cyclic-cleanup count; at the end only transparent
         Gaussians are removed: the large ones are what covers the holes, and with no mapping
         left to fill the gaps, removing them cost about 2 dB PSNR on a pruned synthetic map.
-        `on_step` is called with each iteration's total loss (`gsc merge`'s progress).
+        `on_step` is called with each iteration's total loss (`gsc merge`'s progress). The
+        learning rates decay geometrically to `lr_final_fraction` of their mapping values by the
+        last iteration (1: constant, as the SLAM's own refinements run) and are restored after.
         """
         stats = MappingStats()
         order: list[int] = []
         base = [group["lr"] for group in self.optimizer.param_groups]
-        gamma = self.config.mapping.refine_lr_final_fraction ** (1.0 / max(iters - 1, 1))
+        gamma = lr_final_fraction ** (1.0 / max(iters - 1, 1))
         try:
             for k in range(iters):
                 if len(self.params) == 0 or not views:
