@@ -87,7 +87,8 @@ def merge(
     Every Gaussian of both maps is kept with its parameters, id and PWAS sums (the share's ids
     move past the receiver's when they clash; the offset is reported). The merged map is then
     refined on the receiver's own frames (--views) at its estimated poses with a fresh optimizer,
-    each view once per shuffled pass.
+    each view once per shuffled pass, its learning rates decaying to --lr-final of the
+    receiver's mapping rates.
     Both maps must be in the same world frame (agents anchored at the ground-truth pose of
     their first frame on one sequence are). `gsc slam --inject` is the other path: the share
     enters before the receiver maps, so its tracking benefits too.

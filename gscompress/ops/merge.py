@@ -6,8 +6,9 @@ all moved by one offset past the receiver's largest id, so `id - offset` still n
 Gaussian in the sending agent's map.
 
 `refine` then optimises the merged map on the receiver's own views (poses fixed) with a fresh
-optimizer, as the SLAM mapper does (`gscompress.slam.mapper`), but without the cyclic removal:
-a merge never drops a Gaussian. PWAS sums are carried, not added to.
+optimizer, as the SLAM mapper does (`gscompress.slam.mapper`), but without the cyclic removal
+(a merge never drops a Gaussian) and with learning rates that may decay over the refinement.
+PWAS sums are carried, not added to.
 """
 
 from __future__ import annotations
