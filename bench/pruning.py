@@ -14,9 +14,10 @@ marked). Prints a Markdown table row per run.
 `--offline 0.4,0.3` adds a bound on what pruning by removal can keep: the unpruned run's final
 map is pruned after the fact to each keep ratio by PWAS and by opacity (`gsc prune`), and each
 pruned map and the unpruned one itself are refined alike (`--refine-iters` iterations on every
-frame at the run's poses, `gsc merge`'s refinement with nothing merged) and evaluated. Unlike the
-online runs, whose later frames regrow different numbers of Gaussians after each stage, the two
-scores are compared at exactly the same count, chosen from a map that saw every frame.
+frame at the run's poses, `gsc merge`'s refinement with nothing merged, its rates decaying to
+`--lr-final`) and evaluated. Unlike the online runs, whose later frames regrow different
+numbers of Gaussians after each stage, the two scores are compared at exactly the same count,
+chosen from a map that saw every frame.
 
 Time: per-phase means over all frames from each frame's `ms` record in `/slam/stats`
 (tracking, densification, mapping, pwas, pruning, refinement); "logging" is the run's wall
@@ -48,6 +49,7 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, merge_logs, prune_log, slam_file
+from gscompress.pipeline.merge import DEFAULT_LR_FINAL
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.slam.system import PHASES
 
@@ -205,7 +207,8 @@ def offline_bound(
     out: dict[str, dict[str, Any]] = {}
     for name, log_path in maps.items():
         refined = work / f"offline_{name}_refined.mcap"
-        merge_logs(log_path, None, refined, seq=seq, iters=opts.refine_iters, force=True)
+        merge_logs(log_path, None, refined, seq=seq, iters=opts.refine_iters,
+                   lr_final=opts.lr_final, force=True)  # fmt: skip
         evaluation = evaluate_log(refined, seq, lpips=False, every=opts.eval_every)
         out[name] = {k: evaluation.get(k) for k in ("psnr", "ssim", "gaussians")}
         out[name]["psnr_delta_db"] = round(out[name]["psnr"] - out["unpruned"]["psnr"], 3)
@@ -239,6 +242,9 @@ def main() -> None:
         "--offline", default="", help="keep ratios (e.g. 0.4,0.3) of the after-the-fact bound"
     )
     parser.add_argument("--refine-iters", type=int, default=1000, help="for --offline")
+    parser.add_argument(
+        "--lr-final", type=float, default=DEFAULT_LR_FINAL, help="for --offline, as gsc merge's"
+    )
     opts = parser.parse_args()
     if opts.threads:
         torch.set_num_threads(opts.threads)
@@ -283,7 +289,9 @@ def main() -> None:
         "config": resolve_config(opts.preset).with_overrides(**shared).to_dict(),
         "runs": runs,
         "versus_unpruned": compare(runs),
-        "offline": {"refine_iters": opts.refine_iters, "runs": offline} if offline else None,
+        "offline": {"refine_iters": opts.refine_iters, "lr_final": opts.lr_final, "runs": offline}
+        if offline
+        else None,
         "plot": str(plot(runs, name, work / "pruning.png")),
     }
     (work / "pruning.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
