@@ -263,6 +263,9 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     shared = {k: yaml.safe_load(v) for k, v in (s.split("=", 1) for s in opts.set)}
 
+    keeps = [float(k) for k in opts.offline.split(",")] if opts.offline else []
+    if keeps and "unpruned" not in opts.runs.split(","):  # before hours of runs, not after
+        raise SystemExit("--offline prunes the unpruned run's map: include it in --runs")
     runs: dict[str, dict[str, Any]] = {}
     for run_name in opts.runs.split(","):
         overrides = {**shared, **run_overrides(run_name)}
@@ -270,12 +273,10 @@ def main() -> None:
         print(table_row(run_name, runs[run_name], name), flush=True)
 
     offline: dict[str, dict[str, Any]] = {}
-    if opts.offline:
-        if "unpruned" not in runs:
-            raise SystemExit("--offline prunes the unpruned run's map: include it in --runs")
-        keeps = [float(k) for k in opts.offline.split(",")]
+    if keeps:
         offline = offline_bound(runs["unpruned"], seq, work, keeps, opts)
         print(f"| run, refined {opts.refine_iters} iterations | Gaussians | PSNR dB | change |")
+        print("|---|---|---|---|")
         for run_name, row in offline.items():
             print(f"| {run_name} | {row['gaussians']} | {row['psnr']:.2f} | "
                   f"{row['psnr_delta_db']:+.2f} |", flush=True)  # fmt: skip

@@ -8,7 +8,7 @@ import click
 
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
-from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS, REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS, REFINE_VIEWS
 
 from .options import (
     INPUT_FOLDER,
@@ -88,6 +88,12 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "--views`).",
 )  # fmt: skip
 @click.option(
+    "--merge-lr-final", type=click.FloatRange(0.0, 1.0, min_open=True),
+    default=DEFAULT_LR_FINAL, show_default=True,
+    help="Each merge's learning rates decay to this fraction by its last iteration; 1 keeps "
+    "them constant (`gsc merge --lr-final`).",
+)  # fmt: skip
+@click.option(
     "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
     help="Runs at once, each in its own process with an equal share of the torch threads "
     "(`gsc --threads`, default one per core); a run starts as soon as the runs it reads have "
@@ -115,6 +121,7 @@ def experiment(
     mode: str,
     merge_iters: int,
     merge_views: str,
+    merge_lr_final: float,
     jobs: int,
     no_lpips: bool,
     device: str,
@@ -156,6 +163,7 @@ def experiment(
         mode=mode,
         merge_iters=merge_iters,
         merge_views=merge_views,
+        merge_lr_final=merge_lr_final,
         lpips=not no_lpips,
         device=device,
     )

@@ -87,8 +87,13 @@ def format_info(info: dict[str, Any]) -> str:
 
 
 def _value(v: Any) -> str:
-    """A value for reading: floats to 6 significant digits (`--json` gives them whole)."""
-    return f"{v:.6g}" if isinstance(v, float) else str(v)
+    """A value for reading: floats to 6 significant digits, also within lists (`--json` gives
+    them whole)."""
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    return str(v)
 
 
 def _size(n: int) -> str:

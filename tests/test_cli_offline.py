@@ -489,3 +489,11 @@ def test_info_histogram_is_log_scaled_so_a_long_tail_does_not_hide_the_shape(tmp
     with LogWriter(tmp_path / "z.mcap", LogMetadata()) as log:
         log.write_gaussians(g, 0)
     assert "histogram every score is 0" in run("info", tmp_path / "z.mcap").output
+
+
+def test_info_text_rounds_floats_also_within_lists() -> None:
+    from gscompress_cli.info import _value
+
+    assert _value(0.46049840737660336) == "0.460498"
+    assert _value([[0.9800665858, -0.198669291533], [1, "a"]]) == "[[0.980067, -0.198669], [1, a]]"
+    assert _value(7050) == "7050" and _value(None) == "None"

@@ -158,6 +158,13 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
     assert r.exit_code == 0, r.output
     third = json.loads(r.output)
     assert third["steps"] - third["reused"] == 8
+    # another merge learning-rate decay: every merge again, nothing else
+    r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5,0.3", "--merge-lr-final", "0.5"])
+    assert r.exit_code == 0, r.output
+    fourth = json.loads(r.output)
+    merges = [p for p in (out / "runs").glob("s0_*_agent_b.json")]  # not B's own run, s0_agent_b
+    assert len(merges) == fourth["steps"] - fourth["reused"] == 14  # 4 strategies x 3 + 2
+    assert all(json.loads(p.read_text())["spec"]["lr_final"] == 0.5 for p in merges)
 
 
 def test_bad_settings_are_refused() -> None:

@@ -270,6 +270,22 @@ def test_refinement_learning_rates_decay_to_the_fraction_and_are_restored(
     merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=1.0,
                force=True)  # fmt: skip
     assert np.all(np.array(seen) == np.array(seen)[0])  # constant, exactly
+    # an exception part-way leaves the optimizer at its mapping rates
+    from gscompress.slam.mapper import Mapper
+
+    calls: list[tuple[Mapper, list[float]]] = []
+
+    def failing_step(self: Mapper, view: Any, stats: Any) -> None:
+        calls.append((self, [group["lr"] for group in self.optimizer.param_groups]))
+        if len(calls) == 2:
+            raise RuntimeError("step failed")
+
+    monkeypatch.setattr(Mapper, "_step", failing_step)
+    with pytest.raises(RuntimeError, match="step failed"):
+        merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=0.1,
+                   force=True)  # fmt: skip
+    (mapper, first), (_, second) = calls
+    assert second != first and [g["lr"] for g in mapper.optimizer.param_groups] == first
     base = ["merge", str(agents["b"]), str(agents["share"]), "-o", str(agents["root"] / "x.mcap")]
     for bad in ("0", "1.5"):
         r = CliRunner().invoke(cli, [*base, "--lr-final", bad])

@@ -24,7 +24,7 @@ from gscompress.render import render
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.keyframes import View
 from gscompress.slam.losses import LossTerms, mapping_loss
-from gscompress.slam.params import Adam, GaussianParams
+from gscompress.slam.params import Adam, GaussianParams, decay_per_step
 
 
 @dataclass
@@ -156,12 +156,13 @@ class Mapper:
         left to fill the gaps, removing them cost about 2 dB PSNR on a pruned synthetic map.
         `on_step` is called with each iteration's total loss (`gsc merge`'s progress). The
         learning rates decay geometrically to `lr_final_fraction` of their mapping values by the
-        last iteration (1: constant, as the SLAM's own refinements run) and are restored after.
+        last iteration (1: constant, as the SLAM's own refinements run; a single iteration runs at
+        the full rate) and are restored after.
         """
         stats = MappingStats()
         order: list[int] = []
         base = [group["lr"] for group in self.optimizer.param_groups]
-        gamma = lr_final_fraction ** (1.0 / max(iters - 1, 1))
+        gamma = decay_per_step(lr_final_fraction, iters)
         try:
             for k in range(iters):
                 if len(self.params) == 0 or not views:

@@ -68,6 +68,12 @@ def activate(
     )
 
 
+def decay_per_step(final_fraction: float, iters: int) -> float:
+    """The factor that takes a learning rate to `final_fraction` of itself at the last of
+    `iters` steps when applied once per step (1 for a single step: it runs at the full rate)."""
+    return final_fraction ** (1.0 / max(iters - 1, 1))
+
+
 class Adam:
     """`torch.optim.Adam` (no weight decay, no amsgrad) on groups of tensors, without torch.optim.
 

@@ -29,7 +29,7 @@ from gscompress.camera import Intrinsics, invert_transform, quat_to_rotmat
 from gscompress.render import render
 from gscompress.slam.config import TrackingConfig
 from gscompress.slam.losses import tracking_loss
-from gscompress.slam.params import RenderInputs
+from gscompress.slam.params import RenderInputs, decay_per_step
 
 
 @dataclass
@@ -167,7 +167,7 @@ def track(
     fixed = RenderInputs(*(t.detach() for t in gaussians))
     T0 = invert_transform(T_world_cam_guess)
     x = np.zeros(6)  # (qx, qy, qz, tau)
-    gamma = config.lr_final_fraction ** (1.0 / max(config.iters - 1, 1))
+    gamma = decay_per_step(config.lr_final_fraction, config.iters)
     adam = PoseAdam(np.repeat([config.lr_rotation, config.lr_translation], 3), gamma)
     first_loss = last_loss = float("nan")
     pixels = done = 0
