@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -144,7 +145,7 @@ def test_pwas_minus_random_is_paired_by_seed() -> None:
 
 
 def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
-    experiment: tuple[Path, Path, dict],
+    experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
     seq, out, first = experiment
     base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
@@ -158,11 +159,15 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
     assert r.exit_code == 0, r.output
     third = json.loads(r.output)
     assert third["steps"] - third["reused"] == 8
-    # another merge learning-rate decay: every merge again, nothing else
+    # another merge learning-rate decay: every merge again, nothing else (in a copy: the
+    # folder is shared with the other tests of this module)
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    base[base.index(str(out))] = str(copy)
     r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5,0.3", "--merge-lr-final", "0.5"])
     assert r.exit_code == 0, r.output
     fourth = json.loads(r.output)
-    merges = [p for p in (out / "runs").glob("s0_*_agent_b.json")]  # not B's own run, s0_agent_b
+    merges = list((copy / "runs").glob("s0_*_agent_b.json"))  # not B's own run, s0_agent_b
     assert len(merges) == fourth["steps"] - fourth["reused"] == 14  # 4 strategies x 3 + 2
     assert all(json.loads(p.read_text())["spec"]["lr_final"] == 0.5 for p in merges)
 
