@@ -70,7 +70,8 @@ def activate(
 
 def decay_per_step(final_fraction: float, iters: int) -> float:
     """The factor that takes a learning rate to `final_fraction` of itself at the last of
-    `iters` steps when applied once per step (1 for a single step: it runs at the full rate)."""
+    `iters` steps when applied once after each step (the first step runs at the full rate, so a
+    single step never decays)."""
     return final_fraction ** (1.0 / max(iters - 1, 1))
 
 
