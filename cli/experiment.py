@@ -7,8 +7,9 @@ from pathlib import Path
 import click
 
 from gscompress.ops.budget import Budget
+from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
-from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS, REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
 
 from .options import (
     INPUT_FOLDER,

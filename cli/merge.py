@@ -6,8 +6,9 @@ from pathlib import Path
 
 import click
 
+from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.pipeline import merge_logs
-from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS, REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,

@@ -81,6 +81,21 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
         slam_file(seq_dir, out, resume=True, preset="tiny", frames="0:4")
 
 
+def test_a_resumed_run_refines_on_every_frame_it_restored(seq_dir: Path, tmp_path: Path) -> None:
+    from gscompress.pipeline.slam_run import _resume_run
+
+    config = tmp_path / "frames.yaml"
+    config.write_text(
+        "preset: tiny\ncheckpoint_every: 2\nmapping:\n  final_iters: 3\n  final_views: frames\n"
+    )
+    out = tmp_path / "run.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config, progress=stop_after(3))
+    run = _resume_run(seq_dir, out, "cpu", None)
+    assert run.start == 3 and [v.index for v in run.system.views] == [0, 1, 2]
+    assert [v.index for v in run.system.keyframes] == [0, 2]
+
+
 def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no log"):
         slam_file(seq_dir, tmp_path / "none.mcap", resume=True)

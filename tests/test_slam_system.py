@@ -419,6 +419,46 @@ def test_refinement_after_a_stage_and_after_the_last_frame(seq):
     assert sorted(stage[:2]) == [0, 1] and sorted(stage[2:4]) == [0, 1]
 
 
+def test_final_refinement_on_every_frame_with_decaying_rates(seq):
+    config = preset("tiny").with_overrides(
+        **{"prune.stages": (), "mapping.final_iters": 9, "mapping.final_views": "frames",
+           "mapping.final_lr_fraction": 0.25}
+    )  # fmt: skip
+    system = SlamSystem(config, seq.intrinsics, total_frames=4)
+    assert system.keeps_every_view
+    visited, rates = [], []
+    step = system.mapper._step
+
+    def spy(view, stats):
+        visited.append(view.index)
+        rates.append([g["lr"] for g in system.mapper.optimizer.param_groups])
+        return step(view, stats)
+
+    system.mapper._step = spy
+    for i in range(4):
+        before = len(visited)
+        system.process(seq.frame(i))
+    final, lrs = visited[before:][-9:], np.array(rates[-9:])
+    # every frame (not only the keyframes 0 and 2), each once per shuffled pass
+    assert sorted(final[:4]) == [0, 1, 2, 3] and sorted(final[4:8]) == [0, 1, 2, 3]
+    assert [v.index for v in system.views] == [0, 1, 2, 3]
+    base = lrs[0]
+    np.testing.assert_allclose(lrs[-1], 0.25 * base, rtol=1e-9)
+    np.testing.assert_allclose(lrs[1:] / lrs[:-1], np.full((8, len(base)), 0.25 ** (1 / 8)))
+    # the mapping rates come back after the refinement
+    assert [g["lr"] for g in system.mapper.optimizer.param_groups] == list(base)
+
+
+def test_only_a_final_refinement_on_every_frame_keeps_every_view(seq):
+    for overrides in ({}, {"mapping.final_views": "frames", "mapping.final_iters": 0}):
+        config = preset("tiny").with_overrides(**{"prune.stages": (), **overrides})
+        system = SlamSystem(config, seq.intrinsics, total_frames=3)
+        for i in range(3):
+            system.process(seq.frame(i))
+        assert not system.keeps_every_view and system.views == []
+        assert [v.index for v in system.keyframes] == [0, 2]
+
+
 def test_refinement_lowers_the_loss_over_the_keyframes(seq):
     config = preset("tiny").with_overrides(**{"prune.stages": ()})
     system = SlamSystem(config, seq.intrinsics, total_frames=6)

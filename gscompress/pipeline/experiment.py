@@ -55,8 +55,9 @@ from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import check_only_entries, is_within, json_text, write_text_atomic
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
+from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES, strategy_scores
-from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS, REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import log_edges
 
 log = logging.getLogger(__name__)

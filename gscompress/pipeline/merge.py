@@ -19,15 +19,13 @@ from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import TOPIC_POSE, LogReader
-from gscompress.ops.merge import check_same_world
+from gscompress.ops.merge import REFINE_VIEWS, check_same_world
 from gscompress.pipeline.offline import rewrite_map, seconds_to_ns
 
-REFINE_VIEWS = ("frames", "keyframes")
-"""What a merge refines on: every frame of the receiver, or only its keyframes (every
-`keyframes.every`-th). Keyframes alone are few (5 of tabletop's 25 even frames), and 200
-iterations on them lowered the receiver's PSNR on its other frames; every frame raises it."""
 DEFAULT_REFINE_VIEWS = "frames"
-"""What a merge refines on unless told: every frame of the receiver's subset."""
+"""What a merge refines on unless told (`REFINE_VIEWS`): every frame of the receiver's subset.
+Keyframes alone are few (5 of tabletop's 25 even frames), and 200 iterations on them lowered
+the receiver's PSNR on its other frames; every frame raises it."""
 DEFAULT_LR_FINAL = 0.3
 """A merge's learning rates decay to this fraction over its refinement. Its optimizer is fresh,
 so at constant rates its first steps are as large as the last ones and leave a finished map

@@ -278,19 +278,19 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     pose_records = by_topic[TOPIC_POSE][:done]
     stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
     poses = [decode_pose(r[0], r[2], str(sources[0])) for r in pose_records]
-    keyframes = []
-    for position in range(done):
-        if is_keyframe(position, config.keyframes):
-            frame = sequence.frame(position)
-            keyframes.append(View.from_frame(position, frame, poses[position], system.device))
+    views = [
+        View.from_frame(position, sequence.frame(position), poses[position], system.device)
+        for position in range(done)
+        if system.keeps_every_view or is_keyframe(position, config.keyframes)
+    ]
     next_id = max([s.get("next_id", 0) for s in stats] + [int(gaussians.ids.max()) + 1])
     system.restore(
         gaussians,
         [(int(sequence.indices[i]), float(sequence.timestamps[i]), poses[i]) for i in range(done)],
-        keyframes,
+        views,
         mapping_iterations=sum(int(s.get("mapping_iters", 0)) for s in stats),
         next_id=next_id,
-        first_depth=keyframes[0].depth.cpu().numpy(),  # position 0 is always a keyframe
+        first_depth=views[0].depth.cpu().numpy(),  # position 0 is always a keyframe
         own_ids_from=_own_ids_from(meta.provenance),
     )
     if sequence.has_ground_truth:

@@ -7,11 +7,13 @@ Three presets:
   (40 tracking / 15 mapping iterations; 0.35-0.5 s per frame on the project's 2-core Xeon),
   with higher colour and scale learning rates than SplaTAM's because there are 15 mapping
   iterations per frame instead of 30-60 (tuned on the synthetic room and two real sequences
-  with bench/slam.py), and a final refinement of 400 iterations over all keyframes after the
-  last frame (`mapping.final_iters`; against 150 iterations, +0.6 to +2.1 dB PSNR on the four
-  real sequences and +0.2 on the synthetic room, for 0.02-0.06 s per frame; 800 gave less
-  than 400 on tabletop and office). Besides SplaTAM's rule it densifies where the map covers a
-  pixel but shows it in the wrong colour (`densify.color_error` 0.25).
+  with bench/slam.py), and a final refinement of 1000 iterations over every frame after the
+  last one, its learning rates decaying to 0.3 of the mapping ones (`mapping.final_iters`,
+  `final_views`, `final_lr_fraction`; against 400 constant-rate iterations over the keyframes,
+  +0.3 to +0.9 dB PSNR on the unpruned maps of tabletop, office, ICL and the synthetic room
+  and +0.2 to +0.8 on the PWAS-pruned ones, for about 0.1 s per frame; at constant rates 800
+  iterations had given less than 400). Besides SplaTAM's rule it densifies where the map covers
+  a pixel but shows it in the wrong colour (`densify.color_error` 0.25).
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
 
@@ -35,6 +37,7 @@ import yaml
 from gscompress.errors import InputError
 from gscompress.importance import PwasConfig
 from gscompress.io.files import write_text_atomic
+from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES
 
 
@@ -94,9 +97,14 @@ class MappingConfig:
             63% the observed image (see `gscompress.slam.losses.fuse_target`).
         current_frame_share: fraction of the iterations spent on the current frame; the others
             draw a keyframe of the window.
-        final_iters: global refinement after the last frame: this many iterations over all
-            keyframes and the last frame, each once per shuffled pass (0: none). Pruned and
-            unpruned runs get it alike; its time is the last frame's "refinement" phase.
+        final_iters: global refinement after the last frame: this many iterations over
+            `final_views`, each once per shuffled pass (0: none). Pruned and unpruned runs get
+            it alike; its time is the last frame's "refinement" phase.
+        final_views: what the final refinement runs on: "keyframes" (and the last frame) or
+            "frames" (every frame of the run; the run then keeps every frame's colour and
+            depth on its device until the end, 16 bytes a pixel with the depth edges).
+        final_lr_fraction: the final refinement's learning rates decay geometrically from the
+            mapping ones to this fraction of them by its last iteration (1: constant).
     """
 
     iters: int = 60
@@ -113,6 +121,8 @@ class MappingConfig:
     illum_edge_sigma: float = 0.05
     current_frame_share: float = 0.5
     final_iters: int = 0
+    final_views: str = "keyframes"
+    final_lr_fraction: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -405,6 +415,8 @@ def check_config(config: SlamConfig) -> None:
     need(p.refill in REFILL, f"prune.refill must be one of {', '.join(REFILL)}")
     need(p.track_prestage_frames >= 0, "prune.track_prestage_frames must be >= 0")
     need(p.refine_iters >= 0 and m.final_iters >= 0, "refinement iterations must be >= 0")
+    need(0.0 < m.final_lr_fraction <= 1.0, "mapping.final_lr_fraction must be in (0, 1]")
+    need(m.final_views in REFINE_VIEWS, f"mapping.final_views is one of {', '.join(REFINE_VIEWS)}")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
     need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")
     from gscompress.render import BACKENDS
@@ -434,7 +446,9 @@ PRESETS: dict[str, SlamConfig] = {
             lr_means=2e-4,
             lr_colors=2e-2,
             lr_log_scales=5e-3,
-            final_iters=400,
+            final_iters=1000,
+            final_views="frames",
+            final_lr_fraction=0.3,
         ),
         keyframes=KeyframeConfig(every=5, window=8, overlap_samples=800),
         densify=DensifyConfig(color_error=0.25),

@@ -156,8 +156,8 @@ class Mapper:
         left to fill the gaps, removing them cost about 2 dB PSNR on a pruned synthetic map.
         `on_step` is called with each iteration's total loss (`gsc merge`'s progress). The
         learning rates decay geometrically to `lr_final_fraction` of their mapping values by the
-        last iteration (1: constant, as the SLAM's own refinements run; a single iteration runs at
-        the full rate) and are restored after.
+        last iteration (1: constant, as the refinements after pruning stages run; a single
+        iteration runs at the full rate) and are restored after.
         """
         stats = MappingStats()
         order: list[int] = []

@@ -173,6 +173,8 @@ class SlamSystem:
         self.device = resolve_device(device, config.backend)
         self.mapper = Mapper(config, intrinsics, self.device)
         self.keyframes: list[View] = []
+        self.views: list[View] = []
+        """Every frame's view when the final refinement runs on every frame, else empty."""
         self.poses: list[np.ndarray] = []
         self.frame_indices: list[int] = []
         self.timestamps: list[float] = []
@@ -191,6 +193,12 @@ class SlamSystem:
     def gaussian_map(self) -> GaussianMap:
         """The current map with its PWAS sums (a numpy copy)."""
         return self.mapper.params.to_map()
+
+    @property
+    def keeps_every_view(self) -> bool:
+        """Whether the run keeps every frame's view (for a final refinement on every frame)."""
+        mapping = self.config.mapping
+        return mapping.final_views == "frames" and mapping.final_iters > 0
 
     def __len__(self) -> int:
         """Gaussians in the map."""
@@ -238,7 +246,7 @@ class SlamSystem:
         self,
         gaussians: GaussianMap,
         poses: list[tuple[int, float, np.ndarray]],
-        keyframes: list[View],
+        views: list[View],
         *,
         mapping_iterations: int,
         next_id: int,
@@ -254,7 +262,8 @@ class SlamSystem:
         Args:
             gaussians: the map after the last restored frame.
             poses: (frame index, timestamp, [4, 4] camera-to-world) of each processed frame.
-            keyframes: the keyframe views among them, in order.
+            views: the views of those frames that the run keeps, in order: every frame's when
+                `keeps_every_view`, else the keyframes' (extra ones are ignored).
             mapping_iterations: mapping iterations run so far.
             next_id: the id the next new Gaussian gets.
             first_depth: [H, W] depth of the first frame (sets the scene radius).
@@ -267,7 +276,8 @@ class SlamSystem:
             self.frame_indices.append(int(index))
             self.timestamps.append(float(stamp))
             self.poses.append(np.asarray(T, dtype=np.float64))
-        self.keyframes = list(keyframes)
+        self.keyframes = [v for v in views if is_keyframe(v.index, self.config.keyframes)]
+        self.views = list(views) if self.keeps_every_view else []
         self.mapper.iterations = int(mapping_iterations)
         self.next_id = max(self.next_id, int(next_id))
         self.own_ids_from = int(own_ids_from)
@@ -315,6 +325,8 @@ class SlamSystem:
         keyframe = is_keyframe(position, self.config.keyframes)
         if keyframe:
             self.keyframes.append(current)
+        if self.keeps_every_view:
+            self.views.append(current)
         ms["mapping"] = 1e3 * (time.perf_counter() - clock)
 
         clock = time.perf_counter()
@@ -474,11 +486,15 @@ class SlamSystem:
     def _refine(
         self, current: View, position: int, pruned: bool, keyframe: bool
     ) -> MappingStats | None:
-        """Refinement over all keyframes after a pruning stage and/or after the last frame."""
+        """Refinement over all keyframes after a pruning stage and/or over `mapping.final_views`
+        after the last frame (whose learning rates decay to `mapping.final_lr_fraction`)."""
         iters = self.config.prune.refine_iters if pruned else 0
+        fraction = 1.0
+        views = self.keyframes if keyframe else [*self.keyframes, current]
         if self.total_frames is not None and position == self.total_frames - 1:
             iters += self.config.mapping.final_iters
-        views = self.keyframes if keyframe else [*self.keyframes, current]
+            fraction = self.config.mapping.final_lr_fraction
+            views = self.views if self.keeps_every_view else views
         added = 0
         refill = self.config.prune.refill if pruned else "off"
         if refill != "off":
@@ -486,7 +502,7 @@ class SlamSystem:
         if iters == 0 and not added:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
-        stats = self.mapper.refine(views, iters, rng)
+        stats = self.mapper.refine(views, iters, rng, lr_final_fraction=fraction)
         stats.added = added
         return stats
 
