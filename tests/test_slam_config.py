@@ -39,6 +39,7 @@ def test_partial_file_applies_on_top_of_its_preset(tmp_path):
         ("prune:\n  by: size\n", "prune.by must be one of pwas, opacity, random, alpha-t"),
         ("prune:\n  refine_iters: -1\n", "refinement iterations"),
         ("mapping:\n  final_iters: -2\n", "refinement iterations"),
+        ("mapping:\n  final_iters_per_frame: -1\n", "refinement iterations"),
         ("mapping:\n  final_lr_fraction: 0\n", "mapping.final_lr_fraction must be in"),
         ("mapping:\n  final_lr_fraction: 1.5\n", "mapping.final_lr_fraction must be in"),
         ("mapping:\n  final_views: all\n", "mapping.final_views is one of frames, keyframes"),

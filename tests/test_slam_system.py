@@ -17,7 +17,7 @@ from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, overlap_fraction, sample_points, select_window
 from gscompress.slam.mapper import Mapper
 from gscompress.slam.params import GaussianParams
-from gscompress.slam.system import SlamSystem, stage_positions
+from gscompress.slam.system import SlamSystem, final_iterations, stage_positions
 from gscompress.slam.tracker import (
     PoseAdam,
     constant_velocity,
@@ -447,6 +447,16 @@ def test_final_refinement_on_every_frame_with_decaying_rates(seq):
     np.testing.assert_allclose(lrs[1:] / lrs[:-1], np.full((8, len(base)), 0.25 ** (1 / 8)))
     # the mapping rates come back after the refinement
     assert [g["lr"] for g in system.mapper.optimizer.param_groups] == list(base)
+
+
+def test_a_short_run_refines_at_most_its_per_frame_share(seq):
+    config = preset("tiny").with_overrides(
+        **{"prune.stages": (), "mapping.final_iters": 50, "mapping.final_iters_per_frame": 3}
+    )
+    system = SlamSystem(config, seq.intrinsics, total_frames=4)
+    results = [system.process(seq.frame(i)) for i in range(4)]
+    assert results[-1].refinement is not None and results[-1].refinement.iters == 12
+    assert final_iterations(config.mapping, 40) == 50  # a longer run gets final_iters
 
 
 def test_only_a_final_refinement_on_every_frame_keeps_every_view(seq):

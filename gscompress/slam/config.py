@@ -4,16 +4,17 @@ Three presets:
 
 - `tiny`: for tests and smoke runs (a handful of iterations; seconds for a few 64x48 frames).
 - `cpu` (the default of `gsc slam`): 160x120 and iteration counts sized for a 2-core CPU
-  (40 tracking / 15 mapping iterations; 0.35-0.5 s per frame on the project's 2-core Xeon),
+  (40 tracking / 15 mapping iterations; 0.45-0.6 s per frame on the project's 2-core Xeon),
   with higher colour and scale learning rates than SplaTAM's because there are 15 mapping
   iterations per frame instead of 30-60 (tuned on the synthetic room and two real sequences
   with bench/slam.py), and a final refinement of 1000 iterations over every frame after the
-  last one, its learning rates decaying to 0.3 of the mapping ones (`mapping.final_iters`,
-  `final_views`, `final_lr_fraction`; against 400 constant-rate iterations over the keyframes,
-  +0.3 to +0.9 dB PSNR on the unpruned maps of tabletop, office, ICL and the synthetic room
-  and +0.2 to +0.8 on the PWAS-pruned ones, for about 0.1 s per frame; at constant rates 800
-  iterations had given less than 400). Besides SplaTAM's rule it densifies where the map covers
-  a pixel but shows it in the wrong colour (`densify.color_error` 0.25).
+  last one (at most 100 per frame of a short run), its learning rates decaying to 0.3 of the
+  mapping ones (`mapping.final_iters`, `final_iters_per_frame`, `final_views`,
+  `final_lr_fraction`). Against 400 constant-rate iterations over the keyframes it gave +0.3
+  to +0.9 dB PSNR on the unpruned maps of tabletop, office, ICL and the synthetic room and
+  +0.2 to +0.8 on the PWAS-pruned ones, for about 0.1 s per frame (at constant rates 800
+  iterations had given less than 400). Besides SplaTAM's rule it densifies where the map
+  covers a pixel but shows it in the wrong colour (`densify.color_error` 0.25).
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
 
@@ -100,6 +101,8 @@ class MappingConfig:
         final_iters: global refinement after the last frame: this many iterations over
             `final_views`, each once per shuffled pass (0: none). Pruned and unpruned runs get
             it alike; its time is the last frame's "refinement" phase.
+        final_iters_per_frame: at most this many final iterations per frame of the run, so that
+            a short run's refinement stays in proportion to it (0: no limit).
         final_views: what the final refinement runs on: "keyframes" (and the last frame) or
             "frames" (every frame of the run; the run then keeps every frame's colour and
             depth on its device until the end, 16 bytes a pixel with the depth edges).
@@ -121,6 +124,7 @@ class MappingConfig:
     illum_edge_sigma: float = 0.05
     current_frame_share: float = 0.5
     final_iters: int = 0
+    final_iters_per_frame: int = 0
     final_views: str = "keyframes"
     final_lr_fraction: float = 1.0
 
@@ -414,7 +418,10 @@ def check_config(config: SlamConfig) -> None:
     need(p.by in STRATEGIES, f"prune.by must be one of {', '.join(STRATEGIES)}")
     need(p.refill in REFILL, f"prune.refill must be one of {', '.join(REFILL)}")
     need(p.track_prestage_frames >= 0, "prune.track_prestage_frames must be >= 0")
-    need(p.refine_iters >= 0 and m.final_iters >= 0, "refinement iterations must be >= 0")
+    need(
+        min(p.refine_iters, m.final_iters, m.final_iters_per_frame) >= 0,
+        "refinement iterations must be >= 0",
+    )
     need(0.0 < m.final_lr_fraction <= 1.0, "mapping.final_lr_fraction must be in (0, 1]")
     need(m.final_views in REFINE_VIEWS, f"mapping.final_views is one of {', '.join(REFINE_VIEWS)}")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
@@ -447,6 +454,7 @@ PRESETS: dict[str, SlamConfig] = {
             lr_colors=2e-2,
             lr_log_scales=5e-3,
             final_iters=1000,
+            final_iters_per_frame=100,
             final_views="frames",
             final_lr_fraction=0.3,
         ),

@@ -45,7 +45,7 @@ from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.select import keep_count, strategy_scores, top_k
 from gscompress.render import render, resolve_device
-from gscompress.slam.config import SlamConfig
+from gscompress.slam.config import MappingConfig, SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, is_keyframe, select_window
 from gscompress.slam.mapper import Mapper, MappingStats
@@ -141,6 +141,12 @@ def stage_positions(total_frames: int, stages: tuple[float, ...]) -> dict[int, i
         position = max(round(fraction * total_frames), 1) - 1
         out.setdefault(position, number)
     return out
+
+
+def final_iterations(mapping: MappingConfig, frames: int) -> int:
+    """Iterations of the final refinement of a run of `frames` frames."""
+    per_frame = mapping.final_iters_per_frame
+    return min(mapping.final_iters, per_frame * frames) if per_frame else mapping.final_iters
 
 
 class SlamSystem:
@@ -492,7 +498,7 @@ class SlamSystem:
         fraction = 1.0
         views = self.keyframes if keyframe else [*self.keyframes, current]
         if self.total_frames is not None and position == self.total_frames - 1:
-            iters += self.config.mapping.final_iters
+            iters += final_iterations(self.config.mapping, self.total_frames)
             fraction = self.config.mapping.final_lr_fraction
             views = self.views if self.keeps_every_view else views
         added = 0
