@@ -18,6 +18,7 @@ from gscompress.errors import InputError, MapError
 from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, LogReader
 from gscompress.io.recover import read_messages, unfinished_files
 from gscompress.pipeline import share_log, slam_file
+from gscompress.slam.system import SlamSystem
 from gscompress_cli.main import cli
 
 FRAMES = 8
@@ -81,7 +82,9 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
         slam_file(seq_dir, out, resume=True, preset="tiny", frames="0:4")
 
 
-def test_a_resumed_run_refines_on_every_frame_it_restored(seq_dir: Path, tmp_path: Path) -> None:
+def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
+    seq_dir: Path, tmp_path: Path
+) -> None:
     from gscompress.pipeline.slam_run import _resume_run
 
     config = tmp_path / "frames.yaml"
@@ -94,6 +97,13 @@ def test_a_resumed_run_refines_on_every_frame_it_restored(seq_dir: Path, tmp_pat
     run = _resume_run(seq_dir, out, "cpu", None)
     assert run.start == 3 and [v.index for v in run.system.views] == [0, 1, 2]
     assert [v.index for v in run.system.keyframes] == [0, 2]
+    fresh = SlamSystem(run.config, run.system.intrinsics, total_frames=FRAMES)
+    with pytest.raises(MapError, match="every restored frame"):  # the keyframes alone
+        fresh.restore(
+            run.system.gaussian_map(), [(i, float(i), np.eye(4)) for i in range(3)],
+            run.system.keyframes, mapping_iterations=0, next_id=0,
+            first_depth=run.system.keyframes[0].depth.numpy(),
+        )  # fmt: skip
 
 
 def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> None:

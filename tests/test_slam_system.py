@@ -391,14 +391,16 @@ def test_a_stage_keeps_exactly_the_top_fraction_by_its_score(seq, by):
 
 def test_refinement_after_a_stage_and_after_the_last_frame(seq):
     config = preset("tiny").with_overrides(
-        **{"prune.stages": (0.5,), "prune.refine_iters": 5, "mapping.final_iters": 7}
-    )
+        **{"prune.stages": (0.5,), "prune.refine_iters": 5, "mapping.final_iters": 7,
+           "mapping.final_lr_fraction": 0.5}
+    )  # fmt: skip
     system = SlamSystem(config, seq.intrinsics, total_frames=4)
-    visited = []
+    visited, rates = [], []
     step = system.mapper._step
 
     def spy(view, stats):
         visited.append(view.index)
+        rates.append(system.mapper.optimizer.param_groups[0]["lr"])
         return step(view, stats)
 
     system.mapper._step = spy
@@ -417,6 +419,11 @@ def test_refinement_after_a_stage_and_after_the_last_frame(seq):
     assert sorted(final[:3]) == [0, 2, 3] and sorted(final[3:6]) == [0, 2, 3]
     stage = views[1][-5:]
     assert sorted(stage[:2]) == [0, 1] and sorted(stage[2:4]) == [0, 1]
+    # the stage's refinement runs at the mapping rate; only the final one decays
+    lr = config.mapping.lr_means
+    n1 = sum(len(v) for v in views[:2])
+    assert rates[n1 - 5 : n1] == [lr] * 5
+    assert rates[-7] == lr and rates[-1] == pytest.approx(0.5 * lr)
 
 
 def test_final_refinement_on_every_frame_with_decaying_rates(seq):
@@ -460,9 +467,10 @@ def test_a_short_run_refines_at_most_its_per_frame_share(seq):
 
 
 def test_only_a_final_refinement_on_every_frame_keeps_every_view(seq):
-    for overrides in ({}, {"mapping.final_views": "frames", "mapping.final_iters": 0}):
+    frames = {"mapping.final_views": "frames", "mapping.final_iters": 5}
+    for overrides, total in (({}, 3), ({**frames, "mapping.final_iters": 0}, 3), (frames, None)):
         config = preset("tiny").with_overrides(**{"prune.stages": (), **overrides})
-        system = SlamSystem(config, seq.intrinsics, total_frames=3)
+        system = SlamSystem(config, seq.intrinsics, total_frames=total)
         for i in range(3):
             system.process(seq.frame(i))
         assert not system.keeps_every_view and system.views == []

@@ -179,7 +179,7 @@ def _refine(
     from gscompress.pipeline.evaluate import match_times, warn_other_sequence
     from gscompress.render import resolve_device
     from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
-    from gscompress.slam.keyframes import View, is_keyframe
+    from gscompress.slam.keyframes import View, in_views
 
     config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
     if size is None and config.size is not None:
@@ -197,7 +197,7 @@ def _refine(
     chosen = [
         View.from_frame(k, sequence.frame(int(p)), poses[match[p]], torch_device)
         for k, p in enumerate(positions)
-        if views == "frames" or is_keyframe(k, config.keyframes)
+        if in_views(k, views, config.keyframes)
     ]
     done = 0
 

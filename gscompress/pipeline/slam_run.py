@@ -221,7 +221,7 @@ def _fresh_run(
 def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: Any) -> _Run:
     """A run restored from the log (or unfinished file) of an interrupted one at `dst`."""
     from gscompress.slam.config import SlamConfig
-    from gscompress.slam.keyframes import View, is_keyframe
+    from gscompress.slam.keyframes import View, in_views
     from gscompress.slam.system import SlamSystem
 
     dst = Path(dst)
@@ -278,10 +278,11 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     pose_records = by_topic[TOPIC_POSE][:done]
     stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
     poses = [decode_pose(r[0], r[2], str(sources[0])) for r in pose_records]
+    kept = "frames" if system.keeps_every_view else "keyframes"
     views = [
         View.from_frame(position, sequence.frame(position), poses[position], system.device)
         for position in range(done)
-        if system.keeps_every_view or is_keyframe(position, config.keyframes)
+        if in_views(position, kept, config.keyframes)
     ]
     next_id = max([s.get("next_id", 0) for s in stats] + [int(gaussians.ids.max()) + 1])
     system.restore(

@@ -4,7 +4,7 @@ Three presets:
 
 - `tiny`: for tests and smoke runs (a handful of iterations; seconds for a few 64x48 frames).
 - `cpu` (the default of `gsc slam`): 160x120 and iteration counts sized for a 2-core CPU
-  (40 tracking / 15 mapping iterations; 0.45-0.6 s per frame on the project's 2-core Xeon),
+  (40 tracking / 15 mapping iterations; 0.44-0.57 s per frame on the project's 2-core Xeon),
   with higher colour and scale learning rates than SplaTAM's because there are 15 mapping
   iterations per frame instead of 30-60 (tuned on the synthetic room and two real sequences
   with bench/slam.py), and a final refinement of 1000 iterations over every frame after the
@@ -105,7 +105,7 @@ class MappingConfig:
             a short run's refinement stays in proportion to it (0: no limit).
         final_views: what the final refinement runs on: "keyframes" (and the last frame) or
             "frames" (every frame of the run; the run then keeps every frame's colour and
-            depth on its device until the end, 16 bytes a pixel with the depth edges).
+            depth on its device until the end, 20 bytes a pixel with the depth edges).
         final_lr_fraction: the final refinement's learning rates decay geometrically from the
             mapping ones to this fraction of them by its last iteration (1: constant).
     """

@@ -64,6 +64,12 @@ def is_keyframe(position: int, config: KeyframeConfig) -> bool:
     return position % config.every == 0
 
 
+def in_views(position: int, views: str, config: KeyframeConfig) -> bool:
+    """Whether the frame at this processing position is one of `views` (`REFINE_VIEWS`: every
+    frame, or the keyframes)."""
+    return views == "frames" or is_keyframe(position, config)
+
+
 def sample_points(
     depth: np.ndarray,
     intrinsics: Intrinsics,

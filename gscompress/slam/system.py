@@ -202,9 +202,11 @@ class SlamSystem:
 
     @property
     def keeps_every_view(self) -> bool:
-        """Whether the run keeps every frame's view (for a final refinement on every frame)."""
+        """Whether the run keeps every frame's view (for a final refinement on every frame; a
+        system that does not know its `total_frames` runs no final refinement)."""
         mapping = self.config.mapping
-        return mapping.final_views == "frames" and mapping.final_iters > 0
+        has_final = self.total_frames is not None and mapping.final_iters > 0
+        return has_final and mapping.final_views == "frames"
 
     def __len__(self) -> int:
         """Gaussians in the map."""
@@ -282,6 +284,8 @@ class SlamSystem:
             self.frame_indices.append(int(index))
             self.timestamps.append(float(stamp))
             self.poses.append(np.asarray(T, dtype=np.float64))
+        if self.keeps_every_view and [v.index for v in views] != list(range(len(poses))):
+            raise MapError("restore() needs the view of every restored frame, in order")
         self.keyframes = [v for v in views if is_keyframe(v.index, self.config.keyframes)]
         self.views = list(views) if self.keeps_every_view else []
         self.mapper.iterations = int(mapping_iterations)
@@ -492,19 +496,23 @@ class SlamSystem:
     def _refine(
         self, current: View, position: int, pruned: bool, keyframe: bool
     ) -> MappingStats | None:
-        """Refinement over all keyframes after a pruning stage and/or over `mapping.final_views`
-        after the last frame (whose learning rates decay to `mapping.final_lr_fraction`)."""
+        """Refinement over all keyframes at constant rates after a pruning stage, and over
+        `mapping.final_views` with rates decaying to `mapping.final_lr_fraction` after the last
+        frame. A stage on the last frame (a short run) joins its iterations to the final ones."""
         iters = self.config.prune.refine_iters if pruned else 0
         fraction = 1.0
-        views = self.keyframes if keyframe else [*self.keyframes, current]
+        keyframes = self.keyframes if keyframe else [*self.keyframes, current]
+        views = keyframes
         if self.total_frames is not None and position == self.total_frames - 1:
             iters += final_iterations(self.config.mapping, self.total_frames)
             fraction = self.config.mapping.final_lr_fraction
-            views = self.views if self.keeps_every_view else views
+            views = self.views if self.keeps_every_view else keyframes
         added = 0
         refill = self.config.prune.refill if pruned else "off"
         if refill != "off":
-            added = sum(self._densify(v) for v in (views if refill == "keyframes" else [current]))
+            added = sum(
+                self._densify(v) for v in (keyframes if refill == "keyframes" else [current])
+            )
         if iters == 0 and not added:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
