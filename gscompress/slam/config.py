@@ -8,7 +8,7 @@ Three presets:
   with higher colour and scale learning rates than SplaTAM's because there are 15 mapping
   iterations per frame instead of 30-60 (tuned on the synthetic room and two real sequences
   with bench/slam.py), and a final refinement of 1000 iterations over every frame after the
-  last one (at most 100 per frame of a short run), its learning rates decaying to 0.3 of the
+  last one (at most 150 per frame of a short run), its learning rates decaying to 0.3 of the
   mapping ones (`mapping.final_iters`, `final_iters_per_frame`, `final_views`,
   `final_lr_fraction`). Against 400 constant-rate iterations over the keyframes it gave +0.3
   to +0.9 dB PSNR on the unpruned maps of tabletop, office, ICL and the synthetic room and
@@ -454,7 +454,7 @@ PRESETS: dict[str, SlamConfig] = {
             lr_colors=2e-2,
             lr_log_scales=5e-3,
             final_iters=1000,
-            final_iters_per_frame=100,
+            final_iters_per_frame=150,
             final_views="frames",
             final_lr_fraction=0.3,
         ),
