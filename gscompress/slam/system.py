@@ -507,6 +507,8 @@ class SlamSystem:
             iters += final_iterations(self.config.mapping, self.total_frames)
             fraction = self.config.mapping.final_lr_fraction
             views = self.views if self.keeps_every_view else keyframes
+            if iters:
+                log.info("final refinement: %d iterations over %d views", iters, len(views))
         added = 0
         refill = self.config.prune.refill if pruned else "off"
         if refill != "off":
