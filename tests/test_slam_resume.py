@@ -104,6 +104,7 @@ def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
             run.system.keyframes, mapping_iterations=0, next_id=0,
             first_depth=run.system.keyframes[0].depth.numpy(),
         )  # fmt: skip
+    assert len(fresh) == 0 and fresh.poses == []  # refused before any of it was taken
 
 
 def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> None:

@@ -279,13 +279,13 @@ class SlamSystem:
         """
         if len(self.poses) or len(self.mapper):
             raise MapError("restore() needs a fresh SlamSystem")
+        if self.keeps_every_view and [v.index for v in views] != list(range(len(poses))):
+            raise MapError("restore() needs the view of every restored frame, in order")
         self.add_gaussians(gaussians, renumber=False)
         for index, stamp, T in poses:
             self.frame_indices.append(int(index))
             self.timestamps.append(float(stamp))
             self.poses.append(np.asarray(T, dtype=np.float64))
-        if self.keeps_every_view and [v.index for v in views] != list(range(len(poses))):
-            raise MapError("restore() needs the view of every restored frame, in order")
         self.keyframes = [v for v in views if is_keyframe(v.index, self.config.keyframes)]
         self.views = list(views) if self.keeps_every_view else []
         self.mapper.iterations = int(mapping_iterations)
