@@ -236,7 +236,7 @@ def slam_config_options(f: F) -> F:
         type=click.Choice(PRESET_NAMES),
         default="cpu",
         show_default=True,
-        help="Starting configuration: tiny (tests, seconds), cpu (160x120, 0.4-1.4 s/frame on 2 "
+        help="Starting configuration: tiny (tests, seconds), cpu (160x120, 0.4-1.7 s/frame on 2 "
         "cores), paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU).",
     )(f)
 
