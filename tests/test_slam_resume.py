@@ -205,6 +205,41 @@ def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
         assert log.metadata.results["gaussians"] == len(log.read_map()) == seen[-1]
 
 
+def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
+    tmp_path: Path, seq_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from gscompress.slam.mapper import Mapper
+
+    config = tmp_path / "final.yaml"
+    config.write_text("preset: tiny\nmapping: {final_iters: 400}\nprune: {stages: []}\n")
+    refine, done = Mapper.refine, []
+
+    def refine_then_signal(self, views, iters, rng, **kwargs):  # type: ignore[no-untyped-def]
+        on_step = kwargs.pop("on_step", None)
+
+        def step(loss: float) -> None:
+            done.append(loss)
+            if len(done) == 5:
+                os.kill(os.getpid(), signal.SIGINT)  # lands during the final refinement
+            if on_step is not None:
+                on_step(loss)
+
+        return refine(self, views, iters, rng, on_step=step, **kwargs)
+
+    monkeypatch.setattr(Mapper, "refine", refine_then_signal)
+    out = tmp_path / "stopped.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config)
+    assert len(done) == 5  # 5 of the 400 iterations, then the refinement ended
+    assert frames_in(out) == list(range(FRAMES))
+    with LogReader(out) as log:
+        results = log.metadata.results
+        last = [json.loads(m.data) for _, _, m in log.iter_messages([TOPIC_STATS])][-1]
+        assert results["interrupted"] is True and results["frames"] == FRAMES
+        assert results["gaussians"] == len(log.read_map())  # the map refined so far
+    assert last["refine_iters"] == 5
+
+
 def test_inject_starts_the_map_with_the_share(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:

@@ -466,6 +466,26 @@ def test_a_short_run_refines_at_most_its_per_frame_share(seq):
     assert final_iterations(config.mapping, 40) == 50  # a longer run gets final_iters
 
 
+def test_a_stop_request_ends_the_final_refinement_but_not_a_stage_refinement(seq):
+    config = preset("tiny").with_overrides(
+        **{"prune.stages": (0.5,), "prune.refine_iters": 6, "mapping.final_iters": 20}
+    )
+    system = SlamSystem(config, seq.intrinsics, total_frames=4)
+    polls = []
+
+    def stop_requested() -> bool:
+        polls.append(len(system.poses))
+        return len(polls) > 7  # true from the 8th poll on
+
+    system.stop_requested = stop_requested
+    results = [system.process(seq.frame(i)) for i in range(4)]
+    # the stage's refinement runs whole and never polls; the final one stops at its 8th poll
+    assert [r.refinement.iters for r in results[:-1] if r.refinement is not None] == [6]
+    assert set(polls) == {3} and len(polls) == 8
+    assert results[-1].refinement is not None and results[-1].refinement.iters == 7
+    assert len(system.poses) == 4  # the frame itself is whole
+
+
 def test_only_a_final_refinement_on_every_frame_keeps_every_view(seq):
     frames = {"mapping.final_views": "frames", "mapping.final_iters": 5}
     for overrides, total in (({}, 3), ({**frames, "mapping.final_iters": 0}, 3), (frames, None)):

@@ -339,19 +339,21 @@ def _json(record: Record) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def _stop_between_frames() -> Iterator[Callable[[], None]]:
-    """Let Ctrl-C and SIGTERM stop a run between frames; yields the check to call after each.
+def _stop_between_frames() -> Iterator[Callable[[], bool]]:
+    """Let Ctrl-C and SIGTERM stop a run between frames; yields whether a stop was asked for,
+    to check after each frame.
 
     A signal in the middle of a frame (say, while Gaussians are being removed) would leave the
     map half-updated and holding part of a frame whose pose is not logged; the map written at
     the end must be the state after whole frames, the one `--resume` restarts from. So the first
     signal is noted and the run stops after the frame; a second one stops at once, and then the
-    end writes no map (the last checkpoint stands). Only the main thread can take signals;
-    elsewhere nothing changes.
+    end writes no map (the last checkpoint stands). The final refinement after the last frame
+    (minutes at full size on a CPU) polls the same flag and ends early, so the map written is
+    the one refined so far. Only the main thread can take signals; elsewhere nothing changes.
     """
     pending: list[int] = []
     if threading.current_thread() is not threading.main_thread():
-        yield lambda: None
+        yield lambda: False
         return
 
     def note(signum: int, frame: object) -> None:
@@ -360,13 +362,9 @@ def _stop_between_frames() -> Iterator[Callable[[], None]]:
         pending.append(signum)
         log.warning("stopping after this frame (again to stop at once)")
 
-    def check() -> None:
-        if pending:
-            raise KeyboardInterrupt
-
     previous = {s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        yield check
+        yield lambda: bool(pending)
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
@@ -393,7 +391,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         out.flush()
         whole = True  # the map is the state after whole frames
         try:
-            with _stop_between_frames() as check:
+            with _stop_between_frames() as stopping:
+                system.stop_requested = stopping
                 for i in range(run.start, total):
                     frame = sequence.frame(i)
                     whole = False
@@ -402,7 +401,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
                     stats = _log_frame(run, out, frame, result, i)
                     if progress is not None:
                         progress(i + 1, total, {**stats, "seconds": time.perf_counter() - start})
-                    check()
+                    if stopping():
+                        raise KeyboardInterrupt
         except (KeyboardInterrupt, Exception) as exc:
             if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
                 raise  # nothing done: no log is better than an empty one

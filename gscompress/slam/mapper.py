@@ -146,6 +146,7 @@ class Mapper:
         rng: np.random.Generator,
         on_step: Callable[[float], object] | None = None,
         lr_final_fraction: float = 1.0,
+        stop: Callable[[], bool] | None = None,
     ) -> MappingStats:
         """Run `iters` mapping iterations over `views`, each view once per shuffled pass.
 
@@ -157,7 +158,8 @@ class Mapper:
         `on_step` is called with each iteration's total loss (`gsc merge`'s progress). The
         learning rates decay geometrically to `lr_final_fraction` of their mapping values by the
         last iteration (1: constant, as the refinements after pruning stages run; a single
-        iteration runs at the full rate) and are restored after.
+        iteration runs at the full rate) and are restored after. `stop`, polled before each
+        iteration, ends the refinement there when it returns true.
         """
         stats = MappingStats()
         order: list[int] = []
@@ -165,7 +167,7 @@ class Mapper:
         gamma = decay_per_step(lr_final_fraction, iters)
         try:
             for k in range(iters):
-                if len(self.params) == 0 or not views:
+                if len(self.params) == 0 or not views or (stop is not None and stop()):
                     break
                 if not order:
                     order = [int(i) for i in rng.permutation(len(views))]

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -193,6 +194,10 @@ class SlamSystem:
             stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
         )
         self.total_frames = total_frames
+        self.stop_requested: Callable[[], bool] | None = None
+        """Polled by the final refinement before each iteration: true ends it there (`gsc slam`
+        sets it to "Ctrl-C or SIGTERM came", so that a stop does not wait for the whole
+        refinement)."""
 
     # ------------------------------------------------------------------ state
 
@@ -503,10 +508,12 @@ class SlamSystem:
         fraction = 1.0
         keyframes = self.keyframes if keyframe else [*self.keyframes, current]
         views = keyframes
+        stop = None
         if self.total_frames is not None and position == self.total_frames - 1:
             iters += final_iterations(self.config.mapping, self.total_frames)
             fraction = self.config.mapping.final_lr_fraction
             views = self.views if self.keeps_every_view else keyframes
+            stop = self.stop_requested
             if iters:
                 log.info("final refinement: %d iterations over %d views", iters, len(views))
         added = 0
@@ -518,7 +525,9 @@ class SlamSystem:
         if iters == 0 and not added:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
-        stats = self.mapper.refine(views, iters, rng, lr_final_fraction=fraction)
+        stats = self.mapper.refine(views, iters, rng, lr_final_fraction=fraction, stop=stop)
+        if stop is not None and stats.iters < iters:
+            log.warning("final refinement stopped after %d of %d iterations", stats.iters, iters)
         stats.added = added
         return stats
 
