@@ -347,3 +347,39 @@ def test_sigterm_stops_the_workers_and_a_rerun_goes_on(tmp_path: Path) -> None:
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
     assert result["steps"] == total and result["reused"] >= len(records)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="reads /proc (Linux)")
+def test_workers_end_when_the_runner_is_killed_outright(tmp_path: Path) -> None:
+    """SIGKILL to `gsc experiment --jobs 2` (no handler can run): its worker processes, idle
+    or in a run, end too instead of waiting for work from a runner that is gone."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    seq = write_synthetic_sequence(tmp_path / "room", 16, (64, 48))
+    out = tmp_path / "exp"
+    cmd = [sys.executable, "-m", "gscompress_cli", "--threads", "2", "experiment", str(seq),
+           "-o", str(out), "--preset", "tiny", "--seeds", "1", "--sweep-seeds", "0",
+           "--no-lpips", "--jobs", "2"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 300
+        while not list((out / "runs").glob("*.json")):  # the workers are up and running
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.1)
+        workers = _children(proc.pid)
+        assert len(workers) >= 2  # the pool's two workers (and the resource tracker)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+    finally:
+        proc.kill()
+    deadline = time.monotonic() + 60  # a worker in a render step ends at its next bytecode
+    while [pid for pid in workers if _alive(pid)] and time.monotonic() < deadline:
+        time.sleep(0.2)
+    left = [pid for pid in workers if _alive(pid)]
+    for pid in left:  # not to leave them behind when the test fails
+        os.kill(pid, signal.SIGKILL)
+    assert not left

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from gscompress.errors import BudgetError, InputError
-from gscompress.ops.select import keep_count
+from gscompress.ops.select import is_fraction, keep_count
 
 BYTE_UNITS: dict[str, int] = {
     "b": 1,
@@ -55,7 +55,7 @@ class Budget:
     def __post_init__(self) -> None:
         if (self.ratio is None) == (self.budget_bytes is None):
             raise InputError("a budget is either a fraction or a number of bytes")
-        if self.ratio is not None and not (math.isfinite(self.ratio) and 0.0 < self.ratio <= 1.0):
+        if self.ratio is not None and not is_fraction(self.ratio):
             raise InputError(f"budget fraction must be in (0, 1], got {self.ratio:g}")
         if self.budget_bytes is not None and self.budget_bytes < 1:
             raise InputError(f"budget must be at least 1 byte, got {self.budget_bytes}")
@@ -138,7 +138,7 @@ class Budget:
                 f"budget {text} is above 1: a bare number is a fraction in (0, 1]; "
                 f"for bytes add a unit, e.g. {text}B, {text}kB or {text}MB"
             )
-        if not (math.isfinite(number) and 0.0 < number <= 1.0):
+        if not is_fraction(number):
             raise InputError(f"budget {text} is not a fraction in (0, 1]")
         return cls(ratio=number, text=text)
 

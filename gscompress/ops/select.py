@@ -40,9 +40,14 @@ class Strategy(str, Enum):
 STRATEGIES = tuple(s.value for s in Strategy)
 
 
+def is_fraction(value: object) -> bool:
+    """True for a finite number in (0, 1]: a retention ratio, a budget fraction."""
+    return isinstance(value, int | float) and math.isfinite(value) and 0.0 < value <= 1.0
+
+
 def check_ratio(ratio: float, name: str = "ratio") -> float:
     """Return `ratio` if it lies in (0, 1], else raise InputError."""
-    if not (isinstance(ratio, int | float) and math.isfinite(ratio) and 0.0 < ratio <= 1.0):
+    if not is_fraction(ratio):
         raise InputError(f"{name} must be in (0, 1], got {ratio}")
     return float(ratio)
 

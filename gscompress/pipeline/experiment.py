@@ -223,12 +223,25 @@ def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) 
 def _init_worker(threads: int, pids: SimpleQueue[int]) -> None:
     """A worker process: its share of the threads; Ctrl-C is for the run it is in (which
     stops after its frame, as `gsc slam` does), not for a worker waiting for work. Its pid goes
-    to `pids`, so that the runner can signal exactly its own workers."""
+    to `pids`, so that the runner can signal exactly its own workers. It ends with the runner:
+    a runner killed outright (SIGKILL) cannot stop its workers, which would otherwise wait for
+    work forever."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     pids.put(os.getpid())
     torch.set_num_threads(threads)
+    threading.Thread(target=_end_with_parent, name="end-with-parent", daemon=True).start()
+
+
+def _end_with_parent() -> None:
+    """Wait for this process's parent to end, then end at once. A runner that ends normally
+    has joined its workers before, so this only acts when it was killed; the run under way
+    is cut, as the runner's own was (it keeps no record, so a rerun redoes it)."""
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        parent.join()
+        os._exit(1)
 
 
 class _Runner:

@@ -39,7 +39,7 @@ from gscompress.errors import InputError
 from gscompress.importance import PwasConfig
 from gscompress.io.files import write_text_atomic
 from gscompress.ops.merge import REFINE_VIEWS
-from gscompress.ops.select import STRATEGIES
+from gscompress.ops.select import STRATEGIES, is_fraction
 
 
 @dataclass(frozen=True)
@@ -386,7 +386,7 @@ def check_config(config: SlamConfig) -> None:
             problems.append(text)
 
     t, m, k, d, p = config.tracking, config.mapping, config.keyframes, config.densify, config.prune
-    need(0.0 < t.lr_final_fraction <= 1.0, "tracking.lr_final_fraction must be in (0, 1]")
+    need(is_fraction(t.lr_final_fraction), "tracking.lr_final_fraction must be in (0, 1]")
     need(t.iters >= 0 and m.iters >= 0 and m.first_frame_iters >= 0, "iterations must be >= 0")
     need(config.checkpoint_every >= 0, "checkpoint_every must be >= 0")
     need(config.seed >= 0, "seed must be >= 0")
@@ -414,7 +414,7 @@ def check_config(config: SlamConfig) -> None:
     )
     need(p.opacity_every >= 0 and p.alpha_min >= 0 and p.huge_fraction >= 0, "bad prune values")
     need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")
-    need(0.0 < p.keep <= 1.0, "prune.keep must be in (0, 1]")
+    need(is_fraction(p.keep), "prune.keep must be in (0, 1]")
     need(p.by in STRATEGIES, f"prune.by must be one of {', '.join(STRATEGIES)}")
     need(p.refill in REFILL, f"prune.refill must be one of {', '.join(REFILL)}")
     need(p.track_prestage_frames >= 0, "prune.track_prestage_frames must be >= 0")
@@ -422,7 +422,7 @@ def check_config(config: SlamConfig) -> None:
         min(p.refine_iters, m.final_iters, m.final_iters_per_frame) >= 0,
         "refinement iterations must be >= 0",
     )
-    need(0.0 < m.final_lr_fraction <= 1.0, "mapping.final_lr_fraction must be in (0, 1]")
+    need(is_fraction(m.final_lr_fraction), "mapping.final_lr_fraction must be in (0, 1]")
     need(m.final_views in REFINE_VIEWS, f"mapping.final_views is one of {', '.join(REFINE_VIEWS)}")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
     need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")
