@@ -63,7 +63,7 @@ def eval_command(
     metric that cannot be computed is reported unavailable with the reason.
 
     \b
-    Example:
+    Examples:
       gsc eval run.mcap --seq data/room
       gsc eval run.mcap --seq data/room --every 5 --json | jq .psnr
     """

@@ -43,8 +43,8 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     help="Main share budget (Table 4): a fraction (0.2, 20%) or bytes (2MB).",
 )  # fmt: skip
 @click.option(
-    "--keep", type=Ratio(), default=0.3, show_default=True,
-    help="Fraction kept at each PWAS pruning stage.",
+    "--keep", type=Ratio(), default=None,
+    help="Fraction kept at each PWAS pruning stage [default: the config's, 0.3].",
 )  # fmt: skip
 @slam_config_options
 @click.option(
@@ -109,8 +109,8 @@ def experiment(
     seq: Path,
     out_dir: Path,
     budget: Budget,
-    keep: float,
-    preset: str,
+    keep: float | None,
+    preset: str | None,
     config_path: Path | None,
     seeds: int,
     sweep: tuple[str, ...],
@@ -192,5 +192,9 @@ def experiment(
         f"wrote {result['results_md']} ({result['rows']} rows; {result['steps']} steps, "
         f"{result['reused']} reused)\n"
         f"PWAS beats random at {v['budget']}: PSNR in {v['pwas_beats_random_psnr']}/{v['seeds']}"
-        f" seeds, ATE in {v['pwas_beats_random_ate']}/{v['seeds']}",
+        + (
+            " seeds (a merge leaves B's ATE as it was; --mode inject compares it)"
+            if v["mode"] == "merge"
+            else f" seeds, ATE in {v['pwas_beats_random_ate']}/{v['seeds']}"
+        ),
     )

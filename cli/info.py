@@ -19,7 +19,7 @@ def info(src: Path, as_json: bool) -> None:
     """Show the channels, snapshots, map, importance scores, bytes and provenance of SRC.
 
     \b
-    Example:
+    Examples:
       gsc info run.mcap
       gsc info run.mcap --json | jq .map.gaussians
     """

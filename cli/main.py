@@ -64,12 +64,25 @@ class OneLineUsageError(click.UsageError):
         click.echo(f"Error: {self.format_message()}{hint}", file=file, err=True)
 
 
+GROUP_OPTIONS = {"--threads": " N", "-v": "", "--verbose": "", "-q": "", "--quiet": ""}
+"""Options of `gsc` itself (and what follows them), which go before the command."""
+
+
 def one_line(exc: click.UsageError) -> click.UsageError:
-    """`exc` as a one-line usage error; a bare `gsc` still prints its help."""
+    """`exc` as a one-line usage error; a bare `gsc` still prints its help. A group option
+    given after the command says where it goes."""
     shown_as_is = (OneLineUsageError, getattr(click.exceptions, "NoArgsIsHelpError", ()))
     if isinstance(exc, shown_as_is):  # (NoArgsIsHelpError: click >= 8.2)
         return exc
-    return OneLineUsageError(exc.format_message(), exc.ctx)
+    message = exc.format_message()
+    name = getattr(exc, "option_name", None)
+    if isinstance(exc, click.NoSuchOption) and name in GROUP_OPTIONS and exc.ctx is not None:
+        *root, command = exc.ctx.command_path.split()
+        message = message.rstrip(".") + (
+            f": {name} is an option of {' '.join(root) or 'gsc'} itself, given before the "
+            f"command: {' '.join(root)} {name}{GROUP_OPTIONS[name]} {command} ..."
+        )
+    return OneLineUsageError(message, exc.ctx)
 
 
 class GscGroup(click.Group):
@@ -144,9 +157,12 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
 
     \b
     Typical flow:
+      gsc synth SEQ --frames 60           a synthetic RGB-D sequence to try it on
       gsc slam SEQ -o a.mcap              map a sequence, score every Gaussian (PWAS)
+      gsc eval a.mcap --seq SEQ           ATE, PSNR, SSIM, LPIPS of the map
       gsc prune a.mcap --keep 0.3 -o p.mcap   keep the most important 30%
       gsc share --budget 0.2 a.mcap s.mcap    cut the top-20% share for another agent
+      gsc merge b.mcap s.mcap --seq SEQ -o m.mcap   give that share to agent B's map
       gsc export-ply a.mcap -o a.ply      open the map in any 3DGS viewer
       gsc info a.mcap                     what a log holds
     """

@@ -31,7 +31,7 @@ from .options import (
 @click.argument("receiver", metavar="RECEIVER.mcap", type=INPUT_FILE)
 @click.argument("share", metavar="SHARE.mcap", type=INPUT_FILE)
 @output_option("Output log (.mcap): the receiver's log with the merged, refined map.")
-@seq_option(False, "The receiver's RGB-D sequence (needed to refine; not with --iters 0).")
+@seq_option(False, "The receiver's RGB-D sequence (to refine on; not needed with --iters 0).")
 @click.option(
     "--frames",
     type=FrameSubset(),
@@ -95,7 +95,7 @@ def merge(
     enters before the receiver maps, so its tracking benefits too.
 
     \b
-    Example:
+    Examples:
       gsc share a.mcap a_share.mcap --budget 0.2
       gsc merge b.mcap a_share.mcap --seq data/room -o b_merged.mcap
       gsc eval b_merged.mcap --seq data/room

@@ -234,10 +234,10 @@ def slam_config_options(f: F) -> F:
     return click.option(
         "--preset",
         type=click.Choice(PRESET_NAMES),
-        default="cpu",
-        show_default=True,
+        default=None,
         help="Starting configuration: tiny (tests, seconds), cpu (160x120, 0.4-1.7 s/frame on 2 "
-        "cores), paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU).",
+        "cores), paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU). "
+        "[default: the --config file's `preset:`, else cpu]",
     )(f)
 
 

@@ -50,9 +50,13 @@ def prune(
     up; ties are broken by ascending Gaussian id.
 
     \b
-    Example:
+    Examples:
       gsc prune run.mcap --keep 0.3 -o run_30.mcap
       gsc prune run.mcap --keep 0.3 --by opacity -o run_30_opacity.mcap
     """
     result = prune_log(src, dst, keep, by=by, seed=seed, command=command_line(), force=force)
-    emit(result, as_json, f"kept {result['kept']} of {result['total']} Gaussians -> {dst}")
+    emit(
+        result,
+        as_json,
+        f"kept {result['kept']} of {result['total']} Gaussians (by {by}) -> {dst}",
+    )

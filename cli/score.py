@@ -71,11 +71,16 @@ def score(
     be pruned and shared by importance.
 
     \b
-    Example:
+    Examples:
       gsc score point_cloud.ply --seq data/office --size 320x240 -o scored.mcap
       gsc prune scored.mcap --keep 0.3 -o small.mcap
     """
     with progress_bar("score", "view", hidden=as_json) as bar:
+
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
         result = score_file(
             src,
             dst,
@@ -87,7 +92,7 @@ def score(
             backend=backend,
             command=command_line(),
             force=force,
-            progress=bar.update,
+            progress=progress,
         )
     emit(
         result,

@@ -38,22 +38,24 @@ from .options import (
     default="0.2",
     show_default=True,
     help="A fraction of the map's Gaussians in (0, 1] (0.2 or 20%), or the most bytes the share "
-    "may take, with a unit: B, kB, MB, GB (powers of 1000) or KiB, MiB, GiB (e.g. 2MB, 1.5MiB).",
+    "may take, with a unit: B, kB, MB, GB (powers of 1000) or KiB, MiB, GiB (e.g. 2MB, 1.5MiB; "
+    "the prefix in either case, so 50KB is 50 kB; a lowercase b, bits, is refused).",
 )
 @click.option(
     "--strategy",
+    "--by",
     type=click.Choice(STRATEGIES),
     default="pwas",
     show_default=True,
-    help="What to rank Gaussians by.",
+    help="What to rank Gaussians by (--by, as in `gsc prune`, is the same option).",
 )
 @click.option(
     "--precision",
     type=click.Choice(PRECISIONS),
-    default="fp32",
-    show_default=True,
+    default=None,
     help="Storage of scales, rotations, opacity and colour: fp16 sends more Gaussians per byte "
-    "(positions, scores and sums stay float32; the receiver decodes float32).",
+    "(positions, scores and sums stay float32; the receiver decodes float32). [default: as the "
+    "source map is stored, fp32 for a `gsc slam` log]",
 )
 @click.option(
     "--ply",
@@ -70,7 +72,7 @@ def share(
     output: Path | None,
     budget: Budget,
     strategy: str,
-    precision: str,
+    precision: str | None,
     ply: Path | None,
     seed: int,
     force: bool,
@@ -110,6 +112,6 @@ def share(
     emit(
         result,
         as_json,
-        f"shared {result['selected']} of {result['total']} Gaussians ({strategy}, {precision}, "
-        f"{result['bytes']} B) -> {dst}{extra}",
+        f"shared {result['selected']} of {result['total']} Gaussians ({strategy}, "
+        f"{result['precision']}, {result['bytes']} B) -> {dst}{extra}",
     )

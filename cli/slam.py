@@ -37,6 +37,26 @@ def _start_at_loop(bar: Any, frames_before: int, seconds: float) -> None:
     bar.start_t = bar.last_print_t = time.time() - seconds
 
 
+def _interrupted_text(seq: Path, dst: Path) -> str:
+    """What an interrupted run left in `dst`, and how to go on."""
+    from gscompress.errors import GscError
+    from gscompress.io.mcap_log import LogReader
+
+    resume = f"`gsc slam {seq} -o {dst} --resume`"
+    try:
+        with LogReader(dst) as log:
+            results = log.metadata.results
+        done, total = int(results["frames"]), int(results["frames_total"])
+    except (GscError, OSError, KeyError, TypeError, ValueError):  # (not closed: a kill)
+        return f"Interrupted: {dst} holds the frames done so far; continue with {resume}"
+    if done == total:
+        return (
+            f"Interrupted during the final refinement: {dst} holds all {total} frames and the "
+            f"map refined so far ({resume} only closes it)"
+        )
+    return f"Interrupted: {dst} holds {done} of {total} frames; continue with {resume}"
+
+
 @click.command("slam")
 @click.argument("seq", type=INPUT_FOLDER)
 @click.option(
@@ -89,7 +109,7 @@ def _start_at_loop(bar: Any, frames_before: int, seconds: float) -> None:
 def slam(
     seq: Path,
     dst: Path | None,
-    preset: str,
+    preset: str | None,
     config_path: Path | None,
     save_config: Path | None,
     frames: object,
@@ -148,9 +168,9 @@ def slam(
         raise click.UsageError(f"--resume: there is no log {dst} nor an unfinished run of it")
 
     # what was not given stays None, so that --resume can refuse settings it would not use
-    ctx = click.get_current_context()
-    given = {name: ctx.get_parameter_source(name) != ParameterSource.DEFAULT
-             for name in ("preset", "frames")}  # fmt: skip
+    frames_given = (
+        click.get_current_context().get_parameter_source("frames") != ParameterSource.DEFAULT
+    )
     with progress_bar("slam", "frame", hidden=as_json) as bar:
         processed = 0
 
@@ -176,9 +196,9 @@ def slam(
             result = slam_file(
                 seq,
                 dst,
-                preset=preset if given["preset"] else None,
+                preset=preset,
                 config_path=config_path,
-                frames=str(frames) if given["frames"] else None,
+                frames=str(frames) if frames_given else None,
                 size=size,
                 device=device,
                 keep=keep,
@@ -192,11 +212,7 @@ def slam(
             )
         except KeyboardInterrupt:
             bar.close()
-            click.echo(
-                f"Interrupted: {dst} holds the frames done so far; continue with "
-                f"`gsc slam {seq} -o {dst} --resume`",
-                err=True,
-            )
+            click.echo(_interrupted_text(seq, dst), err=True)
             raise SystemExit(130) from None
     ate = result.get("ate_rmse_cm")
     emit(
@@ -204,7 +220,8 @@ def slam(
         as_json,
         f"mapped {result['frames']} frame{'s' if result['frames'] != 1 else ''} -> "
         f"{result['gaussians']} Gaussians in {dst} "
-        f"({result['seconds_per_frame']:.2f} s/frame"
+        + (f"(started with {result['injected']} received) " if result.get("injected") else "")
+        + f"({result['seconds_per_frame']:.2f} s/frame"
         + (f", ATE RMSE {ate:.2f} cm" if ate is not None else "")
         + ")",
     )

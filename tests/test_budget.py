@@ -76,7 +76,8 @@ def test_budget_parses_fractions_and_byte_units(text, ratio, budget_bytes):
         ("2", "add a unit, e.g. 2B, 2kB or 2MB"),
         ("2Mb", "a lowercase b means bits; budgets are bytes, e.g. 2MB"),  # megabits, not bytes
         ("1kb", "e.g. 1kB"),
-        ("2kib", "e.g. 2kiB"),
+        ("2kib", "e.g. 2KiB"),  # the unit as it is written
+        ("20mb", "e.g. 20MB"),
         (3, "add a unit"),
         ("1.5", "add a unit"),
         ("0", r"not a fraction in \(0, 1\]"),

@@ -50,7 +50,7 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
     out = tmp_path / "p.mcap"
     r = run("prune", log_path, "--keep", "0.3", "-o", out)
     assert r.exit_code == 0, r.output
-    assert "kept 300 of 1000" in r.output
+    assert "kept 300 of 1000 Gaussians (by pwas)" in r.output
     full, pruned = read_map(log_path), read_map(out)
     assert len(pruned) == 300
     assert pruned.importance.min() >= np.setdiff1d(full.importance, pruned.importance).max()
@@ -134,6 +134,9 @@ def test_export_ply_last_and_chosen_snapshot(log_path, tmp_path):
     assert read_ply(tmp_path / "a.ply").equals(read_map(log_path))
     r = run("export-ply", log_path, "-o", tmp_path / "b.ply", "--snapshot", "0")
     assert r.exit_code == 0 and len(read_ply(tmp_path / "b.ply")) == 400
+    r = run("export-ply", log_path, "-o", tmp_path / "c.ply", "--snapshot", "-1", "--json")
+    with LogReader(log_path) as log:  # the snapshot it wrote, counted from 0
+        assert json.loads(r.output)["snapshot"] == log.snapshot_count - 1 > 0
 
 
 def test_import_ply_then_info(tmp_path):
@@ -465,6 +468,14 @@ def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
     assert f"bytes     {result['bytes']} B" in r.output and "54 B per Gaussian" in r.output
     r = run("share", "--help")
     assert "2MB" in r.output and "1.5MiB" in r.output and "--precision" in r.output
+    # a share of that share stays fp16 unless asked otherwise: fp32 would double its bytes
+    r = run("share", "--budget", "0.5", out, tmp_path / "again.mcap", "--json")
+    assert json.loads(r.output)["precision"] == "fp16", r.output
+    r = run("share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap",
+            "--json")  # fmt: skip
+    assert json.loads(r.output)["precision"] == "fp32", r.output
+    r = run("share", "--budget", "0.5", "--by", "opacity", log_path, tmp_path / "o.mcap", "--json")
+    assert json.loads(r.output)["strategy"] == "opacity", r.output
 
 
 def test_info_histogram_is_log_scaled_so_a_long_tail_does_not_hide_the_shape(tmp_path):
@@ -497,3 +508,13 @@ def test_info_text_rounds_floats_also_within_lists() -> None:
     assert _value(0.46049840737660336) == "0.460498"
     assert _value([[0.9800665858, -0.198669291533], [1, "a"]]) == "[[0.980067, -0.198669], [1, a]]"
     assert _value(7050) == "7050" and _value(None) == "None"
+
+
+def test_a_group_option_after_the_command_says_where_it_goes(tmp_path):
+    r = CliRunner().invoke(cli, ["info", str(tmp_path / "x.mcap"), "--threads", "1"],
+                           prog_name="gsc")  # fmt: skip
+    assert r.exit_code == 2
+    assert "--threads is an option of gsc itself" in r.output
+    assert "gsc --threads N info ..." in r.output
+    r = CliRunner().invoke(cli, ["info", str(tmp_path / "x.mcap"), "--thread", "1"])
+    assert r.exit_code == 2 and "option of" not in r.output

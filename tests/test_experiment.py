@@ -19,6 +19,7 @@ from gscompress.pipeline.experiment import (
     paired_difference,
     plan_size,
     rate_distortion_curves,
+    resolve_settings,
 )
 from gscompress_cli.main import cli
 
@@ -63,6 +64,8 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
         assert set(next(iter(csv.DictReader(f)))) == set(ROW_KEYS)
     md = (out / "results.md").read_text()
     assert "## Table 3" in md and "## Table 4" in md and "Rate-distortion" in md
+    assert "Preset `tiny`, keep 0.3, budget 0.2" in md  # as resolved from the preset
+    assert result["verdicts"]["mode"] == "merge"
     for name in ("rate_distortion", "importance_hist", "importance_topdown"):
         assert (out / "plots" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert result["verdicts"]["seeds"] == 1 and len(result["verdicts"]["sweep"]) == 2
@@ -383,3 +386,16 @@ def test_workers_end_when_the_runner_is_killed_outright(tmp_path: Path) -> None:
     for pid in left:  # not to leave them behind when the test fails
         os.kill(pid, signal.SIGKILL)
     assert not left
+
+
+def test_the_config_file_sets_preset_and_keep_unless_options_do(tmp_path: Path) -> None:
+    """As for `gsc slam`: --keep and --preset default to the config file's, not to fixed
+    values that would override it."""
+    cfg = tmp_path / "k.yaml"
+    cfg.write_text("preset: tiny\nprune:\n  keep: 0.5\n")
+    s, base = resolve_settings(ExperimentSettings(config_path=str(cfg)))
+    assert (s.preset, s.keep, base.prune.keep, base.mapping.iters) == ("tiny", 0.5, 0.5, 6)
+    s, base = resolve_settings(ExperimentSettings(config_path=str(cfg), keep=0.4))
+    assert (s.keep, base.prune.keep) == (0.4, 0.4)
+    s, _ = resolve_settings(ExperimentSettings())
+    assert (s.preset, s.keep) == ("cpu", 0.3)

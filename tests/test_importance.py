@@ -117,6 +117,12 @@ def test_gsc_score_ply_and_mcap(tiny_sequence, tmp_path):
     assert r.exit_code == 0, r.output
     again = read_map(tmp_path / "t.mcap")
     assert np.all(again.importance_weight <= scored.importance_weight + 1e-6)
+    from gscompress.pipeline.scoring import score_file
+
+    calls: list[tuple[int, int]] = []  # what the progress bar is given: views done, of how many
+    score_file(tmp_path / "m.ply", tmp_path / "u.mcap", tiny_sequence, frames="1:6:2",
+               progress=lambda done, total: calls.append((done, total)))  # fmt: skip
+    assert calls == [(1, 3), (2, 3), (3, 3)]
 
 
 def test_gsc_score_without_poses_is_a_clear_error(tiny_sequence, tmp_path):

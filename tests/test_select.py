@@ -110,3 +110,9 @@ def test_refinement_checks_its_seed_before_anything_else():
 
     with pytest.raises(InputError, match="seed must be an integer >= 0"):
         refine(random_map(10), [], None, resolve_config("tiny"), 0, seed=-3)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("strategy", ["pwas", "alpha-t", "opacity", "random"])
+def test_an_empty_map_is_said_to_be_empty(strategy):
+    with pytest.raises(BudgetError, match="the map is empty"):
+        strategy_scores(random_map(0), strategy)

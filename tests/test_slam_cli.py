@@ -1,6 +1,7 @@
 """`gsc slam` end to end on a tiny synthetic sequence, and the log it writes."""
 
 import json
+import logging
 import os
 import shutil
 
@@ -11,6 +12,7 @@ import torch
 from click.testing import CliRunner
 
 from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_sequence
+from gscompress.errors import DatasetError
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogReader, read_map
 from gscompress.metrics import ate_rmse_cm
 from gscompress.ops.select import keep_count
@@ -100,10 +102,12 @@ def test_config_save_load_and_no_prune(seq_dir, tmp_path):
     cfg = tmp_path / "c.yaml"
     r = run("slam", seq_dir, "--preset", "tiny", "--no-prune", "--keep", "0.4",
             "--save-config", cfg)  # fmt: skip
+    assert r.exit_code == 2 and "--keep does not go with --no-prune" in r.output
+    assert not cfg.exists()
+    r = run("slam", seq_dir, "--preset", "tiny", "--no-prune", "--save-config", cfg)
     assert r.exit_code == 0, r.output
-    assert cfg.exists()
     config = load_config(cfg)
-    assert config.prune.stages == () and config.prune.keep == 0.4
+    assert config.prune.stages == ()
     assert config.mapping == preset("tiny").mapping
     out = tmp_path / "n.mcap"
     r = run("slam", seq_dir, "--config", cfg, "--frames", "0:4", "--size", "48x36", "-o", out)
@@ -371,3 +375,34 @@ def test_progress_bar_shows_counts_as_numbers(monkeypatch, seq_dir, tmp_path):
     assert r.exit_code == 0, r.output
     (bar,) = bars
     assert "frame=10000" in bar.postfix and "gaussians=20000" in bar.postfix, bar.postfix
+
+
+def test_a_size_too_small_to_map_is_refused_and_an_enlarging_one_is_warned(
+    seq_dir, tmp_path, caplog
+):
+    out = tmp_path / "small.mcap"
+    r = run("slam", seq_dir, "--preset", "tiny", "--size", "15x12", "-o", out)
+    assert r.exit_code == 2 and "working size 15x12 is too small to map" in r.output
+    assert not out.exists()
+    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"):
+        slam_file(seq_dir, tmp_path / "own.mcap", preset="tiny", frames="0:2", no_prune=True)
+        assert "enlarges" not in caplog.text
+        slam_file(seq_dir, tmp_path / "big.mcap", preset="tiny", frames="0:2", size=(96, 72),
+                  no_prune=True)  # fmt: skip
+    assert "working size 96x72 enlarges room's 64x48 frames" in caplog.text
+
+
+def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, caplog):
+    broken = shutil.copytree(seq_dir, tmp_path / "room")
+    sorted((broken / "depth").glob("*.png"))[3].write_bytes(b"not a png")  # the 4th frame's
+    out = tmp_path / "b.mcap"
+    with (
+        caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"),
+        pytest.raises(DatasetError, match="cannot read depth image"),
+    ):
+        slam_file(broken, out, preset="tiny", no_prune=True)
+    assert f"{out} holds the 3 frame(s) done before the error" in caplog.text
+    with LogReader(out) as log:
+        assert log.metadata.results["frames"] == 3 and log.metadata.results["interrupted"]
+        assert "cannot read depth image" in log.metadata.results["error"]
+        assert len(log.read_map()) > 0

@@ -2,7 +2,7 @@
 
 import pytest
 
-from gscompress.errors import InputError
+from gscompress.errors import InputError, OptionError
 from gscompress.slam.config import (
     PRESETS,
     SlamConfig,
@@ -33,7 +33,11 @@ def test_partial_file_applies_on_top_of_its_preset(tmp_path):
 @pytest.mark.parametrize(
     "text, message",
     [
-        ("mapping:\n  itres: 3\n", "unknown key 'mapping.itres'"),
+        (
+            "mapping:\n  itres: 3\n",
+            "c.yaml: unknown key 'mapping.itres' .did you mean 'mapping.iters'",
+        ),
+        ("mapping: 3\n", "c.yaml: mapping: expected a mapping, got 3"),
         ("mapping:\n  iters: 2.5\n", "expected an integer"),
         ("prune:\n  keep: 1.5\n", "prune.keep"),
         ("prune:\n  by: size\n", "prune.by must be one of pwas, opacity, random, alpha-t"),
@@ -69,10 +73,37 @@ def test_refill_reads_its_modes_and_the_old_booleans(tmp_path, text, refill):
 
 
 def test_resolve_config_applies_command_line_overrides(tmp_path):
-    config = resolve_config("tiny", size=(40, 30), keep=0.5, no_prune=True)
-    assert config.size == (40, 30) and config.prune.keep == 0.5 and config.prune.stages == ()
+    config = resolve_config("tiny", size=(40, 30), keep=0.5)
+    assert config.size == (40, 30) and config.prune.keep == 0.5
     assert config.mapping == preset("tiny").mapping
-    assert resolve_config("cpu") == preset("cpu")
+    assert resolve_config("tiny", no_prune=True).prune.stages == ()
+    assert resolve_config("cpu") == preset("cpu") == resolve_config()
+    with pytest.raises(OptionError, match="--keep does not go with --no-prune"):
+        resolve_config("tiny", keep=0.5, no_prune=True)
+
+
+def test_a_config_file_and_preset_must_agree(tmp_path):
+    """The file's `preset:` is the base when --preset is not given; given, they must agree
+    (a saved config names its preset, and silently starting from another was a trap)."""
+    named = tmp_path / "named.yaml"
+    named.write_text("preset: tiny\nmapping:\n  iters: 4\n")
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("mapping:\n  iters: 4\n")
+    assert resolve_config(None, named) == preset("tiny").with_overrides(**{"mapping.iters": 4})
+    assert resolve_config("tiny", named) == resolve_config(None, named)
+    assert resolve_config("paper", plain).tracking == preset("paper").tracking
+    assert resolve_config(None, plain).preset == "cpu"
+    with pytest.raises(OptionError, match="starts from preset 'tiny', not --preset paper"):
+        resolve_config("paper", named)
+
+
+def test_size_may_be_written_as_on_the_command_line(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("size: 64x48\n")
+    assert load_config(path).size == (64, 48)
+    path.write_text("size: 64x\n")
+    with pytest.raises(InputError, match=r"c.yaml: size: expected WxH"):
+        load_config(path)
 
 
 @pytest.mark.parametrize("name", ["cpu", "paper"])

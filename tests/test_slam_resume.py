@@ -173,6 +173,7 @@ def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: 
     cmd = _gsc_signalled(signal.SIGTERM, 4, "slam", seq_dir, "-o", out, "--config", config_file)
     proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
     assert proc.returncode == 130, proc.stderr
+    assert f"holds 4 of {FRAMES} frames; continue with".encode() in proc.stderr
     assert b"--resume" in proc.stderr
     with LogReader(out) as log:
         assert log.metadata.results["interrupted"] is True
@@ -234,6 +235,10 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
         assert results["interrupted"] is True and results["frames"] == FRAMES
         assert results["gaussians"] == len(log.read_map())  # the map refined so far
     assert last["refine_iters"] == 5
+    from gscompress_cli.slam import _interrupted_text  # what `gsc slam` then says
+
+    said = _interrupted_text(seq_dir, out)
+    assert f"during the final refinement: {out} holds all {FRAMES} frames" in said
 
 
 def test_inject_starts_the_map_with_the_share(

@@ -653,6 +653,10 @@ class LogReader:
         Raises:
             LogFormatError: no `/gaussians` channel, index out of range, or a malformed cloud.
         """
+        return self.read_snapshot(snapshot).gaussians
+
+    def read_snapshot(self, snapshot: int = -1) -> Snapshot:
+        """Decode map snapshot `snapshot` with how it was stored (see `read_map`)."""
         count = self.require_snapshots()
         if not -count <= snapshot < count:
             raise LogFormatError(f"{self.path} has {count} snapshot(s); no snapshot {snapshot}")
@@ -663,7 +667,7 @@ class LogReader:
             self.iter_messages([TOPIC_GAUSSIANS], reverse=reverse)
         ):
             if i == skip:
-                return self.decode_map(schema, message)
+                return self.decode_snapshot(schema, message)
         raise LogFormatError(f"{self.path}: snapshot {snapshot} could not be found")
 
     def decode_map(self, schema: Schema | None, message: McapMessage) -> GaussianMap:

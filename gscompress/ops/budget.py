@@ -24,16 +24,11 @@ from typing import Any
 from gscompress.errors import BudgetError, InputError
 from gscompress.ops.select import is_fraction, keep_count
 
-BYTE_UNITS: dict[str, int] = {
-    "b": 1,
-    "kb": 1000,
-    "mb": 1000**2,
-    "gb": 1000**3,
-    "kib": 1024,
-    "mib": 1024**2,
-    "gib": 1024**3,
-}
-"""Byte units (lower case) and their sizes in bytes."""
+_UNITS = {"B": 1, "kB": 1000, "MB": 1000**2, "GB": 1000**3, "KiB": 1024, "MiB": 1024**2,
+          "GiB": 1024**3}  # fmt: skip
+BYTE_UNITS: dict[str, int] = {name.lower(): size for name, size in _UNITS.items()}
+"""Byte units (lower case: the prefix is read in either case) and their sizes in bytes."""
+_SPELLING = {name.lower(): name for name in _UNITS}
 
 _BUDGET = re.compile(r"\s*(\d+(?:\.\d*)?|\.\d+)(?:[eE]([+-]?\d+))?\s*(%|[a-zA-Z]+)?\s*")
 
@@ -120,13 +115,11 @@ class Budget:
         if unit.endswith("b"):
             raise InputError(
                 f"budget {text!r}: a lowercase b means bits; budgets are bytes, e.g. "
-                f"{m.group(1)}{unit[:-1]}B"
+                f"{m.group(1)}{_SPELLING.get(unit.lower(), unit[:-1] + 'B')}"
             )
         scale = BYTE_UNITS.get(unit.lower())
         if scale is None:
-            raise InputError(
-                f"budget {text!r} has unknown unit {unit!r}; use B, kB, MB, GB, KiB, MiB or GiB"
-            )
+            raise InputError(f"budget {text!r} has unknown unit {unit!r}; use {', '.join(_UNITS)}")
         if not (math.isfinite(number * scale) and number * scale >= 1):
             raise InputError(f"budget {text!r} is not a finite byte count of at least 1 B")
         return cls(budget_bytes=math.floor(number * scale), text=text)

@@ -66,7 +66,7 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
 
     Raises:
         InputError: unknown strategy, or a negative seed for the random one.
-        BudgetError: the map has no scores for a score-based strategy.
+        BudgetError: an empty map, or no scores for a score-based strategy.
     """
     try:
         strategy = Strategy(strategy)
@@ -74,6 +74,8 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
         raise InputError(
             f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}"
         ) from None
+    if len(gaussians) == 0:  # (which would read as a map without scores below)
+        raise BudgetError("the map is empty: there is nothing to select from")
     if strategy is Strategy.PWAS:
         if not gaussians.has_importance:
             raise BudgetError(

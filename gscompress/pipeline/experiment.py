@@ -42,10 +42,10 @@ from concurrent.futures import (
     ThreadPoolExecutor,
     wait,
 )
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, replace
 from multiprocessing.queues import SimpleQueue
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -59,6 +59,9 @@ from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES, strategy_scores
 from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import log_edges
+
+if TYPE_CHECKING:
+    from gscompress.slam.config import SlamConfig
 
 log = logging.getLogger(__name__)
 
@@ -80,10 +83,10 @@ class ExperimentSettings:
     """What an experiment runs.
 
     Attributes:
-        preset: SLAM preset of every run.
+        preset: SLAM preset of every run (None: the config file's `preset:`, else cpu).
         config_path: optional YAML config on top of the preset.
         budget: the main share budget (Table 4): a fraction ("0.2") or bytes ("2MB").
-        keep: PWAS keep ratio of the pruning stages.
+        keep: PWAS keep ratio of the pruning stages (None: the config's).
         seeds: seeds of the two-agent protocol (SLAM seed and random selection seed).
         sweep: budgets of the rate-distortion sweep.
         sweep_seeds: how many of the seeds the sweep runs on.
@@ -101,10 +104,10 @@ class ExperimentSettings:
         merge_lr_final: a merge's learning rates decay to this fraction over its refinement.
     """
 
-    preset: str = "cpu"
+    preset: str | None = None
     config_path: str | None = None
     budget: str = "0.2"
-    keep: float = 0.3
+    keep: float | None = None
     seeds: int = 3
     sweep: tuple[str, ...] = ("0.05", "0.1", "0.2", "0.4")
     sweep_seeds: int = 1
@@ -436,6 +439,17 @@ def plan_size(settings: ExperimentSettings) -> int:
     return 2 + s.seeds * (main + shares) + sweep
 
 
+def resolve_settings(settings: ExperimentSettings) -> tuple[ExperimentSettings, SlamConfig]:
+    """The SLAM config every run starts from (preset, then the config file, then --size and
+    --keep), and the settings with the preset and keep ratio it resolved to (for the reports)."""
+    from gscompress.slam.config import resolve_config
+
+    base = resolve_config(
+        settings.preset, settings.config_path, size=settings.size, keep=settings.keep
+    )
+    return replace(settings, preset=base.preset, keep=base.prune.keep), base
+
+
 def run_experiment(
     seq: str | Path,
     out_dir: str | Path,
@@ -458,7 +472,6 @@ def run_experiment(
         Paths of the outputs, row count, steps run and reused, and the PWAS-vs-random verdicts.
     """
     from gscompress.datasets import open_sequence
-    from gscompress.slam.config import resolve_config
 
     settings.check()
     seq, out = Path(seq), Path(out_dir)
@@ -475,8 +488,7 @@ def run_experiment(
             f"--frames {settings.frames} leaves agent A ({settings.agent_frames()[0]}) no frame "
             f"of {seq}; an experiment needs at least two frames"
         )
-    s = settings
-    base = resolve_config(s.preset, s.config_path, size=s.size, keep=s.keep)
+    s, base = resolve_settings(settings)
     runner = _Runner(seq, out, s, progress, plan_size(s), jobs)
     try:
         with sigterm_interrupts():
@@ -678,6 +690,7 @@ def _verdicts(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, An
     return {
         "budget": s.budget,
         "seeds": s.seeds,
+        "mode": s.mode,
         "pwas_beats_random_psnr": psnr_wins,
         "pwas_beats_random_ate": ate_wins,
         "per_seed": per_seed,
@@ -910,6 +923,7 @@ def _plots(
     with LogReader(full_log) as reader:
         gaussians = reader.read_map()
     scores = strategy_scores(gaussians, "pwas")
+    assert s.keep is not None  # resolved from the config by run_experiment
     kept = np.sort(scores)[::-1][: max(1, round(s.keep * len(scores)))]
     fig, ax = plt.subplots(figsize=(6, 4))
     positive = scores[scores > 0]
@@ -955,8 +969,3 @@ def _save(fig: Any, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
-
-
-def settings_dict(settings: ExperimentSettings) -> dict[str, Any]:
-    """The settings as plain values (for the command's JSON output)."""
-    return asdict(settings)

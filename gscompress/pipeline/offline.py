@@ -114,7 +114,7 @@ def share_log(
     budget: str | float | Budget,
     *,
     strategy: str = "pwas",
-    precision: str = "fp32",
+    precision: str | None = None,
     seed: int = 0,
     ply: str | Path | None = None,
     command: str = "",
@@ -133,7 +133,8 @@ def share_log(
             most Gaussians that fit.
         strategy: what to rank Gaussians by (`Strategy`).
         precision: "fp32", or "fp16" to send the bounded attributes as float16 (more Gaussians
-            per byte; the receiver decodes float32).
+            per byte; the receiver decodes float32); None: as the source map is stored (a share
+            of an fp16 map stays fp16: float32 would only double its bytes).
         seed: seed of the random strategy.
         ply: also write the share as a float32 3DGS PLY (the decoded values).
         command: command line for the provenance record.
@@ -146,15 +147,17 @@ def share_log(
         MapError: at fp16, a selected value beyond the float16 range.
     """
     budget = Budget.parse(budget)
-    check_precision(precision)
+    if precision is not None:
+        check_precision(precision)
     outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
         raise OptionError("--ply must differ from the MCAP output")
     for path, suffix in outputs:
         check_output(path, [src], force, suffix)
     with LogReader(src) as log_in:
-        full = log_in.read_map()
+        stored = log_in.read_snapshot()
         meta = log_in.metadata
+    full, precision = stored.gaussians, precision or stored.precision
     count = budget.count(len(full), pointcloud_bytes(full, precision, timestamp_ns=0))
     shared, _ = select_count(full, count, strategy, seed)
     operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
@@ -196,8 +199,9 @@ def export_ply(
     check_output(dst, [src], force, ".ply")
     with LogReader(src) as log_in:
         gaussians = log_in.read_map(snapshot)
+        index = snapshot % log_in.snapshot_count  # read_map refused one out of range
     write_ply(gaussians, dst, importance=importance, inputs=(src,), force=force)
-    return {"output": str(dst), "gaussians": len(gaussians), "snapshot": snapshot}
+    return {"output": str(dst), "gaussians": len(gaussians), "snapshot": index}
 
 
 def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:

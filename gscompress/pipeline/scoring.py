@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -31,14 +32,15 @@ def score_file(
     backend: str = "auto",
     command: str = "",
     force: bool = False,
-    progress: Callable[[int], object] | None = None,
+    progress: Callable[[int, int], object] | None = None,
 ) -> dict[str, Any]:
     """PWAS-score the map in `src` (a log or a 3DGS PLY) from the views of sequence `seq`.
 
     The map is rendered, not optimised, from every selected frame at its ground-truth pose or
     at the pose `poses` (a TUM trajectory) gives for its timestamp. An MCAP input is copied with
     its map replaced by the scored one; a PLY input becomes a new log with calibration, the view
-    poses and the scored map. Needs torch (the renderer).
+    poses and the scored map. Needs torch (the renderer). `progress(done, total)` is called
+    after each view.
     """
     from gscompress.datasets import open_sequence
     from gscompress.importance import PwasConfig
@@ -53,10 +55,13 @@ def score_file(
     config = PwasConfig(sigma_d=sigma_d)
     device = resolve_device("auto", backend)  # the GPU when there is one, as gsc slam
 
+    views = itertools.count(1)
+    on_view = None if progress is None else lambda _: progress(next(views), len(T_world_cams))
+
     def score(gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         scored = score_map(
             gaussians, T_world_cams, sequence.intrinsics, config, backend=backend, device=device,
-            progress=progress,
+            progress=on_view,
         )  # fmt: skip
         seen = int(np.count_nonzero(scored.importance_weight > 0))
         return scored, {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen}

@@ -36,6 +36,9 @@ from gscompress.pipeline.offline import seconds_to_ns
 
 log = logging.getLogger(__name__)
 
+MIN_SIDE = 16
+"""Smallest working image side `gsc slam` maps at."""
+
 Progress = Callable[[int, int, dict[str, Any]], object]
 
 
@@ -99,8 +102,8 @@ def slam_file(
     Args:
         seq: the sequence folder (None when `sequence` is given).
         dst: the output log (.mcap).
-        preset: starting configuration (`gscompress.slam.config.PRESETS`; None: the
-            default, `DEFAULT_PRESET`).
+        preset: starting configuration (`gscompress.slam.config.PRESETS`; None: the config
+            file's `preset:` entry, else `DEFAULT_PRESET`).
         config_path: a YAML config applied on top of the preset.
         frames: frame subset (all, odd, even, START:STOP:STEP; None: all).
         size: working size (W, H), overriding the config's.
@@ -142,11 +145,9 @@ def slam_file(
         run = _resume_run(seq, dst, device, sequence)
     else:
         if config is None:
-            from gscompress.slam.config import DEFAULT_PRESET, resolve_config
+            from gscompress.slam.config import resolve_config
 
-            config = resolve_config(
-                preset or DEFAULT_PRESET, config_path, size=size, keep=keep, no_prune=no_prune
-            )
+            config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
         if share_transform is not None and inject is None:
             raise OptionError("a share transform needs --inject")
         run = _fresh_run(
@@ -158,14 +159,30 @@ def slam_file(
 
 
 def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> Any:
-    """The sequence to run on, refusing an empty selection."""
+    """The sequence to run on, refusing an empty selection and a working size too small to map
+    (below `MIN_SIDE`, pixels are so large that the map empties); warning when the working size
+    enlarges the frames (the cpu preset's 160x120 on smaller images)."""
     from gscompress.datasets import open_sequence
 
     if sequence is None:
         assert seq is not None
         sequence = open_sequence(seq, size=config.size, frames=frames)
+    name = getattr(sequence, "name", seq)
     if len(sequence) == 0:
-        raise InputError(f"{getattr(sequence, 'name', seq)}: no frames selected ({frames})")
+        raise InputError(f"{name}: no frames selected ({frames})")
+    k = sequence.intrinsics
+    if min(k.width, k.height) < MIN_SIDE:
+        raise OptionError(
+            f"working size {k.width}x{k.height} is too small to map: SLAM needs at least "
+            f"{MIN_SIDE} pixels per side (--size, or the config's size)"
+        )
+    native = getattr(sequence, "native_intrinsics", k)
+    if k.width * k.height > native.width * native.height:
+        log.warning(
+            "working size %dx%d enlarges %s's %dx%d frames (more time, no more detail); "
+            "--size %dx%d keeps them",
+            k.width, k.height, name, native.width, native.height, native.width, native.height,
+        )  # fmt: skip
     return sequence
 
 
@@ -435,5 +452,10 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
     for leftover in run.leftovers:
         leftover.unlink(missing_ok=True)
     if failure is not None:
+        if not isinstance(failure, KeyboardInterrupt):  # the caller says so for an interrupt
+            log.warning(
+                "%s holds the %d frame(s) done before the error; once it is fixed, --resume "
+                "continues the run", dst, done,
+            )  # fmt: skip
         raise failure
     return {"output": str(dst), **meta.results}

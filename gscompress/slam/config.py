@@ -29,13 +29,14 @@ preset (the file's own `preset:` key, else the one asked for). Unknown keys are 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from gscompress.errors import InputError
+from gscompress.errors import InputError, OptionError
 from gscompress.importance import PwasConfig
 from gscompress.io.files import write_text_atomic
 from gscompress.ops.merge import REFINE_VIEWS
@@ -290,13 +291,23 @@ class SlamConfig:
         return _plain(dataclasses.asdict(self))
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any], base: SlamConfig | None = None) -> SlamConfig:
+    def from_dict(
+        cls, values: dict[str, Any], base: SlamConfig | None = None, source: str = "config"
+    ) -> SlamConfig:
         """`base` (default: the defaults) with the entries of `values` replaced.
+
+        Args:
+            values: nested settings, as in a YAML config.
+            base: the config they change.
+            source: where `values` came from, to begin an error message with.
 
         Raises:
             InputError: unknown keys or values of the wrong type.
         """
-        result = _merge(base or cls(), values, "")
+        try:
+            result = _merge(base or cls(), values, "")
+        except InputError as exc:
+            raise InputError(f"{source}: {exc}") from None
         assert isinstance(result, SlamConfig)
         return result
 
@@ -323,13 +334,18 @@ def _plain(value: Any) -> Any:
 def _merge(current: Any, values: Any, path: str) -> Any:
     """`current` (a config dataclass) with `values` (a dict) applied, type-checked."""
     if not isinstance(values, dict):
-        raise InputError(f"config {path or 'file'}: expected a mapping, got {values!r}")
+        raise InputError(f"{path.rstrip('.') or 'the file'}: expected a mapping, got {values!r}")
     known = {f.name: f for f in fields(current)}
     changes: dict[str, Any] = {}
     for key, value in values.items():
         where = f"{path}{key}"
         if key not in known:
-            raise InputError(f"config: unknown key {where!r}; known: {', '.join(sorted(known))}")
+            close = difflib.get_close_matches(str(key), known, n=1)
+            hint = f" (did you mean {path + close[0]!r}?)" if close else ""
+            raise InputError(
+                f"unknown key {where!r}{hint}; known{' in ' + path.rstrip('.') if path else ''}: "
+                f"{', '.join(sorted(known))}"
+            )
         old = getattr(current, key)
         if dataclasses.is_dataclass(old):
             changes[key] = _merge(old, value, f"{where}.")
@@ -343,38 +359,42 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
     if key == "size":
         if value is None:
             return None
+        if isinstance(value, str):  # WxH, as on the command line
+            width, _, height = value.lower().partition("x")
+            if width.strip().isdigit() and height.strip().isdigit():
+                value = [int(width), int(height)]
         if (
             isinstance(value, list | tuple)
             and len(value) == 2
             and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
         ):
             return (int(value[0]), int(value[1]))
-        raise InputError(f"config {where}: expected [W, H] of positive integers or null")
+        raise InputError(f"{where}: expected WxH or [W, H] of positive integers, or null")
     if key == "refill" and isinstance(value, bool):  # files from before the three modes
         return "keyframes" if value else "off"
     if isinstance(old, bool):
         if not isinstance(value, bool):
-            raise InputError(f"config {where}: expected true or false, got {value!r}")
+            raise InputError(f"{where}: expected true or false, got {value!r}")
         return value
     if isinstance(old, int):
         if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(f"config {where}: expected an integer, got {value!r}")
+            raise InputError(f"{where}: expected an integer, got {value!r}")
         return value
     if isinstance(old, float):
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise InputError(f"config {where}: expected a number, got {value!r}")
+            raise InputError(f"{where}: expected a number, got {value!r}")
         return float(value)
     if isinstance(old, str):
         if not isinstance(value, str):
-            raise InputError(f"config {where}: expected a string, got {value!r}")
+            raise InputError(f"{where}: expected a string, got {value!r}")
         return value
     if isinstance(old, tuple):
         if not isinstance(value, list | tuple) or not all(
             isinstance(v, int | float) and not isinstance(v, bool) for v in value
         ):
-            raise InputError(f"config {where}: expected a list of numbers, got {value!r}")
+            raise InputError(f"{where}: expected a list of numbers, got {value!r}")
         return tuple(float(v) for v in value)
-    raise InputError(f"config {where}: cannot set this field")  # pragma: no cover
+    raise InputError(f"{where}: cannot set this field")  # pragma: no cover
 
 
 def check_config(config: SlamConfig) -> None:
@@ -511,7 +531,7 @@ def load_config(path: str | Path, base: str | SlamConfig = DEFAULT_PRESET) -> Sl
         if not isinstance(values["preset"], str):
             raise InputError(f"config {path}: preset must be a name")
         start = preset(values["preset"])
-    return SlamConfig.from_dict(values, start)
+    return SlamConfig.from_dict(values, start, f"config {path}")
 
 
 def save_config(config: SlamConfig, path: str | Path) -> Path:
@@ -522,7 +542,7 @@ def save_config(config: SlamConfig, path: str | Path) -> Path:
 
 
 def resolve_config(
-    preset_name: str = DEFAULT_PRESET,
+    preset_name: str | None = None,
     config_path: str | Path | None = None,
     *,
     size: tuple[int, int] | None = None,
@@ -532,13 +552,28 @@ def resolve_config(
     """The config of a run: preset, then the YAML file, then the command-line options.
 
     Args:
-        preset_name: base preset (a `preset:` entry in the file wins).
+        preset_name: base preset; None: the file's `preset:` entry, else `DEFAULT_PRESET`.
         config_path: optional YAML file.
         size: working size (W, H) override.
         keep: PWAS keep ratio of the pruning stages override.
         no_prune: no PWAS pruning stages (the cyclic opacity cleanup still runs).
+
+    Raises:
+        OptionError: the file names another preset than `preset_name` (which one to start
+            from would be a guess: `--save-config` writes the `preset:` entry of every file),
+            or `keep` with `no_prune` (no stage to keep at).
     """
-    config = load_config(config_path, preset_name) if config_path else preset(preset_name)
+    if keep is not None and no_prune:
+        raise OptionError("--keep does not go with --no-prune: there is no pruning stage")
+    if config_path is None:
+        config = preset(preset_name or DEFAULT_PRESET)
+    else:
+        config = load_config(config_path, preset_name or DEFAULT_PRESET)
+        if preset_name is not None and config.preset != preset_name:
+            raise OptionError(
+                f"config {config_path} starts from preset {config.preset!r}, not --preset "
+                f"{preset_name}: drop --preset, or change the file's `preset:` line"
+            )
     overrides: dict[str, Any] = {}
     if size is not None:
         overrides["size"] = size
