@@ -157,6 +157,10 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
     done_before = len(read_messages(leftover).messages)
     assert done_before > 0
 
+    fresh = ["slam", str(seq_dir), "-o", str(out), "--config", str(config_file)]
+    r = CliRunner().invoke(cli, fresh)  # a fresh run would leave the killed one to rot
+    assert r.exit_code == 1 and f"an unfinished run of {out} is there" in r.output, r.output
+    assert unfinished_files(out) == [leftover] and not out.exists()
     resume = ["slam", str(seq_dir), "-o", str(out), "--resume", "--json"]
     r = CliRunner().invoke(cli, [*resume, "--frames", "0:4"])  # settings come from the log
     assert r.exit_code == 2 and "drop --frames" in r.output, r.output
@@ -166,6 +170,18 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
     assert result["frames"] == FRAMES and result["resumed_at"] >= 2
     assert frames_in(out) == list(range(FRAMES))
     assert unfinished_files(out) == []
+
+
+def test_a_fresh_run_with_force_replaces_an_unfinished_one(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "again.mcap"
+    stale = tmp_path / ".again.mcap.99999.tmp"  # as a killed writer leaves it
+    stale.write_bytes(b"\x89MCAP0\r\n")
+    r = CliRunner().invoke(cli, ["slam", str(seq_dir), "-o", str(out), "--config",
+                                 str(config_file), "--frames", "0:2", "--force"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert frames_in(out) == [0, 1] and not stale.exists()
 
 
 def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError, OptionError
+from gscompress.errors import InputError, OptionError, OutputError
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -30,7 +30,7 @@ from gscompress.io.mcap_log import (
     decode_pose,
     decode_snapshot,
 )
-from gscompress.io.recover import Record, read_messages, resume_sources
+from gscompress.io.recover import Record, read_messages, resume_sources, unfinished_files
 from gscompress.ops.select import check_ratio
 from gscompress.pipeline.offline import seconds_to_ns
 
@@ -199,12 +199,20 @@ def _fresh_run(
     config_path: str | Path | None,
 ) -> _Run:
     """A run from the first frame, optionally starting with another agent's share; no file
-    it reads (sequence, config, share, transform) is written over."""
+    it reads (sequence, config, share, transform) is written over. The unfinished file of a
+    killed run of `dst` is, as an existing `dst` is, only with `force` (and once this run has
+    written its log, so that a later --resume cannot pick the older run)."""
     from gscompress.slam.system import SlamSystem
 
     reads = (seq if sequence is None else None, config_path, inject, share_transform)
     inputs = [p for p in reads if p is not None]
     check_output(dst, inputs, force, ".mcap")
+    unfinished = unfinished_files(dst)
+    if unfinished and not force:
+        raise OutputError(
+            f"an unfinished run of {dst} is there ({unfinished[0].name}): continue it with "
+            "--resume, or pass --force to start afresh (which removes it)"
+        )
     sequence = _open(seq, sequence, config, frames)
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     meta = LogMetadata(
@@ -232,7 +240,7 @@ def _fresh_run(
             }
         )
         meta.results["injected"] = injected
-    return _Run(config, sequence, system, meta, inputs)
+    return _Run(config, sequence, system, meta, inputs, leftovers=unfinished)
 
 
 def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: Any) -> _Run:
