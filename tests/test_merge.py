@@ -195,10 +195,14 @@ def test_merge_across_world_frames_with_an_explicit_transform(
         ("1 2 3", "expected 16 numbers"),
         ("a b", "numbers only"),
         ("0 0 0 0 0 0 0", "quaternion qx qy qz qw is zero"),
+        ("2 0 0 0  0 2 0 0  0 0 2 0  0 0 0 1", "not a rotation"),  # a scale
+        ("-1 0 0 0  0 1 0 0  0 0 1 0  0 0 0 1", "not a rotation"),  # a mirror
     ):
         transform.write_text(text)
         with pytest.raises(InputError, match=message):
             read_transform(transform)
+    transform.write_text("0 -1 0 0.1  1 0 0 0.2  0 0 1 0.3  0 0 0 1")  # 90 degrees about z
+    np.testing.assert_allclose(read_transform(transform)[:3, 3], [0.1, 0.2, 0.3])
 
 
 def test_refinement_loss_is_compared_on_the_same_views(agents: dict[str, Path]) -> None:
