@@ -163,7 +163,8 @@ def frames_option(f: F) -> F:
         type=FrameSubset(),
         default="all",
         show_default=True,
-        help="Frames to use (0-based): all, odd (agent A), even (agent B) or START:STOP:STEP.",
+        help="Frames to use (0-based): all, odd (agent A), even (agent B) or START:STOP:STEP "
+        "as a Python slice (10:, :100, ::5; -30: is the last 30).",
     )(f)
 
 

@@ -86,6 +86,9 @@ def test_parse_frames() -> None:
     for bad in ("", "first", "1:2:0", "1:2:-1", "a:b", "1:2:3:4", "-:", "5:2", "3:3", "-2:-5"):
         with pytest.raises(InputError):
             parse_frames(bad)
+    for backwards in ("1:2:0", "1:2:-1", "0:9:-"):  # said as such, not as a malformed subset
+        with pytest.raises(InputError, match="STEP must be a positive integer"):
+            parse_frames(backwards)
 
 
 def test_associate_follows_tum_rule() -> None:

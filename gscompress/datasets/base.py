@@ -92,7 +92,7 @@ def iter_frames(sequence: RGBDSequence) -> Iterator[Frame]:
 # Frame subsets
 
 
-_SLICE_RE = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*(?::\s*(\d*)\s*)?$")
+_SLICE_RE = re.compile(r"^\s*(-?\d*)\s*:\s*(-?\d*)\s*(?::\s*(-?\d*)\s*)?$")
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,8 @@ def parse_frames(spec: str | FrameSelection) -> FrameSelection:
     stop = int(m.group(2)) if m.group(2) not in ("", "-") else None
     if m.group(1) == "-" or m.group(2) == "-":
         raise InputError(f"bad frame subset {spec!r}: use all, odd, even or START:STOP:STEP")
+    if m.group(3) == "-":
+        raise InputError(f"bad frame subset {spec!r}: STEP must be a positive integer")
     step = int(m.group(3)) if m.group(3) else 1
     if step <= 0:
         raise InputError(f"bad frame subset {spec!r}: STEP must be a positive integer")
