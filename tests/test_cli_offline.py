@@ -252,6 +252,15 @@ def _not_mcap(src, dst):
     dst.write_text("this is not an mcap file\n")
 
 
+def _empty(src, dst):
+    dst.write_bytes(b"")
+
+
+def _a_ply(src, dst):
+    write_ply(random_map(5), dst.with_suffix(".ply"))
+    dst.write_bytes(dst.with_suffix(".ply").read_bytes())
+
+
 def _newer_profile(src, dst):
     with LogWriter(dst, LogMetadata(profile_version="99.0")) as log:
         log.write_gaussians(random_map(10), 0)
@@ -260,7 +269,9 @@ def _newer_profile(src, dst):
 @pytest.mark.parametrize(
     "make_input, message",
     [
-        (_not_mcap, "not a readable MCAP"),
+        (_not_mcap, "not a readable MCAP log (it does not begin as an MCAP file does)"),
+        (_empty, "not a readable MCAP log (the file is empty)"),
+        (_a_ply, "(it is a PLY file; `gsc import-ply` makes a log of it)"),
         (_truncated, "MCAP file is truncated"),
         (_cut_short, "MCAP file is truncated"),
         (_corrupt_chunk, "MCAP"),

@@ -557,13 +557,17 @@ class LogReader:
             self._stream.close()
             if not is_read_error(exc):
                 raise
-            hint = ""
             with open(self.path, "rb") as f:
-                if f.read(4) == b"ply\n":
-                    hint = "; it is a PLY file: `gsc import-ply` makes a log of it"
-            raise LogFormatError(
-                f"{self.path}: not a readable MCAP file ({_describe(exc)}){hint}"
-            ) from None
+                head = f.read(len(MAGIC))
+            if not head:
+                why = "the file is empty"
+            elif head.startswith(b"ply\n"):
+                why = "it is a PLY file; `gsc import-ply` makes a log of it"
+            elif head != MAGIC:
+                why = "it does not begin as an MCAP file does"
+            else:
+                why = _describe(exc)
+            raise LogFormatError(f"{self.path}: not a readable MCAP log ({why})") from None
 
     def _open(self) -> None:
         size = self.path.stat().st_size
