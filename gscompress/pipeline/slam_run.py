@@ -417,7 +417,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         whole = True  # the map is the state after whole frames
         try:
             with _stop_between_frames() as stopping:
-                system.stop_requested = stopping
+                system.stop_requested = stopping  # (for this run only: unset below)
                 for i in range(run.start, total):
                     frame = sequence.frame(i)
                     whole = False
@@ -432,6 +432,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
                 raise  # nothing done: no log is better than an empty one
             failure = exc
+        finally:
+            system.stop_requested = None
         done = len(system.poses)
         seconds = time.perf_counter() - start
         if whole:  # else the last checkpoint stands (see _stop_between_frames)

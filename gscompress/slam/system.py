@@ -526,7 +526,7 @@ class SlamSystem:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
         stats = self.mapper.refine(views, iters, rng, lr_final_fraction=fraction, stop=stop)
-        if stop is not None and stats.iters < iters:
+        if stop is not None and stats.iters < iters and len(self.mapper.params):  # (not emptied)
             log.warning("final refinement stopped after %d of %d iterations", stats.iters, iters)
         stats.added = added
         return stats
