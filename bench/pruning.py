@@ -104,7 +104,7 @@ def run_one(
     else:
         cpu0 = time.process_time()
         result = slam_file(
-            seq, log_path, preset=opts.preset, config_path=config_path, frames=opts.frames,
+            seq, log_path, config_path=config_path, frames=opts.frames,  # the resolved config
             command=f"bench/pruning.py ({name})", force=True,
         )  # fmt: skip
         cpu_s = time.process_time() - cpu0

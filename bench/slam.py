@@ -59,7 +59,7 @@ def evaluate(log_path: Path, seq: Path, eval_every: int = 1) -> dict[str, Any]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("seq", help="sequence folder, or synthetic:N (the room, N frames)")
-    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--preset", default=None, help="default: the --config's, else cpu")
     parser.add_argument("--config", default=None)
     parser.add_argument("--frames", default="all")
     parser.add_argument("--size", default=None, help="WxH")
@@ -101,7 +101,7 @@ def main() -> None:
     else:
         cpu0, wall0 = time.process_time(), time.perf_counter()
         result = slam_file(
-            seq, out, preset=opts.preset, config_path=config_path, frames=opts.frames,
+            seq, out, config_path=config_path, frames=opts.frames,  # the resolved config
             command="bench/slam.py", force=True,
         )  # fmt: skip
         wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0

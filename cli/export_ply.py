@@ -26,7 +26,7 @@ from .options import INPUT_FILE, emit, force_option, json_option, output_option
     is_flag=True,
     help="Write only the INRIA 3DGS properties (no importance, sums or ids).",
 )
-@force_option
+@force_option()
 @json_option
 def export_ply(
     src: Path, dst: Path, snapshot: int, no_importance: bool, force: bool, as_json: bool

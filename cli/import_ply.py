@@ -14,7 +14,7 @@ from .options import INPUT_FILE, command_line, emit, force_option, json_option, 
 @click.command("import-ply")
 @click.argument("src", type=INPUT_FILE)
 @output_option()
-@force_option
+@force_option()
 @json_option
 def import_ply(src: Path, dst: Path, force: bool, as_json: bool) -> None:
     """Make a log holding the 3DGS map in SRC (INRIA or gsplat PLY layout).

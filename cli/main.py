@@ -64,10 +64,6 @@ class OneLineUsageError(click.UsageError):
         click.echo(f"Error: {self.format_message()}{hint}", file=file, err=True)
 
 
-GROUP_OPTIONS = {"--threads": " N", "-v": "", "--verbose": "", "-q": "", "--quiet": ""}
-"""Options of `gsc` itself (and what follows them), which go before the command."""
-
-
 def one_line(exc: click.UsageError) -> click.UsageError:
     """`exc` as a one-line usage error; a bare `gsc` still prints its help. A group option
     given after the command says where it goes."""
@@ -75,13 +71,17 @@ def one_line(exc: click.UsageError) -> click.UsageError:
     if isinstance(exc, shown_as_is):  # (NoArgsIsHelpError: click >= 8.2)
         return exc
     message = exc.format_message()
-    name = getattr(exc, "option_name", None)
-    if isinstance(exc, click.NoSuchOption) and name in GROUP_OPTIONS and exc.ctx is not None:
-        *root, command = exc.ctx.command_path.split()
-        message = message.rstrip(".") + (
-            f": {name} is an option of {' '.join(root) or 'gsc'} itself, given before the "
-            f"command: {' '.join(root)} {name}{GROUP_OPTIONS[name]} {command} ..."
-        )
+    if isinstance(exc, click.NoSuchOption) and exc.ctx is not None and exc.ctx.parent is not None:
+        group = exc.ctx.parent
+        for option in group.command.params:
+            if isinstance(option, click.Option) and exc.option_name in option.opts:
+                metavar = option.metavar or str(option.name).upper()
+                value = "" if option.is_flag or option.count else f" {metavar}"
+                message = message.rstrip(".") + (
+                    f": {exc.option_name} is an option of {group.command_path} itself, given "
+                    f"before the command: {group.command_path} {exc.option_name}{value} "
+                    f"{exc.ctx.info_name} ..."
+                )
     return OneLineUsageError(message, exc.ctx)
 
 
@@ -147,6 +147,7 @@ def os_error_message(exc: OSError) -> str:
     "--threads",
     type=click.IntRange(min=1),
     default=None,
+    metavar="N",
     help="CPU threads for torch and for synth's frame writers (default: one per core). Give "
     "each job 1 when several run at "
     "once: threads that outnumber the cores wait on each other, and each job runs several "

@@ -65,7 +65,7 @@ from .options import (
 @device_option
 @seed_option("Seed of the order of the refinement views.")
 @share_transform_option
-@force_option
+@force_option()
 @json_option
 def merge(
     receiver: Path,

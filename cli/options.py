@@ -15,6 +15,7 @@ import click
 from gscompress.errors import InputError
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
+from gscompress.ops.select import is_fraction
 
 if TYPE_CHECKING:
     from gscompress.datasets.base import FrameSelection
@@ -27,13 +28,13 @@ INPUT_FOLDER = click.Path(exists=True, file_okay=False, path_type=Path)
 """An input folder (a sequence), checked like INPUT_FILE."""
 
 
-def force_option(f: F) -> F:
-    """`--force`: allow overwriting existing outputs (never an input)."""
+def force_option(more: str = "") -> Callable[[F], F]:
+    """`--force`: allow overwriting existing outputs (never an input); `more` ends its help."""
     return click.option(
         "--force",
         is_flag=True,
-        help="Overwrite existing output files (inputs are never overwritten).",
-    )(f)
+        help=f"Overwrite existing output files (inputs are never overwritten){more}.",
+    )
 
 
 def json_option(f: F) -> F:
@@ -64,7 +65,7 @@ class Ratio(click.ParamType):
                 ratio = float(text[:-1]) / 100 if text.endswith("%") else float(text)
             except ValueError:
                 self.fail(f"{value!r} is not a number", param, ctx)
-        if not 0.0 < ratio <= 1.0:
+        if not is_fraction(ratio):
             self.fail(f"{value} is outside (0, 1]", param, ctx)
         return ratio
 

@@ -38,7 +38,7 @@ from .options import (
 )
 @output_option()
 @seed_option()
-@force_option
+@force_option()
 @json_option
 def prune(
     src: Path, keep: float, by: str, dst: Path, seed: int, force: bool, as_json: bool

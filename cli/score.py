@@ -50,7 +50,7 @@ from .options import (
 )
 @backend_option
 @output_option()
-@force_option
+@force_option()
 @json_option
 def score(
     src: Path,

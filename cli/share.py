@@ -64,7 +64,7 @@ from .options import (
     help="Also write the share as a float32 3DGS PLY file (the values the receiver decodes).",
 )
 @seed_option()
-@force_option
+@force_option()
 @json_option
 def share(
     src: Path,

@@ -41,14 +41,19 @@ def _interrupted_text(seq: Path, dst: Path) -> str:
     """What an interrupted run left in `dst`, and how to go on."""
     from gscompress.errors import GscError
     from gscompress.io.mcap_log import LogReader
+    from gscompress.io.recover import resume_sources
 
     resume = f"`gsc slam {seq} -o {dst} --resume`"
+    if not resume_sources(dst):
+        return "Interrupted before the first frame: nothing was written"
     try:
         with LogReader(dst) as log:
             results = log.metadata.results
         done, total = int(results["frames"]), int(results["frames_total"])
     except (GscError, OSError, KeyError, TypeError, ValueError):  # (not closed: a kill)
-        return f"Interrupted: {dst} holds the frames done so far; continue with {resume}"
+        return f"Interrupted: the frames done so far can be continued with {resume}"
+    if not results.get("interrupted"):  # an earlier, finished log (--force) stayed
+        return f"Interrupted before the first frame: {dst} was left as it was"
     if done == total:
         return (
             f"Interrupted during the final refinement: {dst} holds all {total} frames and the "
@@ -104,7 +109,7 @@ def _interrupted_text(seq: Path, dst: Path) -> str:
     "with the settings recorded in it (so no --preset, --config, --frames, --size, --keep, "
     "--no-prune or --inject).",
 )
-@force_option
+@force_option(more="; with a fresh run, also the unfinished file a killed run of -o left")
 @json_option
 def slam(
     seq: Path,

@@ -25,7 +25,7 @@ from .options import force_option, progress_bar, seed_option, size_option
     show_default=True,
     help="Colour samples per pixel along each axis (2 = 2x2 anti-aliasing, about 2x slower).",
 )
-@force_option
+@force_option()
 def synth(
     out_dir: Path, frames: int, size: tuple[int, int], seed: int, supersample: int, force: bool
 ) -> None:

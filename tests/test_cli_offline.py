@@ -149,7 +149,7 @@ def test_import_ply_then_info(tmp_path):
     r = run("info", tmp_path / "m.mcap")
     assert r.exit_code == 0 and "importance none" in r.output and "import-ply" in r.output
     r = run("info", tmp_path / "in.ply")  # a PLY where a log belongs: the error says what to do
-    assert r.exit_code == 1 and "it is a PLY file: `gsc import-ply`" in r.output
+    assert r.exit_code == 1 and "(it is a PLY file; `gsc import-ply` makes a log of it)" in r.output
     r = run("prune", tmp_path / "m.mcap", "--keep", "0.5", "-o", tmp_path / "p.mcap")
     assert r.exit_code == 1 and "gsc score" in r.output
     assert not (tmp_path / "p.mcap").exists()

@@ -373,8 +373,8 @@ def test_workers_end_when_the_runner_is_killed_outright(tmp_path: Path) -> None:
         while not list((out / "runs").glob("*.json")):  # the workers are up and running
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
             time.sleep(0.1)
-        workers = _children(proc.pid)
-        assert len(workers) >= 2  # the pool's two workers (and the resource tracker)
+        workers = _children(proc.pid)  # the pool's workers and the resource tracker
+        assert any(b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes() for pid in workers)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=60)
     finally:
@@ -399,3 +399,19 @@ def test_the_config_file_sets_preset_and_keep_unless_options_do(tmp_path: Path) 
     assert (s.keep, base.prune.keep) == (0.4, 0.4)
     s, _ = resolve_settings(ExperimentSettings())
     assert (s.preset, s.keep) == ("cpu", 0.3)
+
+
+def test_a_rerun_removes_what_killed_workers_left_half_written(tmp_path: Path) -> None:
+    from gscompress.io.files import AtomicFile
+    from gscompress.pipeline.experiment import _Runner
+
+    runs = tmp_path / "exp" / "runs"
+    runs.mkdir(parents=True)
+    left = runs / ".s0_agent_a.mcap.99999.tmp"  # a worker killed with its runner
+    left.write_bytes(b"x")
+    live = AtomicFile(runs / "s0_agent_b.mcap")  # another runner's worker still writing
+    try:
+        _Runner(tmp_path / "seq", tmp_path / "exp", ExperimentSettings(), None, total=1)
+        assert not left.exists() and live.tmp_path.exists()
+    finally:
+        live.discard()

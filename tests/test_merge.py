@@ -203,6 +203,11 @@ def test_merge_across_world_frames_with_an_explicit_transform(
             read_transform(transform)
     transform.write_text("0 -1 0 0.1  1 0 0 0.2  0 0 1 0.3  0 0 0 1")  # 90 degrees about z
     np.testing.assert_allclose(read_transform(transform)[:3, 3], [0.1, 0.2, 0.3])
+    c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)  # 30 degrees written to 4 decimals
+    transform.write_text(f"{c:.4f} {-s:.4f} 0 0  {s:.4f} {c:.4f} 0 0  0 0 1 0  0 0 0 1")
+    R = read_transform(transform)[:3, :3]  # taken as the rotation it rounds
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R[:2, :2], [[c, -s], [s, c]], atol=1e-4)
 
 
 def test_refinement_loss_is_compared_on_the_same_views(agents: dict[str, Path]) -> None:

@@ -406,3 +406,11 @@ def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, c
         assert log.metadata.results["frames"] == 3 and log.metadata.results["interrupted"]
         assert "cannot read depth image" in log.metadata.results["error"]
         assert len(log.read_map()) > 0
+
+
+def test_an_interrupt_before_the_first_frame_says_nothing_was_written(seq_dir, slam_log, tmp_path):
+    from gscompress_cli.slam import _interrupted_text
+
+    assert "nothing was written" in _interrupted_text(seq_dir, tmp_path / "none.mcap")
+    # with --force over a finished log, cut before the loop: the old log is still there
+    assert f"{slam_log} was left as it was" in _interrupted_text(seq_dir, slam_log)

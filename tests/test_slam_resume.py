@@ -309,3 +309,19 @@ def test_unfinished_reader_stops_at_a_truncated_tail(
     assert 0 < len(contents.messages) < len(read_messages(out).messages)
     assert contents.metadata.config["checkpoint_every"] == 2
     os.unlink(cut)
+
+
+def test_unfinished_files_are_this_outputs_and_not_a_live_writers(tmp_path: Path) -> None:
+    from gscompress.io.files import AtomicFile
+
+    out = tmp_path / "run[1].mcap"  # glob characters in the name are plain characters
+    killed = tmp_path / ".run[1].mcap.123.tmp"
+    killed.write_bytes(b"x")
+    for other in (".run1.mcap.4242.tmp", ".run[1].mcap.x.mcap.77.tmp", ".run[1].mcap.ab.tmp"):
+        (tmp_path / other).write_bytes(b"x")  # another output's, or not a writer's name
+    assert unfinished_files(out) == [killed]
+    live = AtomicFile(out)  # a writer still at work on the same output
+    try:
+        assert live.tmp_path.exists() and unfinished_files(out) == [killed]
+    finally:
+        live.discard()

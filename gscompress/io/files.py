@@ -5,6 +5,7 @@ A crash or an error never leaves a half-written file under the final name.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
@@ -14,6 +15,11 @@ from pathlib import Path
 from typing import IO, Any
 
 from gscompress.errors import OutputError
+
+try:
+    import fcntl
+except ImportError:  # (Windows)
+    fcntl = None  # type: ignore[assignment]
 
 
 def json_text(value: Any, **options: Any) -> str:
@@ -89,12 +95,19 @@ def check_output(
 
 
 class AtomicFile:
-    """A binary file written under a temporary name and renamed into place on `commit`."""
+    """A binary file written under a temporary name and renamed into place on `commit`.
+
+    The writer holds an exclusive lock on the temporary file (where the system has `flock`),
+    so that `is_being_written` tells a live writer's file from one a killed writer left.
+    """
 
     def __init__(self, path: Path):
         self.path = path
-        self.tmp_path = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        self.tmp_path = temporary_path(path, os.getpid())
         self.file: IO[bytes] = open(self.tmp_path, "wb")
+        if fcntl is not None:
+            with contextlib.suppress(OSError):  # a file system without locks: write unlocked
+                fcntl.flock(self.file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
 
     def commit(self) -> None:
         """Flush, fsync and rename over the final path."""
@@ -107,6 +120,27 @@ class AtomicFile:
         """Close and remove the temporary file."""
         self.file.close()
         self.tmp_path.unlink(missing_ok=True)
+
+
+def temporary_path(path: Path, pid: int) -> Path:
+    """Where process `pid` writes `path` until it is complete: `.NAME.PID.tmp` beside it."""
+    return path.with_name(f".{path.name}.{pid}.tmp")
+
+
+def is_being_written(path: Path) -> bool:
+    """Whether a live `AtomicFile` holds `path` (without `flock`: never)."""
+    if fcntl is None:
+        return False
+    try:
+        with open(path, "rb") as f:
+            fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:  # held
+        return True
+    except FileNotFoundError:  # renamed into place meanwhile: its writer finished
+        return True
+    except OSError:  # no locks here: cannot tell
+        return False
+    return False
 
 
 def check_only_entries(folder: Path, allowed: frozenset[str], what: str, action: str) -> None:

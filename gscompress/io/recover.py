@@ -9,6 +9,8 @@ leaves that file: no summary, a truncated last record, but every flushed chunk i
 
 from __future__ import annotations
 
+import contextlib
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +18,7 @@ from mcap.reader import StreamReader
 from mcap.records import Channel, Message, Metadata, Schema
 
 from gscompress.errors import LogFormatError
+from gscompress.io.files import is_being_written
 from gscompress.io.mcap_log import (
     METADATA_NAME,
     LogMetadata,
@@ -43,10 +46,17 @@ class LogContents:
 
 
 def unfinished_files(path: str | Path) -> list[Path]:
-    """Temporary files a killed writer of `path` left beside it, newest first."""
+    """Temporary files killed writers of `path` left beside it, newest first: exactly
+    `.NAME.PID.tmp` (not another output's whose name starts alike), and none a live writer
+    still holds."""
     path = Path(path)
-    found = path.parent.glob(f".{path.name}.*.tmp")
-    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
+    name = re.compile(rf"\.{re.escape(path.name)}\.\d+\.tmp")  # `temporary_path`'s names
+    found = []
+    for entry in path.parent.iterdir() if path.parent.is_dir() else ():
+        if name.fullmatch(entry.name) and not is_being_written(entry):
+            with contextlib.suppress(FileNotFoundError):  # removed meanwhile
+                found.append((entry.stat().st_mtime, entry))
+    return [entry for _, entry in sorted(found, reverse=True)]
 
 
 def resume_sources(path: str | Path) -> list[Path]:

@@ -130,11 +130,13 @@ def read_transform(path: str | Path) -> np.ndarray:
     if not np.allclose(T[3], [0, 0, 0, 1]):
         raise InputError(f"{path}: the last row of a rigid transform is 0 0 0 1")
     R = T[:3, :3]
-    if not (np.allclose(R.T @ R, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0):
+    if not (np.allclose(R.T @ R, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0):
         raise InputError(
             f"{path}: the upper-left 3x3 block is not a rotation (orthonormal, determinant +1); "
             "a rigid transform neither scales nor mirrors"
         )
+    u, _, vt = np.linalg.svd(R)  # the nearest rotation: a matrix written to a few decimals is
+    T[:3, :3] = u @ vt  # not orthonormal to float precision, as a TUM quaternion is normalised
     return T
 
 

@@ -52,11 +52,17 @@ import numpy as np
 from gscompress import __version__
 from gscompress.errors import InputError, OptionError
 from gscompress.interrupts import sigterm_interrupts
-from gscompress.io.files import check_only_entries, is_within, json_text, write_text_atomic
+from gscompress.io.files import (
+    check_only_entries,
+    is_being_written,
+    is_within,
+    json_text,
+    write_text_atomic,
+)
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.merge import REFINE_VIEWS
-from gscompress.ops.select import STRATEGIES, strategy_scores
+from gscompress.ops.select import STRATEGIES, is_fraction, strategy_scores
 from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import log_edges
 
@@ -151,7 +157,7 @@ class ExperimentSettings:
             raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
         if self.merge_views not in REFINE_VIEWS:
             raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
-        if not 0.0 < self.merge_lr_final <= 1.0:
+        if not is_fraction(self.merge_lr_final):
             raise InputError("a merge's final learning-rate fraction must be in (0, 1]")
         Budget.parse(self.budget)
         for b in self.sweep:
@@ -266,6 +272,9 @@ class _Runner:
         self.seq, self.settings, self.progress, self.total = seq, settings, progress, total
         self.runs = out / "runs"
         self.runs.mkdir(parents=True, exist_ok=True)
+        for unfinished in self.runs.glob(".*.tmp"):  # a killed runner's workers' (no record
+            if not is_being_written(unfinished):  # points at them: their steps are redone)
+                unfinished.unlink(missing_ok=True)
         self.done = 0
         self.reused = 0
         self._lock = threading.Lock()
@@ -472,6 +481,7 @@ def run_experiment(
         Paths of the outputs, row count, steps run and reused, and the PWAS-vs-random verdicts.
     """
     from gscompress.datasets import open_sequence
+    from gscompress.pipeline.slam_run import check_working_size
 
     settings.check()
     seq, out = Path(seq), Path(out_dir)
@@ -481,14 +491,16 @@ def run_experiment(
         check_only_entries(out, EXPERIMENT_ENTRIES, "an experiment's", "give a new or empty folder")
     if is_within(out, seq):
         raise InputError(f"output folder {out} is inside the sequence folder {seq}")
-    # a bad sequence, or frames too few to give agent A (the odd positions) one, fail before
-    # out_dir is made
-    if len(open_sequence(seq, frames=settings.frames)) < 2:
+    # a bad sequence or working size, or frames too few to give agent A (the odd positions)
+    # one, fail before out_dir is made
+    s, base = resolve_settings(settings)
+    sequence = open_sequence(seq, size=base.size, frames=settings.frames)
+    if len(sequence) < 2:
         raise InputError(
             f"--frames {settings.frames} leaves agent A ({settings.agent_frames()[0]}) no frame "
             f"of {seq}; an experiment needs at least two frames"
         )
-    s, base = resolve_settings(settings)
+    check_working_size(sequence.intrinsics)
     runner = _Runner(seq, out, s, progress, plan_size(s), jobs)
     try:
         with sigterm_interrupts():

@@ -20,6 +20,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 from gscompress.ops.merge import REFINE_VIEWS, check_same_world
+from gscompress.ops.select import is_fraction
 from gscompress.pipeline.offline import rewrite_map, seconds_to_ns
 
 DEFAULT_REFINE_VIEWS = "frames"
@@ -114,7 +115,7 @@ def merge_logs(
         raise OptionError(f"--iters must be >= 0, got {iters}")
     if views not in REFINE_VIEWS:
         raise OptionError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {views!r}")
-    if not 0.0 < lr_final <= 1.0:
+    if not is_fraction(lr_final):
         raise OptionError(f"--lr-final must be in (0, 1], got {lr_final}")
     if iters > 0 and seq is None:
         raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")

@@ -158,6 +158,16 @@ def slam_file(
     return _loop(run, dst, progress)
 
 
+def check_working_size(intrinsics: Any) -> None:
+    """Refuse a working size below `MIN_SIDE` a side (an OptionError: --size or a config's)."""
+    w, h = intrinsics.width, intrinsics.height
+    if min(w, h) < MIN_SIDE:
+        raise OptionError(
+            f"working size {w}x{h} is too small to map: SLAM needs at least {MIN_SIDE} pixels "
+            "per side (--size, or the config's size)"
+        )
+
+
 def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> Any:
     """The sequence to run on, refusing an empty selection and a working size too small to map
     (below `MIN_SIDE`, pixels are so large that the map empties); warning when the working size
@@ -171,11 +181,7 @@ def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> An
     if len(sequence) == 0:
         raise InputError(f"{name}: no frames selected ({frames})")
     k = sequence.intrinsics
-    if min(k.width, k.height) < MIN_SIDE:
-        raise OptionError(
-            f"working size {k.width}x{k.height} is too small to map: SLAM needs at least "
-            f"{MIN_SIDE} pixels per side (--size, or the config's size)"
-        )
+    check_working_size(k)
     native = getattr(sequence, "native_intrinsics", k)
     if k.width * k.height > native.width * native.height:
         log.warning(
