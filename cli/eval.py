@@ -39,7 +39,7 @@ from .options import (
     help="Render every N-th frame that has an estimated pose (ATE uses all of them).",
 )
 @size_option(help="Render at this size WxH [default: the log's working size].")
-@backend_option
+@backend_option()
 @device_option
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (reported as not asked for).")
 @json_option

@@ -13,6 +13,7 @@ from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
 from .options import (
     INPUT_FILE,
     FrameSubset,
+    backend_option,
     command_line,
     device_option,
     emit,
@@ -63,6 +64,7 @@ from .options import (
     "this fraction by its last iteration; 1 keeps them constant.",
 )
 @device_option
+@backend_option("the receiver log's `backend:`, auto")
 @seed_option("Seed of the order of the refinement views.")
 @share_transform_option
 @force_option()
@@ -78,6 +80,7 @@ def merge(
     views: str,
     lr_final: float,
     device: str,
+    backend: str | None,
     seed: int,
     share_transform: Path | None,
     force: bool,
@@ -116,6 +119,7 @@ def merge(
             views=views,
             lr_final=lr_final,
             device=device,
+            backend=backend,
             seed=seed,
             share_transform=share_transform,
             command=command_line(),

@@ -209,15 +209,17 @@ def device_option(f: F) -> F:
     )(f)
 
 
-def backend_option(f: F) -> F:
-    """`--backend auto|cpu|torch|gsplat`: the renderer."""
+def backend_option(recorded: str = "") -> Callable[[F], F]:
+    """`--backend auto|cpu|torch|gsplat`: the renderer. With `recorded` (where the default is
+    read from, e.g. "the config's `backend:`") it defaults to None, passed as such."""
+    help = "Render backend (auto: gsplat on CUDA, else the C++ CPU kernel, else pure torch)."
     return click.option(
         "--backend",
         type=click.Choice(["auto", "cpu", "torch", "gsplat"]),
-        default="auto",
-        show_default=True,
-        help="Render backend (auto: gsplat on CUDA, else the C++ CPU kernel, else pure torch).",
-    )(f)
+        default=None if recorded else "auto",
+        show_default=not recorded,
+        help=help + (f" [default: {recorded}]" if recorded else ""),
+    )
 
 
 PRESET_NAMES = ("tiny", "cpu", "paper", "paper-tum")

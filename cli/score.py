@@ -48,7 +48,7 @@ from .options import (
     show_default=True,
     help="Distance scale of the PWAS proximity weight, metres.",
 )
-@backend_option
+@backend_option()
 @output_option()
 @force_option()
 @json_option

@@ -13,6 +13,7 @@ from .options import (
     INPUT_FILE,
     INPUT_FOLDER,
     Ratio,
+    backend_option,
     command_line,
     device_option,
     emit,
@@ -83,6 +84,7 @@ def _interrupted_text(seq: Path, dst: Path) -> str:
 @frames_option
 @size_option(help="Working image size WxH (default: the config's; the cpu preset uses 160x120).")
 @device_option
+@backend_option("the config's `backend:`, auto")
 @click.option(
     "--keep",
     type=Ratio(),
@@ -106,8 +108,8 @@ def _interrupted_text(seq: Path, dst: Path) -> str:
     "--resume",
     is_flag=True,
     help="Continue the interrupted run whose log (or unfinished file, after a kill) is at -o, "
-    "with the settings recorded in it (so no --preset, --config, --frames, --size, --keep, "
-    "--no-prune or --inject).",
+    "with the settings recorded in it (so no --preset, --config, --frames, --size, --backend, "
+    "--keep, --no-prune or --inject).",
 )
 @force_option(more="; with a fresh run, also the unfinished file a killed run of -o left")
 @json_option
@@ -120,6 +122,7 @@ def slam(
     frames: object,
     size: tuple[int, int] | None,
     device: str,
+    backend: str | None,
     keep: float | None,
     no_prune: bool,
     inject: Path | None,
@@ -160,7 +163,9 @@ def slam(
             raise click.UsageError(
                 "--save-config does not go with --resume (the log holds its config)"
             )
-        config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
+        config = resolve_config(
+            preset, config_path, size=size, keep=keep, no_prune=no_prune, backend=backend
+        )
         inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
         check_output(save_config, inputs, force, ".yaml")
         if dst is None:
@@ -206,6 +211,7 @@ def slam(
                 frames=str(frames) if frames_given else None,
                 size=size,
                 device=device,
+                backend=backend,
                 keep=keep,
                 no_prune=no_prune,
                 inject=inject,

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
@@ -19,6 +20,7 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.io.ply import write_ply
 from gscompress.ops.merge import merge_maps
 from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
+from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
 
 
@@ -74,6 +76,7 @@ def test_merge_refines_and_keeps_every_gaussian_and_sum(agents: dict[str, Path])
         assert np.array_equal(getattr(merged, name), getattr(expected, name))
     assert not np.array_equal(merged.means, expected.means)
     assert result["refine_iters"] == 30 and result["refine_views"] == 4  # all of B's frames
+    assert result["refine_backend"] == resolve_backend("auto", torch.device("cpu"))
     # provenance names both inputs; the receiver's poses and stats are all there
     step = meta.provenance[-1]
     assert step["parent"] == "b.mcap" and step["operation"]["share"] == "share.mcap"
@@ -85,8 +88,9 @@ def test_merge_refines_and_keeps_every_gaussian_and_sum(agents: dict[str, Path])
 def test_merge_refines_on_keyframes_only_when_asked(agents: dict[str, Path]) -> None:
     out = agents["root"] / "keyframes.mcap"
     result = merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=4,
-                        views="keyframes")  # fmt: skip
+                        views="keyframes", backend="torch")  # fmt: skip
     assert result["refine_views"] == 2  # B's 4 frames, a keyframe every 2 in the tiny preset
+    assert result["refine_backend"] == "torch"  # the option's, not the receiver's config's
     with LogReader(out) as log:
         assert log.metadata.provenance[-1]["operation"]["views"] == "keyframes"
     with pytest.raises(InputError, match="--views"):

@@ -414,3 +414,16 @@ def test_an_interrupt_before_the_first_frame_says_nothing_was_written(seq_dir, s
     assert "nothing was written" in _interrupted_text(seq_dir, tmp_path / "none.mcap")
     # with --force over a finished log, cut before the loop: the old log is still there
     assert f"{slam_log} was left as it was" in _interrupted_text(seq_dir, slam_log)
+
+
+def test_backend_option_overrides_the_config_and_is_refused_on_resume(seq_dir, tmp_path):
+    out = tmp_path / "torch.mcap"
+    r = run("slam", seq_dir, "--preset", "tiny", "--frames", "0:2", "--backend", "torch", "-o", out)
+    assert r.exit_code == 0, r.output
+    with LogReader(out) as log:
+        assert log.metadata.config["backend"] == "torch"
+        assert log.metadata.results["render_backend"] == "torch"
+    r = run("slam", seq_dir, "-o", out, "--resume", "--backend", "cpu")
+    assert r.exit_code == 2 and "drop --backend" in r.output
+    r = run("slam", seq_dir, "--preset", "tiny", "--backend", "cuda", "-o", tmp_path / "x.mcap")
+    assert r.exit_code == 2 and "'cuda' is not one of" in r.output

@@ -76,6 +76,7 @@ def merge_logs(
     views: str = DEFAULT_REFINE_VIEWS,
     lr_final: float = DEFAULT_LR_FINAL,
     device: str = "auto",
+    backend: str | None = None,
     seed: int = 0,
     share_transform: str | Path | None = None,
     command: str = "",
@@ -98,6 +99,7 @@ def merge_logs(
         lr_final: the refinement's learning rates decay geometrically to this fraction of
             their starting value (the receiver's mapping rates); 1 keeps them constant.
         device: torch device, or "auto".
+        backend: render backend of the refinement (default: the receiver's config's).
         seed: seed of the view order.
         share_transform: a file with the rigid transform from the share's world frame to the
             receiver's (4x4 or TUM `tx ty tz qx qy qz qw`), for maps whose frames differ.
@@ -107,7 +109,7 @@ def merge_logs(
 
     Returns:
         Output path, Gaussian counts (receiver, share, merged), the id offset given to the
-        share, and the refinement's first/last loss.
+        share, and the refinement's first/last loss, views and render backend.
     """
     from gscompress.ops.merge import merge_maps
 
@@ -146,8 +148,10 @@ def merge_logs(
         if iters > 0:
             assert seq is not None
             assert pose_ns is not None and poses is not None
-            merged, stats = _refine(merged, receiver, meta, pose_ns, poses, seq, frames, size,
-                                    iters, views, lr_final, device, seed, progress)  # fmt: skip
+            merged, stats = _refine(
+                merged, receiver, meta, pose_ns, poses, seq, frames, size, iters, views,
+                lr_final, device, backend, seed, progress,
+            )  # fmt: skip
             results.update({f"refine_{k}": v for k, v in stats.items()})
         return merged, results
 
@@ -170,6 +174,7 @@ def _refine(
     views: str,
     lr_final: float,
     device: str,
+    backend: str | None,
     seed: int,
     progress: Callable[[int, int], object] | None,
 ) -> tuple[GaussianMap, dict[str, Any]]:
@@ -178,11 +183,13 @@ def _refine(
     from gscompress.datasets import open_sequence
     from gscompress.ops.merge import refine
     from gscompress.pipeline.evaluate import match_times, warn_other_sequence
-    from gscompress.render import resolve_device
+    from gscompress.render import resolve_backend, resolve_device
     from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
     from gscompress.slam.keyframes import View, in_views
 
     config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
+    if backend is not None:
+        config = config.with_overrides(backend=backend)
     if size is None and config.size is not None:
         size = config.size
     sequence = open_sequence(seq, size=size, frames=frames or meta.frames or "all")
@@ -213,4 +220,5 @@ def _refine(
         lr_final_fraction=lr_final, progress=step,
     )  # fmt: skip
     stats["views"] = len(chosen)
+    stats["backend"] = resolve_backend(config.backend, torch_device)
     return refined, stats

@@ -75,6 +75,7 @@ def slam_file(
     frames: str | None = None,
     size: tuple[int, int] | None = None,
     device: str = "auto",
+    backend: str | None = None,
     keep: float | None = None,
     no_prune: bool = False,
     inject: str | Path | None = None,
@@ -108,6 +109,7 @@ def slam_file(
         frames: frame subset (all, odd, even, START:STOP:STEP; None: all).
         size: working size (W, H), overriding the config's.
         device: torch device, or "auto".
+        backend: render backend (`gscompress.render.BACKENDS`), overriding the config's.
         keep: PWAS keep ratio of the pruning stages, overriding the config's.
         no_prune: skip the PWAS pruning stages (cyclic opacity cleanup still runs).
         inject: a share log whose Gaussians (with ids and PWAS sums) start the map; its world
@@ -135,7 +137,7 @@ def slam_file(
         check_ratio(keep, "--keep")
     if resume:
         given = {"--preset": preset, "--config": config_path or config, "--frames": frames,
-                 "--size": size, "--keep": keep, "--inject": inject,
+                 "--size": size, "--backend": backend, "--keep": keep, "--inject": inject,
                  "--share-transform": share_transform}  # fmt: skip
         clashing = [name for name, value in given.items() if value is not None]
         clashing += ["--no-prune"] if no_prune else []
@@ -147,7 +149,9 @@ def slam_file(
         if config is None:
             from gscompress.slam.config import resolve_config
 
-            config = resolve_config(preset, config_path, size=size, keep=keep, no_prune=no_prune)
+            config = resolve_config(
+                preset, config_path, size=size, keep=keep, no_prune=no_prune, backend=backend
+            )
         if share_transform is not None and inject is None:
             raise OptionError("a share transform needs --inject")
         run = _fresh_run(

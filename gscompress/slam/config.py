@@ -548,6 +548,7 @@ def resolve_config(
     size: tuple[int, int] | None = None,
     keep: float | None = None,
     no_prune: bool = False,
+    backend: str | None = None,
 ) -> SlamConfig:
     """The config of a run: preset, then the YAML file, then the command-line options.
 
@@ -557,6 +558,7 @@ def resolve_config(
         size: working size (W, H) override.
         keep: PWAS keep ratio of the pruning stages override.
         no_prune: no PWAS pruning stages (the cyclic opacity cleanup still runs).
+        backend: render backend override (`gscompress.render.BACKENDS`).
 
     Raises:
         OptionError: the file names another preset than `preset_name` (which one to start
@@ -581,4 +583,6 @@ def resolve_config(
         overrides["prune.keep"] = keep
     if no_prune:
         overrides["prune.stages"] = ()
+    if backend is not None:
+        overrides["backend"] = backend
     return config.with_overrides(**overrides) if overrides else config
