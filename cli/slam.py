@@ -38,29 +38,32 @@ def _start_at_loop(bar: Any, frames_before: int, seconds: float) -> None:
     bar.start_t = bar.last_print_t = time.time() - seconds
 
 
-def _interrupted_text(seq: Path, dst: Path) -> str:
-    """What an interrupted run left in `dst`, and how to go on."""
+def _left_text(seq: Path, dst: Path, error: bool = False) -> str | None:
+    """What a run stopped by an interrupt (or, with `error`, by the error the caller shows
+    next) left in `dst`, and how to go on; None when an error left nothing to go on from."""
     from gscompress.errors import GscError
     from gscompress.io.mcap_log import LogReader
     from gscompress.io.recover import resume_sources
 
+    cause = "Stopped by the error below" if error else "Interrupted"
     resume = f"`gsc slam {seq} -o {dst} --resume`"
+    then = "once it is fixed, " if error else ""
     if not resume_sources(dst):
-        return "Interrupted before the first frame: nothing was written"
+        return None if error else f"{cause} before the first frame: nothing was written"
     try:
         with LogReader(dst) as log:
             results = log.metadata.results
         done, total = int(results["frames"]), int(results["frames_total"])
     except (GscError, OSError, KeyError, TypeError, ValueError):  # (not closed: a kill)
-        return f"Interrupted: the frames done so far can be continued with {resume}"
+        return f"{cause}: {then}the frames done so far can be continued with {resume}"
     if not results.get("interrupted"):  # an earlier, finished log (--force) stayed
-        return f"Interrupted before the first frame: {dst} was left as it was"
+        return None if error else f"{cause} before the first frame: {dst} was left as it was"
     if done == total:
         return (
-            f"Interrupted during the final refinement: {dst} holds all {total} frames and the "
-            f"map refined so far ({resume} only closes it)"
+            f"{cause} during the final refinement: {dst} holds all {total} frames and the "
+            f"map refined so far ({then}{resume} only closes it)"
         )
-    return f"Interrupted: {dst} holds {done} of {total} frames; continue with {resume}"
+    return f"{cause}: {dst} holds {done} of {total} frames; {then}continue with {resume}"
 
 
 @click.command("slam")
@@ -223,8 +226,14 @@ def slam(
             )
         except KeyboardInterrupt:
             bar.close()
-            click.echo(_interrupted_text(seq, dst), err=True)
+            click.echo(_left_text(seq, dst), err=True)
             raise SystemExit(130) from None
+        except Exception:
+            bar.close()
+            left = _left_text(seq, dst, error=True) if processed else None  # (a refusal: None)
+            if left is not None:
+                click.echo(left, err=True)
+            raise
     ate = result.get("ate_rmse_cm")
     emit(
         result,

@@ -251,9 +251,9 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
         assert results["interrupted"] is True and results["frames"] == FRAMES
         assert results["gaussians"] == len(log.read_map())  # the map refined so far
     assert last["refine_iters"] == 5
-    from gscompress_cli.slam import _interrupted_text  # what `gsc slam` then says
+    from gscompress_cli.slam import _left_text  # what `gsc slam` then says
 
-    said = _interrupted_text(seq_dir, out)
+    said = str(_left_text(seq_dir, out))
     assert f"during the final refinement: {out} holds all {FRAMES} frames" in said
 
 

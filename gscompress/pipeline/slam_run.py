@@ -473,9 +473,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         leftover.unlink(missing_ok=True)
     if failure is not None:
         if not isinstance(failure, KeyboardInterrupt):  # the caller says so for an interrupt
-            log.warning(
-                "%s holds the %d frame(s) done before the error; once it is fixed, --resume "
-                "continues the run", dst, done,
-            )  # fmt: skip
+            log.warning(  # (gsc slam then says how to resume; an experiment reruns)
+                "%s holds the %d frame(s) done before the error", dst, done
+            )
         raise failure
     return {"output": str(dst), **meta.results}
