@@ -201,6 +201,10 @@ def test_budget_below_the_header_or_one_gaussian_is_a_budget_error(tmp_path, pre
     assert not (tmp_path / "s.mcap").exists()
     exact = share_log(src, tmp_path / "s.mcap", f"{size(1)}B", precision=precision)
     assert exact["selected"] == 1 and exact["bytes"] == size(1)
+    with pytest.raises(
+        BudgetError, match=r"0.001 of 100 Gaussians rounds to none; raise the budget"
+    ):
+        share_log(src, tmp_path / "t.mcap", 0.001, precision=precision)
 
 
 def test_fp16_fits_more_of_the_same_ranking(tmp_path):

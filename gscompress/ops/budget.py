@@ -77,7 +77,7 @@ class Budget:
             BudgetError: the budget holds no Gaussian.
         """
         if self.ratio is not None:
-            return keep_count(n, self.ratio)
+            return keep_count(n, self.ratio, "budget")
         assert self.budget_bytes is not None  # one of the two is set (__post_init__)
         return largest_count_within(self.budget_bytes, n, message_bytes)
 

@@ -52,12 +52,13 @@ def check_ratio(ratio: float, name: str = "ratio") -> float:
     return float(ratio)
 
 
-def keep_count(n: int, ratio: float) -> int:
-    """Number of Gaussians kept out of `n` for a retention `ratio` in (0, 1] (round half up)."""
+def keep_count(n: int, ratio: float, what: str = "ratio") -> int:
+    """Number of Gaussians kept out of `n` for a retention `ratio` in (0, 1] (round half up);
+    `what` names the ratio in the error when that is none (a budget, for a share)."""
     check_ratio(ratio)
     k = min(n, math.floor(ratio * n + 0.5 + 1e-9))
     if n > 0 and k == 0:
-        raise BudgetError(f"keeping {ratio:g} of {n} Gaussians rounds to none; raise the ratio")
+        raise BudgetError(f"keeping {ratio:g} of {n} Gaussians rounds to none; raise the {what}")
     return k
 
 
