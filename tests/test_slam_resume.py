@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -199,7 +200,11 @@ def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: 
 
 
 def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
-    seq_dir: Path, config_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    seq_dir: Path,
+    config_file: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     from gscompress.slam.system import SlamSystem
 
@@ -214,16 +219,17 @@ def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
 
     monkeypatch.setattr(SlamSystem, "process", interrupted_process)
     out = tmp_path / "stopped.mcap"
-    with pytest.raises(KeyboardInterrupt):
+    with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
         slam_file(seq_dir, out, config_path=config_file)
     assert frames_in(out) == [0, 1, 2]  # the frame finished, and no later one started
+    assert "stopping after this frame (again to stop at once)" in caplog.text
     with LogReader(out) as log:
         assert log.metadata.results["interrupted"] is True
         assert log.metadata.results["gaussians"] == len(log.read_map()) == seen[-1]
 
 
 def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
-    tmp_path: Path, seq_dir: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, seq_dir: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     from gscompress.slam.mapper import Mapper
 
@@ -241,9 +247,11 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
 
     monkeypatch.setattr(Mapper, "refine", refine_then_signal)
     out = tmp_path / "stopped.mcap"
-    with pytest.raises(KeyboardInterrupt):
+    with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
         slam_file(seq_dir, out, config_path=config)
     assert len(done) == 5  # 5 of the 400 iterations, then the refinement ended
+    assert "ending the final refinement at the next iteration" in caplog.text
+    assert "stopping after this frame" not in caplog.text
     assert frames_in(out) == list(range(FRAMES))
     with LogReader(out) as log:
         results = log.metadata.results

@@ -374,7 +374,7 @@ def _json(record: Record) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def _stop_between_frames() -> Iterator[Callable[[], bool]]:
+def _stop_between_frames(refining: Callable[[], bool]) -> Iterator[Callable[[], bool]]:
     """Let Ctrl-C and SIGTERM stop a run between frames; yields whether a stop was asked for,
     to check after each frame.
 
@@ -384,7 +384,8 @@ def _stop_between_frames() -> Iterator[Callable[[], bool]]:
     signal is noted and the run stops after the frame; a second one stops at once, and then the
     end writes no map (the last checkpoint stands). The final refinement after the last frame
     (minutes at full size on a CPU) polls the same flag and ends early, so the map written is
-    the one refined so far. Only the main thread can take signals; elsewhere nothing changes.
+    the one refined so far (`refining` says when it runs, for the message). Only the main
+    thread can take signals; elsewhere nothing changes.
     """
     pending: list[int] = []
     if threading.current_thread() is not threading.main_thread():
@@ -395,7 +396,13 @@ def _stop_between_frames() -> Iterator[Callable[[], bool]]:
         if pending:
             raise KeyboardInterrupt
         pending.append(signum)
-        log.warning("stopping after this frame (again to stop at once)")
+        if refining():
+            log.warning(
+                "ending the final refinement at the next iteration (again to stop at once, "
+                "leaving the map of the last checkpoint)"
+            )
+        else:
+            log.warning("stopping after this frame (again to stop at once)")
 
     previous = {s: signal.signal(s, note) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -426,7 +433,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         out.flush()
         whole = True  # the map is the state after whole frames
         try:
-            with _stop_between_frames() as stopping:
+            with _stop_between_frames(lambda: system.in_final_refinement) as stopping:
                 system.stop_requested = stopping  # (for this run only: unset below)
                 for i in range(run.start, total):
                     frame = sequence.frame(i)

@@ -198,6 +198,8 @@ class SlamSystem:
         """Polled by the final refinement before each iteration: true ends it there (`gsc slam`
         sets it to "Ctrl-C or SIGTERM came", so that a stop does not wait for the whole
         refinement)."""
+        self.in_final_refinement = False
+        """True while the final refinement runs (a stop then ends that refinement)."""
 
     # ------------------------------------------------------------------ state
 
@@ -508,8 +510,9 @@ class SlamSystem:
         fraction = 1.0
         keyframes = self.keyframes if keyframe else [*self.keyframes, current]
         views = keyframes
-        stop = None
+        stop, final = None, False
         if self.total_frames is not None and position == self.total_frames - 1:
+            final = True
             iters += final_iterations(self.config.mapping, self.total_frames)
             fraction = self.config.mapping.final_lr_fraction
             views = self.views if self.keeps_every_view else keyframes
@@ -525,7 +528,11 @@ class SlamSystem:
         if iters == 0 and not added:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
-        stats = self.mapper.refine(views, iters, rng, lr_final_fraction=fraction, stop=stop)
+        self.in_final_refinement = final
+        try:
+            stats = self.mapper.refine(views, iters, rng, lr_final_fraction=fraction, stop=stop)
+        finally:
+            self.in_final_refinement = False
         if stop is not None and stats.iters < iters and len(self.mapper.params):  # (not emptied)
             log.warning("final refinement stopped after %d of %d iterations", stats.iters, iters)
         stats.added = added
