@@ -38,32 +38,35 @@ def _start_at_loop(bar: Any, frames_before: int, seconds: float) -> None:
     bar.start_t = bar.last_print_t = time.time() - seconds
 
 
-def _left_text(seq: Path, dst: Path, error: bool = False) -> str | None:
-    """What a run stopped by an interrupt (or, with `error`, by the error the caller shows
-    next) left in `dst`, and how to go on; None when an error left nothing to go on from."""
+def _interrupted_text(seq: Path, dst: Path) -> str:
+    """What an interrupted run left in `dst`, and how to go on."""
     from gscompress.errors import GscError
     from gscompress.io.mcap_log import LogReader
     from gscompress.io.recover import resume_sources
+    from gscompress.pipeline.slam_run import map_note
 
-    cause = "Stopped by the error below" if error else "Interrupted"
     resume = f"`gsc slam {seq} -o {dst} --resume`"
-    then = "once it is fixed, " if error else ""
     if not resume_sources(dst):
-        return None if error else f"{cause} before the first frame: nothing was written"
+        return "Interrupted before the first frame: nothing was written"
     try:
         with LogReader(dst) as log:
             results = log.metadata.results
         done, total = int(results["frames"]), int(results["frames_total"])
     except (GscError, OSError, KeyError, TypeError, ValueError):  # (not closed: a kill)
-        return f"{cause}: {then}the frames done so far can be continued with {resume}"
+        return f"Interrupted: the frames done so far can be continued with {resume}"
     if not results.get("interrupted"):  # an earlier, finished log (--force) stayed
-        return None if error else f"{cause} before the first frame: {dst} was left as it was"
-    if done == total:
+        return f"Interrupted before the first frame: {dst} was left as it was"
+    note = map_note(done, int(results.get("map_frames", done)))
+    if done == total and not note:
         return (
-            f"{cause} during the final refinement: {dst} holds all {total} frames and the "
-            f"map refined so far ({then}{resume} only closes it)"
+            f"Interrupted at the end: {dst} holds all {total} frames and the map, its final "
+            f"refinement cut short ({resume} only closes it)"
         )
-    return f"{cause}: {dst} holds {done} of {total} frames; {then}continue with {resume}"
+    return f"Interrupted: {dst} holds {done} of {total} frames{note}; continue with {resume}"
+
+
+def _modified_ns(path: Path) -> int | None:
+    return path.stat().st_mtime_ns if path.exists() else None
 
 
 @click.command("slam")
@@ -155,20 +158,26 @@ def slam(
     checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
     even a killed run resumes with --resume, redoing at most that many frames.
     """
+    from gscompress.errors import DatasetError
     from gscompress.io.files import check_output
     from gscompress.io.recover import resume_sources
     from gscompress.pipeline import slam_file
     from gscompress.slam.config import resolve_config
     from gscompress.slam.config import save_config as write_config
 
+    # the settings on top of the preset and file: --save-config's config is the run's
+    settings: dict[str, Any] = {
+        "size": size,
+        "keep": keep,
+        "no_prune": no_prune,
+        "backend": backend,
+    }
     if save_config is not None:
         if resume:
             raise click.UsageError(
                 "--save-config does not go with --resume (the log holds its config)"
             )
-        config = resolve_config(
-            preset, config_path, size=size, keep=keep, no_prune=no_prune, backend=backend
-        )
+        config = resolve_config(preset, config_path, **settings)
         inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
         check_output(save_config, inputs, force, ".yaml")
         if dst is None:
@@ -184,6 +193,7 @@ def slam(
     frames_given = (
         click.get_current_context().get_parameter_source("frames") != ParameterSource.DEFAULT
     )
+    before = _modified_ns(dst)
     with progress_bar("slam", "frame", hidden=as_json) as bar:
         processed = 0
 
@@ -212,27 +222,24 @@ def slam(
                 preset=preset,
                 config_path=config_path,
                 frames=str(frames) if frames_given else None,
-                size=size,
                 device=device,
-                backend=backend,
-                keep=keep,
-                no_prune=no_prune,
                 inject=inject,
                 share_transform=share_transform,
                 resume=resume,
                 command=command_line(),
                 force=force,
                 progress=progress,
+                **settings,
             )
         except KeyboardInterrupt:
             bar.close()
-            click.echo(_left_text(seq, dst), err=True)
+            click.echo(_interrupted_text(seq, dst), err=True)
             raise SystemExit(130) from None
-        except Exception:
+        except (DatasetError, OSError):  # a frame or the disk: --resume goes on once it is fixed
             bar.close()
-            left = _left_text(seq, dst, error=True) if processed else None  # (a refusal: None)
-            if left is not None:
-                click.echo(left, err=True)
+            if _modified_ns(dst) != before:  # (a log this run wrote, the error said above)
+                click.echo(f"Once the error below is fixed, `gsc slam {seq} -o {dst} --resume` "
+                           "continues the run", err=True)  # fmt: skip
             raise
     ate = result.get("ate_rmse_cm")
     emit(

@@ -152,6 +152,11 @@ def test_gsc_merge_command(agents: dict[str, Path]) -> None:
     assert result["refine_iters"] == 5 and Path(result["output"]) == out
     r = CliRunner().invoke(cli, [str(a) for a in args])
     assert r.exit_code == 1 and r.output.startswith("Error: ") and "--force" in r.output
+    r = CliRunner().invoke(cli, [str(a) for a in args] + ["--force", "--backend", "torch"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["refine_backend"] == "torch"
+    with LogReader(out) as log:
+        assert log.metadata.provenance[-1]["operation"]["backend"] == "torch"
 
 
 def test_transform_map_moves_means_and_orientations_rigidly() -> None:

@@ -412,22 +412,22 @@ def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, c
     r = run("slam", broken, "--preset", "tiny", "--no-prune", "-o", out)
     assert r.exit_code == 1 and "cannot read depth image" in r.output
     assert (
-        f"Stopped by the error below: {out} holds 3 of 6 frames; once it is fixed, continue "
-        f"with `gsc slam {broken} -o {out} --resume`"
+        f"Once the error below is fixed, `gsc slam {broken} -o {out} --resume` continues the run"
     ) in " ".join(r.output.split())
-    r = run("slam", broken, "--preset", "tiny", "-o", out)  # refused: nothing was stopped
-    assert r.exit_code == 1 and "exists" in r.output and "Stopped" not in r.output
+    r = run("slam", broken, "--preset", "tiny", "-o", out)  # refused: this run wrote nothing
+    assert r.exit_code == 1 and "exists" in r.output and "--resume" not in r.output
+    # an error of the settings: --resume (which takes none) would only repeat it
+    r = run("slam", seq_dir, "--preset", "tiny", "--keep", "0.0001", "-o", tmp_path / "k.mcap")
+    assert r.exit_code == 1 and "raise the keep ratio (--keep, prune.keep)" in r.output
+    assert "--resume" not in r.output
 
 
 def test_an_interrupt_before_the_first_frame_says_nothing_was_written(seq_dir, slam_log, tmp_path):
-    from gscompress_cli.slam import _left_text
+    from gscompress_cli.slam import _interrupted_text
 
-    assert "nothing was written" in str(_left_text(seq_dir, tmp_path / "none.mcap"))
+    assert "nothing was written" in _interrupted_text(seq_dir, tmp_path / "none.mcap")
     # with --force over a finished log, cut before the loop: the old log is still there
-    assert f"{slam_log} was left as it was" in str(_left_text(seq_dir, slam_log))
-    # an error there: the error says it all
-    assert _left_text(seq_dir, tmp_path / "none.mcap", error=True) is None
-    assert _left_text(seq_dir, slam_log, error=True) is None
+    assert f"{slam_log} was left as it was" in _interrupted_text(seq_dir, slam_log)
 
 
 def test_backend_option_overrides_the_config_and_is_refused_on_resume(seq_dir, tmp_path):

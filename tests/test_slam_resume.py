@@ -259,10 +259,10 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
         assert results["interrupted"] is True and results["frames"] == FRAMES
         assert results["gaussians"] == len(log.read_map())  # the map refined so far
     assert last["refine_iters"] == 5
-    from gscompress_cli.slam import _left_text  # what `gsc slam` then says
+    from gscompress_cli.slam import _interrupted_text  # what `gsc slam` then says
 
-    said = str(_left_text(seq_dir, out))
-    assert f"during the final refinement: {out} holds all {FRAMES} frames" in said
+    said = _interrupted_text(seq_dir, out)
+    assert f"Interrupted at the end: {out} holds all {FRAMES} frames and the map" in said
 
 
 def test_inject_starts_the_map_with_the_share(
@@ -333,3 +333,35 @@ def test_unfinished_files_are_this_outputs_and_not_a_live_writers(tmp_path: Path
         assert live.tmp_path.exists() and unfinished_files(out) == [killed]
     finally:
         live.discard()
+
+
+def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resume_redoes(
+    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from gscompress_cli.slam import _interrupted_text
+
+    config = tmp_path / "c.yaml"
+    config.write_text("preset: tiny\ncheckpoint_every: 3\nprune: {stages: []}\n")
+    out = tmp_path / "twice.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config, progress=stop_after(4))  # a map after 4
+    process = SlamSystem.process
+
+    def signalled_twice(self, frame):  # type: ignore[no-untyped-def]
+        if len(self.poses) == 5:  # inside the resumed run's second frame
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)  # "again to stop at once"
+        return process(self, frame)
+
+    monkeypatch.setattr(SlamSystem, "process", signalled_twice)
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, resume=True)
+    monkeypatch.setattr(SlamSystem, "process", process)
+    assert frames_in(out) == [0, 1, 2, 3, 4]  # frame 5 was cut, and no map after frame 4
+    with LogReader(out) as log:
+        assert log.metadata.results["map_frames"] == 4  # the map the resumed run started from
+    said = _interrupted_text(seq_dir, out)
+    assert f"holds 5 of {FRAMES} frames (its last map covers the first 4: a resume" in said
+    # that map was put back (else the checkpoint after 3 frames would be the last)
+    resumed = slam_file(seq_dir, out, resume=True)
+    assert resumed["resumed_at"] == 4 and frames_in(out) == list(range(FRAMES))

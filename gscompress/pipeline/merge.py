@@ -156,7 +156,7 @@ def merge_logs(
         return merged, results
 
     operation = {"name": "merge", **share_record, "iters": iters, "views": views,
-                 "lr_final": lr_final, "seed": seed}  # fmt: skip
+                 "lr_final": lr_final, "seed": seed, "backend": backend}  # fmt: skip
     out = rewrite_map(receiver, dst, operation, merge, command=command, force=force)
     return out
 

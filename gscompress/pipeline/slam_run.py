@@ -57,6 +57,8 @@ class _Run:
     gt_poses: list[np.ndarray] = field(default_factory=list)
     t_ns: int = 0
     leftovers: list[Path] = field(default_factory=list)  # unfinished files to delete at the end
+    map_frames: int = 0  # the frames the log's latest map snapshot covers (where --resume starts)
+    restart_map: Record | None = None  # a resumed finished log's last snapshot, not carried over
 
 
 def world_frame_of(sequence: Any, config: Any) -> str:
@@ -118,7 +120,8 @@ def slam_file(
             run's (4x4 or TUM `tx ty tz qx qy qz qw`).
         resume: continue the interrupted run whose log (or unfinished file) is at `dst`, with
             the config, frames and size recorded in it; the other options must be left unset.
-        config: a ready `SlamConfig` to use instead of preset + `config_path` + options.
+        config: a ready `SlamConfig` to use instead of preset + `config_path` + options (which
+            must then be left unset).
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called after every frame with (frames done, total, the frame's stats plus
@@ -152,6 +155,8 @@ def slam_file(
             config = resolve_config(
                 preset, config_path, size=size, keep=keep, no_prune=no_prune, backend=backend
             )
+        elif any(v is not None for v in (preset, config_path, size, keep, backend)) or no_prune:
+            raise OptionError("a ready config takes no preset, config file or setting beside it")
         if share_transform is not None and inject is None:
             raise OptionError("a share transform needs --inject")
         run = _fresh_run(
@@ -299,12 +304,15 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         for r in contents.messages
         if r[1].topic == TOPIC_CALIBRATION or (done and r[2].log_time <= cut)
     ]
+    restart_map = None
     if contents.finished and last is not None:
         carried = [r for r in carried if r[2] is not last[2]]  # rewritten at the real end
+        restart_map = last  # (or put back, if this run ends without a map of its own)
 
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     run = _Run(config, sequence, system, meta, [seq] if seq is not None else [], start=done)
     run.carried, run.leftovers = carried, leftovers
+    run.map_frames, run.restart_map = done, restart_map
     if done == 0:
         run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
         return run
@@ -362,8 +370,19 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
     out.write_stats(stats, run.t_ns)
     if result.event or checkpoint:
         out.write_gaussians(run.system.gaussian_map(), run.t_ns)
+        run.map_frames = i + 1
     out.flush()
     return stats
+
+
+def map_note(frames: int, map_frames: int) -> str:
+    """What a log of `frames` frames whose last map covers `map_frames` of them leaves a
+    resume to redo ("" when nothing)."""
+    if map_frames >= frames:
+        return ""
+    if map_frames == 0:
+        return " (but no map: a resume starts again from the first frame)"
+    return f" (its last map covers the first {map_frames}: a resume redoes the rest)"
 
 
 def _json(record: Record) -> dict[str, Any]:
@@ -382,10 +401,11 @@ def _stop_between_frames(refining: Callable[[], bool]) -> Iterator[Callable[[], 
     map half-updated and holding part of a frame whose pose is not logged; the map written at
     the end must be the state after whole frames, the one `--resume` restarts from. So the first
     signal is noted and the run stops after the frame; a second one stops at once, and then the
-    end writes no map (the last checkpoint stands). The final refinement after the last frame
-    (minutes at full size on a CPU) polls the same flag and ends early, so the map written is
-    the one refined so far (`refining` says when it runs, for the message). Only the main
-    thread can take signals; elsewhere nothing changes.
+    end writes no map: the last snapshot stands (a checkpoint's, a pruning stage's, or the one a
+    resumed run started from; `results.map_frames` says how many frames it covers). The final
+    refinement after the last frame (minutes at full size on a CPU) polls the same flag and ends
+    early, so the map written is the one refined so far (`refining` says when it runs, for the
+    message). Only the main thread can take signals; elsewhere nothing changes.
     """
     pending: list[int] = []
     if threading.current_thread() is not threading.main_thread():
@@ -399,7 +419,7 @@ def _stop_between_frames(refining: Callable[[], bool]) -> Iterator[Callable[[], 
         if refining():
             log.warning(
                 "ending the final refinement at the next iteration (again to stop at once, "
-                "leaving the map of the last checkpoint)"
+                "without writing the refined map)"
             )
         else:
             log.warning("stopping after this frame (again to stop at once)")
@@ -453,10 +473,13 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             system.stop_requested = None
         done = len(system.poses)
         seconds = time.perf_counter() - start
-        if whole:  # else the last checkpoint stands (see _stop_between_frames)
+        if whole:  # else the last snapshot stands (see _stop_between_frames)
             gaussians = system.gaussian_map()
             out.write_gaussians(gaussians, run.t_ns)
             meta.results["gaussians"] = len(gaussians)
+            run.map_frames = done
+        elif run.restart_map is not None and run.map_frames == run.start:
+            out.copy_message(*run.restart_map)  # the map this run started from is still the last
         meta.results.update(
             {
                 "frames": done,
@@ -464,6 +487,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
                 "seconds": round(seconds, 3),
                 "seconds_per_frame": round(seconds / max(done - run.start, 1), 4),
                 "interrupted": failure is not None,
+                "map_frames": run.map_frames,
                 "device": str(system.device),
                 "render_backend": backend,
             }
@@ -481,7 +505,10 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
     if failure is not None:
         if not isinstance(failure, KeyboardInterrupt):  # the caller says so for an interrupt
             log.warning(  # (gsc slam then says how to resume; an experiment reruns)
-                "%s holds the %d frame(s) done before the error", dst, done
+                "%s holds the %d frame(s) done before the error%s",
+                dst,
+                done,
+                map_note(done, run.map_frames),
             )
         raise failure
     return {"output": str(dst), **meta.results}

@@ -413,7 +413,9 @@ class SlamSystem:
             return 0
         by = self.config.prune.by if by is None else by
         scores = strategy_scores(gaussians.select(own), by, seed=self.config.seed * 1000 + stage)
-        kept = own[top_k(scores, ids[own], keep_count(own.size, keep))]
+        kept = own[
+            top_k(scores, ids[own], keep_count(own.size, keep, "keep ratio (--keep, prune.keep)"))
+        ]
         index = np.union1d(np.flatnonzero(ids < self.own_ids_from), kept)
         return self.mapper.keep(torch.from_numpy(index).to(self.device))
 
