@@ -44,3 +44,8 @@ class BudgetError(GscError):
 
 class MissingDependencyError(GscError):
     """An optional dependency that the requested feature needs is not installed."""
+
+
+def led_by(source: str, message: str) -> str:
+    """`message` beginning with the file it is about, `source` (unless it already does)."""
+    return message if message.startswith(source) else f"{source}: {message}"

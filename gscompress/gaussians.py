@@ -28,6 +28,10 @@ SH_C0 = 0.28209479177387814
 PWAS_EPS = 1e-8
 """The epsilon of the PWAS score S / (W + eps) (paper Eq. 8)."""
 
+MAX_ABS_LOG_SCALE = 40.0
+"""Largest |log scale| a map may hold: e^40 m (and e^-40) keeps every covariance and its
+inverse finite in float32 (a real map's scales, micrometres to metres, lie far inside)."""
+
 SH_REST_COUNTS = {0: 0, 1: 3, 2: 8, 3: 15}
 """Higher-order SH coefficients per colour channel for each SH degree."""
 
@@ -46,8 +50,10 @@ _FLOAT_FIELDS = (
 
 def _own(array: Any, dtype: type[np.generic]) -> np.ndarray:
     """`array` as a contiguous, writable array of `dtype` (a copy when it was a read-only view,
-    such as a field of a file's buffer that needed no conversion: one row, or none)."""
-    out = np.ascontiguousarray(array, dtype=dtype)
+    such as a field of a file's buffer that needed no conversion: one row, or none). A float
+    beyond `dtype`'s range becomes inf quietly: `validate` refuses it with a message."""
+    with np.errstate(over="ignore"):
+        out = np.ascontiguousarray(array, dtype=dtype)
     return out if out.flags.writeable else out.copy()
 
 
@@ -184,7 +190,9 @@ class GaussianMap:
             raise MapError(f"sh_rest has {self.sh_rest.shape[1]} coefficients per channel")
 
     def validate(self) -> GaussianMap:
-        """Check finiteness, id uniqueness and sign of the importance sums.
+        """Check finiteness, id uniqueness and sign of the importance sums, and that what
+        rendering and ranking derive from the raw values stays finite: scales within
+        e^+-`MAX_ABS_LOG_SCALE`, rotations whose squared length float32 holds, finite scores.
 
         Returns:
             self, so that calls can be chained.
@@ -205,6 +213,15 @@ class GaussianMap:
             raise MapError("ids are not unique")
         if len(self) and np.any(np.all(self.quats == 0, axis=1)):
             raise MapError("quats has all-zero rotations")
+        if np.any(np.abs(self.log_scales) > MAX_ABS_LOG_SCALE):
+            raise MapError(f"log_scales has values beyond +-{MAX_ABS_LOG_SCALE:g} (scales of e^40)")
+        squared = np.square(self.quats, dtype=np.float64).sum(axis=1)
+        if np.any(squared > np.finfo(np.float32).max):
+            raise MapError("quats has rotations too long to normalise in float32")
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            scores = self.importance
+        if not np.isfinite(scores).all():
+            raise MapError("importance_sum / importance_weight (the PWAS score) overflows")
         return self
 
     # ------------------------------------------------------------------ subsets

@@ -53,6 +53,25 @@ def test_validate_finds_non_finite_duplicate_ids_and_negative_sums():
         g.validate()
 
 
+def test_validate_refuses_values_whose_activations_overflow():
+    """Finite raw values can still render or rank as inf: a scale of e^1e30, a rotation
+    whose squared length overflows float32, a score S / (W + eps) beyond float32."""
+    g = random_map(10)
+    g.log_scales[1] = 41.0
+    with pytest.raises(MapError, match="log_scales has values beyond"):
+        g.validate()
+    g.log_scales[1] = -40.0  # the bound itself is accepted
+    g.validate()
+    g = random_map(10)
+    g.quats[2] = 3e38
+    with pytest.raises(MapError, match="too long to normalise"):
+        g.validate()
+    g = random_map(10)
+    g.importance_sum[5], g.importance_weight[5] = 1e31, 0.0
+    with pytest.raises(MapError, match="PWAS score"):
+        g.validate()
+
+
 def test_select_by_index_mask_and_slice_agree():
     g = random_map(50, sh_degree=2, isotropic=False)
     idx = np.array([1, 5, 7])

@@ -11,6 +11,7 @@ from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
 from gscompress.errors import LogFormatError, OutputError
 from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.mcap_log import (
+    MAX_CHUNK_BYTES,
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
@@ -206,3 +207,94 @@ def test_non_finite_parameters_are_refused():
     g.opacity_logits[2] = np.inf
     with pytest.raises(Exception, match="non-finite"):
         pointcloud_to_gaussians(gaussians_to_pointcloud(g))
+
+
+@pytest.mark.parametrize("version", ["1", " 1.0", "-1.0", "\u0661.0", "1.0.0", ""])
+def test_a_malformed_profile_version_is_refused(version):
+    record = LogMetadata().to_record()
+    record["profile_version"] = version
+    with pytest.raises(LogFormatError, match="bad profile_version"):
+        LogMetadata.from_record(record)
+
+
+def test_metadata_json_nested_too_deep_is_a_format_error():
+    record = LogMetadata().to_record()
+    record["config"] = "[" * 100_000 + "]" * 100_000
+    with pytest.raises(LogFormatError, match="nested too deep"):
+        LogMetadata.from_record(record)
+
+
+def test_a_zstd_frame_declaring_more_than_its_chunk_is_refused_before_decompressing(
+    tmp_path, monkeypatch
+):
+    """A decompression bomb: zstandard allocates the size a frame declares, whatever the chunk
+    record says; the reader compares the two first."""
+    import io
+
+    import mcap.writer
+    import zstandard
+
+    def bomb(data: bytes) -> bytes:  # the chunk's records, then 64 MiB of zeros in the frame
+        out = io.BytesIO()
+        pad = 64 * 2**20
+        with zstandard.ZstdCompressor(level=1).stream_writer(
+            out, size=len(data) + pad, closefd=False
+        ) as w:
+            w.write(data)
+            w.write(bytes(pad))
+        return out.getvalue()
+
+    path = tmp_path / "bomb.mcap"
+    monkeypatch.setattr(mcap.writer.zstandard, "compress", bomb)
+    with LogWriter(path, LogMetadata()) as log:
+        log.write_gaussians(random_map(20), 0)
+    monkeypatch.undo()
+    assert path.stat().st_size < 2**20
+    with pytest.raises(LogFormatError, match=r"zstd frame declares \d+ bytes, its record"):
+        LogReader(path)
+    with LogReader(_plain_log(tmp_path)) as reader:
+        with pytest.raises(LogFormatError, match="claims"):  # 1000 times its compressed size
+            reader._check_chunk(200 * 2**20, 100_000, "", b"")
+        reader._check_chunk(200 * 2**20, 300_000, "", b"")
+        with pytest.raises(LogFormatError, match="claims"):  # too large at any ratio
+            reader._check_chunk(MAX_CHUNK_BYTES + 1, MAX_CHUNK_BYTES, "", b"")
+
+
+def _plain_log(tmp_path):
+    path = tmp_path / "plain.mcap"
+    with LogWriter(path, LogMetadata()) as log:
+        log.write_gaussians(random_map(20), 0)
+    return path
+
+
+def test_a_log_without_statistics_counts_its_snapshots(tmp_path):
+    from mcap.writer import Writer
+
+    source = tmp_path / "a.mcap"
+    with LogWriter(source, LogMetadata()) as log:
+        for t in range(3):
+            log.write_gaussians(random_map(10, seed=t), t)
+    path = tmp_path / "no_stats.mcap"  # the same messages, written without a Statistics record
+    with open(source, "rb") as f, open(path, "wb") as out:
+        reader = make_reader(f)
+        writer = Writer(out, use_statistics=False)
+        writer.start()
+        schemas, channels = {}, {}
+        for schema, channel, message in reader.iter_messages():
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id]
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.log_time
+            )
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+    with LogReader(path) as log:
+        assert log.snapshot_count == 3
+        assert np.array_equal(log.read_map().means, random_map(10, seed=2).means)

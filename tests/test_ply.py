@@ -171,6 +171,33 @@ def test_truncated_data_is_refused(tmp_path):
         read_ply(path)
 
 
+def test_bytes_beyond_the_declared_elements_and_a_wrong_magic_are_refused(tmp_path):
+    path = write_ply(random_map(100), tmp_path / "m.ply")
+    data = path.read_bytes()
+    path.write_bytes(data + b"\0" * 7)
+    with pytest.raises(PlyFormatError, match="7 bytes after the elements the header declares"):
+        read_ply(path)
+    path.write_bytes(data.replace(b"element vertex 100", b"element vertex 10", 1))
+    with pytest.raises(PlyFormatError, match="a wrong vertex count"):
+        read_ply(path)
+    path.write_bytes(b"plyx" + data[3:])
+    with pytest.raises(PlyFormatError, match="not a PLY file"):
+        read_ply(path)
+
+
+@pytest.mark.parametrize("value", [-1.0, 1.5, 2.0**32, np.nan, 1e20])
+def test_an_id_that_is_not_a_uint32_is_refused(tmp_path, value):
+    names = [*BASE, "id"]
+    data = np.zeros(4, dtype=[(name, "f8" if name == "id" else "f4") for name in names])
+    data["rot_0"], data["id"] = 1.0, [0, 1, 2, 3]
+    PlyData([PlyElement.describe(data, "vertex")]).write(str(tmp_path / "ok.ply"))
+    assert read_ply(tmp_path / "ok.ply").ids.tolist() == [0, 1, 2, 3]  # whole doubles are read
+    data["id"][2] = value
+    PlyData([PlyElement.describe(data, "vertex")]).write(str(tmp_path / "bad.ply"))
+    with pytest.raises(PlyFormatError, match=r"bad\.ply: id has values that are not whole"):
+        read_ply(tmp_path / "bad.ply")
+
+
 def test_non_finite_values_are_refused(tmp_path):
     g = random_map(10)
     g.log_scales[0] = np.nan

@@ -92,7 +92,8 @@ def map_from_columns(cols: Mapping[str, np.ndarray], source: str = "input") -> G
         raise MapError(f"{source} lacks field(s): {', '.join(missing_rest)}")
 
     def stack(names: Iterable[str]) -> np.ndarray:
-        return np.stack([np.asarray(cols[name], dtype=np.float32) for name in names], axis=1)
+        with np.errstate(over="ignore"):  # a float64 beyond float32 becomes inf: validate says so
+            return np.stack([np.asarray(cols[name], dtype=np.float32) for name in names], axis=1)
 
     n = len(cols["x"])
     log_scales = stack(["scale_0", "scale_1", "scale_2"])
@@ -115,9 +116,21 @@ def map_from_columns(cols: Mapping[str, np.ndarray], source: str = "input") -> G
         opacity_logits=np.asarray(cols["opacity"]),
         sh_dc=stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
         sh_rest=rest,
-        ids=np.asarray(cols["id"]) if "id" in cols else None,
+        ids=_ids(cols["id"], source) if "id" in cols else None,
         **sums,
     )
+
+
+def _ids(values: np.ndarray, source: str) -> np.ndarray:
+    """An `id` column as uint32, refusing values that are not whole numbers in [0, 2^32) (a
+    PLY may declare the property as any numeric type)."""
+    values = np.asarray(values)
+    if values.dtype.kind == "u" and values.dtype.itemsize <= 4:
+        return values.astype(np.uint32)
+    as_float = values.astype(np.float64)
+    if not np.all((as_float >= 0) & (as_float < 2**32) & (as_float == np.floor(as_float))):
+        raise MapError(f"{source}: id has values that are not whole numbers in [0, 2^32)")
+    return as_float.astype(np.uint32)
 
 
 def pack_records(cols: Mapping[str, np.ndarray], dtypes: Mapping[str, np.dtype]) -> np.ndarray:

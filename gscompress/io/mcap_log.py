@@ -20,8 +20,10 @@ into place only when complete. Readers treat every file as untrusted.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+import re
 import struct
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -38,16 +40,17 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from google.protobuf.message import DecodeError, Message
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Schema
+from mcap.records import Channel, Chunk, Schema
 from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
-from zstandard import ZstdError
+from zstandard import ZstdError, frame_content_size
 
 from gscompress import __version__
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat, rotmat_to_quat
-from gscompress.errors import GscError, LogFormatError, MapError
+from gscompress.errors import GscError, LogFormatError, MapError, led_by
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import (
     column_dtypes,
@@ -72,8 +75,13 @@ WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
 STATS_SCHEMA = "slam_stats.v1.schema.json"
 
-MAX_CHUNK_BYTES = 8 * 2**30
-"""Largest decompressed chunk a reader accepts (a guard against hostile size fields)."""
+MAX_CHUNK_BYTES = 2 * 2**30
+"""Largest decompressed chunk a reader accepts (a snapshot of some 25 million Gaussians): a
+guard against hostile size fields."""
+MAX_CHUNK_RATIO = 1000
+"""A chunk above `_SMALL_CHUNK` bytes may decompress to at most this many times its compressed
+size (a map compresses 1.1-1.5x, JSON records 5-20x; zeros a thousand times and more)."""
+_SMALL_CHUNK = 64 * 2**20
 
 # foxglove.PackedElementField.NumericType values and their numpy equivalents
 _NUMERIC_TYPES: dict[int, np.dtype] = {
@@ -90,9 +98,10 @@ _NUMERIC_CODES = {dtype: code for code, dtype in _NUMERIC_TYPES.items()}
 
 _READ_ERRORS = (
     McapError, DecodeError, struct.error, EOFError, ValueError, KeyError, IndexError, OSError,
-    ZstdError,
+    ZstdError, RecursionError,
 )  # fmt: skip
-"""What reading a damaged MCAP file raises (an OSError: a seek before the start)."""
+"""What reading a damaged MCAP file raises (an OSError: a seek before the start; a
+RecursionError: JSON nested deeper than Python's stack)."""
 
 
 def is_read_error(exc: BaseException) -> bool:
@@ -165,10 +174,9 @@ class LogMetadata:
     def from_record(cls, record: dict[str, str], source: str = "log") -> LogMetadata:
         """Parse a metadata map, refusing profile versions newer than this reader's major."""
         version = record.get("profile_version", "")
-        try:
-            major = int(version.split(".")[0])
-        except ValueError:
-            raise LogFormatError(f"{source}: bad profile_version {version!r}") from None
+        if not re.fullmatch(r"[0-9]+\.[0-9]+", version):  # (ASCII digits: str.isdigit is wider)
+            raise LogFormatError(f"{source}: bad profile_version {version!r}")
+        major = int(version.split(".")[0])
         if major > int(PROFILE_VERSION.split(".")[0]):
             raise LogFormatError(
                 f"{source} was written with log profile {version}, newer than this gscompress "
@@ -190,6 +198,8 @@ class LogMetadata:
                     values[key] = json.loads(record[key])
         except json.JSONDecodeError as exc:
             raise LogFormatError(f"{source}: metadata field is not JSON ({exc})") from None
+        except RecursionError:
+            raise LogFormatError(f"{source}: metadata field is JSON nested too deep") from None
         steps = values.get("provenance", [])
         well_formed = isinstance(steps, list) and all(
             isinstance(step, dict)
@@ -487,7 +497,7 @@ def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "
     except DecodeError:
         raise LogFormatError(f"{source}: a corrupt {TOPIC_GAUSSIANS} message") from None
     except MapError as exc:
-        raise LogFormatError(str(exc)) from None
+        raise LogFormatError(led_by(source, str(exc))) from None
     return Snapshot(
         gaussians=gaussians,
         log_time_ns=message.log_time,
@@ -588,17 +598,51 @@ class LogReader:
                 "try `mcap recover` on it"
             )
         self._summary = summary
-        for chunk in summary.chunk_indexes:
-            if chunk.uncompressed_size > MAX_CHUNK_BYTES:
-                raise LogFormatError(
-                    f"{self.path}: a chunk claims {chunk.uncompressed_size} bytes uncompressed"
-                )
+        self._check_chunks(size)
         records = [m for m in self._reader.iter_metadata() if m.name == METADATA_NAME]
         self.metadata = (
             LogMetadata.from_record(dict(records[-1].metadata), str(self.path))
             if records
             else LogMetadata(profile_version="", tool_version="")
         )
+
+    def _check_chunks(self, file_size: int) -> None:
+        """Refuse a chunk whose decompressed size is implausible before any is decompressed:
+        above `MAX_CHUNK_BYTES`, above `MAX_CHUNK_RATIO` times its compressed size, or a zstd
+        frame that declares more than its chunk record (zstandard allocates what the frame
+        declares). Chunks are found through the summary's index, else (an unindexed file,
+        which `mcap` would read sequentially) by reading the file's records."""
+        stream = self._stream
+        if self._summary.chunk_indexes:
+            for index in self._summary.chunk_indexes:
+                stream.seek(index.chunk_start_offset + 25)  # opcode, length, start and end times
+                size, _crc, name_length = struct.unpack("<QII", stream.read(16))
+                stream.seek(name_length + 8, os.SEEK_CUR)  # the compression name, data length
+                head = stream.read(18)  # a zstd frame header's longest
+                if size != index.uncompressed_size:
+                    raise LogFormatError(f"{self.path}: a chunk's size disagrees with its index")
+                self._check_chunk(size, index.compressed_size, index.compression, head)
+        else:
+            stream.seek(0)
+            records = StreamReader(stream, emit_chunks=True, record_size_limit=file_size).records
+            for record in records:
+                if isinstance(record, Chunk):
+                    self._check_chunk(
+                        record.uncompressed_size, len(record.data), record.compression,
+                        record.data[:18],
+                    )  # fmt: skip
+        stream.seek(0)
+
+    def _check_chunk(self, size: int, compressed: int, compression: str, head: bytes) -> None:
+        declared = frame_content_size(head) if compression == "zstd" else -1  # -1: unsaid
+        if size > MAX_CHUNK_BYTES or size > max(_SMALL_CHUNK, MAX_CHUNK_RATIO * compressed):
+            raise LogFormatError(
+                f"{self.path}: a chunk of {compressed} bytes claims {size} bytes uncompressed"
+            )
+        if declared > size:
+            raise LogFormatError(
+                f"{self.path}: a chunk's zstd frame declares {declared} bytes, its record {size}"
+            )
 
     def __enter__(self) -> LogReader:
         return self
@@ -610,10 +654,21 @@ class LogReader:
         """Close the file."""
         self._stream.close()
 
+    @functools.cached_property
+    def _counts(self) -> dict[int, int]:
+        """Messages per channel id: the summary's statistics, else (a file written without
+        them, which MCAP allows) counted by reading the messages."""
+        if self._summary.statistics is not None:
+            return dict(self._summary.statistics.channel_message_counts)
+        counts: dict[int, int] = {}
+        for _schema, channel, _message in self.iter_messages():
+            counts[channel.id] = counts.get(channel.id, 0) + 1
+        return counts
+
     @property
     def channels(self) -> list[ChannelInfo]:
         """Every channel with its message count, in topic order."""
-        counts = self._summary.statistics.channel_message_counts if self._summary.statistics else {}
+        counts = self._counts
         out = []
         for channel_id, channel in self._summary.channels.items():
             schema = self._summary.schemas.get(channel.schema_id)

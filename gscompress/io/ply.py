@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gscompress import __version__
-from gscompress.errors import MapError, PlyFormatError
+from gscompress.errors import MapError, PlyFormatError, led_by
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import (
     APPEARANCE,
@@ -105,7 +105,7 @@ def read_ply(path: str | Path) -> GaussianMap:
     with open(path, "rb") as f:
         head = f.read(_MAX_HEADER_BYTES)
     end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
+    if not head.startswith((b"ply\n", b"ply\r\n")) or end < 0:
         raise PlyFormatError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
     header_end = head.index(b"\n", end) + 1 if b"\n" in head[end:] else -1
     if header_end < 0:
@@ -117,6 +117,13 @@ def read_ply(path: str | Path) -> GaussianMap:
     endian, elements = _parse_header(lines, path)
     offset = header_end
     file_size = path.stat().st_size
+    body = sum(count * np.dtype([(p, endian + t) for p, t in props]).itemsize
+               for _name, count, props in elements)  # fmt: skip
+    if header_end + body < file_size:  # (too short is said below, naming the vertices)
+        raise PlyFormatError(
+            f"{path}: {file_size - header_end - body} bytes after the elements the header "
+            "declares (a wrong vertex count?)"
+        )
     for name, count, props in elements:
         dtype = np.dtype([(p, endian + t) for p, t in props])
         if name == "vertex":
@@ -131,9 +138,7 @@ def read_ply(path: str | Path) -> GaussianMap:
             try:
                 return map_from_columns(cols, str(path)).validate()
             except MapError as exc:
-                message = str(exc)
-                prefix = "" if message.startswith(str(path)) else f"{path}: "
-                raise PlyFormatError(prefix + message) from None
+                raise PlyFormatError(led_by(str(path), str(exc))) from None
         offset += count * dtype.itemsize
     raise PlyFormatError(f"{path}: no vertex element")
 
