@@ -614,14 +614,15 @@ class LogReader:
         which `mcap` would read sequentially) by reading the file's records."""
         stream = self._stream
         if self._summary.chunk_indexes:
-            for index in self._summary.chunk_indexes:
+            for index in self._summary.chunk_indexes:  # each chunk record's own fields
                 stream.seek(index.chunk_start_offset + 25)  # opcode, length, start and end times
                 size, _crc, name_length = struct.unpack("<QII", stream.read(16))
-                stream.seek(name_length + 8, os.SEEK_CUR)  # the compression name, data length
+                if name_length > 64:
+                    raise LogFormatError(f"{self.path}: a chunk names a {name_length}-byte codec")
+                compression = stream.read(name_length).decode("utf-8", "replace")
+                (compressed,) = struct.unpack("<Q", stream.read(8))
                 head = stream.read(18)  # a zstd frame header's longest
-                if size != index.uncompressed_size:
-                    raise LogFormatError(f"{self.path}: a chunk's size disagrees with its index")
-                self._check_chunk(size, index.compressed_size, index.compression, head)
+                self._check_chunk(size, compressed, compression, head)
         else:
             stream.seek(0)
             records = StreamReader(stream, emit_chunks=True, record_size_limit=file_size).records
