@@ -7,6 +7,8 @@ import signal
 import subprocess
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -49,3 +51,29 @@ def terminated(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., tuple[
         return proc.returncode, log.read_text(encoding="utf-8")
 
     return run
+
+
+def rewrite_log(src: Path, dst: Path, profile: str = "", **writer_options: Any) -> None:
+    """Copy a log's messages and metadata through a plain `mcap` writer with `writer_options`
+    (another tool's file: lz4 chunks, no statistics...)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        writer = Writer(out, **writer_options)
+        writer.start(profile, "another tool")
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.id not in channels:
+                assert schema is not None
+                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_id
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from mcap.reader import make_reader
-from mcap.writer import CompressionType, Writer
+from conftest import rewrite_log
+from mcap.writer import CompressionType
 
 from gscompress.gaussians import random_map
 from gscompress.io.mcap_log import (
@@ -204,23 +204,7 @@ def _corrupt_chunk(src, dst):
 def _corrupt_lz4_chunk(src, dst):
     """The log re-chunked with lz4 (as other MCAP tools may write it), then the frame
     descriptor of its largest chunk's lz4 data flipped: lz4 itself rejects the chunk."""
-    with open(src, "rb") as f, open(dst, "wb") as out:
-        reader = make_reader(f)
-        writer = Writer(out, compression=CompressionType.LZ4)
-        writer.start(PROFILE, "another tool")
-        channels: dict[int, int] = {}
-        for schema, channel, message in reader.iter_messages():
-            if channel.id not in channels:
-                schema_id = writer.register_schema(schema.name, schema.encoding, schema.data)
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schema_id
-                )
-            writer.add_message(
-                channels[channel.id], message.log_time, message.data, message.publish_time
-            )
-        for record in reader.iter_metadata():
-            writer.add_metadata(record.name, record.metadata)
-        writer.finish()
+    rewrite_log(src, dst, PROFILE, compression=CompressionType.LZ4)
     with LogReader(dst) as log:
         chunk = max(log._summary.chunk_indexes, key=lambda c: c.compressed_size)
     data = bytearray(dst.read_bytes())

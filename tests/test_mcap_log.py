@@ -5,6 +5,7 @@ import json
 import jsonschema
 import numpy as np
 import pytest
+from conftest import rewrite_log
 from mcap.reader import make_reader
 
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
@@ -268,33 +269,12 @@ def _plain_log(tmp_path):
 
 
 def test_a_log_without_statistics_counts_its_snapshots(tmp_path):
-    from mcap.writer import Writer
-
     source = tmp_path / "a.mcap"
     with LogWriter(source, LogMetadata()) as log:
         for t in range(3):
             log.write_gaussians(random_map(10, seed=t), t)
     path = tmp_path / "no_stats.mcap"  # the same messages, written without a Statistics record
-    with open(source, "rb") as f, open(path, "wb") as out:
-        reader = make_reader(f)
-        writer = Writer(out, use_statistics=False)
-        writer.start()
-        schemas, channels = {}, {}
-        for schema, channel, message in reader.iter_messages():
-            if schema.id not in schemas:
-                schemas[schema.id] = writer.register_schema(
-                    schema.name, schema.encoding, schema.data
-                )
-            if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, schemas[schema.id]
-                )
-            writer.add_message(
-                channels[channel.id], message.log_time, message.data, message.log_time
-            )
-        for record in reader.iter_metadata():
-            writer.add_metadata(record.name, record.metadata)
-        writer.finish()
+    rewrite_log(source, path, use_statistics=False)
     with LogReader(path) as log:
         assert log.snapshot_count == 3
         assert np.array_equal(log.read_map().means, random_map(10, seed=2).means)
