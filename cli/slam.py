@@ -52,11 +52,12 @@ def _interrupted_text(seq: Path, dst: Path) -> str:
         with LogReader(dst) as log:
             results = log.metadata.results
         done, total = int(results["frames"]), int(results["frames_total"])
+        map_frames = int(results.get("map_frames", done))
     except (GscError, OSError, KeyError, TypeError, ValueError):  # (not closed: a kill)
         return f"Interrupted: the frames done so far can be continued with {resume}"
     if not results.get("interrupted"):  # an earlier, finished log (--force) stayed
         return f"Interrupted before the first frame: {dst} was left as it was"
-    note = map_note(done, int(results.get("map_frames", done)))
+    note = map_note(done, map_frames)
     if done == total and not note:
         return (
             f"Interrupted at the end: {dst} holds all {total} frames and the map, its final "

@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 from conftest import rewrite_log
 from mcap.reader import make_reader
+from mcap.writer import IndexType
 
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
 from gscompress.errors import LogFormatError, OutputError
 from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.mcap_log import (
+    _LZ4_MAGIC,
     MAX_CHUNK_BYTES,
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
@@ -261,20 +263,40 @@ def test_a_zstd_frame_declaring_more_than_its_chunk_is_refused_before_decompress
             reader._check_chunk(MAX_CHUNK_BYTES + 1, MAX_CHUNK_BYTES, "", b"")
 
 
-def _plain_log(tmp_path):
+def _plain_log(tmp_path, snapshots=1):
     path = tmp_path / "plain.mcap"
     with LogWriter(path, LogMetadata()) as log:
-        log.write_gaussians(random_map(20), 0)
+        for t in range(snapshots):
+            log.write_gaussians(random_map(10, seed=t), t)
     return path
 
 
 def test_a_log_without_statistics_counts_its_snapshots(tmp_path):
-    source = tmp_path / "a.mcap"
-    with LogWriter(source, LogMetadata()) as log:
-        for t in range(3):
-            log.write_gaussians(random_map(10, seed=t), t)
+    source = _plain_log(tmp_path, snapshots=3)
     path = tmp_path / "no_stats.mcap"  # the same messages, written without a Statistics record
     rewrite_log(source, path, use_statistics=False)
     with LogReader(path) as log:
         assert log.snapshot_count == 3
         assert np.array_equal(log.read_map().means, random_map(10, seed=2).means)
+
+
+@pytest.mark.parametrize("options", [{"use_chunking": False}, {"index_types": IndexType.NONE}])
+def test_an_unindexed_log_gives_its_last_snapshot(tmp_path, options):
+    """mcap reads a file without chunk indexes forwards only, whatever `reverse` says."""
+    source = _plain_log(tmp_path, snapshots=3)
+    path = tmp_path / "unindexed.mcap"
+    rewrite_log(source, path, **options)
+    with LogReader(path) as log:
+        assert not log._summary.chunk_indexes
+        assert np.array_equal(log.read_map().means, random_map(10, seed=2).means)
+        assert np.array_equal(log.read_map(-2).means, random_map(10, seed=1).means)
+        _, _, last = next(iter(log.iter_messages([TOPIC_GAUSSIANS], reverse=True)))
+        assert last.log_time == 2
+
+
+def test_an_lz4_frame_declaring_more_than_its_chunk_is_refused(tmp_path):
+    head = _LZ4_MAGIC + bytes([0x68, 0x40]) + (2**40).to_bytes(8, "little") + bytes(4)
+    with LogReader(_plain_log(tmp_path)) as reader:
+        with pytest.raises(LogFormatError, match=r"lz4 frame declares 1099511627776 bytes"):
+            reader._check_chunk(1000, 500, "lz4", head)
+        reader._check_chunk(1000, 500, "lz4", head[:4] + bytes([0x60]) + head[5:])  # no size

@@ -177,6 +177,8 @@ def test_bytes_beyond_the_declared_elements_and_a_wrong_magic_are_refused(tmp_pa
     path.write_bytes(data + b"\0" * 7)
     with pytest.raises(PlyFormatError, match="7 bytes after the elements the header declares"):
         read_ply(path)
+    path.write_bytes(data + b"\n")  # a line end left by a writer is not data
+    assert len(read_ply(path)) == 100
     path.write_bytes(data.replace(b"element vertex 100", b"element vertex 10", 1))
     with pytest.raises(PlyFormatError, match="a wrong vertex count"):
         read_ply(path)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
-from gscompress.errors import InputError, MapError
+from gscompress.errors import DatasetError, InputError, MapError
 from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, LogReader
 from gscompress.io.recover import read_messages, unfinished_files
 from gscompress.pipeline import share_log, slam_file
@@ -365,3 +366,76 @@ def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resum
     # that map was put back (else the checkpoint after 3 frames would be the last)
     resumed = slam_file(seq_dir, out, resume=True)
     assert resumed["resumed_at"] == 4 and frames_in(out) == list(range(FRAMES))
+
+
+def _signalled_twice_in(position: int):  # type: ignore[no-untyped-def]
+    """SlamSystem.process that stops at once inside the frame at `position`."""
+    process = SlamSystem.process
+
+    def signalled_twice(self, frame):  # type: ignore[no-untyped-def]
+        if len(self.poses) == position:
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+        return process(self, frame)
+
+    return signalled_twice
+
+
+def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
+    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run stopped inside a frame ends on a frame's snapshot (here the first pruning stage's),
+    not an end map; the resumed run keeps it, so every stage still has its snapshot."""
+    config = tmp_path / "c.yaml"
+    config.write_text("preset: tiny\ncheckpoint_every: 0\n")
+    out = tmp_path / "staged.mcap"
+    monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(4))
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config)
+    monkeypatch.undo()
+    slam_file(seq_dir, out, resume=True)
+    with LogReader(out) as log:
+        events = {
+            m.log_time: json.loads(m.data).get("event")
+            for _, _, m in log.iter_messages([TOPIC_STATS])
+        }
+        snapshot_times = [m.log_time for _, _, m in log.iter_messages([TOPIC_GAUSSIANS])]
+        results = log.metadata.results
+    stages = sorted(t for t, event in events.items() if event)
+    assert len(stages) == 2  # both pruning stages ran, the first before the stop
+    assert snapshot_times == [*stages, max(events)]  # each stage's snapshot, then the map
+    assert "error" not in results and results["map_frames"] == results["frames"] == FRAMES
+
+
+def test_resuming_an_injected_run_that_holds_no_map_yet_is_refused(
+    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text("preset: tiny\ncheckpoint_every: 0\nprune: {stages: []}\n")
+    a = tmp_path / "a.mcap"
+    slam_file(seq_dir, a, config_path=config, frames="odd")
+    share = tmp_path / "share.mcap"
+    share_log(a, share, 0.5)
+    b = tmp_path / "b.mcap"
+    monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(2))
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, b, config_path=config, frames="even", inject=share)
+    monkeypatch.undo()
+    with pytest.raises(InputError, match=r"holds no map yet, so not the share .*\(--inject"):
+        slam_file(seq_dir, b, resume=True)
+
+
+def test_a_resume_past_an_error_clears_it(seq_dir: Path, tmp_path: Path) -> None:
+    broken = shutil.copytree(seq_dir, tmp_path / "room")
+    depth = sorted((broken / "depth").glob("*.png"))[3]
+    good = depth.read_bytes()
+    depth.write_bytes(b"not a png")
+    out = tmp_path / "e.mcap"
+    with pytest.raises(DatasetError):
+        slam_file(broken, out, preset="tiny")
+    with LogReader(out) as log:
+        assert "cannot read depth image" in log.metadata.results["error"]
+    depth.write_bytes(good)
+    slam_file(broken, out, resume=True)
+    with LogReader(out) as log:
+        assert "error" not in log.metadata.results and not log.metadata.results["interrupted"]

@@ -82,6 +82,7 @@ MAX_CHUNK_RATIO = 1000
 """A chunk above `_SMALL_CHUNK` bytes may decompress to at most this many times its compressed
 size (a map compresses 1.1-1.5x, JSON records 5-20x; zeros a thousand times and more)."""
 _SMALL_CHUNK = 64 * 2**20
+_LZ4_MAGIC = b"\x04\x22\x4d\x18"
 
 # foxglove.PackedElementField.NumericType values and their numpy equivalents
 _NUMERIC_TYPES: dict[int, np.dtype] = {
@@ -609,8 +610,8 @@ class LogReader:
     def _check_chunks(self, file_size: int) -> None:
         """Refuse a chunk whose decompressed size is implausible before any is decompressed:
         above `MAX_CHUNK_BYTES`, above `MAX_CHUNK_RATIO` times its compressed size, or a zstd
-        frame that declares more than its chunk record (zstandard allocates what the frame
-        declares). Chunks are found through the summary's index, else (an unindexed file,
+        or lz4 frame that declares more than its chunk record (both libraries allocate what the
+        frame declares). Chunks are found through the summary's index, else (an unindexed file,
         which `mcap` would read sequentially) by reading the file's records."""
         stream = self._stream
         if self._summary.chunk_indexes:
@@ -635,14 +636,19 @@ class LogReader:
         stream.seek(0)
 
     def _check_chunk(self, size: int, compressed: int, compression: str, head: bytes) -> None:
-        declared = frame_content_size(head) if compression == "zstd" else -1  # -1: unsaid
+        declared = -1  # what the codec's frame header says it will allocate (-1: unsaid)
+        if compression == "zstd":
+            declared = frame_content_size(head)
+        elif compression == "lz4" and head[:4] == _LZ4_MAGIC and len(head) >= 14 and head[4] & 8:
+            declared = int.from_bytes(head[6:14], "little")  # FLG bit 3: a content size follows
         if size > MAX_CHUNK_BYTES or size > max(_SMALL_CHUNK, MAX_CHUNK_RATIO * compressed):
             raise LogFormatError(
                 f"{self.path}: a chunk of {compressed} bytes claims {size} bytes uncompressed"
             )
         if declared > size:
             raise LogFormatError(
-                f"{self.path}: a chunk's zstd frame declares {declared} bytes, its record {size}"
+                f"{self.path}: a chunk's {compression} frame declares {declared} bytes, its "
+                f"record {size}"
             )
 
     def __enter__(self) -> LogReader:
@@ -703,9 +709,12 @@ class LogReader:
     def iter_messages(
         self, topics: Sequence[str] | None = None, reverse: bool = False
     ) -> Iterator[tuple[Schema | None, Channel, McapMessage]]:
-        """Raw (schema, channel, message) records in log-time order."""
+        """Raw (schema, channel, message) records in log-time order (or the reverse)."""
         with self._guard():
-            yield from self._reader.iter_messages(topics=topics, reverse=reverse)
+            if reverse and not self._summary.chunk_indexes:  # mcap reads such a file forwards
+                yield from reversed(list(self._reader.iter_messages(topics=topics)))
+            else:
+                yield from self._reader.iter_messages(topics=topics, reverse=reverse)
 
     def read_map(self, snapshot: int = -1) -> GaussianMap:
         """Decode map snapshot `snapshot` (Python indexing: -1 is the last, "the map").

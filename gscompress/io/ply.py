@@ -119,9 +119,10 @@ def read_ply(path: str | Path) -> GaussianMap:
     file_size = path.stat().st_size
     body = sum(count * np.dtype([(p, endian + t) for p, t in props]).itemsize
                for _name, count, props in elements)  # fmt: skip
-    if header_end + body < file_size:  # (too short is said below, naming the vertices)
+    extra = file_size - header_end - body  # (too few is said below, naming the vertices)
+    if extra > 0 and (extra > 16 or _tail(path, extra).strip(b" \t\r\n")):
         raise PlyFormatError(
-            f"{path}: {file_size - header_end - body} bytes after the elements the header "
+            f"{path}: {extra} byte{'s' if extra != 1 else ''} after the elements the header "
             "declares (a wrong vertex count?)"
         )
     for name, count, props in elements:
@@ -141,6 +142,13 @@ def read_ply(path: str | Path) -> GaussianMap:
                 raise PlyFormatError(led_by(str(path), str(exc))) from None
         offset += count * dtype.itemsize
     raise PlyFormatError(f"{path}: no vertex element")
+
+
+def _tail(path: Path, count: int) -> bytes:
+    """The last `count` bytes of a file (a line end some writers leave is ignored)."""
+    with open(path, "rb") as f:
+        f.seek(-count, 2)
+        return f.read()
 
 
 def _parse_header(

@@ -305,7 +305,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         if r[1].topic == TOPIC_CALIBRATION or (done and r[2].log_time <= cut)
     ]
     restart_map = None
-    if contents.finished and last is not None:
+    if contents.finished and last is not None and _is_end_map(last, snapshots, by_topic):
         carried = [r for r in carried if r[2] is not last[2]]  # rewritten at the real end
         restart_map = last  # (or put back, if this run ends without a map of its own)
 
@@ -314,6 +314,11 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     run.carried, run.leftovers = carried, leftovers
     run.map_frames, run.restart_map = done, restart_map
     if done == 0:
+        if any(p.get("operation", {}).get("name") == "inject" for p in meta.provenance):
+            raise InputError(
+                f"{dst} holds no map yet, so not the share it started with: run it afresh "
+                "(--inject SHARE --force)"
+            )
         run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
         return run
     assert last is not None
@@ -343,6 +348,19 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     run.t_ns = cut
     log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
     return run
+
+
+def _is_end_map(last: Record, snapshots: list[Record], by_topic: dict[str, list[Record]]) -> bool:
+    """Whether a closed log's last snapshot is the map a run writes after its last whole frame
+    (which the resumed run writes anew at its own end), rather than one a frame wrote (a
+    pruning stage's or a checkpoint, which stays: a run stopped inside a frame writes no end
+    map). The end map shares its time with its frame's stats record and, when that frame
+    wrote a snapshot too, with that snapshot."""
+    t = last[2].log_time
+    if sum(1 for r in snapshots if r[2].log_time == t) > 1:
+        return True
+    stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time == t]
+    return not any(s.get("event") for s in stats)
 
 
 def _own_ids_from(provenance: list[dict[str, Any]]) -> int:
@@ -443,6 +461,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
     # resolved now so that a first-use kernel build is not timed; recorded with the timings
     backend = resolve_backend(run.config.backend, system.device)
     start = time.perf_counter()
+    earlier = meta.results.pop("gaussians", None)  # (a resumed log's: its end map's count)
+    meta.results.pop("error", None)
     with LogWriter(dst, meta, inputs=run.inputs, force=True) as out:
         if run.carried:
             for schema, channel, message in run.carried:
@@ -480,6 +500,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             run.map_frames = done
         elif run.restart_map is not None and run.map_frames == run.start:
             out.copy_message(*run.restart_map)  # the map this run started from is still the last
+            if earlier is not None:
+                meta.results["gaussians"] = earlier
         meta.results.update(
             {
                 "frames": done,
