@@ -336,36 +336,10 @@ def test_unfinished_files_are_this_outputs_and_not_a_live_writers(tmp_path: Path
         live.discard()
 
 
-def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resume_redoes(
-    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    from gscompress_cli.slam import _interrupted_text
-
-    config = tmp_path / "c.yaml"
-    config.write_text("preset: tiny\ncheckpoint_every: 3\nprune: {stages: []}\n")
-    out = tmp_path / "twice.mcap"
-    with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config, progress=stop_after(4))  # a map after 4
-    process = SlamSystem.process
-
-    def signalled_twice(self, frame):  # type: ignore[no-untyped-def]
-        if len(self.poses) == 5:  # inside the resumed run's second frame
-            os.kill(os.getpid(), signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGINT)  # "again to stop at once"
-        return process(self, frame)
-
-    monkeypatch.setattr(SlamSystem, "process", signalled_twice)
-    with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, resume=True)
-    monkeypatch.setattr(SlamSystem, "process", process)
-    assert frames_in(out) == [0, 1, 2, 3, 4]  # frame 5 was cut, and no map after frame 4
-    with LogReader(out) as log:
-        assert log.metadata.results["map_frames"] == 4  # the map the resumed run started from
-    said = _interrupted_text(seq_dir, out)
-    assert f"holds 5 of {FRAMES} frames (its last map covers the first 4: a resume" in said
-    # that map was put back (else the checkpoint after 3 frames would be the last)
-    resumed = slam_file(seq_dir, out, resume=True)
-    assert resumed["resumed_at"] == 4 and frames_in(out) == list(range(FRAMES))
+def _tiny_config(tmp_path: Path, settings: str) -> Path:
+    path = tmp_path / "c.yaml"
+    path.write_text("preset: tiny\n" + settings)
+    return path
 
 
 def _signalled_twice_in(position: int):  # type: ignore[no-untyped-def]
@@ -381,13 +355,35 @@ def _signalled_twice_in(position: int):  # type: ignore[no-untyped-def]
     return signalled_twice
 
 
+def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resume_redoes(
+    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from gscompress_cli.slam import _interrupted_text
+
+    config = _tiny_config(tmp_path, "checkpoint_every: 3\nprune: {stages: []}\n")
+    out = tmp_path / "twice.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config, progress=stop_after(4))  # a map after 4
+    monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(5))  # the resumed 2nd frame
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, resume=True)
+    monkeypatch.undo()
+    assert frames_in(out) == [0, 1, 2, 3, 4]  # frame 5 was cut, and no map after frame 4
+    with LogReader(out) as log:
+        assert log.metadata.results["map_frames"] == 4  # the map the resumed run started from
+    said = _interrupted_text(seq_dir, out)
+    assert f"holds 5 of {FRAMES} frames (its last map covers the first 4: a resume" in said
+    # that map was put back (else the checkpoint after 3 frames would be the last)
+    resumed = slam_file(seq_dir, out, resume=True)
+    assert resumed["resumed_at"] == 4 and frames_in(out) == list(range(FRAMES))
+
+
 def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
     seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A run stopped inside a frame ends on a frame's snapshot (here the first pruning stage's),
     not an end map; the resumed run keeps it, so every stage still has its snapshot."""
-    config = tmp_path / "c.yaml"
-    config.write_text("preset: tiny\ncheckpoint_every: 0\n")
+    config = _tiny_config(tmp_path, "checkpoint_every: 0\n")
     out = tmp_path / "staged.mcap"
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(4))
     with pytest.raises(KeyboardInterrupt):
@@ -410,8 +406,7 @@ def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
 def test_resuming_an_injected_run_that_holds_no_map_yet_is_refused(
     seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    config = tmp_path / "c.yaml"
-    config.write_text("preset: tiny\ncheckpoint_every: 0\nprune: {stages: []}\n")
+    config = _tiny_config(tmp_path, "checkpoint_every: 0\nprune: {stages: []}\n")
     a = tmp_path / "a.mcap"
     slam_file(seq_dir, a, config_path=config, frames="odd")
     share = tmp_path / "share.mcap"
