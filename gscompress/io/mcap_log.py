@@ -550,10 +550,12 @@ class ChannelInfo:
 class LogReader:
     """Reads a gscompress log; use as a context manager.
 
-    Opening reads only the summary and the metadata record; maps are decoded on demand.
+    Opening reads the summary, each chunk record's header (see `_check_chunks`) and the
+    metadata record; maps are decoded on demand. Files from other MCAP writers are read too:
+    without statistics, chunk indexes (read forwards) or chunking.
 
     Raises:
-        LogFormatError: the file is not a readable MCAP, is truncated or unindexed, has a
+        LogFormatError: the file is not a readable MCAP, is truncated (no summary), has a
             hostile size field, or was written by a newer major profile version.
     """
 
