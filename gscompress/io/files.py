@@ -10,6 +10,7 @@ import hashlib
 import json
 import math
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -125,6 +126,18 @@ class AtomicFile:
 def temporary_path(path: Path, pid: int) -> Path:
     """Where process `pid` writes `path` until it is complete: `.NAME.PID.tmp` beside it."""
     return path.with_name(f".{path.name}.{pid}.tmp")
+
+
+def abandoned_files(folder: Path, name: str | None = None) -> list[Path]:
+    """Temporary files (`temporary_path`'s) that writers killed before they committed left in
+    `folder`, of output `name` (None: of any output), newest first; none a live writer holds."""
+    pattern = re.compile(rf"\.{re.escape(name) if name is not None else '.+'}\.\d+\.tmp")
+    found = []
+    for entry in folder.iterdir() if folder.is_dir() else ():
+        if pattern.fullmatch(entry.name) and not is_being_written(entry):
+            with contextlib.suppress(FileNotFoundError):  # removed meanwhile
+                found.append((entry.stat().st_mtime, entry))
+    return [entry for _, entry in sorted(found, reverse=True)]
 
 
 def is_being_written(path: Path) -> bool:

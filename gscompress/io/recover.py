@@ -9,8 +9,6 @@ leaves that file: no summary, a truncated last record, but every flushed chunk i
 
 from __future__ import annotations
 
-import contextlib
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,7 +16,7 @@ from mcap.reader import StreamReader
 from mcap.records import Channel, Message, Metadata, Schema
 
 from gscompress.errors import LogFormatError
-from gscompress.io.files import is_being_written
+from gscompress.io.files import abandoned_files
 from gscompress.io.mcap_log import (
     METADATA_NAME,
     LogMetadata,
@@ -50,13 +48,7 @@ def unfinished_files(path: str | Path) -> list[Path]:
     `.NAME.PID.tmp` (not another output's whose name starts alike), and none a live writer
     still holds."""
     path = Path(path)
-    name = re.compile(rf"\.{re.escape(path.name)}\.\d+\.tmp")  # `temporary_path`'s names
-    found = []
-    for entry in path.parent.iterdir() if path.parent.is_dir() else ():
-        if name.fullmatch(entry.name) and not is_being_written(entry):
-            with contextlib.suppress(FileNotFoundError):  # removed meanwhile
-                found.append((entry.stat().st_mtime, entry))
-    return [entry for _, entry in sorted(found, reverse=True)]
+    return abandoned_files(path.parent, path.name)
 
 
 def resume_sources(path: str | Path) -> list[Path]:

@@ -53,8 +53,8 @@ from gscompress import __version__
 from gscompress.errors import InputError, OptionError
 from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import (
+    abandoned_files,
     check_only_entries,
-    is_being_written,
     is_within,
     json_text,
     write_text_atomic,
@@ -272,9 +272,8 @@ class _Runner:
         self.seq, self.settings, self.progress, self.total = seq, settings, progress, total
         self.runs = out / "runs"
         self.runs.mkdir(parents=True, exist_ok=True)
-        for unfinished in self.runs.glob(".*.tmp"):  # a killed runner's workers' (no record
-            if not is_being_written(unfinished):  # points at them: their steps are redone)
-                unfinished.unlink(missing_ok=True)
+        for unfinished in abandoned_files(self.runs):  # a killed runner's workers' (no record
+            unfinished.unlink(missing_ok=True)  # points at them: their steps are redone)
         self.done = 0
         self.reused = 0
         self._lock = threading.Lock()
