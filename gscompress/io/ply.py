@@ -117,16 +117,16 @@ def read_ply(path: str | Path) -> GaussianMap:
     endian, elements = _parse_header(lines, path)
     offset = header_end
     file_size = path.stat().st_size
-    body = sum(count * np.dtype([(p, endian + t) for p, t in props]).itemsize
-               for _name, count, props in elements)  # fmt: skip
+    layout = [(name, count, props, np.dtype([(p, endian + t) for p, t in props]))
+              for name, count, props in elements]  # fmt: skip
+    body = sum(count * dtype.itemsize for _name, count, _props, dtype in layout)
     extra = file_size - header_end - body  # (too few is said below, naming the vertices)
     if extra > 0 and (extra > 16 or _tail(path, extra).strip(b" \t\r\n")):
         raise PlyFormatError(
             f"{path}: {extra} byte{'s' if extra != 1 else ''} after the elements the header "
             "declares (a wrong vertex count?)"
         )
-    for name, count, props in elements:
-        dtype = np.dtype([(p, endian + t) for p, t in props])
+    for name, count, props, dtype in layout:
         if name == "vertex":
             if offset + count * dtype.itemsize > file_size:
                 raise PlyFormatError(

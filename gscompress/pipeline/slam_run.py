@@ -314,7 +314,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     run.carried, run.leftovers = carried, leftovers
     run.map_frames, run.restart_map = done, restart_map
     if done == 0:
-        if any(p.get("operation", {}).get("name") == "inject" for p in meta.provenance):
+        if _injections(meta.provenance):
             raise InputError(
                 f"{dst} holds no map yet, so not the share it started with: run it afresh "
                 "(--inject SHARE --force)"
@@ -363,10 +363,15 @@ def _is_end_map(last: Record, snapshots: list[Record], by_topic: dict[str, list[
     return not any(s.get("event") for s in stats)
 
 
+def _injections(provenance: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The injection steps (their operations) of a log's provenance."""
+    steps = [p.get("operation", {}) for p in provenance]
+    return [s for s in steps if s.get("name") == "inject"]
+
+
 def _own_ids_from(provenance: list[dict[str, Any]]) -> int:
     """The `own_ids_from` an injection recorded in a log's provenance (0: none)."""
-    steps = [p.get("operation", {}) for p in provenance]
-    return max([int(s.get("own_ids_from", 0)) for s in steps if s.get("name") == "inject"] + [0])
+    return max([int(s.get("own_ids_from", 0)) for s in _injections(provenance)] + [0])
 
 
 def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> dict[str, Any]:
