@@ -42,6 +42,11 @@ class BudgetError(GscError):
     """A selection budget that cannot be met."""
 
 
+class DivergenceError(GscError):
+    """An optimisation (tracking, mapping, a refinement) whose loss or parameters stopped being
+    finite: its learning rates are too high for the data."""
+
+
 class MissingDependencyError(GscError):
     """An optional dependency that the requested feature needs is not installed."""
 

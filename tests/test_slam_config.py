@@ -53,6 +53,11 @@ def test_partial_file_applies_on_top_of_its_preset(tmp_path):
         ("preset: nope\n", "unknown SLAM preset"),
         ("- 1\n", "mapping"),
         ("mapping: [1\n", "cannot read config"),
+        ("mapping:\n  lr_means: .inf\n", "mapping.lr_means: expected a finite number, got inf"),
+        ("pwas:\n  sigma_d: .nan\n", "pwas.sigma_d: expected a finite number"),
+        ("prune:\n  stages: [0.5, .nan]\n", "expected a list of finite numbers"),
+        ("mapping:\n  lr_colors: 1.0e+38\n", "learning rates must be at most 1000"),
+        ("tracking:\n  lr_translation: 1001\n", "learning rates must be at most 1000"),
     ],
 )
 def test_bad_files_are_refused_with_a_clear_message(tmp_path, text, message):

@@ -13,10 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
-from gscompress.errors import DatasetError, InputError, MapError
+from gscompress.errors import DatasetError, DivergenceError, InputError, MapError
 from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, LogReader
 from gscompress.io.recover import read_messages, unfinished_files
 from gscompress.pipeline import share_log, slam_file
@@ -434,3 +435,27 @@ def test_a_resume_past_an_error_clears_it(seq_dir: Path, tmp_path: Path) -> None
     slam_file(broken, out, resume=True)
     with LogReader(out) as log:
         assert "error" not in log.metadata.results and not log.metadata.results["interrupted"]
+
+
+def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
+    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = _tiny_config(tmp_path, "checkpoint_every: 2\nprune: {stages: []}\n")
+    process = SlamSystem.process
+
+    def diverging(self, frame):  # type: ignore[no-untyped-def]
+        if len(self.poses) == 3:
+            with torch.no_grad():
+                self.mapper.params.means[0] = float("nan")
+        return process(self, frame)
+
+    monkeypatch.setattr(SlamSystem, "process", diverging)
+    out = tmp_path / "diverged.mcap"
+    with pytest.raises(DivergenceError, match="diverged"):
+        slam_file(seq_dir, out, config_path=config)
+    assert frames_in(out) == [0, 1, 2]
+    with LogReader(out) as log:
+        results = log.metadata.results
+        gaussians = log.read_map(-1)  # validated: the checkpoint after frame 2, not the NaN map
+    assert results["map_frames"] == 2 and "DivergenceError" in results["error"]
+    assert len(gaussians) > 0

@@ -8,7 +8,7 @@ import torch
 
 from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
 from gscompress.datasets.synthetic import synthetic_sequence
-from gscompress.errors import MapError
+from gscompress.errors import BudgetError, DivergenceError, MapError
 from gscompress.gaussians import SH_C0, random_map
 from gscompress.ops.select import STRATEGIES, keep_count, strategy_scores
 from gscompress.render import render
@@ -132,6 +132,53 @@ def test_mapping_reduces_the_loss(seq):
     stats = mapper.optimize(view, [], 30, rng)
     assert stats.iters == 30 and mapper.iterations == 30
     assert stats.last_loss < 0.7 * stats.first_loss
+
+
+def test_a_map_that_diverged_stops_the_mapping_and_the_tracking(seq):
+    frame = seq.frame(0)
+    g = gaussians_from_rgbd(frame.color, frame.depth, seq.intrinsics, frame.T_world_cam)
+    view = View(0, torch.from_numpy(frame.color), torch.from_numpy(frame.depth), frame.T_world_cam)
+    mapper = Mapper(preset("tiny"), seq.intrinsics, torch.device("cpu"))
+    mapper.add(g)
+    with torch.no_grad():
+        mapper.params.sh_dc[3] = float("nan")
+    before = mapper.params.means.detach().clone()
+    with pytest.raises(DivergenceError, match=r"mapping diverged \(its loss became nan\): .*lr_"):
+        mapper.optimize(view, [], 5, np.random.default_rng(0))
+    assert torch.equal(mapper.params.means.detach(), before)  # no step was taken with it
+    with pytest.raises(DivergenceError, match="mapping diverged"):
+        mapper.refine([view], 5, np.random.default_rng(0))
+    with pytest.raises(DivergenceError, match="tracking diverged"):
+        track(
+            mapper.params.render_inputs(), view.color, view.depth, seq.intrinsics,
+            frame.T_world_cam, preset("tiny").tracking,
+        )  # fmt: skip
+
+
+def test_a_step_that_leaves_an_infinity_in_the_map_is_caught_at_once(seq, monkeypatch):
+    frame = seq.frame(0)
+    g = gaussians_from_rgbd(frame.color, frame.depth, seq.intrinsics, frame.T_world_cam)
+    view = View(0, torch.from_numpy(frame.color), torch.from_numpy(frame.depth), frame.T_world_cam)
+    mapper = Mapper(preset("tiny"), seq.intrinsics, torch.device("cpu"))
+    mapper.add(g)
+    step = mapper.optimizer.step
+
+    def overflowing_step() -> None:
+        step()
+        with torch.no_grad():
+            mapper.params.log_scales[0] = float("inf")
+
+    monkeypatch.setattr(mapper.optimizer, "step", overflowing_step)
+    with pytest.raises(DivergenceError, match=r"\(log_scales hold non-finite values\)"):
+        mapper.optimize(view, [], 1, np.random.default_rng(0))  # the last step: no next loss
+
+
+def test_a_stage_with_nothing_scored_says_what_went_wrong(seq):
+    config = replace(preset("tiny"), pwas=replace(preset("tiny").pwas, sigma_d=1e-4))
+    system = SlamSystem(config, seq.intrinsics, "cpu", total_frames=len(seq))
+    with pytest.raises(BudgetError, match="pruning stage 1: none of the map's Gaussians has a pw"):
+        for i in range(len(seq)):
+            system.process(seq.frame(i))
 
 
 def test_cleanup_removes_transparent_and_huge_gaussians(seq):

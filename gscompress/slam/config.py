@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -381,8 +382,9 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
             raise InputError(f"{where}: expected an integer, got {value!r}")
         return value
     if isinstance(old, float):
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise InputError(f"{where}: expected a number, got {value!r}")
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not math.isfinite(value):
+            raise InputError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if isinstance(old, str):
         if not isinstance(value, str):
@@ -390,11 +392,17 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
         return value
     if isinstance(old, tuple):
         if not isinstance(value, list | tuple) or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) for v in value
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            for v in value
         ):
-            raise InputError(f"{where}: expected a list of numbers, got {value!r}")
+            raise InputError(f"{where}: expected a list of finite numbers, got {value!r}")
         return tuple(float(v) for v in value)
     raise InputError(f"{where}: cannot set this field")  # pragma: no cover
+
+
+MAX_LEARNING_RATE = 1e3
+"""Largest learning rate a config takes. An Adam step moves a parameter by about its rate, so
+far smaller ones already diverge; far larger ones overflow float32 in the step itself."""
 
 
 def check_config(config: SlamConfig) -> None:
@@ -414,12 +422,11 @@ def check_config(config: SlamConfig) -> None:
         all(v > 0 for v in (t.lr_rotation, t.lr_translation, t.gamma_color, t.gamma_depth, t.rho)),
         "tracking learning rates, gammas and rho must be positive",
     )
+    mapping_rates = (m.lr_means, m.lr_colors, m.lr_quats, m.lr_opacity_logits, m.lr_log_scales)
+    need(all(v >= 0 for v in mapping_rates), "mapping learning rates must be >= 0")
     need(
-        all(
-            v >= 0
-            for v in (m.lr_means, m.lr_colors, m.lr_quats, m.lr_opacity_logits, m.lr_log_scales)
-        ),
-        "mapping learning rates must be >= 0",
+        max(t.lr_rotation, t.lr_translation, *mapping_rates) <= MAX_LEARNING_RATE,
+        f"learning rates must be at most {MAX_LEARNING_RATE:g}",
     )
     need(0.0 <= t.silhouette_min < 1.0, "tracking.silhouette_min must be in [0, 1)")
     need(0.0 <= m.ssim_weight <= 1.0, "mapping.ssim_weight must be in [0, 1]")

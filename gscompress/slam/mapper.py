@@ -12,6 +12,7 @@ cleanup).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -19,12 +20,15 @@ import numpy as np
 import torch
 
 from gscompress.camera import Intrinsics
+from gscompress.errors import DivergenceError
 from gscompress.gaussians import SH_C0, GaussianMap
 from gscompress.render import render
 from gscompress.slam.config import SlamConfig
 from gscompress.slam.keyframes import View
 from gscompress.slam.losses import LossTerms, mapping_loss
 from gscompress.slam.params import Adam, GaussianParams, decay_per_step
+
+TOO_HIGH = "its learning rates, mapping.lr_*, are too high for the data"
 
 
 @dataclass
@@ -137,6 +141,7 @@ class Mapper:
             self.iterations += 1
             if every > 0 and self.iterations % every == 0:
                 stats.removed += self.cleanup()
+        self._check_finite()
         return stats.averaged()
 
     def refine(
@@ -179,6 +184,7 @@ class Mapper:
         finally:  # the per-frame mapping goes on at its own rates
             for group, lr in zip(self.optimizer.param_groups, base, strict=True):
                 group["lr"] = lr
+        self._check_finite()
         if stats.iters and self.config.prune.opacity_every > 0:
             stats.removed += self.cleanup(huge=False)
         return stats.averaged()
@@ -199,13 +205,28 @@ class Mapper:
         edges = view.edges(m.illum_edge_sigma) if m.illum_tau > 0 else None
         return mapping_loss(out, view.color, view.depth, m, edges)
 
+    def _check_finite(self) -> None:
+        """Raise DivergenceError if a step left a NaN or an infinity in the map (the next
+        step's loss would show it, but the map may be written first)."""
+        bad = self.params.non_finite()
+        if bad:
+            raise DivergenceError(
+                f"mapping diverged ({', '.join(bad)} hold non-finite values): {TOO_HIGH}"
+            )
+
     def _step(self, view: View, stats: MappingStats) -> None:
-        """One Adam step of the mapping loss on one view; adds its losses to `stats`."""
+        """One Adam step of the mapping loss on one view; adds its losses to `stats`.
+
+        Raises:
+            DivergenceError: the loss is not finite (the map is not stepped).
+        """
         terms = self._terms(view)
+        value = float(terms.total.detach())
+        if not math.isfinite(value):
+            raise DivergenceError(f"mapping diverged (its loss became {value}): {TOO_HIGH}")
         self.optimizer.zero_grad()
         terms.total.backward()
         self.optimizer.step()
-        value = float(terms.total.detach())
         stats.first_loss = value if stats.iters == 0 else stats.first_loss
         stats.last_loss = value
         stats.iters += 1

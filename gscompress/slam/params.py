@@ -202,6 +202,11 @@ class GaussianParams:
         """One scale per Gaussian."""
         return self.log_scales.shape[1] == 1
 
+    def non_finite(self) -> list[str]:
+        """The names of the trainable tensors holding a NaN or an infinity."""
+        with torch.no_grad():
+            return [name for name in TRAINABLE if not bool(getattr(self, name).isfinite().all())]
+
     def render_inputs(self) -> RenderInputs:
         """The activated parameters (differentiable w.r.t. the leaves)."""
         return activate(self.means, self.log_scales, self.quats, self.opacity_logits, self.sh_dc)

@@ -42,7 +42,7 @@ import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.datasets.base import Frame
-from gscompress.errors import InputError, MapError
+from gscompress.errors import BudgetError, InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.select import keep_count, strategy_scores, top_k
 from gscompress.render import render, resolve_device
@@ -412,7 +412,15 @@ class SlamSystem:
         if own.size == 0:
             return 0
         by = self.config.prune.by if by is None else by
-        scores = strategy_scores(gaussians.select(own), by, seed=self.config.seed * 1000 + stage)
+        seed = self.config.seed * 1000 + stage
+        try:
+            scores = strategy_scores(gaussians.select(own), by, seed=seed)
+        except BudgetError:  # (the map is not empty: no frame has seen any of it)
+            raise BudgetError(
+                f"pruning stage {stage}: none of the map's Gaussians has a {by} score (no frame "
+                "saw any with a weight above 0: mapping.lr_* too high for the data, or too "
+                "small a pwas.sigma_d?)"
+            ) from None
         kept = own[
             top_k(scores, ids[own], keep_count(own.size, keep, "keep ratio (--keep, prune.keep)"))
         ]

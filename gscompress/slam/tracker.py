@@ -20,16 +20,20 @@ final iterate.)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from gscompress.camera import Intrinsics, invert_transform, quat_to_rotmat
+from gscompress.errors import DivergenceError
 from gscompress.render import render
 from gscompress.slam.config import TrackingConfig
 from gscompress.slam.losses import tracking_loss
 from gscompress.slam.params import RenderInputs, decay_per_step
+
+TOO_HIGH = "its learning rates, tracking.lr_rotation and lr_translation, are too high for the data"
 
 
 @dataclass
@@ -180,6 +184,8 @@ def track(
         if terms.pixels == 0:
             break
         last_loss, pixels = float(terms.total.detach()), terms.pixels
+        if not math.isfinite(last_loss):
+            raise DivergenceError(f"tracking diverged (its loss became {last_loss}): {TOO_HIGH}")
         if done == 0:
             first_loss = last_loss
         terms.total.backward()
@@ -188,6 +194,8 @@ def track(
         g_T = np.zeros((4, 4)) if grad is None else grad.cpu().double().numpy()
         x = adam.step(x, pose_gradient(x, T0, g_T))
         done += 1
+    if not np.isfinite(x).all():
+        raise DivergenceError(f"tracking diverged (the pose is not finite): {TOO_HIGH}")
     T_cam_world = pose_increment(x) @ T0
     return TrackResult(
         T_world_cam=orthonormalize(invert_transform(T_cam_world)),
