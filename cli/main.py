@@ -2,9 +2,9 @@
 
 Commands are loaded lazily from their own modules, so that `gsc info` never pays for importing
 torch or the SLAM code. Options that do not go together (`OptionError`) are a usage error,
-exit code 2; any other `GscError`, or an error of the file system (`OSError`: no space, no
-permission), is a one-line message and exit code 1; anything else is a bug and keeps its
-traceback.
+exit code 2; any other `GscError`, an error of the file system (`OSError`: no space, no
+permission) or running out of memory is a one-line message and exit code 1; anything else is a
+bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -123,15 +123,22 @@ class GscGroup(click.Group):
         except click.UsageError as exc:
             raise one_line(exc) from None
         except OSError as exc:  # the file system said no: a full disk, a read-only folder...
-            if exc.errno is None:
-                raise
             raise click.ClickException(os_error_message(exc)) from None
+        except MemoryError:
+            raise click.ClickException(OUT_OF_MEMORY) from None
+        except RuntimeError as exc:  # torch's allocator says it so
+            if "can't allocate memory" not in str(exc):
+                raise
+            raise click.ClickException(OUT_OF_MEMORY) from None
+
+
+OUT_OF_MEMORY = "out of memory (a smaller working size, --size, needs less)"
 
 
 def os_error_message(exc: OSError) -> str:
     """One line for an error of the file system, naming the file the user asked for rather
     than the temporary one it was being written under (`.NAME.PID.tmp`, `.NAME.XXXX.tmp`)."""
-    reason = exc.strerror or str(exc)
+    reason = exc.strerror or f"input/output error: {exc}"  # (no errno: numpy's short write)
     if exc.filename is None:
         return reason
     path = Path(os.fsdecode(exc.filename))

@@ -121,9 +121,10 @@ class Size(click.ParamType):
     ) -> tuple[int, int]:
         if isinstance(value, tuple):
             return value
-        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(value))
+        m = re.fullmatch(r"\s*(\d{1,9})\s*[xX]\s*(\d{1,9})\s*", str(value))
         if m is None or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
-            self.fail(f"{value!r} is not a size WxH of positive integers, e.g. 320x240", param, ctx)
+            shown = repr(str(value)[:40] + ("..." if len(str(value)) > 40 else ""))
+            self.fail(f"{shown} is not a size WxH of positive integers, e.g. 320x240", param, ctx)
         return int(m.group(1)), int(m.group(2))
 
 

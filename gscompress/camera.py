@@ -59,6 +59,7 @@ def quat_to_rotmat(q_wxyz: np.ndarray) -> np.ndarray:
         [..., 3, 3] rotation matrices (float64).
     """
     q = np.asarray(q_wxyz, dtype=np.float64)
+    q = q / np.abs(q).max(axis=-1, keepdims=True)  # (so that the norm cannot overflow)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     w, x, y, z = np.moveaxis(q, -1, 0)
     R = np.stack(

@@ -175,6 +175,25 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
     assert all(json.loads(p.read_text())["spec"]["lr_final"] == 0.5 for p in merges)
 
 
+def test_a_damaged_run_record_is_a_run_to_do_again(
+    experiment: tuple[Path, Path, dict], tmp_path: Path
+) -> None:
+    seq, out, first = experiment
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    damaged = {"full_pwas": b"\xff\xfe not text", "full_no_prune": b"[]"}
+    for name, data in damaged.items():
+        (copy / "runs" / f"{name}.json").write_bytes(data)
+    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    again = json.loads(r.output)
+    assert again["steps"] - again["reused"] == len(damaged)  # those two, nothing else
+    for name in damaged:
+        assert json.loads((copy / "runs" / f"{name}.json").read_text())["result"]
+
+
 def test_bad_settings_are_refused() -> None:
     with pytest.raises(InputError, match="random and pwas"):
         ExperimentSettings(strategies=("opacity",)).check()

@@ -20,6 +20,7 @@ from PIL import Image
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import DatasetError, InputError, OptionError
+from gscompress.io.files import read_text
 
 
 @dataclass(frozen=True)
@@ -138,6 +139,8 @@ def parse_frames(spec: str | FrameSelection) -> FrameSelection:
     m = _SLICE_RE.match(text)
     if m is None:
         raise InputError(f"bad frame subset {spec!r}: use all, odd, even or START:STOP:STEP")
+    if max(len(part or "") for part in m.groups()) > 18:  # (int() refuses 4300 digits)
+        raise InputError("bad frame subset: an index of over 18 digits")
     start = int(m.group(1)) if m.group(1) not in ("", "-") else None
     stop = int(m.group(2)) if m.group(2) not in ("", "-") else None
     if m.group(1) == "-" or m.group(2) == "-":
@@ -367,10 +370,8 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
         DatasetError: missing file, bad JSON, or missing / non-positive fields.
     """
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DatasetError(f"intrinsics file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = json.loads(read_text(path, "intrinsics", DatasetError))
+    except (ValueError, RecursionError) as exc:  # (JSONDecodeError; ints over 4300 digits)
         raise DatasetError(f"cannot read intrinsics file {path}: {exc}") from None
     if isinstance(data, dict) and isinstance(data.get("camera"), dict):
         data = dict(data["camera"])
@@ -380,6 +381,8 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
     if not isinstance(data, dict):
         raise DatasetError(f"intrinsics file {path}: expected a JSON object")
     try:
+        if any(isinstance(data.get(k), bool) for k in ("fx", "fy", "cx", "cy", "width", "height")):
+            raise TypeError("true/false is not a number")
         fx, fy, cx, cy = (float(data[k]) for k in ("fx", "fy", "cx", "cy"))
         width, height = int(data["width"]), int(data["height"])
         scale = data.get("depth_scale")

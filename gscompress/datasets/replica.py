@@ -24,6 +24,7 @@ from gscompress.datasets.base import (
     read_intrinsics_file,
 )
 from gscompress.errors import DatasetError
+from gscompress.io.files import read_text
 
 REPLICA_INTRINSICS = Intrinsics(600.0, 600.0, 599.5, 339.5, 1200, 680)
 REPLICA_DEPTH_SCALE = 6553.5
@@ -45,10 +46,7 @@ def read_replica_traj(path: Path) -> np.ndarray:
     not_a_pose = "expected 16 finite numbers (a 4x4 pose)"
     rows: list[list[float]] = []
     linenos: list[int] = []
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"cannot read {path}: {exc}") from None
+    lines = read_text(path, "trajectory", DatasetError).splitlines()
     for lineno, raw in enumerate(lines, start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:

@@ -38,6 +38,7 @@ from gscompress.datasets.base import (
     read_intrinsics_file,
 )
 from gscompress.errors import DatasetError, InputError, OutputError
+from gscompress.io.files import read_text
 from gscompress.io.trajectory import format_tum_trajectory, read_tum_trajectory
 
 TUM_DEPTH_SCALE = 5000.0
@@ -66,12 +67,7 @@ def freiburg_intrinsics(name: str) -> Intrinsics | None:
 
 def read_file_list(path: Path) -> list[tuple[float, str]]:
     """`timestamp path` rows of rgb.txt / depth.txt; comments and blank lines skipped."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise DatasetError(f"file list not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"cannot read {path}: {exc}") from None
+    text = read_text(path, "file list", DatasetError)
     rows: list[tuple[float, str]] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
@@ -188,7 +184,8 @@ def _read_associations(path: Path, root: Path) -> list[tuple[float, Path, Path]]
     if not path.is_file():
         raise DatasetError(f"TUM folder {root} has neither rgb.txt nor associations.txt")
     rows: list[tuple[float, Path, Path]] = []
-    for lineno, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    lines = read_text(path, "associations", DatasetError).splitlines()
+    for lineno, raw in enumerate(lines, start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue

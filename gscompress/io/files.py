@@ -1,4 +1,5 @@
-"""Safe output files: refuse to overwrite inputs, write under a temporary name, rename.
+"""Safe files: small text inputs read with limits; outputs that refuse to overwrite inputs,
+written under a temporary name and renamed.
 
 A crash or an error never leaves a half-written file under the final name.
 """
@@ -15,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
 
-from gscompress.errors import OutputError
+from gscompress.errors import GscError, InputError, OutputError
 
 try:
     import fcntl
@@ -61,6 +62,35 @@ def is_within(path: str | Path, folder: str | Path) -> bool:
     return path == folder or folder in path.parents
 
 
+MAX_TEXT_BYTES = 64 << 20
+"""Largest text input read (configs, trajectories, transforms, a sequence's lists)."""
+
+
+def read_text(path: str | Path, what: str, error: type[GscError] = InputError) -> str:
+    """The UTF-8 text of the regular file `path` (a `what`: "config", "trajectory"...).
+
+    A device, a FIFO or a file over `MAX_TEXT_BYTES` is refused rather than read: /dev/zero
+    would be read until memory ran out, a FIFO wait forever.
+
+    Raises:
+        error: missing, not a regular file, too large, unreadable or not UTF-8.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise error(f"{what} file not found: {path}")
+    if not path.is_file():
+        kind = "a directory" if path.is_dir() else "not a regular file"
+        raise error(f"{what} file {path} is {kind}")
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_TEXT_BYTES + 1)
+        if len(data) > MAX_TEXT_BYTES:
+            raise error(f"{what} file {path} is over {MAX_TEXT_BYTES >> 20} MiB, too large for one")
+        return data.decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"cannot read {what} file {path}: {exc}") from None
+
+
 def check_output(
     output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False, suffix: str = ""
 ) -> Path:
@@ -86,6 +116,8 @@ def check_output(
         )
     if output.is_dir():
         raise OutputError(f"{output} is a directory")
+    if output.exists() and not output.is_file():  # renaming over it would replace /dev/null
+        raise OutputError(f"{output} is not a regular file (a device or a FIFO?); choose a file")
     if output.exists() and not force:
         raise OutputError(f"{output} exists; pass --force to overwrite it")
     if not output.parent.exists():

@@ -18,6 +18,7 @@ import numpy as np
 
 from gscompress.camera import pose_from_tum, pose_to_tum
 from gscompress.errors import InputError, OutputError
+from gscompress.io.files import read_text
 
 
 @dataclass(frozen=True)
@@ -84,15 +85,6 @@ def parse_tum_trajectory(text: str, source: str = "<text>") -> Trajectory:
     return Trajectory(np.asarray(stamps, dtype=np.float64), pose_from_tum(np.asarray(rows)))
 
 
-def _read_text(path: Path, what: str) -> str:
-    try:
-        return path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{what} file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read {what} file {path}: {exc}") from None
-
-
 def read_tum_trajectory(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file (see `parse_tum_trajectory`).
 
@@ -100,7 +92,7 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
         InputError: the file is missing, unreadable, or has a malformed row.
     """
     path = Path(path)
-    return parse_tum_trajectory(_read_text(path, "trajectory"), source=str(path))
+    return parse_tum_trajectory(read_text(path, "trajectory"), source=str(path))
 
 
 def read_transform(path: str | Path) -> np.ndarray:
@@ -111,7 +103,7 @@ def read_transform(path: str | Path) -> np.ndarray:
         InputError: missing file, another count of numbers, or non-finite values.
     """
     path = Path(path)
-    words = [w for line in _read_text(path, "transform").splitlines()
+    words = [w for line in read_text(path, "transform").splitlines()
              for w in line.split("#")[0].split()]  # fmt: skip
     try:
         values = np.array([float(w) for w in words])
@@ -123,7 +115,7 @@ def read_transform(path: str | Path) -> np.ndarray:
             f"got {len(values)}{' with non-finite values' if len(values) in (7, 16) else ''}"
         )
     if len(values) == 7:
-        if np.linalg.norm(values[3:]) < 1e-6:
+        if np.abs(values[3:]).max() < 1e-6:  # (a norm could overflow)
             raise InputError(f"{path}: the quaternion qx qy qz qw is zero, not a rotation")
         return pose_from_tum(values)
     T = values.reshape(4, 4)

@@ -55,7 +55,8 @@ def transform_map(gaussians: GaussianMap, T_new_old: np.ndarray) -> GaussianMap:
         T_new_old: [4, 4] rigid transform taking points of the map's frame to the new frame.
 
     Raises:
-        MapError: not a rigid transform, or a map with higher SH bands.
+        MapError: not a rigid transform, one that moves Gaussians beyond float32 range, or a
+            map with higher SH bands.
     """
     T = np.asarray(T_new_old, dtype=np.float64)
     R = T[:3, :3]
@@ -67,9 +68,12 @@ def transform_map(gaussians: GaussianMap, T_new_old: np.ndarray) -> GaussianMap:
         raise MapError("moving a map with SH degree > 0 needs its SH rotated; not supported")
     if len(gaussians) == 0:
         return gaussians
-    means = gaussians.means.astype(np.float64) @ R.T + T[:3, 3]
+    with np.errstate(over="ignore"):
+        means = (gaussians.means.astype(np.float64) @ R.T + T[:3, 3]).astype(np.float32)
+    if not np.all(np.isfinite(means)):
+        raise MapError("the transform moves Gaussians beyond the float32 range of a map")
     quats = rotmat_to_quat(R @ quat_to_rotmat(gaussians.quats))
-    return replace(gaussians, means=means.astype(np.float32), quats=quats.astype(np.float32))
+    return replace(gaussians, means=means, quats=quats.astype(np.float32))
 
 
 def merge_maps(receiver: GaussianMap, share: GaussianMap) -> tuple[GaussianMap, int]:

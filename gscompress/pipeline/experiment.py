@@ -50,13 +50,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gscompress import __version__
-from gscompress.errors import InputError, OptionError
+from gscompress.errors import GscError, InputError, OptionError
 from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import (
     abandoned_files,
     check_only_entries,
     is_within,
     json_text,
+    read_text,
     write_text_atomic,
 )
 from gscompress.io.mcap_log import LogReader
@@ -329,11 +330,11 @@ class _Runner:
         record_path = self.runs / f"{name}.json"
         key = self._key(spec)
         if path.is_file() and record_path.is_file():
-            try:
-                saved = json.loads(record_path.read_text())
-            except json.JSONDecodeError:
-                saved = {}
-            if saved.get("key") == key:
+            try:  # a damaged record is a run to do again
+                saved = json.loads(read_text(record_path, "run record"))
+            except (GscError, ValueError, RecursionError):
+                saved = None
+            if isinstance(saved, dict) and saved.get("key") == key and "result" in saved:
                 self.reused += 1
                 self._finished(name)
                 return _Record(path, key, saved["result"])

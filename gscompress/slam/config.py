@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import reprlib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -39,7 +40,7 @@ import yaml
 
 from gscompress.errors import InputError, OptionError
 from gscompress.importance import PwasConfig
-from gscompress.io.files import write_text_atomic
+from gscompress.io.files import read_text, write_text_atomic
 from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES, is_fraction
 
@@ -335,7 +336,9 @@ def _plain(value: Any) -> Any:
 def _merge(current: Any, values: Any, path: str) -> Any:
     """`current` (a config dataclass) with `values` (a dict) applied, type-checked."""
     if not isinstance(values, dict):
-        raise InputError(f"{path.rstrip('.') or 'the file'}: expected a mapping, got {values!r}")
+        raise InputError(
+            f"{path.rstrip('.') or 'the file'}: expected a mapping, got {_shown(values)}"
+        )
     known = {f.name: f for f in fields(current)}
     changes: dict[str, Any] = {}
     for key, value in values.items():
@@ -362,7 +365,7 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
             return None
         if isinstance(value, str):  # WxH, as on the command line
             width, _, height = value.lower().partition("x")
-            if width.strip().isdigit() and height.strip().isdigit():
+            if all(v.strip().isdigit() and len(v.strip()) <= 9 for v in (width, height)):
                 value = [int(width), int(height)]
         if (
             isinstance(value, list | tuple)
@@ -375,29 +378,48 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
         return "keyframes" if value else "off"
     if isinstance(old, bool):
         if not isinstance(value, bool):
-            raise InputError(f"{where}: expected true or false, got {value!r}")
+            raise InputError(f"{where}: expected true or false, got {_shown(value)}")
         return value
     if isinstance(old, int):
         if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(f"{where}: expected an integer, got {value!r}")
+            raise InputError(f"{where}: expected an integer, got {_shown(value)}")
         return value
     if isinstance(old, float):
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        if not number or not math.isfinite(value):
-            raise InputError(f"{where}: expected a finite number, got {value!r}")
+        if not _finite_number(value):
+            raise InputError(f"{where}: expected a finite number, got {_shown(value)}")
         return float(value)
     if isinstance(old, str):
         if not isinstance(value, str):
-            raise InputError(f"{where}: expected a string, got {value!r}")
+            raise InputError(f"{where}: expected a string, got {_shown(value)}")
         return value
     if isinstance(old, tuple):
-        if not isinstance(value, list | tuple) or not all(
-            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-            for v in value
-        ):
-            raise InputError(f"{where}: expected a list of finite numbers, got {value!r}")
+        if not isinstance(value, list | tuple) or not all(_finite_number(v) for v in value):
+            raise InputError(f"{where}: expected a list of finite numbers, got {_shown(value)}")
         return tuple(float(v) for v in value)
     raise InputError(f"{where}: cannot set this field")  # pragma: no cover
+
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxdict, _REPR.maxstring = 2, 4, 4, 60
+
+
+def _finite_number(value: Any) -> bool:
+    """An int or a float (not a bool) that a float holds finitely."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int beyond float range
+        return False
+
+
+def _shown(value: Any) -> str:
+    """A short repr of a config value for an error message (a YAML alias can stand for a
+    nested list of billions of items, which a full repr would spell out)."""
+    try:
+        return _REPR.repr(value)
+    except ValueError:  # (an int over 4300 digits)
+        return "a number too long to show"
 
 
 MAX_LEARNING_RATE = 1e3
@@ -526,8 +548,8 @@ def load_config(path: str | Path, base: str | SlamConfig = DEFAULT_PRESET) -> Sl
     """
     path = Path(path)
     try:
-        values = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        values = yaml.safe_load(read_text(path, "config"))
+    except (ValueError, RecursionError, yaml.YAMLError) as exc:  # (ints over 4300 digits)
         raise InputError(f"cannot read config {path}: {' '.join(str(exc).split())}") from None
     if values is None:
         values = {}
