@@ -178,7 +178,7 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
 def test_a_damaged_run_record_is_a_run_to_do_again(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
-    seq, out, first = experiment
+    seq, out, _first = experiment
     copy = tmp_path / "copy"
     shutil.copytree(out, copy)
     damaged = {"full_pwas": b"\xff\xfe not text", "full_no_prune": b"[]"}

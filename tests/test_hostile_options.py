@@ -30,6 +30,22 @@ def test_an_output_that_is_a_fifo_is_refused_even_with_force(tmp_path: Path) -> 
     assert fifo.is_fifo()  # (a rename over it would have replaced it, as it did /dev/null)
 
 
+def test_a_dropped_output_leaves_no_temporary_file_even_when_closing_fails(
+    tmp_path: Path,
+) -> None:
+    out = files.AtomicFile(tmp_path / "a.ply")
+    out.file.write(b"x")
+
+    class FullDisk:
+        def close(self) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    real, out.file = out.file, FullDisk()  # type: ignore[assignment]
+    out.discard()
+    real.close()
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_text_inputs_must_be_regular_files_of_a_sane_size(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

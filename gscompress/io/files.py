@@ -150,8 +150,10 @@ class AtomicFile:
         os.replace(self.tmp_path, self.path)
 
     def discard(self) -> None:
-        """Close and remove the temporary file."""
-        self.file.close()
+        """Close and remove the temporary file (also when closing fails: on a full disk the
+        flush of what is being dropped fails too)."""
+        with contextlib.suppress(OSError):
+            self.file.close()
         self.tmp_path.unlink(missing_ok=True)
 
 

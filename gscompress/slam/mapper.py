@@ -28,7 +28,7 @@ from gscompress.slam.keyframes import View
 from gscompress.slam.losses import LossTerms, mapping_loss
 from gscompress.slam.params import Adam, GaussianParams, decay_per_step
 
-TOO_HIGH = "its learning rates, mapping.lr_*, are too high for the data"
+TOO_HIGH = "lower its learning rates, mapping.lr_* (or check the loss weights and intrinsics)"
 
 
 @dataclass

@@ -33,7 +33,7 @@ from gscompress.slam.config import TrackingConfig
 from gscompress.slam.losses import tracking_loss
 from gscompress.slam.params import RenderInputs, decay_per_step
 
-TOO_HIGH = "its learning rates, tracking.lr_rotation and lr_translation, are too high for the data"
+TOO_HIGH = "lower its learning rates, tracking.lr_rotation and lr_translation"
 
 
 @dataclass
