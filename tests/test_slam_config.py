@@ -58,6 +58,7 @@ def test_partial_file_applies_on_top_of_its_preset(tmp_path):
         ("prune:\n  stages: [0.5, .nan]\n", "expected a list of finite numbers"),
         ("mapping:\n  lr_colors: 1.0e+38\n", "learning rates must be at most 1000"),
         ("tracking:\n  lr_translation: 1001\n", "learning rates must be at most 1000"),
+        ("size: 9000x10\n", "size: at most 8192 a side"),
     ],
 )
 def test_bad_files_are_refused_with_a_clear_message(tmp_path, text, message):
