@@ -123,22 +123,24 @@ class GscGroup(click.Group):
         except click.UsageError as exc:
             raise one_line(exc) from None
         except OSError as exc:  # the file system said no: a full disk, a read-only folder...
+            if exc.errno is None:  # (io.UnsupportedOperation and the like: a bug)
+                raise
             raise click.ClickException(os_error_message(exc)) from None
         except MemoryError:
             raise click.ClickException(OUT_OF_MEMORY) from None
-        except RuntimeError as exc:  # torch's allocator says it so
-            if "can't allocate memory" not in str(exc):
+        except RuntimeError as exc:  # torch's CPU and CUDA allocators say it so
+            if "can't allocate memory" not in str(exc) and "out of memory" not in str(exc):
                 raise
             raise click.ClickException(OUT_OF_MEMORY) from None
 
 
-OUT_OF_MEMORY = "out of memory (a smaller working size, --size, needs less)"
+OUT_OF_MEMORY = "out of memory (smaller images, fewer frames or a smaller map need less)"
 
 
 def os_error_message(exc: OSError) -> str:
     """One line for an error of the file system, naming the file the user asked for rather
     than the temporary one it was being written under (`.NAME.PID.tmp`, `.NAME.XXXX.tmp`)."""
-    reason = exc.strerror or f"input/output error: {exc}"  # (no errno: numpy's short write)
+    reason = " ".join((exc.strerror or str(exc)).split())
     if exc.filename is None:
         return reason
     path = Path(os.fsdecode(exc.filename))

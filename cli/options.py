@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
-from gscompress.errors import InputError
+from gscompress.errors import InputError, clipped
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import is_fraction
@@ -123,8 +123,11 @@ class Size(click.ParamType):
             return value
         m = re.fullmatch(r"\s*(\d{1,9})\s*[xX]\s*(\d{1,9})\s*", str(value))
         if m is None or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
-            shown = repr(str(value)[:40] + ("..." if len(str(value)) > 40 else ""))
-            self.fail(f"{shown} is not a size WxH of positive integers, e.g. 320x240", param, ctx)
+            self.fail(
+                f"{clipped(str(value))} is not a size WxH of positive integers, e.g. 320x240",
+                param,
+                ctx,
+            )
         return int(m.group(1)), int(m.group(2))
 
 

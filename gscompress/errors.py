@@ -44,7 +44,11 @@ class BudgetError(GscError):
 
 class DivergenceError(GscError):
     """An optimisation (tracking, mapping, a refinement) whose loss or parameters stopped being
-    finite: its learning rates are too high for the data."""
+    finite: its learning rates are too high for the data. `detail` says what was not finite."""
+
+    def __init__(self, message: str, detail: str = "") -> None:
+        super().__init__(message)
+        self.detail = detail
 
 
 class MissingDependencyError(GscError):
@@ -54,3 +58,9 @@ class MissingDependencyError(GscError):
 def led_by(source: str, message: str) -> str:
     """`message` beginning with the file it is about, `source` (unless it already does)."""
     return message if message.startswith(source) else f"{source}: {message}"
+
+
+def clipped(text: str, limit: int = 40) -> str:
+    """`text` quoted for a message, cut after `limit` characters (a value a user typed can be
+    megabytes long)."""
+    return repr(text if len(text) <= limit else text[:limit] + "...")

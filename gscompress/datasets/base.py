@@ -8,7 +8,6 @@ when the dataset has it, a ground-truth camera-to-world pose per frame. `open_se
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -19,8 +18,8 @@ import numpy as np
 from PIL import Image
 
 from gscompress.camera import Intrinsics
-from gscompress.errors import DatasetError, InputError, OptionError
-from gscompress.io.files import read_text
+from gscompress.errors import DatasetError, InputError, OptionError, clipped
+from gscompress.io.files import read_json
 
 
 @dataclass(frozen=True)
@@ -136,22 +135,23 @@ def parse_frames(spec: str | FrameSelection) -> FrameSelection:
         return FrameSelection(1, None, 2, spec="odd")
     if text == "even":
         return FrameSelection(0, None, 2, spec="even")
+    shown = clipped(str(spec))
     m = _SLICE_RE.match(text)
     if m is None:
-        raise InputError(f"bad frame subset {spec!r}: use all, odd, even or START:STOP:STEP")
+        raise InputError(f"bad frame subset {shown}: use all, odd, even or START:STOP:STEP")
     if max(len(part or "") for part in m.groups()) > 18:  # (int() refuses 4300 digits)
         raise InputError("bad frame subset: an index of over 18 digits")
     start = int(m.group(1)) if m.group(1) not in ("", "-") else None
     stop = int(m.group(2)) if m.group(2) not in ("", "-") else None
     if m.group(1) == "-" or m.group(2) == "-":
-        raise InputError(f"bad frame subset {spec!r}: use all, odd, even or START:STOP:STEP")
+        raise InputError(f"bad frame subset {shown}: use all, odd, even or START:STOP:STEP")
     if m.group(3) == "-":
-        raise InputError(f"bad frame subset {spec!r}: STEP must be a positive integer")
+        raise InputError(f"bad frame subset {shown}: STEP must be a positive integer")
     step = int(m.group(3)) if m.group(3) else 1
     if step <= 0:
-        raise InputError(f"bad frame subset {spec!r}: STEP must be a positive integer")
+        raise InputError(f"bad frame subset {shown}: STEP must be a positive integer")
     if start is not None and stop is not None and (start < 0) == (stop < 0) and start >= stop:
-        raise InputError(f"bad frame subset {spec!r}: it selects no frame (START >= STOP)")
+        raise InputError(f"bad frame subset {shown}: it selects no frame (START >= STOP)")
     return FrameSelection(start, stop, step, spec=text)
 
 
@@ -369,10 +369,7 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
     Raises:
         DatasetError: missing file, bad JSON, or missing / non-positive fields.
     """
-    try:
-        data = json.loads(read_text(path, "intrinsics", DatasetError))
-    except (ValueError, RecursionError) as exc:  # (JSONDecodeError; ints over 4300 digits)
-        raise DatasetError(f"cannot read intrinsics file {path}: {exc}") from None
+    data = read_json(path, "intrinsics", DatasetError)
     if isinstance(data, dict) and isinstance(data.get("camera"), dict):
         data = dict(data["camera"])
         data.setdefault("width", data.get("w"))
@@ -380,20 +377,23 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
         data.setdefault("depth_scale", data.get("scale"))
     if not isinstance(data, dict):
         raise DatasetError(f"intrinsics file {path}: expected a JSON object")
+    names = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
     try:
-        if any(isinstance(data.get(k), bool) for k in ("fx", "fy", "cx", "cy", "width", "height")):
+        if any(isinstance(data.get(k), bool) for k in names):
             raise TypeError("true/false is not a number")
-        fx, fy, cx, cy = (float(data[k]) for k in ("fx", "fy", "cx", "cy"))
-        width, height = int(data["width"]), int(data["height"])
+        fx, fy, cx, cy, w, h = (float(data[k]) for k in names[:6])
         scale = data.get("depth_scale")
         depth_scale = None if scale is None else float(scale)
     except KeyError as exc:
         raise DatasetError(f"intrinsics file {path}: missing field {exc.args[0]!r}") from None
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise DatasetError(f"intrinsics file {path}: bad value ({exc})") from None
-    values = [fx, fy, cx, cy, width, height] + ([depth_scale] if depth_scale else [])
-    if fx <= 0 or fy <= 0 or width <= 0 or height <= 0 or not np.all(np.isfinite(values)):
+    values = [fx, fy, cx, cy, w, h] + ([depth_scale] if depth_scale else [])
+    if not np.all(np.isfinite(values)) or min(fx, fy, w, h) <= 0:
         raise DatasetError(f"intrinsics file {path}: focal lengths and size must be positive")
+    if max(w, h) > MAX_SIDE or w != int(w) or h != int(h):
+        raise DatasetError(f"intrinsics file {path}: width and height are whole, <= {MAX_SIDE}")
+    width, height = int(w), int(h)
     if depth_scale is not None and depth_scale <= 0:
         raise DatasetError(f"intrinsics file {path}: depth_scale must be positive")
     return Intrinsics(fx, fy, cx, cy, width, height), depth_scale

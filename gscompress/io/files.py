@@ -67,21 +67,20 @@ MAX_TEXT_BYTES = 64 << 20
 
 
 def read_text(path: str | Path, what: str, error: type[GscError] = InputError) -> str:
-    """The UTF-8 text of the regular file `path` (a `what`: "config", "trajectory"...).
+    """The UTF-8 text of the file `path` (a `what`: "config", "trajectory"...).
 
-    A device, a FIFO or a file over `MAX_TEXT_BYTES` is refused rather than read: /dev/zero
-    would be read until memory ran out, a FIFO wait forever.
+    At most `MAX_TEXT_BYTES` are read: /dev/zero is refused as too large rather than read
+    until memory runs out (a pipe, `/dev/stdin` or `<(...)`, is read like a file).
 
     Raises:
-        error: missing, not a regular file, too large, unreadable or not UTF-8.
+        error: missing, a directory, too large, unreadable or not UTF-8.
     """
     path = Path(path)
-    if not path.exists():
-        raise error(f"{what} file not found: {path}")
-    if not path.is_file():
-        kind = "a directory" if path.is_dir() else "not a regular file"
-        raise error(f"{what} file {path} is {kind}")
     try:
+        if not path.exists():
+            raise error(f"{what} file not found: {path}")
+        if path.is_dir():
+            raise error(f"{what} file {path} is a directory")
         with open(path, "rb") as f:
             data = f.read(MAX_TEXT_BYTES + 1)
         if len(data) > MAX_TEXT_BYTES:
@@ -91,11 +90,24 @@ def read_text(path: str | Path, what: str, error: type[GscError] = InputError) -
         raise error(f"cannot read {what} file {path}: {exc}") from None
 
 
+def read_json(path: str | Path, what: str, error: type[GscError] = InputError) -> Any:
+    """The JSON value of the file `path` (`read_text`'s limits).
+
+    Raises:
+        error: as `read_text`, or not JSON (also: nested too deep, an int of over 4300 digits).
+    """
+    try:
+        return json.loads(read_text(path, what, error))
+    except (ValueError, RecursionError) as exc:  # (JSONDecodeError is a ValueError)
+        raise error(f"cannot read {what} file {path}: {' '.join(str(exc).split())}") from None
+
+
 def check_output(
     output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False, suffix: str = ""
 ) -> Path:
     """Refuse to write over an input (also through a link) or into an input folder (a
-    sequence), onto a directory, or over an existing file without `force`; the output's
+    sequence), onto a directory, a symbolic link, a device or a FIFO (the rename into place
+    would replace them), or over an existing file without `force`; the output's
     directory must exist and be writable. With `suffix` (".mcap", ".ply" or ".yaml", what is
     written), a name ending in another kind's suffix is refused: `-o map.ply` on a command that
     writes a log is a slip that would leave an MCAP file named .ply.
@@ -116,7 +128,9 @@ def check_output(
         )
     if output.is_dir():
         raise OutputError(f"{output} is a directory")
-    if output.exists() and not output.is_file():  # renaming over it would replace /dev/null
+    if output.is_symlink():  # (/dev/stdout: the rename replaces the link, not what it names)
+        raise OutputError(f"{output} is a symbolic link; name the file itself")
+    if output.exists() and not output.is_file():  # the rename would replace /dev/null
         raise OutputError(f"{output} is not a regular file (a device or a FIFO?); choose a file")
     if output.exists() and not force:
         raise OutputError(f"{output} exists; pass --force to overwrite it")

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gscompress import __version__
-from gscompress.errors import MapError, PlyFormatError, led_by
+from gscompress.errors import MapError, OutputError, PlyFormatError, led_by
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import (
     APPEARANCE,
@@ -84,7 +84,12 @@ def write_ply(
     out = AtomicFile(path)
     try:
         out.file.write(("\n".join(header) + "\n").encode("ascii"))
-        records.tofile(out.file)  # no extra copy of the records
+        try:
+            records.tofile(out.file)  # no extra copy of the records
+        except OSError as exc:
+            if exc.errno is not None:
+                raise
+            raise OutputError(f"{path}: short write ({exc}): is the disk full?") from None
         out.commit()
     except BaseException:
         out.discard()

@@ -115,7 +115,7 @@ def read_transform(path: str | Path) -> np.ndarray:
             f"got {len(values)}{' with non-finite values' if len(values) in (7, 16) else ''}"
         )
     if len(values) == 7:
-        if np.abs(values[3:]).max() < 1e-6:  # (a norm could overflow)
+        if np.hypot.reduce(values[3:]) < 1e-6:  # (hypot: a norm could overflow)
             raise InputError(f"{path}: the quaternion qx qy qz qw is zero, not a rotation")
         return pose_from_tum(values)
     T = values.reshape(4, 4)

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.camera import Intrinsics, quat_to_rotmat, rotmat_to_quat
-from gscompress.errors import MapError
+from gscompress.errors import DivergenceError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.seeds import seeded_rng
 
@@ -129,6 +129,7 @@ def refine(
     Raises:
         MapError: a map with higher SH bands (they would be dropped), or no views.
         InputError: a negative seed.
+        DivergenceError: the refinement's loss or the map stopped being finite.
     """
     import torch
 
@@ -150,6 +151,13 @@ def refine(
     views = list(views)
     loss_before = mapper.loss(views)
     on_step = None if progress is None else lambda _: progress(1)
-    mapper.refine(views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction)
+    try:
+        mapper.refine(views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction)
+    except DivergenceError as exc:  # (its rates are the receiver's mapping ones, from its log)
+        raise DivergenceError(
+            f"the refinement diverged ({exc.detail}) at the receiver's mapping rates: merge "
+            "with --iters 0 to concatenate only",
+            exc.detail,
+        ) from None
     stats = {"iters": iters, "loss_before": loss_before, "loss_after": mapper.loss(views)}
     return mapper.params.to_map(), stats

@@ -57,7 +57,7 @@ from gscompress.io.files import (
     check_only_entries,
     is_within,
     json_text,
-    read_text,
+    read_json,
     write_text_atomic,
 )
 from gscompress.io.mcap_log import LogReader
@@ -331,8 +331,8 @@ class _Runner:
         key = self._key(spec)
         if path.is_file() and record_path.is_file():
             try:  # a damaged record is a run to do again
-                saved = json.loads(read_text(record_path, "run record"))
-            except (GscError, ValueError, RecursionError):
+                saved = read_json(record_path, "run record")
+            except GscError:
                 saved = None
             if isinstance(saved, dict) and saved.get("key") == key and "result" in saved:
                 self.reused += 1

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import reprlib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -349,9 +350,9 @@ def _merge(current: Any, values: Any, path: str) -> Any:
         if key not in known:
             close = difflib.get_close_matches(str(key), known, n=1)
             hint = f" (did you mean {path + close[0]!r}?)" if close else ""
+            within = f" in {path.rstrip('.')}" if path else ""
             raise InputError(
-                f"unknown key {where!r}{hint}; known{' in ' + path.rstrip('.') if path else ''}: "
-                f"{', '.join(sorted(known))}"
+                f"unknown key {_shown(where)}{hint}; known{within}: {', '.join(sorted(known))}"
             )
         old = getattr(current, key)
         if dataclasses.is_dataclass(old):
@@ -368,7 +369,7 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
             return None
         if isinstance(value, str):  # WxH, as on the command line
             width, _, height = value.lower().partition("x")
-            if all(v.strip().isdigit() and len(v.strip()) <= 9 for v in (width, height)):
+            if all(re.fullmatch(r"\s*[0-9]{1,9}\s*", v) for v in (width, height)):
                 value = [int(width), int(height)]
         if (
             isinstance(value, list | tuple)

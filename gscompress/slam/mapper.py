@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NoReturn
 
 import numpy as np
 import torch
@@ -210,9 +211,7 @@ class Mapper:
         step's loss would show it, but the map may be written first)."""
         bad = self.params.non_finite()
         if bad:
-            raise DivergenceError(
-                f"mapping diverged ({', '.join(bad)} hold non-finite values): {TOO_HIGH}"
-            )
+            _diverged(f"{', '.join(bad)} hold non-finite values")
 
     def _step(self, view: View, stats: MappingStats) -> None:
         """One Adam step of the mapping loss on one view; adds its losses to `stats`.
@@ -223,7 +222,7 @@ class Mapper:
         terms = self._terms(view)
         value = float(terms.total.detach())
         if not math.isfinite(value):
-            raise DivergenceError(f"mapping diverged (its loss became {value}): {TOO_HIGH}")
+            _diverged(f"its loss became {value}")
         self.optimizer.zero_grad()
         terms.total.backward()
         self.optimizer.step()
@@ -235,3 +234,7 @@ class Mapper:
         stats.depth += terms.depth
         stats.illum += terms.illum
         stats.w_illum += (terms.weights or {}).get("w_illum", 0.0)
+
+
+def _diverged(detail: str) -> NoReturn:
+    raise DivergenceError(f"mapping diverged ({detail}): {TOO_HIGH}", detail)
