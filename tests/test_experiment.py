@@ -197,6 +197,9 @@ def test_a_damaged_run_record_is_a_run_to_do_again(
 def test_bad_settings_are_refused() -> None:
     with pytest.raises(InputError, match="random and pwas"):
         ExperimentSettings(strategies=("opacity",)).check()
+    with pytest.raises(InputError, match=r"budget of 431B cannot hold one Gaussian.* 432 B"):
+        ExperimentSettings(sweep=("0.2", "431B")).check()
+    ExperimentSettings(budget="432B").check()  # one Gaussian fits
     r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--sweep", "2"])
     assert r.exit_code == 2 and "unit" in r.output
     for bad in (["--frames", "odd"], ["--strategies", "random,pwas,nope"]):  # usage errors

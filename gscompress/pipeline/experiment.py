@@ -60,7 +60,8 @@ from gscompress.io.files import (
     read_json,
     write_text_atomic,
 )
-from gscompress.io.mcap_log import LogReader
+from gscompress.gaussians import GaussianMap
+from gscompress.io.mcap_log import LogReader, pointcloud_bytes
 from gscompress.ops.budget import Budget
 from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES, is_fraction, strategy_scores
@@ -160,9 +161,14 @@ class ExperimentSettings:
             raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
         if not is_fraction(self.merge_lr_final):
             raise InputError("a merge's final learning-rate fraction must be in (0, 1]")
-        Budget.parse(self.budget)
-        for b in self.sweep:
-            Budget.parse(b)
+        smallest = pointcloud_bytes(GaussianMap.empty(isotropic=True))(1)
+        for text in (self.budget, *self.sweep):  # (refused now, not after the SLAM runs)
+            budget = Budget.parse(text)
+            if budget.budget_bytes is not None and budget.budget_bytes < smallest:
+                raise InputError(
+                    f"a budget of {text} cannot hold one Gaussian: a share of one takes "
+                    f"{smallest} B; raise the budget"
+                )
         if self.seeds < 1 or not 0 <= self.sweep_seeds <= self.seeds:
             raise InputError("--seeds must be >= 1 and --sweep-seeds between 0 and --seeds")
         unknown = sorted(set(self.strategies) - set(STRATEGIES))
