@@ -51,6 +51,7 @@ import numpy as np
 
 from gscompress import __version__
 from gscompress.errors import GscError, InputError, OptionError
+from gscompress.gaussians import GaussianMap
 from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import (
     abandoned_files,
@@ -60,7 +61,6 @@ from gscompress.io.files import (
     read_json,
     write_text_atomic,
 )
-from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import LogReader, pointcloud_bytes
 from gscompress.ops.budget import Budget
 from gscompress.ops.merge import REFINE_VIEWS
