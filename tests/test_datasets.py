@@ -265,3 +265,17 @@ def test_replica_traj_errors_name_their_line(tmp_path: Path) -> None:
     path.write_text(f"{eye}\n\n{eye} # trailing comment\n")
     poses = read_replica_traj(path)
     assert poses.shape == (2, 4, 4) and np.array_equal(poses[1], np.eye(4))
+
+
+def test_a_frame_fingerprint_survives_resampling_noise_but_not_another_scene() -> None:
+    from dataclasses import replace
+
+    from gscompress.datasets.base import same_fingerprint
+
+    frame = synthetic_sequence(2, (64, 48)).frame(0)
+    noise = np.random.default_rng(0).normal(0, 1e-3, frame.color.shape).astype(np.float32)
+    resampled = replace(frame, color=frame.color + noise, depth=frame.depth * (1 + 1e-5))
+    assert same_fingerprint(frame.fingerprint(), resampled.fingerprint())
+    other = synthetic_sequence(2, (64, 48), seed=5).frame(0)
+    assert not same_fingerprint(frame.fingerprint(), other.fingerprint())
+    assert not same_fingerprint(frame.fingerprint(), frame.fingerprint()[:3])

@@ -459,3 +459,17 @@ def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
         gaussians = log.read_map(-1)  # validated: the checkpoint after frame 2, not the NaN map
     assert results["map_frames"] == 2 and "DivergenceError" in results["error"]
     assert len(gaussians) > 0
+
+
+def test_a_resume_on_another_scene_of_the_same_name_is_refused(
+    seq_dir: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, preset="tiny", progress=stop_after(3))
+    with LogReader(out) as log:
+        assert len(log.metadata.results["first_frame"]) == 4
+    other = write_synthetic_sequence(tmp_path / "other" / seq_dir.name, FRAMES, (64, 48), seed=5)
+    with pytest.raises(InputError, match=r"recorded on another room: its first frame differs"):
+        slam_file(other, out, resume=True)
+    assert slam_file(seq_dir, out, resume=True)["frames"] == FRAMES  # the same scene goes on

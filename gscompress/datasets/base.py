@@ -41,6 +41,23 @@ class Frame:
     depth: np.ndarray
     T_world_cam: np.ndarray | None
 
+    def fingerprint(self) -> list[float]:
+        """[mean valid depth in metres, mean R, G, B]: what tells this frame from another
+        scene's with the same name and timing, rounded so that resampling by another version
+        of the image library does not (see `same_fingerprint`)."""
+        valid = self.depth[self.depth > 0]
+        depth = float(valid.mean()) if valid.size else 0.0
+        return [round(v, 4) for v in (depth, *self.color.reshape(-1, 3).mean(0).tolist())]
+
+
+def same_fingerprint(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Whether two `Frame.fingerprint`s are one frame's: within 2 mm and 0.005 of colour."""
+    return (
+        len(a) == len(b) == 4
+        and abs(a[0] - b[0]) <= 2e-3
+        and all(abs(x - y) <= 5e-3 for x, y in zip(a[1:], b[1:], strict=True))
+    )
+
 
 @runtime_checkable
 class RGBDSequence(Protocol):

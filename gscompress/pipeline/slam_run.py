@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from gscompress.datasets.base import same_fingerprint
 from gscompress.errors import InputError, OptionError, OutputError
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
@@ -283,6 +284,14 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     sequence = _open(seq, sequence, config, meta.frames or "all")
     if meta.sequence and sequence.name != meta.sequence:
         raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
+    recorded = meta.results.get("first_frame")  # (older logs have none)
+    if isinstance(recorded, list):
+        found = sequence.frame(0).fingerprint()
+        if not same_fingerprint(recorded, found):
+            raise InputError(
+                f"{dst} was recorded on another {sequence.name}: its first frame differs "
+                f"(mean depth and colour {recorded} against {found})"
+            )
 
     by_topic: dict[str, list[Record]] = {}
     for record in contents.messages:
@@ -387,6 +396,8 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
         run.gt_poses.append(frame.T_world_cam)
         run.est_poses.append(result.T_world_cam)
     stats = result.stats()
+    if i == 0:
+        run.meta.results["first_frame"] = frame.fingerprint()
     checkpoint = every > 0 and (i + 1) % every == 0 and i + 1 < total
     if checkpoint and not result.event:
         stats["event"] = "checkpoint"
