@@ -184,6 +184,11 @@ def test_a_damaged_run_record_is_a_run_to_do_again(
     damaged = {"full_pwas": b"\xff\xfe not text", "full_no_prune": b"[]"}
     for name, data in damaged.items():
         (copy / "runs" / f"{name}.json").write_bytes(data)
+    record_path = copy / "runs" / "s0_agent_a.json"  # its key intact, its result not
+    record = json.loads(record_path.read_text())
+    record["result"]["eval"] = {}
+    record_path.write_text(json.dumps(record))
+    damaged["s0_agent_a"] = b""
     args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
             "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
     r = CliRunner().invoke(cli, args)

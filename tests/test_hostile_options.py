@@ -46,20 +46,21 @@ def test_a_dropped_output_leaves_no_temporary_file_even_when_closing_fails(
     assert list(tmp_path.iterdir()) == []
 
 
-def test_text_inputs_are_read_up_to_a_sane_size(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_text_inputs_are_read_up_to_a_sane_size(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="/dev/zero is over 64 MiB"):  # (not read to the end)
-        read_text("/dev/zero", "config")
+        read_text("/dev/zero", "trajectory")
+    huge = tmp_path / "huge.yaml"
+    huge.write_text("tracking: {rho: [" + "1," * 600_000 + "1]}\n")  # 1.2 MB of list items
+    with pytest.raises(InputError, match=r"config file .* is over 1 MiB"):
+        load_config(huge)
     with pytest.raises(DatasetError, match="is a directory"):
         read_text(tmp_path, "intrinsics", DatasetError)
     with pytest.raises(InputError, match="file not found"):
         read_text(tmp_path / "nope.txt", "transform")
     big = tmp_path / "big.txt"
-    big.write_text("0 " * 100)
-    monkeypatch.setattr(files, "MAX_TEXT_BYTES", 100)
-    with pytest.raises(InputError, match="too large"):
-        read_text(big, "trajectory")
+    big.write_text("0 " * 1024)
+    with pytest.raises(InputError, match="over 1 KiB, too large"):
+        read_text(big, "trajectory", limit=1024)
     small = tmp_path / "ok.txt"
     small.write_text("1 2\n")
     assert read_text(small, "trajectory") == "1 2\n"

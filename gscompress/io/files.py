@@ -66,10 +66,12 @@ MAX_TEXT_BYTES = 64 << 20
 """Largest text input read (configs, trajectories, transforms, a sequence's lists)."""
 
 
-def read_text(path: str | Path, what: str, error: type[GscError] = InputError) -> str:
+def read_text(
+    path: str | Path, what: str, error: type[GscError] = InputError, limit: int = MAX_TEXT_BYTES
+) -> str:
     """The UTF-8 text of the file `path` (a `what`: "config", "trajectory"...).
 
-    At most `MAX_TEXT_BYTES` are read: /dev/zero is refused as too large rather than read
+    At most `limit` bytes are read: /dev/zero is refused as too large rather than read
     until memory runs out (a pipe, `/dev/stdin` or `<(...)`, is read like a file).
 
     Raises:
@@ -82,9 +84,10 @@ def read_text(path: str | Path, what: str, error: type[GscError] = InputError) -
         if path.is_dir():
             raise error(f"{what} file {path} is a directory")
         with open(path, "rb") as f:
-            data = f.read(MAX_TEXT_BYTES + 1)
-        if len(data) > MAX_TEXT_BYTES:
-            raise error(f"{what} file {path} is over {MAX_TEXT_BYTES >> 20} MiB, too large for one")
+            data = f.read(limit + 1)
+        if len(data) > limit:
+            size = f"{limit >> 20} MiB" if limit >= 1 << 20 else f"{limit >> 10} KiB"
+            raise error(f"{what} file {path} is over {size}, too large for one")
         return data.decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"cannot read {what} file {path}: {exc}") from None

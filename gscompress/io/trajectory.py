@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from gscompress.camera import pose_from_tum, pose_to_tum
-from gscompress.errors import InputError, OutputError
+from gscompress.errors import InputError, OutputError, clipped
 from gscompress.io.files import read_text
 
 
@@ -73,9 +73,9 @@ def parse_tum_trajectory(text: str, source: str = "<text>") -> Trajectory:
         try:
             values = [float(f) for f in fields]
         except ValueError:
-            raise InputError(f"{source}:{lineno}: not a number in {line!r}") from None
+            raise InputError(f"{source}:{lineno}: not a number in {clipped(line, 80)}") from None
         if not all(math.isfinite(v) for v in values):
-            raise InputError(f"{source}:{lineno}: non-finite value in {line!r}")
+            raise InputError(f"{source}:{lineno}: non-finite value in {clipped(line, 80)}")
         if math.hypot(*values[4:8]) < 1e-12:
             raise InputError(f"{source}:{lineno}: zero-length quaternion")
         stamps.append(values[0])

@@ -236,6 +236,18 @@ def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) 
     return share_log(source, path, budget, strategy=strategy, seed=seed, force=True)
 
 
+def _digest(result: dict[str, Any]) -> str:
+    """What a run record checks its result against: a record damaged (or edited) since it was
+    written is a run to do again, not a traceback in the tables."""
+    return hashlib.sha256(json_text(result).encode()).hexdigest()
+
+
+def _intact(record: dict[str, Any]) -> bool:
+    """Whether a run record's result is as written (records before the digest: a mapping)."""
+    result, digest = record.get("result"), record.get("result_sha256")
+    return isinstance(result, dict) and (digest is None or digest == _digest(result))
+
+
 def _init_worker(threads: int, pids: SimpleQueue[int]) -> None:
     """A worker process: its share of the threads; Ctrl-C is for the run it is in (which
     stops after its frame, as `gsc slam` does), not for a worker waiting for work. Its pid goes
@@ -318,7 +330,7 @@ class _Runner:
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=cancel)
 
-    def _key(self, spec: dict[str, Any]) -> str:
+    def _key(self, spec: dict[str, Any]) -> str:  # (of what a run is; _digest: of what it gave)
         text = json.dumps({"tool": __version__, **spec}, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -340,7 +352,7 @@ class _Runner:
                 saved = read_json(record_path, "run record")
             except GscError:
                 saved = None
-            if isinstance(saved, dict) and saved.get("key") == key and "result" in saved:
+            if isinstance(saved, dict) and saved.get("key") == key and _intact(saved):
                 self.reused += 1
                 self._finished(name)
                 return _Record(path, key, saved["result"])
@@ -374,7 +386,7 @@ class _Runner:
         extra: Callable[[], dict[str, Any]] | None,
     ) -> dict[str, Any]:
         result = {**result, **(extra() if extra else {})}
-        record = {"key": key, "spec": spec, "result": result}
+        record = {"key": key, "spec": spec, "result": result, "result_sha256": _digest(result)}
         write_text_atomic(record_path, json_text(record, indent=1))
         self._finished(name)
         return result

@@ -426,6 +426,10 @@ def _shown(value: Any) -> str:
         return "a number too long to show"
 
 
+MAX_CONFIG_BYTES = 1 << 20
+"""Largest config file read (a full one is about 1.3 KB): YAML takes about 1 KB of memory a
+list item, so 64 MiB of them would take tens of GB before a value could be refused."""
+
 MAX_LEARNING_RATE = 1e3
 """Largest learning rate a config takes. An Adam step moves a parameter by about its rate, so
 far smaller ones already diverge; far larger ones overflow float32 in the step itself."""
@@ -555,7 +559,7 @@ def load_config(path: str | Path, base: str | SlamConfig = DEFAULT_PRESET) -> Sl
     """
     path = Path(path)
     try:
-        values = yaml.safe_load(read_text(path, "config"))
+        values = yaml.safe_load(read_text(path, "config", limit=MAX_CONFIG_BYTES))
     except (ValueError, RecursionError, yaml.YAMLError) as exc:  # (ints over 4300 digits)
         raise InputError(f"cannot read config {path}: {' '.join(str(exc).split())}") from None
     if values is None:
