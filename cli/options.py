@@ -124,7 +124,7 @@ class Size(click.ParamType):
         m = re.fullmatch(r"\s*(\d{1,9})\s*[xX]\s*(\d{1,9})\s*", str(value))
         if m is None or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
             self.fail(
-                f"{clipped(str(value))} is not a size WxH of positive integers, e.g. 320x240",
+                f"{clipped(value)} is not a size WxH of positive integers, e.g. 320x240",
                 param,
                 ctx,
             )

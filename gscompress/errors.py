@@ -4,6 +4,8 @@ Anything raised as a `GscError` is an expected failure caused by the input or th
 the CLI prints its message on one line and exits non-zero. Any other exception is a bug.
 """
 
+import reprlib
+
 
 class GscError(Exception):
     """Base class of every expected gscompress failure."""
@@ -44,10 +46,11 @@ class BudgetError(GscError):
 
 class DivergenceError(GscError):
     """An optimisation (tracking, mapping, a refinement) whose loss or parameters stopped being
-    finite: its learning rates are too high for the data. `detail` says what was not finite."""
+    finite: its learning rates are too high for the data. The message reads "`what` diverged
+    (`detail`): `advice`"; `detail` says what was not finite."""
 
-    def __init__(self, message: str, detail: str = "") -> None:
-        super().__init__(message)
+    def __init__(self, what: str, detail: str, advice: str) -> None:
+        super().__init__(f"{what} diverged ({detail}): {advice}")
         self.detail = detail
 
 
@@ -60,7 +63,14 @@ def led_by(source: str, message: str) -> str:
     return message if message.startswith(source) else f"{source}: {message}"
 
 
-def clipped(text: str, limit: int = 40) -> str:
-    """`text` quoted for a message, cut after `limit` characters (a value a user typed can be
-    megabytes long)."""
-    return repr(text if len(text) <= limit else text[:limit] + "...")
+def clipped(value: object, limit: int = 40) -> str:
+    """A short repr of `value` for a message: strings cut to about `limit` characters, nested
+    lists and mappings to a few items (a value a user typed can be megabytes long, and a YAML
+    alias can stand for a nested list of billions of items)."""
+    shorter = reprlib.Repr()
+    shorter.maxlevel, shorter.maxlist, shorter.maxdict = 2, 4, 4
+    shorter.maxstring = shorter.maxother = limit
+    try:
+        return shorter.repr(value)
+    except ValueError:  # (an int over 4300 digits)
+        return "a number too long to show"

@@ -221,10 +221,10 @@ def test_a_merge_whose_refinement_diverges_says_how_to_merge_anyway(
     from gscompress.ops.merge import refine
     from gscompress.slam.config import preset
     from gscompress.slam.keyframes import View
-    from gscompress.slam.mapper import Mapper, _diverged
+    from gscompress.slam.mapper import TOO_HIGH, Mapper
 
     def diverging(*args: object, **kwargs: object) -> None:
-        _diverged("its loss became nan")
+        raise DivergenceError("mapping", "its loss became nan", TOO_HIGH)
 
     monkeypatch.setattr(Mapper, "refine", diverging)
     view = View(0, torch.zeros(24, 32, 3), torch.ones(24, 32), np.eye(4))

@@ -152,7 +152,7 @@ def parse_frames(spec: str | FrameSelection) -> FrameSelection:
         return FrameSelection(1, None, 2, spec="odd")
     if text == "even":
         return FrameSelection(0, None, 2, spec="even")
-    shown = clipped(str(spec))
+    shown = clipped(spec)
     m = _SLICE_RE.match(text)
     if m is None:
         raise InputError(f"bad frame subset {shown}: use all, odd, even or START:STOP:STEP")

@@ -155,9 +155,9 @@ def refine(
         mapper.refine(views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction)
     except DivergenceError as exc:  # (its rates are the receiver's mapping ones, from its log)
         raise DivergenceError(
-            f"the refinement diverged ({exc.detail}) at the receiver's mapping rates: merge "
-            "with --iters 0 to concatenate only",
+            "the refinement",
             exc.detail,
+            "it ran at the receiver's mapping rates; merge with --iters 0 to concatenate only",
         ) from None
     stats = {"iters": iters, "loss_before": loss_before, "loss_after": mapper.loss(views)}
     return mapper.params.to_map(), stats

@@ -32,14 +32,13 @@ import dataclasses
 import difflib
 import math
 import re
-import reprlib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from gscompress.errors import InputError, OptionError
+from gscompress.errors import InputError, OptionError, clipped
 from gscompress.importance import PwasConfig
 from gscompress.io.files import read_text, write_text_atomic
 from gscompress.ops.merge import REFINE_VIEWS
@@ -341,7 +340,7 @@ def _merge(current: Any, values: Any, path: str) -> Any:
     """`current` (a config dataclass) with `values` (a dict) applied, type-checked."""
     if not isinstance(values, dict):
         raise InputError(
-            f"{path.rstrip('.') or 'the file'}: expected a mapping, got {_shown(values)}"
+            f"{path.rstrip('.') or 'the file'}: expected a mapping, got {clipped(values, 60)}"
         )
     known = {f.name: f for f in fields(current)}
     changes: dict[str, Any] = {}
@@ -352,7 +351,7 @@ def _merge(current: Any, values: Any, path: str) -> Any:
             hint = f" (did you mean {path + close[0]!r}?)" if close else ""
             within = f" in {path.rstrip('.')}" if path else ""
             raise InputError(
-                f"unknown key {_shown(where)}{hint}; known{within}: {', '.join(sorted(known))}"
+                f"unknown key {clipped(where, 60)}{hint}; known{within}: {', '.join(sorted(known))}"
             )
         old = getattr(current, key)
         if dataclasses.is_dataclass(old):
@@ -382,29 +381,27 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
         return "keyframes" if value else "off"
     if isinstance(old, bool):
         if not isinstance(value, bool):
-            raise InputError(f"{where}: expected true or false, got {_shown(value)}")
+            raise InputError(f"{where}: expected true or false, got {clipped(value, 60)}")
         return value
     if isinstance(old, int):
         if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(f"{where}: expected an integer, got {_shown(value)}")
+            raise InputError(f"{where}: expected an integer, got {clipped(value, 60)}")
         return value
     if isinstance(old, float):
         if not _finite_number(value):
-            raise InputError(f"{where}: expected a finite number, got {_shown(value)}")
+            raise InputError(f"{where}: expected a finite number, got {clipped(value, 60)}")
         return float(value)
     if isinstance(old, str):
         if not isinstance(value, str):
-            raise InputError(f"{where}: expected a string, got {_shown(value)}")
+            raise InputError(f"{where}: expected a string, got {clipped(value, 60)}")
         return value
     if isinstance(old, tuple):
         if not isinstance(value, list | tuple) or not all(_finite_number(v) for v in value):
-            raise InputError(f"{where}: expected a list of finite numbers, got {_shown(value)}")
+            raise InputError(
+                f"{where}: expected a list of finite numbers, got {clipped(value, 60)}"
+            )
         return tuple(float(v) for v in value)
     raise InputError(f"{where}: cannot set this field")  # pragma: no cover
-
-
-_REPR = reprlib.Repr()
-_REPR.maxlevel, _REPR.maxlist, _REPR.maxdict, _REPR.maxstring = 2, 4, 4, 60
 
 
 def _finite_number(value: Any) -> bool:
@@ -415,15 +412,6 @@ def _finite_number(value: Any) -> bool:
         return math.isfinite(value)
     except OverflowError:  # an int beyond float range
         return False
-
-
-def _shown(value: Any) -> str:
-    """A short repr of a config value for an error message (a YAML alias can stand for a
-    nested list of billions of items, which a full repr would spell out)."""
-    try:
-        return _REPR.repr(value)
-    except ValueError:  # (an int over 4300 digits)
-        return "a number too long to show"
 
 
 MAX_CONFIG_BYTES = 1 << 20

@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NoReturn
 
 import numpy as np
 import torch
@@ -211,7 +210,7 @@ class Mapper:
         step's loss would show it, but the map may be written first)."""
         bad = self.params.non_finite()
         if bad:
-            _diverged(f"{', '.join(bad)} hold non-finite values")
+            raise DivergenceError("mapping", f"{', '.join(bad)} hold non-finite values", TOO_HIGH)
 
     def _step(self, view: View, stats: MappingStats) -> None:
         """One Adam step of the mapping loss on one view; adds its losses to `stats`.
@@ -222,7 +221,7 @@ class Mapper:
         terms = self._terms(view)
         value = float(terms.total.detach())
         if not math.isfinite(value):
-            _diverged(f"its loss became {value}")
+            raise DivergenceError("mapping", f"its loss became {value}", TOO_HIGH)
         self.optimizer.zero_grad()
         terms.total.backward()
         self.optimizer.step()
@@ -234,7 +233,3 @@ class Mapper:
         stats.depth += terms.depth
         stats.illum += terms.illum
         stats.w_illum += (terms.weights or {}).get("w_illum", 0.0)
-
-
-def _diverged(detail: str) -> NoReturn:
-    raise DivergenceError(f"mapping diverged ({detail}): {TOO_HIGH}", detail)

@@ -185,7 +185,7 @@ def track(
             break
         last_loss, pixels = float(terms.total.detach()), terms.pixels
         if not math.isfinite(last_loss):
-            raise DivergenceError(f"tracking diverged (its loss became {last_loss}): {TOO_HIGH}")
+            raise DivergenceError("tracking", f"its loss became {last_loss}", TOO_HIGH)
         if done == 0:
             first_loss = last_loss
         terms.total.backward()
@@ -195,7 +195,7 @@ def track(
         x = adam.step(x, pose_gradient(x, T0, g_T))
         done += 1
     if not np.isfinite(x).all():
-        raise DivergenceError(f"tracking diverged (the pose is not finite): {TOO_HIGH}")
+        raise DivergenceError("tracking", "the pose is not finite", TOO_HIGH)
     T_cam_world = pose_increment(x) @ T0
     return TrackResult(
         T_world_cam=orthonormalize(invert_transform(T_cam_world)),
