@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import re
 import shlex
 import sys
 from collections.abc import Callable
@@ -121,14 +120,16 @@ class Size(click.ParamType):
     ) -> tuple[int, int]:
         if isinstance(value, tuple):
             return value
-        m = re.fullmatch(r"\s*(\d{1,9})\s*[xX]\s*(\d{1,9})\s*", str(value))
-        if m is None or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+        from gscompress.datasets.base import parse_size
+
+        size = parse_size(str(value))
+        if size is None or min(size) <= 0:
             self.fail(
                 f"{clipped(value)} is not a size WxH of positive integers, e.g. 320x240",
                 param,
                 ctx,
             )
-        return int(m.group(1)), int(m.group(2))
+        return size
 
 
 class FrameSubset(click.ParamType):

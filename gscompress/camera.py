@@ -7,6 +7,7 @@ boundary, which stores (x, y, z, w).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,16 @@ class Intrinsics:
             width=width,
             height=height,
         )
+
+
+MIN_QUATERNION_NORM = 1e-6
+"""A written quaternion shorter than this is taken for zero, not a rotation: poses and transforms
+store unit quaternions, so one this short is a corrupt or mistyped row, whatever its direction."""
+
+
+def is_zero_quaternion(q: Sequence[float] | np.ndarray) -> bool:
+    """Whether finite quaternion components (any order) are too short to be a rotation."""
+    return bool(np.hypot.reduce(np.asarray(q, dtype=np.float64)) < MIN_QUATERNION_NORM)
 
 
 def quat_to_rotmat(q_wxyz: np.ndarray) -> np.ndarray:

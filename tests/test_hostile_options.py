@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from gscompress.camera import quat_to_rotmat
-from gscompress.datasets.base import parse_frames
+from gscompress.datasets.base import parse_frames, parse_size
 from gscompress.errors import DatasetError, InputError, MapError, OutputError
 from gscompress.gaussians import random_map
 from gscompress.io import files
@@ -192,11 +192,19 @@ def test_a_config_can_come_through_a_pipe(tmp_path: Path) -> None:
         os.close(read)
 
 
-def test_a_size_in_other_digits_is_refused_in_one_line(tmp_path: Path) -> None:
+@pytest.mark.parametrize("text", ["\u00b2x3", "\u0663\u0662\u0660x240", "320x\uff12\uff14\uff10"])
+def test_a_size_in_other_digits_is_refused_alike_on_the_command_line_and_in_a_config(
+    tmp_path: Path, text: str
+) -> None:
+    assert parse_size(text) is None
     path = tmp_path / "c.yaml"
-    path.write_text('size: "\u00b2x3"\n')
+    path.write_text(f'size: "{text}"\n', encoding="utf-8")
     with pytest.raises(InputError, match="expected WxH"):
         load_config(path)
+    result = CliRunner().invoke(cli, ["synth", str(tmp_path / "seq"), "--size", text])
+    assert result.exit_code == 2 and "is not a size WxH" in result.output
+    assert not (tmp_path / "seq").exists()
+    assert parse_size(" 320 X 240 ") == (320, 240)
 
 
 def test_a_diverging_run_says_so_in_one_line_without_resume_advice(tmp_path: Path) -> None:

@@ -12,6 +12,7 @@ from gscompress.camera import make_transform, quat_to_rotmat
 from gscompress.errors import InputError
 from gscompress.io.trajectory import (
     parse_tum_trajectory,
+    read_transform,
     read_tum_trajectory,
     write_tum_trajectory,
 )
@@ -59,6 +60,27 @@ def test_malformed_rows_name_the_line(tmp_path: Path, row: str, message: str) ->
     p.write_text("# ok\n0.0 0 0 0 0 0 0 1\n" + row + "\n")
     with pytest.raises(InputError, match=rf"bad.txt:3: .*{message}"):
         read_tum_trajectory(p)
+
+
+@pytest.mark.parametrize(
+    ("q", "zero"), [("0 0 1e-7 0", True), ("0 0 2e-6 0", False), ("1e300 0 0 1e300", False)]
+)
+def test_trajectories_and_transforms_take_the_same_quaternions_for_zero(
+    tmp_path: Path, q: str, zero: bool
+) -> None:
+    (tmp_path / "t.txt").write_text(f"1.0 1 2 3 {q}\n")
+    (tmp_path / "T.txt").write_text(f"1 2 3 {q}\n")
+    reads = [
+        lambda: read_tum_trajectory(tmp_path / "t.txt").T_world_cam[0],
+        lambda: read_transform(tmp_path / "T.txt"),
+    ]
+    for read in reads:
+        if zero:
+            with pytest.raises(InputError, match="zero"):
+                read()
+        else:
+            R = read()[:3, :3]
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
 
 
 def test_missing_file(tmp_path: Path) -> None:

@@ -361,6 +361,12 @@ MAX_SIDE = 8192
 """Largest image width or height accepted: beyond it one frame's buffers no longer fit in memory."""
 
 
+def parse_size(text: str) -> tuple[int, int] | None:
+    """(W, H) from `WxH` text (ASCII digits, at most 9 a side, x or X, spaces around), or None."""
+    m = re.fullmatch(r"\s*([0-9]{1,9})\s*[xX]\s*([0-9]{1,9})\s*", text)
+    return None if m is None else (int(m.group(1)), int(m.group(2)))
+
+
 def check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
     """Validate a working size (W, H): positive, at most MAX_SIDE per side."""
     if size is None:

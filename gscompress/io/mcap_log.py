@@ -49,7 +49,13 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from zstandard import ZstdError, frame_content_size
 
 from gscompress import __version__
-from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat, rotmat_to_quat
+from gscompress.camera import (
+    Intrinsics,
+    is_zero_quaternion,
+    make_transform,
+    quat_to_rotmat,
+    rotmat_to_quat,
+)
 from gscompress.errors import GscError, LogFormatError, MapError, led_by
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import (
@@ -524,7 +530,7 @@ def decode_pose(schema: Schema | None, message: McapMessage, source: str = "log"
     p, o = pose.position, pose.orientation
     q = np.array([o.w, o.x, o.y, o.z])
     t = np.array([p.x, p.y, p.z])
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or np.linalg.norm(q) < 1e-12:
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or is_zero_quaternion(q):
         raise LogFormatError(f"{where} has a non-finite or zero-length pose")
     return make_transform(quat_to_rotmat(q), t)
 

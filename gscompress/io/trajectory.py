@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gscompress.camera import pose_from_tum, pose_to_tum
+from gscompress.camera import is_zero_quaternion, pose_from_tum, pose_to_tum
 from gscompress.errors import InputError, OutputError, clipped
 from gscompress.io.files import read_text
 
@@ -76,7 +76,7 @@ def parse_tum_trajectory(text: str, source: str = "<text>") -> Trajectory:
             raise InputError(f"{source}:{lineno}: not a number in {clipped(line, 80)}") from None
         if not all(math.isfinite(v) for v in values):
             raise InputError(f"{source}:{lineno}: non-finite value in {clipped(line, 80)}")
-        if math.hypot(*values[4:8]) < 1e-12:
+        if is_zero_quaternion(values[4:8]):
             raise InputError(f"{source}:{lineno}: zero-length quaternion")
         stamps.append(values[0])
         rows.append(values[1:])
@@ -115,7 +115,7 @@ def read_transform(path: str | Path) -> np.ndarray:
             f"got {len(values)}{' with non-finite values' if len(values) in (7, 16) else ''}"
         )
     if len(values) == 7:
-        if np.hypot.reduce(values[3:]) < 1e-6:  # (hypot: a norm could overflow)
+        if is_zero_quaternion(values[3:]):
             raise InputError(f"{path}: the quaternion qx qy qz qw is zero, not a rotation")
         return pose_from_tum(values)
     T = values.reshape(4, 4)

@@ -31,13 +31,13 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
-import re
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from gscompress.datasets.base import MAX_SIDE, parse_size
 from gscompress.errors import InputError, OptionError, clipped
 from gscompress.importance import PwasConfig
 from gscompress.io.files import read_text, write_text_atomic
@@ -367,9 +367,7 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
         if value is None:
             return None
         if isinstance(value, str):  # WxH, as on the command line
-            width, _, height = value.lower().partition("x")
-            if all(re.fullmatch(r"\s*[0-9]{1,9}\s*", v) for v in (width, height)):
-                value = [int(width), int(height)]
+            value = parse_size(value) or value
         if (
             isinstance(value, list | tuple)
             and len(value) == 2
@@ -471,8 +469,6 @@ def check_config(config: SlamConfig) -> None:
     need(m.final_views in REFINE_VIEWS, f"mapping.final_views is one of {', '.join(REFINE_VIEWS)}")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
     need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")
-    from gscompress.datasets.base import MAX_SIDE
-
     need(config.size is None or max(config.size) <= MAX_SIDE, f"size: at most {MAX_SIDE} a side")
     from gscompress.render import BACKENDS
 
