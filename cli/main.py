@@ -70,7 +70,11 @@ def one_line(exc: click.UsageError) -> click.UsageError:
     shown_as_is = (OneLineUsageError, getattr(click.exceptions, "NoArgsIsHelpError", ()))
     if isinstance(exc, shown_as_is):  # (NoArgsIsHelpError: click >= 8.2)
         return exc
-    message = exc.format_message()
+    message = re.sub(  # (click echoes a value as typed, and a number can be 5000 digits long)
+        r"[0-9]{41,}",
+        lambda m: f"{m[0][:18]}...{m[0][-18:]} ({len(m[0])} digits)",
+        exc.format_message(),
+    )
     if isinstance(exc, click.NoSuchOption) and exc.ctx is not None and exc.ctx.parent is not None:
         group = exc.ctx.parent
         for option in group.command.params:

@@ -159,6 +159,8 @@ def _synth_raises(monkeypatch: pytest.MonkeyPatch, raised: BaseException) -> Non
         ('"fx": ' + "9" * 4000, "bad value"),  # an int beyond float range
         ('"fx": ' + "9" * 5000, "cannot read intrinsics"),  # beyond int() of a string
         ('"depth_scale": true', "bad value"),
+        ('"fx": 1e-320', "in pixels, at least 1"),  # (subnormal: numpy warned, then diverged)
+        ('"fy": 0.78', "normalised intrinsics"),
     ],
 )
 def test_intrinsics_beyond_what_a_camera_has_are_refused(
@@ -239,3 +241,11 @@ def test_a_merge_whose_refinement_diverges_says_how_to_merge_anyway(
     intrinsics = Intrinsics(30.0, 30.0, 16.0, 12.0, 32, 24)
     with pytest.raises(DivergenceError, match=r"refinement diverged \(its loss .*--iters 0"):
         refine(random_map(5, seed=0), [view], intrinsics, preset("tiny"), 3)
+
+
+@pytest.mark.parametrize("digits", [300, 5000])
+def test_a_huge_number_for_an_integer_option_is_echoed_clipped(tmp_path: Path, digits: int) -> None:
+    result = CliRunner().invoke(cli, ["synth", str(tmp_path / "s"), "--frames", "9" * digits])
+    assert result.exit_code == 2
+    assert f"({digits} digits)" in result.output and len(result.output) < 300
+    assert not (tmp_path / "s").exists()

@@ -414,6 +414,11 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
     values = [fx, fy, cx, cy, w, h] + ([depth_scale] if depth_scale else [])
     if not np.all(np.isfinite(values)) or min(fx, fy, w, h) <= 0:
         raise DatasetError(f"intrinsics file {path}: focal lengths and size must be positive")
+    if min(fx, fy) < 1:
+        raise DatasetError(
+            f"intrinsics file {path}: fx and fy are in pixels, at least 1 (normalised "
+            "intrinsics? multiply fx and cx by the width, fy and cy by the height)"
+        )
     if max(w, h) > MAX_SIDE or w != int(w) or h != int(h):
         raise DatasetError(f"intrinsics file {path}: width and height are whole, <= {MAX_SIDE}")
     width, height = int(w), int(h)
