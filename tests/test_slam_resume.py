@@ -175,6 +175,22 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
     assert unfinished_files(out) == []
 
 
+def test_a_resume_killed_in_its_turn_is_resumed_from_where_it_got(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "twice.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config_file, progress=stop_after(3))
+    cmd = _gsc_signalled(signal.SIGKILL, 4, "slam", seq_dir, "-o", out, "--resume")
+    proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    (ahead,) = unfinished_files(out)  # frames 3-5 done beyond the log's 3, then killed
+    assert frames_in(out) == [0, 1, 2]
+    result = slam_file(seq_dir, out, resume=True)
+    assert result["resumed_at"] > 3  # from the killed resume's file, not the older log
+    assert frames_in(out) == list(range(FRAMES)) and unfinished_files(out) == []
+
+
 def test_a_fresh_run_with_force_replaces_an_unfinished_one(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:

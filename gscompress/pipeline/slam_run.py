@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.datasets.base import same_fingerprint
-from gscompress.errors import InputError, OptionError, OutputError
+from gscompress.errors import InputError, LogFormatError, OptionError, OutputError
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -31,7 +31,13 @@ from gscompress.io.mcap_log import (
     decode_pose,
     decode_snapshot,
 )
-from gscompress.io.recover import Record, read_messages, resume_sources, unfinished_files
+from gscompress.io.recover import (
+    LogContents,
+    Record,
+    read_messages,
+    resume_sources,
+    unfinished_files,
+)
 from gscompress.ops.select import check_ratio
 from gscompress.pipeline.offline import seconds_to_ns
 
@@ -270,10 +276,10 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     leftovers = [p for p in sources if p != dst]
     if not sources:
         raise InputError(f"--resume: there is no log {dst} nor an unfinished run of it")
-    contents = read_messages(sources[0])
+    source, contents = _furthest(sources)
     meta = contents.metadata
     if not meta.config:
-        raise InputError(f"{sources[0]} records no SLAM config: not a `gsc slam` log")
+        raise InputError(f"{source} records no SLAM config: not a `gsc slam` log")
     if "frames" not in meta.results and contents.finished:
         raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
     if contents.finished and not meta.results.get("interrupted", False):
@@ -331,10 +337,10 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
         return run
     assert last is not None
-    gaussians = decode_snapshot(last[0], last[2], str(sources[0])).gaussians
+    gaussians = decode_snapshot(last[0], last[2], str(source)).gaussians
     pose_records = by_topic[TOPIC_POSE][:done]
     stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
-    poses = [decode_pose(r[0], r[2], str(sources[0])) for r in pose_records]
+    poses = [decode_pose(r[0], r[2], str(source)) for r in pose_records]
     kept = "frames" if system.keeps_every_view else "keyframes"
     views = [
         View.from_frame(position, sequence.frame(position), poses[position], system.device)
@@ -357,6 +363,29 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     run.t_ns = cut
     log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
     return run
+
+
+def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
+    """Of a log and the unfinished files beside it, the one whose last map covers the most
+    frames (a resume killed in its turn leaves a file ahead of the log it started from), with
+    its contents; the first readable one on a tie. Raises the first's error if none reads."""
+    best: tuple[int, Path, LogContents] | None = None
+    first_error: LogFormatError | None = None
+    for path in sources:
+        try:
+            contents = read_messages(path)
+        except LogFormatError as exc:
+            first_error = first_error or exc
+            continue
+        maps = [m.log_time for _, c, m in contents.messages if c.topic == TOPIC_GAUSSIANS]
+        poses = [m.log_time for _, c, m in contents.messages if c.topic == TOPIC_POSE]
+        covered = sum(1 for t in poses if maps and t <= maps[-1])
+        if best is None or covered > best[0]:
+            best = (covered, path, contents)
+    if best is None:
+        assert first_error is not None
+        raise first_error
+    return best[1], best[2]
 
 
 def _is_end_map(last: Record, snapshots: list[Record], by_topic: dict[str, list[Record]]) -> bool:
