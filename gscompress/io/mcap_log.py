@@ -747,6 +747,26 @@ class LogReader:
                 return self.decode_snapshot(schema, message)
         raise LogFormatError(f"{self.path}: snapshot {snapshot} could not be found")
 
+    def read_poses(self, topic: str = TOPIC_POSE) -> tuple[np.ndarray, np.ndarray]:
+        """The foxglove.PoseInFrame messages of `topic` (the estimated poses by default).
+
+        Returns:
+            (log times [N] int64 ns, camera-to-world poses [N, 4, 4] float64), in log-time order;
+            empty arrays when the log has no such channel.
+
+        Raises:
+            LogFormatError: a message that is not a PoseInFrame, or a non-finite or zero-length
+                pose.
+        """
+        times: list[int] = []
+        poses: list[np.ndarray] = []
+        for schema, _channel, message in self.iter_messages([topic]):
+            poses.append(decode_pose(schema, message, str(self.path)))
+            times.append(int(message.log_time))
+        stamps = np.array(times, dtype=np.int64)
+        order = np.argsort(stamps, kind="stable")
+        return stamps[order], np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
+
     def decode_map(self, schema: Schema | None, message: McapMessage) -> GaussianMap:
         """Decode one `/gaussians` message into a validated map."""
         return self.decode_snapshot(schema, message).gaussians

@@ -33,7 +33,6 @@ from gscompress.io.mcap_log import (
     TOPIC_POSE,
     TOPIC_POSE_GT,
     LogReader,
-    decode_pose,
 )
 from gscompress.pipeline.offline import seconds_to_ns
 
@@ -48,27 +47,6 @@ def warn_other_sequence(log_path: str | Path, recorded: str | None, given: str) 
     (its poses would then be compared with frames they do not belong to)."""
     if recorded and recorded != given:
         log.warning("%s was recorded from sequence %r, not %r", log_path, recorded, given)
-
-
-def read_poses(reader: LogReader, topic: str) -> tuple[np.ndarray, np.ndarray]:
-    """The foxglove.PoseInFrame messages of `topic` in a log.
-
-    Returns:
-        (log times [N] int64 ns, camera-to-world poses [N, 4, 4] float64), in log-time order;
-        empty arrays when the log has no such channel.
-
-    Raises:
-        LogFormatError: a message that is not a PoseInFrame, or a non-finite or zero-length
-            pose.
-    """
-    times: list[int] = []
-    poses: list[np.ndarray] = []
-    for schema, _channel, message in reader.iter_messages([topic]):
-        poses.append(decode_pose(schema, message, str(reader.path)))
-        times.append(int(message.log_time))
-    stamps = np.array(times, dtype=np.int64)
-    order = np.argsort(stamps, kind="stable")
-    return stamps[order], np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
 
 
 def match_times(
@@ -163,8 +141,8 @@ def evaluate_log(
         schema, _channel, last = next(iter(reader.iter_messages([TOPIC_GAUSSIANS], reverse=True)))
         gaussians = reader.decode_map(schema, last)
         map_bytes = len(last.data)
-        est_ns, est_poses = read_poses(reader, TOPIC_POSE)
-        gt_log_ns, gt_log_poses = read_poses(reader, TOPIC_POSE_GT)
+        est_ns, est_poses = reader.read_poses(TOPIC_POSE)
+        gt_log_ns, gt_log_poses = reader.read_poses(TOPIC_POSE_GT)
         meta = reader.metadata
     if len(est_ns) == 0:
         raise LogFormatError(

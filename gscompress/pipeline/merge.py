@@ -125,12 +125,10 @@ def merge_logs(
     check_output(dst, inputs, force, ".mcap")
     if share is not None and Path(share).exists() and Path(share).samefile(receiver):
         raise OptionError(f"{share} is the receiver log itself: merging it would double its map")
-    from gscompress.pipeline.evaluate import read_poses
-
     with LogReader(receiver) as receiver_log:
         meta = receiver_log.metadata
         receiver_log.require_snapshots()
-        pose_ns, poses = read_poses(receiver_log, TOPIC_POSE) if iters > 0 else (None, None)
+        pose_ns, poses = receiver_log.read_poses(TOPIC_POSE) if iters > 0 else (None, None)
     shared: GaussianMap | None = None
     share_record: dict[str, Any] = {"share": None}
     if share is not None:

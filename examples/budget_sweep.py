@@ -1,0 +1,69 @@
+"""What each share budget buys: one map cut at several budgets by several strategies, each cut
+rendered at the log's own poses (no refinement) and scored against the sequence.
+
+For every budget (a fraction of the Gaussians) and strategy it reports the Gaussians kept, the
+bytes of their `/gaussians` message at fp32 and fp16 (what a byte budget bounds), and PSNR and
+SSIM over the sequence's frames. It is the receiving side's best case with nothing of its own:
+how much of the sender's view the share alone redraws. `gsc experiment` measures what a share
+adds to another agent's map instead.
+
+Usage: python examples/budget_sweep.py LOG.mcap --seq SEQ [--budgets 0.05,0.1,0.2,0.4,1]
+           [--strategies pwas,opacity,random] [--every 4] [--json OUT.json]
+  e.g. python examples/budget_sweep.py demo_out/map.mcap --seq demo_out/synthetic
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+from gscompress.io.mcap_log import LogReader, pointcloud_bytes
+from gscompress.pipeline import evaluate_log, prune_log
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("log", type=Path)
+    parser.add_argument("--seq", type=Path, required=True, help="the log's sequence folder")
+    parser.add_argument(
+        "--budgets", default="0.05,0.1,0.2,0.4,1", help="fractions, comma-separated"
+    )
+    parser.add_argument("--strategies", default="pwas,opacity,random")
+    parser.add_argument("--every", type=int, default=4, help="score every N-th frame")
+    parser.add_argument("--json", type=Path, help="also write the rows as JSON")
+    opts = parser.parse_args()
+    budgets = [float(b) for b in opts.budgets.split(",")]
+    strategies = opts.strategies.split(",")
+
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        for budget in budgets:
+            for strategy in strategies if budget < 1 else ["whole map"]:
+                cut = Path(scratch) / f"{strategy}_{budget}.mcap"
+                prune_log(opts.log, cut, budget, by=strategy if budget < 1 else "pwas")
+                with LogReader(cut) as log:
+                    gaussians = log.read_map()
+                scores = evaluate_log(cut, opts.seq, every=opts.every, lpips=False)
+                rows.append(
+                    {
+                        "budget": budget,
+                        "strategy": strategy,
+                        "gaussians": len(gaussians),
+                        "bytes_fp32": pointcloud_bytes(gaussians, "fp32")(len(gaussians)),
+                        "bytes_fp16": pointcloud_bytes(gaussians, "fp16")(len(gaussians)),
+                        "psnr": scores["psnr"],
+                        "ssim": scores["ssim"],
+                    }
+                )
+                r = rows[-1]
+                print(f"{budget:>5.0%} {strategy:<10} {r['gaussians']:>8} Gaussians, MB "
+                      f"{r['bytes_fp32'] / 1e6:.3f} fp32 / {r['bytes_fp16'] / 1e6:.3f} fp16, "
+                      f"PSNR {r['psnr']:6.2f} dB, SSIM {r['ssim']:.3f}", flush=True)  # fmt: skip
+    if opts.json:
+        opts.json.write_text(json.dumps(rows, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
