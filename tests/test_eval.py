@@ -27,7 +27,6 @@ from gscompress.metrics import ate_rmse_cm, ate_splatam_cm, psnr
 from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline import evaluate_log, slam_file
-from gscompress.pipeline.evaluate import match_times
 from gscompress_cli.main import cli
 
 LAYOUT = Path(__file__).resolve().parent.parent / "examples" / "foxglove_layout.json"
@@ -183,13 +182,6 @@ def test_lpips_is_a_number_or_unavailable_with_a_reason(gt_log, seq_dir):
     else:
         assert 0 <= r["lpips"] < 1 and r["lpips_reason"] == ""
         assert r["per_frame"][0]["lpips"] == pytest.approx(r["lpips"])
-
-
-def test_match_times_takes_the_nearest_within_tolerance():
-    ref = np.array([0, 1_000_000_000, 2_000_000_000])
-    query = np.array([5, 999_500_000, 1_500_000_000, 2_000_999_999, 3_000_000_000])
-    assert match_times(query, ref).tolist() == [0, 1, -1, 2, -1]
-    assert match_times(query, np.array([], dtype=np.int64)).tolist() == [-1] * 5
 
 
 # ------------------------------------------------------------------------------------- CLI

@@ -136,3 +136,31 @@ def test_gsc_score_without_poses_is_a_clear_error(tiny_sequence, tmp_path):
                                  "-o", str(tmp_path / "s.mcap")])  # fmt: skip
     assert r.exit_code == 1 and "--poses" in r.output
     assert not (tmp_path / "s.mcap").exists()
+
+
+def test_gsc_score_with_poses_matches_them_to_frames_by_time(tiny_sequence, tmp_path):
+    import shutil
+
+    seq = tmp_path / "nogt"
+    shutil.copytree(tiny_sequence, seq)
+    (seq / "groundtruth.txt").unlink()
+    write_ply(_scene(), tmp_path / "m.ply")
+    # the ground truth as another tool's estimate: shuffled rows, times off by 10 ms
+    rows = [r for r in (tiny_sequence / "groundtruth.txt").read_text().splitlines()
+            if r and not r.startswith("#")][::-1]  # fmt: skip
+    shifted = [f"{float(r.split()[0]) + 0.01:.6f} {' '.join(r.split()[1:])}" for r in rows]
+    (tmp_path / "est.txt").write_text("\n".join(shifted) + "\n")
+    args = ["score", str(tmp_path / "m.ply"), "-o"]
+    r = CliRunner().invoke(cli, [*args, str(tmp_path / "gt.mcap"), "--seq", str(tiny_sequence)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(cli, [*args, str(tmp_path / "est.mcap"), "--seq", str(seq),
+                                 "--poses", str(tmp_path / "est.txt")])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    np.testing.assert_allclose(read_map(tmp_path / "est.mcap").importance,
+                               read_map(tmp_path / "gt.mcap").importance, rtol=1e-5)  # fmt: skip
+
+    (tmp_path / "short.txt").write_text("\n".join(shifted[1:]) + "\n")  # the last frame's row gone
+    r = CliRunner().invoke(cli, [*args, str(tmp_path / "s.mcap"), "--seq", str(seq),
+                                 "--poses", str(tmp_path / "short.txt")])  # fmt: skip
+    assert r.exit_code == 1 and "has no pose within 0.02 s of frame time" in r.output
+    assert not (tmp_path / "s.mcap").exists()

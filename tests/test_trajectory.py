@@ -11,6 +11,7 @@ import pytest
 from gscompress.camera import make_transform, quat_to_rotmat
 from gscompress.errors import InputError
 from gscompress.io.trajectory import (
+    nearest_times,
     parse_tum_trajectory,
     read_transform,
     read_tum_trajectory,
@@ -81,6 +82,17 @@ def test_trajectories_and_transforms_take_the_same_quaternions_for_zero(
         else:
             R = read()[:3, :3]
             np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+
+
+def test_nearest_times_takes_the_nearest_within_tolerance_in_any_order() -> None:
+    ref = np.array([2_000_000_000, 0, 1_000_000_000])  # indices refer to this order
+    query = np.array([5, 999_500_000, 1_500_000_000, 2_000_999_999, 3_000_000_000])
+    tol = 1_000_000
+    assert nearest_times(query, ref, tol).tolist() == [1, 2, -1, 0, -1]
+    assert nearest_times(query, ref[:0], tol).tolist() == [-1] * 5
+    assert nearest_times(np.array([0.5]), np.array([1.0, 0.0]), 0.5).tolist() == [1]  # tie: earlier
+    assert nearest_times(np.array([0.5]), np.array([1.0, 0.0]), 0.5, strict=True).tolist() == [-1]
+    assert nearest_times(np.array([7.0]), np.array([3.0]), 5.0).tolist() == [0]
 
 
 def test_missing_file(tmp_path: Path) -> None:

@@ -39,7 +39,7 @@ from gscompress.datasets.base import (
 )
 from gscompress.errors import DatasetError, InputError, OutputError
 from gscompress.io.files import read_text
-from gscompress.io.trajectory import format_tum_trajectory, read_tum_trajectory
+from gscompress.io.trajectory import format_tum_trajectory, nearest_times, read_tum_trajectory
 
 TUM_DEPTH_SCALE = 5000.0
 DEFAULT_MAX_DT = 0.02
@@ -116,21 +116,6 @@ def associate(a: np.ndarray, b: np.ndarray, max_dt: float) -> list[tuple[int, in
     return pairs
 
 
-def nearest(a: np.ndarray, b: np.ndarray, max_dt: float) -> np.ndarray:
-    """[N] index into `b` of the nearest timestamp to each of `a` within max_dt, else -1."""
-    if len(b) == 0:
-        return np.full(len(a), -1, dtype=np.int64)
-    order = np.argsort(b, kind="stable")
-    b_sorted = b[order]
-    pos = np.clip(np.searchsorted(b_sorted, a), 1, max(len(b_sorted) - 1, 1))
-    left = np.clip(pos - 1, 0, len(b_sorted) - 1)
-    right = np.clip(pos, 0, len(b_sorted) - 1)
-    take_right = np.abs(b_sorted[right] - a) < np.abs(a - b_sorted[left])
-    k = np.where(take_right, right, left)
-    ok = np.abs(b_sorted[k] - a) < max_dt
-    return np.where(ok, order[k], -1).astype(np.int64)
-
-
 def _resolve(root: Path, rel: str, listed_in: Path) -> Path:
     """Path of a listed image; rejects absolute paths and paths escaping the folder."""
     p = Path(rel)
@@ -173,7 +158,7 @@ def _tum_records(root: Path, max_dt: float, max_dt_gt: float) -> tuple[list[Fram
             gt = read_tum_trajectory(gt_file)
         except InputError as exc:
             raise DatasetError(str(exc)) from None
-        k = nearest(np.array([f[0] for f in frames]), gt.timestamps, max_dt_gt)
+        k = nearest_times(np.array([f[0] for f in frames]), gt.timestamps, max_dt_gt, strict=True)
         poses = [gt.T_world_cam[j] if j >= 0 else None for j in k]
     records = [FrameRecord(t, c, d, pose) for (t, c, d), pose in zip(frames, poses, strict=True)]
     return records, gt_file.is_file()

@@ -85,6 +85,28 @@ def parse_tum_trajectory(text: str, source: str = "<text>") -> Trajectory:
     return Trajectory(np.asarray(stamps, dtype=np.float64), pose_from_tum(np.asarray(rows)))
 
 
+def nearest_times(
+    query: np.ndarray, reference: np.ndarray, tolerance: float, *, strict: bool = False
+) -> np.ndarray:
+    """For each query time, the index into `reference` (in any order) of the nearest time, the
+    earlier one on a tie; -1 where that is farther than `tolerance` (or exactly that far, if
+    `strict`, as TUM's association tool has it). Seconds or integer nanoseconds alike.
+
+    Returns:
+        [M] int64 indices into `reference`.
+    """
+    query, reference = np.asarray(query), np.asarray(reference)
+    if len(reference) == 0:
+        return np.full(len(query), -1, dtype=np.int64)
+    order = np.argsort(reference, kind="stable")
+    ref = reference[order]
+    right = np.clip(np.searchsorted(ref, query), 0, len(ref) - 1)
+    left = np.clip(right - 1, 0, len(ref) - 1)
+    k = np.where(np.abs(ref[left] - query) <= np.abs(ref[right] - query), left, right)
+    gap = np.abs(ref[k] - query)
+    return np.where(gap < tolerance if strict else gap <= tolerance, order[k], -1).astype(np.int64)
+
+
 def read_tum_trajectory(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file (see `parse_tum_trajectory`).
 

@@ -34,6 +34,7 @@ from gscompress.io.mcap_log import (
     TOPIC_POSE_GT,
     LogReader,
 )
+from gscompress.io.trajectory import nearest_times
 from gscompress.pipeline.offline import seconds_to_ns
 
 log = logging.getLogger(__name__)
@@ -47,29 +48,6 @@ def warn_other_sequence(log_path: str | Path, recorded: str | None, given: str) 
     (its poses would then be compared with frames they do not belong to)."""
     if recorded and recorded != given:
         log.warning("%s was recorded from sequence %r, not %r", log_path, recorded, given)
-
-
-def match_times(
-    query_ns: np.ndarray, reference_ns: np.ndarray, tolerance_ns: int = POSE_MATCH_TOLERANCE_NS
-) -> np.ndarray:
-    """For each query time, the index of the nearest reference time within the tolerance.
-
-    Args:
-        query_ns: [M] int64 times.
-        reference_ns: [N] int64 times, sorted ascending.
-        tolerance_ns: the largest accepted difference.
-
-    Returns:
-        [M] int64 indices into `reference_ns`, -1 where none is within the tolerance.
-    """
-    query = np.asarray(query_ns, dtype=np.int64)
-    ref = np.asarray(reference_ns, dtype=np.int64)
-    if len(ref) == 0:
-        return np.full(len(query), -1, dtype=np.int64)
-    right = np.clip(np.searchsorted(ref, query), 0, len(ref) - 1)
-    left = np.clip(right - 1, 0, len(ref) - 1)
-    nearest = np.where(np.abs(ref[left] - query) <= np.abs(ref[right] - query), left, right)
-    return np.where(np.abs(ref[nearest] - query) <= tolerance_ns, nearest, -1)
 
 
 def trajectory_errors(T_world_cam_gt: np.ndarray, T_world_cam_est: np.ndarray) -> dict[str, Any]:
@@ -157,7 +135,7 @@ def evaluate_log(
     warn_other_sequence(log_path, meta.sequence, sequence.name)
 
     frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
-    est_index = match_times(frame_ns, est_ns)
+    est_index = nearest_times(frame_ns, est_ns, POSE_MATCH_TOLERANCE_NS)
     positions = np.flatnonzero(est_index >= 0)
     if len(positions) == 0:
         raise InputError(
@@ -176,7 +154,7 @@ def evaluate_log(
         gt_stamps_ns = np.array([seconds_to_ns(t) for t in gt_stamps], dtype=np.int64)
         order = np.argsort(gt_stamps_ns, kind="stable")
         gt_stamps_ns, gt_poses = gt_stamps_ns[order], np.asarray(gt_poses)[order]
-    gt_index = match_times(frame_ns[positions], gt_stamps_ns)
+    gt_index = nearest_times(frame_ns[positions], gt_stamps_ns, POSE_MATCH_TOLERANCE_NS)
     paired = gt_index >= 0
     ate = trajectory_errors(gt_poses[gt_index[paired]], T_est[paired])
     if ate["ate_frames"] == 0 and len(gt_stamps_ns) == 0:

@@ -179,8 +179,9 @@ def _refine(
     """Refine `merged` on the receiver's frames or keyframes (`views`) at its estimated poses
     (log times, poses)."""
     from gscompress.datasets import open_sequence
+    from gscompress.io.trajectory import nearest_times
     from gscompress.ops.merge import refine
-    from gscompress.pipeline.evaluate import match_times, warn_other_sequence
+    from gscompress.pipeline.evaluate import POSE_MATCH_TOLERANCE_NS, warn_other_sequence
     from gscompress.render import resolve_backend, resolve_device
     from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
     from gscompress.slam.keyframes import View, in_views
@@ -195,7 +196,7 @@ def _refine(
     if len(pose_ns) == 0:
         raise LogFormatError(f"{receiver} has no {TOPIC_POSE}: refinement needs its poses")
     frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
-    match = match_times(frame_ns, pose_ns)
+    match = nearest_times(frame_ns, pose_ns, POSE_MATCH_TOLERANCE_NS)
     positions = np.flatnonzero(match >= 0)
     if len(positions) == 0:
         raise InputError(f"no frame of {sequence.name} has a pose in {receiver}")

@@ -95,7 +95,7 @@ def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.
     frames by nearest timestamp (within 0.02 s).
     """
     from gscompress.errors import DatasetError
-    from gscompress.io.trajectory import read_tum_trajectory
+    from gscompress.io.trajectory import nearest_times, read_tum_trajectory
 
     if poses is None:
         if not sequence.has_ground_truth:
@@ -108,16 +108,8 @@ def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.
     stamps = np.asarray(sequence.timestamps)
     if len(trajectory) == 0:
         raise DatasetError(f"{poses} holds no poses")
-    order = np.argsort(trajectory.timestamps)
-    t_sorted = trajectory.timestamps[order]
-    pos = np.clip(np.searchsorted(t_sorted, stamps), 1, max(len(t_sorted) - 1, 1))
-    left = np.clip(pos - 1, 0, len(t_sorted) - 1)
-    right = np.clip(pos, 0, len(t_sorted) - 1)
-    nearest = np.where(
-        np.abs(t_sorted[left] - stamps) <= np.abs(t_sorted[right] - stamps), left, right
-    )
-    gap = np.abs(t_sorted[nearest] - stamps)
-    if np.any(gap > 0.02):
-        worst = float(stamps[int(np.argmax(gap))])
-        raise DatasetError(f"{poses} has no pose within 0.02 s of frame time {worst:.6f}")
-    return stamps, trajectory.T_world_cam[order[nearest]]
+    index = nearest_times(stamps, trajectory.timestamps, 0.02)
+    if np.any(index < 0):
+        missing = float(stamps[int(np.argmax(index < 0))])
+        raise DatasetError(f"{poses} has no pose within 0.02 s of frame time {missing:.6f}")
+    return stamps, trajectory.T_world_cam[index]
