@@ -76,6 +76,13 @@ TOPIC_POSE_GT = "/camera/pose_gt"
 TOPIC_TF = "/tf"
 TOPIC_CALIBRATION = "/camera/calibration"
 TOPIC_STATS = "/slam/stats"
+
+
+def seconds_to_ns(seconds: float) -> int:
+    """Integer nanoseconds (log times) from seconds."""
+    return round(float(seconds) * 1e9)
+
+
 METADATA_NAME = "gscompress"
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"

@@ -22,7 +22,6 @@ from gscompress.pipeline.offline import (
     map_summary,
     prune_log,
     rewrite_map,
-    seconds_to_ns,
     share_log,
 )
 from gscompress.pipeline.scoring import score_file, view_poses
@@ -38,7 +37,6 @@ __all__ = [
     "prune_log",
     "rewrite_map",
     "score_file",
-    "seconds_to_ns",
     "share_log",
     "slam_file",
     "view_poses",

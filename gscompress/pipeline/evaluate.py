@@ -29,13 +29,13 @@ import numpy as np
 from gscompress.camera import invert_transform
 from gscompress.errors import InputError, LogFormatError
 from gscompress.io.mcap_log import (
-    TOPIC_GAUSSIANS,
     TOPIC_POSE,
     TOPIC_POSE_GT,
+    LogMetadata,
     LogReader,
+    seconds_to_ns,
 )
 from gscompress.io.trajectory import nearest_times
-from gscompress.pipeline.offline import seconds_to_ns
 
 log = logging.getLogger(__name__)
 
@@ -43,11 +43,47 @@ POSE_MATCH_TOLERANCE_NS = 1_000_000
 """Largest |log time - frame timestamp| (ns) at which a logged pose belongs to a frame."""
 
 
-def warn_other_sequence(log_path: str | Path, recorded: str | None, given: str) -> None:
-    """Warn when a log is rendered against another sequence than the one it was recorded from
-    (its poses would then be compared with frames they do not belong to)."""
-    if recorded and recorded != given:
-        log.warning("%s was recorded from sequence %r, not %r", log_path, recorded, given)
+def open_log_sequence(
+    seq: str | Path,
+    log_path: str | Path,
+    meta: LogMetadata,
+    frames: str | None = None,
+    size: tuple[int, int] | None = None,
+) -> Any:
+    """The sequence a log was made from, opened as its run had it: the log's frame subset and
+    working size unless given. Warns when the sequence is not the one the log names (its poses
+    would then be compared with frames they do not belong to)."""
+    from gscompress.datasets import open_sequence
+
+    if size is None and meta.config.get("size"):
+        w, h = meta.config["size"]
+        size = (int(w), int(h))
+    sequence = open_sequence(seq, size=size, frames=frames or meta.frames or "all")
+    if meta.sequence and meta.sequence != sequence.name:
+        log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
+                    sequence.name)  # fmt: skip
+    return sequence
+
+
+def frames_with_poses(
+    sequence: Any, pose_ns: np.ndarray, log_path: str | Path
+) -> tuple[np.ndarray, np.ndarray]:
+    """The positions of the sequence's frames that have a logged pose (log times `pose_ns`),
+    and the index of each one's pose.
+
+    Raises:
+        InputError: no frame has one.
+    """
+    frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
+    index = nearest_times(frame_ns, pose_ns, POSE_MATCH_TOLERANCE_NS)
+    positions = np.flatnonzero(index >= 0)
+    if len(positions) == 0:
+        raise InputError(
+            f"no frame of {sequence.name} has a pose in {log_path} within "
+            f"{POSE_MATCH_TOLERANCE_NS / 1e6:g} ms: is this the sequence (and frame subset) the "
+            "log was made from?"
+        )
+    return positions, index[positions]
 
 
 def trajectory_errors(T_world_cam_gt: np.ndarray, T_world_cam_est: np.ndarray) -> dict[str, Any]:
@@ -106,7 +142,6 @@ def evaluate_log(
         DatasetError: unreadable sequence.
         InputError: `every` < 1, or no frame of the sequence has a pose in the log.
     """
-    from gscompress.datasets import open_sequence
     from gscompress.ops.evaluate import EvalView, evaluate_map
     from gscompress.render import resolve_device
 
@@ -115,10 +150,8 @@ def evaluate_log(
     start = time.perf_counter()
     log_path = Path(log_path)
     with LogReader(log_path) as reader:
-        reader.require_snapshots()
-        schema, _channel, last = next(iter(reader.iter_messages([TOPIC_GAUSSIANS], reverse=True)))
-        gaussians = reader.decode_map(schema, last)
-        map_bytes = len(last.data)
+        snapshot = reader.read_snapshot()
+        gaussians, map_bytes = snapshot.gaussians, snapshot.message_bytes
         est_ns, est_poses = reader.read_poses(TOPIC_POSE)
         gt_log_ns, gt_log_poses = reader.read_poses(TOPIC_POSE_GT)
         meta = reader.metadata
@@ -126,24 +159,10 @@ def evaluate_log(
         raise LogFormatError(
             f"{log_path} has no {TOPIC_POSE} messages: not a SLAM log (nothing to evaluate at)"
         )
-    if frames is None:
-        frames = meta.frames or "all"
-    if size is None and meta.config.get("size"):
-        w, h = meta.config["size"]
-        size = (int(w), int(h))
-    sequence = open_sequence(seq, size=size, frames=frames)
-    warn_other_sequence(log_path, meta.sequence, sequence.name)
-
-    frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
-    est_index = nearest_times(frame_ns, est_ns, POSE_MATCH_TOLERANCE_NS)
-    positions = np.flatnonzero(est_index >= 0)
-    if len(positions) == 0:
-        raise InputError(
-            f"no frame of {sequence.name} (frames {frames}) has an estimated pose in {log_path} "
-            f"within {POSE_MATCH_TOLERANCE_NS / 1e6:g} ms: is this the sequence the log was "
-            "made from?"
-        )
-    T_est = est_poses[est_index[positions]]
+    frames = frames or meta.frames or "all"
+    sequence = open_log_sequence(seq, log_path, meta, frames, size)
+    positions, pose_index = frames_with_poses(sequence, est_ns, log_path)
+    T_est = est_poses[pose_index]
 
     # ground truth per matched frame: the sequence's, else the log's /camera/pose_gt
     gt_stamps, gt_poses = sequence.ground_truth()
@@ -152,9 +171,9 @@ def evaluate_log(
         gt_stamps_ns, gt_poses, source = gt_log_ns, gt_log_poses, "log"
     else:
         gt_stamps_ns = np.array([seconds_to_ns(t) for t in gt_stamps], dtype=np.int64)
-        order = np.argsort(gt_stamps_ns, kind="stable")
-        gt_stamps_ns, gt_poses = gt_stamps_ns[order], np.asarray(gt_poses)[order]
-    gt_index = nearest_times(frame_ns[positions], gt_stamps_ns, POSE_MATCH_TOLERANCE_NS)
+        gt_poses = np.asarray(gt_poses)
+    frame_ns = np.array([seconds_to_ns(sequence.timestamps[p]) for p in positions], dtype=np.int64)
+    gt_index = nearest_times(frame_ns, gt_stamps_ns, POSE_MATCH_TOLERANCE_NS)
     paired = gt_index >= 0
     ate = trajectory_errors(gt_poses[gt_index[paired]], T_est[paired])
     if ate["ate_frames"] == 0 and len(gt_stamps_ns) == 0:

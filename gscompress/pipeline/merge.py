@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError, LogFormatError, OptionError
+from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 from gscompress.ops.merge import REFINE_VIEWS, check_same_world
 from gscompress.ops.select import is_fraction
-from gscompress.pipeline.offline import rewrite_map, seconds_to_ns
+from gscompress.pipeline.offline import rewrite_map
 
 DEFAULT_REFINE_VIEWS = "frames"
 """What a merge refines on unless told (`REFINE_VIEWS`): every frame of the receiver's subset.
@@ -178,10 +178,8 @@ def _refine(
 ) -> tuple[GaussianMap, dict[str, Any]]:
     """Refine `merged` on the receiver's frames or keyframes (`views`) at its estimated poses
     (log times, poses)."""
-    from gscompress.datasets import open_sequence
-    from gscompress.io.trajectory import nearest_times
     from gscompress.ops.merge import refine
-    from gscompress.pipeline.evaluate import POSE_MATCH_TOLERANCE_NS, warn_other_sequence
+    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
     from gscompress.render import resolve_backend, resolve_device
     from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
     from gscompress.slam.keyframes import View, in_views
@@ -189,21 +187,14 @@ def _refine(
     config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
     if backend is not None:
         config = config.with_overrides(backend=backend)
-    if size is None and config.size is not None:
-        size = config.size
-    sequence = open_sequence(seq, size=size, frames=frames or meta.frames or "all")
-    warn_other_sequence(receiver, meta.sequence, sequence.name)
+    sequence = open_log_sequence(seq, receiver, meta, frames, size or config.size)
     if len(pose_ns) == 0:
         raise LogFormatError(f"{receiver} has no {TOPIC_POSE}: refinement needs its poses")
-    frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
-    match = nearest_times(frame_ns, pose_ns, POSE_MATCH_TOLERANCE_NS)
-    positions = np.flatnonzero(match >= 0)
-    if len(positions) == 0:
-        raise InputError(f"no frame of {sequence.name} has a pose in {receiver}")
+    positions, pose_index = frames_with_poses(sequence, pose_ns, receiver)
     torch_device = resolve_device(device, config.backend)
     chosen = [
-        View.from_frame(k, sequence.frame(int(p)), poses[match[p]], torch_device)
-        for k, p in enumerate(positions)
+        View.from_frame(k, sequence.frame(int(p)), poses[i], torch_device)
+        for k, (p, i) in enumerate(zip(positions, pose_index, strict=True))
         if in_views(k, views, config.keyframes)
     ]
     done = 0

@@ -288,8 +288,3 @@ def log_edges(positive: np.ndarray, bins: int) -> np.ndarray:
     edges = np.logspace(np.log10(low), np.log10(high), bins + 1)
     edges[[0, -1]] = low, high  # exactly: 10 ** log10(x) may round off x and leave it out
     return edges
-
-
-def seconds_to_ns(seconds: float) -> int:
-    """Integer nanoseconds (log times) from seconds."""
-    return round(float(seconds) * 1e9)

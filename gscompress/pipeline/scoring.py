@@ -15,9 +15,10 @@ from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     LogMetadata,
     LogWriter,
+    seconds_to_ns,
 )
 from gscompress.io.ply import read_ply
-from gscompress.pipeline.offline import rewrite_map, seconds_to_ns
+from gscompress.pipeline.offline import rewrite_map
 
 
 def score_file(

@@ -30,6 +30,7 @@ from gscompress.io.mcap_log import (
     LogWriter,
     decode_pose,
     decode_snapshot,
+    seconds_to_ns,
 )
 from gscompress.io.recover import (
     LogContents,
@@ -39,7 +40,6 @@ from gscompress.io.recover import (
     unfinished_files,
 )
 from gscompress.ops.select import check_ratio
-from gscompress.pipeline.offline import seconds_to_ns
 
 log = logging.getLogger(__name__)
 
