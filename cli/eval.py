@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ from gscompress.pipeline import evaluate_log
 from .options import (
     INPUT_FILE,
     FrameSubset,
+    advance,
     backend_option,
     device_option,
     emit,
@@ -68,11 +70,6 @@ def eval_command(
       gsc eval run.mcap --seq data/room --every 5 --json | jq .psnr
     """
     with progress_bar("eval", "view", hidden=as_json) as bar:
-
-        def progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
-
         result = evaluate_log(
             src,
             seq,
@@ -82,7 +79,7 @@ def eval_command(
             backend=backend,
             device=device,
             lpips=not no_lpips,
-            progress=progress,
+            progress=partial(advance, bar),
         )
     emit(result, as_json, format_eval(result))
 

@@ -15,6 +15,7 @@ from .options import (
     INPUT_FOLDER,
     BudgetParam,
     Ratio,
+    advance,
     device_option,
     emit,
     json_option,
@@ -171,9 +172,8 @@ def experiment(
     with progress_bar("experiment", "run", hidden=as_json) as bar:
 
         def progress(name: str, done: int, total: int) -> None:
-            bar.total = total
             bar.set_postfix_str(name, refresh=False)
-            bar.update(done - bar.n)
+            advance(bar, done, total)
 
         try:
             result = run_experiment(seq, out_dir, settings, progress=progress, jobs=jobs)

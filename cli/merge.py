@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import click
@@ -13,6 +14,7 @@ from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
 from .options import (
     INPUT_FILE,
     FrameSubset,
+    advance,
     backend_option,
     command_line,
     device_option,
@@ -104,10 +106,6 @@ def merge(
       gsc eval b_merged.mcap --seq data/room
     """
     with progress_bar("refine", "iter", total=iters, hidden=as_json) as bar:
-
-        def progress(done: int, total: int) -> None:
-            bar.update(done - bar.n)
-
         result = merge_logs(
             receiver,
             share,
@@ -124,7 +122,7 @@ def merge(
             share_transform=share_transform,
             command=command_line(),
             force=force,
-            progress=progress,
+            progress=partial(advance, bar),
         )
     text = (
         f"merged {result['share']} shared + {result['receiver']} own -> "

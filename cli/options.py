@@ -185,6 +185,12 @@ def progress_bar(desc: str, unit: str, total: int | None = None, hidden: bool = 
     return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet, delay=0.5)
 
 
+def advance(bar: Any, done: int, total: int) -> None:
+    """Move a `progress_bar` to `done` of `total` (the pipeline's progress callbacks)."""
+    bar.total = total
+    bar.update(done - bar.n)
+
+
 def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
     """`-o/--output PATH`, required, passed to the command as `dst`."""
     return click.option(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import click
@@ -12,6 +13,7 @@ from .options import (
     INPUT_FILE,
     FrameSubset,
     PositiveFloat,
+    advance,
     backend_option,
     command_line,
     emit,
@@ -76,11 +78,6 @@ def score(
       gsc prune scored.mcap --keep 0.3 -o small.mcap
     """
     with progress_bar("score", "view", hidden=as_json) as bar:
-
-        def progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
-
         result = score_file(
             src,
             dst,
@@ -92,7 +89,7 @@ def score(
             backend=backend,
             command=command_line(),
             force=force,
-            progress=progress,
+            progress=partial(advance, bar),
         )
     emit(
         result,

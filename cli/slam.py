@@ -13,6 +13,7 @@ from .options import (
     INPUT_FILE,
     INPUT_FOLDER,
     Ratio,
+    advance,
     backend_option,
     command_line,
     device_option,
@@ -205,7 +206,6 @@ def slam(
                 _start_at_loop(bar, done - 1, stats["seconds"])
                 if save_config is not None:  # written once the run has passed its checks
                     write_config(config, save_config)
-            bar.total = total
             bar.set_postfix(  # counts as text: tqdm would show 10000 as "1e+4"
                 frame=str(stats["frame"]),
                 gaussians=str(stats["gaussians"]),
@@ -214,7 +214,7 @@ def slam(
                 s_per_frame=f"{stats['seconds'] / processed:.2f}",
                 refresh=False,
             )
-            bar.update(done - bar.n)
+            advance(bar, done, total)
 
         try:
             result = slam_file(
