@@ -31,6 +31,16 @@ class Intrinsics:
         """The 3x3 calibration matrix (float64)."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
+    def backproject(
+        self, u: np.ndarray, v: np.ndarray, z: np.ndarray, T_world_cam: np.ndarray
+    ) -> np.ndarray:
+        """[M, 3] world points (float64) of pixels (u, v) [M] at depths z [M] (metres along the
+        optical axis), seen by the camera at camera-to-world pose T_world_cam."""
+        z = np.asarray(z, dtype=np.float64)
+        cam = np.stack([(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z], axis=1)
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        return cam @ T[:3, :3].T + T[:3, 3]
+
     def scaled(self, width: int, height: int) -> Intrinsics:
         """Intrinsics for the same camera with the image resized to `width` x `height`.
 

@@ -19,6 +19,8 @@ from gscompress.errors import LogFormatError
 from gscompress.io.files import abandoned_files
 from gscompress.io.mcap_log import (
     METADATA_NAME,
+    TOPIC_GAUSSIANS,
+    TOPIC_POSE,
     LogMetadata,
     LogReader,
     closed_properly,
@@ -41,6 +43,16 @@ class LogContents:
     metadata: LogMetadata
     messages: list[Record] = field(default_factory=list)
     finished: bool = True
+
+    def map_frames(self) -> int:
+        """How many of the logged poses the last map snapshot covers (0 without a snapshot):
+        the frames a resume keeps."""
+        maps = [m.log_time for _, c, m in self.messages if c.topic == TOPIC_GAUSSIANS]
+        if not maps:
+            return 0
+        return sum(
+            1 for _, c, m in self.messages if c.topic == TOPIC_POSE and m.log_time <= maps[-1]
+        )
 
 
 def unfinished_files(path: str | Path) -> list[Path]:

@@ -309,10 +309,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         raise InputError(f"{dst}: its poses do not match the frames of {sequence.name}")
 
     # restore at the last snapshot: the frames up to its time are kept, later ones redone
-    done, last = 0, None
-    if snapshots:
-        last = snapshots[-1]
-        done = sum(1 for t in stamps if t <= last[2].log_time)
+    done, last = contents.map_frames(), snapshots[-1] if snapshots else None
     cut = stamps[done - 1] if done else -1
     carried = [
         r
@@ -377,11 +374,8 @@ def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
         except LogFormatError as exc:
             first_error = first_error or exc
             continue
-        maps = [m.log_time for _, c, m in contents.messages if c.topic == TOPIC_GAUSSIANS]
-        poses = [m.log_time for _, c, m in contents.messages if c.topic == TOPIC_POSE]
-        covered = sum(1 for t in poses if maps and t <= maps[-1])
-        if best is None or covered > best[0]:
-            best = (covered, path, contents)
+        if best is None or contents.map_frames() > best[0]:
+            best = (contents.map_frames(), path, contents)
     if best is None:
         assert first_error is not None
         raise first_error

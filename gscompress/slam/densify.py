@@ -50,11 +50,7 @@ def gaussians_from_rgbd(
     sub[::stride, ::stride] = True
     v, u = np.nonzero(keep & sub)
     z = depth[v, u].astype(np.float64)
-    x = (u - intrinsics.cx) / intrinsics.fx * z
-    y = (v - intrinsics.cy) / intrinsics.fy * z
-    points_cam = np.stack([x, y, z], axis=1)
-    T = np.asarray(T_world_cam, dtype=np.float64)
-    means = points_cam @ T[:3, :3].T + T[:3, 3]
+    means = intrinsics.backproject(u, v, z, T_world_cam)
     focal = 0.5 * (intrinsics.fx + intrinsics.fy)
     n = len(z)
     quats = np.zeros((n, 4))

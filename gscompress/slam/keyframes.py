@@ -82,13 +82,7 @@ def sample_points(
     if len(v) > samples:
         pick = rng.choice(len(v), size=samples, replace=False)
         v, u = v[pick], u[pick]
-    z = depth[v, u].astype(np.float64)
-    cam = np.stack(
-        [(u - intrinsics.cx) / intrinsics.fx * z, (v - intrinsics.cy) / intrinsics.fy * z, z],
-        axis=1,
-    )
-    T = np.asarray(T_world_cam, dtype=np.float64)
-    return cam @ T[:3, :3].T + T[:3, 3]
+    return intrinsics.backproject(u, v, depth[v, u], T_world_cam)
 
 
 def overlap_fraction(points: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray) -> float:
