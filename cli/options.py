@@ -250,7 +250,7 @@ def slam_config_options(f: F) -> F:
         "--preset",
         type=click.Choice(PRESET_NAMES),
         default=None,
-        help="Starting configuration: tiny (tests, seconds), cpu (160x120, 0.4-1.7 s/frame on 2 "
+        help="Starting configuration: tiny (tests, seconds), cpu (160x120, 0.4-0.9 s/frame on 2 "
         "cores), paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU). "
         "[default: the --config file's `preset:`, else cpu]",
     )(f)

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import torch
 
+from gscompress.gaussians import PWAS_EPS
+
 
 @dataclass(frozen=True)
 class PwasConfig:
@@ -79,9 +81,9 @@ class ImportanceSums:
             self.importance_weight += w
             self.alpha_t_sum += contribution
 
-    def score(self, eps: float = 1e-8) -> torch.Tensor:
-        """[N] PWAS score S / (W + eps)."""
-        return self.importance_sum / (self.importance_weight + eps)
+    def score(self) -> torch.Tensor:
+        """[N] PWAS score S / (W + eps), as `GaussianMap.importance` computes it from the sums."""
+        return self.importance_sum / (self.importance_weight + PWAS_EPS)
 
     def select(self, index: torch.Tensor) -> ImportanceSums:
         """The sums of the Gaussians at `index` (mask or indices), e.g. after pruning."""

@@ -55,11 +55,6 @@ class Budget:
         if self.budget_bytes is not None and self.budget_bytes < 1:
             raise InputError(f"budget must be at least 1 byte, got {self.budget_bytes}")
 
-    @property
-    def in_bytes(self) -> bool:
-        """True for a byte budget."""
-        return self.budget_bytes is not None
-
     def __str__(self) -> str:
         if self.text:
             return self.text

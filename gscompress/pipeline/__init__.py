@@ -9,6 +9,9 @@ They return a small dict of results that the CLI prints. Nothing here prints or 
 - `slam_run`: slam (a sequence into a log; resume; inject).
 - `merge`: merge (a share into a receiver's map, refined).
 - `evaluate`: eval (ATE and image metrics of a log).
+- `experiment`: experiment (the paper's protocol over several runs; import
+  `gscompress.pipeline.experiment.run_experiment` from it: it is not re-exported here, so that
+  the offline commands do not load what it needs).
 
 Modules that need torch import it inside their functions, so importing this package stays cheap.
 """

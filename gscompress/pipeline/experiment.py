@@ -529,8 +529,8 @@ def run_experiment(
         raise
     runner.close(cancel=False)
     verdicts = _verdicts(rows, s)
-    full, pruned = planned[0][2], planned[1][2]  # Table 3's runs
-    paths = _write_reports(out, seq, s, rows, verdicts, full.path, pruned.path)
+    full = planned[0][2]  # Table 3's unpruned run
+    paths = _write_reports(out, seq, s, rows, verdicts, full.path)
     return {
         **paths,
         "rows": len(rows),
@@ -751,7 +751,6 @@ def _write_reports(
     rows: list[dict[str, Any]],
     verdicts: dict[str, Any],
     full_log: Path,
-    pruned_log: Path,
 ) -> dict[str, str]:
     """results.json, results.csv, results.md and plots/*.png."""
     write_text_atomic(out / "results.json", json_text(rows, indent=1))

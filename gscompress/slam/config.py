@@ -4,7 +4,8 @@ Three presets:
 
 - `tiny`: for tests and smoke runs (a handful of iterations; seconds for a few 64x48 frames).
 - `cpu` (the default of `gsc slam`): 160x120 and iteration counts sized for a 2-core CPU
-  (40 tracking / 15 mapping iterations; 0.44-0.57 s per frame on the project's 2-core Xeon),
+  (40 tracking / 15 mapping iterations; 0.44-0.85 s per frame on the project's 2-core Xeon,
+  the README's Table 3),
   with higher colour and scale learning rates than SplaTAM's because there are 15 mapping
   iterations per frame instead of 30-60 (tuned on the synthetic room and two real sequences
   with bench/slam.py), and a final refinement of 1000 iterations over every frame after the

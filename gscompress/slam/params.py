@@ -4,7 +4,7 @@
 unnormalised quaternions) become the renderer's inputs; `gscompress.ops.score` uses it too.
 
 `GaussianParams` holds the SLAM map as leaf tensors plus ids and PWAS sums. Adding Gaussians
-(densification, later injection of a share) and removing them (pruning) replace the leaf
+(densification, a received share) and removing them (pruning) replace the leaf
 tensors; `resize_adam_rows` moves the optimizer's per-Gaussian state along, so that the Adam
 moments of every surviving Gaussian stay attached to it and new Gaussians start from zero.
 

@@ -220,7 +220,7 @@ class SlamSystem:
         return len(self.mapper)
 
     def add_gaussians(self, gaussians: GaussianMap, *, renumber: bool = True) -> int:
-        """Append Gaussians to the map (densification; later: injected shares).
+        """Append Gaussians to the map (densification, and a received share: `receive`).
 
         Args:
             gaussians: the new Gaussians, with or without importance sums.
