@@ -126,7 +126,8 @@ def test_full_profile_and_metadata(tmp_path):
 
 
 def test_metadata_record_matches_its_schema(tmp_path):
-    meta = LogMetadata(command="c").derive({"name": "prune", "keep": 0.3}, __file__)
+    meta = LogMetadata(command="c").derive({"name": "prune", "keep": 0.3}, __file__, "d")
+    assert meta.command == "d"  # the derived file's own command
     jsonschema.validate(meta.to_record(), load_schema("metadata.v1.schema.json"))
     step = meta.provenance[-1]
     assert step["parent"] == "test_mcap_log.py" and len(step["parent_sha256"]) == 64
@@ -154,7 +155,7 @@ def test_newer_major_profile_is_refused():
 )
 def test_metadata_of_the_wrong_shape_is_a_format_error(field, value):
     """Hand-edited metadata is refused when read, not met later as a crash (`gsc info`)."""
-    record = LogMetadata(command="c").derive({"name": "prune"}, __file__).to_record()
+    record = LogMetadata(command="c").derive({"name": "prune"}, __file__, "d").to_record()
     assert LogMetadata.from_record(record).provenance[-1]["operation"] == {"name": "prune"}
     record[field] = value
     with pytest.raises(LogFormatError, match="metadata config and results must be JSON"):

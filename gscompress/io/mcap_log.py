@@ -231,12 +231,13 @@ class LogMetadata:
             )
         return cls(**values)
 
-    def derive(self, operation: dict[str, Any], parent: str | Path) -> LogMetadata:
-        """Metadata for a file derived from `parent` by `operation` (appends provenance)."""
+    def derive(self, operation: dict[str, Any], parent: str | Path, command: str) -> LogMetadata:
+        """Metadata for a file derived from `parent` by `operation`, run as `command`: the
+        sequence, config and world frame carried over, the provenance step appended."""
         parent = Path(parent)
         step = {"operation": operation, "parent": parent.name, "parent_sha256": sha256(parent)}
         return LogMetadata(
-            command=self.command,
+            command=command,
             config=self.config,
             sequence=self.sequence,
             frames=self.frames,

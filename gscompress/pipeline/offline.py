@@ -40,7 +40,7 @@ def import_ply(
     """Turn a 3DGS PLY map (from any tool) into a one-snapshot gscompress log."""
     check_output(dst, [src], force, ".mcap")
     gaussians = read_ply(src)
-    meta = LogMetadata(command=command).derive({"name": "import-ply"}, src)
+    meta = LogMetadata().derive({"name": "import-ply"}, src, command)
     meta.results = {"gaussians": len(gaussians), "scored": gaussians.has_importance}
     with LogWriter(dst, meta, inputs=[src], force=force) as out:
         out.write_gaussians(gaussians, 0)
@@ -90,8 +90,7 @@ def rewrite_map(
     check_output(dst, [src], force, ".mcap")
     with LogReader(src) as log_in:
         last = log_in.require_snapshots() - 1
-        meta = log_in.metadata.derive(operation, src)
-        meta.command = command
+        meta = log_in.metadata.derive(operation, src, command)
         with LogWriter(dst, meta, inputs=[src], force=force) as out:
             snapshot = 0
             for schema, channel, message in log_in.iter_messages():
@@ -162,8 +161,7 @@ def share_log(
     shared, _ = select_count(full, count, strategy, seed)
     operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
     operation["precision"] = precision
-    out_meta = meta.derive(operation, src)
-    out_meta.command = command
+    out_meta = meta.derive(operation, src, command)
     out_meta.results = {
         "source": Path(src).name,
         "strategy": strategy,

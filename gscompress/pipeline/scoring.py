@@ -78,9 +78,8 @@ def score_file(
     if Path(src).suffix.lower() != ".ply":
         return rewrite_map(src, dst, operation, score, command=command, force=force)
     scored, results = score(read_ply(src))
-    meta = LogMetadata(command=command, sequence=sequence.name, frames=str(frames))
-    meta = meta.derive(operation, src)
-    meta.command, meta.results = command, results
+    meta = LogMetadata(sequence=sequence.name, frames=str(frames)).derive(operation, src, command)
+    meta.results = results
     with LogWriter(dst, meta, inputs=[src], force=force) as out:
         out.write_calibration(sequence.intrinsics, 0)
         for stamp, T in zip(stamps, T_world_cams, strict=True):
