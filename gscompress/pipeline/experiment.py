@@ -737,6 +737,11 @@ def _fmt(value: Any, spec: str = ".2f") -> str:
     return format(value, spec)
 
 
+def _mean_cell(group: list[dict[str, Any]], key: str, spec: str = ".2f") -> str:
+    """The mean of `key` over a group of rows, formatted for a table (n/a without values)."""
+    return _fmt(_mean([r[key] for r in group]), spec)
+
+
 def _plus_minus(mean: float | None, se: float | None, spec: str) -> str:
     """`mean ± se` (`mean` alone without a standard error; n/a without a mean)."""
     if mean is None or se is None:
@@ -840,12 +845,9 @@ def _markdown(
     for name in dict.fromkeys(r["name"] for r in t4):
         group = [r for r in t4 if r["name"] == name]
         lines.append(
-            f"| {name} | {_fmt(_mean([r['ate_rmse_cm'] for r in group]), '.3f')} | "
-            f"{_fmt(_mean([r['psnr'] for r in group]))} | "
-            f"{_fmt(_mean([r['ssim'] for r in group]), '.3f')} | "
-            f"{_fmt(_mean([r['lpips'] for r in group]), '.3f')} | "
-            f"{_fmt(_mean([r['gaussians'] for r in group]), '.0f')} | "
-            f"{_fmt(_mean([r['share_bytes'] for r in group]), '.0f')} |"
+            f"| {name} | {_mean_cell(group, 'ate_rmse_cm', '.3f')} | {_mean_cell(group, 'psnr')} "
+            f"| {_mean_cell(group, 'ssim', '.3f')} | {_mean_cell(group, 'lpips', '.3f')} | "
+            f"{_mean_cell(group, 'gaussians', '.0f')} | {_mean_cell(group, 'share_bytes', '.0f')} |"
         )
     v = verdicts
     ate_text = (
@@ -873,10 +875,10 @@ def _markdown(
             group = _sweep_rows(rows, s, budget, strategy)
             if group:
                 lines.append(
-                    f"| {budget} | {strategy} | {_fmt(_mean([r['psnr'] for r in group]))} | "
-                    f"{_fmt(_mean([r['ate_rmse_cm'] for r in group]), '.3f')} | "
-                    f"{_fmt(_mean([r['share_gaussians'] for r in group]), '.0f')} | "
-                    f"{_fmt(_mean([r['share_bytes'] for r in group]), '.0f')} |"
+                    f"| {budget} | {strategy} | {_mean_cell(group, 'psnr')} | "
+                    f"{_mean_cell(group, 'ate_rmse_cm', '.3f')} | "
+                    f"{_mean_cell(group, 'share_gaussians', '.0f')} | "
+                    f"{_mean_cell(group, 'share_bytes', '.0f')} |"
                 )
     if v["sweep"]:
         inject = s.mode == "inject"
