@@ -21,6 +21,13 @@ from gscompress.slam.config import KeyframeConfig
 from gscompress.slam.losses import depth_edges
 
 
+def frame_tensors(frame: Any, device: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """A sequence `Frame`'s colour [H, W, 3] and depth [H, W] as float32 tensors on `device`."""
+    color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(device)
+    depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(device)
+    return color, depth
+
+
 @dataclass
 class View:
     """An observed frame with a fixed pose, as the mapper uses it.
@@ -41,9 +48,7 @@ class View:
     @classmethod
     def from_frame(cls, index: int, frame: Any, T_world_cam: np.ndarray, device: Any) -> View:
         """The view of a sequence `Frame` at processing position `index` with a given pose."""
-        color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(device)
-        depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(device)
-        return cls(index, color, depth, np.asarray(T_world_cam, dtype=np.float64))
+        return cls(index, *frame_tensors(frame, device), np.asarray(T_world_cam, dtype=np.float64))
 
     def edges(self, sigma: float) -> torch.Tensor:
         """[H, W] `depth_edges` of the observed depth, computed once per sigma and kept with the

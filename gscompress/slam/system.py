@@ -48,7 +48,7 @@ from gscompress.ops.select import keep_count, strategy_scores, top_k
 from gscompress.render import render, resolve_device
 from gscompress.slam.config import MappingConfig, SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
-from gscompress.slam.keyframes import View, is_keyframe, select_window
+from gscompress.slam.keyframes import View, frame_tensors, is_keyframe, select_window
 from gscompress.slam.mapper import Mapper, MappingStats
 from gscompress.slam.params import RenderInputs
 from gscompress.slam.tracker import TrackResult, constant_velocity, track
@@ -320,8 +320,7 @@ class SlamSystem:
         ms: dict[str, float] = dict.fromkeys(PHASES, 0.0)
         start = time.perf_counter()
         position = len(self.poses)
-        color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(self.device)
-        depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(self.device)
+        color, depth = frame_tensors(frame, self.device)
 
         clock = time.perf_counter()
         T_world_cam, tracking = self._pose(frame, color, depth, position)
