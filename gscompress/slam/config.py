@@ -163,11 +163,8 @@ class DensifyConfig:
             `silhouette_max`) but its render is off from the observed colour by at least this
             mean absolute RGB error (0-1 units): detail the map does not hold yet. The render
             is not divided by its silhouette, so a thinly covered bright pixel can qualify too.
-            0: SplaTAM's rule alone (the default, and every preset but cpu). The cpu preset uses
-            0.25: PWAS-pruned maps gained 1.0-2.4 dB for 17-69% more Gaussians on four
-            sequences, with ATE -5% to +4% (the synthetic room over 3 seeds 0.503 -> 0.482 cm
-            on the mean); 0.15 gained more but raised the synthetic room's ATE 29%
-            (docs/performance-history.md, "Densifying where the colour is wrong").
+            0: SplaTAM's rule alone (the default, and every preset but cpu, which uses 0.25;
+            docs/performance-history.md, "Densifying where the colour is wrong").
         received_color_error: with a received share (`gsc slam --inject`), do not add where the
             whole map, share included, already explains the pixel: covered, no new geometry,
             and a mean absolute RGB error below this. 0: densify wherever the run's own
@@ -205,43 +202,19 @@ class PruneConfig:
             `seed` and the stage); exact counts and ties as `gsc prune`.
         refine_iters: mapping iterations right after each stage over all keyframes so far and
             the current frame, each once per shuffled pass, so that the survivors fill the
-            holes left in views the camera will not see again (0: none). Off in every preset:
-            alone (without `refill`) it lowered PSNR at 160x120 (cpu preset, keep 0.3; office
-            24.06 -> 22.33 dB with 60 iterations, 21.89 with 200; tabletop 22.48 -> 21.79 /
-            21.63) and left fewer Gaussians (office 3503 -> 2171): the survivors grow over the
-            holes, so the frames after a stage densify less (bench/pruning.py).
+            holes left in views the camera will not see again (0: none; off in every preset).
         refill: right after each stage (before its refinement), densify views where the pruned
             map leaves a hole (`densify` rules); the added Gaussians count. "off"; "current":
             the frame just mapped, so the next frame is tracked against a map without holes;
             "keyframes": every keyframe so far and the current frame, so views the camera has
-            left keep no empty patches. "keyframes" is off in every preset: on the synthetic
-            room at 160x120 (cpu preset), it gained 0.76 dB PSNR with 60 `refine_iters` (24.79
-            against 24.03 dB) but kept 11122 Gaussians instead of 6228, 57% fewer than unpruned
-            instead of 76% (bench/pruning.py). At 640x480 on tabletop (seed 0) it kept 94500
-            Gaussians, 52.4% fewer, at -0.34 dB (88868, 55.2%, -0.36 dB with 60
-            `refine_iters`): the trade a higher `keep` makes (0.5: 62.2% fewer, -0.47 dB),
-            past the 60% target. "current" did not help on 3dmatch_office_frag1
-            (PSNR 24.19 against 24.18 dB, ATE 2.13 against 2.03 cm, 3494 Gaussians).
+            left keep no empty patches. Off in every preset.
         track_prestage_frames: for this many frames after each stage, track against the map as it
             stood just before the stage (a detached copy, dropped afterwards; not kept across
-            `--resume`); mapping, densification, scores and the log use the pruned map (0: off). A
-            stage thins the view the camera is in: against a ground-truth-pose map pruned to 30%,
-            tracking from the true pose settled 0.6-0.8 cm away (0.26 cm unpruned), and the
-            frame-to-frame error of the frames after each stage jumped (synthetic room: 1.2-1.5 cm
-            against 0.1 cm). With 3 (cpu preset, seed 0), PWAS pruning's ATE: synthetic room 0.425
-            -> 0.460 cm (unpruned 0.518), tabletop 0.498 -> 0.540 (0.581), office 2.031 -> 1.929
-            (1.843; seed 1: 2.054 -> 1.906 against 1.768), ICL 0:120 1.471 -> 1.449 (1.187); with 8:
-            0.496, 0.582, 1.895 / 1.944, 1.401; with 40 (every frame after a stage; ATE against
-            unpruned): ICL 1.232 cm (+3.8%), office 1.758 (-4.6%), tabletop 0.577 (-0.7%), but the
-            synthetic room 0.616 (+19%, against 0.460 with 3), so 3 stays; over seeds 0-2
-            (docs/performance-history.md) 3 misses 10% only on ICL (+23.5%) and 20 or 40 only on the
-            synthetic room (+31%). Two mixes of old and new, for 40 frames, were worse (tried at
-            6786aaf, not kept): the live map plus the Gaussians the stage removed, frozen (ICL
-            1.245, office 2.188, tabletop 0.571, synthetic 0.649 cm), and the map before the stage
-            plus the Gaussians added since (1.377, 1.847, 0.763, 0.594). Frozen and live Gaussians
-            drawn together disagree where the live ones have moved on; why the synthetic room loses
-            with the pre-stage map alone is not known (covering the newly mapped parts did not
-            help).
+            `--resume`); mapping, densification, scores and the log use the pruned map (0: off).
+            A stage thins the view the camera is in, and tracking against the thinned map drifts.
+
+    Why these values (and what else was tried): docs/performance-history.md, "Pruning stage
+    settings".
     """
 
     opacity_every: int = 100
