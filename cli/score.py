@@ -16,6 +16,7 @@ from .options import (
     advance,
     backend_option,
     command_line,
+    device_option,
     emit,
     force_option,
     json_option,
@@ -33,16 +34,17 @@ from .options import (
     "--poses",
     type=INPUT_FILE,
     default=None,
-    help="TUM trajectory of the views (default: the ground truth).",
+    help="TUM trajectory of the views [default: a log's own estimated poses; for a PLY, or a "
+    "log without poses, the sequence's ground truth].",
 )
 @click.option(
     "--frames",
     type=FrameSubset(),
-    default="all",
-    show_default=True,
-    help="Views to score from: all, odd, even or START:STOP:STEP.",
+    default=None,
+    help="Views to score from: all, odd, even or START:STOP:STEP [default: a log's own "
+    "subset, else all].",
 )
-@size_option(help="Render at this size WxH (default: the sequence's own).")
+@size_option(help="Render at this size WxH [default: a log's working size, else the sequence's].")
 @click.option(
     "--sigma-d",
     type=PositiveFloat(),
@@ -50,6 +52,7 @@ from .options import (
     show_default=True,
     help="Distance scale of the PWAS proximity weight, metres.",
 )
+@device_option
 @backend_option()
 @output_option()
 @force_option()
@@ -61,6 +64,7 @@ def score(
     frames: object,
     size: tuple[int, int] | None,
     sigma_d: float,
+    device: str,
     backend: str,
     dst: Path,
     force: bool,
@@ -70,7 +74,8 @@ def score(
 
     The map is rendered from each selected frame of SEQ (no optimisation) and each Gaussian's
     proximity-weighted alpha x transmittance is accumulated, so maps made by any 3DGS tool can
-    be pruned and shared by importance.
+    be pruned and shared by importance. A gsc log is scored from its own estimated poses, frames
+    and working size (as its run scored it) unless --poses, --frames or --size say otherwise.
 
     \b
     Examples:
@@ -83,10 +88,11 @@ def score(
             dst,
             seq,
             poses=poses,
-            frames=str(frames),
+            frames=None if frames is None else str(frames),
             size=size,
             sigma_d=sigma_d,
             backend=backend,
+            device=device,
             command=command_line(),
             force=force,
             progress=partial(advance, bar),

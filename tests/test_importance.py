@@ -6,6 +6,7 @@ import torch
 from click.testing import CliRunner
 
 from gscompress.camera import Intrinsics, make_transform
+from gscompress.errors import InputError
 from gscompress.gaussians import SH_C0, GaussianMap
 from gscompress.importance import ImportanceSums, PwasConfig
 from gscompress.io.mcap_log import LogReader, read_map
@@ -164,3 +165,32 @@ def test_gsc_score_with_poses_matches_them_to_frames_by_time(tiny_sequence, tmp_
                                  "--poses", str(tmp_path / "short.txt")])  # fmt: skip
     assert r.exit_code == 1 and "has no pose within 0.02 s of frame time" in r.output
     assert not (tmp_path / "s.mcap").exists()
+
+
+def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(tiny_sequence, tmp_path):
+    import shutil
+
+    from gscompress.io.trajectory import write_tum_trajectory
+    from gscompress.pipeline import share_log, slam_file
+    from gscompress.pipeline.scoring import score_file
+
+    seq = tmp_path / "nogt"  # no ground truth: the run's world frame is its first camera
+    shutil.copytree(tiny_sequence, seq)
+    (seq / "groundtruth.txt").unlink()
+    slam_file(seq, tmp_path / "a.mcap", preset="tiny", frames="odd", size=(24, 18))
+    r = score_file(tmp_path / "a.mcap", tmp_path / "s.mcap", seq)
+    assert r["views"] == 3 and r["poses"] == "log"  # frames 1, 3, 5 at their estimated poses
+    with LogReader(tmp_path / "s.mcap") as log:
+        assert log.metadata.provenance[-1]["operation"]["size"] == [24, 18]
+        stamps, poses = log.read_poses()
+    write_tum_trajectory(tmp_path / "est.txt", stamps / 1e9, poses)
+    again = score_file(tmp_path / "a.mcap", tmp_path / "t.mcap", seq, poses=tmp_path / "est.txt",
+                       frames="odd", size=(24, 18))  # fmt: skip
+    assert again["poses"] == "est.txt"
+    np.testing.assert_allclose(read_map(tmp_path / "t.mcap").importance,
+                               read_map(tmp_path / "s.mcap").importance, rtol=1e-5)  # fmt: skip
+
+    share_log(tmp_path / "a.mcap", tmp_path / "share.mcap", 0.5)  # a map without poses
+    with pytest.raises(InputError, match="world frame is its run's first camera"):
+        score_file(tmp_path / "share.mcap", tmp_path / "u.mcap", seq)
+    assert not (tmp_path / "u.mcap").exists()

@@ -13,7 +13,9 @@ from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
+    TOPIC_POSE,
     LogMetadata,
+    LogReader,
     LogWriter,
     seconds_to_ns,
 )
@@ -27,58 +29,88 @@ def score_file(
     seq: str | Path,
     *,
     poses: str | Path | None = None,
-    frames: str = "all",
+    frames: str | None = None,
     size: tuple[int, int] | None = None,
     sigma_d: float = 20.0,
     backend: str = "auto",
+    device: str = "auto",
     command: str = "",
     force: bool = False,
     progress: Callable[[int, int], object] | None = None,
 ) -> dict[str, Any]:
     """PWAS-score the map in `src` (a log or a 3DGS PLY) from the views of sequence `seq`.
 
-    The map is rendered, not optimised, from every selected frame at its ground-truth pose or
-    at the pose `poses` (a TUM trajectory) gives for its timestamp. An MCAP input is copied with
-    its map replaced by the scored one; a PLY input becomes a new log with calibration, the view
-    poses and the scored map. Needs torch (the renderer). `progress(done, total)` is called
-    after each view.
+    The map is rendered, not optimised, from every selected frame, at the pose `poses` (a TUM
+    trajectory) gives for its timestamp; without it, at the log's own estimated pose
+    (`/camera/pose`, frames without one skipped), else at the ground-truth pose. A log's frame
+    subset and working size are the defaults, as its run had them (a PLY's: every frame, the
+    sequence's own size). An MCAP input is copied with its map replaced by the scored one; a PLY
+    input becomes a new log with calibration, the view poses and the scored map. Needs torch
+    (the renderer). `progress(done, total)` is called after each view.
+
+    Raises:
+        InputError: a log without poses whose world frame is its first camera (the ground
+            truth is not in that frame; pass `poses`).
     """
     from gscompress.datasets import open_sequence
     from gscompress.importance import PwasConfig
     from gscompress.ops.score import score_map
+    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
     from gscompress.render import resolve_device
 
     check_output(dst, [p for p in (src, seq, poses) if p is not None], force, ".mcap")
     if not sigma_d > 0:
         raise InputError(f"--sigma-d must be positive, got {sigma_d}")
-    sequence = open_sequence(seq, size=size, frames=frames)
-    stamps, T_world_cams = view_poses(sequence, poses)
+    is_log = Path(src).suffix.lower() != ".ply"
+    if is_log:
+        with LogReader(src) as reader:
+            reader.require_snapshots()
+            meta = reader.metadata
+            log_ns, log_poses = reader.read_poses(TOPIC_POSE)
+        frames = frames or meta.frames or "all"
+        sequence = open_log_sequence(seq, src, meta, frames, size)
+    else:
+        frames = frames or "all"
+        sequence = open_sequence(seq, size=size, frames=frames)
+    if poses is None and is_log and len(log_ns):
+        positions, index = frames_with_poses(sequence, log_ns, src)
+        stamps, T_world_cams = np.asarray(sequence.timestamps)[positions], log_poses[index]
+        source = "log"
+    else:
+        if poses is None and is_log and meta.world_frame.startswith("first-camera:"):
+            raise InputError(
+                f"{src} has no poses and its world frame is its run's first camera, not the "
+                f"ground truth of {sequence.name}: pass --poses TRAJ.txt (in its frame)"
+            )
+        stamps, T_world_cams = view_poses(sequence, poses)
+        source = Path(poses).name if poses else "ground truth"
     config = PwasConfig(sigma_d=sigma_d)
-    device = resolve_device("auto", backend)  # the GPU when there is one, as gsc slam
+    torch_device = resolve_device(device, backend)
 
     views = itertools.count(1)
     on_view = None if progress is None else lambda _: progress(next(views), len(T_world_cams))
 
     def score(gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         scored = score_map(
-            gaussians, T_world_cams, sequence.intrinsics, config, backend=backend, device=device,
-            progress=on_view,
+            gaussians, T_world_cams, sequence.intrinsics, config, backend=backend,
+            device=torch_device, progress=on_view,
         )  # fmt: skip
         seen = int(np.count_nonzero(scored.importance_weight > 0))
-        return scored, {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen}
+        results = {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen}
+        return scored, {**results, "poses": source}
 
     operation = {
         "name": "score",
         "sequence": sequence.name,
-        "frames": str(frames),
-        "poses": Path(poses).name if poses else "ground truth",
+        "frames": frames,
+        "poses": source,
         "sigma_d": sigma_d,
-        "size": list(size) if size else None,
+        "size": [sequence.intrinsics.width, sequence.intrinsics.height],
     }
-    if Path(src).suffix.lower() != ".ply":
+    if is_log:
         return rewrite_map(src, dst, operation, score, command=command, force=force)
     scored, results = score(read_ply(src))
-    meta = LogMetadata(sequence=sequence.name, frames=str(frames)).derive(operation, src, command)
+    meta = LogMetadata(sequence=sequence.name, frames=frames).derive(operation, src, command)
     meta.results = results
     with LogWriter(dst, meta, inputs=[src], force=force) as out:
         out.write_calibration(sequence.intrinsics, 0)
