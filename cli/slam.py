@@ -160,10 +160,10 @@ def slam(
     checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
     even a killed run resumes with --resume, redoing at most that many frames.
     """
-    from gscompress.errors import DatasetError
     from gscompress.io.files import check_output
     from gscompress.io.recover import resume_sources
     from gscompress.pipeline import slam_file
+    from gscompress.pipeline.slam_run import RESUMABLE
     from gscompress.slam.config import resolve_config
     from gscompress.slam.config import save_config as write_config
 
@@ -236,7 +236,7 @@ def slam(
             bar.close()
             click.echo(_interrupted_text(seq, dst), err=True)
             raise SystemExit(130) from None
-        except (DatasetError, OSError):  # a frame or the disk: --resume goes on once it is fixed
+        except RESUMABLE:  # a frame or the disk: --resume goes on once it is fixed
             bar.close()
             if _modified_ns(dst) != before:  # (a log this run wrote, the error said above)
                 click.echo(f"Once the error below is fixed, `gsc slam {seq} -o {dst} --resume` "

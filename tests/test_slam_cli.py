@@ -392,6 +392,17 @@ def test_a_size_too_small_to_map_is_refused_and_an_enlarging_one_is_warned(
     assert "working size 96x72 enlarges room's 64x48 frames" in caplog.text
 
 
+def test_a_settings_error_partway_says_to_run_afresh_not_to_resume(seq_dir, tmp_path, caplog):
+    out = tmp_path / "k.mcap"
+    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"):
+        r = run("slam", seq_dir, "--preset", "tiny", "--keep", "0.00001", "-o", out)
+    assert r.exit_code == 1 and "rounds to none" in r.output, r.output
+    assert "run afresh with the settings changed (--force replaces the log)" in caplog.text
+    assert "resume" not in r.output and "resume starts again" not in caplog.text
+    with LogReader(out) as log:  # the frames before the first stage are kept all the same
+        assert 0 < log.metadata.results["frames"] < 6
+
+
 def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, caplog):
     broken = shutil.copytree(seq_dir, tmp_path / "room")
     sorted((broken / "depth").glob("*.png"))[3].write_bytes(b"not a png")  # the 4th frame's

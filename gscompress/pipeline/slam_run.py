@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.datasets.base import same_fingerprint
-from gscompress.errors import InputError, LogFormatError, OptionError, OutputError
+from gscompress.errors import DatasetError, InputError, LogFormatError, OptionError, OutputError
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -432,6 +432,11 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
     return stats
 
 
+RESUMABLE = (DatasetError, OSError)
+"""Errors partway through a run that `--resume` gets past once their cause is fixed (a frame
+that cannot be read, a full disk); any other (a setting, a divergence) would recur."""
+
+
 def map_note(frames: int, map_frames: int) -> str:
     """What a log of `frames` frames whose last map covers `map_frames` of them leaves a
     resume to redo ("" when nothing)."""
@@ -564,12 +569,15 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
     for leftover in run.leftovers:
         leftover.unlink(missing_ok=True)
     if failure is not None:
-        if not isinstance(failure, KeyboardInterrupt):  # the caller says so for an interrupt
-            log.warning(  # (gsc slam then says how to resume; an experiment reruns)
-                "%s holds the %d frame(s) done before the error%s",
+        if isinstance(failure, RESUMABLE):  # (gsc slam then says how to resume)
+            note = map_note(done, run.map_frames)
+            log.warning("%s holds the %d frame(s) done before the error%s", dst, done, note)
+        elif not isinstance(failure, KeyboardInterrupt):  # (the caller says so for an interrupt)
+            log.warning(
+                "%s holds the %d frame(s) done before the error; a resume would meet it again: "
+                "run afresh with the settings changed (--force replaces the log)",
                 dst,
                 done,
-                map_note(done, run.map_frames),
             )
         raise failure
     return {"output": str(dst), **meta.results}
