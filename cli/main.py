@@ -154,7 +154,12 @@ def os_error_message(exc: OSError) -> str:
 
 @click.group(cls=GscGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="gsc")
-@click.option("-v", "--verbose", count=True, help="More log output (-vv for debug).")
+@click.option(
+    "-v",
+    "--verbose",
+    count=True,
+    help="More log output: -v adds each SLAM frame's stats, -vv the libraries' debug output.",
+)
 @click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
 @click.option(
     "--threads",
@@ -182,5 +187,11 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
     """
     if threads is not None:
         set_threads(threads)
-    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    # gscompress says what it is doing at INFO (-q: only warnings; -v: each frame's stats too);
+    # the libraries it uses speak from -vv on
+    logging.basicConfig(
+        level=logging.DEBUG if verbose > 1 else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    own = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
+    logging.getLogger("gscompress").setLevel(own)

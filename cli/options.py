@@ -180,7 +180,7 @@ def progress_bar(desc: str, unit: str, total: int | None = None, hidden: bool = 
 
     from tqdm import tqdm
 
-    quiet = logging.getLogger().getEffectiveLevel() > logging.INFO
+    quiet = logging.getLogger("gscompress").getEffectiveLevel() > logging.INFO
     # delay: a command that fails at once prints its error without an empty bar before it
     return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet, delay=0.5)
 

@@ -4,6 +4,8 @@ import json
 import logging
 import os
 import shutil
+import subprocess
+import sys
 
 import jsonschema
 import numpy as np
@@ -452,3 +454,15 @@ def test_backend_option_overrides_the_config_and_is_refused_on_resume(seq_dir, t
     assert r.exit_code == 2 and "drop --backend" in r.output
     r = run("slam", seq_dir, "--preset", "tiny", "--backend", "cuda", "-o", tmp_path / "x.mcap")
     assert r.exit_code == 2 and "'cuda' is not one of" in r.output
+
+
+def test_verbose_adds_each_frames_stats_and_quiet_keeps_to_warnings(seq_dir, tmp_path):
+    def stderr(*flags: str) -> str:
+        out = tmp_path / f"v{len(flags)}{'q' if '-q' in flags else ''}.mcap"
+        args = ["slam", str(seq_dir), "--preset", "tiny", "--frames", "0:2", "-o", str(out)]
+        proc = subprocess.run([sys.executable, "-m", "gscompress_cli", *flags, *args],
+                              capture_output=True, text=True, timeout=300, check=True)  # fmt: skip
+        return proc.stderr
+
+    assert "DEBUG gscompress.pipeline.slam_run: frame 2 of 2: {'frame': 1," in stderr("-v")
+    assert "DEBUG" not in stderr() and "DEBUG" not in stderr("-q")

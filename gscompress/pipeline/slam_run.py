@@ -425,6 +425,7 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
     if checkpoint and not result.event:
         stats["event"] = "checkpoint"
     out.write_stats(stats, run.t_ns)
+    log.debug("frame %d of %d: %s", i + 1, total, stats)
     if result.event or checkpoint:
         out.write_gaussians(run.system.gaussian_map(), run.t_ns)
         run.map_frames = i + 1
