@@ -242,6 +242,17 @@ def test_replica_layout_built_in_tmp(tmp_path: Path) -> None:
     seq = open_sequence(scene, intrinsics=K)
     assert len(seq) == 3 and not seq.has_ground_truth
     assert seq.frame(2).depth[0, 0] == pytest.approx(3 * 6553 / 6553.5)
+    # the camera: the scene's intrinsics.json, else a cam_params.json beside it or above it
+    (tmp_path / "cam_params.json").write_text(
+        '{"camera": {"w": 30, "h": 20, "fx": 21, "fy": 21, "cx": 14.5, "cy": 9.5, "scale": 1000}}'
+    )
+    seq = open_sequence(scene)
+    assert seq.intrinsics.fx == 21 and seq.depth_scale == 1000
+    (scene / "intrinsics.json").write_text(
+        '{"fx": 22, "fy": 22, "cx": 14.5, "cy": 9.5, "width": 30, "height": 20}'
+    )
+    seq = open_sequence(scene)
+    assert seq.intrinsics.fx == 22 and seq.depth_scale == 6553.5
     np.savetxt(scene / "traj.txt", np.tile(np.eye(4).ravel(), (2, 1)))
     with pytest.raises(DatasetError, match="has 2 poses but frame 2 needs one"):
         open_sequence(scene, intrinsics=K)

@@ -2,9 +2,10 @@
 
 A scene folder holds `results/frameNNNNNN.jpg`, `results/depthNNNNNN.png` (uint16, 6553.5 units
 per metre) and `traj.txt`, one camera-to-world pose per line as 16 row-major numbers; line i is
-the pose of frame i. Intrinsics are fx = fy = 600, cx = 599.5, cy = 339.5 at 1200x680 unless a
-`cam_params.json` (NICE-SLAM schema `{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}`)
-sits in the scene folder or its parent (the dataset root). Replica has no timestamps: frame i
+the pose of frame i. Intrinsics are fx = fy = 600, cx = 599.5, cy = 339.5 at 1200x680 unless
+the scene folder holds an `intrinsics.json` (as a TUM folder does), or a `cam_params.json`
+(NICE-SLAM schema `{"camera": {"w", "h", "fx", "fy", "cx", "cy", "scale"}}`) sits in the scene
+folder or its parent (the dataset root), in that order. Replica has no timestamps: frame i
 gets i / 30 s. A missing traj.txt gives a sequence without poses; a traj.txt with fewer poses
 than frames is an error.
 """
@@ -86,7 +87,7 @@ def open_replica(
         path: scene folder (with results/ and traj.txt) or its single-scene parent.
         selection: frame subset.
         size: working size (W, H), or None for 1200x680.
-        intrinsics: explicit intrinsics or a JSON file; overrides cam_params.json.
+        intrinsics: explicit intrinsics or a JSON file; overrides the scene's files.
     """
     scene = find_replica_scene(path)
     if scene is None:
@@ -120,7 +121,8 @@ def open_replica(
         native, depth_scale = read_intrinsics_file(Path(intrinsics))
     else:
         native = REPLICA_INTRINSICS
-        for cand in (scene / "cam_params.json", scene.parent / "cam_params.json"):
+        candidates = ("intrinsics.json", "cam_params.json", "../cam_params.json")
+        for cand in (scene / name for name in candidates):
             if cand.is_file():
                 native, depth_scale = read_intrinsics_file(cand)
                 break
