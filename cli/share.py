@@ -93,10 +93,11 @@ def share(
       gsc share --budget 2MB agent_a.mcap share.mcap
       gsc share --budget 2MB --precision fp16 agent_a.mcap -o share.mcap
     """
-    target = dst if output is None else output
-    if target is None or (dst is not None and output is not None):
-        raise click.UsageError("give the share's path once: as DST or with -o")
-    dst = target
+    if dst is not None and output is not None:
+        raise click.UsageError("give the share's path once: as DST or with -o, not both")
+    dst = dst if output is None else output
+    if dst is None:
+        raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
     result = share_log(
         src,
         dst,

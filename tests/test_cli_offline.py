@@ -112,6 +112,15 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
     assert r.exit_code == 2 and "--ply must differ" in r.output and not same.exists()
 
 
+def test_share_takes_its_path_once_as_dst_or_o(log_path, tmp_path):
+    r = run("share", log_path)
+    assert r.exit_code == 2 and "missing the share's path: give DST or -o" in r.output
+    r = run("share", log_path, tmp_path / "a.mcap", "-o", tmp_path / "b.mcap")
+    assert r.exit_code == 2 and "as DST or with -o, not both" in r.output
+    assert not any(tmp_path.glob("*.mcap"))
+    assert run("share", log_path, "-o", tmp_path / "c.mcap").exit_code == 0
+
+
 def test_share_whose_ply_cannot_be_written_leaves_no_mcap(log_path, tmp_path, monkeypatch):
     """The share is written whole or not at all: a PLY refused by the file system (as on a
     read-only mount that passes the permission check) takes the fresh MCAP with it."""
@@ -153,6 +162,12 @@ def test_import_ply_then_info(tmp_path):
     r = run("prune", tmp_path / "m.mcap", "--keep", "0.5", "-o", tmp_path / "p.mcap")
     assert r.exit_code == 1 and "gsc score" in r.output
     assert not (tmp_path / "p.mcap").exists()
+    # the other score it suggests is an option of both commands that can meet the error
+    assert "(--by opacity)" in r.output
+    for command, ratio in (("prune", "--keep"), ("share", "--budget")):
+        out = tmp_path / f"{command}.mcap"
+        r = run(command, tmp_path / "m.mcap", ratio, "0.5", "--by", "opacity", "-o", out)
+        assert r.exit_code == 0 and out.exists(), r.output
 
 
 def test_info_json_describes_the_log(log_path, tmp_path):

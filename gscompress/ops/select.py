@@ -81,7 +81,7 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
         if not gaussians.has_importance:
             raise BudgetError(
                 "this map has no PWAS scores: record it with `gsc slam`, or score an existing "
-                "map with `gsc score MAP --seq SEQ`, or choose --by/--strategy opacity"
+                "map with `gsc score MAP --seq SEQ`, or rank by another score (--by opacity)"
             )
         return gaussians.importance.astype(np.float64)
     if strategy is Strategy.ALPHA_T:
