@@ -50,7 +50,8 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 @slam_config_options
 @click.option(
     "--seeds", type=click.IntRange(1, 1000), default=3, show_default=True,
-    help="Seeds of the two-agent runs (SLAM seed and random share seed).",
+    help="How many seeds to run: 0 to N-1, each the two-agent runs' SLAM seed and the random "
+    "share's seed.",
 )  # fmt: skip
 @click.option(
     "--sweep", default="0.05,0.1,0.2,0.4", show_default=True, callback=_budget_list,
@@ -58,7 +59,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 )  # fmt: skip
 @click.option(
     "--sweep-seeds", type=click.IntRange(min=0), default=1, show_default=True,
-    help="How many of the seeds run the sweep (0: none).",
+    help="How many of the seeds (the first ones) run the sweep, at most --seeds (0: none).",
 )  # fmt: skip
 @click.option(
     "--strategies", default="random,opacity,alpha-t,pwas", show_default=True,
@@ -67,8 +68,8 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 @size_option(help="Working size WxH of every run [default: the preset's].")
 @click.option(
     "--frames", default="all", show_default=True,
-    help="Frames of the experiment: all or START:STOP:STEP; A gets the odd positions among "
-    "them, B the even ones.",
+    help="Frames of the experiment: all or START:STOP:STEP with START >= 0 (no counting from "
+    "the end); A gets the odd positions among them, B the even ones.",
 )  # fmt: skip
 @click.option(
     "--every", type=click.IntRange(min=1), default=1, show_default=True,
@@ -157,7 +158,7 @@ def experiment(
         keep=keep,
         seeds=seeds,
         sweep=sweep,
-        sweep_seeds=min(sweep_seeds, seeds),
+        sweep_seeds=sweep_seeds,
         strategies=tuple(s.strip() for s in strategies.split(",") if s.strip()),
         size=size,
         frames=frames,

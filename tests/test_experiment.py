@@ -210,6 +210,10 @@ def test_bad_settings_are_refused() -> None:
     for bad in (["--frames", "odd"], ["--strategies", "random,pwas,nope"]):  # usage errors
         r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", *bad])
         assert r.exit_code == 2 and "Error:" in r.output, r.output
+    r = CliRunner().invoke(
+        cli, ["experiment", ".", "-o", "x", "--seeds", "1", "--sweep-seeds", "3"]
+    )
+    assert r.exit_code == 2 and "--sweep-seeds 3 is more than --seeds 1" in r.output, r.output
 
 
 def test_a_bad_sequence_fails_before_the_output_folder_is_made(tmp_path: Path) -> None:

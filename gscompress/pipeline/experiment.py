@@ -169,8 +169,13 @@ class ExperimentSettings:
                     f"a budget of {text} cannot hold one Gaussian: a share of one takes "
                     f"{smallest} B; raise the budget"
                 )
-        if self.seeds < 1 or not 0 <= self.sweep_seeds <= self.seeds:
-            raise InputError("--seeds must be >= 1 and --sweep-seeds between 0 and --seeds")
+        if self.seeds < 1 or self.sweep_seeds < 0:
+            raise OptionError("--seeds must be >= 1 and --sweep-seeds >= 0")
+        if self.sweep_seeds > self.seeds:
+            raise OptionError(
+                f"--sweep-seeds {self.sweep_seeds} is more than --seeds {self.seeds}: the sweep "
+                "runs on the first seeds"
+            )
         unknown = sorted(set(self.strategies) - set(STRATEGIES))
         if unknown or not self.strategies:
             raise InputError(f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}")
@@ -304,7 +309,13 @@ class _Runner:
         if jobs > 1:
             import torch
 
-            threads = max(1, torch.get_num_threads() // jobs)
+            available = torch.get_num_threads()
+            threads = max(1, available // jobs)
+            if threads * jobs != available:
+                log.warning(
+                    "%d torch threads do not split evenly over %d jobs: each run gets %d (%d in "
+                    "all; see gsc --threads)", available, jobs, threads, threads * jobs,
+                )  # fmt: skip
             spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
             self._worker_pids = spawn.SimpleQueue()  # each worker's pid, sent as it starts
             self._pool = ProcessPoolExecutor(
