@@ -249,7 +249,18 @@ def slam(
         f"mapped {result['frames']} frame{'s' if result['frames'] != 1 else ''} -> "
         f"{result['gaussians']} Gaussians in {dst} "
         + (f"(started with {result['injected']} received) " if result.get("injected") else "")
-        + f"({result['seconds_per_frame']:.2f} s/frame"
+        + f"({_speed(result)}"
         + (f", ATE RMSE {ate:.2f} cm" if ate is not None else "")
         + ")",
     )
+
+
+def _speed(result: dict[str, Any]) -> str:
+    """Seconds per frame of the frames this run processed (a resume's own)."""
+    start = result.get("resumed_at")
+    if start is None:
+        return f"{result['seconds_per_frame']:.2f} s/frame"
+    ran = result["frames"] - start
+    if ran == 0:
+        return f"resumed after {start} frames: none left to run"
+    return f"resumed after {start} frames, {result['seconds_per_frame']:.2f} s/frame over {ran}"

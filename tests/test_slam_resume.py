@@ -85,6 +85,18 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
         slam_file(seq_dir, out, resume=True, preset="tiny", frames="0:4")
 
 
+def test_a_resumes_summary_gives_the_speed_of_the_frames_it_ran(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, config_path=config_file, progress=stop_after(3))
+    r = CliRunner().invoke(cli, ["slam", str(seq_dir), "-o", str(out), "--resume"])
+    assert r.exit_code == 0, r.output
+    assert f"mapped {FRAMES} frames" in r.output
+    assert "(resumed after 3 frames, " in r.output and f" s/frame over {FRAMES - 3}" in r.output
+
+
 def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
     seq_dir: Path, tmp_path: Path
 ) -> None:
@@ -159,6 +171,8 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
     assert _checkpoints(leftover) >= 1  # frames 0-2 were flushed, checkpoint_every 2
     done_before = len(read_messages(leftover).messages)
     assert done_before > 0
+    # what tells this scene from another of its name is in the metadata written at the start
+    assert len(read_messages(leftover).metadata.results["first_frame"]) == 4
 
     fresh = ["slam", str(seq_dir), "-o", str(out), "--config", str(config_file)]
     r = CliRunner().invoke(cli, fresh)  # a fresh run would leave the killed one to rot

@@ -242,6 +242,8 @@ def _fresh_run(
         sequence=sequence.name,
         frames=str(frames),
         world_frame=world_frame_of(sequence, config),
+        # in the metadata written at the start, so that a killed run's file has it for --resume
+        results={"first_frame": sequence.frame(0).fingerprint()},
     )
     if inject is not None:
         from gscompress.pipeline.merge import read_share
@@ -291,13 +293,14 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     if meta.sequence and sequence.name != meta.sequence:
         raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
     recorded = meta.results.get("first_frame")  # (older logs have none)
-    if isinstance(recorded, list):
-        found = sequence.frame(0).fingerprint()
-        if not same_fingerprint(recorded, found):
-            raise InputError(
-                f"{dst} was recorded on another {sequence.name}: its first frame differs "
-                f"(mean depth and colour {recorded} against {found})"
-            )
+    found = sequence.frame(0).fingerprint()
+    if not isinstance(recorded, list):
+        meta.results["first_frame"] = found  # for the resumes after this one
+    elif not same_fingerprint(recorded, found):
+        raise InputError(
+            f"{dst} was recorded on another {sequence.name}: its first frame differs "
+            f"(mean depth and colour {recorded} against {found})"
+        )
 
     by_topic: dict[str, list[Record]] = {}
     for record in contents.messages:
@@ -419,8 +422,6 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
         run.gt_poses.append(frame.T_world_cam)
         run.est_poses.append(result.T_world_cam)
     stats = result.stats()
-    if i == 0:
-        run.meta.results["first_frame"] = frame.fingerprint()
     checkpoint = every > 0 and (i + 1) % every == 0 and i + 1 < total
     if checkpoint and not result.event:
         stats["event"] = "checkpoint"
