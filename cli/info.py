@@ -75,7 +75,9 @@ def format_info(info: dict[str, Any]) -> str:
             lines.append("importance none (run `gsc score` or `gsc slam` to get PWAS scores)")
     for step in info["provenance"]:
         op = step["operation"]
-        params = " ".join(f"{k}={_value(v)}" for k, v in op.items() if k != "name")
+        params = " ".join(
+            f"{k}={_value(v)}" for k, v in op.items() if k != "name" and v is not None
+        )
         lines.append(
             f"from      {op.get('name', '?')} {params} <- {step['parent']} "
             f"(sha256 {step['parent_sha256'][:12]})"

@@ -47,6 +47,21 @@ _FLOAT_FIELDS = (
     "alpha_t_sum",
 )
 
+_STORED_AS = {
+    "means": "x y z",
+    "log_scales": "scale_*",
+    "quats": "rot_0..3",
+    "opacity_logits": "opacity",
+    "sh_dc": "f_dc_*",
+    "sh_rest": "f_rest_*",
+}
+"""The PLY and `/gaussians` fields each array is stored as, for messages about a file's map."""
+
+
+def _named(name: str) -> str:
+    """A field for a message: its name here and, where it differs, as files store it."""
+    return f"{name} ({_STORED_AS[name]})" if name in _STORED_AS else name
+
 
 def _own(array: Any, dtype: type[np.generic]) -> np.ndarray:
     """`array` as a contiguous, writable array of `dtype` (a copy when it was a read-only view,
@@ -205,19 +220,21 @@ class GaussianMap:
             values = getattr(self, name)
             if not np.isfinite(values).all():
                 bad = int(np.count_nonzero(~np.isfinite(values)))
-                raise MapError(f"{name} has {bad} non-finite value(s)")
+                raise MapError(f"{_named(name)} has {bad} non-finite value(s)")
         for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
             if np.any(getattr(self, name) < 0):
                 raise MapError(f"{name} has negative values")
         if _has_duplicates(self.ids):
             raise MapError("ids are not unique")
         if len(self) and np.any(np.all(self.quats == 0, axis=1)):
-            raise MapError("quats has all-zero rotations")
+            raise MapError(f"{_named('quats')} has all-zero rotations")
         if np.any(np.abs(self.log_scales) > MAX_ABS_LOG_SCALE):
-            raise MapError(f"log_scales has values beyond +-{MAX_ABS_LOG_SCALE:g} (scales of e^40)")
+            raise MapError(
+                f"{_named('log_scales')} has values beyond +-{MAX_ABS_LOG_SCALE:g} (scales of e^40)"
+            )
         squared = np.square(self.quats, dtype=np.float64).sum(axis=1)
         if np.any(squared > np.finfo(np.float32).max):
-            raise MapError("quats has rotations too long to normalise in float32")
+            raise MapError(f"{_named('quats')} has rotations too long to normalise in float32")
         with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
             scores = self.importance
         if not np.isfinite(scores).all():

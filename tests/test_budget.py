@@ -279,7 +279,7 @@ def test_non_finite_after_fp16_decode_is_refused(tmp_path, value):
     path = tmp_path / "h.mcap"
     with LogWriter(path, LogMetadata()) as log:
         log.write_gaussians(g, 0, precision="fp16")
-    with pytest.raises(LogFormatError, match="quats has 1 non-finite"):
+    with pytest.raises(LogFormatError, match=r"quats \(rot_0..3\) has 1 non-finite"):
         read_map(path)
 
 

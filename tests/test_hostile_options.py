@@ -59,7 +59,7 @@ def test_text_inputs_are_read_up_to_a_sane_size(tmp_path: Path) -> None:
         read_text(tmp_path / "nope.txt", "transform")
     big = tmp_path / "big.txt"
     big.write_text("0 " * 1024)
-    with pytest.raises(InputError, match="over 1 KiB, too large"):
+    with pytest.raises(InputError, match="over 1 KiB: too large for a trajectory file"):
         read_text(big, "trajectory", limit=1024)
     small = tmp_path / "ok.txt"
     small.write_text("1 2\n")

@@ -87,7 +87,7 @@ def read_text(
             data = f.read(limit + 1)
         if len(data) > limit:
             size = f"{limit >> 20} MiB" if limit >= 1 << 20 else f"{limit >> 10} KiB"
-            raise error(f"{what} file {path} is over {size}, too large for one")
+            raise error(f"{what} file {path} is over {size}: too large for a {what} file")
         return data.decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"cannot read {what} file {path}: {exc}") from None
