@@ -24,7 +24,7 @@ from .options import (
 )
 
 
-@click.command("eval")
+@click.command("eval", short_help="Score a log's map and poses: ATE, PSNR, SSIM, LPIPS.")
 @click.argument("src", metavar="LOG.mcap", type=INPUT_FILE)
 @seq_option(help="The RGB-D sequence the log was made from (TUM or Replica layout).")
 @click.option(

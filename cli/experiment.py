@@ -33,7 +33,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     return tuple(str(BudgetParam().convert(item, param, ctx)) for item in items)
 
 
-@click.command("experiment")
+@click.command("experiment", short_help="Run the paper's two-agent protocol: tables and plots.")
 @click.argument("seq", type=INPUT_FOLDER)
 @click.option(
     "-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),

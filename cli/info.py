@@ -12,7 +12,7 @@ from gscompress.pipeline import log_info
 from .options import INPUT_FILE, emit, json_option
 
 
-@click.command("info")
+@click.command("info", short_help="Show what a log holds: map, scores, bytes, provenance.")
 @click.argument("src", type=INPUT_FILE)
 @json_option
 def info(src: Path, as_json: bool) -> None:

@@ -30,7 +30,7 @@ from .options import (
 )
 
 
-@click.command("merge")
+@click.command("merge", short_help="Merge another agent's share into a map and refine it.")
 @click.argument("receiver", metavar="RECEIVER.mcap", type=INPUT_FILE)
 @click.argument("share", metavar="SHARE.mcap", type=INPUT_FILE)
 @output_option("Output log (.mcap): the receiver's log with the merged, refined map.")

@@ -21,7 +21,7 @@ from .options import (
 )
 
 
-@click.command("prune")
+@click.command("prune", short_help="Keep the highest-scoring fraction of a log's map.")
 @click.argument("src", type=INPUT_FILE)
 @click.option(
     "--keep",

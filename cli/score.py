@@ -27,7 +27,7 @@ from .options import (
 )
 
 
-@click.command("score")
+@click.command("score", short_help="PWAS-score a map made by any tool from a sequence.")
 @click.argument("src", type=INPUT_FILE)
 @seq_option()
 @click.option(

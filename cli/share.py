@@ -22,7 +22,7 @@ from .options import (
 )
 
 
-@click.command("share")
+@click.command("share", short_help="Cut a budgeted top share of a map for another agent.")
 @click.argument("src", type=INPUT_FILE)
 @click.argument("dst", type=click.Path(path_type=Path), required=False)
 @click.option(

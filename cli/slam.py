@@ -71,7 +71,7 @@ def _modified_ns(path: Path) -> int | None:
     return path.stat().st_mtime_ns if path.exists() else None
 
 
-@click.command("slam")
+@click.command("slam", short_help="Map a sequence with 3DGS SLAM into an MCAP log.")
 @click.argument("seq", type=INPUT_FOLDER)
 @click.option(
     "-o",

@@ -11,7 +11,7 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from .options import force_option, progress_bar, seed_option, size_option
 
 
-@click.command()
+@click.command("synth", short_help="Make a synthetic RGB-D room sequence with ground truth.")
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option(
     "--frames", type=click.IntRange(1, 100_000), default=60, show_default=True, help="Frame count."

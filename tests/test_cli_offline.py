@@ -522,3 +522,9 @@ def test_a_group_option_after_the_command_says_where_it_goes(tmp_path):
     assert "gsc --threads N info ..." in r.output
     r = CliRunner().invoke(cli, ["info", str(tmp_path / "x.mcap"), "--thread", "1"])
     assert r.exit_code == 2 and "option of" not in r.output
+
+
+def test_the_command_list_gives_every_command_a_whole_summary():
+    r = run("--help")
+    listed = r.output.split("Commands:")[1].strip().splitlines()
+    assert len(listed) == 11 and not any(line.endswith("...") for line in listed), listed

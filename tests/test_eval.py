@@ -310,3 +310,14 @@ def test_foxglove_layout_names_our_topics_and_the_importance_field():
     )
     assert f"{TOPIC_POSE}.pose.position.x" in strings
     assert TOPIC_TF not in scene["topics"] or scene["topics"][TOPIC_TF]["visible"]
+
+
+def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, seq_dir, caplog):
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.evaluate"):
+        evaluate_log(gt_log, seq_dir, every=6, lpips=False)
+        assert "enlarges" not in caplog.text
+        r = evaluate_log(gt_log, seq_dir, every=6, size=(128, 96), lpips=False)
+    assert r["size"] == [128, 96]
+    assert "working size 128x96 enlarges room's 64x48 frames" in caplog.text

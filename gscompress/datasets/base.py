@@ -367,6 +367,19 @@ def parse_size(text: str) -> tuple[int, int] | None:
     return None if m is None else (int(m.group(1)), int(m.group(2)))
 
 
+def enlargement_note(sequence: RGBDSequence) -> str | None:
+    """What to warn of when a sequence's working size enlarges its frames, else None."""
+    k = sequence.intrinsics
+    native = getattr(sequence, "native_intrinsics", k)
+    if k.width * k.height <= native.width * native.height:
+        return None
+    return (
+        f"working size {k.width}x{k.height} enlarges {sequence.name}'s {native.width}x"
+        f"{native.height} frames (more time, no more detail); --size {native.width}x"
+        f"{native.height} keeps them"
+    )
+
+
 def check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
     """Validate a working size (W, H): positive, at most MAX_SIDE per side."""
     if size is None:

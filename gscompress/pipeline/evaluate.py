@@ -52,8 +52,10 @@ def open_log_sequence(
 ) -> Any:
     """The sequence a log was made from, opened as its run had it: the log's frame subset and
     working size unless given. Warns when the sequence is not the one the log names (its poses
-    would then be compared with frames they do not belong to)."""
+    would then be compared with frames they do not belong to), and when the working size
+    enlarges its frames."""
     from gscompress.datasets import open_sequence
+    from gscompress.datasets.base import enlargement_note
 
     if size is None and meta.config.get("size"):
         w, h = meta.config["size"]
@@ -62,6 +64,8 @@ def open_log_sequence(
     if meta.sequence and meta.sequence != sequence.name:
         log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
                     sequence.name)  # fmt: skip
+    if note := enlargement_note(sequence):
+        log.warning("%s", note)
     return sequence
 
 

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.datasets.base import same_fingerprint
+from gscompress.datasets.base import enlargement_note, same_fingerprint
 from gscompress.errors import DatasetError, InputError, LogFormatError, OptionError, OutputError
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
@@ -198,13 +198,8 @@ def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> An
         raise InputError(f"{name}: no frames selected ({frames})")
     k = sequence.intrinsics
     check_working_size(k)
-    native = getattr(sequence, "native_intrinsics", k)
-    if k.width * k.height > native.width * native.height:
-        log.warning(
-            "working size %dx%d enlarges %s's %dx%d frames (more time, no more detail); "
-            "--size %dx%d keeps them",
-            k.width, k.height, name, native.width, native.height, native.width, native.height,
-        )  # fmt: skip
+    if note := enlargement_note(sequence):
+        log.warning("%s", note)
     return sequence
 
 
