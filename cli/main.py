@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "prune": "prune:prune",
     "share": "share:share",
     "export-ply": "export_ply:export_ply",
+    "export-traj": "export_traj:export_traj",
     "score": "score:score",
     "synth": "synth:synth",
     "slam": "slam:slam",
@@ -183,6 +184,7 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
       gsc share --budget 0.2 a.mcap s.mcap    cut the top-20% share for another agent
       gsc merge b.mcap s.mcap --seq SEQ -o m.mcap   give that share to agent B's map
       gsc export-ply a.mcap -o a.ply      open the map in any 3DGS viewer
+      gsc export-traj a.mcap -o a.txt     the trajectory for evo (TUM text)
       gsc info a.mcap                     what a log holds
     """
     if threads is not None:

@@ -403,6 +403,7 @@ def test_offline_commands_do_not_import_torch(log_path, tmp_path):
         ["prune", str(log_path), "--keep", "0.3", "-o", str(tmp_path / "p.mcap")],
         ["share", str(log_path), str(tmp_path / "s.mcap")],
         ["export-ply", str(log_path), "-o", str(tmp_path / "e.ply")],
+        ["export-traj", str(log_path), "-o", str(tmp_path / "t.txt")],
         ["info", str(log_path)],
     ]
     code = (
@@ -419,7 +420,7 @@ def test_offline_commands_do_not_import_torch(log_path, tmp_path):
         [sys.executable, "-c", code, json.dumps(runs)], capture_output=True, text=True, check=True
     )
     assert out.stdout.strip().splitlines()[-1] == "False"
-    assert (tmp_path / "e.ply").exists()
+    assert (tmp_path / "e.ply").exists() and (tmp_path / "t.txt").exists()
 
 
 def test_help_teaches():
@@ -527,4 +528,4 @@ def test_a_group_option_after_the_command_says_where_it_goes(tmp_path):
 def test_the_command_list_gives_every_command_a_whole_summary():
     r = run("--help")
     listed = r.output.split("Commands:")[1].strip().splitlines()
-    assert len(listed) == 11 and not any(line.endswith("...") for line in listed), listed
+    assert len(listed) == 12 and not any(line.endswith("...") for line in listed), listed

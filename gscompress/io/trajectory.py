@@ -18,7 +18,7 @@ import numpy as np
 
 from gscompress.camera import is_zero_quaternion, pose_from_tum, pose_to_tum
 from gscompress.errors import InputError, OutputError, clipped
-from gscompress.io.files import read_text
+from gscompress.io.files import read_text, write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -191,6 +191,6 @@ def write_tum_trajectory(
     """
     text = format_tum_trajectory(timestamps, T_world_cam, comments)
     try:
-        Path(path).write_text(text, encoding="utf-8")
+        write_text_atomic(path, text)
     except OSError as exc:
         raise OutputError(f"cannot write trajectory file {path}: {exc}") from None

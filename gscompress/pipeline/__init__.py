@@ -4,7 +4,8 @@ Functions take paths and options, read inputs through `gscompress.io`, call the 
 in `gscompress.ops`, `gscompress.slam` and `gscompress.metrics`, and write outputs atomically.
 They return a small dict of results that the CLI prints. Nothing here prints or exits.
 
-- `offline`: import-ply, prune, share, export-ply, info (numpy + mcap only, never torch).
+- `offline`: import-ply, prune, share, export-ply, export-traj, info (numpy + mcap only, never
+  torch).
 - `scoring`: score (PWAS for a map made elsewhere).
 - `slam_run`: slam (a sequence into a log; resume; inject).
 - `merge`: merge (a share into a receiver's map, refined).
@@ -20,6 +21,7 @@ from gscompress.pipeline.evaluate import evaluate_log
 from gscompress.pipeline.merge import merge_logs
 from gscompress.pipeline.offline import (
     export_ply,
+    export_trajectory,
     import_ply,
     log_info,
     map_summary,
@@ -33,6 +35,7 @@ from gscompress.pipeline.slam_run import slam_file
 __all__ = [
     "evaluate_log",
     "export_ply",
+    "export_trajectory",
     "import_ply",
     "log_info",
     "map_summary",

@@ -1,4 +1,4 @@
-"""The offline commands: import-ply, prune, share, export-ply and info.
+"""The offline commands: import-ply, prune, share, export-ply, export-traj and info.
 
 numpy + mcap only: nothing here imports torch or the SLAM code, so these commands start fast.
 """
@@ -12,12 +12,14 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import OptionError
+from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import check_precision
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import (
     TOPIC_GAUSSIANS,
+    TOPIC_POSE,
+    TOPIC_POSE_GT,
     LogMetadata,
     LogReader,
     LogWriter,
@@ -26,6 +28,7 @@ from gscompress.io.mcap_log import (
     read_map,
 )
 from gscompress.io.ply import read_ply, write_ply
+from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import check_ratio, select_count, select_top, strategy_scores
 
@@ -200,6 +203,27 @@ def export_ply(
         index = snapshot % log_in.snapshot_count  # read_map refused one out of range
     write_ply(gaussians, dst, importance=importance, inputs=(src,), force=force)
     return {"output": str(dst), "gaussians": len(gaussians), "snapshot": index}
+
+
+def export_trajectory(
+    src: str | Path, dst: str | Path, *, ground_truth: bool = False, force: bool = False
+) -> dict[str, Any]:
+    """Write a log's estimated poses (or, with `ground_truth`, its `/camera/pose_gt`) as a TUM
+    trajectory, stamped with the frames' timestamps, for evo and other tools.
+
+    Raises:
+        LogFormatError: the log has no such poses (not a SLAM log, or no ground truth).
+    """
+    topic = TOPIC_POSE_GT if ground_truth else TOPIC_POSE
+    check_output(dst, [src], force, ".txt")
+    with LogReader(src) as log_in:
+        stamps_ns, poses = log_in.read_poses(topic)
+    if len(poses) == 0:
+        what = "ground-truth poses" if ground_truth else "estimated poses (not a SLAM log?)"
+        raise LogFormatError(f"{src} has no {topic} messages: no {what}")
+    name = "ground truth" if ground_truth else "estimated trajectory"
+    write_tum_trajectory(dst, stamps_ns / 1e9, poses, [f"{name} of {Path(src).name}"])
+    return {"output": str(dst), "poses": len(poses), "topic": topic}
 
 
 def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
