@@ -44,6 +44,13 @@ def frames_in(path: Path) -> list[int]:
         return [json.loads(m.data)["frame"] for _, _, m in log.iter_messages([TOPIC_STATS])]
 
 
+def interrupted(seq_dir: Path, out: Path, frames: int = 3, **options: object) -> Path:
+    """`out`: a run of `seq_dir` stopped by Ctrl-C after `frames` frames."""
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq_dir, out, progress=stop_after(frames), **options)
+    return out
+
+
 def stop_after(count: int):  # type: ignore[no-untyped-def]
     def progress(done: int, total: int, stats: dict) -> None:
         if done == count:
@@ -55,9 +62,7 @@ def stop_after(count: int):  # type: ignore[no-untyped-def]
 def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:
-    out = tmp_path / "run.mcap"
-    with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config_file, progress=stop_after(3))
+    out = interrupted(seq_dir, tmp_path / "run.mcap", config_path=config_file)
     with LogReader(out) as log:
         assert log.metadata.results["interrupted"] is True
         assert log.metadata.results["frames"] == 3
@@ -88,9 +93,7 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
 def test_a_resumes_summary_gives_the_speed_of_the_frames_it_ran(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:
-    out = tmp_path / "run.mcap"
-    with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config_file, progress=stop_after(3))
+    out = interrupted(seq_dir, tmp_path / "run.mcap", config_path=config_file)
     r = CliRunner().invoke(cli, ["slam", str(seq_dir), "-o", str(out), "--resume"])
     assert r.exit_code == 0, r.output
     assert f"mapped {FRAMES} frames" in r.output
@@ -106,9 +109,7 @@ def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
     config.write_text(
         "preset: tiny\ncheckpoint_every: 2\nmapping:\n  final_iters: 3\n  final_views: frames\n"
     )
-    out = tmp_path / "run.mcap"
-    with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config, progress=stop_after(3))
+    out = interrupted(seq_dir, tmp_path / "run.mcap", config_path=config)
     run = _resume_run(seq_dir, out, "cpu", None)
     assert run.start == 3 and [v.index for v in run.system.views] == [0, 1, 2]
     assert [v.index for v in run.system.keyframes] == [0, 2]
@@ -192,9 +193,7 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
 def test_a_resume_killed_in_its_turn_is_resumed_from_where_it_got(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:
-    out = tmp_path / "twice.mcap"
-    with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config_file, progress=stop_after(3))
+    out = interrupted(seq_dir, tmp_path / "twice.mcap", config_path=config_file)
     cmd = _gsc_signalled(signal.SIGKILL, 4, "slam", seq_dir, "-o", out, "--resume")
     proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
@@ -494,9 +493,7 @@ def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
 def test_a_resume_on_another_scene_of_the_same_name_is_refused(
     seq_dir: Path, tmp_path: Path
 ) -> None:
-    out = tmp_path / "run.mcap"
-    with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, preset="tiny", progress=stop_after(3))
+    out = interrupted(seq_dir, tmp_path / "run.mcap", preset="tiny")
     with LogReader(out) as log:
         assert len(log.metadata.results["first_frame"]) == 4
     other = write_synthetic_sequence(tmp_path / "other" / seq_dir.name, FRAMES, (64, 48), seed=5)
