@@ -204,6 +204,23 @@ def test_a_resume_killed_in_its_turn_is_resumed_from_where_it_got(
     assert frames_in(out) == list(range(FRAMES)) and unfinished_files(out) == []
 
 
+def test_a_resume_takes_up_the_newest_run_not_an_older_one_further_along(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "two.mcap"
+    first = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir, "-o", out, "--config", config_file)
+    assert subprocess.run(first, capture_output=True, timeout=300, check=False).returncode < 0
+    again = _gsc_signalled(signal.SIGKILL, 2, "slam", seq_dir, "-o", out, "--config",
+                           config_file, "--size", "48x36", "--force")  # fmt: skip
+    assert subprocess.run(again, capture_output=True, timeout=300, check=False).returncode < 0
+    assert len(unfinished_files(out)) == 2
+    result = slam_file(seq_dir, out, resume=True)
+    assert result.get("resumed_at", 0) < 4  # the 48x36 run's start, not the older run's 4
+    with LogReader(out) as log:
+        assert log.metadata.config["size"] == [48, 36]
+    assert frames_in(out) == list(range(FRAMES)) and unfinished_files(out) == []
+
+
 def test_a_fresh_run_with_force_replaces_an_unfinished_one(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:

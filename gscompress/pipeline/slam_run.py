@@ -361,18 +361,24 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
 
 
 def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
-    """Of a log and the unfinished files beside it, the one whose last map covers the most
-    frames (a resume killed in its turn leaves a file ahead of the log it started from), with
-    its contents; the first readable one on a tie. Raises the first's error if none reads."""
+    """The file to resume from, with its contents: of the newest readable file's run (the same
+    sequence, frames and config; a fresh `--force` run started since is another run), the one
+    whose last map covers the most frames, the newest on a tie. A resume killed in its turn
+    leaves a file ahead of the log it started from. Raises the newest file's error if none
+    reads."""
     best: tuple[int, Path, LogContents] | None = None
     first_error: LogFormatError | None = None
-    for path in sources:
+    run: tuple[Any, ...] | None = None
+    for path in sorted(sources, key=lambda p: p.stat().st_mtime_ns, reverse=True):
         try:
             contents = read_messages(path)
         except LogFormatError as exc:
             first_error = first_error or exc
             continue
-        if best is None or contents.map_frames() > best[0]:
+        meta = contents.metadata
+        this_run = (meta.sequence, meta.frames, meta.config)
+        run = run or this_run
+        if this_run == run and (best is None or contents.map_frames() > best[0]):
             best = (contents.map_frames(), path, contents)
     if best is None:
         assert first_error is not None
