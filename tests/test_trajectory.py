@@ -95,6 +95,32 @@ def test_nearest_times_takes_the_nearest_within_tolerance_in_any_order() -> None
     assert nearest_times(np.array([7.0]), np.array([3.0]), 5.0).tolist() == [0]
 
 
+def test_writing_a_trajectory_keeps_the_old_file_on_failure_and_refuses_links(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import os
+
+    from gscompress.errors import OutputError
+    from gscompress.io import files
+
+    stamps, T = _poses(3)
+    path = tmp_path / "t.txt"
+    path.write_text("old\n")
+
+    def full_disk(*args: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(files.AtomicFile, "commit", full_disk)
+        with pytest.raises(OutputError, match="No space left"):
+            write_tum_trajectory(path, stamps, T)
+    assert path.read_text() == "old\n" and [p.name for p in tmp_path.iterdir()] == ["t.txt"]
+    os.symlink(path, tmp_path / "link.txt")
+    with pytest.raises(OutputError, match="symbolic link"):
+        write_tum_trajectory(tmp_path / "link.txt", stamps, T)
+    assert path.read_text() == "old\n"
+
+
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="not found"):
         read_tum_trajectory(tmp_path / "nope.txt")

@@ -18,7 +18,7 @@ import numpy as np
 
 from gscompress.camera import is_zero_quaternion, pose_from_tum, pose_to_tum
 from gscompress.errors import InputError, OutputError, clipped
-from gscompress.io.files import read_text, write_text_atomic
+from gscompress.io.files import check_output, read_text, write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -184,12 +184,14 @@ def write_tum_trajectory(
     """Write a TUM trajectory file that evo and `read_tum_trajectory` read.
 
     Args:
-        path: output file (overwritten).
+        path: output file (overwritten; not a link or a device, which the rename into place
+            would replace).
         timestamps: [N] seconds.
         T_world_cam: [N, 4, 4] camera-to-world poses.
         comments: lines written first, each prefixed by `# `.
     """
     text = format_tum_trajectory(timestamps, T_world_cam, comments)
+    check_output(path, force=True)  # (the rename into place would replace a link or a device)
     try:
         write_text_atomic(path, text)
     except OSError as exc:
