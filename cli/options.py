@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shlex
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -174,15 +175,25 @@ def frames_option(f: F) -> F:
     )(f)
 
 
-def progress_bar(desc: str, unit: str, total: int | None = None, hidden: bool = False) -> Any:
-    """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set."""
+@contextlib.contextmanager
+def progress_bar(
+    desc: str, unit: str, total: int | None = None, hidden: bool = False
+) -> Iterator[Any]:
+    """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set. Log
+    lines written meanwhile go above it rather than onto its line."""
     import logging
 
     from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
 
     quiet = logging.getLogger("gscompress").getEffectiveLevel() > logging.INFO
     # delay: a command that fails at once prints its error without an empty bar before it
-    return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet, delay=0.5)
+    with (
+        logging_redirect_tqdm(),
+        tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet,
+             delay=0.5) as bar,
+    ):  # fmt: skip
+        yield bar
 
 
 def advance(bar: Any, done: int, total: int) -> None:

@@ -1,5 +1,6 @@
 """`gsc slam` end to end on a tiny synthetic sequence, and the log it writes."""
 
+import contextlib
 import json
 import logging
 import os
@@ -248,9 +249,11 @@ def test_progress_bar_counts_only_the_frames_this_run_does(monkeypatch, caplog, 
 
     bars = []
 
+    @contextlib.contextmanager
     def kept_bar(*args, **kwargs):  # type: ignore[no-untyped-def]
-        bars.append(make_bar(*args, **kwargs))
-        return bars[-1]
+        with make_bar(*args, **kwargs) as bar:
+            bars.append(bar)
+            yield bar
 
     def stop_after_two(done, total, stats):  # type: ignore[no-untyped-def]
         if done == 2:
@@ -363,9 +366,11 @@ def test_progress_bar_shows_counts_as_numbers(monkeypatch, seq_dir, tmp_path):
     make_bar = slam_command.progress_bar
     bars = []
 
+    @contextlib.contextmanager
     def kept_bar(*args, **kwargs):  # type: ignore[no-untyped-def]
-        bars.append(make_bar(*args, **kwargs))
-        return bars[-1]
+        with make_bar(*args, **kwargs) as bar:
+            bars.append(bar)
+            yield bar
 
     def fake_slam_file(*args, progress, **kwargs):  # type: ignore[no-untyped-def]
         progress(1, 1, {"frame": 10000, "gaussians": 20000, "seconds": 1.0})
@@ -400,7 +405,7 @@ def test_a_settings_error_partway_says_to_run_afresh_not_to_resume(seq_dir, tmp_
         r = run("slam", seq_dir, "--preset", "tiny", "--keep", "0.00001", "-o", out)
     assert r.exit_code == 1 and "rounds to none" in r.output, r.output
     assert "run afresh with the settings changed (--force replaces the log)" in caplog.text
-    assert "resume" not in r.output and "resume starts again" not in caplog.text
+    assert "--resume" not in r.output and "resume starts again" not in caplog.text
     with LogReader(out) as log:  # the frames before the first stage are kept all the same
         assert 0 < log.metadata.results["frames"] < 6
 
