@@ -410,6 +410,28 @@ def test_a_settings_error_partway_says_to_run_afresh_not_to_resume(seq_dir, tmp_
         assert 0 < log.metadata.results["frames"] < 6
 
 
+def test_a_passing_error_partway_is_not_called_a_settings_one(
+    seq_dir, tmp_path, caplog, monkeypatch
+):
+    from gscompress.slam.system import SlamSystem
+
+    process = SlamSystem.process
+
+    def short_of_memory(self, frame):  # type: ignore[no-untyped-def]
+        if len(self.poses) == 3:
+            raise MemoryError
+        return process(self, frame)
+
+    monkeypatch.setattr(SlamSystem, "process", short_of_memory)
+    with (
+        caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"),
+        pytest.raises(MemoryError),
+    ):
+        slam_file(seq_dir, tmp_path / "m.mcap", preset="tiny", no_prune=True)
+    assert "holds the 3 frame(s) done before the error" in caplog.text
+    assert "run afresh" not in caplog.text
+
+
 def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, caplog):
     broken = shutil.copytree(seq_dir, tmp_path / "room")
     sorted((broken / "depth").glob("*.png"))[3].write_bytes(b"not a png")  # the 4th frame's

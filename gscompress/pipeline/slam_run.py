@@ -19,7 +19,15 @@ from typing import Any
 import numpy as np
 
 from gscompress.datasets.base import enlargement_note, same_fingerprint
-from gscompress.errors import DatasetError, InputError, LogFormatError, OptionError, OutputError
+from gscompress.errors import (
+    BudgetError,
+    DatasetError,
+    DivergenceError,
+    InputError,
+    LogFormatError,
+    OptionError,
+    OutputError,
+)
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -437,7 +445,11 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
 
 RESUMABLE = (DatasetError, OSError)
 """Errors partway through a run that `--resume` gets past once their cause is fixed (a frame
-that cannot be read, a full disk); any other (a setting, a divergence) would recur."""
+that cannot be read, a full disk)."""
+
+RECURRING = (InputError, BudgetError, DivergenceError)
+"""Errors partway through a run that come from its settings (a keep ratio too small, learning
+rates too high for the data): a resume, which keeps them, would meet them again."""
 
 
 def map_note(frames: int, map_frames: int) -> str:
@@ -572,15 +584,15 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
     for leftover in run.leftovers:
         leftover.unlink(missing_ok=True)
     if failure is not None:
-        if isinstance(failure, RESUMABLE):  # (gsc slam then says how to resume)
-            note = map_note(done, run.map_frames)
-            log.warning("%s holds the %d frame(s) done before the error%s", dst, done, note)
-        elif not isinstance(failure, KeyboardInterrupt):  # (the caller says so for an interrupt)
+        if isinstance(failure, RECURRING):
             log.warning(
                 "%s holds the %d frame(s) done before the error; a resume would meet it again: "
                 "run afresh with the settings changed (--force replaces the log)",
                 dst,
                 done,
             )
+        elif not isinstance(failure, KeyboardInterrupt):  # (the caller says so for an interrupt)
+            note = map_note(done, run.map_frames)  # (gsc slam says how to resume)
+            log.warning("%s holds the %d frame(s) done before the error%s", dst, done, note)
         raise failure
     return {"output": str(dst), **meta.results}
