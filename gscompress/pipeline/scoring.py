@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,8 @@ from gscompress.io.mcap_log import (
 )
 from gscompress.io.ply import read_ply
 from gscompress.pipeline.offline import rewrite_map
+
+log = logging.getLogger(__name__)
 
 
 def score_file(
@@ -72,10 +75,14 @@ def score_file(
     else:
         frames = frames or "all"
         sequence = open_sequence(seq, size=size, frames=frames)
+    skipped = 0
     if poses is None and is_log and len(log_ns):
         positions, index = frames_with_poses(sequence, log_ns, src)
         stamps, T_world_cams = np.asarray(sequence.timestamps)[positions], log_poses[index]
-        source = "log"
+        source, skipped = "log", len(sequence) - len(positions)
+        if skipped:
+            log.warning("%d of the %d frames selected have no pose in %s: scored from the "
+                        "other %d", skipped, len(sequence), src, len(positions))  # fmt: skip
     else:
         if poses is None and is_log and meta.world_frame.startswith("first-camera:"):
             raise InputError(
@@ -97,7 +104,7 @@ def score_file(
         )  # fmt: skip
         seen = int(np.count_nonzero(scored.importance_weight > 0))
         results = {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen}
-        return scored, {**results, "poses": source}
+        return scored, {**results, "frames_without_pose": skipped, "poses": source}
 
     operation = {
         "name": "score",
