@@ -231,13 +231,16 @@ class LogMetadata:
             )
         return cls(**values)
 
-    def derive(self, operation: dict[str, Any], parent: str | Path, command: str) -> LogMetadata:
-        """Metadata for a file derived from `parent` by `operation`, run as `command`: the
-        sequence, config and world frame carried over, the provenance step appended."""
+    def derive(
+        self, operation: dict[str, Any], parent: str | Path, command: str | None = None
+    ) -> LogMetadata:
+        """Metadata for a file derived from `parent` by `operation`, run as `command` (None:
+        this metadata's): the sequence, config and world frame carried over, the provenance
+        step appended."""
         parent = Path(parent)
         step = {"operation": operation, "parent": parent.name, "parent_sha256": sha256(parent)}
         return LogMetadata(
-            command=command,
+            command=self.command if command is None else command,
             config=self.config,
             sequence=self.sequence,
             frames=self.frames,
