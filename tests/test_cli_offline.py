@@ -384,6 +384,10 @@ def test_an_output_named_for_the_other_format_is_refused(log_path, tmp_path):
     assert r.exit_code == 1 and "writes a PLY file, not an MCAP log" in r.output
     r = run("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.mcap.mcap")
     assert r.exit_code == 1 and "name it s.mcap.ply" in r.output
+    r = run("export-traj", log_path, "-o", tmp_path / "t.mcap")
+    assert r.exit_code == 1 and "writes a text file, not an MCAP log; name it t.txt" in r.output
+    r = run("prune", log_path, "--keep", "0.3", "-o", tmp_path / "p.txt")
+    assert r.exit_code == 1 and "writes an MCAP log, not a text file" in r.output
     written = {p.name for p in tmp_path.iterdir()} - {log_path.name}
     assert written == set()  # nothing written, the MCAP share included
 

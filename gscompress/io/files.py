@@ -56,7 +56,7 @@ SUFFIXES = {
     ".mcap": "an MCAP log",
     ".ply": "a PLY file",
     ".yaml": "a YAML config",
-    ".txt": "a TUM trajectory",
+    ".txt": "a text file",
 }
 """The output kinds the tool writes, by file-name suffix."""
 
@@ -116,9 +116,9 @@ def check_output(
     """Refuse to write over an input (also through a link) or into an input folder (a
     sequence), onto a directory, a symbolic link, a device or a FIFO (the rename into place
     would replace them), or over an existing file without `force`; the output's
-    directory must exist and be writable. With `suffix` (".mcap", ".ply" or ".yaml", what is
-    written), a name ending in another kind's suffix is refused: `-o map.ply` on a command that
-    writes a log is a slip that would leave an MCAP file named .ply.
+    directory must exist and be writable. With `suffix` (a key of `SUFFIXES`, what is written),
+    a name ending in another kind's suffix is refused: `-o map.ply` on a command that writes a
+    log is a slip that would leave an MCAP file named .ply.
     """
     output = Path(output)
     for source in map(Path, inputs):
