@@ -301,3 +301,21 @@ def test_an_lz4_frame_declaring_more_than_its_chunk_is_refused(tmp_path):
         with pytest.raises(LogFormatError, match=r"lz4 frame declares 1099511627776 bytes"):
             reader._check_chunk(1000, 500, "lz4", head)
         reader._check_chunk(1000, 500, "lz4", head[:4] + bytes([0x60]) + head[5:])  # no size
+
+
+@pytest.mark.parametrize(("w", "readable"), [(1e-7, False), (2e-6, True), (1e300, True)])
+def test_a_logged_pose_takes_the_same_quaternions_for_zero_as_text_files(tmp_path, w, readable):
+    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+
+    from gscompress.errors import LogFormatError
+
+    pose = PoseInFrame(frame_id="world")
+    pose.pose.orientation.w = w
+    with LogWriter(tmp_path / "p.mcap", LogMetadata()) as log:
+        log.write_protobuf(TOPIC_POSE, pose, 1)
+    with LogReader(tmp_path / "p.mcap") as log:
+        if not readable:
+            with pytest.raises(LogFormatError, match="zero-length pose"):
+                log.read_poses()
+        else:
+            np.testing.assert_allclose(log.read_poses()[1][0], np.eye(4))
