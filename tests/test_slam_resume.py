@@ -128,6 +128,24 @@ def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> No
         slam_file(seq_dir, tmp_path / "none.mcap", resume=True)
 
 
+@pytest.mark.parametrize("cut", [False, True])
+def test_a_share_or_pruned_log_is_not_resumed_even_cut_short(
+    seq_dir: Path, tmp_path: Path, cut: bool
+) -> None:
+    from gscompress.pipeline import prune_log
+
+    slam_file(seq_dir, tmp_path / "a.mcap", preset="tiny", frames="0:4")
+    share_log(tmp_path / "a.mcap", tmp_path / "s.mcap", 0.2)
+    prune_log(tmp_path / "a.mcap", tmp_path / "p.mcap", 0.3)
+    for derived in (tmp_path / "s.mcap", tmp_path / "p.mcap"):
+        if cut:  # as a full disk or a copy cut short leaves it: no summary
+            derived.write_bytes(derived.read_bytes()[: derived.stat().st_size * 2 // 3])
+        before = derived.read_bytes()
+        with pytest.raises(InputError, match="not the log of a `gsc slam` run"):
+            slam_file(seq_dir, derived, resume=True)
+        assert derived.read_bytes() == before
+
+
 SIGNAL_AFTER = """
 import os, sys
 from gscompress.slam.system import SlamSystem

@@ -285,7 +285,8 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     meta = contents.metadata
     if not meta.config:
         raise InputError(f"{source} records no SLAM config: not a `gsc slam` log")
-    if "frames" not in meta.results and contents.finished:
+    derived = len(_injections(meta.provenance)) < len(meta.provenance)  # (pruned, shared...)
+    if derived or ("frames" not in meta.results and contents.finished):
         raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
     if contents.finished and not meta.results.get("interrupted", False):
         raise InputError(
