@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import shlex
 import sys
@@ -180,20 +181,42 @@ def progress_bar(
     desc: str, unit: str, total: int | None = None, hidden: bool = False
 ) -> Iterator[Any]:
     """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set. Log
-    lines written meanwhile go above it rather than onto its line."""
+    lines written to the console while it is shown go above it rather than onto its line."""
     import logging
 
     from tqdm import tqdm
-    from tqdm.contrib.logging import logging_redirect_tqdm
 
     quiet = logging.getLogger("gscompress").getEffectiveLevel() > logging.INFO
     # delay: a command that fails at once prints its error without an empty bar before it
-    with (
-        logging_redirect_tqdm(),
-        tqdm(total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet,
-             delay=0.5) as bar,
-    ):  # fmt: skip
-        yield bar
+    with tqdm(
+        total=total, desc=desc, unit=unit, leave=False, disable=hidden or quiet, delay=0.5
+    ) as bar:
+        root = logging.getLogger()
+        handlers = list(root.handlers)
+        root.handlers = [
+            _AboveBar(h, bar) if type(h) is logging.StreamHandler else h for h in handlers
+        ]
+        try:
+            yield bar
+        finally:
+            root.handlers = handlers
+
+
+class _AboveBar(logging.Handler):
+    """A console handler's lines written above a shown progress bar (tqdm's own logging
+    redirect also draws a bar still in its delay, which then stays on the error's line)."""
+
+    def __init__(self, console: logging.StreamHandler[Any], bar: Any):
+        super().__init__(console.level)
+        self.console, self.bar = console, bar
+
+    def emit(self, record: logging.LogRecord) -> None:
+        bar = self.bar
+        if bar.disable or bar.last_print_t < bar.start_t + bar.delay:  # not shown (yet)
+            self.console.handle(record)
+            return
+        with bar.external_write_mode(file=self.console.stream):
+            self.console.handle(record)
 
 
 def advance(bar: Any, done: int, total: int) -> None:

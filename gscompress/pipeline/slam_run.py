@@ -371,10 +371,10 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
 
 def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
     """The file to resume from, with its contents: of the newest readable file's run (the same
-    sequence, frames and config; a fresh `--force` run started since is another run), the one
-    whose last map covers the most frames, the newest on a tie. A resume killed in its turn
-    leaves a file ahead of the log it started from. Raises the newest file's error if none
-    reads."""
+    sequence, frames, config and first frame; a fresh `--force` run started since, or a run of
+    another scene of the same name, is another run), the one whose last map covers the most
+    frames, the newest on a tie. A resume killed in its turn leaves a file ahead of the log it
+    started from. Raises the newest file's error if none reads."""
     best: tuple[int, Path, LogContents] | None = None
     first_error: LogFormatError | None = None
     run: tuple[Any, ...] | None = None
@@ -385,7 +385,7 @@ def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
             first_error = first_error or exc
             continue
         meta = contents.metadata
-        this_run = (meta.sequence, meta.frames, meta.config)
+        this_run = (meta.sequence, meta.frames, meta.config, meta.results.get("first_frame"))
         run = run or this_run
         if this_run == run and (best is None or contents.map_frames() > best[0]):
             best = (contents.map_frames(), path, contents)
