@@ -239,6 +239,20 @@ def test_a_resume_takes_up_the_newest_run_not_an_older_one_further_along(
     assert frames_in(out) == list(range(FRAMES)) and unfinished_files(out) == []
 
 
+def test_a_resume_takes_up_the_newest_run_of_another_scene_of_the_same_name(
+    seq_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    other = write_synthetic_sequence(tmp_path / "other" / seq_dir.name, FRAMES, (64, 48), seed=7)
+    out = tmp_path / "r.mcap"
+    older = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir, "-o", out, "--config", config_file)
+    newer = _gsc_signalled(signal.SIGKILL, 4, "slam", other, "-o", out, "--config", config_file,
+                           "--force")  # fmt: skip
+    for cmd in (older, newer):
+        assert subprocess.run(cmd, capture_output=True, timeout=300, check=False).returncode < 0
+    result = slam_file(other, out, resume=True)  # not "recorded on another room" from the older
+    assert result["frames"] == FRAMES and unfinished_files(out) == []
+
+
 def test_a_fresh_run_with_force_replaces_an_unfinished_one(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:
