@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import shlex
 import sys
 from collections.abc import Callable, Iterator
@@ -27,6 +28,26 @@ INPUT_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
 """An input file: a missing one is a usage error (exit 2), the same for every command."""
 INPUT_FOLDER = click.Path(exists=True, file_okay=False, path_type=Path)
 """An input folder (a sequence), checked like INPUT_FILE."""
+
+
+class OutputFile(click.Path):
+    """A file to write. A name ending in a path separator names a folder, and an empty one
+    names none: both are usage errors (a Path drops the separator and would write the file
+    under the folder's own name)."""
+
+    def __init__(self) -> None:
+        super().__init__(dir_okay=False, path_type=Path)
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        text = value if isinstance(value, str) else str(value)
+        if not text:
+            self.fail("an empty path names no file", param, ctx)
+        if text.endswith(("/", os.sep)):
+            self.fail(f"{clipped(text)} names a folder; give a file name in it", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+OUTPUT_FILE = OutputFile()
 
 
 def force_option(more: str = "") -> Callable[[F], F]:
@@ -227,9 +248,7 @@ def advance(bar: Any, done: int, total: int) -> None:
 
 def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
     """`-o/--output PATH`, required, passed to the command as `dst`."""
-    return click.option(
-        "-o", "--output", "dst", required=True, type=click.Path(path_type=Path), help=help
-    )
+    return click.option("-o", "--output", "dst", required=True, type=OUTPUT_FILE, help=help)
 
 
 def seq_option(required: bool = True, help: str = "RGB-D sequence folder (TUM or Replica).") -> Any:

@@ -13,6 +13,7 @@ from gscompress.pipeline import share_log
 
 from .options import (
     INPUT_FILE,
+    OUTPUT_FILE,
     BudgetParam,
     command_line,
     emit,
@@ -24,11 +25,11 @@ from .options import (
 
 @click.command("share", short_help="Cut a budgeted top share of a map for another agent.")
 @click.argument("src", type=INPUT_FILE)
-@click.argument("dst", type=click.Path(path_type=Path), required=False)
+@click.argument("dst", type=OUTPUT_FILE, required=False)
 @click.option(
     "-o",
     "--output",
-    type=click.Path(path_type=Path),
+    type=OUTPUT_FILE,
     default=None,
     help="The share log (.mcap), as the other commands take it; or give it as DST.",
 )
@@ -59,7 +60,7 @@ from .options import (
 )
 @click.option(
     "--ply",
-    type=click.Path(path_type=Path),
+    type=OUTPUT_FILE,
     default=None,
     help="Also write the share as a float32 3DGS PLY file (the values the receiver decodes).",
 )

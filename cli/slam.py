@@ -12,6 +12,7 @@ from click.core import ParameterSource
 from .options import (
     INPUT_FILE,
     INPUT_FOLDER,
+    OUTPUT_FILE,
     Ratio,
     advance,
     backend_option,
@@ -77,14 +78,14 @@ def _modified_ns(path: Path) -> int | None:
     "-o",
     "--output",
     "dst",
-    type=click.Path(path_type=Path),
+    type=OUTPUT_FILE,
     default=None,
     help="Output log (.mcap). Required unless only --save-config is asked for.",
 )
 @slam_config_options
 @click.option(
     "--save-config",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=OUTPUT_FILE,
     default=None,
     help="Write the resolved config (preset + --config + options) as YAML; with -o, once the "
     "run has passed its checks and mapped its first frame.",

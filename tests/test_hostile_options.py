@@ -249,3 +249,18 @@ def test_a_huge_number_for_an_integer_option_is_echoed_clipped(tmp_path: Path, d
     assert result.exit_code == 2
     assert f"({digits} digits)" in result.output and len(result.output) < 300
     assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("name", ["newdir/", ""])
+def test_an_output_named_as_a_folder_or_empty_is_refused(tmp_path: Path, name: str) -> None:
+    log = tmp_path / "a.mcap"
+    from gscompress.io.mcap_log import LogMetadata, LogWriter
+
+    with LogWriter(log, LogMetadata()) as out:
+        out.write_gaussians(random_map(10), 0)
+    before = set(tmp_path.iterdir())
+    for args in (["prune", str(log), "--keep", "0.5", "-o"], ["export-ply", str(log), "-o"]):
+        r = CliRunner().invoke(cli, [*args, f"{tmp_path}/{name}" if name else ""])
+        assert r.exit_code == 2, r.output
+        assert ("names a folder" if name else "an empty path names no file") in r.output
+    assert set(tmp_path.iterdir()) == before
