@@ -10,6 +10,7 @@ from click.testing import CliRunner
 from gscompress.camera import make_transform
 from gscompress.datasets import open_sequence
 from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.errors import InputError
 from gscompress.io.files import json_text
 from gscompress.io.mcap_log import (
     CAMERA_FRAME,
@@ -321,3 +322,14 @@ def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, se
         r = evaluate_log(gt_log, seq_dir, every=6, size=(128, 96), lpips=False)
     assert r["size"] == [128, 96]
     assert "working size 128x96 enlarges room's 64x48 frames" in caplog.text
+
+
+def test_another_scene_under_the_log_sequences_name_is_refused(gt_log, tmp_path):
+    other = write_synthetic_sequence(tmp_path / "room", 6, (64, 48), seed=7)
+    with pytest.raises(InputError, match="was not recorded on this room: its first frame differs"):
+        evaluate_log(gt_log, other, lpips=False)
+    from gscompress.pipeline.scoring import score_file
+
+    with pytest.raises(InputError, match="was not recorded on this room"):
+        score_file(gt_log, tmp_path / "s.mcap", other)
+    assert not (tmp_path / "s.mcap").exists()

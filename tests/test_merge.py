@@ -131,12 +131,18 @@ def test_merge_refuses_unknown_or_different_world_frames(
     assert not (tmp_path / "x.mcap").exists()
 
 
-def test_merge_warns_when_refining_on_another_sequence(
+def test_merge_warns_of_another_sequence_name_and_refuses_other_frames(
     agents: dict[str, Path], tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    other = write_synthetic_sequence(tmp_path / "other", 8, (64, 48), seed=5)
-    merge_logs(agents["b"], agents["share"], tmp_path / "x.mcap", seq=other, iters=1)
+    import shutil
+
+    renamed = shutil.copytree(agents["seq"], tmp_path / "other")  # the same frames
+    merge_logs(agents["b"], agents["share"], tmp_path / "x.mcap", seq=renamed, iters=1)
     assert "recorded from sequence 'room', not 'other'" in caplog.text
+    other = write_synthetic_sequence(tmp_path / "room", 8, (64, 48), seed=5)  # other frames
+    with pytest.raises(InputError, match="b.mcap was not recorded on this room: its first frame"):
+        merge_logs(agents["b"], agents["share"], tmp_path / "z.mcap", seq=other, iters=1)
+    assert not (tmp_path / "z.mcap").exists()
     caplog.clear()
     merge_logs(agents["b"], agents["share"], tmp_path / "y.mcap", seq=agents["seq"], iters=1)
     assert "recorded from sequence" not in caplog.text

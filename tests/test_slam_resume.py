@@ -249,7 +249,7 @@ def test_a_resume_takes_up_the_newest_run_of_another_scene_of_the_same_name(
                            "--force")  # fmt: skip
     for cmd in (older, newer):
         assert subprocess.run(cmd, capture_output=True, timeout=300, check=False).returncode < 0
-    result = slam_file(other, out, resume=True)  # not "recorded on another room" from the older
+    result = slam_file(other, out, resume=True)  # not "not recorded on this room" from the older
     assert result["frames"] == FRAMES and unfinished_files(out) == []
 
 
@@ -546,6 +546,6 @@ def test_a_resume_on_another_scene_of_the_same_name_is_refused(
     with LogReader(out) as log:
         assert len(log.metadata.results["first_frame"]) == 4
     other = write_synthetic_sequence(tmp_path / "other" / seq_dir.name, FRAMES, (64, 48), seed=5)
-    with pytest.raises(InputError, match=r"recorded on another room: its first frame differs"):
+    with pytest.raises(InputError, match=r"not recorded on this room: its first frame differs"):
         slam_file(other, out, resume=True)
     assert slam_file(seq_dir, out, resume=True)["frames"] == FRAMES  # the same scene goes on

@@ -53,20 +53,48 @@ def open_log_sequence(
     """The sequence a log was made from, opened as its run had it: the log's frame subset and
     working size unless given. Warns when the sequence is not the one the log names (its poses
     would then be compared with frames they do not belong to), and when the working size
-    enlarges its frames."""
+    enlarges its frames.
+
+    Raises:
+        InputError: opened as the log's run had it, the sequence's first frame is not the one
+            the log recorded (another scene under the same name).
+    """
     from gscompress.datasets import open_sequence
     from gscompress.datasets.base import enlargement_note
 
-    if size is None and meta.config.get("size"):
-        w, h = meta.config["size"]
-        size = (int(w), int(h))
-    sequence = open_sequence(seq, size=size, frames=frames or meta.frames or "all")
+    recorded_size = meta.config.get("size")
+    if size is None and recorded_size:
+        size = (int(recorded_size[0]), int(recorded_size[1]))
+    subset = frames or meta.frames or "all"
+    sequence = open_sequence(seq, size=size, frames=subset)
     if meta.sequence and meta.sequence != sequence.name:
         log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
                     sequence.name)  # fmt: skip
+    as_recorded = subset == (meta.frames or "all") and list(size or []) == (recorded_size or [])
+    if as_recorded and len(sequence):  # (the first frame then is the one the run saw)
+        check_first_frame(log_path, meta.results.get("first_frame"), sequence)
     if note := enlargement_note(sequence):
         log.warning("%s", note)
     return sequence
+
+
+def check_first_frame(log_path: str | Path, recorded: Any, sequence: Any) -> list[float]:
+    """The fingerprint of the sequence's first frame (`Frame.fingerprint`), checked against the
+    one a log recorded of its own first frame (`results.first_frame`; older logs have none).
+
+    Raises:
+        InputError: they differ: the sequence is another scene (under the log's sequence name
+            or another).
+    """
+    from gscompress.datasets.base import same_fingerprint
+
+    found: list[float] = sequence.frame(0).fingerprint()
+    if isinstance(recorded, list) and not same_fingerprint(recorded, found):
+        raise InputError(
+            f"{log_path} was not recorded on this {sequence.name}: its first frame differs "
+            f"(mean depth and colour {recorded} against {found})"
+        )
+    return found
 
 
 def frames_with_poses(

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.datasets.base import enlargement_note, same_fingerprint
+from gscompress.datasets.base import enlargement_note
 from gscompress.errors import (
     BudgetError,
     DatasetError,
@@ -48,6 +48,7 @@ from gscompress.io.recover import (
     unfinished_files,
 )
 from gscompress.ops.select import check_ratio
+from gscompress.pipeline.evaluate import check_first_frame
 
 log = logging.getLogger(__name__)
 
@@ -296,15 +297,9 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     sequence = _open(seq, sequence, config, meta.frames or "all")
     if meta.sequence and sequence.name != meta.sequence:
         raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
-    recorded = meta.results.get("first_frame")  # (older logs have none)
-    found = sequence.frame(0).fingerprint()
-    if not isinstance(recorded, list):
-        meta.results["first_frame"] = found  # for the resumes after this one
-    elif not same_fingerprint(recorded, found):
-        raise InputError(
-            f"{dst} was recorded on another {sequence.name}: its first frame differs "
-            f"(mean depth and colour {recorded} against {found})"
-        )
+    found = check_first_frame(dst, meta.results.get("first_frame"), sequence)
+    if not isinstance(meta.results.get("first_frame"), list):  # (for the resumes after this one)
+        meta.results["first_frame"] = found
 
     by_topic: dict[str, list[Record]] = {}
     for record in contents.messages:
