@@ -121,6 +121,12 @@ def test_writing_a_trajectory_keeps_the_old_file_on_failure_and_refuses_links(
     assert path.read_text() == "old\n"
 
 
+def test_a_byte_order_mark_before_the_first_line_is_not_read_as_text(tmp_path: Path) -> None:
+    path = tmp_path / "bom.txt"
+    path.write_bytes(b"\xef\xbb\xbf# made on Windows\n1.0 1 2 3 0 0 0 1\n")
+    assert len(read_tum_trajectory(path)) == 1
+
+
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="not found"):
         read_tum_trajectory(tmp_path / "nope.txt")

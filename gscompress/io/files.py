@@ -93,7 +93,7 @@ def read_text(
         if len(data) > limit:
             size = f"{limit >> 20} MiB" if limit >= 1 << 20 else f"{limit >> 10} KiB"
             raise error(f"{what} file {path} is over {size}: too large for a {what} file")
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")  # (a byte-order mark some editors write is not text)
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"cannot read {what} file {path}: {exc}") from None
 
