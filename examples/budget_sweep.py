@@ -19,6 +19,7 @@ import json
 import tempfile
 from pathlib import Path
 
+from gscompress.errors import GscError
 from gscompress.io.mcap_log import LogReader, pointcloud_bytes
 from gscompress.pipeline import evaluate_log, prune_log
 
@@ -34,9 +35,23 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=4, help="score every N-th frame")
     parser.add_argument("--json", type=Path, help="also write the rows as JSON")
     opts = parser.parse_args()
-    budgets = [float(b) for b in opts.budgets.split(",")]
-    strategies = opts.strategies.split(",")
+    try:
+        budgets = [float(b) for b in opts.budgets.split(",")]
+    except ValueError:
+        parser.error(f"--budgets takes fractions, comma-separated, got {opts.budgets!r}")
+    if not all(0 < b <= 1 for b in budgets) or opts.every < 1:
+        parser.error("--budgets are fractions in (0, 1] and --every a positive integer")
+    try:
+        sweep(opts, budgets, opts.strategies.split(","))
+    except GscError as exc:  # (the library's errors: one line, as gsc prints them)
+        raise SystemExit(f"error: {exc}") from None
 
+
+def sweep(opts: argparse.Namespace, budgets: list[float], strategies: list[str]) -> None:
+    """Cut, score and print each budget and strategy (and write --json)."""
+    with LogReader(opts.log) as log:  # what every cut needs, said of the log the user named
+        if len(log.read_poses()[0]) == 0:
+            raise GscError(f"{opts.log} has no estimated poses to render at: not a SLAM log")
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
         for budget in budgets:

@@ -2,7 +2,7 @@
 
 Everything here is numpy and mcap (no torch), so it runs wherever the package is installed.
 
-Usage: python examples/read_log.py LOG.mcap [--tum TRAJ.txt] [--top 5]
+Usage: python examples/read_log.py LOG.mcap [--tum TRAJ.txt [--force]] [--top 5]
   e.g. python examples/read_log.py demo_out/map.mcap --tum demo_out/estimate.txt
 """
 
@@ -14,17 +14,26 @@ from pathlib import Path
 
 import numpy as np
 
+from gscompress.errors import GscError
 from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, LogReader
-from gscompress.io.trajectory import write_tum_trajectory
+from gscompress.pipeline import export_trajectory
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("log", type=Path)
     parser.add_argument("--tum", type=Path, help="write the estimated trajectory as TUM text")
+    parser.add_argument("--force", action="store_true", help="overwrite the --tum file")
     parser.add_argument("--top", type=int, default=5, help="how many top Gaussians to list")
     opts = parser.parse_args()
+    try:
+        show(opts)
+    except GscError as exc:  # (the library's errors: one line, as gsc prints them)
+        raise SystemExit(f"error: {exc}") from None
 
+
+def show(opts: argparse.Namespace) -> None:
+    """Print what the log holds."""
     with LogReader(opts.log) as log:
         meta = log.metadata
         print(f"{opts.log}: written by gscompress {meta.tool_version}: {meta.command}")
@@ -35,13 +44,14 @@ def main() -> None:
             print(f"  {channel.topic:<22} {channel.messages:>5} messages")
 
         # the trajectory: log times in ns and camera-to-world 4x4 poses
-        stamps, poses = log.read_poses(TOPIC_POSE)
+        stamps_ns, poses = log.read_poses(TOPIC_POSE)
         if len(poses):
             steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
-            print(f"trajectory: {len(poses)} poses, path length {steps.sum():.3f} m")
-            if opts.tum:
-                write_tum_trajectory(opts.tum, stamps / 1e9, poses, [f"estimate of {opts.log}"])
-                print(f"  written to {opts.tum}")
+            seconds = (stamps_ns[-1] - stamps_ns[0]) / 1e9
+            print(f"trajectory: {len(poses)} poses over {seconds:.2f} s, path {steps.sum():.3f} m")
+        if opts.tum:  # as `gsc export-traj` writes it (and refuses what it refuses)
+            export_trajectory(opts.log, opts.tum, force=opts.force)
+            print(f"  written to {opts.tum}")
 
         # every snapshot of the map, with the event its stats record names (stage, checkpoint);
         # the last one is the map
