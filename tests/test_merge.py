@@ -140,7 +140,7 @@ def test_merge_warns_of_another_sequence_name_and_refuses_other_frames(
     merge_logs(agents["b"], agents["share"], tmp_path / "x.mcap", seq=renamed, iters=1)
     assert "recorded from sequence 'room', not 'other'" in caplog.text
     other = write_synthetic_sequence(tmp_path / "room", 8, (64, 48), seed=5)  # other frames
-    with pytest.raises(InputError, match="b.mcap was not recorded on this room: its first frame"):
+    with pytest.raises(InputError, match=r"b\.mcap was not recorded on this room: its first frame"):
         merge_logs(agents["b"], agents["share"], tmp_path / "z.mcap", seq=other, iters=1)
     assert not (tmp_path / "z.mcap").exists()
     caplog.clear()
