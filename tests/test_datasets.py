@@ -290,3 +290,11 @@ def test_a_frame_fingerprint_survives_resampling_noise_but_not_another_scene() -
     other = synthetic_sequence(2, (64, 48), seed=5).frame(0)
     assert not same_fingerprint(frame.fingerprint(), other.fingerprint())
     assert not same_fingerprint(frame.fingerprint(), frame.fingerprint()[:3])
+
+
+def test_a_recorded_fingerprint_that_is_not_four_numbers_counts_as_none() -> None:
+    from gscompress.datasets.base import recorded_fingerprint
+
+    assert recorded_fingerprint([1, 2.5, 0.5, 0.25]) == [1.0, 2.5, 0.5, 0.25]
+    for bad in (["1", "2", "3", "4"], [1, 2, 3], [1, 2, 3, float("nan")], [True] * 4, "x", None):
+        assert recorded_fingerprint(bad) is None

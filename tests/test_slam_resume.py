@@ -253,6 +253,32 @@ def test_a_resume_takes_up_the_newest_run_of_another_scene_of_the_same_name(
     assert result["frames"] == FRAMES and unfinished_files(out) == []
 
 
+def test_a_log_from_before_the_fingerprint_and_its_resumes_file_are_one_run(
+    tmp_path: Path,
+) -> None:
+    import os
+
+    from gscompress.gaussians import random_map
+    from gscompress.io.mcap_log import LogMetadata, LogWriter
+    from gscompress.pipeline.slam_run import _furthest
+
+    def log(path: Path, map_at: int, **results: object) -> Path:
+        meta = LogMetadata(sequence="room", frames="all", config={"seed": 0}, results=results)
+        with LogWriter(path, meta) as out:
+            for t in range(1, 4):
+                out.write_pose(np.eye(4), t)
+            out.write_gaussians(random_map(5), map_at)
+        return path
+
+    old = log(tmp_path / "old.mcap", 3)  # written before logs recorded their first frame
+    newer = log(tmp_path / ".old.mcap.1.tmp", 1, first_frame=[3.6, 0.5, 0.4, 0.3])
+    os.utime(old, ns=(1, 1))  # the resume's file is the newer
+    assert _furthest([old, newer])[0] == old  # one run: the one further along wins
+    other = log(tmp_path / ".old.mcap.2.tmp", 0, first_frame=[1.0, 0.5, 0.4, 0.3])
+    os.utime(newer, ns=(2, 2))
+    assert _furthest([newer, other])[0] == other  # another scene's run, the newest, not newer
+
+
 def test_a_fresh_run_with_force_replaces_an_unfinished_one(
     seq_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:

@@ -50,6 +50,16 @@ class Frame:
         return [round(v, 4) for v in (depth, *self.color.reshape(-1, 3).mean(0).tolist())]
 
 
+def recorded_fingerprint(value: object) -> list[float] | None:
+    """A `Frame.fingerprint` as a log recorded it (`results.first_frame`), or None when there is
+    none or it is not four finite numbers (a log from before it, or one edited by hand)."""
+    if not isinstance(value, list) or len(value) != 4:
+        return None
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
+        return None
+    return [float(v) for v in value] if all(np.isfinite(value)) else None
+
+
 def same_fingerprint(a: Sequence[float], b: Sequence[float]) -> bool:
     """Whether two `Frame.fingerprint`s are one frame's: within 2 mm and 0.005 of colour."""
     return (

@@ -86,10 +86,11 @@ def check_first_frame(log_path: str | Path, recorded: Any, sequence: Any) -> lis
         InputError: they differ: the sequence is another scene (under the log's sequence name
             or another).
     """
-    from gscompress.datasets.base import same_fingerprint
+    from gscompress.datasets.base import recorded_fingerprint, same_fingerprint
 
     found: list[float] = sequence.frame(0).fingerprint()
-    if isinstance(recorded, list) and not same_fingerprint(recorded, found):
+    recorded = recorded_fingerprint(recorded)
+    if recorded is not None and not same_fingerprint(recorded, found):
         raise InputError(
             f"{log_path} was not recorded on this {sequence.name}: its first frame differs "
             f"(mean depth and colour {recorded} against {found})"

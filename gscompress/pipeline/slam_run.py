@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.datasets.base import enlargement_note
+from gscompress.datasets.base import enlargement_note, recorded_fingerprint, same_fingerprint
 from gscompress.errors import (
     BudgetError,
     DatasetError,
@@ -298,7 +298,7 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     if meta.sequence and sequence.name != meta.sequence:
         raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
     found = check_first_frame(dst, meta.results.get("first_frame"), sequence)
-    if not isinstance(meta.results.get("first_frame"), list):  # (for the resumes after this one)
+    if recorded_fingerprint(meta.results.get("first_frame")) is None:  # (for later resumes)
         meta.results["first_frame"] = found
 
     by_topic: dict[str, list[Record]] = {}
@@ -380,9 +380,13 @@ def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
             first_error = first_error or exc
             continue
         meta = contents.metadata
-        this_run = (meta.sequence, meta.frames, meta.config, meta.results.get("first_frame"))
-        run = run or this_run
-        if this_run == run and (best is None or contents.map_frames() > best[0]):
+        first = recorded_fingerprint(meta.results.get("first_frame"))
+        if run is None:
+            run = (meta.sequence, meta.frames, meta.config, first)
+        same = (meta.sequence, meta.frames, meta.config) == run[:3] and (
+            first is None or run[3] is None or same_fingerprint(first, run[3])
+        )  # (a log from before the fingerprint, and its first resume's file, have one run)
+        if same and (best is None or contents.map_frames() > best[0]):
             best = (contents.map_frames(), path, contents)
     if best is None:
         assert first_error is not None
