@@ -31,9 +31,9 @@ INPUT_FOLDER = click.Path(exists=True, file_okay=False, path_type=Path)
 
 
 class OutputFile(click.Path):
-    """A file to write. A name ending in a path separator names a folder, and an empty one
-    names none: both are usage errors (a Path drops the separator and would write the file
-    under the folder's own name)."""
+    """A file to write. A name ending in a path separator, `.` or `..` names a folder, and an
+    empty one names none: all are usage errors (a Path drops the separator or the dot and would
+    write the file under the folder's own name)."""
 
     def __init__(self) -> None:
         super().__init__(dir_okay=False, path_type=Path)
@@ -42,7 +42,8 @@ class OutputFile(click.Path):
         text = value if isinstance(value, str) else str(value)
         if not text:
             self.fail("an empty path names no file", param, ctx)
-        if text.endswith(("/", os.sep)):
+        last = os.path.basename(text.rstrip("/" + os.sep))
+        if text.endswith(("/", os.sep)) or last in ("", ".", ".."):
             self.fail(f"{clipped(text)} names a folder; give a file name in it", param, ctx)
         return super().convert(value, param, ctx)
 

@@ -20,7 +20,9 @@ import tempfile
 from pathlib import Path
 
 from gscompress.errors import GscError
+from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, pointcloud_bytes
+from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import evaluate_log, prune_log
 
 
@@ -41,6 +43,14 @@ def main() -> None:
         parser.error(f"--budgets takes fractions, comma-separated, got {opts.budgets!r}")
     if not all(0 < b <= 1 for b in budgets) or opts.every < 1:
         parser.error("--budgets are fractions in (0, 1] and --every a positive integer")
+    unknown = set(opts.strategies.split(",")) - set(STRATEGIES)
+    if unknown:
+        parser.error(f"unknown --strategies {sorted(unknown)}; choose from {', '.join(STRATEGIES)}")
+    if opts.json is not None:
+        try:  # before the work: the log or the sequence itself, or a missing folder
+            check_output(opts.json, [opts.log, opts.seq], force=True)
+        except GscError as exc:
+            parser.error(str(exc))
     try:
         sweep(opts, budgets, opts.strategies.split(","))
     except GscError as exc:  # (the library's errors: one line, as gsc prints them)

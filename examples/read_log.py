@@ -49,6 +49,8 @@ def show(opts: argparse.Namespace) -> None:
             steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
             seconds = (stamps_ns[-1] - stamps_ns[0]) / 1e9
             print(f"trajectory: {len(poses)} poses over {seconds:.2f} s, path {steps.sum():.3f} m")
+        else:
+            print("trajectory: none (no /camera/pose messages: a share, or an imported map)")
         if opts.tum:  # as `gsc export-traj` writes it (and refuses what it refuses)
             export_trajectory(opts.log, opts.tum, force=opts.force)
             print(f"  written to {opts.tum}")

@@ -251,7 +251,7 @@ def test_a_huge_number_for_an_integer_option_is_echoed_clipped(tmp_path: Path, d
     assert not (tmp_path / "s").exists()
 
 
-@pytest.mark.parametrize("name", ["newdir/", ""])
+@pytest.mark.parametrize("name", ["newdir/", "newdir/.", ""])
 def test_an_output_named_as_a_folder_or_empty_is_refused(tmp_path: Path, name: str) -> None:
     log = tmp_path / "a.mcap"
     from gscompress.io.mcap_log import LogMetadata, LogWriter

@@ -253,16 +253,15 @@ def _intact(record: dict[str, Any]) -> bool:
     return isinstance(result, dict) and (digest is None or digest == _digest(result))
 
 
-def _init_worker(threads: int, pids: SimpleQueue[int], log_level: int) -> None:
-    """A worker process: its share of the threads, and the runner's level of gscompress's log
-    messages; Ctrl-C is for the run it is in (which stops after its frame, as `gsc slam`
-    does), not for a worker waiting for work. Its pid goes to `pids`, so that the runner can
-    signal exactly its own workers. It ends with the runner: a runner killed outright (SIGKILL)
-    cannot stop its workers, which would otherwise wait for work forever."""
+def _init_worker(threads: int, pids: SimpleQueue[int]) -> None:
+    """A worker process: its share of the threads; Ctrl-C is for the run it is in (which
+    stops after its frame, as `gsc slam` does), not for a worker waiting for work. Its pid goes
+    to `pids`, so that the runner can signal exactly its own workers. It ends with the runner:
+    a runner killed outright (SIGKILL) cannot stop its workers, which would otherwise wait for
+    work forever. Only its warnings reach the console (lines of another process cannot be
+    written above the runner's progress bar, so `gsc -v` speaks for --jobs 1 alone)."""
     import torch
 
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("gscompress").setLevel(log_level)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     pids.put(os.getpid())
     torch.set_num_threads(threads)
@@ -320,9 +319,8 @@ class _Runner:
                 )  # fmt: skip
             spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
             self._worker_pids = spawn.SimpleQueue()  # each worker's pid, sent as it starts
-            level = logging.getLogger("gscompress").getEffectiveLevel()
             self._pool = ProcessPoolExecutor(
-                jobs, spawn, _init_worker, (threads, self._worker_pids, level)
+                jobs, spawn, _init_worker, (threads, self._worker_pids)
             )
             # one waiting thread per step: each starts its job once the steps it reads are done
             # (they were submitted before it, so they are under way: no waiting in a circle)

@@ -75,14 +75,10 @@ def score_file(
     else:
         frames = frames or "all"
         sequence = open_sequence(seq, size=size, frames=frames)
-    skipped = 0
     if poses is None and is_log and len(log_ns):
         positions, index = frames_with_poses(sequence, log_ns, src)
         stamps, T_world_cams = np.asarray(sequence.timestamps)[positions], log_poses[index]
-        source, skipped = "log", len(sequence) - len(positions)
-        if skipped:
-            log.warning("%d of the %d frames selected have no pose in %s: scored from the "
-                        "other %d", skipped, len(sequence), src, len(positions))  # fmt: skip
+        source = "log"
     else:
         if poses is None and is_log and meta.world_frame.startswith("first-camera:"):
             raise InputError(
@@ -91,6 +87,10 @@ def score_file(
             )
         stamps, T_world_cams = view_poses(sequence, poses)
         source = Path(poses).name if poses else "ground truth"
+    skipped = len(sequence) - len(stamps)
+    if skipped:
+        log.warning("%d of the %d frames selected have no pose (%s): scored from the other %d",
+                    skipped, len(sequence), source, len(stamps))  # fmt: skip
     config = PwasConfig(sigma_d=sigma_d)
     torch_device = resolve_device(device, backend)
 
