@@ -1,5 +1,6 @@
 """The offline commands through click: exit codes, one-line messages, outputs, provenance."""
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -533,3 +534,34 @@ def test_the_command_list_gives_every_command_a_whole_summary():
     r = run("--help")
     listed = r.output.split("Commands:")[1].strip().splitlines()
     assert len(listed) == 12 and not any(line.endswith("...") for line in listed), listed
+
+
+def test_log_lines_go_above_a_shown_bar_and_handlers_come_back(monkeypatch):
+    import io
+    import logging
+
+    from tqdm import tqdm
+
+    from gscompress_cli import options
+
+    stream = io.StringIO()
+    console = logging.StreamHandler(stream)
+    root = logging.getLogger()
+    monkeypatch.setattr(root, "handlers", [console])
+    monkeypatch.setattr(logging.getLogger("gscompress"), "level", logging.INFO)
+    cleared_for: list[object] = []  # the files a shown bar was cleared from, for a line
+
+    @contextlib.contextmanager
+    def around(cls, file=None, nolock=False):  # type: ignore[no-untyped-def]
+        cleared_for.append(file)
+        yield
+
+    monkeypatch.setattr(tqdm, "external_write_mode", classmethod(around))
+    say = logging.getLogger("gscompress.t").warning
+    with pytest.raises(RuntimeError), options.progress_bar("t", "x", total=3) as bar:
+        say("early")  # the bar is still in its delay: nothing to write around
+        bar.delay = 0  # shown from now on
+        say("late")
+        raise RuntimeError
+    assert stream.getvalue() == "early\nlate\n" and cleared_for == [stream]
+    assert root.handlers == [console]  # put back, after an exception too
