@@ -42,8 +42,7 @@ class OutputFile(click.Path):
         text = value if isinstance(value, str) else str(value)
         if not text:
             self.fail("an empty path names no file", param, ctx)
-        last = os.path.basename(text.rstrip("/" + os.sep))
-        if text.endswith(("/", os.sep)) or last in ("", ".", ".."):
+        if os.path.basename(text) in ("", ".", ".."):  # (basename of "dir/" is "")
             self.fail(f"{clipped(text)} names a folder; give a file name in it", param, ctx)
         return super().convert(value, param, ctx)
 
@@ -204,8 +203,6 @@ def progress_bar(
 ) -> Iterator[Any]:
     """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set. Log
     lines written to the console while it is shown go above it rather than onto its line."""
-    import logging
-
     from tqdm import tqdm
 
     quiet = logging.getLogger("gscompress").getEffectiveLevel() > logging.INFO

@@ -386,8 +386,9 @@ def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
         same = (meta.sequence, meta.frames, meta.config) == run[:3] and (
             first is None or run[3] is None or same_fingerprint(first, run[3])
         )  # (a log from before the fingerprint, and its first resume's file, have one run)
-        if same and (best is None or contents.map_frames() > best[0]):
-            best = (contents.map_frames(), path, contents)
+        covered = contents.map_frames() if same else -1
+        if best is None or covered > best[0]:
+            best = (covered, path, contents)
     if best is None:
         assert first_error is not None
         raise first_error
