@@ -41,7 +41,9 @@ def format_info(info: dict[str, Any]) -> str:
     for c in info["channels"]:
         lines.append(f"  {c['topic']:<22} {c['messages']:>7}  {c['schema']} ({c['encoding']})")
     snaps = info["snapshots"]
-    lines.append(f"snapshots {len(snaps)}: " + ", ".join(str(s["gaussians"]) for s in snaps))
+    lines.append(
+        f"snapshots {len(snaps)}: " + ", ".join(f"{s['gaussians']} ({s['codec']})" for s in snaps)
+    )
     m = info.get("map")
     if not m:
         lines.append("map       none: no /gaussians channel (not a map log)")
@@ -49,11 +51,12 @@ def format_info(info: dict[str, Any]) -> str:
         kind = "isotropic" if m["isotropic"] else "anisotropic"
         lines.append(
             f"map       {m['gaussians']} Gaussians, {kind}, SH degree {m['sh_degree']}, "
-            f"{m['precision']}"
+            f"codec {m['codec']}"
         )
+        per = m["bytes_per_gaussian"]
         lines.append(
-            f"bytes     {m['bytes']} B ({_size(m['bytes'])}) as a /gaussians message: "
-            f"{m['record_bytes']} B per Gaussian, {_size(m['packed_bytes'])} packed"
+            f"bytes     {m['bytes']} B ({_size(m['bytes'])}) as a /gaussians message"
+            + (f": {per:.2f} B per Gaussian" if per is not None else "")
         )
         if m["has_importance"]:
             q = m["importance_quantiles"]

@@ -16,6 +16,7 @@ from .options import (
     FrameSubset,
     advance,
     backend_option,
+    codec_option,
     command_line,
     device_option,
     emit,
@@ -69,6 +70,7 @@ from .options import (
 @backend_option("the receiver log's `backend:`, auto")
 @seed_option("Seed of the order of the refinement views.")
 @share_transform_option
+@codec_option(None, " [default: the receiver map's own codec]")
 @force_option()
 @json_option
 def merge(
@@ -85,6 +87,7 @@ def merge(
     backend: str | None,
     seed: int,
     share_transform: Path | None,
+    codec: str | None,
     force: bool,
     as_json: bool,
 ) -> None:
@@ -120,6 +123,7 @@ def merge(
             backend=backend,
             seed=seed,
             share_transform=share_transform,
+            codec=codec,
             command=command_line(),
             force=force,
             progress=partial(advance, bar),

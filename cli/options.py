@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import click
 
 from gscompress.errors import InputError, clipped
+from gscompress.io.codec import CODECS
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import is_fraction
@@ -69,6 +70,36 @@ def seed_option(help: str = "Seed of the random strategy.") -> Callable[[F], F]:
     return click.option(
         "--seed", type=click.IntRange(min=0), default=0, show_default=True, help=help
     )
+
+
+CODEC_HELP = (
+    "How the map is stored: compact (quantised, zstd-compressed columns, about 7-20 bytes per "
+    "Gaussian), fp16 or fp32 (a foxglove.PointCloud that Foxglove draws, 54 / 76 bytes per "
+    "Gaussian)."
+)
+
+
+def codec_option(default: str | None, more: str = "") -> Callable[[F], F]:
+    """`--codec fp32|fp16|compact` for the map a command writes; `more` ends its help."""
+    return click.option(
+        "--codec",
+        type=click.Choice(CODECS),
+        default=default,
+        show_default=default is not None,
+        help=CODEC_HELP + more,
+    )
+
+
+def sums_option(f: F) -> F:
+    """`--no-sums`: a compact map without the PWAS sums (the score in 16 bits instead)."""
+    return click.option(
+        "--sums/--no-sums",
+        default=True,
+        show_default=True,
+        help="Send the PWAS sums, so that the receiver can keep accumulating importance; with "
+        "--no-sums a compact map carries only the score, in 16 bits (fp32 and fp16 always carry "
+        "the sums).",
+    )(f)
 
 
 class Ratio(click.ParamType):

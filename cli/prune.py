@@ -6,18 +6,21 @@ from pathlib import Path
 
 import click
 
+from gscompress.io.codec import CompactOptions
 from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import prune_log
 
 from .options import (
     INPUT_FILE,
     Ratio,
+    codec_option,
     command_line,
     emit,
     force_option,
     json_option,
     output_option,
     seed_option,
+    sums_option,
 )
 
 
@@ -37,11 +40,21 @@ from .options import (
     help="Score to rank by.",
 )
 @output_option()
+@codec_option(None, " [default: the map's own codec]")
+@sums_option
 @seed_option()
 @force_option()
 @json_option
 def prune(
-    src: Path, keep: float, by: str, dst: Path, seed: int, force: bool, as_json: bool
+    src: Path,
+    keep: float,
+    by: str,
+    dst: Path,
+    codec: str | None,
+    sums: bool,
+    seed: int,
+    force: bool,
+    as_json: bool,
 ) -> None:
     """Keep the round(KEEP x N) highest-scoring Gaussians of the map in SRC.
 
@@ -53,10 +66,22 @@ def prune(
     Examples:
       gsc prune run.mcap --keep 0.3 -o run_30.mcap
       gsc prune run.mcap --keep 0.3 --by opacity -o run_30_opacity.mcap
+      gsc prune run.mcap --keep 0.3 --codec compact -o run_30_compact.mcap
     """
-    result = prune_log(src, dst, keep, by=by, seed=seed, command=command_line(), force=force)
+    result = prune_log(
+        src,
+        dst,
+        keep,
+        by=by,
+        seed=seed,
+        codec=codec,
+        options=CompactOptions(sums=sums),
+        command=command_line(),
+        force=force,
+    )
     emit(
         result,
         as_json,
-        f"kept {result['kept']} of {result['total']} Gaussians (by {by}) -> {dst}",
+        f"kept {result['kept']} of {result['total']} Gaussians (by {by}, {result['codec']}) "
+        f"-> {dst}",
     )

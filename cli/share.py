@@ -10,16 +10,19 @@ from gscompress.io.columns import PRECISIONS
 from gscompress.ops.budget import Budget
 from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import share_log
+from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC
 
 from .options import (
     INPUT_FILE,
     OUTPUT_FILE,
     BudgetParam,
+    codec_option,
     command_line,
     emit,
     force_option,
     json_option,
     seed_option,
+    sums_option,
 )
 
 
@@ -50,14 +53,15 @@ from .options import (
     show_default=True,
     help="What to rank Gaussians by (--by, as in `gsc prune`, is the same option).",
 )
+@codec_option(DEFAULT_SHARE_CODEC)
 @click.option(
     "--precision",
     type=click.Choice(PRECISIONS),
     default=None,
-    help="Storage of scales, rotations, opacity and colour: fp16 sends more Gaussians per byte "
-    "(positions, scores and sums stay float32; the receiver decodes float32). [default: as the "
-    "source map is stored, fp32 for a `gsc slam` log]",
+    hidden=True,
+    help="Deprecated: --codec fp32|fp16 says the same.",
 )
+@sums_option
 @click.option(
     "--ply",
     type=OUTPUT_FILE,
@@ -73,7 +77,9 @@ def share(
     output: Path | None,
     budget: Budget,
     strategy: str,
+    codec: str,
     precision: str | None,
+    sums: bool,
     ply: Path | None,
     seed: int,
     force: bool,
@@ -81,19 +87,28 @@ def share(
 ) -> None:
     """Write the top BUDGET share of the map in SRC to DST or -o (a small gscompress log).
 
-    The share holds the selected Gaussians with all their fields, ids and PWAS sums, and records
-    its source, strategy, budget, precision, bytes and the selected / total counts.
+    The share holds the selected Gaussians with their ids and PWAS sums (or, with --no-sums,
+    the score alone), and records its source, strategy, budget, codec, bytes and the selected /
+    total counts. It is stored compact by default (quantised columns: about 7-8 bytes per
+    Gaussian for geometry and colour, 4 more for ids and score); --codec fp32 or fp16 sends a
+    foxglove.PointCloud that Foxglove draws.
 
     A fraction budget sends round(fraction x N) Gaussians. A byte budget sends the most
-    Gaussians whose /gaussians message (what is sent: the PointCloud header plus one record per
-    Gaussian) fits in it; it is never exceeded. `gsc info` shows a share's bytes.
+    Gaussians whose share file fits in it (the whole file as written: framing, schema,
+    metadata and map, the bytes that cross the link); it is never exceeded. `gsc info` shows a
+    share's codec and bytes.
 
     \b
     Examples:
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
-      gsc share --budget 2MB agent_a.mcap share.mcap
-      gsc share --budget 2MB --precision fp16 agent_a.mcap -o share.mcap
+      gsc share --budget 50kB agent_a.mcap share.mcap
+      gsc share --budget 50kB --no-sums agent_a.mcap share.mcap   # a viewer's share
+      gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
     """
+    if precision is not None:
+        if codec != DEFAULT_SHARE_CODEC and codec != precision:
+            raise click.UsageError("--precision is an old name of --codec: give one of them")
+        codec = precision
     if dst is not None and output is not None:
         raise click.UsageError("give the share's path once: as DST or with -o, not both")
     dst = dst if output is None else output
@@ -104,7 +119,8 @@ def share(
         dst,
         budget,
         strategy=strategy,
-        precision=precision,
+        codec=codec,
+        sums=sums,
         seed=seed,
         ply=ply,
         command=command_line(),
@@ -115,5 +131,5 @@ def share(
         result,
         as_json,
         f"shared {result['selected']} of {result['total']} Gaussians ({strategy}, "
-        f"{result['precision']}, {result['bytes']} B) -> {dst}{extra}",
+        f"{codec}, {result['file_bytes']} B) -> {dst}{extra}",
     )

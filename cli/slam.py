@@ -16,6 +16,7 @@ from .options import (
     Ratio,
     advance,
     backend_option,
+    codec_option,
     command_line,
     device_option,
     emit,
@@ -120,6 +121,7 @@ def _modified_ns(path: Path) -> int | None:
     "with the settings recorded in it (so no --preset, --config, --frames, --size, --backend, "
     "--keep, --no-prune or --inject).",
 )
+@codec_option("fp32", " The log's map snapshots; fp32 keeps the map visible in Foxglove.")
 @force_option(more="; with a fresh run, also the unfinished file a killed run of -o left")
 @json_option
 def slam(
@@ -137,6 +139,7 @@ def slam(
     inject: Path | None,
     share_transform: Path | None,
     resume: bool,
+    codec: str,
     force: bool,
     as_json: bool,
 ) -> None:
@@ -228,6 +231,7 @@ def slam(
                 inject=inject,
                 share_transform=share_transform,
                 resume=resume,
+                codec=codec,
                 command=command_line(),
                 force=force,
                 progress=progress,

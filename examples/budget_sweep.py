@@ -2,7 +2,7 @@
 rendered at the log's own poses (no refinement) and scored against the sequence.
 
 For every budget (a fraction of the Gaussians) and strategy it reports the Gaussians kept, the
-bytes of their `/gaussians` message at fp32 and fp16 (what a byte budget bounds), and PSNR and
+bytes of their `/gaussians` message in each codec (fp32, fp16, compact), and PSNR and
 SSIM over the sequence's frames. It is the receiving side's best case with nothing of its own:
 how much of the sender's view the share alone redraws. `gsc experiment` measures what a share
 adds to another agent's map instead.
@@ -20,8 +20,9 @@ import tempfile
 from pathlib import Path
 
 from gscompress.errors import GscError
+from gscompress.io.codec import CODECS
 from gscompress.io.files import check_output
-from gscompress.io.mcap_log import LogReader, pointcloud_bytes
+from gscompress.io.mcap_log import LogReader, encoded_size
 from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import evaluate_log, prune_log
 
@@ -76,15 +77,15 @@ def sweep(opts: argparse.Namespace, budgets: list[float], strategies: list[str])
                         "budget": budget,
                         "strategy": strategy,
                         "gaussians": len(gaussians),
-                        "bytes_fp32": pointcloud_bytes(gaussians, "fp32")(len(gaussians)),
-                        "bytes_fp16": pointcloud_bytes(gaussians, "fp16")(len(gaussians)),
+                        **{f"bytes_{c}": encoded_size(gaussians, c) for c in CODECS},
                         "psnr": scores["psnr"],
                         "ssim": scores["ssim"],
                     }
                 )
                 r = rows[-1]
                 print(f"{budget:>5.0%} {strategy:<10} {r['gaussians']:>8} Gaussians, MB "
-                      f"{r['bytes_fp32'] / 1e6:.3f} fp32 / {r['bytes_fp16'] / 1e6:.3f} fp16, "
+                      f"{r['bytes_fp32'] / 1e6:.3f} fp32 / {r['bytes_fp16'] / 1e6:.3f} fp16 / "
+                      f"{r['bytes_compact'] / 1e6:.3f} compact, "
                       f"PSNR {r['psnr']:6.2f} dB, SSIM {r['ssim']:.3f}", flush=True)  # fmt: skip
     if opts.json:
         opts.json.write_text(json.dumps(rows, indent=1) + "\n")

@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 
 from gscompress.errors import BudgetError, InputError, LogFormatError, MapError
 from gscompress.gaussians import random_map
+from gscompress.io.codec import CODECS
 from gscompress.io.columns import map_from_columns
 from gscompress.io.mcap_log import (
     LogMetadata,
-    LogReader,
     LogWriter,
     gaussians_to_pointcloud,
     pointcloud_bytes,
@@ -25,19 +25,13 @@ from gscompress.io.ply import read_ply
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.select import select_count, strategy_scores, top_k
 from gscompress.pipeline import log_info, prune_log, share_log
+from gscompress.pipeline.offline import ShareCut
 
 
 def write_log(path, gaussians):
     with LogWriter(path, LogMetadata(command="test")) as log:
         log.write_gaussians(gaussians, 0)
     return path
-
-
-def map_message_bytes(path):
-    """Byte length of the (only) /gaussians message of a log, read back from the file."""
-    with LogReader(path) as log:
-        (size,) = [len(m.data) for _, _, m in log.iter_messages(["/gaussians"])]
-    return size
 
 
 # ---------------------------------------------------------------- parsing
@@ -103,7 +97,7 @@ def test_largest_count_within_is_the_last_that_fits():
     assert largest_count_within(100 + 7 * 10 + 6, 50, size) == 10
     assert largest_count_within(10**6, 50, size) == 50  # everything fits
     assert largest_count_within(107, 50, size) == 1
-    with pytest.raises(BudgetError, match="cannot hold one Gaussian: that message takes 107 B"):
+    with pytest.raises(BudgetError, match="cannot hold one Gaussian: that takes 107 B"):
         largest_count_within(106, 50, size)
 
 
@@ -143,87 +137,91 @@ def test_fp16_records_are_smaller():
 # ---------------------------------------------------------------- never over budget
 
 
+def share_bytes(src, budget_text, count, codec):
+    """Bytes of the share file of the `count` best Gaussians under `budget_text`."""
+    return ShareCut(src, Budget.parse(budget_text), codec=codec).size(count)
+
+
 @st.composite
 def byte_budget_cases(draw):
     n = draw(st.integers(1, 300))
     sh_degree = draw(st.sampled_from([0, 1, 2, 3]))
     isotropic = draw(st.booleans())
-    precision = draw(st.sampled_from(["fp32", "fp16"]))
+    codec = draw(st.sampled_from(CODECS))
     full = random_map(n, draw(st.integers(0, 10_000)), isotropic, sh_degree)
-    size = pointcloud_bytes(full, precision)
+    per = {"fp32": 76, "fp16": 54, "compact": 30}[codec] * (1 + 3 * sh_degree)
     low, high = {
-        "any": (size(1), size(n) + 500),  # anywhere up to everything
-        "few": (size(1), size(1) + 300),  # a few Gaussians
-        "all": (max(size(1), size(n) - 200), size(n) + 10),  # about everything
-        "tiny": (1, size(1) + 5),  # below the header, below one Gaussian, or just one
-    }[draw(st.sampled_from(["any", "few", "all", "tiny"]))]
+        "any": (1500, 3000 + per * n),  # anywhere up to everything
+        "few": (1500, 3000 + per * 5),  # a few Gaussians
+        "tiny": (1, 1500),  # below the framing, below one Gaussian, or just one
+    }[draw(st.sampled_from(["any", "few", "tiny"]))]
     budget_bytes = draw(st.integers(low, high))
-    return full, precision, budget_bytes
+    return full, codec, budget_bytes
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(case=byte_budget_cases())
-def test_byte_budget_is_never_exceeded_and_holds_the_most_that_fit(case):
-    full, precision, budget_bytes = case
+def test_byte_budget_bounds_the_whole_file_and_holds_the_most_that_fit(case):
+    """In every codec, the share file as written (framing, schema, metadata, map) never exceeds
+    the budget, holds the K best Gaussians, and K + 1 of them would not fit."""
+    full, codec, budget_bytes = case
     with tempfile.TemporaryDirectory() as tmp:
         src = write_log(Path(tmp) / "a.mcap", full)
         dst = Path(tmp) / "s.mcap"
-        one = len(gaussians_to_pointcloud(full.select([0]), 0, precision).SerializeToString())
-        if budget_bytes < one:
+        try:
+            result = share_log(src, dst, f"{budget_bytes}B", codec=codec)
+        except BudgetError as exc:
             event("below one Gaussian")
-            with pytest.raises(BudgetError, match="raise the budget"):
-                share_log(src, dst, f"{budget_bytes}B", precision=precision)
-            assert not dst.exists()
+            assert "raise the budget" in str(exc) and not dst.exists()
+            assert share_bytes(src, f"{budget_bytes}B", 1, codec) > budget_bytes  # one won't fit
             return
-        result = share_log(src, dst, f"{budget_bytes}B", precision=precision)
         k = result["selected"]
         event("all fit" if k == len(full) else "some fit")
-        written = map_message_bytes(dst)
-        assert written == result["bytes"] <= budget_bytes  # what is sent fits
-        assert result["budget_bytes"] == budget_bytes and result["precision"] == precision
+        assert dst.stat().st_size == result["file_bytes"] <= budget_bytes  # what is sent fits
+        assert result["budget_bytes"] == budget_bytes and result["codec"] == codec
         index = top_k(strategy_scores(full, "pwas"), full.ids, k)
-        assert read_map(dst).ids.tolist() == full.ids[index].tolist()  # the K best
-        if k < len(full):  # one more would not fit: checked on the real serialization
-            more = top_k(strategy_scores(full, "pwas"), full.ids, k + 1)
-            cloud = gaussians_to_pointcloud(full.select(more), 0, precision)
-            assert len(cloud.SerializeToString()) > budget_bytes
+        assert sorted(read_map(dst).ids.tolist()) == sorted(full.ids[index].tolist())  # K best
+        if k < len(full):  # one more would not fit: checked on a file really written
+            assert share_bytes(src, f"{budget_bytes}B", k + 1, codec) > budget_bytes
 
 
-@pytest.mark.parametrize("precision", ["fp32", "fp16"])
-def test_budget_below_the_header_or_one_gaussian_is_a_budget_error(tmp_path, precision):
+@pytest.mark.parametrize("codec", CODECS)
+def test_budget_below_one_gaussian_is_a_budget_error(tmp_path, codec):
     full = random_map(100)
     src = write_log(tmp_path / "a.mcap", full)
-    size = pointcloud_bytes(full, precision)
-    for budget_bytes in (1, size(0) - 1, size(0), size(1) - 1):
-        with pytest.raises(BudgetError, match=r"cannot hold one Gaussian: that message takes"):
-            share_log(src, tmp_path / "s.mcap", f"{budget_bytes}B", precision=precision)
+    for budget_bytes in (1, 500, share_bytes(src, "1000B", 1, codec) - 1):
+        with pytest.raises(BudgetError, match=r"cannot hold one Gaussian: that takes"):
+            share_log(src, tmp_path / "s.mcap", f"{budget_bytes}B", codec=codec)
     assert not (tmp_path / "s.mcap").exists()
-    exact = share_log(src, tmp_path / "s.mcap", f"{size(1)}B", precision=precision)
-    assert exact["selected"] == 1 and exact["bytes"] == size(1)
+    one = share_bytes(src, "1000B", 1, codec)  # (a budget written with as many digits)
+    exact = share_log(src, tmp_path / "s.mcap", f"{one}B", codec=codec)
+    assert exact["selected"] == 1 and exact["file_bytes"] == one
     with pytest.raises(
         BudgetError, match=r"0.001 of 100 Gaussians rounds to none; raise the budget"
     ):
-        share_log(src, tmp_path / "t.mcap", 0.001, precision=precision)
+        share_log(src, tmp_path / "t.mcap", 0.001, codec=codec)
 
 
-def test_fp16_fits_more_of_the_same_ranking(tmp_path):
+def test_smaller_codecs_fit_more_of_the_same_ranking(tmp_path):
     full = random_map(5_000, seed=4)
     src = write_log(tmp_path / "a.mcap", full)
-    r32 = share_log(src, tmp_path / "s32.mcap", "100kB")
-    r16 = share_log(src, tmp_path / "s16.mcap", "100kB", precision="fp16")
-    assert r16["selected"] > 1.35 * r32["selected"]  # 76 vs 54 bytes per Gaussian
-    ids32 = set(read_map(tmp_path / "s32.mcap").ids.tolist())
-    assert ids32 < set(read_map(tmp_path / "s16.mcap").ids.tolist())  # a longer prefix
-    for name, r in (("s32", r32), ("s16", r16)):
-        info = log_info(tmp_path / f"{name}.mcap")
-        assert info["map"]["bytes"] == r["bytes"] <= 100_000
-        assert info["map"]["precision"] == r["precision"]
-        assert info["map"]["packed_bytes"] == r["selected"] * info["map"]["record_bytes"]
+    results = {c: share_log(src, tmp_path / f"{c}.mcap", "100kB", codec=c) for c in CODECS}
+    selected = {c: r["selected"] for c, r in results.items()}
+    # 76 vs 54 bytes per Gaussian in the message; the file's zstd chunk shrinks float32 more
+    assert selected["fp16"] > 1.2 * selected["fp32"]
+    assert selected["compact"] > 2 * selected["fp16"]
+    ids = {c: set(read_map(tmp_path / f"{c}.mcap").ids.tolist()) for c in CODECS}
+    assert ids["fp32"] < ids["fp16"] < ids["compact"]  # longer prefixes of one ranking
+    for codec, r in results.items():
+        info = log_info(tmp_path / f"{codec}.mcap")
+        assert info["map"]["bytes"] == r["bytes"] and info["file_bytes"] == r["file_bytes"]
+        assert r["file_bytes"] <= 100_000 and info["map"]["codec"] == codec
+        assert info["map"]["bytes_per_gaussian"] == pytest.approx(r["bytes"] / r["selected"])
 
 
 def test_fraction_budget_with_fp16(tmp_path):
     src = write_log(tmp_path / "a.mcap", random_map(1000, seed=2))
-    r = share_log(src, tmp_path / "s.mcap", 0.2, precision="fp16", ply=tmp_path / "s.ply")
+    r = share_log(src, tmp_path / "s.mcap", 0.2, codec="fp16", ply=tmp_path / "s.ply")
     assert r["selected"] == 200 and r["budget"] == 0.2 and "budget_bytes" not in r
     shared = read_map(tmp_path / "s.mcap")
     assert read_ply(tmp_path / "s.ply").equals(shared)  # the PLY holds the decoded float32 values
@@ -239,7 +237,7 @@ def test_fp16_round_trip_error_is_bounded(tmp_path, sh_degree, isotropic):
     g.sh_dc[:5, 0] = [1e-6, -3e-7, 6e-8, 65504.0, -1000.5]  # subnormal, the largest half
     path = tmp_path / "h.mcap"
     with LogWriter(path, LogMetadata()) as log:
-        log.write_gaussians(g, 0, precision="fp16")
+        log.write_gaussians(g, 0, "fp16")
     back = read_map(path)
     # float32 at every precision: positions, score sums, ids
     for name in ("means", "importance_sum", "importance_weight", "alpha_t_sum", "ids"):
@@ -263,7 +261,7 @@ def test_fp16_overflow_is_refused_not_written_as_inf(tmp_path):
         gaussians_to_pointcloud(g, precision="fp16")
     src = write_log(tmp_path / "a.mcap", g)  # fine at fp32
     with pytest.raises(MapError, match="use precision fp32"):
-        share_log(src, tmp_path / "s.mcap", 1.0, precision="fp16")
+        share_log(src, tmp_path / "s.mcap", 1.0, codec="fp16")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap"]  # no partial output
     g.opacity_logits[3] = 0.0
     g.importance_sum[3] = 1e9  # scores and sums stay float32: no range limit
@@ -278,7 +276,7 @@ def test_non_finite_after_fp16_decode_is_refused(tmp_path, value):
     g.quats[2, 1] = value
     path = tmp_path / "h.mcap"
     with LogWriter(path, LogMetadata()) as log:
-        log.write_gaussians(g, 0, precision="fp16")
+        log.write_gaussians(g, 0, "fp16")
     with pytest.raises(LogFormatError, match=r"quats \(rot_0..3\) has 1 non-finite"):
         read_map(path)
 
@@ -338,10 +336,10 @@ def test_select_count_matches_top_k():
 def test_pruning_an_fp16_share_keeps_it_fp16(tmp_path):
     src = write_log(tmp_path / "a.mcap", random_map(200, 4))
     share = tmp_path / "s.mcap"
-    share_log(src, share, 0.5, precision="fp16")
+    share_log(src, share, 0.5, codec="fp16")
     pruned = tmp_path / "p.mcap"
     prune_log(share, pruned, 0.5)
-    assert log_info(pruned)["map"]["precision"] == "fp16"
+    assert log_info(pruned)["map"]["codec"] == "fp16"
     kept, received = read_map(pruned), read_map(share)
     where = {int(i): k for k, i in enumerate(received.ids)}
     index = [where[int(i)] for i in kept.ids]

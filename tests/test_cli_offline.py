@@ -20,6 +20,7 @@ from gscompress.io.mcap_log import (
     read_map,
 )
 from gscompress.io.ply import read_ply, write_ply
+from gscompress.pipeline import log_info
 from gscompress_cli.main import cli
 from gscompress_schemas import PROFILE
 
@@ -51,7 +52,7 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
     out = tmp_path / "p.mcap"
     r = run("prune", log_path, "--keep", "0.3", "-o", out)
     assert r.exit_code == 0, r.output
-    assert "kept 300 of 1000 Gaussians (by pwas)" in r.output
+    assert "kept 300 of 1000 Gaussians (by pwas, fp32)" in r.output
     full, pruned = read_map(log_path), read_map(out)
     assert len(pruned) == 300
     assert pruned.importance.min() >= np.setdiff1d(full.importance, pruned.importance).max()
@@ -70,7 +71,7 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
         step = b.metadata.provenance[-1]
         assert step["operation"] == {"name": "prune", "keep": 0.3, "by": "pwas", "seed": 0}
         assert step["parent"] == "run.mcap" and b.metadata.sequence == "synthetic"
-        assert b.metadata.results == {"kept": 300, "total": 1000}
+        assert b.metadata.results == {"kept": 300, "total": 1000, "codec": "fp32"}
 
 
 def test_prune_by_opacity_and_percent_syntax(log_path, tmp_path):
@@ -97,12 +98,14 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
             "source": "run.mcap",
             "strategy": "pwas",
             "budget": 0.2,
-            "precision": "fp32",
-            "bytes": 200 * 76 + 357,  # records plus the PointCloud header
+            "codec": "compact",  # the default
+            "sums": True,
+            "bytes": log_info(out)["map"]["bytes"],
             "selected": 200,
             "total": 1000,
         }
         assert [c.topic for c in s.channels] == ["/gaussians"]
+    assert log_info(out)["map"]["bytes_per_gaussian"] < 30  # 76 as fp32
     r = run("share", log_path, "-o", tmp_path / "o.mcap")  # -o as the other commands take it
     assert r.exit_code == 0 and read_map(tmp_path / "o.mcap").equals(shared)
     for paths, message in (
@@ -166,7 +169,7 @@ def test_import_ply_then_info(tmp_path):
 
 
 def test_info_json_describes_the_log(log_path, tmp_path):
-    run("share", log_path, tmp_path / "s.mcap")
+    run("share", log_path, tmp_path / "s.mcap", "--codec", "fp32")
     r = run("info", tmp_path / "s.mcap", "--json")
     assert r.exit_code == 0, r.output
     info = json.loads(r.output)
@@ -174,9 +177,9 @@ def test_info_json_describes_the_log(log_path, tmp_path):
     q = info["map"]["importance_quantiles"]
     assert q["q00"] <= q["q50"] <= q["q100"]
     assert sum(info["map"]["importance_histogram"]["counts"]) == 200
-    assert info["map"]["packed_bytes"] == 200 * 76  # 18 float32 fields and a uint32 id each
-    assert info["map"]["record_bytes"] == 76 and info["map"]["precision"] == "fp32"
+    assert info["map"]["codec"] == "fp32" and info["snapshots"][0]["codec"] == "fp32"
     assert 200 * 76 < info["map"]["bytes"] < 200 * 76 + 1000  # plus the PointCloud header
+    assert info["map"]["bytes_per_gaussian"] == info["map"]["bytes"] / 200
     assert info["map"]["bytes"] == info["results"]["bytes"]
     assert info["provenance"][0]["operation"]["name"] == "share"
     assert info["channels"] == [
@@ -463,27 +466,29 @@ def test_budget_below_one_gaussian_is_a_one_line_error(log_path, tmp_path):
 
 def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
     out, ply = tmp_path / "s.mcap", tmp_path / "s.ply"
-    r = run("share", "--budget", "20kB", "--precision", "fp16", log_path, out, "--ply", ply)
+    r = run("share", "--budget", "20kB", "--codec", "fp16", log_path, out, "--ply", ply)
     assert r.exit_code == 0, r.output
     assert "fp16" in r.output
-    r = run("share", "--budget", "20kB", "--precision", "fp16", log_path, out, "--json", "--force")
+    r = run("share", "--budget", "20kB", "--codec", "fp16", log_path, out, "--json", "--force")
     result = json.loads(r.output)
     assert result["budget"] == "20kB" and result["budget_bytes"] == 20_000
-    assert result["precision"] == "fp16" and result["bytes"] <= 20_000
-    assert result["selected"] == (20_000 - 398 - 1 - 3) // 54  # header, data tag and 3-byte length
+    assert result["codec"] == "fp16" and out.stat().st_size == result["file_bytes"] <= 20_000
     assert read_ply(ply).equals(read_map(out))
     r = run("info", out)
     assert r.exit_code == 0, r.output
-    assert f"{result['selected']} Gaussians, isotropic, SH degree 0, fp16" in r.output
-    assert f"bytes     {result['bytes']} B" in r.output and "54 B per Gaussian" in r.output
+    assert f"{result['selected']} Gaussians, isotropic, SH degree 0, codec fp16" in r.output
+    per = result["bytes"] / result["selected"]
+    assert f"bytes     {result['bytes']} B" in r.output and f"{per:.2f} B per Gaussian" in r.output
     r = run("share", "--help")
-    assert "2MB" in r.output and "1.5MiB" in r.output and "--precision" in r.output
-    # a share of that share stays fp16 unless asked otherwise: fp32 would double its bytes
+    assert "2MB" in r.output and "1.5MiB" in r.output and "--codec" in r.output
+    # a share is compact unless asked otherwise; --precision is an old name of --codec
     r = run("share", "--budget", "0.5", out, tmp_path / "again.mcap", "--json")
-    assert json.loads(r.output)["precision"] == "fp16", r.output
+    assert json.loads(r.output)["codec"] == "compact", r.output
     r = run("share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap",
             "--json")  # fmt: skip
-    assert json.loads(r.output)["precision"] == "fp32", r.output
+    assert json.loads(r.output)["codec"] == "fp32", r.output
+    r = run("share", "--precision", "fp32", "--codec", "fp16", out, tmp_path / "x.mcap")
+    assert r.exit_code == 2 and "--precision is an old name of --codec" in r.output
     r = run("share", "--budget", "0.5", "--by", "opacity", log_path, tmp_path / "o.mcap", "--json")
     assert json.loads(r.output)["strategy"] == "opacity", r.output
 

@@ -68,9 +68,10 @@ def test_budget_sweep_counts_the_bytes_a_share_of_each_budget_writes(
     for row in rows:
         assert row["gaussians"] == int(row["budget"] * total + 0.5)
         assert row["bytes_fp16"] < row["bytes_fp32"] and np.isfinite(row["psnr"])
+        assert row["bytes_compact"] < row["bytes_fp16"]
         if row["budget"] < 1:
-            for precision in ("fp32", "fp16"):
-                dst = tmp_path / f"{row['strategy']}_{precision}.mcap"
+            for codec in ("fp32", "fp16", "compact"):
+                dst = tmp_path / f"{row['strategy']}_{codec}.mcap"
                 share = share_log(log, dst, row["budget"], strategy=row["strategy"],
-                                  precision=precision)  # fmt: skip
-                assert share["bytes"] == row[f"bytes_{precision}"]
+                                  codec=codec)  # fmt: skip
+                assert share["bytes"] == row[f"bytes_{codec}"]

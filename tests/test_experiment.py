@@ -21,6 +21,7 @@ from gscompress.pipeline.experiment import (
     rate_distortion_curves,
     resolve_settings,
 )
+from gscompress.pipeline.offline import smallest_share_bytes
 from gscompress_cli.main import cli
 
 REQUIRED = ("name", "ate_rmse_cm", "psnr", "ssim", "lpips", "gaussians", "bytes")
@@ -202,9 +203,12 @@ def test_a_damaged_run_record_is_a_run_to_do_again(
 def test_bad_settings_are_refused() -> None:
     with pytest.raises(InputError, match="random and pwas"):
         ExperimentSettings(strategies=("opacity",)).check()
-    with pytest.raises(InputError, match=r"budget of 431B cannot hold one Gaussian.* 432 B"):
-        ExperimentSettings(sweep=("0.2", "431B")).check()
-    ExperimentSettings(budget="432B").check()  # one Gaussian fits
+    smallest = smallest_share_bytes()  # a compact share file of one Gaussian
+    with pytest.raises(
+        InputError, match=rf"budget of {smallest - 1}B cannot hold one Gaussian.* {smallest} B"
+    ):
+        ExperimentSettings(sweep=("0.2", f"{smallest - 1}B")).check()
+    ExperimentSettings(budget=f"{smallest}B").check()  # one Gaussian may fit
     r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--sweep", "2"])
     assert r.exit_code == 2 and "unit" in r.output
     for bad in (["--frames", "odd"], ["--strategies", "random,pwas,nope"]):  # usage errors

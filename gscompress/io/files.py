@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import io
 import json
 import math
 import os
@@ -179,6 +180,35 @@ class AtomicFile:
         self.tmp_path.unlink(missing_ok=True)
 
 
+class MemoryFile:
+    """An `AtomicFile` stand-in that keeps the bytes in memory (a file sized before it is written,
+    such as a share that must fit a byte budget)."""
+
+    def __init__(self) -> None:
+        self.file = io.BytesIO()
+        self.data = b""
+
+    def commit(self) -> None:
+        """Keep the bytes written."""
+        self.data = self.file.getvalue()
+
+    def discard(self) -> None:
+        """Drop the bytes written."""
+        self.file = io.BytesIO()
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write a binary file under a temporary name and rename it into place."""
+    out = AtomicFile(Path(path))
+    try:
+        out.file.write(data)
+        out.commit()
+    except BaseException:
+        out.discard()
+        raise
+    return out.path
+
+
 def temporary_path(path: Path, pid: int) -> Path:
     """Where process `pid` writes `path` until it is complete: `.NAME.PID.tmp` beside it."""
     return path.with_name(f".{path.name}.{pid}.tmp")
@@ -233,11 +263,4 @@ def some_names(names: Sequence[str], shown: int = 3) -> str:
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write a UTF-8 text file under a temporary name and rename it into place."""
-    out = AtomicFile(Path(path))
-    try:
-        out.file.write(text.encode("utf-8"))
-        out.commit()
-    except BaseException:
-        out.discard()
-        raise
-    return out.path
+    return write_bytes_atomic(path, text.encode("utf-8"))

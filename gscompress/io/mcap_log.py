@@ -58,6 +58,15 @@ from gscompress.camera import (
 )
 from gscompress.errors import GscError, LogFormatError, MapError, led_by
 from gscompress.gaussians import GaussianMap
+from gscompress.io.codec import (
+    COMPACT_DEFAULTS,
+    COMPACT_SCHEMA,
+    CompactGaussians,
+    CompactOptions,
+    check_codec,
+    decode_compact,
+    encode_compact,
+)
 from gscompress.io.columns import (
     column_dtypes,
     columns_precision,
@@ -67,7 +76,7 @@ from gscompress.io.columns import (
     map_to_columns,
     pack_records,
 )
-from gscompress.io.files import AtomicFile, check_output, sha256
+from gscompress.io.files import AtomicFile, MemoryFile, check_output, sha256
 from gscompress_schemas import PROFILE, PROFILE_VERSION, schema_bytes
 
 TOPIC_GAUSSIANS = "/gaussians"
@@ -331,22 +340,25 @@ class LogWriter:
 
     def __init__(
         self,
-        path: str | Path,
+        path: str | Path | None,
         metadata: LogMetadata,
         *,
         inputs: Sequence[str | Path] = (),
         force: bool = False,
         chunk_size: int = 1 << 20,
     ):
-        self.path = check_output(path, inputs, force, suffix=".mcap")
+        self.path = None if path is None else check_output(path, inputs, force, suffix=".mcap")
         self.metadata = metadata
-        self._file = AtomicFile(self.path)
+        self._file: AtomicFile | MemoryFile = (
+            MemoryFile() if self.path is None else AtomicFile(self.path)
+        )
         self._mcap = McapWriter(
             self._file.file, chunk_size=chunk_size, compression=CompressionType.ZSTD
         )
         self._mcap.start(profile=PROFILE, library=f"gscompress {__version__}")
         self._schemas: dict[tuple[str, str, bytes], int] = {}
-        self._channels: dict[str, int] = {}
+        self._channels: dict[tuple[str, int], int] = {}  # (topic, schema id): a topic may
+        # carry two schemas (a SLAM log's fp32 snapshots and a compact one)
         self._closed = False
 
     def __enter__(self) -> LogWriter:
@@ -374,11 +386,11 @@ class LogWriter:
     def _channel_id(
         self, topic: str, encoding: str, schema_id: int, metadata: dict[str, str] | None = None
     ) -> int:
-        if topic not in self._channels:
-            self._channels[topic] = self._mcap.register_channel(
+        if (topic, schema_id) not in self._channels:
+            self._channels[topic, schema_id] = self._mcap.register_channel(
                 topic, encoding, schema_id, metadata or {}
             )
-        return self._channels[topic]
+        return self._channels[topic, schema_id]
 
     def write_protobuf(self, topic: str, message: Message, log_time_ns: int) -> int:
         """Write a protobuf message (its schema registered on first use); returns its bytes."""
@@ -419,15 +431,20 @@ class LogWriter:
     # -- the profile's messages
 
     def write_gaussians(
-        self, gaussians: GaussianMap, log_time_ns: int, precision: str = "fp32"
+        self,
+        gaussians: GaussianMap,
+        log_time_ns: int,
+        codec: str = "fp32",
+        options: CompactOptions = COMPACT_DEFAULTS,
     ) -> int:
-        """Write one map snapshot to `/gaussians`; returns the bytes of the serialized message.
+        """Write one map snapshot to `/gaussians` in `codec` (`gscompress.io.codec.CODECS`;
+        `options` for compact); returns the bytes of the serialized message.
 
         Raises:
-            MapError: at precision fp16, a value beyond the float16 range.
+            MapError: at fp16, a value beyond the float16 range.
         """
-        cloud = gaussians_to_pointcloud(gaussians, log_time_ns, precision)
-        return self.write_protobuf(TOPIC_GAUSSIANS, cloud, log_time_ns)
+        message = encode_map(gaussians, codec, log_time_ns, options)
+        return self.write_protobuf(TOPIC_GAUSSIANS, message, log_time_ns)
 
     def write_pose(
         self, T_world_cam: np.ndarray, log_time_ns: int, ground_truth: bool = False
@@ -479,8 +496,9 @@ class LogWriter:
 
     # -- finishing
 
-    def close(self) -> Path:
-        """Write the metadata record and the summary, then move the file into place."""
+    def close(self) -> Path | None:
+        """Write the metadata record and the summary, then move the file into place (None for
+        a log written in memory: its bytes are `data`)."""
         if not self._closed:
             self._closed = True
             try:
@@ -492,6 +510,13 @@ class LogWriter:
                 raise
         return self.path
 
+    @property
+    def data(self) -> bytes:
+        """The whole file of a log written in memory (`path` None), once closed."""
+        if not isinstance(self._file, MemoryFile) or not self._closed:
+            raise ValueError("only a closed in-memory log has its bytes here")
+        return self._file.data
+
     def abort(self) -> None:
         """Drop the output: nothing appears under the final name."""
         if not self._closed:
@@ -499,19 +524,56 @@ class LogWriter:
             self._file.discard()
 
 
+def encode_map(
+    gaussians: GaussianMap,
+    codec: str = "fp32",
+    timestamp_ns: int = 0,
+    options: CompactOptions = COMPACT_DEFAULTS,
+) -> Message:
+    """The `/gaussians` message of a map in `codec`: a foxglove.PointCloud (fp32, fp16) or a
+    gscompress.CompactGaussians (compact, with `options`).
+
+    Raises:
+        InputError: an unknown codec.
+        MapError: at fp16, a value beyond the float16 range.
+    """
+    if check_codec(codec) == "compact":
+        return encode_compact(gaussians, options, timestamp_ns=timestamp_ns, frame_id=WORLD_FRAME)
+    return gaussians_to_pointcloud(gaussians, timestamp_ns, codec)
+
+
+def encoded_size(
+    gaussians: GaussianMap, codec: str = "fp32", options: CompactOptions = COMPACT_DEFAULTS
+) -> int:
+    """Bytes of the `/gaussians` message of a map in `codec` (see `encode_map`)."""
+    return encode_map(gaussians, codec, 0, options).ByteSize()
+
+
+_MAP_SCHEMAS = {"foxglove.PointCloud", COMPACT_SCHEMA}
+
+
 def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "log") -> Snapshot:
     """Decode one `/gaussians` message (a record of any reader) into a validated map.
 
     Raises:
-        LogFormatError: not a protobuf foxglove.PointCloud, corrupt, or a malformed cloud.
+        LogFormatError: not a protobuf foxglove.PointCloud or gscompress.CompactGaussians,
+            corrupt, or a malformed map.
     """
-    if schema is None or schema.name != "foxglove.PointCloud" or schema.encoding != "protobuf":
+    if schema is None or schema.name not in _MAP_SCHEMAS or schema.encoding != "protobuf":
         name = schema.name if schema else "no schema"
-        raise LogFormatError(f"{source}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud")
-    cloud = PointCloud()
+        raise LogFormatError(
+            f"{source}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud or {COMPACT_SCHEMA}"
+        )
+    compact = schema.name == COMPACT_SCHEMA
+    stored: Message = CompactGaussians() if compact else PointCloud()
     try:
-        cloud.ParseFromString(message.data)
-        gaussians = pointcloud_to_gaussians(cloud, source=source)
+        stored.ParseFromString(message.data)
+        if compact:
+            gaussians = decode_compact(stored, len(message.data), source)
+            codec = "compact"
+        else:
+            gaussians = pointcloud_to_gaussians(stored, source=source)
+            codec = columns_precision(f.name for f in stored.fields)
     except DecodeError:
         raise LogFormatError(f"{source}: a corrupt {TOPIC_GAUSSIANS} message") from None
     except MapError as exc:
@@ -520,8 +582,7 @@ def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "
         gaussians=gaussians,
         log_time_ns=message.log_time,
         message_bytes=len(message.data),
-        point_stride=cloud.point_stride,
-        precision=columns_precision(f.name for f in cloud.fields),
+        codec=codec,
     )
 
 
@@ -792,18 +853,21 @@ class Snapshot:
     """One decoded `/gaussians` message.
 
     Attributes:
-        gaussians: the map (float32 whatever the stored precision).
+        gaussians: the map (float32 whatever the codec).
         log_time_ns: the message's log time.
-        message_bytes: bytes of the serialized PointCloud (what is sent).
-        point_stride: bytes per Gaussian record.
-        precision: "fp32", or "fp16" when some fields are stored as float16.
+        message_bytes: bytes of the serialized message.
+        codec: how it was stored: "fp32", "fp16" (some PointCloud fields float16) or "compact".
     """
 
     gaussians: GaussianMap
     log_time_ns: int
     message_bytes: int
-    point_stride: int
-    precision: str
+    codec: str
+
+    @property
+    def bytes_per_gaussian(self) -> float | None:
+        """Message bytes per Gaussian (None for an empty map)."""
+        return self.message_bytes / len(self.gaussians) if len(self.gaussians) else None
 
 
 def pointcloud_to_gaussians(cloud: PointCloud, source: str = "point cloud") -> GaussianMap:

@@ -8,9 +8,9 @@ is refused rather than read as bytes 8x too many. A fractional byte count is
 rounded down (a budget is never exceeded). A bare number above 1 is refused: it is most likely a
 byte count that lacks its unit.
 
-A byte budget counts what is sent: the serialized message holding the share. The caller supplies
-that size as a function of the Gaussian count (`largest_count_within`), so this module stays free
-of any file format.
+A byte budget counts what is sent: the whole share file as written. The caller supplies that size
+as a function of the Gaussian count (`largest_count_within`), so this module stays free of any
+file format.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ class Budget:
 
         Args:
             n: Gaussians available.
-            message_bytes: exact size in bytes of the message holding K Gaussians (used by byte
+            message_bytes: exact size in bytes of the output holding K Gaussians (used by byte
                 budgets only; see `largest_count_within`).
 
         Raises:
@@ -131,32 +131,45 @@ class Budget:
         return cls(ratio=number, text=text)
 
 
-def largest_count_within(budget_bytes: int, n: int, message_bytes: Callable[[int], int]) -> int:
-    """The largest K <= n whose message takes at most `budget_bytes` bytes.
+def largest_count_within(budget_bytes: int, n: int, size_of: Callable[[int], int]) -> int:
+    """The largest K <= n whose output takes at most `budget_bytes` bytes.
 
     Args:
-        budget_bytes: the most bytes the message may take.
+        budget_bytes: the most bytes the output may take.
         n: Gaussians available.
-        message_bytes: exact size in bytes of the message holding K Gaussians, nondecreasing in K.
+        size_of: size in bytes of the output holding K Gaussians, nondecreasing in K (a share
+            file: measured by writing it, so each call may be costly).
 
     Returns:
-        K, found by bisection (O(log n) calls to `message_bytes`).
+        K, with size_of(K) <= budget_bytes < size_of(K + 1) (K < n). The search alternates a
+        guess interpolated between the sizes of the bracket with a bisection, so it takes
+        O(log n) calls and usually a handful.
 
     Raises:
-        BudgetError: not even one Gaussian (or, for an empty map, the empty message) fits.
+        BudgetError: not even one Gaussian (or, for an empty map, the empty output) fits.
     """
-    first = message_bytes(min(n, 1))
+    first = size_of(min(n, 1))
     if first > budget_bytes:
         what = "one Gaussian" if n else "an empty map"
         raise BudgetError(
-            f"a budget of {budget_bytes} B cannot hold {what}: that message takes {first} B "
-            f"({message_bytes(0)} B of header); raise the budget"
+            f"a budget of {budget_bytes} B cannot hold {what}: that takes {first} B "
+            f"({size_of(0)} B without any Gaussian); raise the budget"
         )
-    lo, hi = min(n, 1), n  # message_bytes(lo) fits; find the last K in [lo, hi] that fits
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if message_bytes(mid) <= budget_bytes:
-            lo = mid
+    lo, lo_size = min(n, 1), first  # fits
+    if n <= 1 or size_of(n) <= budget_bytes:
+        return n
+    hi, hi_size = n, size_of(n)  # does not fit
+    interpolate = True
+    while hi - lo > 1:
+        if interpolate:
+            guess = lo + int((hi - lo) * (budget_bytes - lo_size) / max(hi_size - lo_size, 1))
         else:
-            hi = mid - 1
+            guess = (lo + hi) // 2
+        mid = min(max(guess, lo + 1), hi - 1)
+        interpolate = not interpolate
+        size = size_of(mid)
+        if size <= budget_bytes:
+            lo, lo_size = mid, size
+        else:
+            hi, hi_size = mid, size
     return lo

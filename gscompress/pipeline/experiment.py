@@ -51,7 +51,6 @@ import numpy as np
 
 from gscompress import __version__
 from gscompress.errors import GscError, InputError, OptionError
-from gscompress.gaussians import GaussianMap
 from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import (
     abandoned_files,
@@ -61,12 +60,12 @@ from gscompress.io.files import (
     read_json,
     write_text_atomic,
 )
-from gscompress.io.mcap_log import LogReader, pointcloud_bytes
+from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
 from gscompress.ops.merge import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES, is_fraction, strategy_scores
 from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.offline import log_edges
+from gscompress.pipeline.offline import log_edges, smallest_share_bytes
 
 if TYPE_CHECKING:
     from gscompress.slam.config import SlamConfig
@@ -161,13 +160,13 @@ class ExperimentSettings:
             raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
         if not is_fraction(self.merge_lr_final):
             raise InputError("a merge's final learning-rate fraction must be in (0, 1]")
-        smallest = pointcloud_bytes(GaussianMap.empty(isotropic=True))(1)
+        smallest = smallest_share_bytes()
         for text in (self.budget, *self.sweep):  # (refused now, not after the SLAM runs)
             budget = Budget.parse(text)
             if budget.budget_bytes is not None and budget.budget_bytes < smallest:
                 raise InputError(
-                    f"a budget of {text} cannot hold one Gaussian: a share of one takes "
-                    f"{smallest} B; raise the budget"
+                    f"a budget of {text} cannot hold one Gaussian: a share file of one takes "
+                    f"at least {smallest} B; raise the budget"
                 )
         if self.seeds < 1 or self.sweep_seeds < 0:
             raise OptionError("--seeds must be >= 1 and --sweep-seeds >= 0")

@@ -79,6 +79,7 @@ def merge_logs(
     backend: str | None = None,
     seed: int = 0,
     share_transform: str | Path | None = None,
+    codec: str | None = None,
     command: str = "",
     force: bool = False,
     progress: Callable[[int, int], object] | None = None,
@@ -103,6 +104,7 @@ def merge_logs(
         seed: seed of the view order.
         share_transform: a file with the rigid transform from the share's world frame to the
             receiver's (4x4 or TUM `tx ty tz qx qy qz qw`), for maps whose frames differ.
+        codec: how the merged map is stored (None: as the receiver's map).
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called with (iterations done, iterations) during refinement.
@@ -155,7 +157,7 @@ def merge_logs(
 
     operation = {"name": "merge", **share_record, "iters": iters, "views": views,
                  "lr_final": lr_final, "seed": seed, "backend": backend}  # fmt: skip
-    out = rewrite_map(receiver, dst, operation, merge, command=command, force=force)
+    out = rewrite_map(receiver, dst, operation, merge, codec=codec, command=command, force=force)
     return out
 
 

@@ -14,8 +14,8 @@ import numpy as np
 
 from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.columns import check_precision
-from gscompress.io.files import check_output, sha256
+from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions, check_codec
+from gscompress.io.files import check_output, sha256, write_bytes_atomic
 from gscompress.io.mcap_log import (
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
@@ -24,7 +24,6 @@ from gscompress.io.mcap_log import (
     LogReader,
     LogWriter,
     Snapshot,
-    pointcloud_bytes,
     read_map,
 )
 from gscompress.io.ply import read_ply, write_ply
@@ -57,13 +56,16 @@ def prune_log(
     *,
     by: str = "pwas",
     seed: int = 0,
+    codec: str | None = None,
+    options: CompactOptions = COMPACT_DEFAULTS,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
     """Keep the `keep` fraction of a log's map with the highest `by` scores.
 
-    The last `/gaussians` snapshot is replaced by its pruned version (same log time); every other
-    message, earlier snapshots included, passes through unchanged.
+    The last `/gaussians` snapshot is replaced by its pruned version (same log time), stored in
+    `codec` (None: the codec of the map it replaces); every other message, earlier snapshots
+    included, passes through unchanged.
     """
     check_ratio(keep, "--keep")
 
@@ -72,7 +74,9 @@ def prune_log(
         return kept, {"kept": len(kept), "total": len(full)}
 
     operation = {"name": "prune", "keep": keep, "by": by, "seed": seed}
-    return rewrite_map(src, dst, operation, prune, command=command, force=force)
+    return rewrite_map(
+        src, dst, operation, prune, codec=codec, options=options, command=command, force=force
+    )
 
 
 def rewrite_map(
@@ -81,15 +85,20 @@ def rewrite_map(
     operation: dict[str, Any],
     transform: Callable[[GaussianMap], tuple[GaussianMap, dict[str, Any]]],
     *,
+    codec: str | None = None,
+    options: CompactOptions = COMPACT_DEFAULTS,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
     """Copy a log, replacing its map (the last snapshot) by `transform(map)`.
 
     Every other message passes through unchanged; the output's provenance gains `operation` and
-    its results are what `transform` returns beside the new map. The new map is stored at the
-    precision of the one it replaces (an fp16 share stays fp16).
+    its results are what `transform` returns beside the new map. The new map is stored in
+    `codec` (with `options` for compact), or None: in the codec of the one it replaces (an fp16
+    share stays fp16).
     """
+    if codec is not None:
+        check_codec(codec)
     check_output(dst, [src], force, ".mcap")
     with LogReader(src) as log_in:
         last = log_in.require_snapshots() - 1
@@ -103,11 +112,89 @@ def rewrite_map(
                 if snapshot == last:
                     stored = log_in.decode_snapshot(schema, message)
                     new_map, meta.results = transform(stored.gaussians)
-                    out.write_gaussians(new_map, message.log_time, stored.precision)
+                    chosen = codec or stored.codec
+                    meta.results["codec"] = chosen
+                    out.write_gaussians(new_map, message.log_time, chosen, options)
                 else:
                     out.copy_message(schema, channel, message)
                 snapshot += 1
     return {"output": str(dst), **meta.results}
+
+
+DEFAULT_SHARE_CODEC = "compact"
+"""The codec a share is sent in unless asked otherwise."""
+
+
+def smallest_share_bytes(codec: str = DEFAULT_SHARE_CODEC) -> int:
+    """Bytes of the smallest possible share file in `codec`: one Gaussian and a metadata record
+    without provenance (every share of a log is larger, so a smaller budget holds nothing)."""
+    one = GaussianMap.new(
+        means=np.zeros((1, 3)),
+        log_scales=np.zeros((1, 1)),
+        quats=np.array([[1.0, 0.0, 0.0, 0.0]]),
+        opacity_logits=np.zeros(1),
+        sh_dc=np.zeros((1, 3)),
+    )
+    with LogWriter(None, LogMetadata()) as out:
+        out.write_gaussians(one, 0, codec)
+    return len(out.data)
+
+
+class ShareCut:
+    """The share files of a log's map for one budget, strategy and codec: the file holding the
+    K best Gaussians, written in memory, for any K (what a byte budget searches over).
+
+    Attributes:
+        full: the map shared from (the log's last snapshot).
+    """
+
+    def __init__(
+        self,
+        src: str | Path,
+        budget: Budget,
+        *,
+        strategy: str = "pwas",
+        codec: str = DEFAULT_SHARE_CODEC,
+        sums: bool = True,
+        seed: int = 0,
+        command: str = "",
+    ):
+        self.src, self.budget = Path(src), budget
+        self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
+        with LogReader(src) as log_in:
+            self.full = log_in.read_map()
+            meta = log_in.metadata
+        operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
+        operation.update(codec=codec, sums=sums)
+        self._meta = meta.derive(operation, src, command)
+        self._sizes: dict[int, int] = {}
+        self._last: tuple[int, tuple[bytes, GaussianMap, dict[str, Any]]] | None = None
+
+    def file(self, count: int) -> tuple[bytes, GaussianMap, dict[str, Any]]:
+        """The share file of the `count` best Gaussians: its bytes, its map (as selected, before
+        encoding) and the results its metadata records. (Only the last one is kept.)"""
+        if self._last is None or self._last[0] != count:
+            shared, _ = select_count(self.full, count, self.strategy, self.seed)
+            meta = self._meta
+            meta.results = {
+                "source": self.src.name,
+                "strategy": self.strategy,
+                **self.budget.record(),
+                "codec": self.codec,
+                "sums": self.sums,
+                "selected": len(shared),
+                "total": len(self.full),
+            }
+            with LogWriter(None, meta) as out:
+                options = CompactOptions(sums=self.sums)
+                meta.results["bytes"] = out.write_gaussians(shared, 0, self.codec, options)
+            self._last = (count, (out.data, shared, dict(meta.results)))
+            self._sizes[count] = len(out.data)
+        return self._last[1]
+
+    def size(self, count: int) -> int:
+        """Bytes of the share file of the `count` best Gaussians."""
+        return self._sizes[count] if count in self._sizes else len(self.file(count)[0])
 
 
 def share_log(
@@ -116,7 +203,8 @@ def share_log(
     budget: str | float | Budget,
     *,
     strategy: str = "pwas",
-    precision: str | None = None,
+    codec: str = DEFAULT_SHARE_CODEC,
+    sums: bool = True,
     seed: int = 0,
     ply: str | Path | None = None,
     command: str = "",
@@ -125,67 +213,54 @@ def share_log(
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
 
     The share is a small log: the metadata record (source, strategy, budget, counts, provenance)
-    and one `/gaussians` snapshot holding the selected Gaussians with all their fields.
+    and one `/gaussians` snapshot holding the selected Gaussians with their ids and PWAS state.
 
     Args:
         src: the log whose map (last snapshot) is shared.
         dst: the share (MCAP).
         budget: a fraction of the Gaussians in (0, 1], or bytes (`"2MB"`, `"1.5MiB"`, see
-            `Budget`). A byte budget bounds the serialized `/gaussians` message, which holds the
-            most Gaussians that fit.
+            `Budget`). A byte budget bounds the whole share file as written (framing, schema,
+            metadata and map: the bytes that cross the link), which holds the most Gaussians
+            that fit.
         strategy: what to rank Gaussians by (`Strategy`).
-        precision: "fp32", or "fp16" to send the bounded attributes as float16 (more Gaussians
-            per byte; the receiver decodes float32); None: as the source map is stored (a share
-            of an fp16 map stays fp16: float32 would only double its bytes).
+        codec: how the map is stored (`gscompress.io.codec.CODECS`): compact (the default, about
+            10-20 bytes per Gaussian), fp16 or fp32 (a foxglove.PointCloud Foxglove draws).
+        sums: send the PWAS sums (a receiver that keeps accumulating needs them); without them
+            a compact share sends the score in 16 bits (fp32 and fp16 always send the sums).
         seed: seed of the random strategy.
         ply: also write the share as a float32 3DGS PLY (the decoded values).
         command: command line for the provenance record.
         force: overwrite existing outputs.
 
     Raises:
-        InputError: bad budget, precision or strategy (OptionError: --ply equal to the MCAP
+        InputError: bad budget, codec or strategy (OptionError: --ply equal to the MCAP
             output).
         BudgetError: the budget holds no Gaussian.
         MapError: at fp16, a selected value beyond the float16 range.
     """
     budget = Budget.parse(budget)
-    if precision is not None:
-        check_precision(precision)
+    check_codec(codec)
     outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
         raise OptionError("--ply must differ from the MCAP output")
     for path, suffix in outputs:
         check_output(path, [src], force, suffix)
-    with LogReader(src) as log_in:
-        stored = log_in.read_snapshot()
-        meta = log_in.metadata
-    full, precision = stored.gaussians, precision or stored.precision
-    count = budget.count(len(full), pointcloud_bytes(full, precision, timestamp_ns=0))
-    shared, _ = select_count(full, count, strategy, seed)
-    operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
-    operation["precision"] = precision
-    out_meta = meta.derive(operation, src, command)
-    out_meta.results = {
-        "source": Path(src).name,
-        "strategy": strategy,
-        **budget.record(),
-        "precision": precision,
-        "selected": len(shared),
-        "total": len(full),
-    }
-    with LogWriter(dst, out_meta, inputs=[src], force=force) as out:
-        written = out.write_gaussians(shared, 0, precision)
-        if budget.budget_bytes is not None and written > budget.budget_bytes:
-            raise AssertionError(f"share message of {written} B exceeds {budget.budget_bytes} B")
-        out_meta.results["bytes"] = written  # the metadata record is written on close
+    cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
+                   command=command)  # fmt: skip
+    count = budget.count(len(cut.full), cut.size)
+    data, shared, results = cut.file(count)
+    if budget.budget_bytes is not None and len(data) > budget.budget_bytes:
+        raise AssertionError(f"share of {len(data)} B exceeds {budget.budget_bytes} B")
+    results["file_bytes"] = len(data)
+    write_bytes_atomic(dst, data)
     if ply is not None:
-        try:  # the receiver's values: what the share decodes to (float16-rounded at fp16)
-            received = shared if precision == "fp32" else read_map(dst)
+        try:  # the receiver's values: what the share decodes to
+            received = shared if codec == "fp32" else read_map(dst)
             write_ply(received, ply, inputs=(src,), force=force)
         except BaseException:  # a share is written whole or not at all
             Path(dst).unlink(missing_ok=True)
             raise
-    return {"output": str(dst), "ply": None if ply is None else str(ply), **out_meta.results}
+    return {"output": str(dst), "ply": None if ply is None else str(ply), **results}
 
 
 def export_ply(
@@ -229,9 +304,9 @@ def export_trajectory(
 def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
     """Summarise a log: channels, snapshots, the map, its scores, bytes and provenance.
 
-    `map.bytes` is the serialized `/gaussians` message of the map (what a share sends, the
-    quantity a byte budget bounds), `map.packed_bytes` its records alone, `map.record_bytes`
-    the bytes per Gaussian and `map.precision` how the float fields are stored.
+    `map.bytes` is the serialized `/gaussians` message of the map, `map.bytes_per_gaussian`
+    that per Gaussian and `map.codec` how it is stored (fp32, fp16 or compact); each snapshot
+    says the same. `file_bytes` is the whole file (what a byte budget bounds for a share).
     """
     path = Path(path)
     with LogReader(path) as log_in:
@@ -243,7 +318,14 @@ def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
         final: Snapshot | None = None
         for schema, _channel, message in log_in.iter_messages([TOPIC_GAUSSIANS]):
             final = log_in.decode_snapshot(schema, message)
-            snapshots.append({"log_time_ns": message.log_time, "gaussians": len(final.gaussians)})
+            snapshots.append(
+                {
+                    "log_time_ns": message.log_time,
+                    "gaussians": len(final.gaussians),
+                    "codec": final.codec,
+                    "bytes": final.message_bytes,
+                }
+            )
         meta = log_in.metadata
     info: dict[str, Any] = {
         "path": str(path),
@@ -262,10 +344,9 @@ def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:
     }
     if final is not None:
         info["map"] = map_summary(final.gaussians, histogram_bins)
-        info["map"]["precision"] = final.precision
+        info["map"]["codec"] = final.codec
         info["map"]["bytes"] = final.message_bytes
-        info["map"]["record_bytes"] = final.point_stride
-        info["map"]["packed_bytes"] = len(final.gaussians) * final.point_stride
+        info["map"]["bytes_per_gaussian"] = final.bytes_per_gaussian
     return info
 
 

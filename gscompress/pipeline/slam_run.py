@@ -28,6 +28,7 @@ from gscompress.errors import (
     OptionError,
     OutputError,
 )
+from gscompress.io.codec import check_codec
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -75,6 +76,7 @@ class _Run:
     leftovers: list[Path] = field(default_factory=list)  # unfinished files to delete at the end
     map_frames: int = 0  # the frames the log's latest map snapshot covers (where --resume starts)
     restart_map: Record | None = None  # a resumed finished log's last snapshot, not carried over
+    codec: str = "fp32"  # of the map snapshots this run writes
 
 
 def world_frame_of(sequence: Any, config: Any) -> str:
@@ -104,6 +106,7 @@ def slam_file(
     force: bool = False,
     progress: Progress | None = None,
     sequence: Any = None,
+    codec: str = "fp32",
 ) -> dict[str, Any]:
     """Run SLAM over a sequence and write the log.
 
@@ -145,6 +148,8 @@ def slam_file(
             result's `seconds_per_frame`).
         sequence: an already opened `RGBDSequence` (e.g. an in-memory synthetic one) instead
             of `seq`; `frames` and `size` are then not applied to it.
+        codec: how the map snapshots are stored (`gscompress.io.codec.CODECS`); fp32, the
+            default, is a foxglove.PointCloud that Foxglove draws.
 
     Returns:
         Output path, frame and Gaussian counts, seconds per frame, ATE (cm) when the sequence
@@ -152,6 +157,7 @@ def slam_file(
     """
     if sequence is None and seq is None:
         raise InputError("slam_file needs a sequence folder or an opened sequence")
+    check_codec(codec)
     if keep is not None:
         check_ratio(keep, "--keep")
     if resume:
@@ -180,6 +186,7 @@ def slam_file(
             config_path,
         )  # fmt: skip
     run.meta.command = command
+    run.codec = codec
     return _loop(run, dst, progress)
 
 
@@ -438,7 +445,7 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
     out.write_stats(stats, run.t_ns)
     log.debug("frame %d of %d: %s", i + 1, total, stats)
     if result.event or checkpoint:
-        out.write_gaussians(run.system.gaussian_map(), run.t_ns)
+        out.write_gaussians(run.system.gaussian_map(), run.t_ns, run.codec)
         run.map_frames = i + 1
     out.flush()
     return stats
@@ -555,7 +562,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         seconds = time.perf_counter() - start
         if whole:  # else the last snapshot stands (see _stop_between_frames)
             gaussians = system.gaussian_map()
-            out.write_gaussians(gaussians, run.t_ns)
+            out.write_gaussians(gaussians, run.t_ns, run.codec)
             meta.results["gaussians"] = len(gaussians)
             run.map_frames = done
         elif run.restart_map is not None and run.map_frames == run.start:

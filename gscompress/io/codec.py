@@ -1,0 +1,652 @@
+"""Map codecs: how a `/gaussians` snapshot stores its Gaussians.
+
+- `fp32`, `fp16`: a foxglove.PointCloud of packed records (`gscompress.io.columns`), which
+  Foxglove draws as it is.
+- `compact`: our own protobuf message `gscompress.CompactGaussians`
+  (schemas/compact_gaussians.v1.proto), column by column, each attribute quantised and
+  zstd-compressed on its own. This module encodes and decodes it; docs/codecs.md gives the rules
+  and the measurements behind the bit widths.
+
+Compact columns, in the order of the Gaussians along a Morton (Z-order) curve of their grid
+positions:
+
+- `position`: means as integers on a grid (origin and step recorded), as sorted Morton codes,
+  each stored as its difference from the previous one. The step is `POSITION_STEP_FRACTION` of
+  the map's median Gaussian scale unless given, and grows only when the map spans more than
+  2^21 steps along an axis.
+- `log_scale` (1 component isotropic, 3 anisotropic), `opacity` (in sigmoid space), `f_dc`,
+  `f_rest`: `linear` codes of `bits` bits between each component's recorded low and high.
+- `rotation` (anisotropic only): `smallest-three`, 2 bits for the largest component's index
+  and 10 bits for each of the other three, 32 bits in all.
+- `id` (optional): `delta`, the difference from the previous id modulo 2^32.
+- the PWAS state (optional): `importance_sum`, `importance_weight`, `alpha_t_sum` as exact
+  float32 (`raw`), so that a receiver keeps accumulating; or, without them, the score
+  `importance` as `log-linear` 16-bit codes (code 0 is a zero score).
+
+Every multi-byte column is stored as its byte planes (all first bytes, then all second bytes...),
+which zstd compresses far better than interleaved integers. Decoding checks each count, size and
+range against the message before allocating: a share comes from another robot.
+
+numpy + zstandard + protobuf only (no torch).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zstandard
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from google.protobuf.message import DecodeError, Message
+
+from gscompress.errors import InputError, MapError
+from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
+
+CODECS = ("fp32", "fp16", "compact")
+"""Map codecs, from the largest to the smallest."""
+
+COMPACT_SCHEMA = "gscompress.CompactGaussians"
+"""Schema name of the compact map message in a log."""
+
+COMPACT_VERSION = 1
+"""Version of the compact message this module writes and reads."""
+
+POSITION_STEP_FRACTION = 1 / 32
+"""Default position grid step as a fraction of the map's median Gaussian scale (the standard
+deviation exp(log_scale)): the position error is at most half a step per axis, 1/64 of a typical
+Gaussian's own scale."""
+
+MAX_POSITION_BITS = 21
+"""Largest grid size per axis, in bits (three axes interleave into a 63-bit Morton code)."""
+
+BITS = {"log_scale": 8, "opacity": 8, "f_dc": 8, "f_rest": 8, "importance": 16}
+"""Default quantisation bits of each linear column (chosen by bench/codec.py)."""
+
+ZSTD_LEVEL = 9
+"""zstd level of every column."""
+
+MAX_GAUSSIANS = 1 << 28
+"""Most Gaussians a compact message may declare."""
+
+MIN_BYTES_PER_GAUSSIAN = 1 / 16
+"""A compact message must hold at least this many bytes per Gaussian it declares (half a bit;
+real maps take 5-20 bytes): a small message cannot make the reader allocate a huge map."""
+
+ROTATION_BITS = 10
+"""Bits of each of the three smallest quaternion components in a `smallest-three` code."""
+
+_SIGMOID_EPS = 1e-7
+"""Opacities are coded in [eps, 1 - eps], so that every code has a finite logit."""
+
+
+@dataclass(frozen=True)
+class CompactOptions:
+    """What a compact message carries besides the Gaussians' geometry and appearance.
+
+    Attributes:
+        ids: the Gaussians' ids (without them, the receiver numbers them 0..N-1).
+        sums: the PWAS sums (exact), for a receiver that continues accumulating.
+        score: without the sums, the PWAS score in 16 bits (ignored when `sums`).
+        step: position grid step in metres (None: `POSITION_STEP_FRACTION` of the median scale).
+    """
+
+    ids: bool = True
+    sums: bool = True
+    score: bool = True
+    step: float | None = None
+
+
+COMPACT_DEFAULTS = CompactOptions()
+"""What a compact map carries unless asked otherwise: ids and PWAS sums."""
+
+
+def check_codec(codec: str) -> str:
+    """Return `codec` if it is one of CODECS, else raise InputError."""
+    if codec not in CODECS:
+        raise InputError(f"unknown codec {codec!r}; choose one of {', '.join(CODECS)}")
+    return codec
+
+
+# ---------------------------------------------------------------------- the message type
+
+
+def _message_types() -> tuple[type[Message], type[Message]]:
+    """The CompactGaussians and CompactColumn message classes, built from a descriptor written
+    here (schemas/compact_gaussians.v1.proto is the same schema in text; a test compares them)."""
+    T = descriptor_pb2.FieldDescriptorProto
+    proto = descriptor_pb2.FileDescriptorProto(
+        name="gscompress/compact_gaussians.v1.proto", package="gscompress", syntax="proto3"
+    )
+    fields = {
+        "CompactGaussians": [
+            ("version", T.TYPE_UINT32, None),
+            ("timestamp_ns", T.TYPE_UINT64, None),
+            ("frame_id", T.TYPE_STRING, None),
+            ("count", T.TYPE_UINT32, None),
+            ("isotropic", T.TYPE_BOOL, None),
+            ("sh_degree", T.TYPE_UINT32, None),
+            ("origin", T.TYPE_DOUBLE, "repeated"),
+            ("step", T.TYPE_DOUBLE, None),
+            ("position_bits", T.TYPE_UINT32, None),
+            ("columns", T.TYPE_MESSAGE, ".gscompress.CompactColumn"),
+        ],
+        "CompactColumn": [
+            ("name", T.TYPE_STRING, None),
+            ("transform", T.TYPE_STRING, None),
+            ("dtype", T.TYPE_STRING, None),
+            ("components", T.TYPE_UINT32, None),
+            ("bits", T.TYPE_UINT32, None),
+            ("low", T.TYPE_DOUBLE, "repeated"),
+            ("high", T.TYPE_DOUBLE, "repeated"),
+            ("raw_bytes", T.TYPE_UINT64, None),
+            ("data", T.TYPE_BYTES, None),
+        ],
+    }
+    for name, spec in fields.items():
+        message = proto.message_type.add(name=name)
+        for number, (field_name, kind, extra) in enumerate(spec, start=1):
+            field = message.field.add(name=field_name, number=number, type=kind)
+            repeated = extra == "repeated" or kind == T.TYPE_MESSAGE
+            field.label = T.LABEL_REPEATED if repeated else T.LABEL_OPTIONAL
+            if kind == T.TYPE_MESSAGE:
+                field.type_name = str(extra)
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(proto)
+    return (
+        message_factory.GetMessageClass(pool.FindMessageTypeByName(COMPACT_SCHEMA)),
+        message_factory.GetMessageClass(pool.FindMessageTypeByName("gscompress.CompactColumn")),
+    )
+
+
+CompactGaussians, CompactColumn = _message_types()
+
+
+def compact_schema_bytes() -> bytes:
+    """The serialized FileDescriptorSet of CompactGaussians (the schema record of a log)."""
+    fds = descriptor_pb2.FileDescriptorSet()
+    CompactGaussians.DESCRIPTOR.file.CopyToProto(fds.file.add())
+    return fds.SerializeToString()
+
+
+# ---------------------------------------------------------------------- one rule per transform
+
+
+def quantise_linear(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Linear codes of `bits` bits for each column of `values` [N, C] between its min and max.
+
+    Returns:
+        (codes [N, C] uint8 or uint16, low [C], high [C]); decoding is `dequantise_linear`.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    levels = (1 << bits) - 1
+    if len(values):
+        low, high = values.min(axis=0), values.max(axis=0)
+    else:
+        low = high = np.zeros(values.shape[1])
+    span = np.where(high > low, high - low, 1.0)
+    codes = np.rint((values - low) / span * levels)
+    return codes.astype(np.uint8 if bits <= 8 else np.uint16), low, high
+
+
+def dequantise_linear(
+    codes: np.ndarray, low: np.ndarray, high: np.ndarray, bits: int
+) -> np.ndarray:
+    """Values of linear codes: low + code * (high - low) / (2^bits - 1), as float32."""
+    levels = (1 << bits) - 1
+    return (low + codes.astype(np.float64) * ((high - low) / levels)).astype(np.float32)
+
+
+def sigmoid(logits: np.ndarray) -> np.ndarray:
+    """Opacity in (0, 1) of opacity logits (float64; no overflow warning at large |logit|)."""
+    return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(logits, dtype=np.float64)))
+
+
+def logit(p: np.ndarray) -> np.ndarray:
+    """Opacity logits of opacities, clamped to [eps, 1 - eps] so that each is finite."""
+    p = np.clip(np.asarray(p, dtype=np.float64), _SIGMOID_EPS, 1 - _SIGMOID_EPS)
+    return np.log(p / (1 - p))
+
+
+def quantise_log(scores: np.ndarray, bits: int) -> tuple[np.ndarray, float, float]:
+    """Codes of nonnegative scores on a log scale: 0 for a zero score, 1..2^bits-1 linear in log
+    score between the smallest and largest positive score.
+
+    Returns:
+        (codes [N] uint16, low, high: log of the smallest and largest positive score).
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    positive = scores > 0
+    codes = np.zeros(len(scores), np.uint16)
+    if not positive.any():
+        return codes, 0.0, 0.0
+    logs = np.log(scores[positive])
+    low, high = float(logs.min()), float(logs.max())
+    steps = (1 << bits) - 2
+    span = high - low if high > low else 1.0
+    codes[positive] = 1 + np.rint((logs - low) / span * steps).astype(np.uint16)
+    return codes, low, high
+
+
+def dequantise_log(codes: np.ndarray, low: float, high: float, bits: int) -> np.ndarray:
+    """Scores of log codes (see `quantise_log`), as float32."""
+    steps = (1 << bits) - 2
+    logs = low + (codes.astype(np.float64) - 1) * ((high - low) / steps)
+    return np.where(codes > 0, np.exp(logs), 0.0).astype(np.float32)
+
+
+def encode_smallest_three(quats: np.ndarray) -> np.ndarray:
+    """32-bit codes of rotations [N, 4] (w x y z, any norm): the index of the largest |component|
+    in the top 2 bits, then the other three, divided by the norm and signed so that the largest
+    is positive, each in [-1/sqrt2, 1/sqrt2] as 10 bits."""
+    q = np.asarray(quats, dtype=np.float64)
+    norms = np.linalg.norm(q, axis=1, keepdims=True)
+    q = q / np.where(norms > 0, norms, 1.0)
+    largest = np.argmax(np.abs(q), axis=1)
+    q = q * np.where(q[np.arange(len(q)), largest] < 0, -1.0, 1.0)[:, None]
+    levels = (1 << ROTATION_BITS) - 1
+    code = largest.astype(np.uint32) << np.uint32(3 * ROTATION_BITS)
+    rest = np.ones_like(q, dtype=bool)
+    rest[np.arange(len(q)), largest] = False
+    others = q[rest].reshape(len(q), 3)
+    scaled = np.rint((others * np.sqrt(2) + 1) / 2 * levels).clip(0, levels).astype(np.uint32)
+    for i in range(3):
+        code |= scaled[:, i] << np.uint32(ROTATION_BITS * (2 - i))
+    return code
+
+
+def decode_smallest_three(codes: np.ndarray) -> np.ndarray:
+    """Unit rotations [N, 4] (w x y z, float32) of `encode_smallest_three` codes."""
+    codes = np.asarray(codes, dtype=np.uint32)
+    levels = (1 << ROTATION_BITS) - 1
+    mask = np.uint32(levels)
+    others = np.stack(
+        [(codes >> np.uint32(ROTATION_BITS * (2 - i))) & mask for i in range(3)], axis=1
+    ).astype(np.float64)
+    others = (others / levels * 2 - 1) / np.sqrt(2)
+    largest = (codes >> np.uint32(3 * ROTATION_BITS)).astype(np.int64)
+    q = np.empty((len(codes), 4))
+    rest = np.ones((len(codes), 4), dtype=bool)
+    rest[np.arange(len(codes)), largest] = False
+    q[rest] = others.reshape(-1)
+    q[np.arange(len(codes)), largest] = np.sqrt(np.clip(1 - (others**2).sum(axis=1), 0, 1))
+    return q.astype(np.float32)
+
+
+def _spread_bits(v: np.ndarray) -> np.ndarray:
+    """Each bit i of 21-bit integers moved to bit 3i (uint64)."""
+    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def _compact_bits(v: np.ndarray) -> np.ndarray:
+    """The inverse of `_spread_bits`: bits 3i back to bit i."""
+    v = v.astype(np.uint64) & np.uint64(0x1249249249249249)
+    for shift, mask in (
+        (2, 0x10C30C30C30C30C3),
+        (4, 0x100F00F00F00F00F),
+        (8, 0x1F0000FF0000FF),
+        (16, 0x1F00000000FFFF),
+        (32, 0x1FFFFF),
+    ):
+        v = (v | (v >> np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def morton_codes(grid: np.ndarray) -> np.ndarray:
+    """Morton codes (uint64) of grid coordinates [N, 3] below 2^21: x in bit 0, y 1, z 2."""
+    grid = np.asarray(grid)
+    return (
+        _spread_bits(grid[:, 0])
+        | (_spread_bits(grid[:, 1]) << np.uint64(1))
+        | (_spread_bits(grid[:, 2]) << np.uint64(2))
+    )
+
+
+def morton_grid(codes: np.ndarray) -> np.ndarray:
+    """Grid coordinates [N, 3] (int64) of Morton codes (the inverse of `morton_codes`)."""
+    codes = np.asarray(codes, dtype=np.uint64)
+    return np.stack([_compact_bits(codes >> np.uint64(axis)) for axis in range(3)], axis=1).astype(
+        np.int64
+    )
+
+
+def position_step(
+    gaussians: GaussianMap, step: float | None = None
+) -> tuple[np.ndarray, float, int]:
+    """The position grid of a map: origin [3] (float64), step and bits per axis.
+
+    The step is `step`, else `POSITION_STEP_FRACTION` of the median scale; it grows where the
+    map would span more than 2^MAX_POSITION_BITS steps along an axis.
+
+    Raises:
+        InputError: a given step that is not a positive finite number.
+    """
+    if step is not None and not (np.isfinite(step) and step > 0):
+        raise InputError(f"position step must be a positive number of metres, got {step}")
+    means = gaussians.means.astype(np.float64)
+    if not len(means):
+        return np.zeros(3), float(step or 1.0), 1
+    origin = means.min(axis=0)
+    extent = float((means.max(axis=0) - origin).max())
+    if step is None:
+        median_scale = float(np.median(np.exp(gaussians.log_scales.astype(np.float64))))
+        step = POSITION_STEP_FRACTION * median_scale if median_scale > 0 else 1e-3
+    step = max(step, extent / ((1 << MAX_POSITION_BITS) - 1) * (1 + 1e-9), np.finfo(float).tiny)
+    bits = max(1, int(np.ceil(np.log2(extent / step + 1.5))))
+    return origin, float(step), min(bits, MAX_POSITION_BITS)
+
+
+# ---------------------------------------------------------------------- columns
+
+
+def _shuffle(codes: np.ndarray) -> bytes:
+    """The bytes of a little-endian code array [N, C] as byte planes (see the module doc)."""
+    flat = np.ascontiguousarray(codes)
+    itemsize = flat.dtype.itemsize
+    raw = flat.view(np.uint8).reshape(flat.shape[0], flat.shape[1], itemsize)
+    return np.ascontiguousarray(raw.transpose(2, 0, 1)).tobytes()
+
+
+def _unshuffle(planes: bytes, count: int, components: int, dtype: np.dtype) -> np.ndarray:
+    """The inverse of `_shuffle`: codes [count, components] of `dtype`."""
+    raw = np.frombuffer(planes, np.uint8).reshape(dtype.itemsize, count, components)
+    return np.ascontiguousarray(raw.transpose(1, 2, 0)).view(dtype).reshape(count, components)
+
+
+def _column(
+    name: str,
+    transform: str,
+    codes: np.ndarray,
+    *,
+    bits: int = 0,
+    low: Any = (),
+    high: Any = (),
+    compressor: zstandard.ZstdCompressor,
+) -> Message:
+    codes = np.asarray(codes)
+    width = int(np.prod(codes.shape[1:]))  # (1 for a [N] column, also when N is 0)
+    codes = codes.reshape(len(codes), width).astype(codes.dtype.newbyteorder("<"), copy=False)
+    planes = _shuffle(codes)
+    return CompactColumn(
+        name=name,
+        transform=transform,
+        dtype=codes.dtype.str.lstrip("|"),
+        components=codes.shape[1],
+        bits=bits,
+        low=[float(v) for v in np.atleast_1d(low)],
+        high=[float(v) for v in np.atleast_1d(high)],
+        raw_bytes=len(planes),
+        data=compressor.compress(planes),
+    )
+
+
+def encode_compact(
+    gaussians: GaussianMap,
+    options: CompactOptions = COMPACT_DEFAULTS,
+    *,
+    timestamp_ns: int = 0,
+    frame_id: str = "world",
+) -> Message:
+    """The compact message of a map (see the module docstring).
+
+    Decoding returns the Gaussians in Morton order of their grid positions, not in the map's.
+
+    Raises:
+        InputError: a bad `options.step`.
+    """
+    n = len(gaussians)
+    origin, step, bits = position_step(gaussians, options.step)
+    grid = np.rint((gaussians.means.astype(np.float64) - origin) / step).astype(np.int64)
+    grid = np.clip(grid, 0, (1 << bits) - 1)
+    codes = morton_codes(grid)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    g = gaussians.select(order)
+    zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
+    columns = [
+        _column("position", "morton-delta", np.diff(codes, prepend=np.uint64(0)), compressor=zstd)
+    ]
+
+    def linear(name: str, values: np.ndarray, transform: str = "linear") -> None:
+        q, low, high = quantise_linear(
+            values.reshape(n, int(np.prod(values.shape[1:]))), BITS[name]
+        )
+        columns.append(
+            _column(name, transform, q, bits=BITS[name], low=low, high=high, compressor=zstd)
+        )
+
+    linear("log_scale", g.log_scales)
+    if not g.isotropic:
+        columns.append(_column("rotation", "smallest-three", encode_smallest_three(g.quats),
+                               bits=ROTATION_BITS, compressor=zstd))  # fmt: skip
+    linear("opacity", sigmoid(g.opacity_logits), "sigmoid-linear")
+    linear("f_dc", g.sh_dc)
+    if g.sh_degree:
+        linear("f_rest", g.sh_rest)
+    if options.ids:
+        deltas = np.diff(g.ids, prepend=np.uint32(0))  # modulo 2^32
+        columns.append(_column("id", "delta", deltas, compressor=zstd))
+    if options.sums:
+        for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
+            columns.append(_column(name, "raw", getattr(g, name).astype("<f4"), compressor=zstd))
+    elif options.score and g.has_importance:
+        q16, low16, high16 = quantise_log(g.importance, BITS["importance"])
+        columns.append(_column("importance", "log-linear", q16, bits=BITS["importance"],
+                               low=low16, high=high16, compressor=zstd))  # fmt: skip
+    return CompactGaussians(
+        version=COMPACT_VERSION,
+        timestamp_ns=max(int(timestamp_ns), 0),
+        frame_id=frame_id,
+        count=n,
+        isotropic=g.isotropic,
+        sh_degree=g.sh_degree,
+        origin=[float(v) for v in origin],
+        step=step,
+        position_bits=bits,
+        columns=columns,
+    )
+
+
+# ---------------------------------------------------------------------- decoding
+
+_SHAPES: dict[str, tuple[str, Callable[[Message], int]]] = {
+    "position": ("morton-delta", lambda m: 1),
+    "log_scale": ("linear", lambda m: 1 if m.isotropic else 3),
+    "rotation": ("smallest-three", lambda m: 1),
+    "opacity": ("sigmoid-linear", lambda m: 1),
+    "f_dc": ("linear", lambda m: 3),
+    "f_rest": ("linear", lambda m: 3 * SH_REST_COUNTS.get(m.sh_degree, 0)),
+    "id": ("delta", lambda m: 1),
+    "importance_sum": ("raw", lambda m: 1),
+    "importance_weight": ("raw", lambda m: 1),
+    "alpha_t_sum": ("raw", lambda m: 1),
+    "importance": ("log-linear", lambda m: 1),
+}
+"""Column name -> (its transform, its components in a message)."""
+
+_DTYPES = {
+    "morton-delta": ("<u8",),
+    "linear": ("u1", "<u2"),
+    "sigmoid-linear": ("u1", "<u2"),
+    "log-linear": ("<u2",),
+    "smallest-three": ("<u4",),
+    "delta": ("<u4",),
+    "raw": ("<f4",),
+}
+"""Transform -> the code dtypes it may be stored as."""
+
+
+def decode_compact_bytes(data: bytes, source: str = "compact map") -> tuple[GaussianMap, Message]:
+    """Parse and decode a serialized compact message (see `decode_compact`).
+
+    Raises:
+        MapError: not a CompactGaussians message, or one `decode_compact` refuses.
+    """
+    message = CompactGaussians()
+    try:
+        message.ParseFromString(data)
+    except DecodeError:
+        raise MapError(f"{source}: a corrupt compact map message") from None
+    return decode_compact(message, len(data), source), message
+
+
+def decode_compact(
+    message: Message, message_bytes: int, source: str = "compact map"
+) -> GaussianMap:
+    """The map of a compact message, checked before anything is allocated.
+
+    Args:
+        message: a parsed CompactGaussians.
+        message_bytes: its serialized size (bounds the count it may declare).
+        source: the file, for messages.
+
+    Raises:
+        MapError: an unknown version, a count beyond `MAX_GAUSSIANS` or the message's size, a
+            missing, repeated or unknown column, a column whose type, components or sizes do not
+            match the count, a bad grid (non-finite origin, step zero or non-finite), codes
+            outside their range, or a decoded map that is not valid.
+    """
+
+    def fail(what: str) -> MapError:
+        return MapError(f"{source}: compact map {what}")
+
+    if message.version != COMPACT_VERSION:
+        raise fail(f"has version {message.version}; this gscompress reads {COMPACT_VERSION}")
+    n = int(message.count)
+    if n > MAX_GAUSSIANS or n > message_bytes / MIN_BYTES_PER_GAUSSIAN:
+        raise fail(f"declares {n} Gaussians in {message_bytes} bytes")
+    if message.sh_degree not in SH_REST_COUNTS:
+        raise fail(f"has SH degree {message.sh_degree}")
+    origin = np.array(message.origin, dtype=np.float64)
+    step = float(message.step)
+    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+        raise fail("has no finite grid origin of three numbers")
+    if not (np.isfinite(step) and step > 0):
+        raise fail(f"has grid step {step}: not a positive number")
+    bits = int(message.position_bits)
+    if not 1 <= bits <= MAX_POSITION_BITS:
+        raise fail(f"has {bits} position bits (1..{MAX_POSITION_BITS})")
+
+    columns: dict[str, np.ndarray] = {}
+    params: dict[str, Message] = {}
+    decompressor = zstandard.ZstdDecompressor()
+    for column in message.columns:
+        name = column.name
+        if name not in _SHAPES:
+            raise fail(f"has an unknown column {name[:40]!r}")
+        if name in columns:
+            raise fail(f"has column {name!r} twice")
+        transform, components = _SHAPES[name][0], _SHAPES[name][1](message)
+        if column.transform != transform or column.dtype not in _DTYPES[transform]:
+            raise fail(f"column {name!r} is {column.transform[:40]!r} {column.dtype[:8]!r}")
+        if column.components != components:
+            raise fail(f"column {name!r} has {column.components} components, not {components}")
+        dtype = np.dtype(column.dtype)
+        expected = n * components * dtype.itemsize
+        if column.raw_bytes != expected:
+            raise fail(f"column {name!r} declares {column.raw_bytes} bytes; {n} Gaussians take "
+                       f"{expected}")  # fmt: skip
+        if transform in ("linear", "sigmoid-linear", "log-linear"):
+            low, high = np.array(column.low), np.array(column.high)
+            wanted = 1 if transform == "log-linear" else components
+            if low.shape != (wanted,) or high.shape != (wanted,):
+                raise fail(f"column {name!r} lacks its low and high values")
+            if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high >= low)):
+                raise fail(f"column {name!r} has a bad range [{low}, {high}]")
+            if not 1 <= column.bits <= dtype.itemsize * 8 or (
+                transform == "log-linear" and column.bits < 2
+            ):
+                raise fail(f"column {name!r} has {column.bits} bits in {column.dtype}")
+        planes = _inflate(
+            decompressor, column.data, expected, f"{source}: compact map column {name!r}"
+        )
+        columns[name] = _unshuffle(planes, n, components, dtype)
+        params[name] = column
+
+    required = ["position", "log_scale", "opacity", "f_dc"]
+    required += [] if message.isotropic else ["rotation"]
+    required += ["f_rest"] if message.sh_degree else []
+    missing = [name for name in required if name not in columns]
+    if missing:
+        raise fail(f"lacks column(s) {', '.join(missing)}")
+    sums = [name for name in ("importance_sum", "importance_weight", "alpha_t_sum")
+            if name in columns]  # fmt: skip
+    if sums and len(sums) != 3:
+        raise fail("has some of the PWAS sums but not all three")
+    if message.isotropic and "rotation" in columns:
+        raise fail("is isotropic but has rotations")
+
+    deltas = columns["position"][:, 0]
+    total = np.cumsum(deltas, dtype=np.uint64)
+    limit = np.uint64(1) << np.uint64(3 * bits)
+    if n and (np.any(deltas >= limit) or np.any(total[1:] < total[:-1]) or total[-1] >= limit):
+        raise fail(f"has positions outside its {bits}-bit grid")
+    means = (origin + morton_grid(total) * step).astype(np.float32)
+
+    def linear(name: str) -> np.ndarray:
+        c = params[name]
+        codes = columns[name]
+        if np.any(codes > (1 << c.bits) - 1):
+            raise fail(f"column {name!r} has codes beyond {c.bits} bits")
+        return dequantise_linear(codes, np.array(c.low), np.array(c.high), c.bits)
+
+    rotation = columns.get("rotation")
+    if rotation is not None and np.any((rotation[:, 0] >> np.uint32(3 * ROTATION_BITS)) > 3):
+        raise fail("has rotation codes beyond 32 bits")
+    k = SH_REST_COUNTS[message.sh_degree]
+    extra: dict[str, Any] = {name: columns[name][:, 0] for name in sums}
+    if "importance" in columns and not sums:
+        c = params["importance"]
+        if np.any(columns["importance"] > (1 << c.bits) - 1):
+            raise fail(f"column 'importance' has codes beyond {c.bits} bits")
+        score = dequantise_log(columns["importance"][:, 0], c.low[0], c.high[0], c.bits)
+        extra = {"importance_sum": score, "importance_weight": np.ones(n, np.float32)}
+    if "id" in columns:
+        extra["ids"] = np.cumsum(columns["id"][:, 0], dtype=np.uint32)
+    gaussians = GaussianMap.new(
+        means=means,
+        log_scales=linear("log_scale"),
+        quats=(
+            np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
+            if rotation is None
+            else decode_smallest_three(rotation[:, 0])
+        ),
+        opacity_logits=logit(linear("opacity")[:, 0]).astype(np.float32),
+        sh_dc=linear("f_dc"),
+        sh_rest=linear("f_rest").reshape(n, k, 3) if k else None,
+        **extra,
+    )
+    try:
+        return gaussians.validate()
+    except MapError as exc:
+        raise fail(str(exc)) from None
+
+
+def _inflate(decompressor: zstandard.ZstdDecompressor, data: bytes, size: int, where: str) -> bytes:
+    """A zstd frame inflated to exactly `size` bytes, refused (MapError led by `where`) if it
+    declares or holds another size or is not zstd."""
+    if size == 0 and not data:
+        return b""
+    try:
+        declared = zstandard.frame_content_size(data)
+    except zstandard.ZstdError:
+        raise MapError(f"{where} is not a zstd frame") from None
+    if declared not in (-1, size):
+        raise MapError(f"{where} declares {declared} bytes, not {size}")
+    try:
+        out = decompressor.decompress(data, max_output_size=size)
+    except zstandard.ZstdError as exc:
+        raise MapError(f"{where} does not decompress ({' '.join(str(exc).split())[:80]})") from None
+    if len(out) != size:
+        raise MapError(f"{where} holds {len(out)} bytes, not {size}")
+    return out
