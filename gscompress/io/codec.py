@@ -53,9 +53,9 @@ COMPACT_SCHEMA = "gscompress.CompactGaussians"
 COMPACT_VERSION = 1
 """Version of the compact message this module writes and reads."""
 
-POSITION_STEP_FRACTION = 1 / 32
+POSITION_STEP_FRACTION = 1 / 64
 """Default position grid step as a fraction of the map's median Gaussian scale (the standard
-deviation exp(log_scale)): the position error is at most half a step per axis, 1/64 of a typical
+deviation exp(log_scale)): the position error is at most half a step per axis, 1/128 of a typical
 Gaussian's own scale."""
 
 MAX_POSITION_BITS = 21
@@ -64,7 +64,7 @@ MAX_POSITION_BITS = 21
 BITS = {"log_scale": 8, "opacity": 8, "f_dc": 8, "f_rest": 8, "importance": 16}
 """Default quantisation bits of each linear column (chosen by bench/codec.py)."""
 
-ZSTD_LEVEL = 9
+ZSTD_LEVEL = 3
 """zstd level of every column."""
 
 MAX_GAUSSIANS = 1 << 28
@@ -411,7 +411,10 @@ def encode_compact(
     codes = morton_codes(grid)
     order = np.argsort(codes, kind="stable")
     codes = codes[order]
-    g = gaussians.select(order)
+
+    def ordered(name: str) -> np.ndarray:
+        return np.asarray(getattr(gaussians, name))[order]  # (the arrays used, not a whole copy)
+
     zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
     columns = [
         _column("position", "morton-delta", np.diff(codes, prepend=np.uint64(0)), compressor=zstd)
@@ -425,22 +428,24 @@ def encode_compact(
             _column(name, transform, q, bits=BITS[name], low=low, high=high, compressor=zstd)
         )
 
-    linear("log_scale", g.log_scales)
-    if not g.isotropic:
-        columns.append(_column("rotation", "smallest-three", encode_smallest_three(g.quats),
-                               bits=ROTATION_BITS, compressor=zstd))  # fmt: skip
-    linear("opacity", sigmoid(g.opacity_logits), "sigmoid-linear")
-    linear("f_dc", g.sh_dc)
-    if g.sh_degree:
-        linear("f_rest", g.sh_rest)
+    linear("log_scale", ordered("log_scales"))
+    if not gaussians.isotropic:
+        rotations = encode_smallest_three(ordered("quats"))
+        columns.append(
+            _column("rotation", "smallest-three", rotations, bits=ROTATION_BITS, compressor=zstd)
+        )
+    linear("opacity", sigmoid(ordered("opacity_logits")), "sigmoid-linear")
+    linear("f_dc", ordered("sh_dc"))
+    if gaussians.sh_degree:
+        linear("f_rest", ordered("sh_rest"))
     if options.ids:
-        deltas = np.diff(g.ids, prepend=np.uint32(0))  # modulo 2^32
+        deltas = np.diff(ordered("ids"), prepend=np.uint32(0))  # modulo 2^32
         columns.append(_column("id", "delta", deltas, compressor=zstd))
     if options.sums:
         for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
-            columns.append(_column(name, "raw", getattr(g, name).astype("<f4"), compressor=zstd))
-    elif options.score and g.has_importance:
-        q16, low16, high16 = quantise_log(g.importance, BITS["importance"])
+            columns.append(_column(name, "raw", ordered(name).astype("<f4"), compressor=zstd))
+    elif options.score and gaussians.has_importance:
+        q16, low16, high16 = quantise_log(gaussians.importance[order], BITS["importance"])
         columns.append(_column("importance", "log-linear", q16, bits=BITS["importance"],
                                low=low16, high=high16, compressor=zstd))  # fmt: skip
     return CompactGaussians(
@@ -448,8 +453,8 @@ def encode_compact(
         timestamp_ns=max(int(timestamp_ns), 0),
         frame_id=frame_id,
         count=n,
-        isotropic=g.isotropic,
-        sh_degree=g.sh_degree,
+        isotropic=gaussians.isotropic,
+        sh_degree=gaussians.sh_degree,
         origin=[float(v) for v in origin],
         step=step,
         position_bits=bits,
