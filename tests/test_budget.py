@@ -345,3 +345,26 @@ def test_pruning_an_fp16_share_keeps_it_fp16(tmp_path):
     index = [where[int(i)] for i in kept.ids]
     assert len(kept) == 50
     np.testing.assert_array_equal(kept.opacity_logits, received.opacity_logits[index])
+
+
+def test_a_percentage_of_bytes_is_of_the_maps_fp32_message(tmp_path):
+    budget = Budget.parse("5%bytes")
+    assert budget.fp32_fraction == 0.05 and budget.budget_bytes is None
+    assert Budget.parse("5 %Bytes").fp32_fraction == 0.05
+    with pytest.raises(InputError, match="resolve it"):
+        budget.count(10, lambda k: k)
+    resolved = budget.resolve(1_000_000)
+    assert resolved.budget_bytes == 50_000 and str(resolved) == "5%bytes"
+    assert resolved.record() == {
+        "budget": "5%bytes", "budget_bytes": 50_000, "budget_fp32_fraction": 0.05
+    }  # fmt: skip
+    with pytest.raises(BudgetError, match="under one byte"):
+        Budget.parse("0.0001%bytes").resolve(1000)
+    with pytest.raises(InputError):
+        Budget.parse("0%bytes")
+    full = random_map(3000, seed=9)
+    src = write_log(tmp_path / "a.mcap", full)
+    fp32 = pointcloud_bytes(full, "fp32")(len(full))
+    r = share_log(src, tmp_path / "s.mcap", "20%bytes")
+    assert r["budget_bytes"] == int(0.2 * fp32) and r["file_bytes"] <= r["budget_bytes"]
+    assert r["selected"] > 0.2 * len(full)  # compact sends more than a fifth of the Gaussians

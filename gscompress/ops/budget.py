@@ -6,7 +6,9 @@ byte count with a unit: `B`, `kB`, `MB`, `GB` (powers of 1000) or `KiB`, `MiB`, 
 final `B` must be a capital: a lowercase `b` means bits in link speeds (`2Mb` is 250 kB), so it
 is refused rather than read as bytes 8x too many. A fractional byte count is
 rounded down (a budget is never exceeded). A bare number above 1 is refused: it is most likely a
-byte count that lacks its unit.
+byte count that lacks its unit. A percentage of bytes, `5%bytes`, is that share of the map's
+own `/gaussians` message at fp32 (the same fraction of every map, as a rate-distortion sweep
+wants); it becomes a byte count once the map is known (`Budget.resolve`).
 
 A byte budget counts what is sent: the whole share file as written. The caller supplies that size
 as a function of the Gaussian count (`largest_count_within`), so this module stays free of any
@@ -30,26 +32,38 @@ BYTE_UNITS: dict[str, int] = {name.lower(): size for name, size in _UNITS.items(
 """Byte units (lower case: the prefix is read in either case) and their sizes in bytes."""
 _SPELLING = {name.lower(): name for name in _UNITS}
 
-_BUDGET = re.compile(r"\s*(\d+(?:\.\d*)?|\.\d+)(?:[eE]([+-]?\d+))?\s*(%|[a-zA-Z]+)?\s*")
+_BUDGET = re.compile(
+    r"\s*(\d+(?:\.\d*)?|\.\d+)(?:[eE]([+-]?\d+))?\s*(%\s*bytes|%|[a-zA-Z]+)?\s*", re.IGNORECASE
+)
 
 
 @dataclass(frozen=True)
 class Budget:
-    """A share budget: exactly one of a fraction of the Gaussians or a number of bytes.
+    """A share budget: a fraction of the Gaussians, a number of bytes, or a fraction of the
+    map's bytes at fp32 (which `resolve` turns into a number of bytes once the map is known).
 
     Attributes:
         ratio: fraction of the map's Gaussians to send, in (0, 1], or None.
-        budget_bytes: the most bytes the sent message may take (>= 1), or None.
+        budget_bytes: the most bytes the sent file may take (>= 1), or None.
+        fp32_fraction: the budget as a fraction of the map's `/gaussians` message at fp32
+            (`5%bytes`), or None; with `budget_bytes` unset until resolved.
         text: how the budget was written (for messages and records).
     """
 
     ratio: float | None = None
     budget_bytes: int | None = None
+    fp32_fraction: float | None = None
     text: str = ""
 
     def __post_init__(self) -> None:
-        if (self.ratio is None) == (self.budget_bytes is None):
+        if self.ratio is not None and (self.budget_bytes, self.fp32_fraction) != (None, None):
+            raise InputError("a budget is a fraction of the Gaussians or a number of bytes")
+        if self.ratio is None and self.budget_bytes is None and self.fp32_fraction is None:
             raise InputError("a budget is either a fraction or a number of bytes")
+        if self.fp32_fraction is not None and not (
+            math.isfinite(self.fp32_fraction) and self.fp32_fraction > 0
+        ):
+            raise InputError(f"a fraction of the map's bytes must be above 0, got {self.text}")
         if self.ratio is not None and not is_fraction(self.ratio):
             raise InputError(f"budget fraction must be in (0, 1], got {self.ratio:g}")
         if self.budget_bytes is not None and self.budget_bytes < 1:
@@ -73,14 +87,33 @@ class Budget:
         """
         if self.ratio is not None:
             return keep_count(n, self.ratio, "budget")
-        assert self.budget_bytes is not None  # one of the two is set (__post_init__)
+        if self.budget_bytes is None:
+            raise InputError(f"budget {self}: resolve it against the map's fp32 bytes first")
         return largest_count_within(self.budget_bytes, n, message_bytes)
 
+    def resolve(self, fp32_bytes: int) -> Budget:
+        """This budget with a fraction of the map's bytes turned into bytes, given the map's
+        `/gaussians` message at fp32 (`fp32_bytes`); any other budget as it is.
+
+        Raises:
+            BudgetError: the fraction comes to less than one byte.
+        """
+        if self.fp32_fraction is None or self.budget_bytes is not None:
+            return self
+        budget_bytes = math.floor(self.fp32_fraction * fp32_bytes)
+        if budget_bytes < 1:
+            raise BudgetError(f"budget {self} of a {fp32_bytes}-byte map is under one byte")
+        return Budget(budget_bytes=budget_bytes, fp32_fraction=self.fp32_fraction, text=str(self))
+
     def record(self) -> dict[str, Any]:
-        """The budget as recorded in provenance and results: `budget` [and `budget_bytes`]."""
+        """The budget as recorded in provenance and results: `budget` [and `budget_bytes`, and
+        `budget_fp32_fraction` for a fraction of the map's bytes]."""
         if self.ratio is not None:
             return {"budget": self.ratio}
-        return {"budget": str(self), "budget_bytes": self.budget_bytes}
+        out: dict[str, Any] = {"budget": str(self), "budget_bytes": self.budget_bytes}
+        if self.fp32_fraction is not None:
+            out["budget_fp32_fraction"] = self.fp32_fraction
+        return out
 
     @classmethod
     def parse(cls, value: str | float | Budget) -> Budget:
@@ -107,6 +140,8 @@ class Budget:
             return cls._from_number(number, text)
         if unit == "%":
             return cls._from_number(number / 100, text, percent=True)
+        if unit.startswith("%"):  # %bytes: of the map's bytes at fp32
+            return cls(fp32_fraction=number / 100, text=text)
         if unit.endswith("b"):
             raise InputError(
                 f"budget {text!r}: a lowercase b means bits; budgets are bytes, e.g. "

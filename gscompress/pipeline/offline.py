@@ -24,6 +24,7 @@ from gscompress.io.mcap_log import (
     LogReader,
     LogWriter,
     Snapshot,
+    pointcloud_bytes,
     read_map,
 )
 from gscompress.io.ply import read_ply, write_ply
@@ -159,11 +160,13 @@ class ShareCut:
         seed: int = 0,
         command: str = "",
     ):
-        self.src, self.budget = Path(src), budget
+        self.src = Path(src)
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
         with LogReader(src) as log_in:
             self.full = log_in.read_map()
             meta = log_in.metadata
+        fp32_bytes = pointcloud_bytes(self.full, "fp32")(len(self.full))
+        self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
         operation.update(codec=codec, sums=sums)
         self._meta = meta.derive(operation, src, command)
@@ -218,10 +221,10 @@ def share_log(
     Args:
         src: the log whose map (last snapshot) is shared.
         dst: the share (MCAP).
-        budget: a fraction of the Gaussians in (0, 1], or bytes (`"2MB"`, `"1.5MiB"`, see
-            `Budget`). A byte budget bounds the whole share file as written (framing, schema,
-            metadata and map: the bytes that cross the link), which holds the most Gaussians
-            that fit.
+        budget: a fraction of the Gaussians in (0, 1], or bytes (`"2MB"`, `"1.5MiB"`, or
+            `"5%bytes"` of the map's fp32 message; see `Budget`). A byte budget bounds the whole
+            share file as written (framing, schema, metadata and map: the bytes that cross the
+            link), which holds the most Gaussians that fit.
         strategy: what to rank Gaussians by (`Strategy`).
         codec: how the map is stored (`gscompress.io.codec.CODECS`): compact (the default, about
             10-20 bytes per Gaussian), fp16 or fp32 (a foxglove.PointCloud Foxglove draws).
@@ -247,10 +250,11 @@ def share_log(
         check_output(path, [src], force, suffix)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
                    command=command)  # fmt: skip
-    count = budget.count(len(cut.full), cut.size)
+    count = cut.budget.count(len(cut.full), cut.size)
     data, shared, results = cut.file(count)
-    if budget.budget_bytes is not None and len(data) > budget.budget_bytes:
-        raise AssertionError(f"share of {len(data)} B exceeds {budget.budget_bytes} B")
+    limit = cut.budget.budget_bytes
+    if limit is not None and len(data) > limit:
+        raise AssertionError(f"share of {len(data)} B exceeds {limit} B")
     results["file_bytes"] = len(data)
     write_bytes_atomic(dst, data)
     if ply is not None:
