@@ -19,6 +19,10 @@ from .options import (
     emit,
     force_option,
     json_option,
+    log_refiner,
+    progress_bar,
+    refine_options,
+    refined_text,
     seed_option,
 )
 
@@ -64,7 +68,8 @@ from .options import (
     default=None,
     help="Also write the share as a float32 3DGS PLY file (the values the receiver decodes).",
 )
-@seed_option()
+@refine_options
+@seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
 @json_option
 def share(
@@ -75,6 +80,9 @@ def share(
     strategy: str,
     precision: str | None,
     ply: Path | None,
+    refine_iters: int,
+    seq: Path | None,
+    device: str,
     seed: int,
     force: bool,
     as_json: bool,
@@ -88,32 +96,39 @@ def share(
     Gaussians whose /gaussians message (what is sent: the PointCloud header plus one record per
     Gaussian) fits in it; it is never exceeded. `gsc info` shows a share's bytes.
 
+    With --refine N the selected Gaussians are refined on the sender's own frames before they
+    are sent (--seq: the sequence SRC was made from); the count and the bytes do not change.
+
     \b
     Examples:
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
       gsc share --budget 2MB agent_a.mcap share.mcap
       gsc share --budget 2MB --precision fp16 agent_a.mcap -o share.mcap
+      gsc share --budget 0.2 --refine 500 --seq data/room agent_a.mcap share.mcap
     """
     if dst is not None and output is not None:
         raise click.UsageError("give the share's path once: as DST or with -o, not both")
     dst = dst if output is None else output
     if dst is None:
         raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
-    result = share_log(
-        src,
-        dst,
-        budget,
-        strategy=strategy,
-        precision=precision,
-        seed=seed,
-        ply=ply,
-        command=command_line(),
-        force=force,
-    )
+    with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
+        refine = log_refiner(src, refine_iters, seq, device, seed, bar, "share without --refine")
+        result = share_log(
+            src,
+            dst,
+            budget,
+            strategy=strategy,
+            precision=precision,
+            seed=seed,
+            ply=ply,
+            refine=refine,
+            command=command_line(),
+            force=force,
+        )
     extra = f" and {ply}" if ply else ""
     emit(
         result,
         as_json,
         f"shared {result['selected']} of {result['total']} Gaussians ({strategy}, "
-        f"{result['precision']}, {result['bytes']} B) -> {dst}{extra}",
+        f"{result['precision']}, {result['bytes']} B){refined_text(result)} -> {dst}{extra}",
     )

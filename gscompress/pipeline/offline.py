@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.columns import check_precision
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import (
+    TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
     TOPIC_POSE_GT,
@@ -35,6 +36,20 @@ from gscompress.ops.select import check_ratio, select_count, select_top, strateg
 log = logging.getLogger(__name__)
 
 QUANTILES = (0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0)
+
+
+class MapRefiner(Protocol):
+    """Refines a map on the frames of the log it came from
+    (`gscompress.pipeline.refine.LogRefiner`, which needs torch: prune and share take one only
+    when asked to refine)."""
+
+    def __call__(self, gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+        """The map refined (same Gaussians, same order) and the refinement's statistics."""
+        ...
+
+    def record(self) -> dict[str, Any]:
+        """What a provenance step records of the refinement."""
+        ...
 
 
 def import_ply(
@@ -57,22 +72,41 @@ def prune_log(
     *,
     by: str = "pwas",
     seed: int = 0,
+    refine: MapRefiner | None = None,
+    map_only: bool = False,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
     """Keep the `keep` fraction of a log's map with the highest `by` scores.
 
     The last `/gaussians` snapshot is replaced by its pruned version (same log time); every other
-    message, earlier snapshots included, passes through unchanged.
+    message, earlier snapshots included, passes through unchanged (with `map_only`, only the
+    calibration does: see `rewrite_map`). `refine` (a `gscompress.pipeline.refine.LogRefiner`)
+    refines the kept Gaussians before they are written; it never adds or drops one.
     """
     check_ratio(keep, "--keep")
 
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         kept, _ = select_top(full, keep, by, seed)
-        return kept, {"kept": len(kept), "total": len(full)}
+        return refined(kept, {"kept": len(kept), "total": len(full)}, refine)
 
     operation = {"name": "prune", "keep": keep, "by": by, "seed": seed}
-    return rewrite_map(src, dst, operation, prune, command=command, force=force)
+    if refine is not None:
+        operation["refine"] = refine.record()
+    if map_only:
+        operation["map_only"] = True
+    return rewrite_map(src, dst, operation, prune, command=command, force=force, map_only=map_only)
+
+
+def refined(
+    gaussians: GaussianMap, results: dict[str, Any], refine: MapRefiner | None
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """`gaussians` through `refine` when there is one, its statistics added to `results` as
+    `refine_*`."""
+    if refine is None:
+        return gaussians, results
+    gaussians, stats = refine(gaussians)
+    return gaussians, {**results, **{f"refine_{k}": v for k, v in stats.items()}}
 
 
 def rewrite_map(
@@ -83,12 +117,15 @@ def rewrite_map(
     *,
     command: str = "",
     force: bool = False,
+    map_only: bool = False,
 ) -> dict[str, Any]:
     """Copy a log, replacing its map (the last snapshot) by `transform(map)`.
 
-    Every other message passes through unchanged; the output's provenance gains `operation` and
-    its results are what `transform` returns beside the new map. The new map is stored at the
-    precision of the one it replaces (an fp16 share stays fp16).
+    Every other message passes through unchanged; with `map_only`, only the calibration does
+    (no earlier snapshots, poses, stats or transforms: the file is as small as the map). The
+    output's provenance gains `operation` and its results are what `transform` returns beside
+    the new map. The new map is stored at the precision of the one it replaces (an fp16 share
+    stays fp16).
     """
     check_output(dst, [src], force, ".mcap")
     with LogReader(src) as log_in:
@@ -98,13 +135,14 @@ def rewrite_map(
             snapshot = 0
             for schema, channel, message in log_in.iter_messages():
                 if channel.topic != TOPIC_GAUSSIANS:
-                    out.copy_message(schema, channel, message)
+                    if not map_only or channel.topic == TOPIC_CALIBRATION:
+                        out.copy_message(schema, channel, message)
                     continue
                 if snapshot == last:
                     stored = log_in.decode_snapshot(schema, message)
                     new_map, meta.results = transform(stored.gaussians)
                     out.write_gaussians(new_map, message.log_time, stored.precision)
-                else:
+                elif not map_only:
                     out.copy_message(schema, channel, message)
                 snapshot += 1
     return {"output": str(dst), **meta.results}
@@ -119,6 +157,7 @@ def share_log(
     precision: str | None = None,
     seed: int = 0,
     ply: str | Path | None = None,
+    refine: MapRefiner | None = None,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
@@ -139,6 +178,9 @@ def share_log(
             of an fp16 map stays fp16: float32 would only double its bytes).
         seed: seed of the random strategy.
         ply: also write the share as a float32 3DGS PLY (the decoded values).
+        refine: refines the selected Gaussians before they are sent (a
+            `gscompress.pipeline.refine.LogRefiner` on the sender's frames); the count and
+            the bytes stay those the budget chose.
         command: command line for the provenance record.
         force: overwrite existing outputs.
 
@@ -164,15 +206,21 @@ def share_log(
     shared, _ = select_count(full, count, strategy, seed)
     operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
     operation["precision"] = precision
+    if refine is not None:
+        operation["refine"] = refine.record()
     out_meta = meta.derive(operation, src, command)
-    out_meta.results = {
-        "source": Path(src).name,
-        "strategy": strategy,
-        **budget.record(),
-        "precision": precision,
-        "selected": len(shared),
-        "total": len(full),
-    }
+    shared, out_meta.results = refined(
+        shared,
+        {
+            "source": Path(src).name,
+            "strategy": strategy,
+            **budget.record(),
+            "precision": precision,
+            "selected": len(shared),
+            "total": len(full),
+        },
+        refine,
+    )
     with LogWriter(dst, out_meta, inputs=[src], force=force) as out:
         written = out.write_gaussians(shared, 0, precision)
         if budget.budget_bytes is not None and written > budget.budget_bytes:
