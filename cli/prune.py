@@ -70,7 +70,7 @@ def prune(
     snapshots pass through unchanged (with --map-only, only the calibration), and the output
     records where it came from. Rounding is half up; ties are broken by ascending Gaussian id.
 
-    With --refine N the kept Gaussians are refined on the log's own frames (the sequence given
+    With --refine N the kept Gaussians are refined on the log's keyframes (the sequence given
     by --seq must be the one the log was made from); the pruned ones never come back, and one
     whose opacity collapses stays.
 
