@@ -7,9 +7,10 @@ from pathlib import Path
 import click
 
 from gscompress.ops.budget import Budget
-from gscompress.ops.merge import REFINE_VIEWS
+from gscompress.ops.refine import REFINE_VIEWS
 from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
-from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
+from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 
 from .options import (
     INPUT_FOLDER,

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import click
 
-from gscompress.ops.merge import REFINE_VIEWS
+from gscompress.ops.refine import REFINE_VIEWS
 from gscompress.pipeline import merge_logs
-from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
+from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 
 from .options import (
     INPUT_FILE,
@@ -24,6 +25,7 @@ from .options import (
     json_option,
     output_option,
     progress_bar,
+    refined_text,
     seed_option,
     seq_option,
     share_transform_option,
@@ -132,10 +134,5 @@ def merge(
         f"merged {result['share']} shared + {result['receiver']} own -> "
         f"{result['gaussians']} Gaussians in {dst}"
     )
-    if result.get("refine_iters"):
-        text += (
-            f" (refined {result['refine_iters']} iterations on {result['refine_views']} "
-            f"views: mean loss {result['refine_loss_before']:.4f} -> "
-            f"{result['refine_loss_after']:.4f})"
-        )
+    text += refined_text(result)
     emit(result, as_json, text)

@@ -348,3 +348,54 @@ def share_transform_option(f: F) -> F:
         "(16 numbers of a 4x4 matrix, or `tx ty tz qx qy qz qw`), for agents whose frames "
         "differ; without it the two logs' recorded world frames must agree.",
     )(f)
+
+
+def refine_options(f: F) -> F:
+    """`--refine N`, `--seq FOLDER` and `--device`: refine what a command keeps on the log's
+    keyframes (`log_refiner` turns them into the refiner)."""
+    from gscompress.pipeline.refine import DEFAULT_LR_FINAL, KEYFRAME_RULE  # (no torch yet)
+
+    f = device_option(f)
+    f = seq_option(False, "The sequence the log was made from (needed by --refine).")(f)
+    return click.option(
+        "--refine",
+        "refine_iters",
+        type=click.IntRange(min=0),
+        default=0,
+        show_default=True,
+        help="Refine the kept Gaussians for this many iterations on the log's keyframes at its "
+        "estimated poses, with its mapping losses and rates (decaying to "
+        f"{DEFAULT_LR_FINAL:g} of them), before writing; none is added or dropped. The "
+        f"keyframes are {KEYFRAME_RULE}. 0: no refinement (no torch, no sequence).",
+    )(f)
+
+
+def log_refiner(
+    src: Path, iters: int, seq: Path | None, device: str, seed: int, bar: Any, instead: str
+) -> Any:
+    """The `gscompress.pipeline.refine.LogRefiner` that `refine_options` ask for (drawing on
+    `bar`), or None for no refinement.
+
+    Raises:
+        click.UsageError: --refine without --seq, or --seq without --refine.
+    """
+    if iters == 0:
+        if seq is not None:
+            raise click.UsageError("--seq is only used with --refine N")
+        return None
+    if seq is None:
+        raise click.UsageError("--refine needs the sequence the log was made from: pass --seq")
+    from gscompress.pipeline.refine import LogRefiner, RefineOptions
+
+    options = RefineOptions(iters, device=device, seed=seed)
+    return LogRefiner(src, seq, options, lambda done, total: advance(bar, done, total), instead)
+
+
+def refined_text(result: dict[str, Any]) -> str:
+    """What a command says of the refinement whose `refine_*` results it returns."""
+    if not result.get("refine_iters"):
+        return ""
+    return (
+        f" (refined {result['refine_iters']} iterations on {result['refine_views']} views: "
+        f"mean loss {result['refine_loss_before']:.4f} -> {result['refine_loss_after']:.4f})"
+    )

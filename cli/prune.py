@@ -18,7 +18,11 @@ from .options import (
     emit,
     force_option,
     json_option,
+    log_refiner,
     output_option,
+    progress_bar,
+    refine_options,
+    refined_text,
     seed_option,
     sums_option,
 )
@@ -39,16 +43,27 @@ from .options import (
     show_default=True,
     help="Score to rank by.",
 )
+@refine_options
+@click.option(
+    "--map-only",
+    is_flag=True,
+    help="Write only the pruned map, the calibration and the provenance (no earlier "
+    "snapshots, poses or stats): the file is as small as the map.",
+)
 @output_option()
 @codec_option(None, " [default: the map's own codec]")
 @sums_option
-@seed_option()
+@seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
 @json_option
 def prune(
     src: Path,
     keep: float,
     by: str,
+    refine_iters: int,
+    seq: Path | None,
+    device: str,
+    map_only: bool,
     dst: Path,
     codec: str | None,
     sums: bool,
@@ -59,29 +74,27 @@ def prune(
     """Keep the round(KEEP x N) highest-scoring Gaussians of the map in SRC.
 
     Only the last /gaussians snapshot (the map) is pruned; poses, calibration, stats and earlier
-    snapshots pass through unchanged, and the output records where it came from. Rounding is half
-    up; ties are broken by ascending Gaussian id.
+    snapshots pass through unchanged (with --map-only, only the calibration), and the output
+    records where it came from. Rounding is half up; ties are broken by ascending Gaussian id.
+
+    With --refine N the kept Gaussians are refined on the log's keyframes (the sequence given
+    by --seq must be the one the log was made from); the pruned ones never come back, and one
+    whose opacity collapses stays.
 
     \b
     Examples:
       gsc prune run.mcap --keep 0.3 -o run_30.mcap
       gsc prune run.mcap --keep 0.3 --by opacity -o run_30_opacity.mcap
       gsc prune run.mcap --keep 0.3 --codec compact -o run_30_compact.mcap
+      gsc prune run.mcap --keep 0.3 --refine 500 --seq data/room --map-only -o run_30r.mcap
     """
-    result = prune_log(
-        src,
-        dst,
-        keep,
-        by=by,
-        seed=seed,
-        codec=codec,
-        options=CompactOptions(sums=sums),
-        command=command_line(),
-        force=force,
+    with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
+        refine = log_refiner(src, refine_iters, seq, device, seed, bar, "prune without --refine")
+        result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
+                           options=CompactOptions(sums=sums), refine=refine, map_only=map_only,
+                           command=command_line(), force=force)  # fmt: skip
+    text = (
+        f"kept {result['kept']} of {result['total']} Gaussians (by {by}, {result['codec']})"
+        + refined_text(result)
     )
-    emit(
-        result,
-        as_json,
-        f"kept {result['kept']} of {result['total']} Gaussians (by {by}, {result['codec']}) "
-        f"-> {dst}",
-    )
+    emit(result, as_json, f"{text} -> {dst}")

@@ -21,6 +21,10 @@ from .options import (
     emit,
     force_option,
     json_option,
+    log_refiner,
+    progress_bar,
+    refine_options,
+    refined_text,
     seed_option,
     sums_option,
 )
@@ -69,7 +73,8 @@ from .options import (
     default=None,
     help="Also write the share as a float32 3DGS PLY file (the values the receiver decodes).",
 )
-@seed_option()
+@refine_options
+@seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
 @json_option
 def share(
@@ -82,6 +87,9 @@ def share(
     precision: str | None,
     sums: bool,
     ply: Path | None,
+    refine_iters: int,
+    seq: Path | None,
+    device: str,
     seed: int,
     force: bool,
     as_json: bool,
@@ -99,12 +107,17 @@ def share(
     metadata and map, the bytes that cross the link); it is never exceeded. `gsc info` shows a
     share's codec and bytes.
 
+    With --refine N the selected Gaussians are refined on the sender's own frames before they
+    are sent (--seq: the sequence SRC was made from); a byte budget still bounds the file of
+    the refined values (which may compress a little less well, leaving out the last few).
+
     \b
     Examples:
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
       gsc share --budget 50kB agent_a.mcap share.mcap
       gsc share --budget 5%bytes --no-sums agent_a.mcap share.mcap
       gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
+      gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
     """
     if precision is not None:
         if codec != DEFAULT_SHARE_CODEC and codec != precision:
@@ -115,22 +128,25 @@ def share(
     dst = dst if output is None else output
     if dst is None:
         raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
-    result = share_log(
-        src,
-        dst,
-        budget,
-        strategy=strategy,
-        codec=codec,
-        sums=sums,
-        seed=seed,
-        ply=ply,
-        command=command_line(),
-        force=force,
-    )
+    with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
+        refine = log_refiner(src, refine_iters, seq, device, seed, bar, "share without --refine")
+        result = share_log(
+            src,
+            dst,
+            budget,
+            strategy=strategy,
+            codec=codec,
+            sums=sums,
+            seed=seed,
+            ply=ply,
+            refine=refine,
+            command=command_line(),
+            force=force,
+        )
     extra = f" and {ply}" if ply else ""
     emit(
         result,
         as_json,
         f"shared {result['selected']} of {result['total']} Gaussians ({strategy}, "
-        f"{codec}, {result['file_bytes']} B) -> {dst}{extra}",
+        f"{codec}, {result['file_bytes']} B){refined_text(result)} -> {dst}{extra}",
     )

@@ -74,6 +74,28 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
         assert b.metadata.results == {"kept": 300, "total": 1000, "codec": "fp32"}
 
 
+def test_prune_map_only_writes_the_same_map_alone(log_path, tmp_path):
+    full, alone = tmp_path / "p.mcap", tmp_path / "m.mcap"
+    assert run("prune", log_path, "--keep", "0.3", "-o", full).exit_code == 0
+    r = run("prune", log_path, "--keep", "0.3", "--map-only", "-o", alone)
+    assert r.exit_code == 0, r.output
+    with LogReader(full) as a, LogReader(alone) as b:
+        assert b.snapshot_count == 1
+        assert {c.topic: c.messages for c in b.channels} == {
+            "/camera/calibration": 1,
+            "/gaussians": 1,
+        }
+        (_, _, last_a), (_, _, only_b) = (
+            list(a.iter_messages(["/gaussians"]))[-1],
+            next(iter(b.iter_messages(["/gaussians"]))),
+        )
+        assert last_a.data == only_b.data and last_a.log_time == only_b.log_time  # bit-exact
+        step = b.metadata.provenance[-1]
+        assert step["operation"]["map_only"] is True and step["parent"] == "run.mcap"
+        assert b.metadata.sequence == "synthetic" and b.metadata.results["kept"] == 300
+    assert alone.stat().st_size < full.stat().st_size
+
+
 def test_prune_by_opacity_and_percent_syntax(log_path, tmp_path):
     out = tmp_path / "p.mcap"
     r = run("prune", log_path, "--keep", "10%", "--by", "opacity", "-o", out, "--json")
@@ -409,6 +431,7 @@ def test_ply_missing_properties(tmp_path):
 def test_offline_commands_do_not_import_torch(log_path, tmp_path):
     runs = [
         ["prune", str(log_path), "--keep", "0.3", "-o", str(tmp_path / "p.mcap")],
+        ["prune", str(log_path), "--keep", "0.3", "--map-only", "-o", str(tmp_path / "m.mcap")],
         ["share", str(log_path), str(tmp_path / "s.mcap")],
         ["export-ply", str(log_path), "-o", str(tmp_path / "e.ply")],
         ["export-traj", str(log_path), "-o", str(tmp_path / "t.txt")],

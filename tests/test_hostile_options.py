@@ -228,7 +228,7 @@ def test_a_merge_whose_refinement_diverges_says_how_to_merge_anyway(
 
     from gscompress.camera import Intrinsics
     from gscompress.errors import DivergenceError
-    from gscompress.ops.merge import refine
+    from gscompress.ops.refine import refine
     from gscompress.slam.config import preset
     from gscompress.slam.keyframes import View
     from gscompress.slam.mapper import TOO_HIGH, Mapper

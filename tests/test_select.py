@@ -105,7 +105,7 @@ def test_a_bad_seed_is_an_input_error_not_numpys(seed):
 
 
 def test_refinement_checks_its_seed_before_anything_else():
-    from gscompress.ops.merge import refine
+    from gscompress.ops.refine import refine
     from gscompress.slam.config import resolve_config
 
     with pytest.raises(InputError, match="seed must be an integer >= 0"):

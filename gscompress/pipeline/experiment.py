@@ -62,10 +62,11 @@ from gscompress.io.files import (
 )
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
-from gscompress.ops.merge import REFINE_VIEWS
+from gscompress.ops.refine import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES, is_fraction, strategy_scores
-from gscompress.pipeline.merge import DEFAULT_LR_FINAL, DEFAULT_REFINE_VIEWS
+from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import log_edges, smallest_share_bytes
+from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 
 if TYPE_CHECKING:
     from gscompress.slam.config import SlamConfig

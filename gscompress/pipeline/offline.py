@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions, check_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
 from gscompress.io.mcap_log import (
+    TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
     TOPIC_POSE_GT,
@@ -29,12 +30,26 @@ from gscompress.io.mcap_log import (
 )
 from gscompress.io.ply import read_ply, write_ply
 from gscompress.io.trajectory import write_tum_trajectory
-from gscompress.ops.budget import Budget
+from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.select import check_ratio, select_count, select_top, strategy_scores
 
 log = logging.getLogger(__name__)
 
 QUANTILES = (0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0)
+
+
+class MapRefiner(Protocol):
+    """Refines a map on the frames of the log it came from
+    (`gscompress.pipeline.refine.LogRefiner`, which needs torch: prune and share take one only
+    when asked to refine)."""
+
+    def __call__(self, gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+        """The map refined (same Gaussians, same order) and the refinement's statistics."""
+        ...
+
+    def record(self) -> dict[str, Any]:
+        """What a provenance step records of the refinement."""
+        ...
 
 
 def import_ply(
@@ -59,6 +74,8 @@ def prune_log(
     seed: int = 0,
     codec: str | None = None,
     options: CompactOptions = COMPACT_DEFAULTS,
+    refine: MapRefiner | None = None,
+    map_only: bool = False,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
@@ -66,18 +83,34 @@ def prune_log(
 
     The last `/gaussians` snapshot is replaced by its pruned version (same log time), stored in
     `codec` (None: the codec of the map it replaces); every other message, earlier snapshots
-    included, passes through unchanged.
+    included, passes through unchanged (with `map_only`, only the calibration does: see
+    `rewrite_map`). `refine` (a `gscompress.pipeline.refine.LogRefiner`) refines the kept
+    Gaussians before they are written; it never adds or drops one.
     """
     check_ratio(keep, "--keep")
 
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         kept, _ = select_top(full, keep, by, seed)
-        return kept, {"kept": len(kept), "total": len(full)}
+        return refined(kept, {"kept": len(kept), "total": len(full)}, refine)
 
-    operation = {"name": "prune", "keep": keep, "by": by, "seed": seed}
-    return rewrite_map(
-        src, dst, operation, prune, codec=codec, options=options, command=command, force=force
-    )
+    operation: dict[str, Any] = {"name": "prune", "keep": keep, "by": by, "seed": seed}
+    if refine is not None:
+        operation["refine"] = refine.record()
+    if map_only:
+        operation["map_only"] = True
+    return rewrite_map(src, dst, operation, prune, codec=codec, options=options,
+                       command=command, force=force, map_only=map_only)  # fmt: skip
+
+
+def refined(
+    gaussians: GaussianMap, results: dict[str, Any], refine: MapRefiner | None
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """`gaussians` through `refine` when there is one, its statistics added to `results` as
+    `refine_*`."""
+    if refine is None:
+        return gaussians, results
+    gaussians, stats = refine(gaussians)
+    return gaussians, {**results, **{f"refine_{k}": v for k, v in stats.items()}}
 
 
 def rewrite_map(
@@ -90,13 +123,15 @@ def rewrite_map(
     options: CompactOptions = COMPACT_DEFAULTS,
     command: str = "",
     force: bool = False,
+    map_only: bool = False,
 ) -> dict[str, Any]:
     """Copy a log, replacing its map (the last snapshot) by `transform(map)`.
 
-    Every other message passes through unchanged; the output's provenance gains `operation` and
-    its results are what `transform` returns beside the new map. The new map is stored in
-    `codec` (with `options` for compact), or None: in the codec of the one it replaces (an fp16
-    share stays fp16).
+    Every other message passes through unchanged; with `map_only`, only the calibration does
+    (no earlier snapshots, poses, stats or transforms: the file is as small as the map). The
+    output's provenance gains `operation` and its results are what `transform` returns beside
+    the new map. The new map is stored in `codec` (with `options` for compact), or None: in the
+    codec of the one it replaces (an fp16 share stays fp16).
     """
     if codec is not None:
         check_codec(codec)
@@ -108,7 +143,8 @@ def rewrite_map(
             snapshot = 0
             for schema, channel, message in log_in.iter_messages():
                 if channel.topic != TOPIC_GAUSSIANS:
-                    out.copy_message(schema, channel, message)
+                    if not map_only or channel.topic == TOPIC_CALIBRATION:
+                        out.copy_message(schema, channel, message)
                     continue
                 if snapshot == last:
                     stored = log_in.decode_snapshot(schema, message)
@@ -116,7 +152,7 @@ def rewrite_map(
                     chosen = codec or stored.codec
                     meta.results["codec"] = chosen
                     out.write_gaussians(new_map, message.log_time, chosen, options)
-                else:
+                elif not map_only:
                     out.copy_message(schema, channel, message)
                 snapshot += 1
     return {"output": str(dst), **meta.results}
@@ -158,6 +194,7 @@ class ShareCut:
         codec: str = DEFAULT_SHARE_CODEC,
         sums: bool = True,
         seed: int = 0,
+        refine: MapRefiner | None = None,
         command: str = "",
     ):
         self.src = Path(src)
@@ -169,15 +206,30 @@ class ShareCut:
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
         operation.update(codec=codec, sums=sums)
+        if refine is not None:
+            operation["refine"] = refine.record()
         self._meta = meta.derive(operation, src, command)
+        self.pool = self.full  # what the K best are taken from
+        self.extra: dict[str, Any] = {}  # further results (a refinement's)
         self._sizes: dict[int, int] = {}
         self._last: tuple[int, tuple[bytes, GaussianMap, dict[str, Any]]] | None = None
+
+    def refined(self, count: int, refine: MapRefiner) -> int:
+        """Refine the share of the `count` best Gaussians and take later shares from it; the
+        count that then fits (the refined values may compress less well than the first ones:
+        the budget still holds)."""
+        selected = self.file(count)[1]
+        self.pool, self.extra = refined(selected, {}, refine)
+        self._sizes, self._last = {}, None
+        if self.budget.budget_bytes is None:
+            return count
+        return largest_count_within(self.budget.budget_bytes, len(self.pool), self.size)
 
     def file(self, count: int) -> tuple[bytes, GaussianMap, dict[str, Any]]:
         """The share file of the `count` best Gaussians: its bytes, its map (as selected, before
         encoding) and the results its metadata records. (Only the last one is kept.)"""
         if self._last is None or self._last[0] != count:
-            shared, _ = select_count(self.full, count, self.strategy, self.seed)
+            shared, _ = select_count(self.pool, count, self.strategy, self.seed)
             meta = self._meta
             meta.results = {
                 "source": self.src.name,
@@ -187,6 +239,7 @@ class ShareCut:
                 "sums": self.sums,
                 "selected": len(shared),
                 "total": len(self.full),
+                **self.extra,
             }
             with LogWriter(None, meta) as out:
                 options = CompactOptions(sums=self.sums)
@@ -210,6 +263,7 @@ def share_log(
     sums: bool = True,
     seed: int = 0,
     ply: str | Path | None = None,
+    refine: MapRefiner | None = None,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
@@ -232,6 +286,9 @@ def share_log(
             a compact share sends the score in 16 bits (fp32 and fp16 always send the sums).
         seed: seed of the random strategy.
         ply: also write the share as a float32 3DGS PLY (the decoded values).
+        refine: refines the selected Gaussians before they are sent (a
+            `gscompress.pipeline.refine.LogRefiner` on the sender's frames); a byte budget
+            still bounds the file of the refined values (the last few may then be left out).
         command: command line for the provenance record.
         force: overwrite existing outputs.
 
@@ -249,8 +306,10 @@ def share_log(
     for path, suffix in outputs:
         check_output(path, [src], force, suffix)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
-                   command=command)  # fmt: skip
+                   refine=refine, command=command)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
+    if refine is not None:
+        count = cut.refined(count, refine)
     data, shared, results = cut.file(count)
     limit = cut.budget.budget_bytes
     if limit is not None and len(data) > limit:

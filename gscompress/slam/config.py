@@ -42,7 +42,7 @@ from gscompress.datasets.base import MAX_SIDE, parse_size
 from gscompress.errors import InputError, OptionError, clipped
 from gscompress.importance import PwasConfig
 from gscompress.io.files import read_text, write_text_atomic
-from gscompress.ops.merge import REFINE_VIEWS
+from gscompress.ops.refine import REFINE_VIEWS
 from gscompress.ops.select import STRATEGIES, is_fraction
 
 

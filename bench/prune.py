@@ -1,0 +1,124 @@
+"""Benchmark offline pruning with and without refinement, scored off the refinement's views.
+
+For each sequence (default: the synthetic room, made here), one `gsc slam` log (cached under
+`--out`/NAME/slam.mcap and reused when present; pass `--log` to score an existing one), then:
+
+- the unpruned map, and the unpruned map refined for `--refine` iterations (`prune --keep 1`);
+- for each keep ratio and strategy: `gsc prune --keep K --by S` without and with
+  `--refine N --seq SEQ`, and the file's bytes with and without `--map-only`.
+
+Every map is rendered at the log's estimated poses of the frames that are NOT keyframes (the
+refinement's views are the keyframes, `gscompress.pipeline.refine.KEYFRAME_RULE`) and scored
+against the sequence: mean PSNR, SSIM and (with `--lpips`) LPIPS. Writes `prune.json` per
+sequence and prints one Markdown table row per map.
+
+Usage:
+    python bench/prune.py                                   # the synthetic room, 40 frames
+    python bench/prune.py /work/shared/data/tsdffusion_tabletop_box --keep 0.3 --refine 500
+    python bench/prune.py SEQ --log demo_out/map.mcap --keep 0.1,0.3,0.5 --by pwas,opacity
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.io.mcap_log import LogReader, seconds_to_ns
+from gscompress.pipeline import evaluate_log, prune_log, slam_file
+from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
+
+
+def off_keyframes(log: Path, keyframe_ns: set[int], seq: Path, lpips: bool) -> dict[str, Any]:
+    """Mean PSNR / SSIM / LPIPS of a log's map over its frames that are not keyframes."""
+    result = evaluate_log(log, seq, lpips=lpips)
+    frames = [f for f in result["per_frame"] if seconds_to_ns(f["timestamp"]) not in keyframe_ns]
+    scores: dict[str, Any] = {"frames": len(frames), "gaussians": result["gaussians"]}
+    for name in ("psnr", "ssim", "lpips"):
+        values = [f[name] for f in frames if f.get(name) is not None]
+        scores[name] = round(float(np.mean(values)), 4) if values else None
+    return scores
+
+
+def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -> dict[str, Any]:
+    """Every map of one sequence, scored; the rows as a dict."""
+    with LogReader(log) as reader:
+        keyframe_ns = recorded_keyframes(reader)
+    if keyframe_ns is None:
+        raise SystemExit(f"{log} records no keyframes (/slam/stats): make it with gsc slam")
+    refiner = LogRefiner(log, seq, RefineOptions(opts.refine, device=opts.device))
+    rows: list[dict[str, Any]] = []
+
+    def score(name: str, path: Path, seconds: float, **fields: Any) -> None:
+        row = {"map": name, **fields, **off_keyframes(path, keyframe_ns, seq, opts.lpips)}
+        row["file_bytes"], row["seconds"] = path.stat().st_size, round(seconds, 2)
+        rows.append(row)
+        logging.getLogger("bench").warning("%s", row)
+
+    score("unpruned", log, 0.0, keep=1.0, by="-", refine=0)
+    maps = [(1.0, "pwas")] + [(k, s) for k in opts.keep for s in opts.by]
+    for keep, by in maps:
+        for refine in [opts.refine] if keep == 1.0 else [0, opts.refine]:
+            out = work / f"prune_{by}_{keep:g}_r{refine}.mcap"
+            start = time.perf_counter()
+            prune_log(log, out, keep, by=by, refine=refiner if refine else None, force=True)
+            seconds = time.perf_counter() - start
+            fields: dict[str, Any] = {"keep": keep, "by": by, "refine": refine}
+            if not refine:
+                alone = work / f"prune_{by}_{keep:g}_maponly.mcap"
+                prune_log(log, alone, keep, by=by, map_only=True, force=True)
+                fields["map_only_bytes"] = alone.stat().st_size
+            score(f"prune {keep:g} {by}" + (f" +refine {refine}" if refine else ""), out,
+                  seconds, **fields)  # fmt: skip
+    return {"sequence": str(seq), "log": str(log), "keyframes": len(keyframe_ns),
+            "refine_iters": opts.refine, "rows": rows}  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("seqs", nargs="*", type=Path, help="sequences (default: synthetic)")
+    parser.add_argument("--log", type=Path, default=None, help="an existing log (one sequence)")
+    parser.add_argument("--out", type=Path, default=Path("bench_out/prune"))
+    parser.add_argument("--keep", default="0.1,0.3,0.5")
+    parser.add_argument("--by", default="pwas,opacity")
+    parser.add_argument("--refine", type=int, default=200)
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--frames", default=None, help="frame subset of the SLAM run")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--lpips", action="store_true")
+    opts = parser.parse_args()
+    opts.keep = [float(k) for k in opts.keep.split(",")]
+    opts.by = opts.by.split(",")
+    logging.basicConfig(format="%(message)s")
+    seqs = opts.seqs or [opts.out / "synthetic" / "room"]
+    if not opts.seqs and not seqs[0].exists():
+        write_synthetic_sequence(seqs[0], 40, (160, 120), supersample=2)
+    if opts.log is not None and len(seqs) != 1:
+        raise SystemExit("--log scores one sequence")
+    results = []
+    for seq in seqs:
+        work = opts.out / seq.name
+        work.mkdir(parents=True, exist_ok=True)
+        log = opts.log or work / "slam.mcap"
+        if not log.exists():
+            slam_file(seq, log, preset=opts.preset, frames=opts.frames)
+        result = bench_sequence(seq, log, work, opts)
+        (work / "prune.json").write_text(json.dumps(result, indent=2) + "\n")
+        results.append(result)
+    print("| sequence | map | Gaussians | PSNR | SSIM | LPIPS | file B | map-only B |")
+    print("|---|---|---|---|---|---|---|---|")
+    for result in results:
+        for r in result["rows"]:
+            print(f"| {Path(result['sequence']).name} | {r['map']} | {r['gaussians']} | "
+                  f"{r['psnr']} | {r['ssim']} | {r['lpips']} | {r['file_bytes']} | "
+                  f"{r.get('map_only_bytes', '')} |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

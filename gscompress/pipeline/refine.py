@@ -1,0 +1,197 @@
+"""Refining a map on the frames of the SLAM log it came from (needs torch).
+
+`gsc merge` refines a merged map on the receiver's frames; `gsc prune --refine` and `gsc share
+--refine` refine the Gaussians they kept on the log's keyframes. Both open the log's sequence as
+its run had it (checked against the first frame the log recorded), match its frames to the
+log's estimated poses by time and run `gscompress.ops.refine.refine` on the chosen views.
+
+The log's keyframes are the frames its `/slam/stats` records mark as keyframes (`gsc slam`
+writes one per frame); a log without those records gets every `keyframes.every`-th frame of its
+config, counted over the frames that have a pose (`KEYFRAME_RULE`).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from gscompress.errors import LogFormatError, OptionError
+from gscompress.gaussians import GaussianMap
+from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader
+from gscompress.ops.refine import REFINE_VIEWS
+from gscompress.ops.select import is_fraction
+
+DEFAULT_LR_FINAL = 0.3
+"""A refinement's learning rates decay to this fraction over its iterations. Its optimizer is
+fresh, so at constant rates its first steps are as large as the last ones and leave a finished
+map little better (tabletop's unpruned Table 3 map, 200 iterations on every frame: 26.63 ->
+26.61 dB; decaying to 0.1: 27.34 dB). In the Table 4 merges of five sequences (README), 0.3
+lifted every merge on tabletop, office and ICL by 0.29-0.43 dB against constant rates and was
+ahead of 0.5 and 0.1 there (tied with 0.1 once); on the synthetic room and replica the merged
+shares ended 0.01-0.13 dB below constant rates and 0.00-0.08 dB below 0.5."""
+
+KEYFRAME_RULE = (
+    "the frames the log's /slam/stats records mark as keyframes; for a log without them, every "
+    "keyframes.every-th frame of its config (the first always), counted over the frames that "
+    "have a pose in the log"
+)
+"""Which frames are a log's keyframes (said in the commands' help)."""
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """How to refine a map on a log's frames.
+
+    Attributes:
+        iters: iterations (0: no refinement).
+        views: "keyframes" (the log's keyframes, `KEYFRAME_RULE`) or "frames" (all of them).
+        lr_final: the learning rates (the log's mapping ones) decay geometrically to this
+            fraction by the last iteration; 1 keeps them constant.
+        frames: the sequence's frame subset (None: the one the log recorded).
+        size: working size (None: the log's config's).
+        device: torch device, or "auto".
+        backend: render backend (None: the log's config's).
+        seed: seed of the view order.
+    """
+
+    iters: int
+    views: str = "keyframes"
+    lr_final: float = DEFAULT_LR_FINAL
+    frames: str | None = None
+    size: tuple[int, int] | None = None
+    device: str = "auto"
+    backend: str | None = None
+    seed: int = 0
+
+    def check(self, iters_option: str = "--refine") -> None:
+        """Raise OptionError for an option out of range (named as the command names it)."""
+        if self.iters < 0:
+            raise OptionError(f"{iters_option} must be >= 0, got {self.iters}")
+        if self.views not in REFINE_VIEWS:
+            raise OptionError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {self.views!r}")
+        if not is_fraction(self.lr_final):
+            raise OptionError(f"--lr-final must be in (0, 1], got {self.lr_final}")
+
+    def record(self) -> dict[str, Any]:
+        """What a provenance step keeps of these options."""
+        return {"iters": self.iters, "views": self.views, "lr_final": self.lr_final,
+                "seed": self.seed, "backend": self.backend}  # fmt: skip
+
+
+class LogRefiner:
+    """Refines maps on the frames of one SLAM log at its estimated poses.
+
+    The log and its sequence are read when it is made (so a wrong sequence is refused before
+    any output is written); calling it refines a map and returns it with its statistics.
+
+    Args:
+        log_path: the SLAM log (config, `/camera/pose`, `/slam/stats`).
+        seq: the sequence the log was made from.
+        options: the refinement's settings.
+        progress: called with (iterations done, iterations) during a refinement.
+        instead: what to do without a refinement, said when it diverges.
+
+    Raises:
+        LogFormatError: the log has no estimated poses, or a stats record is not JSON.
+        InputError: the sequence is not the log's, or no frame of it has a pose in the log.
+        OptionError: options out of range.
+    """
+
+    def __init__(
+        self,
+        log_path: str | Path,
+        seq: str | Path,
+        options: RefineOptions,
+        progress: Callable[[int, int], object] | None = None,
+        instead: str = "",
+    ) -> None:
+        from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
+        from gscompress.render import resolve_backend, resolve_device
+        from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
+        from gscompress.slam.keyframes import View, is_keyframe
+
+        options.check()
+        self.options, self.progress, self.instead = options, progress, instead
+        with LogReader(log_path) as reader:
+            meta = reader.metadata
+            pose_ns, poses = reader.read_poses(TOPIC_POSE)
+            keyframe_ns = recorded_keyframes(reader)
+        config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
+        if options.backend is not None:
+            config = config.with_overrides(backend=options.backend)
+        self.config = config
+        if len(pose_ns) == 0:
+            raise LogFormatError(f"{log_path} has no {TOPIC_POSE}: refinement needs its poses")
+        sequence = open_log_sequence(
+            seq, log_path, meta, options.frames, options.size or config.size
+        )
+        positions, pose_index = frames_with_poses(sequence, pose_ns, log_path)
+        self.device = resolve_device(options.device, config.backend)
+        self.backend = resolve_backend(config.backend, self.device)
+        self.intrinsics = sequence.intrinsics
+
+        def chosen(k: int, pose: int) -> bool:
+            if options.views == "frames":
+                return True
+            if keyframe_ns is not None:
+                return int(pose_ns[pose]) in keyframe_ns
+            return is_keyframe(k, config.keyframes)
+
+        self.views = [
+            View.from_frame(k, sequence.frame(int(p)), poses[i], self.device)
+            for k, (p, i) in enumerate(zip(positions, pose_index, strict=True))
+            if chosen(k, int(i))
+        ]
+        self.keyframes_recorded = keyframe_ns is not None
+
+    def record(self) -> dict[str, Any]:
+        """What a provenance step records of this refinement (its options)."""
+        return self.options.record()
+
+    def __call__(self, gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+        """`gaussians` refined, and {"iters", "loss_before", "loss_after", "views", "backend"}
+        (the mean mapping loss over the views before and after)."""
+        from gscompress.ops.refine import refine
+
+        done, iters = 0, self.options.iters
+
+        def step(n: int) -> None:
+            nonlocal done
+            done += n
+            if self.progress is not None:
+                self.progress(done, iters)
+
+        refined, stats = refine(
+            gaussians, self.views, self.intrinsics, self.config, iters, device=self.device,
+            seed=self.options.seed, lr_final_fraction=self.options.lr_final, progress=step,
+            **({"instead": self.instead} if self.instead else {}),
+        )  # fmt: skip
+        stats["views"] = len(self.views)
+        stats["backend"] = self.backend
+        return refined, stats
+
+
+def recorded_keyframes(reader: LogReader) -> set[int] | None:
+    """The log times of the frames a log's `/slam/stats` records mark as keyframes, or None
+    when it has no such records.
+
+    Raises:
+        LogFormatError: a stats record that is not a JSON object.
+    """
+    times: set[int] = set()
+    seen = False
+    for _schema, _channel, message in reader.iter_messages([TOPIC_STATS]):
+        try:
+            record = json.loads(message.data)
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            record = None
+        if not isinstance(record, dict):
+            raise LogFormatError(f"{reader.path}: a {TOPIC_STATS} record is not a JSON object")
+        if "keyframe" in record:
+            seen = True
+            if record["keyframe"] is True:
+                times.add(int(message.log_time))
+    return times if seen else None

@@ -1,0 +1,122 @@
+"""Refinement after selection: `gsc prune --refine` and `gsc share --refine`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gscompress.datasets.synthetic import write_synthetic_sequence
+from gscompress.errors import InputError
+from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
+from gscompress.ops.select import select_top
+from gscompress.pipeline import evaluate_log, prune_log, share_log, slam_file
+from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
+from gscompress_cli.main import cli
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A tiny SLAM log of the synthetic room (6 frames, a keyframe every 2)."""
+    root = tmp_path_factory.mktemp("refine")
+    seq = write_synthetic_sequence(root / "room", 6, (48, 36))
+    log = root / "run.mcap"
+    slam_file(seq, log, preset="tiny")
+    return {"seq": seq, "log": log, "root": root}
+
+
+def keyframe_indices(log: Path) -> set[int]:
+    with LogReader(log) as reader:
+        return {
+            json.loads(m.data)["frame"]
+            for _s, _c, m in reader.iter_messages([TOPIC_STATS])
+            if json.loads(m.data)["keyframe"]
+        }
+
+
+def mean_psnr_off_keyframes(log: Path, seq: Path, keyframes: set[int]) -> float:
+    per_frame = evaluate_log(log, seq, lpips=False)["per_frame"]
+    scores = [f["psnr"] for f in per_frame if f["index"] not in keyframes]
+    assert scores, "no frame outside the keyframes"
+    return float(np.mean(scores))
+
+
+def test_the_log_keyframes_are_the_ones_its_stats_mark(run: dict[str, Path]) -> None:
+    with LogReader(run["log"]) as reader:
+        times = recorded_keyframes(reader)
+        pose_ns, _ = reader.read_poses(TOPIC_POSE)
+    assert times == {int(pose_ns[k]) for k in (0, 2, 4)}  # the tiny preset: every 2nd frame
+    refiner = LogRefiner(run["log"], run["seq"], RefineOptions(1))
+    assert [v.index for v in refiner.views] == [0, 2, 4]
+    every = LogRefiner(run["log"], run["seq"], RefineOptions(1, views="frames"))
+    assert len(every.views) == 6
+
+
+def test_refinement_improves_a_pruned_map_off_its_keyframes(run: dict[str, Path]) -> None:
+    plain, refined = run["root"] / "pruned.mcap", run["root"] / "refined.mcap"
+    prune_log(run["log"], plain, 0.3)
+    refiner = LogRefiner(run["log"], run["seq"], RefineOptions(80))
+    result = prune_log(run["log"], refined, 0.3, refine=refiner)
+    assert result["refine_loss_after"] < result["refine_loss_before"]
+    assert result["refine_views"] == 3 and result["refine_iters"] == 80
+    before, after = read_map(plain), read_map(refined)
+    # the same Gaussians in the same order: none of the pruned ones came back, none dropped
+    assert np.array_equal(before.ids, after.ids) and len(after) == result["kept"]
+    assert not np.array_equal(before.means, after.means)
+    assert np.array_equal(before.importance_sum, after.importance_sum)  # sums carried
+    keyframes = keyframe_indices(run["log"])
+    assert mean_psnr_off_keyframes(refined, run["seq"], keyframes) > mean_psnr_off_keyframes(
+        plain, run["seq"], keyframes
+    )
+    with LogReader(refined) as reader:
+        step = reader.metadata.provenance[-1]["operation"]
+    assert step["refine"]["iters"] == 80 and step["refine"]["views"] == "keyframes"
+
+
+def test_a_refined_share_stays_within_its_budget(run: dict[str, Path]) -> None:
+    """A fraction budget keeps its count; a byte budget bounds the file of the refined values
+    (which compress differently), keeping the best of the Gaussians first chosen."""
+    refine = LogRefiner(run["log"], run["seq"], RefineOptions(5))
+    plain, refined = run["root"] / "s.mcap", run["root"] / "s_refined.mcap"
+    a = share_log(run["log"], plain, 0.3)
+    b = share_log(run["log"], refined, 0.3, refine=refine, force=True)
+    assert a["selected"] == b["selected"] and b["refine_iters"] == 5
+    assert np.array_equal(np.sort(read_map(plain).ids), np.sort(read_map(refined).ids))
+    a = share_log(run["log"], plain, "20kB", force=True)
+    b = share_log(run["log"], refined, "20kB", refine=refine, force=True)
+    assert b["file_bytes"] == refined.stat().st_size <= 20_000
+    assert 0.9 * a["selected"] <= b["selected"] <= a["selected"]
+    assert set(read_map(refined).ids.tolist()) <= set(read_map(plain).ids.tolist())
+
+
+def test_refinement_refuses_another_scene(run: dict[str, Path]) -> None:
+    other = write_synthetic_sequence(run["root"] / "other" / "room", 6, (48, 36), seed=7)
+    with pytest.raises(InputError, match="not recorded on this room"):
+        LogRefiner(run["log"], other, RefineOptions(5))
+
+
+def test_prune_cli_refines_with_a_sequence_and_asks_for_one(run: dict[str, Path]) -> None:
+    out = run["root"] / "cli.mcap"
+    args = ["prune", str(run["log"]), "--keep", "0.5", "-o", str(out)]
+    r = CliRunner().invoke(cli, [*args, "--refine", "3"])
+    assert r.exit_code == 2 and "--refine needs the sequence" in r.output
+    assert len(r.output.strip().splitlines()) == 1 and not out.exists()
+    r = CliRunner().invoke(cli, [*args, "--seq", str(run["seq"])])
+    assert r.exit_code == 2 and "--seq is only used with --refine" in r.output
+    assert not out.exists()
+    r = CliRunner().invoke(cli, [*args, "--refine", "3", "--seq", str(run["seq"]), "--json"])
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output)
+    assert result["refine_iters"] == 3 and result["refine_views"] == 3
+    full = read_map(run["log"])
+    assert np.array_equal(read_map(out).ids, select_top(full, 0.5, "pwas")[0].ids)
+
+
+def test_share_cli_asks_for_the_sequence_to_refine_on(run: dict[str, Path]) -> None:
+    out = run["root"] / "share_cli.mcap"
+    r = CliRunner().invoke(cli, ["share", str(run["log"]), str(out), "--refine", "3"])
+    assert r.exit_code == 2 and "--refine needs the sequence" in r.output
+    assert not out.exists()
