@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from gscompress.io.columns import PRECISIONS
 from gscompress.ops.budget import Budget
@@ -73,6 +75,14 @@ from .options import (
     default=None,
     help="Also write the share as a float32 3DGS PLY file (the values the receiver decodes).",
 )
+@click.option(
+    "--solve",
+    is_flag=True,
+    help="Choose the codec (and whether to send the PWAS sums) that give the best picture for "
+    "a byte budget: each candidate is cut to the most Gaussians that fit, rendered at a few "
+    "of the log's keyframes and scored against the frames of --seq (else against the whole "
+    "map's renders). An explicit --codec or --no-sums constrains the search. Needs torch.",
+)
 @refine_options
 @seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
@@ -87,6 +97,7 @@ def share(
     precision: str | None,
     sums: bool,
     ply: Path | None,
+    solve: bool,
     refine_iters: int,
     seq: Path | None,
     device: str,
@@ -128,21 +139,30 @@ def share(
     dst = dst if output is None else output
     if dst is None:
         raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
+    context = click.get_current_context()
+    given = {name: context.get_parameter_source(name) != ParameterSource.DEFAULT
+             for name in ("codec", "sums")}  # fmt: skip
     with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
-        refine = log_refiner(src, refine_iters, seq, device, seed, bar, "share without --refine")
-        result = share_log(
-            src,
-            dst,
-            budget,
-            strategy=strategy,
-            codec=codec,
-            sums=sums,
-            seed=seed,
-            ply=ply,
-            refine=refine,
-            command=command_line(),
-            force=force,
-        )
+        refine_seq = seq if refine_iters or not solve else None  # (--seq also serves --solve)
+        refine = log_refiner(src, refine_iters, refine_seq, device, seed, bar,
+                             "share without --refine")  # fmt: skip
+        common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
+                                      command=command_line(), force=force)  # fmt: skip
+        if solve:
+            from gscompress.pipeline.solve import share_solved
+
+            result = share_solved(
+                src, dst, budget, codec=codec if given["codec"] else None,
+                sums=sums if given["sums"] else None, seq=seq, device=device, **common,
+            )  # fmt: skip
+            codec = result["codec"]
+            click.echo(
+                f"solver: {codec}{'' if result['sums'] else ' without sums'} predicted "
+                f"{result['predicted_psnr']:.2f} dB against the {result['solved_against']}",
+                err=True,
+            )
+        else:
+            result = share_log(src, dst, budget, codec=codec, sums=sums, **common)
     extra = f" and {ply}" if ply else ""
     emit(
         result,

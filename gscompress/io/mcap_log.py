@@ -542,6 +542,18 @@ def encode_map(
     return gaussians_to_pointcloud(gaussians, timestamp_ns, codec)
 
 
+def decoded_map(gaussians: GaussianMap, codec: str = "fp32", *, sums: bool = True) -> GaussianMap:
+    """The map a receiver decodes from `gaussians` sent in `codec` (with or without the PWAS
+    sums at compact): what a share's picture is judged by."""
+    if codec == "fp32":
+        return gaussians
+    message = encode_map(gaussians, codec, 0, CompactOptions(sums=sums))
+    data = message.SerializeToString()
+    if codec == "compact":
+        return decode_compact(CompactGaussians.FromString(data), len(data))
+    return pointcloud_to_gaussians(PointCloud.FromString(data))
+
+
 def encoded_size(
     gaussians: GaussianMap, codec: str = "fp32", options: CompactOptions = COMPACT_DEFAULTS
 ) -> int:
@@ -838,6 +850,34 @@ class LogReader:
         stamps = np.array(times, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         return stamps[order], np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
+
+    def read_intrinsics(self) -> Intrinsics | None:
+        """The camera of the last `/camera/calibration` message (None when there is none).
+
+        Raises:
+            LogFormatError: a message that is not a CameraCalibration, or a camera whose size
+                or focal lengths are not positive and finite (or its size above 2^16).
+        """
+        found: Intrinsics | None = None
+        for schema, _channel, message in self.iter_messages([TOPIC_CALIBRATION]):
+            where = f"{self.path}: {TOPIC_CALIBRATION} at {message.log_time} ns"
+            if schema is None or schema.name != "foxglove.CameraCalibration":
+                raise LogFormatError(f"{where} is not a foxglove.CameraCalibration")
+            try:
+                msg = CameraCalibration.FromString(message.data)
+            except DecodeError:
+                raise LogFormatError(f"{where} is corrupt") from None
+            k = np.array(msg.K, dtype=np.float64)
+            if (
+                k.shape != (9,)
+                or not np.all(np.isfinite(k))
+                or min(k[0], k[4]) <= 0
+                or not (0 < msg.width <= 1 << 16 and 0 < msg.height <= 1 << 16)
+            ):
+                raise LogFormatError(f"{where} is not a pinhole camera of positive size")
+            found = Intrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
+                               int(msg.width), int(msg.height))  # fmt: skip
+        return found
 
     def decode_map(self, schema: Schema | None, message: McapMessage) -> GaussianMap:
         """Decode one `/gaussians` message into a validated map."""

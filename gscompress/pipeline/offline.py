@@ -195,6 +195,7 @@ class ShareCut:
         sums: bool = True,
         seed: int = 0,
         refine: MapRefiner | None = None,
+        solve: dict[str, Any] | None = None,
         command: str = "",
     ):
         self.src = Path(src)
@@ -208,6 +209,8 @@ class ShareCut:
         operation.update(codec=codec, sums=sums)
         if refine is not None:
             operation["refine"] = refine.record()
+        if solve is not None:
+            operation["solve"] = solve
         self._meta = meta.derive(operation, src, command)
         self.pool = self.full  # what the K best are taken from
         self.extra: dict[str, Any] = {}  # further results (a refinement's)
@@ -264,6 +267,7 @@ def share_log(
     seed: int = 0,
     ply: str | Path | None = None,
     refine: MapRefiner | None = None,
+    solve: dict[str, Any] | None = None,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
@@ -289,6 +293,8 @@ def share_log(
         refine: refines the selected Gaussians before they are sent (a
             `gscompress.pipeline.refine.LogRefiner` on the sender's frames); a byte budget
             still bounds the file of the refined values (the last few may then be left out).
+        solve: the byte-budget solver's record of how it chose the codec (for the provenance;
+            see `gscompress.pipeline.solve`).
         command: command line for the provenance record.
         force: overwrite existing outputs.
 
@@ -306,7 +312,7 @@ def share_log(
     for path, suffix in outputs:
         check_output(path, [src], force, suffix)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
-                   refine=refine, command=command)  # fmt: skip
+                   refine=refine, solve=solve, command=command)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
     if refine is not None:
         count = cut.refined(count, refine)

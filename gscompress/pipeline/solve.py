@@ -1,0 +1,205 @@
+"""The byte-budget solver of `gsc share --solve`: the count, codec and PWAS state that give the
+best picture for the bytes (needs torch, to render).
+
+Every candidate (codec, sums) that the options allow is cut to the most Gaussians whose share
+file fits the budget (`ShareCut`), decoded as the receiver would decode it, rendered at a few of
+the sender's keyframes and scored by PSNR: against the keyframes' own images when the sender's
+sequence is given, else against the renders of the sender's whole map at the same poses. More
+Gaussians in a smaller codec against fewer, exact ones is the trade the solver settles; within
+one codec more Gaussians never draw less, so each candidate is taken at its largest count.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.errors import BudgetError, InputError
+from gscompress.gaussians import GaussianMap
+from gscompress.io.files import check_output
+from gscompress.io.mcap_log import TOPIC_POSE, LogReader, decoded_map
+from gscompress.ops.budget import Budget
+from gscompress.pipeline.offline import MapRefiner, ShareCut, share_log
+
+log = logging.getLogger(__name__)
+
+CANDIDATES = (("compact", False), ("compact", True), ("fp16", True), ("fp32", True))
+"""(codec, sums) pairs the solver weighs (fp32 and fp16 always carry the sums)."""
+
+SOLVE_VIEWS = 4
+"""Keyframes the candidates are rendered at, spread over the sender's trajectory."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One weighed share: its codec, whether it carries the PWAS sums, its count, its file's
+    bytes and the PSNR of its decoded map at the solver's views."""
+
+    codec: str
+    sums: bool
+    count: int
+    file_bytes: int
+    psnr: float
+
+
+def solve_share(
+    src: str | Path,
+    budget: Budget,
+    *,
+    strategy: str = "pwas",
+    seed: int = 0,
+    codec: str | None = None,
+    sums: bool | None = None,
+    seq: str | Path | None = None,
+    views: int = SOLVE_VIEWS,
+    device: str = "auto",
+) -> tuple[Candidate, list[Candidate], dict[str, Any]]:
+    """Weigh the candidate shares of `src`'s map under `budget` and pick the best picture.
+
+    Args:
+        src: the sender's SLAM log.
+        budget: the share budget (bytes, or a fraction of the map's fp32 bytes; a fraction of
+            the Gaussians fixes the count, leaving the codec to choose).
+        strategy, seed: how Gaussians are ranked (as `gsc share`).
+        codec, sums: constrain the search to this codec / PWAS state (None: any).
+        seq: the sender's sequence: score against its keyframe images (else against the whole
+            map's renders).
+        views: how many keyframes to render at.
+        device: torch device.
+
+    Returns:
+        The chosen candidate, every candidate weighed (best first), and a record for the
+        provenance (`against`, `views`, the candidates).
+
+    Raises:
+        BudgetError: no candidate holds one Gaussian.
+        InputError: the log has no poses; `views` below 1.
+    """
+    from gscompress.metrics import psnr
+    from gscompress.ops.evaluate import render_view
+    from gscompress.ops.score import activated_tensors
+    from gscompress.render import resolve_device
+
+    if views < 1:
+        raise InputError(f"the solver needs at least one view, got {views}")
+    poses, targets, masks, intrinsics = _views(src, seq, views)
+    torch_device = resolve_device(device, "auto")
+    if targets is None:
+        with LogReader(src) as reader:
+            full = reader.read_map()
+        params = activated_tensors(full, torch_device)
+        targets = [render_view(params, pose, intrinsics)[0] for pose in poses]
+    weighed: list[Candidate] = []
+    refusals: list[str] = []  # (one per candidate the budget cannot hold)
+    for cand_codec, cand_sums in CANDIDATES:
+        if (codec is not None and cand_codec != codec) or (sums is not None and cand_sums != sums):
+            continue
+        cut = ShareCut(src, budget, strategy=strategy, codec=cand_codec, sums=cand_sums,
+                       seed=seed)  # fmt: skip
+        try:
+            count = cut.budget.count(len(cut.full), cut.size)
+        except BudgetError as exc:
+            refusals.append(f"{cand_codec}: {exc}")
+            continue
+        data, selected, _ = cut.file(count)
+        received: GaussianMap = decoded_map(selected, cand_codec, sums=cand_sums)
+        params = activated_tensors(received, torch_device)
+        scores = [
+            psnr(render_view(params, pose, intrinsics)[0], target, mask)
+            for pose, target, mask in zip(poses, targets, masks, strict=True)
+        ]
+        weighed.append(Candidate(cand_codec, cand_sums, count, len(data), float(np.mean(scores))))
+        log.info("solver: %s%s, %d Gaussians, %d B: %.2f dB", cand_codec,
+                 "" if cand_sums else " (no sums)", count, len(data), weighed[-1].psnr)  # fmt: skip
+    if not weighed:
+        raise BudgetError(refusals[0])  # (the smallest codec's: the others hold no more)
+    weighed.sort(key=lambda c: (-c.psnr, c.file_bytes))
+    record = {
+        "against": "frames" if seq is not None else "map renders",
+        "views": len(poses),
+        "candidates": [asdict(c) for c in weighed],
+    }
+    return weighed[0], weighed, record
+
+
+def _views(
+    src: str | Path, seq: str | Path | None, views: int
+) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[np.ndarray], Any]:
+    """Poses of `views` keyframes spread over the log, with their images and valid-depth masks
+    when `seq` is given (else None and all-pixel masks), and the intrinsics."""
+    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
+    from gscompress.pipeline.refine import recorded_keyframes
+    from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
+    from gscompress.slam.keyframes import is_keyframe
+
+    with LogReader(src) as reader:
+        meta = reader.metadata
+        pose_ns, poses = reader.read_poses(TOPIC_POSE)
+        keyframe_ns = recorded_keyframes(reader)
+        intrinsics = reader.read_intrinsics()
+    if len(pose_ns) == 0:
+        raise InputError(f"{src} has no {TOPIC_POSE}: the solver renders at the sender's poses")
+    config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
+    keyframes = [
+        i
+        for i, t in enumerate(pose_ns)
+        if (int(t) in keyframe_ns if keyframe_ns is not None else is_keyframe(i, config.keyframes))
+    ] or list(range(len(pose_ns)))
+    chosen = [keyframes[int(k)] for k in np.linspace(0, len(keyframes) - 1, views).round()]
+    chosen = sorted(set(chosen))
+    if seq is None:
+        if intrinsics is None:
+            raise InputError(f"{src} has no camera calibration: give --seq to render at its size")
+        shape = (intrinsics.height, intrinsics.width)
+        return [poses[i] for i in chosen], None, [np.ones(shape, bool)] * len(chosen), intrinsics
+    sequence = open_log_sequence(seq, src, meta)
+    positions, pose_index = frames_with_poses(sequence, pose_ns, src)
+    by_pose = {int(i): int(p) for p, i in zip(positions, pose_index, strict=True)}
+    chosen = [i for i in chosen if i in by_pose]
+    if not chosen:
+        raise InputError(f"no keyframe of {src} is a frame of {sequence.name}")
+    frames = [sequence.frame(by_pose[i]) for i in chosen]
+    return (
+        [poses[i] for i in chosen],
+        [f.color for f in frames],
+        [f.depth > 0 for f in frames],
+        sequence.intrinsics,
+    )
+
+
+def share_solved(
+    src: str | Path,
+    dst: str | Path,
+    budget: str | float | Budget,
+    *,
+    strategy: str = "pwas",
+    seed: int = 0,
+    codec: str | None = None,
+    sums: bool | None = None,
+    seq: str | Path | None = None,
+    views: int = SOLVE_VIEWS,
+    device: str = "auto",
+    ply: str | Path | None = None,
+    refine: MapRefiner | None = None,
+    command: str = "",
+    force: bool = False,
+) -> dict[str, Any]:
+    """`share_log` with the codec and PWAS state the solver chose (`solve_share`), the solver's
+    record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and
+    `solved_against`: "frames" or "map renders")."""
+    budget = Budget.parse(budget)
+    check_output(dst, [src], force, ".mcap")  # before the renders, not after them
+    best, _weighed, record = solve_share(
+        src, budget, strategy=strategy, seed=seed, codec=codec, sums=sums, seq=seq, views=views,
+        device=device,
+    )  # fmt: skip
+    record["predicted_psnr"] = best.psnr
+    result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
+                       seed=seed, ply=ply, refine=refine, solve=record, command=command,
+                       force=force)  # fmt: skip
+    result.update(predicted_psnr=best.psnr, solved_against=record["against"])
+    return result
