@@ -212,6 +212,7 @@ class ShareCut:
         if solve is not None:
             operation["solve"] = solve
         self._meta = meta.derive(operation, src, command)
+        self._meta.config = {}  # bytes on the link: the receiver maps with its own config
         self.pool = self.full  # what the K best are taken from
         self.extra: dict[str, Any] = {}  # further results (a refinement's)
         self._sizes: dict[int, int] = {}
@@ -273,8 +274,9 @@ def share_log(
 ) -> dict[str, Any]:
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
 
-    The share is a small log: the metadata record (source, strategy, budget, counts, provenance)
-    and one `/gaussians` snapshot holding the selected Gaussians with their ids and PWAS state.
+    The share is a small log: the metadata record (source, strategy, budget, counts, provenance;
+    not the sender's config, which the receiver does not use) and one `/gaussians` snapshot
+    holding the selected Gaussians with their ids and PWAS state.
 
     Args:
         src: the log whose map (last snapshot) is shared.
