@@ -236,9 +236,10 @@ def _pack(g: GaussianMap, bits: int) -> list[bytes]:
             "%d log-scale values lie outside SPZ's range [-10, 5.94] and are clipped", clipped
         )
     scales = _codes(np.broadcast_to(g.log_scales, (n, 3)), 16.0, 160.0)
-    alphas = _codes(g.opacities(), 255.0, 0.0)
+    alphas = _codes(0.5 + 0.5 * np.tanh(0.5 * g.opacity_logits), 255.0, 0.0)  # (no overflow)
     colors = _codes(g.sh_dc, COLOR_SCALE * 255.0, 127.5)
-    rotations = _smallest_three(g.rotations())
+    quats = g.quats.astype(np.float64)  # (float64: the squares of tiny float32 stay normal)
+    rotations = _smallest_three(quats / np.linalg.norm(quats, axis=1, keepdims=True))
     sh = _sh_codes(g.sh_rest)
     return [
         np.ascontiguousarray(positions).tobytes(),
@@ -252,12 +253,12 @@ def _pack(g: GaussianMap, bits: int) -> list[bytes]:
 
 def _smallest_three(quats_wxyz: np.ndarray) -> np.ndarray:
     """[N] uint32 smallest-three codes of unit quaternions (w x y z; stored in x y z w order)."""
-    q = quats_wxyz[:, [1, 2, 3, 0]].astype(np.float32)
+    q = quats_wxyz[:, [1, 2, 3, 0]]
     n = len(q)
     largest = np.argmax(np.abs(q), axis=1)  # the first of equal magnitudes, as the reference
     rows = np.arange(n)
-    q = q * np.where(q[rows, largest] < 0, np.float32(-1), np.float32(1))[:, None]
-    magnitude = np.minimum(np.floor(np.abs(q) / _SQRT1_2 * np.float32(511) + np.float32(0.5)), 511)
+    q = q * np.where(q[rows, largest] < 0, -1.0, 1.0)[:, None]
+    magnitude = np.minimum(np.floor(np.abs(q) * (511 / np.sqrt(0.5)) + 0.5), 511)
     field = magnitude.astype(np.uint32) | (np.signbit(q) & (q != 0)).astype(np.uint32) << 9
     code = largest.astype(np.uint32)
     for i in range(4):
