@@ -23,6 +23,7 @@ import numpy as np
 from gscompress.errors import MapError, PlyFormatError
 from gscompress.gaussians import SH_C0, SH_REST_COUNTS, GaussianMap
 from gscompress.io.columns import map_from_columns
+from gscompress.io.spz import opacity_logits
 
 CHUNK_SIZE = 256
 """Gaussians per row of the `chunk` element."""
@@ -30,7 +31,6 @@ CHUNK_SIZE = 256
 _BOUNDS = ("x", "y", "z", "scale_x", "scale_y", "scale_z")
 _COLOUR_BOUNDS = ("r", "g", "b")
 _PACKED = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
-_OPACITY_EDGE = 0.25 / 255
 
 
 def decompress(elements: dict[str, np.ndarray], source: str) -> GaussianMap:
@@ -62,14 +62,13 @@ def decompress(elements: dict[str, np.ndarray], source: str) -> GaussianMap:
             cols[axis if packed == "packed_position" else f"scale_{i}"] = _lerp(low, high, t)
     colour = vertex["packed_color"]
     rgb = [_unorm(colour >> shift, 8) for shift in (24, 16, 8)]
-    if chunk.dtype.names is not None and "min_r" in chunk.dtype.names:
-        _element(elements, "chunk", [f"{s}_{c}" for s in ("min", "max") for c in "rgb"], "f4",
-                 source)  # fmt: skip
+    if "min_r" in (chunk.dtype.names or ()):
+        colour_names = [f"{side}_{c}" for side in ("min", "max") for c in _COLOUR_BOUNDS]
+        _element(elements, "chunk", colour_names, "f4", source)
         rgb = [_lerp(*bounds(c), t) for c, t in zip(_COLOUR_BOUNDS, rgb, strict=True)]
     for i, value in enumerate(rgb):
         cols[f"f_dc_{i}"] = (value - 0.5) / np.float32(SH_C0)
-    alpha = np.clip(_unorm(colour, 8), _OPACITY_EDGE, 1 - _OPACITY_EDGE)
-    cols["opacity"] = np.log(alpha / (1 - alpha))
+    cols["opacity"] = opacity_logits(_unorm(colour, 8))
     cols.update({f"rot_{i}": q for i, q in enumerate(_rotations(vertex["packed_rotation"]))})
     if "sh" in elements:
         cols.update(_sh(elements["sh"], n, source))

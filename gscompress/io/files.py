@@ -234,9 +234,14 @@ def some_names(names: Sequence[str], shown: int = 3) -> str:
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write a UTF-8 text file under a temporary name and rename it into place."""
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write a binary file under a temporary name and rename it into place."""
     out = AtomicFile(Path(path))
     try:
-        out.file.write(text.encode("utf-8"))
+        out.file.write(data)
         out.commit()
     except BaseException:
         out.discard()

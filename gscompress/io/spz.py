@@ -43,10 +43,10 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
-from gscompress.errors import MapError, OutputError, SpzFormatError
+from gscompress.errors import MapError, SpzFormatError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 from gscompress.io.columns import map_from_columns
-from gscompress.io.files import AtomicFile, check_output
+from gscompress.io.files import check_output, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,6 @@ _HEADER = struct.Struct("<IIIBBBBI12x")  # ... degree fraction flags streams toc
 _TOC_ENTRY = struct.Struct("<QQ")
 _MIN_BYTES_PER_GAUSSIAN = 9  # the positions stream alone
 _SQRT1_2 = np.float32(np.sqrt(0.5))
-_ALPHA_EDGE = 0.25 / 255  # codes 0 and 255 read as opacities a quarter step inside (0, 1)
 
 
 # ------------------------------------------------------------------ public API
@@ -154,18 +153,7 @@ def write_spz(
         The output path.
     """
     path = check_output(path, inputs, force, suffix=".spz")
-    data = encode_bytes(gaussians, version=version)
-    out = AtomicFile(path)
-    try:
-        try:
-            out.file.write(data)
-        except OSError as exc:
-            raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
-        out.commit()
-    except BaseException:
-        out.discard()
-        raise
-    return path
+    return write_bytes_atomic(path, encode_bytes(gaussians, version=version))
 
 
 def read_spz(path: str | Path) -> GaussianMap:
@@ -186,6 +174,13 @@ def read_spz(path: str | Path) -> GaussianMap:
     except OSError as exc:
         raise SpzFormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
     return decode_bytes(data, str(path))
+
+
+def opacity_logits(alphas: np.ndarray) -> np.ndarray:
+    """Logits of opacities read from 8-bit codes; codes 0 and 255 read as a quarter step
+    inside (0, 1), so that every logit is finite and encodes back to its code."""
+    alphas = np.clip(alphas, np.float32(0.25 / 255), np.float32(1 - 0.25 / 255))
+    return np.log(alphas / (1 - alphas)).astype(np.float32)
 
 
 def is_spz(head: bytes) -> bool:
@@ -420,8 +415,7 @@ def _decode(s: _Streams, bits: int, source: str) -> GaussianMap:
     fixed = raw[..., 0] | raw[..., 1] << 8 | raw[..., 2] << 16
     fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
     means = (fixed * np.float64(2.0**-bits)).astype(np.float32)
-    alphas = np.clip(s.data[1].astype(np.float32) / 255, _ALPHA_EDGE, 1 - _ALPHA_EDGE)
-    logits = np.log(alphas / (1 - alphas))
+    logits = opacity_logits(s.data[1].astype(np.float32) / 255)
     sh_dc = (s.data[2].reshape(n, 3).astype(np.float32) / 255 - 0.5) / np.float32(COLOR_SCALE)
     log_scales = s.data[3].reshape(n, 3).astype(np.float32) / 16 - 10
     if s.version == 2:
