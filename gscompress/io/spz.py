@@ -38,6 +38,7 @@ import io
 import logging
 import struct
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -124,8 +125,12 @@ def encode_bytes(
         header = _LEGACY_HEADER.pack(MAGIC, 3, n, degree, bits, 0, 0)
         raw = b"".join([header, *streams])
         return gzip.compress(raw, compresslevel=6, mtime=0)
-    chunks = [zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(s) for s in streams if len(s)]
-    sizes = [len(s) for s in streams if len(s)]
+    filled = [s for s in streams if len(s)]
+    with ThreadPoolExecutor(len(filled)) as pool:  # (zstd releases the GIL)
+        chunks = list(
+            pool.map(lambda s: zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(s), filled)
+        )
+    sizes = [len(s) for s in filled]
     header = _HEADER.pack(MAGIC, 4, n, degree, bits, 0, len(chunks), _HEADER.size)
     toc = b"".join(_TOC_ENTRY.pack(len(c), u) for c, u in zip(chunks, sizes, strict=True))
     return b"".join([header, toc, *chunks])
@@ -367,6 +372,7 @@ def _unpack_streams(data: memoryview, source: str) -> tuple[_Streams, int]:
         raise SpzFormatError(f"{source}: {toc - _HEADER.size} unexplained bytes before the table")
     offset = toc + n_streams * _TOC_ENTRY.size
     entries = [_TOC_ENTRY.unpack_from(data, toc + i * _TOC_ENTRY.size) for i in range(n_streams)]
+    blocks: list[tuple[memoryview, int, str]] = []
     for i, ((packed, unpacked), expected) in enumerate(zip(entries, sizes, strict=True)):
         if unpacked != expected:
             raise SpzFormatError(
@@ -374,11 +380,12 @@ def _unpack_streams(data: memoryview, source: str) -> tuple[_Streams, int]:
             )
         if packed > len(data) - offset:
             raise SpzFormatError(f"{source}: truncated: stream {i} runs past the end of the file")
-        block = data[offset : offset + packed]
-        streams.data.append(_inflate_zstd(block, expected, f"{source}: stream {i}"))
+        blocks.append((data[offset : offset + packed], expected, f"{source}: stream {i}"))
         offset += packed
     if offset != len(data):
         raise SpzFormatError(f"{source}: {len(data) - offset} bytes after the last stream")
+    with ThreadPoolExecutor(len(blocks) or 1) as pool:  # (zstd releases the GIL)
+        streams.data = list(pool.map(lambda block: _inflate_zstd(*block), blocks))
     if degree == 0:
         streams.data.append(np.zeros(0, np.uint8))
     return streams, bits
