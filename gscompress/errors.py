@@ -40,6 +40,10 @@ class SpzFormatError(GscError):
     """An SPZ file that is not a readable 3DGS map."""
 
 
+class SogFormatError(GscError):
+    """A SOG bundle that is not a readable 3DGS map."""
+
+
 class DatasetError(GscError):
     """An RGB-D sequence that cannot be opened or read."""
 

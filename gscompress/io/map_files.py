@@ -1,9 +1,10 @@
-"""Map files other tools read: 3DGS PLY (plain or PlayCanvas-compressed) and SPZ, by name and
-content.
+"""Map files other tools read: 3DGS PLY (plain or PlayCanvas-compressed), SPZ and SOG, by name
+and content.
 
-Reading looks at the first bytes: an SPZ file (gzip or an NGSP header) goes to `spz`, a PLY
-file to `ply` (which recognises the compressed layout from its header, whatever the file is
-called); other content is refused by the reader its name points to. Writing goes by suffix:
+Reading looks at the first bytes: an SPZ file (gzip or an NGSP header) goes to `spz`, a zip (or
+a `.sog` or `meta.json` name) to `sog`, a PLY file to `ply` (which recognises the compressed
+layout from its header, whatever the file is called); other content is refused by the reader
+its name points to. Writing goes by suffix:
 `.spz` writes SPZ, anything else a 3DGS PLY.
 """
 
@@ -15,6 +16,7 @@ from pathlib import Path
 from gscompress.errors import PlyFormatError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.ply import read_ply, write_ply
+from gscompress.io.sog import read_sog
 from gscompress.io.spz import is_spz, read_spz, write_spz
 
 log = logging.getLogger(__name__)
@@ -24,10 +26,10 @@ MAP_SUFFIXES = (".ply", ".spz")
 
 
 def read_map_file(path: str | Path) -> GaussianMap:
-    """The validated map in a 3DGS PLY, compressed PLY or SPZ file.
+    """The validated map in a 3DGS PLY, compressed PLY, SPZ or SOG file.
 
     Raises:
-        PlyFormatError, SpzFormatError: the file is missing or not a readable map.
+        PlyFormatError, SpzFormatError, SogFormatError: missing or not a readable map.
     """
     path = Path(path)
     if not path.is_file():
@@ -36,10 +38,8 @@ def read_map_file(path: str | Path) -> GaussianMap:
         head = f.read(4)
     if is_spz(head) or (path.suffix.lower() == ".spz" and not head.startswith(b"ply")):
         return read_spz(path)
-    if path.suffix.lower() == ".sog":
-        raise PlyFormatError(
-            f"{path}: SOG files are not read; convert it with splat-transform to .ply or .spz"
-        )
+    if path.suffix.lower() == ".sog" or path.name == "meta.json" or head == b"PK\x03\x04":
+        return read_sog(path)
     return read_ply(path)
 
 
