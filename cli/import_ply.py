@@ -12,7 +12,9 @@ from gscompress.pipeline import import_ply as run_import
 from .options import INPUT_FILE, command_line, emit, force_option, json_option, output_option
 
 
-@click.command("import-ply", short_help="Make a log of a 3DGS map: PLY, compressed PLY, SPZ or SOG.")
+@click.command(
+    "import-ply", short_help="Make a log of a 3DGS map: PLY, compressed PLY, SPZ or SOG."
+)
 @click.argument("src", type=INPUT_FILE)
 @output_option()
 @force_option()

@@ -117,9 +117,7 @@ def encode_bytes(
     if n > MAX_SPZ_GAUSSIANS:
         raise MapError(f"{n} Gaussians exceed the {MAX_SPZ_GAUSSIANS} an SPZ file may hold here")
     bits = _fraction_bits(gaussians.means, fractional_bits)
-    if ordered:
-        gaussians = gaussians.select(storage_order(gaussians.means, bits))
-    streams = _pack(gaussians, bits)
+    streams = _pack(gaussians, bits, ordered)
     degree = gaussians.sh_degree
     if version == 3:
         header = _LEGACY_HEADER.pack(MAGIC, 3, n, degree, bits, 0, 0)
@@ -208,7 +206,17 @@ def is_spz(head: bytes) -> bool:
 def storage_order(means: np.ndarray, fractional_bits: int = FRACTIONAL_BITS) -> np.ndarray:
     """[N] indices that sort positions along a Morton (Z-order) curve of their fixed-point
     codes (the order `encode_bytes` stores Gaussians in)."""
-    fixed = np.round(means.astype(np.float64) * (1 << fractional_bits)).astype(np.int64)
+    return _morton_order(_fixed(means, fractional_bits))
+
+
+def _fixed(means: np.ndarray, bits: int) -> np.ndarray:
+    """[N, 3] int32 fixed-point positions with `bits` fraction bits."""
+    return np.round(means.astype(np.float64) * (1 << bits)).astype(np.int32)
+
+
+def _morton_order(fixed: np.ndarray) -> np.ndarray:
+    """Indices sorting fixed-point positions along a Morton curve."""
+    fixed = fixed.astype(np.int64)
     cells = (fixed - fixed.min(axis=0)).astype(np.uint64) if len(fixed) else fixed.astype(np.uint64)
     top = int(cells.max()).bit_length() if len(cells) else 0
     cells >>= np.uint64(max(0, top - 21))  # 21 bits per axis fill a 63-bit key
@@ -256,11 +264,13 @@ def _codes(values: np.ndarray, scale: float, offset: float) -> np.ndarray:
     )
 
 
-def _pack(g: GaussianMap, bits: int) -> list[bytes]:
-    """The six attribute streams (the SH one empty at degree 0)."""
+def _pack(g: GaussianMap, bits: int, ordered: bool) -> list[bytes]:
+    """The six attribute streams (the SH one empty at degree 0), in `storage_order` when
+    `ordered` (the codes are permuted, not the map: bytes move, not floats)."""
     n = len(g)
-    fixed = np.round(g.means.astype(np.float64) * (1 << bits)).astype(np.int32)
-    positions = fixed.astype("<i4").view(np.uint8).reshape(n, 3, 4)[:, :, :3]
+    fixed = _fixed(g.means, bits)
+    order = _morton_order(fixed) if ordered else slice(None)
+    positions = fixed[order].astype("<i4").view(np.uint8).reshape(n, 3, 4)[:, :, :3]
     clipped = int(np.count_nonzero((g.log_scales < -10.0) | (g.log_scales > 5.9375 + 1 / 32)))
     if clipped:
         log.warning(
@@ -274,11 +284,11 @@ def _pack(g: GaussianMap, bits: int) -> list[bytes]:
     sh = _sh_codes(g.sh_rest)
     return [
         np.ascontiguousarray(positions).tobytes(),
-        alphas.tobytes(),
-        colors.tobytes(),
-        scales.tobytes(),
-        rotations.astype("<u4").tobytes(),
-        sh.tobytes(),
+        alphas[order].tobytes(),
+        colors[order].tobytes(),
+        scales[order].tobytes(),
+        rotations[order].astype("<u4").tobytes(),
+        sh[order].tobytes(),
     ]
 
 
