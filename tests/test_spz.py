@@ -463,3 +463,10 @@ def test_splat_transforms_compressed_ply_of_our_ply_imports_within_quantisation(
     _convert(tmp_path / "map.ply", tmp_path / "theirs.compressed.ply")
     h = _matched(read_map_file(tmp_path / "theirs.compressed.ply"), g, 4 / 1023)
     assert_compressed_quantised(h, g, sh_tolerance=1 / 60)  # 8 bits over [-4, 4]
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_a_count_of_zero_is_refused(version):
+    data = spz.encode_bytes(random_map(3, seed=1), version=version)
+    raw = _with_count(data, version, 0)
+    _one_line_refusal(raw if version == 3 else raw[:32], "declares no Gaussians")

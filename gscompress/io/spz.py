@@ -327,12 +327,10 @@ class _Streams:
     """The header fields and the raw attribute streams of one file."""
 
     def __init__(self, version: int, count: int, degree: int, antialiased: bool) -> None:
-        self.version, self.count, self.degree, self.antialiased = (
-            version,
-            count,
-            degree,
-            antialiased,
-        )
+        self.version = version
+        self.count = count
+        self.degree = degree
+        self.antialiased = antialiased
         self.data: list[np.ndarray] = []
 
     def sizes(self) -> list[int]:
@@ -349,6 +347,8 @@ def _check_header(source: str, version: int, count: int, degree: int, input_byte
         )
     if degree not in SH_REST_COUNTS:
         raise SpzFormatError(f"{source}: SH degree {degree} is not supported (0 to 3 are)")
+    if count == 0:
+        raise SpzFormatError(f"{source}: declares no Gaussians")
     if count > MAX_SPZ_GAUSSIANS:
         raise SpzFormatError(
             f"{source}: declares {count} Gaussians, more than the {MAX_SPZ_GAUSSIANS} read here"
@@ -394,10 +394,9 @@ def _unpack_streams(data: memoryview, source: str) -> tuple[_Streams, int]:
         offset += packed
     if offset != len(data):
         raise SpzFormatError(f"{source}: {len(data) - offset} bytes after the last stream")
-    with ThreadPoolExecutor(len(blocks) or 1) as pool:  # (zstd releases the GIL)
-        streams.data = list(pool.map(lambda block: _inflate_zstd(*block), blocks))
-    if degree == 0:
-        streams.data.append(np.zeros(0, np.uint8))
+    with ThreadPoolExecutor(len(blocks)) as pool:  # (zstd releases the GIL)
+        inflated = iter(pool.map(lambda block: _inflate_zstd(*block), blocks))
+    streams.data = [next(inflated) if size else np.zeros(0, np.uint8) for size in streams.sizes()]
     return streams, bits
 
 
