@@ -113,6 +113,7 @@ def _unorm_11_10_11(value: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def _lerp(low: np.ndarray, high: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """low + t (high - low), as the format's writers and readers interpolate (float32 out)."""
     return (low.astype(np.float64) * (1 - t) + high.astype(np.float64) * t).astype(np.float32)
 
 
