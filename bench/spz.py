@@ -51,7 +51,7 @@ def tiled(g: GaussianMap, n: int, seed: int = 0) -> GaussianMap:
         tile.log_scales += rng.normal(0, 0.01, tile.log_scales.shape).astype(np.float32)
         tile.opacity_logits += rng.normal(0, 0.05, len(tile)).astype(np.float32)
         tile.sh_dc += rng.normal(0, 0.01, tile.sh_dc.shape).astype(np.float32)
-        tile.ids += np.uint32(i * len(g))
+        tile.ids += np.uint32(i * (int(g.ids.max()) + 1))
         tiles.append(tile)
     return GaussianMap.concat(tiles).select(slice(0, n))
 
