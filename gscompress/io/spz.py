@@ -20,6 +20,8 @@ header (adding the stream count and the byte offset of a table of contents), opt
 extension records, the table (compressed and uncompressed size of each stream, two uint64)
 and each non-empty stream compressed on its own with zstd. We write version 4 by default (what
 `@playcanvas/splat-transform` 3.7.0 writes and reads) and version 3 on request, and read 2-4.
+The writer stores the Gaussians along a Morton curve of their positions (`storage_order`), which
+shortens the compressed streams; SPZ has no ids, so nothing else sees the order.
 
 Coordinates: the values are stored as the map holds them (3DGS PLY's RDF axes), with no axis
 flip, as splat-transform and the reference library with an unspecified coordinate system do;
