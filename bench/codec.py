@@ -95,7 +95,7 @@ def our_codecs() -> dict[str, Codec]:
     codecs = {"fp32": pointcloud("fp32"), "fp16": pointcloud("fp16")}
     codecs.update({name: compact(options) for name, options in COMPACT_VARIANTS.items()})
     try:
-        from gscompress.io import spz  # type: ignore[attr-defined]
+        from gscompress.io import spz
 
         codecs["spz"] = (spz.encode_bytes, spz.decode_bytes)
     except (ImportError, AttributeError):

@@ -36,6 +36,14 @@ class PlyFormatError(GscError):
     """A PLY file that is not a readable 3DGS map."""
 
 
+class SpzFormatError(GscError):
+    """An SPZ file that is not a readable 3DGS map."""
+
+
+class SogFormatError(GscError):
+    """A SOG bundle that is not a readable 3DGS map."""
+
+
 class DatasetError(GscError):
     """An RGB-D sequence that cannot be opened or read."""
 

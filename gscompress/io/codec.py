@@ -75,7 +75,11 @@ MIN_BYTES_PER_GAUSSIAN = 1 / 16
 real maps take 5-20 bytes): a small message cannot make the reader allocate a huge map."""
 
 ROTATION_BITS = 10
-"""Bits of each of the three smallest quaternion components in a `smallest-three` code."""
+"""Bits of each of the three smallest quaternion components in a `smallest-three` code (a sign
+and 9 bits of magnitude)."""
+
+_SQRT1_2 = np.float32(np.sqrt(0.5))
+"""The largest the three smallest components of a unit quaternion can be."""
 
 _SIGMOID_EPS = 1e-7
 """Opacities are coded in [eps, 1 - eps], so that every code has a finite logit."""
@@ -236,42 +240,45 @@ def dequantise_log(codes: np.ndarray, low: float, high: float, bits: int) -> np.
     return np.where(codes > 0, np.exp(logs), 0.0).astype(np.float32)
 
 
-def encode_smallest_three(quats: np.ndarray) -> np.ndarray:
-    """32-bit codes of rotations [N, 4] (w x y z, any norm): the index of the largest |component|
-    in the top 2 bits, then the other three, divided by the norm and signed so that the largest
-    is positive, each in [-1/sqrt2, 1/sqrt2] as 10 bits."""
-    q = np.asarray(quats, dtype=np.float64)
-    norms = np.linalg.norm(q, axis=1, keepdims=True)
-    q = q / np.where(norms > 0, norms, 1.0)
-    largest = np.argmax(np.abs(q), axis=1)
-    q = q * np.where(q[np.arange(len(q)), largest] < 0, -1.0, 1.0)[:, None]
-    levels = (1 << ROTATION_BITS) - 1
-    code = largest.astype(np.uint32) << np.uint32(3 * ROTATION_BITS)
-    rest = np.ones_like(q, dtype=bool)
-    rest[np.arange(len(q)), largest] = False
-    others = q[rest].reshape(len(q), 3)
-    scaled = np.rint((others * np.sqrt(2) + 1) / 2 * levels).clip(0, levels).astype(np.uint32)
-    for i in range(3):
-        code |= scaled[:, i] << np.uint32(ROTATION_BITS * (2 - i))
+def encode_smallest_three(quats_wxyz: np.ndarray) -> np.ndarray:
+    """[N] uint32 smallest-three codes of rotations (w x y z, any nonzero norm), in SPZ's
+    layout: the index of the largest |component| (in x y z w order) in the top 2 bits, then
+    the other three, each as a sign bit and 9 bits of magnitude in [0, 1/sqrt2], signed so
+    that the largest is positive (one layout for SPZ files and compact maps)."""
+    norms = np.linalg.norm(np.asarray(quats_wxyz, dtype=np.float64), axis=1, keepdims=True)
+    quats_wxyz = np.asarray(quats_wxyz, dtype=np.float64) / np.where(norms > 0, norms, 1.0)
+    q = [quats_wxyz[:, i] for i in (1, 2, 3, 0)]  # x y z w
+    size = np.abs(quats_wxyz)[:, [1, 2, 3, 0]]
+    largest = np.argmax(size, axis=1)  # the first of equal magnitudes, as the reference
+    flip = np.choose(largest, q) < 0
+    code = largest.astype(np.uint32) << np.uint32(30)
+    for i in range(4):
+        magnitude = np.minimum(np.floor(size[:, i] * (511 / np.sqrt(0.5)) + 0.5), 511)
+        negative = ((q[i] < 0) ^ flip) & (q[i] != 0)
+        field = magnitude.astype(np.uint32) | negative.astype(np.uint32) << np.uint32(9)
+        slot = i - (largest < i)  # its place among the three stored, first in the high bits
+        shift = (10 * (2 - slot)).clip(0).astype(np.uint32)
+        code |= np.where(largest != i, field << shift, np.uint32(0)).astype(np.uint32)
     return code
 
 
-def decode_smallest_three(codes: np.ndarray) -> np.ndarray:
-    """Unit rotations [N, 4] (w x y z, float32) of `encode_smallest_three` codes."""
-    codes = np.asarray(codes, dtype=np.uint32)
-    levels = (1 << ROTATION_BITS) - 1
-    mask = np.uint32(levels)
-    others = np.stack(
-        [(codes >> np.uint32(ROTATION_BITS * (2 - i))) & mask for i in range(3)], axis=1
-    ).astype(np.float64)
-    others = (others / levels * 2 - 1) / np.sqrt(2)
-    largest = (codes >> np.uint32(3 * ROTATION_BITS)).astype(np.int64)
-    q = np.empty((len(codes), 4))
-    rest = np.ones((len(codes), 4), dtype=bool)
-    rest[np.arange(len(codes)), largest] = False
-    q[rest] = others.reshape(-1)
-    q[np.arange(len(codes)), largest] = np.sqrt(np.clip(1 - (others**2).sum(axis=1), 0, 1))
-    return q.astype(np.float32)
+def decode_smallest_three(code: np.ndarray) -> np.ndarray:
+    """[N, 4] float32 unit quaternions (w x y z) of `encode_smallest_three` codes."""
+    n = len(code)
+    largest = (code >> 30).astype(np.intp)
+    q = np.zeros((n, 4), np.float32)  # x y z w
+    rows = np.arange(n)
+    rest = code.astype(np.uint32)
+    squares = np.zeros(n, np.float32)
+    for i in range(3, -1, -1):
+        here = largest != i
+        value = (rest & 511).astype(np.float32) * (_SQRT1_2 / np.float32(511))
+        value = np.where((rest >> 9) & 1, -value, value)
+        q[:, i] = np.where(here, value, 0)
+        squares += np.where(here, value * value, 0)
+        rest = np.where(here, rest >> 10, rest)
+    q[rows, largest] = np.sqrt(np.maximum(0, 1 - squares))
+    return q[:, [3, 0, 1, 2]]
 
 
 def _spread_bits(v: np.ndarray) -> np.ndarray:
@@ -606,8 +613,6 @@ def decode_compact(
         return dequantise_linear(codes, np.array(c.low), np.array(c.high), c.bits)
 
     rotation = columns.get("rotation")
-    if rotation is not None and np.any((rotation[:, 0] >> np.uint32(3 * ROTATION_BITS)) > 3):
-        raise fail("has rotation codes beyond 32 bits")
     k = SH_REST_COUNTS[message.sh_degree]
     extra: dict[str, Any] = {name: columns[name][:, 0] for name in sums}
     if "importance" in columns and not sums:

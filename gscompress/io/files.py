@@ -56,6 +56,7 @@ def sha256(path: str | Path) -> str:
 SUFFIXES = {
     ".mcap": "an MCAP log",
     ".ply": "a PLY file",
+    ".spz": "an SPZ file",
     ".yaml": "a YAML config",
     ".txt": "a text file",
 }
@@ -133,7 +134,7 @@ def check_output(
         raise OutputError(
             f"{output}: this writes {SUFFIXES[suffix]}, not {SUFFIXES[named]}; name it "
             f"{output.with_suffix(suffix).name}"
-            + (" (gsc export-ply writes PLY)" if named == ".ply" else "")
+            + (f" (gsc export-ply writes {named[1:].upper()})" if named in (".ply", ".spz") else "")
         )
     if output.is_dir():
         raise OutputError(f"{output} is a directory")

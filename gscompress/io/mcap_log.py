@@ -666,6 +666,8 @@ class LogReader:
                 why = "the file is empty"
             elif head.startswith(b"ply\n"):
                 why = "it is a PLY file; `gsc import-ply` makes a log of it"
+            elif head.startswith((b"NGSP", b"\x1f\x8b")):
+                why = "it looks like an SPZ file; `gsc import-ply` makes a log of it"
             elif head != MAGIC:
                 why = "it does not begin as an MCAP file does"
             else:

@@ -6,7 +6,8 @@ logit, w x y z quaternion), optionally followed by our extras importance, import
 importance_weight, alpha_t_sum (float) and id (uint). Viewers ignore properties they do not know.
 
 Reads PLY maps of other 3DGS tools too: the INRIA layout with f_rest up to degree 3, the gsplat
-layout without normals, either endianness, properties in any order, extra properties ignored.
+layout without normals, either endianness, properties in any order, extra properties ignored,
+and PlayCanvas's compressed layout (SuperSplat's `.compressed.ply`, decoded by `compressed_ply`).
 Every file is untrusted: the header is parsed strictly and the vertex count is checked against
 the file size before anything is allocated.
 """
@@ -131,6 +132,19 @@ def read_ply(path: str | Path) -> GaussianMap:
             f"{path}: {extra} byte{'s' if extra != 1 else ''} after the elements the header "
             "declares (a wrong vertex count?)"
         )
+    if is_compressed_ply(elements):
+        if extra < 0:
+            raise PlyFormatError(
+                f"{path}: truncated: the elements the header declares need "
+                f"{header_end + body} bytes, the file has {file_size}"
+            )
+        arrays, offset = {}, header_end
+        for name, count, _props, dtype in layout:
+            arrays[name] = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+            offset += count * dtype.itemsize
+        from gscompress.io.compressed_ply import decompress  # (it reads with this module)
+
+        return decompress(arrays, str(path))
     for name, count, props, dtype in layout:
         if name == "vertex":
             if offset + count * dtype.itemsize > file_size:
@@ -147,6 +161,20 @@ def read_ply(path: str | Path) -> GaussianMap:
                 raise PlyFormatError(led_by(str(path), str(exc))) from None
         offset += count * dtype.itemsize
     raise PlyFormatError(f"{path}: no vertex element")
+
+
+COMPRESSED_MARK = "packed_position"
+"""The vertex property that marks PlayCanvas's compressed PLY layout (SuperSplat's
+`.compressed.ply`): quantised uint32 vertices, per-chunk bounds, an optional `sh` element."""
+
+
+def is_compressed_ply(elements: list[tuple[str, int, list[tuple[str, str]]]]) -> bool:
+    """Whether a PLY header's elements (name, count, [(property, type)]) are the compressed
+    layout (a `vertex` element with `packed_position`) rather than 3DGS's plain one."""
+    return any(
+        name == "vertex" and any(prop == COMPRESSED_MARK for prop, _ in props)
+        for name, _count, props in elements
+    )
 
 
 def _tail(path: Path, count: int) -> bytes:

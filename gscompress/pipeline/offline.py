@@ -16,6 +16,7 @@ from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions, check_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
+from gscompress.io.map_files import map_suffix, read_map_file, write_map_file
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
@@ -28,7 +29,7 @@ from gscompress.io.mcap_log import (
     pointcloud_bytes,
     read_map,
 )
-from gscompress.io.ply import read_ply, write_ply
+from gscompress.io.ply import write_ply
 from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.select import check_ratio, select_count, select_top, strategy_scores
@@ -55,9 +56,10 @@ class MapRefiner(Protocol):
 def import_ply(
     src: str | Path, dst: str | Path, *, command: str = "", force: bool = False
 ) -> dict[str, Any]:
-    """Turn a 3DGS PLY map (from any tool) into a one-snapshot gscompress log."""
+    """Turn a map file of any 3DGS tool (PLY, compressed PLY or SPZ) into a one-snapshot
+    gscompress log."""
     check_output(dst, [src], force, ".mcap")
-    gaussians = read_ply(src)
+    gaussians = read_map_file(src)
     meta = LogMetadata().derive({"name": "import-ply"}, src, command)
     meta.results = {"gaussians": len(gaussians), "scored": gaussians.has_importance}
     with LogWriter(dst, meta, inputs=[src], force=force) as out:
@@ -342,12 +344,13 @@ def export_ply(
     importance: bool = True,
     force: bool = False,
 ) -> dict[str, Any]:
-    """Write one snapshot of a log (default the last, "the map") as a 3DGS PLY file."""
-    check_output(dst, [src], force, ".ply")
+    """Write one snapshot of a log (default the last, "the map") as a 3DGS PLY file, or as SPZ
+    when `dst` ends in `.spz` (without scores or ids: SPZ has no place for them)."""
+    check_output(dst, [src], force, map_suffix(dst))
     with LogReader(src) as log_in:
         gaussians = log_in.read_map(snapshot)
         index = snapshot % log_in.snapshot_count  # read_map refused one out of range
-    write_ply(gaussians, dst, importance=importance, inputs=(src,), force=force)
+    write_map_file(gaussians, dst, importance=importance, inputs=(src,), force=force)
     return {"output": str(dst), "gaussians": len(gaussians), "snapshot": index}
 
 

@@ -1,0 +1,223 @@
+"""PlayCanvas SOG (version 2): read a `.sog` bundle (a zip) or its unbundled `meta.json`.
+
+A SOG map is a `meta.json` beside lossless WebP images, one RGBA pixel per Gaussian (row-major,
+the first `count` pixels):
+
+- `means`: two images, the low and high bytes of 16-bit codes t of each axis; the position is
+  s^-1(min + (max - min) t / 65535) per axis with s(x) = sign(x) ln(1 + |x|);
+- `quats`: r g b the three smaller components of the unit quaternion (w x y z, the largest
+  made positive) as codes of (q sqrt(2) + 1) / 2, alpha 252 + the index of the largest;
+- `scales`: r g b index a 256-entry codebook of log scales;
+- `sh0`: r g b index a 256-entry codebook of the SH DC term, alpha the opacity (8 bits);
+- `shN` (optional): a palette of `count` SH sets (an image 64 sets wide, each set `K` pixels
+  whose r g b index a 256-entry codebook) and a labels image (16-bit palette index).
+
+Read with Pillow (already a dependency); nothing here writes SOG: its codebooks and palette
+come from k-means clustering, which splat-transform runs (on a GPU or, slowly, on the CPU).
+Every file is untrusted: sizes of the bundle's members, of meta.json and of each image (from its
+header, before decoding) are checked against the declared count and stated ceilings.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.errors import MapError, SogFormatError
+from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
+from gscompress.io.columns import f_rest_names, map_from_columns
+from gscompress.io.spz import opacity_logits
+
+MAX_SOG_GAUSSIANS = 1 << 26
+"""Largest Gaussian count read."""
+
+MAX_META_BYTES = 16 << 20
+"""Largest meta.json read."""
+
+_QUAT_SLOTS = {0: (1, 2, 3), 1: (0, 2, 3), 2: (0, 1, 3), 3: (0, 1, 2)}
+"""Where the three stored components go (w x y z indices) for each largest component."""
+
+
+def read_sog(path: str | Path) -> GaussianMap:
+    """Read a SOG map (a `.sog` zip, or the `meta.json` of an unbundled one), validated.
+
+    Ids are 0..N-1 and the map is unscored (SOG stores neither).
+
+    Raises:
+        SogFormatError: naming the file: not a SOG bundle, version 1 or unknown, a count over
+            the ceiling, a missing or oversized member, an image smaller than the count.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SogFormatError(f"{path}: no such file")
+    if zipfile.is_zipfile(path):
+        try:
+            with zipfile.ZipFile(path) as bundle:
+                members = {info.filename: info for info in bundle.infolist()}
+
+                def load(name: str, limit: int) -> bytes:
+                    info = members.get(name)
+                    if info is None:
+                        raise SogFormatError(f"{path}: the bundle has no {name}")
+                    if info.file_size > limit:
+                        raise SogFormatError(f"{path}: {name} is over {limit} bytes")
+                    with bundle.open(info) as member:
+                        return member.read(limit + 1)[: limit + 1]
+
+                return _decode(load, str(path))
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as exc:
+            raise SogFormatError(f"{path}: corrupt SOG bundle ({exc})") from None
+    if path.name != "meta.json":
+        raise SogFormatError(
+            f"{path}: not a SOG bundle (not a readable zip archive; truncated?) nor a meta.json"
+        )
+    folder = path.parent
+
+    def load_file(name: str, limit: int) -> bytes:
+        member = folder / name
+        if Path(name).name != name or not member.is_file():
+            raise SogFormatError(f"{path}: no file {name!r} beside it")
+        if member.stat().st_size > limit:
+            raise SogFormatError(f"{member}: over {limit} bytes")
+        return member.read_bytes()
+
+    return _decode(load_file, str(path))
+
+
+def _decode(load: Callable[[str, int], bytes], source: str) -> GaussianMap:
+    """The map of a SOG whose members `load(name, byte limit)` returns."""
+    meta = _meta(load("meta.json", MAX_META_BYTES), source)
+    count = meta["count"]
+    image_limit = 64 * count + (1 << 20)  # lossless WebP of 4-byte pixels: far below this
+
+    def image(name: str, at_least: int, width: int | None = None) -> np.ndarray:
+        return _rgba(load(name, image_limit), at_least, width, f"{source}: {name}")
+
+    files = {key: meta[key]["files"] for key in ("means", "quats", "scales", "sh0")}
+    low = image(files["means"][0], count)[:count].astype(np.int64)
+    high = image(files["means"][1], count)[:count].astype(np.int64)
+    mins, maxs = np.array(meta["means"]["mins"]), np.array(meta["means"]["maxs"])
+    span = np.where(maxs - mins != 0, maxs - mins, 1.0)
+    logged = mins + span * ((low[:, :3] | high[:, :3] << 8) / 65535)
+    means = np.sign(logged) * np.expm1(np.abs(logged))
+    quats = _quats(image(files["quats"][0], count)[:count])
+    scale_codes = image(files["scales"][0], count)[:count]
+    log_scales = np.asarray(meta["scales"]["codebook"], np.float32)[scale_codes[:, :3]]
+    sh0 = image(files["sh0"][0], count)[:count]
+    sh_dc = np.asarray(meta["sh0"]["codebook"], np.float32)[sh0[:, :3]]
+    cols: dict[str, np.ndarray] = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2]}
+    cols.update({f"scale_{i}": log_scales[:, i] for i in range(3)})
+    cols.update({f"rot_{i}": quats[:, i] for i in range(4)})
+    cols.update({f"f_dc_{i}": sh_dc[:, i] for i in range(3)})
+    cols["opacity"] = opacity_logits(sh0[:, 3].astype(np.float32) / 255)
+    shn = meta.get("shN")
+    if shn is not None and SH_REST_COUNTS[shn["bands"]]:
+        k = SH_REST_COUNTS[shn["bands"]]
+        labels = image(shn["files"][1], count)[:count].astype(np.int64)
+        label = labels[:, 0] | labels[:, 1] << 8
+        centroids = image(shn["files"][0], 0, width=64 * k)
+        codebook = np.asarray(shn["codebook"], np.float32)
+        palette = centroids.reshape(-1, k, 4)[:, :, :3]  # [sets, K, rgb]
+        usable = min(shn["count"], len(palette))
+        known = label < usable
+        rest = np.zeros((count, k, 3), np.float32)
+        rest[known] = codebook[palette[label[known]]]
+        by_channel = rest.transpose(0, 2, 1).reshape(count, 3 * k)
+        cols.update({name: by_channel[:, i] for i, name in enumerate(f_rest_names(k))})
+    try:
+        return map_from_columns(cols, source).validate()
+    except MapError as exc:
+        raise SogFormatError(f"{source}: {exc}") from None
+
+
+def _meta(text: bytes, source: str) -> dict[str, Any]:
+    """meta.json, checked field by field."""
+    if len(text) > MAX_META_BYTES:
+        raise SogFormatError(f"{source}: meta.json is over {MAX_META_BYTES >> 20} MiB")
+    try:
+        meta = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise SogFormatError(f"{source}: meta.json is not JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise SogFormatError(f"{source}: meta.json is not an object")
+    if meta.get("version") != 2:
+        raise SogFormatError(
+            f"{source}: SOG meta version {meta.get('version', '1 (none given)')!r} is not read "
+            "(version 2 is)"
+        )
+    count = meta.get("count")
+    if not isinstance(count, int) or isinstance(count, bool) or not 0 <= count <= MAX_SOG_GAUSSIANS:
+        raise SogFormatError(f"{source}: count must be a whole number in 0..{MAX_SOG_GAUSSIANS}")
+    for key, files in (("means", 2), ("quats", 1), ("scales", 1), ("sh0", 1)):
+        _files(meta, key, files, source)
+    for key in ("mins", "maxs"):
+        _numbers(meta["means"].get(key), 3, f"means.{key}", source)
+    for key in ("scales", "sh0"):
+        _numbers(meta[key].get("codebook"), 256, f"{key}.codebook", source)
+    shn = meta.get("shN")
+    if shn is not None:
+        _files(meta, "shN", 2, source)
+        if shn.get("bands") not in (1, 2, 3):
+            raise SogFormatError(f"{source}: shN.bands must be 1, 2 or 3")
+        _numbers(shn.get("codebook"), 256, "shN.codebook", source)
+        palette = shn.get("count")
+        if not isinstance(palette, int) or not 0 <= palette <= 1 << 16:
+            raise SogFormatError(f"{source}: shN.count must be a whole number in 0..65536")
+    return meta
+
+
+def _files(meta: dict[str, Any], key: str, count: int, source: str) -> None:
+    entry = meta.get(key)
+    files = entry.get("files") if isinstance(entry, dict) else None
+    if not isinstance(files, list) or len(files) < count:
+        raise SogFormatError(f"{source}: {key}.files must name {count} image(s)")
+    if not all(isinstance(name, str) for name in files[:count]):
+        raise SogFormatError(f"{source}: {key}.files must be file names")
+
+
+def _numbers(values: Any, count: int, what: str, source: str) -> None:
+    ok = isinstance(values, list) and len(values) == count
+    if not ok or not all(
+        isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in values
+    ):
+        raise SogFormatError(f"{source}: {what} must be {count} finite numbers")
+
+
+def _rgba(data: bytes, at_least: int, width: int | None, what: str) -> np.ndarray:
+    """[W*H, 4] uint8 pixels of an image, its size checked from the header before decoding."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as picture:
+            w, h = picture.size
+            if w * h < at_least or w * h > 4 * at_least + (1 << 20):
+                raise SogFormatError(f"{what} is {w}x{h}, not sized for {at_least} Gaussians")
+            if width is not None and w != width:
+                raise SogFormatError(f"{what} is {w} wide, expected {width}")
+            if picture.format != "WEBP":
+                raise SogFormatError(f"{what} is not a WebP image")
+            pixels = np.asarray(picture.convert("RGBA"), np.uint8)
+    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
+        raise SogFormatError(f"{what} is not a readable image ({exc})") from None
+    return pixels.reshape(-1, 4)
+
+
+def _quats(pixels: np.ndarray) -> np.ndarray:
+    """[N, 4] float32 quaternions (w x y z) of quats.webp pixels (an unknown tag: identity)."""
+    n = len(pixels)
+    stored = (pixels[:, :3].astype(np.float32) / 255 * 2 - 1) / np.float32(math.sqrt(2))
+    tag = pixels[:, 3].astype(np.int64) - 252
+    q = np.zeros((n, 4), np.float32)
+    for largest, slots in _QUAT_SLOTS.items():
+        rows = tag == largest
+        q[np.ix_(rows, slots)] = stored[rows]
+        q[rows, largest] = np.sqrt(np.maximum(0, 1 - np.square(stored[rows]).sum(axis=1)))
+    q[(tag < 0) | (tag > 3), 0] = 1
+    return q
