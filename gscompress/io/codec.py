@@ -32,6 +32,7 @@ numpy + zstandard + protobuf only (no torch).
 
 from __future__ import annotations
 
+import io
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -41,7 +42,7 @@ import zstandard
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError, Message
 
-from gscompress.errors import InputError, MapError
+from gscompress.errors import GscError, InputError, MapError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 
 CODECS = ("fp32", "fp16", "compact")
@@ -551,7 +552,6 @@ def decode_compact(
 
     columns: dict[str, np.ndarray] = {}
     params: dict[str, Message] = {}
-    decompressor = zstandard.ZstdDecompressor()
     for column in message.columns:
         name = column.name
         if name not in _SHAPES:
@@ -579,9 +579,7 @@ def decode_compact(
                 transform == "log-linear" and column.bits < 2
             ):
                 raise fail(f"column {name!r} has {column.bits} bits in {column.dtype}")
-        planes = _inflate(
-            decompressor, column.data, expected, f"{source}: compact map column {name!r}"
-        )
+        planes = inflate_zstd(column.data, expected, f"{source}: compact map column {name!r}")
         columns[name] = _unshuffle(planes, n, components, dtype)
         params[name] = column
 
@@ -642,21 +640,26 @@ def decode_compact(
         raise fail(str(exc)) from None
 
 
-def _inflate(decompressor: zstandard.ZstdDecompressor, data: bytes, size: int, where: str) -> bytes:
-    """A zstd frame inflated to exactly `size` bytes, refused (MapError led by `where`) if it
-    declares or holds another size or is not zstd."""
-    if size == 0 and not data:
+def inflate_zstd(
+    data: bytes | memoryview, size: int, where: str, error: type[GscError] = MapError
+) -> bytes:
+    """A zstd frame inflated to exactly `size` bytes, never more: refused (`error`, led by
+    `where`) when it is not zstd, declares another size, is corrupt, or holds more or less."""
+    if size == 0 and not len(data):
         return b""
     try:
         declared = zstandard.frame_content_size(data)
     except zstandard.ZstdError:
-        raise MapError(f"{where} is not a zstd frame") from None
+        raise error(f"{where} is not a zstd frame") from None
     if declared not in (-1, size):
-        raise MapError(f"{where} declares {declared} bytes, not {size}")
+        raise error(f"{where} declares {declared} bytes, not {size}")
     try:
-        out = decompressor.decompress(data, max_output_size=size)
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
+            out = reader.read(size + 1)
+            while len(out) <= size and (more := reader.read(size + 1 - len(out))):
+                out += more
     except zstandard.ZstdError as exc:
-        raise MapError(f"{where} does not decompress ({' '.join(str(exc).split())[:80]})") from None
+        raise error(f"{where} is corrupt ({' '.join(str(exc).split())[:80]})") from None
     if len(out) != size:
-        raise MapError(f"{where} holds {len(out)} bytes, not {size}")
+        raise error(f"{where} decompresses to {len(out)} bytes, not {size}")
     return out

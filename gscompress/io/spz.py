@@ -36,7 +36,6 @@ header's count implies.
 from __future__ import annotations
 
 import gzip
-import io
 import logging
 import struct
 import zlib
@@ -52,6 +51,7 @@ from gscompress.io.codec import (
     MAX_POSITION_BITS,
     decode_smallest_three,
     encode_smallest_three,
+    inflate_zstd,
     morton_codes,
 )
 from gscompress.io.columns import map_from_columns
@@ -374,29 +374,14 @@ def _unpack_streams(data: memoryview, source: str) -> tuple[_Streams, int]:
     if offset != len(data):
         raise SpzFormatError(f"{source}: {len(data) - offset} bytes after the last stream")
     with ThreadPoolExecutor(len(blocks)) as pool:  # (zstd releases the GIL)
-        inflated = iter(pool.map(lambda block: _inflate_zstd(*block), blocks))
+        inflated = iter(pool.map(lambda block: _stream(*block), blocks))
     streams.data = [next(inflated) if size else np.zeros(0, np.uint8) for size in streams.sizes()]
     return streams, bits
 
 
-def _inflate_zstd(block: memoryview, expected: int, what: str) -> np.ndarray:
-    """One zstd frame that must decompress to exactly `expected` bytes."""
-    try:
-        declared = zstandard.frame_content_size(block)
-    except zstandard.ZstdError:
-        raise SpzFormatError(f"{what} is not a zstd frame") from None
-    if declared not in (-1, expected):
-        raise SpzFormatError(f"{what} declares {declared} bytes, expected {expected}")
-    try:
-        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(block)) as reader:
-            out = reader.read(expected + 1)
-            while len(out) <= expected and (more := reader.read(expected + 1 - len(out))):
-                out += more
-    except zstandard.ZstdError as exc:
-        raise SpzFormatError(f"{what} is corrupt ({exc})") from None
-    if len(out) != expected:
-        raise SpzFormatError(f"{what} decompresses to {len(out)} bytes, expected {expected}")
-    return np.frombuffer(out, np.uint8)
+def _stream(block: memoryview, expected: int, what: str) -> np.ndarray:
+    """One zstd stream of exactly `expected` bytes."""
+    return np.frombuffer(inflate_zstd(block, expected, what, SpzFormatError), np.uint8)
 
 
 def _unpack_gzip(data: memoryview, source: str) -> tuple[_Streams, int]:
