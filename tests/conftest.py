@@ -77,3 +77,17 @@ def rewrite_log(src: Path, dst: Path, profile: str = "", **writer_options: Any) 
         for record in reader.iter_metadata():
             writer.add_metadata(record.name, record.metadata)
         writer.finish()
+
+
+@pytest.fixture(scope="session")
+def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A tiny SLAM log of the synthetic room (6 frames at 48x36, the tiny preset: a keyframe
+    every 2), its sequence, and a folder for outputs (refinement and solver tests)."""
+    from gscompress.datasets.synthetic import write_synthetic_sequence
+    from gscompress.pipeline import slam_file
+
+    root = tmp_path_factory.mktemp("tiny-run")
+    seq = write_synthetic_sequence(root / "room", 6, (48, 36))
+    log = root / "run.mcap"
+    slam_file(seq, log, preset="tiny")
+    return {"seq": seq, "log": log, "root": root}

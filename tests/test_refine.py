@@ -13,19 +13,9 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import InputError
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
 from gscompress.ops.select import select_top
-from gscompress.pipeline import evaluate_log, prune_log, share_log, slam_file
+from gscompress.pipeline import evaluate_log, prune_log, share_log
 from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
 from gscompress_cli.main import cli
-
-
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A tiny SLAM log of the synthetic room (6 frames, a keyframe every 2)."""
-    root = tmp_path_factory.mktemp("refine")
-    seq = write_synthetic_sequence(root / "room", 6, (48, 36))
-    log = root / "run.mcap"
-    slam_file(seq, log, preset="tiny")
-    return {"seq": seq, "log": log, "root": root}
 
 
 def keyframe_indices(log: Path) -> set[int]:

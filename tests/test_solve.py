@@ -2,28 +2,14 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 from click.testing import CliRunner
 
-from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import BudgetError
 from gscompress.io.mcap_log import LogReader, read_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline import slam_file
 from gscompress.pipeline.solve import CANDIDATES, share_solved, solve_share
 from gscompress_cli.main import cli
-
-
-@pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A tiny SLAM log of the synthetic room (6 frames)."""
-    root = tmp_path_factory.mktemp("solve")
-    seq = write_synthetic_sequence(root / "room", 6, (48, 36))
-    log = root / "run.mcap"
-    slam_file(seq, log, preset="tiny")
-    return {"seq": seq, "log": log, "root": root}
 
 
 @pytest.mark.parametrize("budget", ["6kB", "10kB", "16kB"])
@@ -54,7 +40,7 @@ def test_options_constrain_the_search_and_the_share_records_it(run):
     best, weighed, _ = solve_share(run["log"], Budget.parse("8kB"), codec="compact", sums=True)
     assert best == weighed[0]
     assert [(c.codec, c.sums) for c in weighed] == [("compact", True)]
-    out = run["root"] / "solved.mcap"
+    out = run["root"] / "solve_solved.mcap"
     result = share_solved(run["log"], out, "8kB", seq=run["seq"], force=True)
     assert out.stat().st_size == result["file_bytes"] <= 8000
     with LogReader(out) as reader:
@@ -66,7 +52,7 @@ def test_options_constrain_the_search_and_the_share_records_it(run):
 
 
 def test_share_cli_solves_and_says_so(run):
-    out = run["root"] / "cli.mcap"
+    out = run["root"] / "solve_cli.mcap"
     args = ["share", str(run["log"]), str(out), "--budget", "6kB", "--solve", "--seq"]
     r = CliRunner().invoke(cli, [*args, str(run["seq"]), "--codec", "fp16"])
     assert r.exit_code == 0, r.output
