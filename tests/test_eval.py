@@ -254,7 +254,13 @@ def test_cli_errors_are_one_line(gt_log, seq_dir, tmp_path):
     noposes = tmp_path / "noposes.mcap"
     with LogWriter(noposes, LogMetadata()) as w:
         w.write_gaussians(gaussians, 0)
-    assert TOPIC_POSE in one_line_error(run("eval", noposes, "--seq", seq_dir))
+    message = one_line_error(run("eval", noposes, "--seq", seq_dir))
+    assert TOPIC_POSE in message and "--poses-from" in message
+    # ... which renders at the poses it is given: here those of the log the map came from
+    r = run("eval", noposes, "--seq", seq_dir, "--poses-from", gt_log, "--no-lpips", "--json")
+    assert r.exit_code == 0, r.output
+    same = evaluate_log(gt_log, seq_dir, lpips=False)
+    assert json.loads(r.output)["psnr"] == pytest.approx(same["psnr"], rel=1e-9)
     # poses at times no frame of the sequence has
     other = tmp_path / "other.mcap"
     with LogWriter(other, LogMetadata()) as w:

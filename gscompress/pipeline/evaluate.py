@@ -75,7 +75,10 @@ def pose_source(path: str | Path) -> tuple[np.ndarray, np.ndarray, int]:
         with LogReader(path) as reader:
             times_ns, poses = reader.read_poses(TOPIC_POSE)
         if len(times_ns) == 0:
-            raise LogFormatError(f"{path} has no {TOPIC_POSE} messages: it gives no poses")
+            raise LogFormatError(
+                f"{path} has no {TOPIC_POSE} messages (not a SLAM log): no poses to render at; "
+                "give them with --poses TRAJ.txt or --poses-from OTHER.mcap"
+            )
         return times_ns, poses, POSE_MATCH_TOLERANCE_NS
     trajectory = read_tum_trajectory(path)
     if len(trajectory) == 0:
@@ -325,7 +328,8 @@ def evaluate_log(
         refined_frames = refined.pop("per_view")
         for record in refined_frames:
             record["pose_change_cm"], record["pose_change_deg"] = changes[record["index"]]
-        moved = np.array(list(changes.values())).reshape(-1, 2)
+        # (over the frames scored: one without valid depth is neither refined nor scored)
+        moved = np.array([changes[r["index"]] for r in refined_frames]).reshape(-1, 2)
         refined = {
             "iters": refine_poses,
             "pose_change_cm": float(np.median(moved[:, 0])) if len(moved) else None,
