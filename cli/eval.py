@@ -41,6 +41,28 @@ from .options import (
     help="Render every N-th frame that has an estimated pose (ATE uses all of them).",
 )
 @size_option(help="Render at this size WxH [default: the log's working size].")
+@click.option(
+    "--poses",
+    type=INPUT_FILE,
+    default=None,
+    help="Render at the poses of this TUM trajectory (matched to frames within 20 ms) "
+    "[default: the log's estimated poses].",
+)
+@click.option(
+    "--poses-from",
+    type=INPUT_FILE,
+    default=None,
+    metavar="OTHER.mcap",
+    help="Render at another log's estimated poses (e.g. the map of agent B on agent A's frames).",
+)
+@click.option(
+    "--refine-poses",
+    type=click.IntRange(min=1),
+    default=None,
+    metavar="N",
+    help="Also refine each frame's pose against the fixed map (N tracking iterations from the "
+    "given pose) and score again there; 100 separates map from pose across agents.",
+)
 @backend_option()
 @device_option
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (reported as not asked for).")
@@ -51,6 +73,9 @@ def eval_command(
     frames: object,
     every: int,
     size: tuple[int, int] | None,
+    poses: Path | None,
+    poses_from: Path | None,
+    refine_poses: int | None,
     backend: str,
     device: str,
     no_lpips: bool,
@@ -59,15 +84,22 @@ def eval_command(
     """Score the map and trajectory of a SLAM log against its sequence.
 
     The log's final map is rendered at its estimated poses (/camera/pose, matched to the frames
-    by timestamp) and compared with the observed frames on pixels with valid depth: PSNR, SSIM,
-    MS-SSIM, LPIPS and depth L1. ATE is reported in two conventions: `ate_rmse_cm` (evo's
-    `evo_ape -a` RMSE on camera centres) and `ate_splatam_cm` (the mean SplaTAM prints). A
-    metric that cannot be computed is reported unavailable with the reason.
+    by timestamp), or at those of --poses or --poses-from, and compared with the observed frames
+    on pixels with valid depth: PSNR, SSIM, MS-SSIM, LPIPS and depth L1. ATE (of the poses
+    rendered at) is reported in two conventions: `ate_rmse_cm` (evo's `evo_ape -a` RMSE on
+    camera centres) and `ate_splatam_cm` (the mean SplaTAM prints). A metric that cannot be
+    computed is reported unavailable with the reason.
+
+    Two agents' maps sit a few centimetres apart, each consistent with its own trajectory; at
+    the other agent's poses that offset, not the map, decides the figures. --refine-poses N
+    moves each frame's pose to where the fixed map explains it best (N iterations of the SLAM
+    tracker, the map unchanged) and reports the metrics there too, with the median pose change.
 
     \b
     Examples:
       gsc eval run.mcap --seq data/room
       gsc eval run.mcap --seq data/room --every 5 --json | jq .psnr
+      gsc eval B.mcap --seq data/room --frames odd --poses-from A.mcap --refine-poses 100
     """
     with progress_bar("eval", "view", hidden=as_json) as bar:
         result = evaluate_log(
@@ -76,6 +108,9 @@ def eval_command(
             frames=None if frames is None else str(frames),
             every=every,
             size=size,
+            poses=poses,
+            poses_from=poses_from,
+            refine_poses=refine_poses or 0,
             backend=backend,
             device=device,
             lpips=not no_lpips,
@@ -84,11 +119,22 @@ def eval_command(
     emit(result, as_json, format_eval(result))
 
 
+IMAGE_ROWS = (
+    ("PSNR", "psnr", "{:.2f} dB"),
+    ("SSIM", "ssim", "{:.4f}"),
+    ("MS-SSIM", "ms_ssim", "{:.4f}"),
+    ("LPIPS", "lpips", "{:.4f}"),
+    ("depth L1", "depth_l1_cm", "{:.3f} cm"),
+)
+"""(label, result key, format) of the image metrics in the text table."""
+
+
 def format_eval(r: dict[str, Any]) -> str:
     """Human-readable table of an `evaluate_log` result."""
     w, h = r["size"]
     lines = [
-        f"{r['log']}  vs  {r['sequence']} (frames {r['frames']}, {w}x{h}, every {r['every']})",
+        f"{r['log']}  vs  {r['sequence']} (frames {r['frames']}, {w}x{h}, every {r['every']}, "
+        + ("at the log's poses)" if r["poses"] == "log" else f"at the poses of {r['poses']})"),
         f"  {'frames':<13}{r['frames_evaluated']} rendered of {r['frames_with_pose']} with an "
         f"estimated pose ({r['frames_without_pose']} of {r['frames_selected']} without)",
     ]
@@ -105,17 +151,27 @@ def format_eval(r: dict[str, Any]) -> str:
             f"  {'ATE SplaTAM':<13}{r['ate_splatam_cm']:.3f} cm  (mean error of world-to-camera "
             "translations, as SplaTAM prints it)"
         )
-    rows = (
-        ("PSNR", "psnr", "{:.2f} dB"),
-        ("SSIM", "ssim", "{:.4f}"),
-        ("MS-SSIM", "ms_ssim", "{:.4f}"),
-        ("LPIPS", "lpips", "{:.4f}"),
-        ("depth L1", "depth_l1_cm", "{:.3f} cm"),
-    )
-    for label, key, fmt in rows:
-        value = r[key]
-        text = fmt.format(value) if value is not None else f"unavailable: {r[key + '_reason']}"
-        lines.append(f"  {label:<13}{text}")
+    refined = r.get("refined")
+    if refined is not None:
+        moved = (
+            f"median pose change {refined['pose_change_cm']:.2f} cm, "
+            f"{refined['pose_change_deg']:.2f} deg"
+            if refined["pose_change_cm"] is not None
+            else "no frame refined"
+        )
+        lines.append(
+            f"  {'':<13}{'at given poses':<16}at refined poses ({refined['iters']} iterations; "
+            f"{moved})"
+        )
+    for label, key, fmt in IMAGE_ROWS:
+        cells = [r] if refined is None else [r, refined]
+        texts = [
+            fmt.format(c[key]) if c[key] is not None else f"unavailable: {c[key + '_reason']}"
+            for c in cells
+        ]
+        if all(c[key] is None for c in cells):
+            texts = texts[:1]  # (the same reason twice)
+        lines.append(f"  {label:<13}{'  '.join(t.ljust(14) for t in texts).rstrip()}")
     lines.append(
         f"  {'map':<13}{r['gaussians']} Gaussians, {r['bytes']} bytes as a message, "
         f"{r['file_bytes']} bytes of log file"

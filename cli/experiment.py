@@ -8,7 +8,7 @@ import click
 
 from gscompress.ops.budget import Budget
 from gscompress.ops.refine import REFINE_VIEWS
-from gscompress.pipeline.experiment import ExperimentSettings, run_experiment
+from gscompress.pipeline.experiment import SPLITS, ExperimentSettings, run_experiment
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 
@@ -70,7 +70,16 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 @click.option(
     "--frames", default="all", show_default=True,
     help="Frames of the experiment: all or START:STOP:STEP with START >= 0 (no counting from "
-    "the end); A gets the odd positions among them, B the even ones.",
+    "the end), split between A and B by --split.",
+)  # fmt: skip
+@click.option(
+    "--split", type=click.Choice(SPLITS), default="odd-even", show_default=True,
+    help="odd-even: A gets the odd positions among the frames, B the even ones (the paper's "
+    "protocol). halves: A the first ceil(N(1+overlap)/2) of the N frames, B the last as many.",
+)  # fmt: skip
+@click.option(
+    "--overlap", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.2,
+    show_default=True, help="With --split halves, the fraction of the frames both agents get.",
 )  # fmt: skip
 @click.option(
     "--every", type=click.IntRange(min=1), default=1, show_default=True,
@@ -121,6 +130,8 @@ def experiment(
     strategies: str,
     size: tuple[int, int] | None,
     frames: str,
+    split: str,
+    overlap: float,
     every: int,
     mode: str,
     merge_iters: int,
@@ -135,12 +146,15 @@ def experiment(
 
     \b
     - Table 3: the whole sequence without and with PWAS pruning.
-    - Table 4, per seed: agent A maps the odd frames, agent B the even ones; B receives A's
+    - Table 4, per seed: agent A maps the odd frames, agent B the even ones (--split
+      halves: A the first part, B the last, --overlap of them shared); B receives A's
       share (random, opacity, alpha-t, PWAS at --budget) and A's whole map (the upper
       bound): merged into B's map and refined on B's frames (--mode merge; --merge-views
       keyframes for its keyframes only), or injected before B's first frame so that its
       tracking uses it too (--mode inject).
     - Rate-distortion: PSNR and ATE of B against the share size, per strategy.
+    Table 3's PWAS run (one agent on all the frames, the agents' preset) is the centralised
+    reference.
     Every run is scored with `gsc eval` on its own frames. Outputs: results.md (tables like the
     paper's), results.csv, results.json, plots/*.png; each run's log stays in runs/. A rerun
     reuses every finished run whose settings are unchanged.
@@ -163,6 +177,8 @@ def experiment(
         strategies=tuple(s.strip() for s in strategies.split(",") if s.strip()),
         size=size,
         frames=frames,
+        split=split,
+        overlap=overlap,
         every=every,
         mode=mode,
         merge_iters=merge_iters,

@@ -140,6 +140,25 @@ class PositiveFloat(click.ParamType):
         return number
 
 
+class SigmaD(click.ParamType):
+    """PWAS's distance scale: `auto` (None: from the scene), `inf` (no proximity weighting) or a
+    finite number of metres above zero."""
+
+    name = "auto|inf|metres"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> float | None:
+        if value is None or isinstance(value, float):
+            return value
+        text = str(value).strip().lower()
+        if text == "auto":
+            return None
+        if text in ("inf", "infinity"):
+            return math.inf
+        return PositiveFloat().convert(value, param, ctx)
+
+
 class BudgetParam(click.ParamType):
     """A share budget: a fraction (`0.2`, `20%`) or bytes (`2MB`, `1.5MiB`); see `Budget`."""
 

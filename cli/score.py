@@ -12,7 +12,7 @@ from gscompress.pipeline import score_file
 from .options import (
     INPUT_FILE,
     FrameSubset,
-    PositiveFloat,
+    SigmaD,
     advance,
     backend_option,
     command_line,
@@ -47,10 +47,12 @@ from .options import (
 @size_option(help="Render at this size WxH [default: a log's working size, else the sequence's].")
 @click.option(
     "--sigma-d",
-    type=PositiveFloat(),
-    default=20.0,
+    type=SigmaD(),
+    default="auto",
     show_default=True,
-    help="Distance scale of the PWAS proximity weight, metres.",
+    help="Distance scale of the PWAS proximity weight, metres; auto: the median "
+    "camera-to-surface distance of the first frame with valid depth (as gsc slam); inf: no "
+    "proximity weighting.",
 )
 @device_option
 @backend_option()
@@ -63,7 +65,7 @@ def score(
     poses: Path | None,
     frames: object,
     size: tuple[int, int] | None,
-    sigma_d: float,
+    sigma_d: float | None,
     device: str,
     backend: str,
     dst: Path,

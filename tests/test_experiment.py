@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -11,11 +12,12 @@ import pytest
 from click.testing import CliRunner
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
-from gscompress.errors import InputError
+from gscompress.errors import InputError, OptionError
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline.experiment import (
     ROW_KEYS,
     ExperimentSettings,
+    halves,
     paired_difference,
     plan_size,
     rate_distortion_curves,
@@ -450,3 +452,42 @@ def test_a_rerun_removes_what_killed_workers_left_half_written(tmp_path: Path) -
         assert not left.exists() and live.tmp_path.exists()
     finally:
         live.discard()
+
+
+@pytest.mark.parametrize(
+    "n, overlap, a_stop, b_start",
+    [
+        (50, 0.2, 30, 20),
+        (40, 0.2, 24, 16),
+        (10, 0.0, 5, 5),
+        (11, 0.0, 6, 5),
+        (7, 0.5, 6, 1),
+        (2, 0.2, 2, 0),
+        (100, 0.25, 63, 37),
+    ],
+)
+def test_halves_gives_a_the_first_part_and_b_the_last_overlapping(n, overlap, a_stop, b_start):
+    a, b = halves(n, overlap)
+    assert (a.start, a.stop, b.start, b.stop) == (0, a_stop, b_start, n)
+    assert len(a) == len(b) == math.ceil(n * (1 + overlap) / 2 - 1e-9)
+    shared = len(set(a) & set(b))
+    assert set(a) | set(b) == set(range(n)) and overlap * n <= shared <= overlap * n + 2
+
+
+def test_halves_split_names_frame_subsets_of_the_experiment_frames() -> None:
+    from gscompress.datasets.base import parse_frames
+
+    settings = ExperimentSettings(split="halves", overlap=0.2)
+    a, b = settings.agent_frames(50)
+    assert (a, b) == ("0:30:1", "20:50:1")
+    # within a subset of the sequence: positions among its frames, mapped back to indices
+    a, b = ExperimentSettings(split="halves", overlap=0.2, frames="10:60:2").agent_frames(25)
+    assert list(parse_frames(a).apply(100)) == list(range(10, 40, 2))  # positions 0..14
+    assert list(parse_frames(b).apply(100)) == list(range(30, 60, 2))  # positions 10..24
+    for bad in ({"split": "thirds"}, {"split": "halves", "overlap": 1.0},
+                {"split": "halves", "overlap": -0.1}):  # fmt: skip
+        with pytest.raises(OptionError):
+            ExperimentSettings(**bad).check()
+    r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--split", "halves", "--overlap",
+                                 "1"])  # fmt: skip
+    assert r.exit_code == 2 and "--overlap" in r.output

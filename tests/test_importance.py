@@ -1,5 +1,9 @@
 """PWAS accumulation, scoring an existing map by rendering, and `gsc score`."""
 
+import json
+import math
+from functools import partial
+
 import numpy as np
 import pytest
 import torch
@@ -8,7 +12,7 @@ from click.testing import CliRunner
 from gscompress.camera import Intrinsics, make_transform
 from gscompress.errors import InputError
 from gscompress.gaussians import SH_C0, GaussianMap
-from gscompress.importance import ImportanceSums, PwasConfig
+from gscompress.importance import PAPER_SIGMA_D, ImportanceSums
 from gscompress.io.mcap_log import LogReader, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.score import score_map
@@ -22,7 +26,7 @@ INTR = Intrinsics(40.0, 40.0, 15.5, 11.5, 32, 24)
 def test_accumulate_matches_the_equations():
     sums = ImportanceSums.zeros(3)
     means = torch.tensor([[0.0, 0, 1], [0, 0, 5], [0, 0, 50]])
-    config = PwasConfig(sigma_d=2.0)
+    sigma_d = 2.0
     frames = [
         (torch.tensor([4.0, 1.0, 0.0]), torch.tensor([True, True, False]), torch.zeros(3)),
         (
@@ -32,7 +36,7 @@ def test_accumulate_matches_the_equations():
         ),
     ]
     for contribution, visible, center in frames:
-        sums.accumulate(contribution, visible, means, center, config)
+        sums.accumulate(contribution, visible, means, center, sigma_d)
     w = [[np.exp(-d / 2.0) for d in (1, 5, 50)], [np.exp(-d / 2.0) for d in (0, 4, 49)]]
     S = [4 * w[0][0] + 2 * w[1][0], 1 * w[0][1], 0.0]
     W = [w[0][0] + w[1][0], w[0][1] + w[1][1], w[1][2]]
@@ -58,7 +62,7 @@ def _scene() -> GaussianMap:
 
 def test_score_ranks_near_large_above_distant_occluded():
     views = [make_transform(np.eye(3), np.array([dx, 0.0, 0.0])) for dx in (-0.05, 0.0, 0.05)]
-    scored = score_map(_scene(), views, INTR, backend="torch")
+    scored = score_map(_scene(), views, INTR, sigma_d=PAPER_SIGMA_D, backend="torch")
     s = scored.importance
     assert s[0] > 10 * s[1] > 0
     assert scored.importance_weight[2] == 0 and s[2] == 0  # never visible
@@ -69,9 +73,9 @@ def test_score_ranks_near_large_above_distant_occluded():
 
 def test_score_from_views_accumulates_across_calls():
     views = [make_transform(np.eye(3), np.zeros(3))]
-    once = score_map(_scene(), views * 2, INTR, backend="torch")
-    twice = score_map(score_map(_scene(), views, INTR, backend="torch"), views, INTR,
-                      backend="torch", accumulate=True)  # fmt: skip
+    score = partial(score_map, sigma_d=PAPER_SIGMA_D, backend="torch")
+    once = score(_scene(), views * 2, INTR)
+    twice = score(score(_scene(), views, INTR), views, INTR, accumulate=True)
     np.testing.assert_allclose(twice.importance_sum, once.importance_sum, rtol=1e-6)
     np.testing.assert_allclose(twice.importance_weight, once.importance_weight, rtol=1e-6)
 
@@ -197,3 +201,77 @@ def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(tiny_sequence, tmp_p
     with pytest.raises(InputError, match="world frame is its run's first camera"):
         score_file(tmp_path / "share.mcap", tmp_path / "u.mcap", seq)
     assert not (tmp_path / "u.mcap").exists()
+
+
+def _depth_at_ranges(ranges: np.ndarray) -> np.ndarray:
+    """[24, 32] depth (along the optical axis of INTR) whose pixels lie at `ranges` metres from
+    the camera centre; 0 (invalid) where `ranges` is 0."""
+    v, u = np.mgrid[0:24, 0:32]
+    stretch = np.sqrt(((u - INTR.cx) / INTR.fx) ** 2 + ((v - INTR.cy) / INTR.fy) ** 2 + 1)
+    return (ranges / stretch).astype(np.float64)
+
+
+def test_sigma_d_rule_is_the_median_camera_to_gaussian_distance_of_the_first_frame():
+    from gscompress.importance import median_range, resolve_sigma_d
+
+    rng = np.random.default_rng(3)
+    ranges = rng.choice([0.6, 1.0, 1.5, 2.5, 4.0], size=(24, 32), p=[0.2, 0.2, 0.25, 0.2, 0.15])
+    ranges[:, :5] = 0  # no depth there
+    depth = _depth_at_ranges(ranges)
+    T = make_transform(np.eye(3), np.array([1.0, -2.0, 0.5]))  # (where the camera is: no matter)
+    gaussians = gaussians_from_rgbd(np.full((24, 32, 3), 0.5), depth, INTR, T, stride=1)
+    distances = np.linalg.norm(gaussians.means - T[:3, 3], axis=1)
+    np.testing.assert_allclose(np.sort(distances), np.sort(ranges[ranges > 0]), rtol=1e-5)
+
+    sigma_d = resolve_sigma_d(None, [np.zeros((24, 32)), depth], INTR)  # (first valid depth)
+    assert sigma_d == pytest.approx(np.median(distances), rel=1e-6) == median_range(depth, INTR)
+    assert sigma_d == 1.5
+    assert resolve_sigma_d(2.0, [depth], INTR) == 2.0  # a number set is kept
+    assert resolve_sigma_d(math.inf, [], INTR) == math.inf
+    with pytest.raises(InputError, match="no frame has valid depth"):
+        resolve_sigma_d(None, [np.zeros((24, 32))], INTR)
+    with pytest.raises(InputError, match="above 0"):
+        resolve_sigma_d(0.0, [depth], INTR)
+
+    # the proximity weight now tells near from far: a Gaussian at 0.6 m weighs 5.3 times one at
+    # 4 m (the paper's 20 m: 1.18 times, i.e. hardly at all; inf: exactly equal)
+    near, far = np.argmin(distances), np.argmax(distances)
+    means = torch.from_numpy(gaussians.means[[near, far]])
+    for scale, ratio in ((sigma_d, np.exp(3.4 / 1.5)), (PAPER_SIGMA_D, np.exp(3.4 / 20)),
+                         (math.inf, 1.0)):  # fmt: skip
+        sums = ImportanceSums.zeros(2)
+        sums.accumulate(torch.ones(2), torch.ones(2, dtype=torch.bool), means,
+                        torch.from_numpy(T[:3, 3]), scale)  # fmt: skip
+        w = sums.importance_weight.numpy()
+        assert w[0] / w[1] == pytest.approx(ratio, rel=1e-6)
+    assert np.exp(3.4 / 1.5) > 5 and np.exp(3.4 / 20) < 1.2
+
+
+def test_gsc_score_derives_sigma_d_from_the_scene_or_takes_it(tiny_sequence, tmp_path):
+    from gscompress.datasets import open_sequence
+    from gscompress.importance import median_range
+
+    seq = open_sequence(tiny_sequence)
+    f = seq.frame(0)
+    g = gaussians_from_rgbd(f.color, f.depth, seq.intrinsics, f.T_world_cam, stride=2)
+    write_ply(g, tmp_path / "m.ply", importance=False)
+    args = ["score", str(tmp_path / "m.ply"), "--seq", str(tiny_sequence), "--json", "-o"]
+    used = {}
+    for setting in ("auto", "inf", "0.5"):
+        out = tmp_path / f"{setting}.mcap"
+        extra = [] if setting == "auto" else ["--sigma-d", setting]
+        r = CliRunner().invoke(cli, [*args, str(out), *extra])
+        assert r.exit_code == 0, r.output
+        with LogReader(out) as log:
+            used[setting] = log.metadata.results["sigma_d"]
+            setting_recorded = log.metadata.provenance[-1]["operation"]["sigma_d"]
+        assert str(setting_recorded) == setting
+        assert json.loads(r.output)["sigma_d"] == used[setting]
+    assert used["auto"] == pytest.approx(median_range(f.depth, seq.intrinsics))
+    assert 0.5 < used["auto"] < 10 and used["inf"] == "inf" and used["0.5"] == 0.5
+    # without proximity weighting a Gaussian's weight counts the views that see it
+    unweighted = read_map(tmp_path / "inf.mcap").importance_weight
+    np.testing.assert_array_equal(unweighted, np.round(unweighted))
+    assert unweighted.max() == 6
+    r = CliRunner().invoke(cli, [*args, str(tmp_path / "x.mcap"), "--sigma-d", "-1"])
+    assert r.exit_code == 2 and "not a finite number above 0" in r.output

@@ -1,5 +1,8 @@
 """SLAM configuration: presets, YAML round trips, overrides and refusals."""
 
+import json
+import math
+
 import pytest
 
 from gscompress.errors import InputError, OptionError
@@ -124,3 +127,26 @@ def test_example_configs_equal_their_presets(name):
     assert yaml.safe_load(path.read_text()) == yaml.safe_load(
         yaml.safe_dump(preset(name).to_dict())
     ), f"regenerate {path} with save_config"
+
+
+@pytest.mark.parametrize(
+    "text, sigma_d",
+    [("auto", None), ("null", None), ("2.5", 2.5), (".inf", math.inf), ("inf", math.inf)],
+)
+def test_pwas_sigma_d_is_auto_a_distance_or_inf_and_round_trips(tmp_path, text, sigma_d):
+    assert preset("cpu").pwas.sigma_d is None  # scale-aware by default
+    path = tmp_path / "c.yaml"
+    path.write_text(f"pwas:\n  sigma_d: {text}\n")
+    config = load_config(path)
+    assert config.pwas.sigma_d == sigma_d
+    assert load_config(save_config(config, tmp_path / "again.yaml")) == config
+    assert json.loads(json.dumps(config.to_dict(), allow_nan=False)) == config.to_dict()
+    assert SlamConfig.from_dict(config.to_dict()) == config
+
+
+@pytest.mark.parametrize("text", ["0", "-1", "-.inf", "near", "true"])
+def test_pwas_sigma_d_refuses_what_is_not_a_distance(tmp_path, text):
+    path = tmp_path / "c.yaml"
+    path.write_text(f"pwas:\n  sigma_d: {text}\n")
+    with pytest.raises(InputError, match=r"pwas\.sigma_d: expected a finite number above 0, inf"):
+        load_config(path)

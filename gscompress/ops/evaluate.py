@@ -13,6 +13,12 @@ rendered depth sum_i w_i z_i (not normalised by the silhouette), the quantity th
 fits, on the same valid pixels.
 
 Trajectory error is not computed here: it needs no render (`gscompress.metrics.ate_rmse_cm`).
+
+Maps of different agents sit in world frames a few centimetres apart (each is consistent with its
+own estimated trajectory), and scored at another agent's poses that offset, not the map, decides
+the figures. `refine_poses` separates the two: it moves each view's pose to where the fixed map
+explains the frame best, with the SLAM tracker and its loss (`gscompress.slam.tracker.track`),
+starting from the given pose; `pose_change` measures how far each moved.
 """
 
 from __future__ import annotations
@@ -42,6 +48,10 @@ from gscompress.metrics import (
 from gscompress.metrics import lpips as lpips_score
 from gscompress.ops.score import activated_tensors
 from gscompress.render import render
+from gscompress.slam.config import TrackingConfig
+from gscompress.slam.keyframes import frame_tensors
+from gscompress.slam.params import RenderInputs
+from gscompress.slam.tracker import track
 
 MS_SSIM_MIN_SIDE = (SSIM_WINDOW - 1) * 2 ** (len(MS_SSIM_WEIGHTS) - 1) + 1
 """Smallest image side MS-SSIM accepts (161: the window must fit after 4 downsamplings)."""
@@ -199,3 +209,50 @@ def evaluate_map(
         result[f"{name}_reason"] = reason
     result["per_view"] = per_view
     return result
+
+
+def refine_poses(
+    gaussians: GaussianMap,
+    views: Iterable[EvalView],
+    intrinsics: Intrinsics,
+    config: TrackingConfig,
+    *,
+    backend: str = "auto",
+    device: str | torch.device = "cpu",
+    progress: Callable[[int], object] | None = None,
+) -> list[np.ndarray]:
+    """Each view's pose refined against the fixed map: `config.iters` tracking iterations
+    (pose only, the map unchanged) from the view's `T_world_cam`.
+
+    A view without valid depth (no pixel passes the tracking mask) keeps its pose.
+
+    Args:
+        gaussians: the map, held fixed.
+        views: the observed frames and the poses to start from (consumed once).
+        intrinsics: camera intrinsics of the views.
+        config: the tracker's settings (iterations, learning rates, loss).
+        backend: render backend.
+        device: torch device to track on.
+        progress: called with 1 after each view.
+
+    Returns:
+        The refined camera-to-world poses [4, 4], one per view, in order.
+    """
+    inputs = RenderInputs(**activated_tensors(gaussians, device))
+    refined: list[np.ndarray] = []
+    for view in views:
+        color, depth = frame_tensors(view, device)
+        result = track(inputs, color, depth, intrinsics, view.T_world_cam, config, backend=backend)
+        refined.append(result.T_world_cam)
+        if progress is not None:
+            progress(1)
+    return refined
+
+
+def pose_change(T_from: np.ndarray, T_to: np.ndarray) -> tuple[float, float]:
+    """How far a camera moved between two camera-to-world poses [4, 4]: the distance of its
+    centres in centimetres and the angle of the relative rotation in degrees."""
+    T_from, T_to = np.asarray(T_from, np.float64), np.asarray(T_to, np.float64)
+    shift = float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3])) * 100.0
+    cos = (np.trace(T_from[:3, :3].T @ T_to[:3, :3]) - 1.0) / 2.0
+    return shift, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))

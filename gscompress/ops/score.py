@@ -14,7 +14,7 @@ import torch
 
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.gaussians import GaussianMap
-from gscompress.importance import ImportanceSums, PwasConfig
+from gscompress.importance import ImportanceSums
 from gscompress.render import render
 from gscompress.slam.params import activate
 
@@ -32,8 +32,8 @@ def score_map(
     gaussians: GaussianMap,
     T_world_cams: Iterable[np.ndarray],
     intrinsics: Intrinsics,
-    config: PwasConfig | None = None,
     *,
+    sigma_d: float,
     backend: str = "auto",
     device: str | torch.device = "cpu",
     accumulate: bool = False,
@@ -45,7 +45,8 @@ def score_map(
         gaussians: the map.
         T_world_cams: camera-to-world 4x4 poses of the views to score from.
         intrinsics: camera intrinsics (and image size) of the views.
-        config: PWAS settings.
+        sigma_d: distance scale of the proximity weight, metres (resolved, see
+            `gscompress.importance.resolve_sigma_d`; inf: none).
         backend: render backend (see `gscompress.render.render`).
         device: torch device for rendering.
         accumulate: add to the map's existing sums instead of starting from zero.
@@ -56,7 +57,6 @@ def score_map(
     """
     params = activated_tensors(gaussians, device)
     n = len(gaussians)
-    config = config or PwasConfig()
     sums = ImportanceSums.zeros(n, device)
     if accumulate:
         t = gaussians.to_tensors(device, torch.float64)
@@ -71,7 +71,7 @@ def score_map(
             )  # fmt: skip
         assert out.contribution is not None
         center = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], device=device)
-        sums.accumulate(out.contribution, out.visible, params["means"], center, config)
+        sums.accumulate(out.contribution, out.visible, params["means"], center, sigma_d)
         if progress is not None:
             progress(1)
     return gaussians.with_importance(

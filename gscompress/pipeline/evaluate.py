@@ -6,12 +6,24 @@ they differ by at most `POSE_MATCH_TOLERANCE_NS` (1 ms; `gsc slam` writes the fr
 itself, so its logs match exactly, and frames of a 30 Hz camera are 33 ms apart). Frames with no
 estimated pose are skipped and counted.
 
+Other poses may stand in for the log's own: another log's estimated poses (`poses_from`, matched
+the same way) or a TUM trajectory (`poses`, matched within `TUM_MATCH_TOLERANCE_NS`, 20 ms, the
+TUM association's default, as its times come from another clock). `pose_source` reads either, and
+`frames_with_poses` is the one lookup of a pose per frame (`gsc score` and `gsc merge` use it too).
+With `refine_poses` N > 0 each rendered frame's pose is then also refined against the fixed map
+(`gscompress.ops.evaluate.refine_poses`: N iterations of the SLAM tracker, the log's tracking
+settings, else those of the default preset) and the images are scored again at the refined poses:
+the figures at given poses mix the map with the offset between trajectories, those at refined
+poses judge the map.
+
 - Trajectory: `ate_rmse_cm` (evo's `evo_ape tum GT EST -a` RMSE, camera centres, SE(3) without
   scale) and `ate_splatam_cm` (the mean SplaTAM prints, each trajectory first expressed relative
   to its own first pose, as SplaTAM's start at identity) over every matched frame that has a
   ground-truth pose: the sequence's, or `/camera/pose_gt` of the log when the sequence has none.
 - Images: the final map (last `/gaussians` snapshot) rendered at the estimated pose of every
   `every`-th matched frame and scored by `gscompress.ops.evaluate.evaluate_map`.
+- Refined (with `refine_poses`): the image metrics at the refined poses, and the median change of
+  pose (camera centre in cm, rotation in degrees) from the given poses.
 - Size: Gaussian count, the serialized `/gaussians` message in bytes (as `gsc info` reports it,
   what would be sent) and the file's bytes.
 """
@@ -21,13 +33,15 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from gscompress.camera import invert_transform
-from gscompress.errors import InputError, LogFormatError
+from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.io.mcap_log import (
     TOPIC_POSE,
     TOPIC_POSE_GT,
@@ -35,12 +49,42 @@ from gscompress.io.mcap_log import (
     LogReader,
     seconds_to_ns,
 )
-from gscompress.io.trajectory import nearest_times
+from gscompress.io.trajectory import nearest_times, read_tum_trajectory
 
 log = logging.getLogger(__name__)
 
 POSE_MATCH_TOLERANCE_NS = 1_000_000
 """Largest |log time - frame timestamp| (ns) at which a logged pose belongs to a frame."""
+
+TUM_MATCH_TOLERANCE_NS = 20_000_000
+"""Largest |trajectory time - frame timestamp| (ns) at which a TUM trajectory's pose belongs to a
+frame (0.02 s, the default of TUM's association tool)."""
+
+
+def pose_source(path: str | Path) -> tuple[np.ndarray, np.ndarray, int]:
+    """The poses a file gives: a log's estimated poses (`/camera/pose`), or a TUM trajectory's.
+
+    Returns:
+        (times [N] int64 ns, camera-to-world poses [N, 4, 4], the matching tolerance in ns).
+
+    Raises:
+        LogFormatError: a log without `/camera/pose`, or unreadable.
+        InputError: an unreadable or empty trajectory.
+    """
+    if Path(path).suffix.lower() == ".mcap":
+        with LogReader(path) as reader:
+            times_ns, poses = reader.read_poses(TOPIC_POSE)
+        if len(times_ns) == 0:
+            raise LogFormatError(
+                f"{path} has no {TOPIC_POSE} messages (not a SLAM log): no poses to render at; "
+                "give them with --poses TRAJ.txt or --poses-from OTHER.mcap"
+            )
+        return times_ns, poses, POSE_MATCH_TOLERANCE_NS
+    trajectory = read_tum_trajectory(path)
+    if len(trajectory) == 0:
+        raise InputError(f"{path} holds no poses")
+    times_ns = np.array([seconds_to_ns(t) for t in trajectory.timestamps], dtype=np.int64)
+    return times_ns, trajectory.T_world_cam, TUM_MATCH_TOLERANCE_NS
 
 
 def open_log_sequence(
@@ -99,22 +143,25 @@ def check_first_frame(log_path: str | Path, recorded: Any, sequence: Any) -> lis
 
 
 def frames_with_poses(
-    sequence: Any, pose_ns: np.ndarray, log_path: str | Path
+    sequence: Any,
+    pose_ns: np.ndarray,
+    log_path: str | Path,
+    tolerance_ns: int = POSE_MATCH_TOLERANCE_NS,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The positions of the sequence's frames that have a logged pose (log times `pose_ns`),
-    and the index of each one's pose.
+    """The positions of the sequence's frames that have a pose (times `pose_ns`, from the file
+    `log_path`) within `tolerance_ns` of their timestamp, and the index of each one's pose.
 
     Raises:
         InputError: no frame has one.
     """
     frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
-    index = nearest_times(frame_ns, pose_ns, POSE_MATCH_TOLERANCE_NS)
+    index = nearest_times(frame_ns, pose_ns, tolerance_ns)
     positions = np.flatnonzero(index >= 0)
     if len(positions) == 0:
         raise InputError(
             f"no frame of {sequence.name} has a pose in {log_path} within "
-            f"{POSE_MATCH_TOLERANCE_NS / 1e6:g} ms: is this the sequence (and frame subset) the "
-            "log was made from?"
+            f"{tolerance_ns / 1e6:g} ms: is this the sequence (and frame subset) the poses "
+            "were made from?"
         )
     return positions, index[positions]
 
@@ -137,6 +184,19 @@ def trajectory_errors(T_world_cam_gt: np.ndarray, T_world_cam_est: np.ndarray) -
     }
 
 
+def log_tracking_config(meta: LogMetadata) -> Any:
+    """The tracking settings of the run a log records (`TrackingConfig`), else those of the
+    default preset (a log from another tool, or one whose config this version cannot read)."""
+    from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
+
+    if meta.config:
+        try:
+            return SlamConfig.from_dict(meta.config).tracking
+        except InputError as exc:
+            log.warning("tracking with the %s preset's settings: %s", DEFAULT_PRESET, exc)
+    return preset(DEFAULT_PRESET).tracking
+
+
 def evaluate_log(
     log_path: str | Path,
     seq: str | Path,
@@ -144,6 +204,9 @@ def evaluate_log(
     frames: str | None = None,
     every: int = 1,
     size: tuple[int, int] | None = None,
+    poses: str | Path | None = None,
+    poses_from: str | Path | None = None,
+    refine_poses: int = 0,
     backend: str = "auto",
     device: str = "auto",
     lpips: bool = True,
@@ -152,56 +215,69 @@ def evaluate_log(
     """Score a log's final map and estimated trajectory against the sequence it was made from.
 
     Args:
-        log_path: a gscompress log with `/gaussians` and `/camera/pose`.
+        log_path: a gscompress log with `/gaussians` (and `/camera/pose` unless `poses` or
+            `poses_from` gives the poses).
         seq: the sequence folder.
         frames: frame subset; None: the one recorded in the log's metadata (else all).
-        every: render every `every`-th frame that has an estimated pose (ATE uses all of them).
+        every: render every `every`-th frame that has a pose (ATE uses all of them).
         size: working size (W, H); None: the one in the log's config (else the sequence's own).
+        poses: a TUM trajectory to render at instead of the log's poses.
+        poses_from: another log whose estimated poses to render at instead.
+        refine_poses: also refine each rendered frame's pose against the fixed map with this
+            many tracking iterations and score the images again there (0: do not).
         backend: render backend.
         device: torch device to render on, or "auto".
         lpips: compute LPIPS (reported unavailable with the reason when it cannot be).
-        progress: called with (views done, views in total) after each rendered view.
+        progress: called with (steps done, steps in total) after each view rendered or refined.
 
     Returns:
-        A flat JSON-ready dict: `ate_rmse_cm`, `ate_splatam_cm` (None with `ate_reason` when
-        there is no ground truth), `psnr`, `ssim`, `ms_ssim`, `lpips`, `depth_l1_cm` (each None
+        A flat JSON-ready dict: `poses` (where the poses came from), `ate_rmse_cm`,
+        `ate_splatam_cm` of those poses (None with `ate_reason` when there is no ground
+        truth), `psnr`, `ssim`, `ms_ssim`, `lpips`, `depth_l1_cm` at those poses (each None
         with `<name>_reason` when unavailable), `gaussians`, `bytes` (the serialized map
         message), `file_bytes`, frame counts (`frames_selected`, `frames_with_pose`,
-        `frames_without_pose`, `frames_evaluated`), the settings used and `per_frame` (per
-        rendered view: index, timestamp and its metrics).
+        `frames_without_pose`, `frames_evaluated`), the settings used, `per_frame` (per
+        rendered view: index, timestamp and its metrics) and, with `refine_poses`, `refined`:
+        the same image metrics at the refined poses, `iters`, the median pose change
+        `pose_change_cm` and `pose_change_deg`, and its own `per_frame` (with each frame's
+        pose change).
 
     Raises:
-        LogFormatError: unreadable log, or no `/gaussians` or `/camera/pose`.
+        LogFormatError: unreadable log, or no `/gaussians`, or no `/camera/pose` where the
+            poses come from.
         DatasetError: unreadable sequence.
-        InputError: `every` < 1, or no frame of the sequence has a pose in the log.
+        InputError: `every` < 1, `refine_poses` < 0, or no frame of the sequence has a pose.
+        OptionError: both `poses` and `poses_from`.
     """
-    from gscompress.ops.evaluate import EvalView, evaluate_map
+    from gscompress.ops.evaluate import EvalView, evaluate_map, pose_change
+    from gscompress.ops.evaluate import refine_poses as refine
     from gscompress.render import resolve_device
 
     if every < 1:
         raise InputError(f"--every must be a positive integer, got {every}")
+    if refine_poses < 0:
+        raise InputError(f"--refine-poses must be 0 or more iterations, got {refine_poses}")
+    if poses is not None and poses_from is not None:
+        raise OptionError("--poses and --poses-from do not go together: give one source of poses")
     start = time.perf_counter()
     log_path = Path(log_path)
     with LogReader(log_path) as reader:
         snapshot = reader.read_snapshot()
         gaussians, map_bytes = snapshot.gaussians, snapshot.message_bytes
-        est_ns, est_poses = reader.read_poses(TOPIC_POSE)
         gt_log_ns, gt_log_poses = reader.read_poses(TOPIC_POSE_GT)
         meta = reader.metadata
-    if len(est_ns) == 0:
-        raise LogFormatError(
-            f"{log_path} has no {TOPIC_POSE} messages: not a SLAM log (nothing to evaluate at)"
-        )
+    source = poses if poses is not None else poses_from if poses_from is not None else log_path
+    est_ns, est_poses, tolerance_ns = pose_source(source)
     frames = frames or meta.frames or "all"
     sequence = open_log_sequence(seq, log_path, meta, frames, size)
-    positions, pose_index = frames_with_poses(sequence, est_ns, log_path)
+    positions, pose_index = frames_with_poses(sequence, est_ns, source, tolerance_ns)
     T_est = est_poses[pose_index]
 
     # ground truth per matched frame: the sequence's, else the log's /camera/pose_gt
     gt_stamps, gt_poses = sequence.ground_truth()
-    source = "sequence"
+    gt_source = "sequence"
     if len(gt_stamps) == 0:
-        gt_stamps_ns, gt_poses, source = gt_log_ns, gt_log_poses, "log"
+        gt_stamps_ns, gt_poses, gt_source = gt_log_ns, gt_log_poses, "log"
     else:
         gt_stamps_ns = np.array([seconds_to_ns(t) for t in gt_stamps], dtype=np.int64)
         gt_poses = np.asarray(gt_poses)
@@ -211,33 +287,56 @@ def evaluate_log(
     ate = trajectory_errors(gt_poses[gt_index[paired]], T_est[paired])
     if ate["ate_frames"] == 0 and len(gt_stamps_ns) == 0:
         ate["ate_reason"] = "no ground truth: neither the sequence nor the log has poses"
-    ate["ground_truth"] = source if ate["ate_frames"] else None
+    ate["ground_truth"] = gt_source if ate["ate_frames"] else None
 
     chosen = list(range(0, len(positions), every))
+    torch_device = resolve_device(device, backend)
 
-    def views() -> Iterator[EvalView]:
-        for k in chosen:
+    def views(T_world_cams: Any) -> Iterator[EvalView]:
+        for k, T in zip(chosen, T_world_cams, strict=True):
             frame = sequence.frame(int(positions[k]))
-            yield EvalView(frame.color, frame.depth, T_est[k], frame.index, frame.timestamp)
+            yield EvalView(frame.color, frame.depth, T, frame.index, frame.timestamp)
 
+    total = len(chosen) * (3 if refine_poses else 1)
     done = 0
 
     def step(n: int) -> None:
         nonlocal done
         done += n
         if progress is not None:
-            progress(done, len(chosen))
+            progress(done, total)
 
-    images = evaluate_map(
-        gaussians,
-        views(),
-        sequence.intrinsics,
-        backend=backend,
-        device=resolve_device(device, backend),
-        lpips=lpips,
-        progress=step,
-    )
+    T_given = [T_est[k] for k in chosen]
+    score = partial(
+        evaluate_map, gaussians, intrinsics=sequence.intrinsics, backend=backend,
+        device=torch_device, lpips=lpips, progress=step,
+    )  # fmt: skip
+    images = score(views(T_given))
     per_frame = images.pop("per_view")
+    refined: dict[str, Any] | None = None
+    if refine_poses:
+        tracking = replace(log_tracking_config(meta), iters=refine_poses)
+        T_refined = refine(
+            gaussians, views(T_given), sequence.intrinsics, tracking, backend=backend,
+            device=torch_device, progress=step,
+        )  # fmt: skip
+        refined = score(views(T_refined))
+        changes = {
+            int(sequence.indices[positions[k]]): pose_change(T_given[i], T_refined[i])
+            for i, k in enumerate(chosen)
+        }
+        refined_frames = refined.pop("per_view")
+        for record in refined_frames:
+            record["pose_change_cm"], record["pose_change_deg"] = changes[record["index"]]
+        # (over the frames scored: one without valid depth is neither refined nor scored)
+        moved = np.array([changes[r["index"]] for r in refined_frames]).reshape(-1, 2)
+        refined = {
+            "iters": refine_poses,
+            "pose_change_cm": float(np.median(moved[:, 0])) if len(moved) else None,
+            "pose_change_deg": float(np.median(moved[:, 1])) if len(moved) else None,
+            **{k: v for k, v in refined.items() if k not in ("views", "views_without_depth")},
+            "per_frame": refined_frames,
+        }
     intr = sequence.intrinsics
     return {
         "log": str(log_path),
@@ -245,6 +344,7 @@ def evaluate_log(
         "frames": str(frames),
         "size": [intr.width, intr.height],
         "every": every,
+        "poses": "log" if poses is None and poses_from is None else str(source),
         "frames_selected": len(sequence),
         "frames_with_pose": len(positions),
         "frames_without_pose": len(sequence) - len(positions),
@@ -257,4 +357,5 @@ def evaluate_log(
         "file_bytes": log_path.stat().st_size,
         "seconds": round(time.perf_counter() - start, 3),
         "per_frame": per_frame,
+        **({"refined": refined} if refined is not None else {}),
     }

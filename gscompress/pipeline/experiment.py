@@ -2,12 +2,15 @@
 
 Runs, each a log under DIR/runs/ with a JSON record of its settings and results beside it:
 - Table 3: the whole sequence without and with PWAS pruning.
-- Table 4, for each seed: agent A on the odd frames, agent B on the even frames (both with
-  pruning), and B receiving A's share for every strategy at the main budget, plus B with A's
-  whole map as the upper bound. B receives a share as the paper's protocol does (`mode`
-  "merge", the default): concatenated into B's finished map and refined on B's frames
-  (`gsc merge`; B's poses, so its ATE, do not change), or (`mode` "inject") injected before B's
-  first frame (`gsc slam --inject`), so that B's tracking and mapping both use it.
+- Table 4, for each seed: agent A on the odd frames, agent B on the even frames (`split`
+  "odd-even", the paper's protocol; or, with "halves", A on the first part of the frames and B
+  on the last, overlapping by `overlap`: see `halves`), both with pruning, and B receiving A's
+  share for every strategy at the main budget, plus B with A's whole map as the upper bound. B
+  receives a share as the paper's protocol does (`mode` "merge", the default): concatenated
+  into B's finished map and refined on B's frames (`gsc merge`; B's poses, so its ATE, do not
+  change), or (`mode` "inject") injected before B's first frame (`gsc slam --inject`), so that
+  B's tracking and mapping both use it. Table 3's PWAS-pruned run is the centralised reference
+  (one agent on every frame, the agents' preset).
 - Rate-distortion: B with A's share at every sweep budget for every strategy (on the first
   `sweep_seeds` seeds).
 
@@ -73,8 +76,17 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-B_ALONE = "agent B (even frames)"
-"""Row name of B's own run (no share)."""
+SPLITS = ("odd-even", "halves")
+"""How the experiment's frames are split between agents A and B (`ExperimentSettings.split`)."""
+
+AGENT_ROWS = {
+    "odd-even": ("agent A (odd frames)", "agent B (even frames)"),
+    "halves": ("agent A (first part)", "agent B (last part)"),
+}
+"""Row names of A's and B's own runs, per split."""
+
+B_ALONE = AGENT_ROWS["odd-even"][1]
+"""Row name of B's own run (no share) in the paper's split."""
 B_NO_SHARE = "B refined, no share"
 """Row name of B's map refined like a merge but with nothing merged (merge mode's control)."""
 
@@ -103,8 +115,13 @@ class ExperimentSettings:
         every: evaluate every N-th frame.
         lpips: compute LPIPS.
         device: torch device.
-        frames: the frames the experiment uses (`all` or `START:STOP:STEP`); agent A gets the
-            odd positions among them, agent B the even ones.
+        frames: the frames the experiment uses (`all` or `START:STOP:STEP`), split between the
+            agents by `split`.
+        split: "odd-even": agent A gets the odd positions among the frames, agent B the even
+            ones (the paper's protocol; B then sees nearly everything A saw). "halves": A gets
+            the first part, B the last, overlapping by `overlap` (`halves`), so that each
+            sees places the other has not.
+        overlap: with split "halves", the fraction of the frames both agents get, in [0, 1).
         mode: how B receives a share: "merge" (into its finished map, then refined) or
             "inject" (before its first frame).
         merge_iters: refinement iterations of a merge.
@@ -125,13 +142,18 @@ class ExperimentSettings:
     lpips: bool = True
     device: str = "auto"
     frames: str = "all"
+    split: str = "odd-even"
+    overlap: float = 0.2
     mode: str = "merge"
     merge_iters: int = 200
     merge_views: str = DEFAULT_REFINE_VIEWS
     merge_lr_final: float = DEFAULT_LR_FINAL
 
-    def agent_frames(self) -> tuple[str, str]:
-        """The frame subsets of agents A and B (odd and even positions within `frames`)."""
+    def agent_frames(self, n: int | None = None) -> tuple[str, str]:
+        """The frame subsets of agents A and B: the odd and even positions within `frames`, or
+        with split "halves" the positions `halves(n, overlap)` of the `n` frames `frames`
+        selects (without `n`, only the settings are checked and ("", "") returned).
+        """
         from gscompress.datasets.base import parse_frames
 
         usage = f"--frames {self.frames!r}: an experiment takes all or START:STOP:STEP (from 0)"
@@ -139,11 +161,19 @@ class ExperimentSettings:
             base = parse_frames(self.frames)
         except InputError:
             raise InputError(usage) from None
-        if base.spec == "all":
-            return "odd", "even"
         if base.spec in ("odd", "even") or (base.start or 0) < 0 or (base.stop or 0) < 0:
             raise InputError(usage)
-        start, stop, step = base.start or 0, "" if base.stop is None else base.stop, base.step
+        start, step = base.start or 0, base.step
+        if self.split == "halves":
+            if n is None:
+                return "", ""
+            a, b = halves(n, self.overlap)
+            return tuple(  # type: ignore[return-value]
+                f"{start + r.start * step}:{start + r.stop * step}:{step}" for r in (a, b)
+            )
+        if base.spec == "all":
+            return "odd", "even"
+        stop = "" if base.stop is None else base.stop
         return f"{start + step}:{stop}:{2 * step}", f"{start}:{stop}:{2 * step}"
 
     def check(self) -> None:
@@ -155,6 +185,10 @@ class ExperimentSettings:
 
     def _check(self) -> None:
         self.agent_frames()
+        if self.split not in SPLITS:
+            raise InputError(f"--split is one of {', '.join(SPLITS)}")
+        if not 0.0 <= self.overlap < 1.0:  # (nan too)
+            raise InputError(f"--overlap must be in [0, 1), got {self.overlap}")
         if self.mode not in ("merge", "inject") or self.merge_iters < 0:
             raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
         if self.merge_views not in REFINE_VIEWS:
@@ -181,6 +215,18 @@ class ExperimentSettings:
             raise InputError(f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}")
         if "random" not in self.strategies or "pwas" not in self.strategies:
             raise InputError("the strategies must include random and pwas (they are compared)")
+
+
+def halves(n: int, overlap: float) -> tuple[range, range]:
+    """Positions of agents A and B among `n` frames with split "halves".
+
+    A gets the first a = ceil(n (1 + overlap) / 2) positions, [0, a); B the last a, [n - a, n).
+    Both get the 2a - n positions in the middle: `overlap` x n, or up to two more where
+    rounding a up asks for it (with overlap 0 and n odd, the middle frame). For n = 50 and overlap
+    0.2: A = [0, 30), B = [20, 50), 10 frames shared.
+    """
+    a = min(n, math.ceil(round(n * (1.0 + overlap) / 2.0, 9)))  # (round: 50 * 1.2 / 2 > 30)
+    return range(0, a), range(n - a, n)
 
 
 @dataclass
@@ -527,14 +573,14 @@ def run_experiment(
     sequence = open_sequence(seq, size=base.size, frames=settings.frames)
     if len(sequence) < 2:
         raise InputError(
-            f"--frames {settings.frames} leaves agent A ({settings.agent_frames()[0]}) no frame "
+            f"--frames {settings.frames} leaves agent A ({settings.agent_frames(2)[0]}) no frame "
             f"of {seq}; an experiment needs at least two frames"
         )
     check_working_size(sequence.intrinsics)
     runner = _Runner(seq, out, s, progress, plan_size(s), jobs)
     try:
         with sigterm_interrupts():
-            planned = _plan(runner, base)
+            planned = _plan(runner, base, len(sequence))
             rows = [_row(*args) for args in planned]  # waits for every step
     except BaseException:
         runner.close(cancel=True)
@@ -552,11 +598,14 @@ def run_experiment(
     }
 
 
-def _plan(runner: _Runner, base: Any) -> list[tuple[Any, ...]]:
-    """Start every step of the experiment; the arguments of `_row` for each results row."""
+def _plan(runner: _Runner, base: Any, n: int) -> list[tuple[Any, ...]]:
+    """Start every step of the experiment (on `n` frames); the arguments of `_row` for each
+    results row. Table 3's PWAS-pruned run of every frame is the centralised reference: one
+    agent, the agents' preset, all the frames the two share out."""
     s = runner.settings
     rows: list[tuple[Any, ...]] = []
-    frames_a, frames_b = s.agent_frames()
+    frames_a, frames_b = s.agent_frames(n)
+    a_alone, b_alone = AGENT_ROWS[s.split]
     full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
     pruned = runner.slam("full_pwas", base, s.frames)
     rows.append(("full, no pruning", "table3", full))
@@ -567,8 +616,8 @@ def _plan(runner: _Runner, base: Any) -> list[tuple[Any, ...]]:
         config = base.with_overrides(seed=seed)
         a = runner.slam(f"s{seed}_agent_a", config, frames_a)
         b = runner.slam(f"s{seed}_agent_b", config, frames_b)
-        rows.append(("agent A (odd frames)", "table4", a, seed))
-        rows.append((B_ALONE, "table4", b, seed))
+        rows.append((a_alone, "table4", a, seed))
+        rows.append((b_alone, "table4", b, seed))
         if s.mode == "merge":
             alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
             rows.append((B_NO_SHARE, "table4", alone, seed, "none"))
@@ -644,7 +693,7 @@ def rate_distortion_curves(
     point of A's whole map, the upper end.
     """
     seeds = [r for r in rows if r["seed"] is not None and r["seed"] < s.sweep_seeds]
-    reference = B_NO_SHARE if s.mode == "merge" else B_ALONE
+    reference = B_NO_SHARE if s.mode == "merge" else AGENT_ROWS[s.split][1]
     base = [r for r in seeds if r["name"] == reference]
 
     def point(group: list[dict[str, Any]]) -> tuple[float, float | None, float | None]:
@@ -811,10 +860,18 @@ def _markdown(
     plots: list[Path],
     out: Path,
 ) -> str:
+    frames_a, frames_b = (
+        next((r["frames"] for r in rows if r["name"] == name), "?") for name in AGENT_ROWS[s.split]
+    )
+    split = (
+        "B maps the even frames, A the odd ones"
+        if s.split == "odd-even"
+        else f"A maps the first part of the frames, B the last, overlapping by {s.overlap:g}"
+    )
     lines = [
         f"# gsc experiment: {seq.name}",
         "",
-        f"Frames `{s.frames}` (A: `{s.agent_frames()[0]}`, B: `{s.agent_frames()[1]}`); "
+        f"Frames `{s.frames}` (A: `{frames_a}`, B: `{frames_b}`); "
         + _receive_text(s)
         + f"Preset `{s.preset}`"
         + (f" + `{s.config_path}`" if s.config_path else "")
@@ -838,7 +895,7 @@ def _markdown(
         )
     lines += [
         "",
-        f"## Table 4: sharing at budget {s.budget} (B maps the even frames, A the odd ones)",
+        f"## Table 4: sharing at budget {s.budget} ({split})",
         "",
         "| Seed | Method | ATE RMSE (cm) | PSNR | SSIM | LPIPS | Gaussians | Shared "
         "| Bytes shared |",

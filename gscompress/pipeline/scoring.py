@@ -34,7 +34,7 @@ def score_file(
     poses: str | Path | None = None,
     frames: str | None = None,
     size: tuple[int, int] | None = None,
-    sigma_d: float = 20.0,
+    sigma_d: float | None = None,
     backend: str = "auto",
     device: str = "auto",
     command: str = "",
@@ -51,19 +51,23 @@ def score_file(
     input becomes a new log with calibration, the view poses and the scored map. Needs torch
     (the renderer). `progress(done, total)` is called after each view.
 
+    `sigma_d` (metres; inf: no proximity weighting) None derives it from the scene as `gsc slam`
+    does (`gscompress.importance.resolve_sigma_d`): the median camera-to-surface distance of the
+    first selected frame with valid depth. The value used is in the results (`sigma_d`).
+
     Raises:
         InputError: a log without poses whose world frame is its first camera (the ground
             truth is not in that frame; pass `poses`).
     """
     from gscompress.datasets import open_sequence
-    from gscompress.importance import PwasConfig
+    from gscompress.importance import resolve_sigma_d, sigma_d_value
     from gscompress.ops.score import score_map
     from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
     from gscompress.render import resolve_device
 
     check_output(dst, [p for p in (src, seq, poses) if p is not None], force, ".mcap")
-    if not sigma_d > 0:
-        raise InputError(f"--sigma-d must be positive, got {sigma_d}")
+    if sigma_d is not None and not sigma_d > 0:
+        raise InputError(f"--sigma-d must be above 0 (or inf), got {sigma_d}")
     is_log = Path(src).suffix.lower() != ".ply"
     if is_log:
         with LogReader(src) as reader:
@@ -91,7 +95,8 @@ def score_file(
     if skipped:
         log.warning("%d of the %d frames selected have no pose (%s): scored from the other %d",
                     skipped, len(sequence), source, len(stamps))  # fmt: skip
-    config = PwasConfig(sigma_d=sigma_d)
+    depths = (sequence.frame(i).depth for i in range(len(sequence)))
+    used_sigma_d = resolve_sigma_d(sigma_d, depths, sequence.intrinsics)
     torch_device = resolve_device(device, backend)
 
     views = itertools.count(1)
@@ -99,11 +104,12 @@ def score_file(
 
     def score(gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         scored = score_map(
-            gaussians, T_world_cams, sequence.intrinsics, config, backend=backend,
+            gaussians, T_world_cams, sequence.intrinsics, sigma_d=used_sigma_d, backend=backend,
             device=torch_device, progress=on_view,
         )  # fmt: skip
         seen = int(np.count_nonzero(scored.importance_weight > 0))
-        results = {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen}
+        results = {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen,
+                   "sigma_d": sigma_d_value(used_sigma_d)}  # fmt: skip
         return scored, {**results, "frames_without_pose": skipped, "poses": source}
 
     operation = {
@@ -111,7 +117,7 @@ def score_file(
         "sequence": sequence.name,
         "frames": frames,
         "poses": source,
-        "sigma_d": sigma_d,
+        "sigma_d": "auto" if sigma_d is None else sigma_d_value(sigma_d),
         "size": [sequence.intrinsics.width, sequence.intrinsics.height],
     }
     if is_log:
@@ -130,11 +136,14 @@ def score_file(
 def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps [M], camera-to-world [M, 4, 4]) of a sequence's selected frames.
 
-    From the sequence's ground truth, or from the TUM trajectory `poses` associated to the
-    frames by nearest timestamp (within 0.02 s).
+    From the sequence's ground truth, or from `poses` (a TUM trajectory, or a log's estimated
+    poses) matched to every frame by time (`gscompress.pipeline.evaluate.frames_with_poses`).
+
+    Raises:
+        DatasetError: no ground truth (without `poses`), or a frame without a pose in `poses`.
     """
     from gscompress.errors import DatasetError
-    from gscompress.io.trajectory import nearest_times, read_tum_trajectory
+    from gscompress.pipeline.evaluate import frames_with_poses, pose_source
 
     if poses is None:
         if not sequence.has_ground_truth:
@@ -143,12 +152,12 @@ def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.
             )
         stamps, T = sequence.ground_truth()
         return np.asarray(stamps), np.asarray(T)
-    trajectory = read_tum_trajectory(poses)
+    times_ns, T_world_cams, tolerance_ns = pose_source(poses)
+    positions, index = frames_with_poses(sequence, times_ns, poses, tolerance_ns)
     stamps = np.asarray(sequence.timestamps)
-    if len(trajectory) == 0:
-        raise DatasetError(f"{poses} holds no poses")
-    index = nearest_times(stamps, trajectory.timestamps, 0.02)
-    if np.any(index < 0):
-        missing = float(stamps[int(np.argmax(index < 0))])
-        raise DatasetError(f"{poses} has no pose within 0.02 s of frame time {missing:.6f}")
-    return stamps, trajectory.T_world_cam[index]
+    if len(positions) < len(stamps):
+        missing = float(stamps[np.setdiff1d(np.arange(len(stamps)), positions)[0]])
+        raise DatasetError(
+            f"{poses} has no pose within {tolerance_ns / 1e9:g} s of frame time {missing:.6f}"
+        )
+    return stamps, T_world_cams[index]

@@ -519,6 +519,7 @@ def _stop_between_frames(refining: Callable[[], bool]) -> Iterator[Callable[[], 
 
 def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:
     """Process the frames from `run.start` on, writing the log as they are done."""
+    from gscompress.importance import sigma_d_value
     from gscompress.metrics import ate_rmse_cm
     from gscompress.render import resolve_backend
 
@@ -579,6 +580,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
                 "map_frames": run.map_frames,
                 "device": str(system.device),
                 "render_backend": backend,
+                "sigma_d": sigma_d_value(system.sigma_d),
             }
         )
         if run.start:

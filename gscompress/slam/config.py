@@ -245,7 +245,12 @@ class SlamConfig:
             has one (else identity), so estimated and true trajectories share a frame.
         checkpoint_every: write a `/gaussians` checkpoint snapshot every this many frames
             (0: never), so that a killed run can resume from at most that many frames back.
-        tracking, mapping, keyframes, densify, prune, pwas: see their classes.
+        tracking, mapping, keyframes, densify, prune, pwas: see their classes. `pwas.sigma_d`
+            (YAML `auto` or null, the default of every preset) is scale-aware: the median
+            distance from the camera to the surface points of the run's first frame with valid
+            depth, where the first Gaussians go (`gscompress.importance.resolve_sigma_d`); a
+            number sets it in metres, `inf` turns the proximity weight off. The log records
+            the value used in its results (`sigma_d`).
     """
 
     preset: str = "paper"
@@ -266,8 +271,12 @@ class SlamConfig:
         check_config(self)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON/YAML-ready values (tuples as lists)."""
-        return _plain(dataclasses.asdict(self))
+        """Plain JSON/YAML-ready values (tuples as lists; pwas.sigma_d "auto" or "inf" where
+        it is not a number)."""
+        values: dict[str, Any] = _plain(dataclasses.asdict(self))
+        if values["pwas"]["sigma_d"] is None:
+            values["pwas"]["sigma_d"] = "auto"
+        return values
 
     @classmethod
     def from_dict(
@@ -303,6 +312,8 @@ class SlamConfig:
 
 
 def _plain(value: Any) -> Any:
+    if isinstance(value, float) and math.isinf(value):  # (pwas.sigma_d: JSON has no inf)
+        return "inf"
     if isinstance(value, dict):
         return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, tuple | list):
@@ -349,6 +360,8 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
         ):
             return (int(value[0]), int(value[1]))
         raise InputError(f"{where}: expected WxH or [W, H] of positive integers, or null")
+    if key == "sigma_d":
+        return _sigma_d(value, where)
     if key == "refill" and isinstance(value, bool):  # files from before the three modes
         return "keyframes" if value else "off"
     if isinstance(old, bool):
@@ -374,6 +387,20 @@ def _coerce(old: Any, value: Any, where: str, key: str) -> Any:
             )
         return tuple(float(v) for v in value)
     raise InputError(f"{where}: cannot set this field")  # pragma: no cover
+
+
+def _sigma_d(value: Any, where: str) -> float | None:
+    """pwas.sigma_d from a file: null or "auto" (scale-aware), a number above 0, or inf."""
+    if value is None or value == "auto":
+        return None
+    if isinstance(value, str) and value.strip().lower() in ("inf", ".inf", "infinity"):
+        return math.inf
+    if _finite_number(value) or value == math.inf:
+        if value > 0:
+            return float(value)
+    raise InputError(
+        f"{where}: expected a finite number above 0, inf or auto, got {clipped(value, 60)}"
+    )
 
 
 def _finite_number(value: Any) -> bool:
@@ -442,7 +469,8 @@ def check_config(config: SlamConfig) -> None:
     need(is_fraction(m.final_lr_fraction), "mapping.final_lr_fraction must be in (0, 1]")
     need(m.final_views in REFINE_VIEWS, f"mapping.final_views is one of {', '.join(REFINE_VIEWS)}")
     need(all(0.0 < s < 1.0 for s in p.stages), "prune.stages must lie in (0, 1)")
-    need(config.pwas.sigma_d > 0, "pwas.sigma_d must be positive")
+    sigma_d = config.pwas.sigma_d
+    need(sigma_d is None or sigma_d > 0, "pwas.sigma_d must be above 0, inf or auto (null)")
     need(config.size is None or max(config.size) <= MAX_SIDE, f"size: at most {MAX_SIDE} a side")
     from gscompress.render import BACKENDS
 

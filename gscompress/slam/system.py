@@ -7,7 +7,10 @@ mapped state and estimated pose -> stage-wise PWAS pruning when the frame is a s
 
 The first frame is put at its ground-truth pose when the sequence gives one (so that estimated
 and true trajectories share a world frame), else at the identity; the whole valid depth map is
-back-projected, then mapped for `first_frame_iters` iterations.
+back-projected, then mapped for `first_frame_iters` iterations. That frame's depth also fixes the
+run's scales: the scene radius of the huge-Gaussian cleanup, and PWAS's sigma_d unless the config
+sets it (`gscompress.importance.resolve_sigma_d`; `SlamSystem.sigma_d`). Frames before the first
+one with valid depth add nothing to the PWAS sums.
 
 The system is pure: no files, no printing. `gscompress.pipeline.slam_file` runs it over a
 sequence and writes the log.
@@ -44,6 +47,7 @@ from gscompress.camera import Intrinsics
 from gscompress.datasets.base import Frame
 from gscompress.errors import BudgetError, InputError, MapError
 from gscompress.gaussians import GaussianMap
+from gscompress.importance import median_range, resolve_sigma_d
 from gscompress.ops.select import keep_count, strategy_scores, top_k
 from gscompress.render import render, resolve_device
 from gscompress.slam.config import MappingConfig, SlamConfig
@@ -200,6 +204,10 @@ class SlamSystem:
         refinement)."""
         self.in_final_refinement = False
         """True while the final refinement runs (a stop then ends that refinement)."""
+        self.sigma_d: float | None = None
+        """PWAS's distance scale in metres (inf: no proximity weighting), known from the first
+        frame with valid depth on (`pwas.sigma_d` of the config, else derived from that
+        frame)."""
 
     # ------------------------------------------------------------------ state
 
@@ -458,10 +466,13 @@ class SlamSystem:
         return result.T_world_cam, result
 
     def _init_scene_radius(self, depth: np.ndarray) -> None:
-        """Scene radius (for the huge-Gaussian cleanup) from the first valid depth map."""
+        """Scene radius (for the huge-Gaussian cleanup) and PWAS's sigma_d from the first valid
+        depth map."""
         if self.mapper.scene_radius is None and np.any(depth > 0):
             ratio = self.config.prune.scene_radius_depth_ratio
             self.mapper.scene_radius = float(depth.max()) / ratio
+        if self.sigma_d is None and median_range(depth, self.intrinsics):
+            self.sigma_d = resolve_sigma_d(self.config.pwas.sigma_d, [depth], self.intrinsics)
 
     def _densify(self, current: View) -> int:
         """Add Gaussians for the pixels of the view the map does not explain yet.
@@ -560,8 +571,9 @@ class SlamSystem:
             )  # fmt: skip
             assert out.contribution is not None
             center = torch.as_tensor(current.T_world_cam[:3, 3], device=self.device)
-            params.sums.accumulate(
-                out.contribution, out.visible, inputs.means, center, self.config.pwas
-            )
+            if self.sigma_d is not None:  # (else no frame so far had valid depth)
+                params.sums.accumulate(
+                    out.contribution, out.visible, inputs.means, center, self.sigma_d
+                )
             mse = float(((out.color.clamp(0, 1) - current.color) ** 2).mean())
         return 10.0 * float(np.log10(1.0 / mse)) if mse > 0 else float("inf")
