@@ -54,15 +54,15 @@ COMPACT_SCHEMA = "gscompress.CompactGaussians"
 COMPACT_VERSION = 1
 """Version of the compact message this module writes and reads."""
 
-POSITION_STEP_FRACTION = 1 / 64
+POSITION_STEP_FRACTION = 1 / 128
 """Default position grid step as a fraction of the map's median Gaussian scale (the standard
-deviation exp(log_scale)): the position error is at most half a step per axis, 1/128 of a typical
-Gaussian's own scale."""
+deviation exp(log_scale)): the position error is at most half a step per axis, 1/256 of a typical
+Gaussian's own scale (positions set most of a compact map's error: docs/codecs.md)."""
 
 MAX_POSITION_BITS = 21
 """Largest grid size per axis, in bits (three axes interleave into a 63-bit Morton code)."""
 
-BITS = {"log_scale": 8, "opacity": 8, "f_dc": 8, "f_rest": 8, "importance": 16}
+BITS = {"log_scale": 7, "opacity": 6, "f_dc": 8, "f_rest": 8, "importance": 16}
 """Default quantisation bits of each linear column (chosen by bench/codec.py)."""
 
 ZSTD_LEVEL = 3
