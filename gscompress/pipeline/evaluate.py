@@ -29,6 +29,7 @@ import numpy as np
 from gscompress.camera import invert_transform
 from gscompress.errors import InputError, LogFormatError
 from gscompress.io.mcap_log import (
+    POSES_GROUND_TRUTH,
     TOPIC_POSE,
     TOPIC_POSE_GT,
     LogMetadata,
@@ -38,6 +39,12 @@ from gscompress.io.mcap_log import (
 from gscompress.io.trajectory import nearest_times
 
 log = logging.getLogger(__name__)
+
+GROUND_TRUTH_POSES = (
+    "the log's poses are the sequence's ground truth (a map scored or made at the ground-truth "
+    "poses), not estimated: their error against it measures nothing"
+)
+"""The reason ATE is unavailable for a log posed at the ground truth."""
 
 POSE_MATCH_TOLERANCE_NS = 1_000_000
 """Largest |log time - frame timestamp| (ns) at which a logged pose belongs to a frame."""
@@ -164,11 +171,12 @@ def evaluate_log(
 
     Returns:
         A flat JSON-ready dict: `ate_rmse_cm`, `ate_splatam_cm` (None with `ate_reason` when
-        there is no ground truth), `psnr`, `ssim`, `ms_ssim`, `lpips`, `depth_l1_cm` (each None
-        with `<name>_reason` when unavailable), `gaussians`, `bytes` (the serialized map
-        message), `file_bytes`, frame counts (`frames_selected`, `frames_with_pose`,
-        `frames_without_pose`, `frames_evaluated`), the settings used and `per_frame` (per
-        rendered view: index, timestamp and its metrics).
+        there is no ground truth, or when the log's poses are the ground truth: `poses` says
+        where they came from, see `LogMetadata.pose_origin`), `psnr`, `ssim`, `ms_ssim`,
+        `lpips`, `depth_l1_cm` (each None with `<name>_reason` when unavailable), `gaussians`,
+        `bytes` (the serialized map message), `file_bytes`, frame counts (`frames_selected`,
+        `frames_with_pose`, `frames_without_pose`, `frames_evaluated`), the settings used and
+        `per_frame` (per rendered view: index, timestamp and its metrics).
 
     Raises:
         LogFormatError: unreadable log, or no `/gaussians` or `/camera/pose`.
@@ -212,6 +220,9 @@ def evaluate_log(
     if ate["ate_frames"] == 0 and len(gt_stamps_ns) == 0:
         ate["ate_reason"] = "no ground truth: neither the sequence nor the log has poses"
     ate["ground_truth"] = source if ate["ate_frames"] else None
+    ate["poses"] = meta.pose_origin()
+    if ate["poses"] == POSES_GROUND_TRUTH:
+        ate.update(ate_rmse_cm=None, ate_splatam_cm=None, ate_reason=GROUND_TRUTH_POSES)
 
     chosen = list(range(0, len(positions), every))
 
