@@ -160,14 +160,14 @@ def _valid_log(c: Chooser) -> bytes:
 _LOGS: dict[tuple[int, str], bytes] = {}
 
 
-def _records(data: bytes) -> list[Any]:
+def mcap_records(data: bytes) -> list[Any]:
     """The records of a valid MCAP file, chunks unopened."""
     from mcap.stream_reader import StreamReader
 
     return list(StreamReader(io.BytesIO(data), emit_chunks=True).records)
 
 
-def _serialize(records: list[Any]) -> bytes:
+def serialize_log(records: list[Any]) -> bytes:
     """An MCAP file of `records`, its offsets (chunk, message-index, metadata and summary
     indexes, footer) recomputed for where the records now lie; CRCs of sections left out."""
     from mcap.data_stream import RecordBuilder
@@ -360,7 +360,7 @@ def _mutate_log(data: bytes, c: Chooser) -> bytes:
     """One to three structural edits of a valid log's records, then perhaps a raw edit."""
     from mcap.records import Chunk, ChunkIndex, Message, Metadata, Schema
 
-    records = _records(data)
+    records = mcap_records(data)
     inner_of = {id(r): _inner_records(r) for r in records if isinstance(r, Chunk)}
     for _ in range(c.integer(1, 3)):
         kind = c.integer(0, 6)
@@ -391,7 +391,7 @@ def _mutate_log(data: bytes, c: Chooser) -> bytes:
                 del records[i]
             else:
                 records.insert(i, records[i])
-    out = _serialize(records)
+    out = serialize_log(records)
     index_kind = c.integer(0, 3)
     if index_kind == 0:  # a chunk index field, after the offsets were fixed
         found = [r for r in records if isinstance(r, ChunkIndex)]

@@ -393,3 +393,21 @@ def test_13_bad_depth_declarations_are_refused(tmp_path, extra):
 
     with pytest.raises(DatasetError, match=r"invalid_depth must be|max_depth must be"):
         open_sequence(_depth_sequence(tmp_path, _raw_depth(), extra))
+
+
+def test_a_chunk_indexed_twice_is_read_twice_in_either_order(tmp_path):
+    """Ties of a hostile index (two entries for one chunk) are broken without comparing
+    records (which raised a TypeError)."""
+    from fuzzing import mcap_records, serialize_log
+    from mcap.records import ChunkIndex
+
+    source = _log(tmp_path, snapshots=2)
+    records = mcap_records(source.read_bytes())
+    at = next(i for i, r in enumerate(records) if isinstance(r, ChunkIndex))
+    records.insert(at, records[at])
+    path = tmp_path / "twice.mcap"
+    path.write_bytes(serialize_log(records))
+    with LogReader(path) as log:
+        forward = [m.log_time for _, _, m in log.iter_messages()]
+        backward = [m.log_time for _, _, m in log.iter_messages(reverse=True)]
+    assert forward == [0, 0, 1, 1] and backward == [1, 1, 0, 0]

@@ -739,25 +739,29 @@ class LogReader:
                 found = sorted(self._unindexed_messages(wanted), key=lambda m: m[2].log_time)
                 yield from reversed(found) if reverse else found
                 return
+            # a merge by log time: a chunk is opened when its first message (its last, in
+            # reverse) is due; keys (time, chunk before message, file position, arrival, item)
             sign = -1 if reverse else 1
+            arrival = itertools.count()  # (ties of a hostile index never compare the items)
             queue: list[tuple[int, int, int, int, Any]] = []
             for index in summary.chunk_indexes:
                 listed = set(index.message_index_offsets)  # (none listed: not known)
                 if wanted is None or not listed or channels & listed:
                     first = index.message_end_time if reverse else index.message_start_time
-                    offset = index.chunk_start_offset
-                    heapq.heappush(queue, (sign * first, 0, sign * offset, 0, index))
+                    position = sign * index.chunk_start_offset
+                    heapq.heappush(queue, (sign * first, 0, position, next(arrival), index))
             while queue:
-                _time, kind, offset, _i, item = heapq.heappop(queue)
+                _time, kind, position, _arrival, item = heapq.heappop(queue)
                 if kind == 1:
                     yield item
                     continue
                 records = self._chunk_records(item.chunk_start_offset, channels)
-                for i, record in enumerate(records):
+                if reverse:
+                    records.reverse()
+                for record in records:
                     if isinstance(record, McapMessage):
-                        found_item = self._resolve(record)
-                        key = (sign * record.log_time, 1, offset, sign * i, found_item)
-                        heapq.heappush(queue, key)
+                        key = (sign * record.log_time, 1, position, next(arrival))
+                        heapq.heappush(queue, (*key, self._resolve(record)))
 
     def _chunk_records(self, offset: int, channels: set[int] | None) -> list[Any]:
         """The records of the chunk at file offset `offset` (messages of `channels` only)."""
