@@ -400,13 +400,13 @@ def _mutate_log(data: bytes, c: Chooser) -> bytes:
             name = c.pick(("chunk_start_offset", "chunk_length", "message_start_time",
                            "message_end_time", "uncompressed_size", "compressed_size"))  # fmt: skip
             setattr(index, name, _value(c, 8))
-            out = _serialize_fixed(records)
+            out = serialize_as_is(records)
     elif index_kind == 1:
         out = _byte_mutation(out, c)
     return out
 
 
-def _serialize_fixed(records: list[Any]) -> bytes:
+def serialize_as_is(records: list[Any]) -> bytes:
     """The records as they are (no offsets recomputed)."""
     from mcap.data_stream import RecordBuilder
 
@@ -514,7 +514,7 @@ def _mutate_ply(data: bytes, c: Chooser) -> bytes:
             counts = [i for i, line in enumerate(lines) if line.startswith("element vertex")]
             if counts:
                 lines[counts[0]] = f"element vertex {_value(c, 8) if c.integer(0, 1) else 4}"
-        elif kind == 4 and body:  # a float of the body (the opacity of a row, often)
+        elif kind == 4 and len(body) >= 4:  # a float of the body (the opacity of a row, often)
             at = 4 * c.integer(0, len(body) // 4 - 1)
             value = struct.pack("<f", c.pick(SPECIAL_FLOATS))
             body = body[:at] + value + body[at + 4 :]
@@ -639,7 +639,8 @@ def fuzz(target: FuzzTarget, cases: int, seed: int) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """The long run: each target in its own process (so that each peak RSS is its own)."""
+    """The long run: each target in its own process, all at once (so that each peak RSS is its
+    own); their reports are printed in target order."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cases", type=int, default=10_000, help="cases per target")
     parser.add_argument("--seed", type=int, default=0)
@@ -647,11 +648,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.disable(logging.WARNING)  # (the readers' notes on clamped values, once a case)
     if args.target is None:
+        runs = [
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    __file__,
+                    "--target",
+                    target.name,
+                    "--cases",
+                    str(args.cases),
+                    "--seed",
+                    str(args.seed),
+                ],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+            for target in TARGETS
+        ]
         failed = 0
-        for target in TARGETS:
-            command = [sys.executable, __file__, "--target", target.name,
-                       "--cases", str(args.cases), "--seed", str(args.seed)]  # fmt: skip
-            failed |= subprocess.run(command, check=False).returncode
+        for run in runs:
+            output, _ = run.communicate()
+            print(output, end="", flush=True)
+            failed |= run.returncode
         return failed
     target = next(t for t in TARGETS if t.name == args.target)
     result = fuzz(target, args.cases, args.seed)

@@ -411,3 +411,18 @@ def test_a_chunk_indexed_twice_is_read_twice_in_either_order(tmp_path):
         forward = [m.log_time for _, _, m in log.iter_messages()]
         backward = [m.log_time for _, _, m in log.iter_messages(reverse=True)]
     assert forward == [0, 0, 1, 1] and backward == [1, 1, 0, 0]
+
+
+def test_a_metadata_index_pointing_at_a_chunk_is_refused(tmp_path):
+    """mcap would open the chunk as if it were the metadata record, without bounds."""
+    from fuzzing import mcap_records, serialize_as_is, serialize_log
+    from mcap.records import ChunkIndex, MetadataIndex
+
+    records = mcap_records(_log(tmp_path).read_bytes())
+    serialize_log(records)  # (the indexes' offsets as written)
+    chunk = next(r for r in records if isinstance(r, ChunkIndex)).chunk_start_offset
+    next(r for r in records if isinstance(r, MetadataIndex)).offset = chunk
+    path = tmp_path / "misindexed.mcap"
+    path.write_bytes(serialize_as_is(records))
+    with pytest.raises(LogFormatError, match=f"record at offset {chunk} is not a metadata"):
+        LogReader(path)

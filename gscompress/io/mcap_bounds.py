@@ -20,7 +20,7 @@ import struct
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import IO
+from typing import IO, TypeVar
 
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
@@ -281,6 +281,29 @@ def chunk_records(
                 "channels and messages only"
             )
     return records
+
+
+R = TypeVar("R", bound=McapRecord)
+
+
+def read_record_at(stream: BoundedStream, offset: int, kind: type[R]) -> R:
+    """The record of type `kind` (Metadata, ...) at file offset `offset`, its length checked
+    against the file and its fields against its length.
+
+    Raises:
+        LogFormatError: the offset is off the file, the record runs past its end, or is of
+            another kind.
+    """
+    source = stream.source
+    name = kind.__name__.lower()
+    if not 0 <= offset <= stream.size - 9:
+        raise LogFormatError(f"{source}: a {name} index points at offset {offset}, off the file")
+    stream.seek(offset)
+    opcode, length = struct.unpack("<BQ", stream.read(9))
+    if opcode != getattr(Opcode, name.upper()):
+        raise LogFormatError(f"{source}: the record at offset {offset} is not a {name} record")
+    body = BoundedStream(io.BytesIO(stream.read(length)), f"{source}: a {name} record")
+    return kind.read(ReadDataStream(body))  # type: ignore[arg-type,attr-defined]
 
 
 def file_records(stream: BoundedStream, open_chunks: bool = True) -> Iterator[McapRecord]:

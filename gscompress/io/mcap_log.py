@@ -42,7 +42,7 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from google.protobuf.message import DecodeError, Message
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Schema
+from mcap.records import Channel, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
@@ -75,6 +75,7 @@ from gscompress.io.mcap_bounds import (
     decompress_chunk,
     file_records,
     read_chunk_header,
+    read_record_at,
 )
 from gscompress_schemas import PROFILE, PROFILE_VERSION, schema_bytes
 
@@ -646,7 +647,10 @@ class LogReader:
             )
         self._summary = summary
         self._check_chunks()
-        records = [m for m in self._reader.iter_metadata() if m.name == METADATA_NAME]
+        found = (
+            read_record_at(self._bounded, i.offset, Metadata) for i in summary.metadata_indexes
+        )
+        records = [record for record in found if record.name == METADATA_NAME]
         self.metadata = (
             LogMetadata.from_record(dict(records[-1].metadata), str(self.path))
             if records
