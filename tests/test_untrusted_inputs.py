@@ -426,3 +426,25 @@ def test_a_metadata_index_pointing_at_a_chunk_is_refused(tmp_path):
     path.write_bytes(serialize_as_is(records))
     with pytest.raises(LogFormatError, match=f"record at offset {chunk} is not a metadata"):
         LogReader(path)
+
+
+def test_a_log_says_where_its_poses_came_from_through_derivations():
+    scored = LogMetadata(
+        provenance=[
+            {
+                "operation": {"name": "score", "poses": "ground-truth"},
+                "parent": "f.ply",
+                "parent_sha256": "0",
+            }
+        ],
+        results={"poses": "ground-truth"},
+    )
+    step = {"operation": {"name": "prune"}, "parent": "s.mcap", "parent_sha256": "1"}
+    pruned = LogMetadata(provenance=[*scored.provenance, step], results={"selected": 3})
+    assert scored.pose_origin() == pruned.pose_origin() == "ground-truth"
+    mapping_only = LogMetadata(config={"tracking": {"use_ground_truth": True}})
+    assert mapping_only.pose_origin() == "ground-truth"
+    assert LogMetadata(config={"tracking": {"use_ground_truth": False}}).pose_origin() == (
+        "estimated"
+    )
+    assert LogMetadata(results={"poses": 1}).pose_origin() == "estimated"  # (not a name)

@@ -244,9 +244,9 @@ class LogMetadata:
         (`gsc score`'s), else by the SLAM config the log carries.
         """
         said = self.results.get("poses")
-        for step in reversed(self.provenance):
-            if said is None:
-                said = step["operation"].get("poses")
+        if said is None:
+            steps = (step["operation"] for step in reversed(self.provenance))
+            said = next((op["poses"] for op in steps if "poses" in op), None)
         if isinstance(said, str) and said:
             return said
         tracking = self.config.get("tracking")
