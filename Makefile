@@ -10,7 +10,9 @@ TORCH_PIP_ARGS ?=
 STAMP := $(VENV)/.installed-stamp
 JS := tests/js
 
-.PHONY: install demo test test-fast lint format bench js-deps clean
+FUZZ_CASES ?= 10000
+
+.PHONY: install demo test test-fast lint format bench fuzz js-deps clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -49,6 +51,10 @@ format: install
 
 bench: install
 	$(PY) bench/offline.py
+
+# Structural fuzzing of every reader of untrusted files (the fast part runs in `make test`).
+fuzz: install
+	nice -n 10 $(PY) tests/fuzzing.py --cases $(FUZZ_CASES)
 
 clean:
 	rm -rf $(VENV) $(JS)/node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache demo_out

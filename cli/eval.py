@@ -134,7 +134,7 @@ def format_eval(r: dict[str, Any]) -> str:
     w, h = r["size"]
     lines = [
         f"{r['log']}  vs  {r['sequence']} (frames {r['frames']}, {w}x{h}, every {r['every']}, "
-        + ("at the log's poses)" if r["poses"] == "log" else f"at the poses of {r['poses']})"),
+        + ("at the log's poses)" if r["own_poses"] else f"at the poses of {r['poses']})"),
         f"  {'frames':<13}{r['frames_evaluated']} rendered of {r['frames_with_pose']} with an "
         f"estimated pose ({r['frames_without_pose']} of {r['frames_selected']} without)",
     ]

@@ -259,11 +259,13 @@ def test_fp16_overflow_is_refused_not_written_as_inf(tmp_path):
     g.opacity_logits[3] = 70_000.0
     with pytest.raises(MapError, match=r"opacity holds 1 value\(s\) beyond the float16 range"):
         gaussians_to_pointcloud(g, precision="fp16")
+    g.opacity_logits[3] = 0.0  # (read from a file, it would be clamped to +-80)
+    g.sh_dc[3, 0] = 70_000.0
     src = write_log(tmp_path / "a.mcap", g)  # fine at fp32
     with pytest.raises(MapError, match="use precision fp32"):
         share_log(src, tmp_path / "s.mcap", 1.0, codec="fp16")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap"]  # no partial output
-    g.opacity_logits[3] = 0.0
+    g.sh_dc[3, 0] = 0.0
     g.importance_sum[3] = 1e9  # scores and sums stay float32: no range limit
     assert pointcloud_to_gaussians(gaussians_to_pointcloud(g, precision="fp16")).importance_sum[
         3
@@ -294,7 +296,7 @@ def _rename_field(cloud, old, new, type_=None):
     "mutate, message",
     [
         (lambda c: _rename_field(c, "scale_1_f16", "scale_1_f16", type_=4), "must be a uint16"),
-        (lambda c: _rename_field(c, "id", "id_f16", type_=3), "lies outside|must be a uint16"),
+        (lambda c: _rename_field(c, "id", "id_f16", type_=3), "its fields span|must be a uint16"),
         (lambda c: _rename_field(c, "x", "opacity"), "appears twice"),
         (lambda c: _rename_field(c, "importance", "opacity"), "'opacity' appears twice"),
     ],

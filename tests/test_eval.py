@@ -66,11 +66,13 @@ def gt_log(seq_dir, tmp_path_factory):
     return out
 
 
-def test_ground_truth_poses_give_zero_ate_in_both_conventions(gt_log, seq_dir):
+def test_a_log_posed_at_the_ground_truth_reports_no_ate_and_why(gt_log, seq_dir):
     r = evaluate_log(gt_log, seq_dir, lpips=False)
-    assert r["ground_truth"] == "sequence" and r["ate_frames"] == 6 and r["ate_reason"] == ""
-    assert 0 <= r["ate_rmse_cm"] < 1e-6
-    assert 0 <= r["ate_splatam_cm"] < 1e-6
+    assert r["ground_truth"] == "sequence" and r["ate_frames"] == 6
+    assert r["poses"] == "ground-truth" and r["ate_rmse_cm"] is None
+    assert (
+        r["ate_splatam_cm"] is None and "poses are the sequence's ground truth" in r["ate_reason"]
+    )
     assert r["frames_selected"] == r["frames_with_pose"] == r["frames_evaluated"] == 6
     assert r["frames_without_pose"] == 0
     # a map was made: it explains the frames far better than an empty render would
@@ -155,7 +157,16 @@ def test_no_ground_truth_anywhere_reports_ate_unavailable(bare, gt_log, seq_dir,
 
 def test_log_ground_truth_is_used_when_the_sequence_has_none(bare, gt_log):
     r = evaluate_log(gt_log, bare, lpips=False, every=6)
-    assert r["ground_truth"] == "log" and r["ate_frames"] == 6 and r["ate_rmse_cm"] < 1e-6
+    assert r["ground_truth"] == "log" and r["ate_frames"] == 6 and r["ate_rmse_cm"] is None
+
+
+def test_ground_truth_against_itself_gives_zero_ate_in_both_conventions(seq_dir):
+    from gscompress.pipeline.evaluate import trajectory_errors
+
+    gt = open_sequence(seq_dir).ground_truth()[1]
+    errors = trajectory_errors(gt, gt.copy())
+    assert errors["ate_frames"] == 6 and errors["ate_reason"] == ""
+    assert 0 <= errors["ate_rmse_cm"] < 1e-6 and 0 <= errors["ate_splatam_cm"] < 1e-6
 
 
 def test_evaluate_map_rejects_mismatched_views_and_counts_depthless_ones(gt_log, seq_dir):
@@ -193,7 +204,8 @@ def test_cli_json(gt_log, seq_dir):
     r = run("eval", gt_log, "--seq", seq_dir, "--every", "3", "--no-lpips", "--json")
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
-    assert result["frames_evaluated"] == 2 and result["ate_rmse_cm"] < 1e-6
+    assert result["frames_evaluated"] == 2 and result["ate_rmse_cm"] is None
+    assert result["poses"] == "ground-truth" and "ground truth" in result["ate_reason"]
     keys = ("ate_rmse_cm", "ate_splatam_cm", "psnr", "ssim", "ms_ssim", "lpips", "lpips_reason",
             "depth_l1_cm", "gaussians", "bytes", "frames_evaluated")  # fmt: skip
     assert set(keys) <= set(result)
@@ -229,7 +241,8 @@ def test_json_output_is_strict_json_even_for_infinite_psnr():
 def test_cli_text_table(gt_log, seq_dir):
     r = run("eval", gt_log, "--seq", seq_dir, "--every", "6", "--no-lpips")
     assert r.exit_code == 0, r.output
-    assert "ATE RMSE" in r.output and "ATE SplaTAM" in r.output and "PSNR" in r.output
+    assert "ATE          unavailable: the log's poses are the sequence's ground truth" in r.output
+    assert "ATE RMSE" not in r.output and "PSNR" in r.output
     assert "MS-SSIM      unavailable" in r.output and "Gaussians" in r.output
 
 
@@ -434,7 +447,7 @@ def test_eval_at_a_trajectory_and_with_poses_refined(gt_log, seq_dir, nudged_tra
     r = evaluate_log(gt_log, seq_dir, poses=nudged_trajectory, refine_poses=15, every=3,
                      lpips=False)  # fmt: skip
     own = evaluate_log(gt_log, seq_dir, every=3, lpips=False)
-    assert r["poses"] == str(nudged_trajectory) and own["poses"] == "log"
+    assert r["poses"] == str(nudged_trajectory) and own["poses"] == "estimated"
     assert r["frames_evaluated"] == 2 and r["ate_rmse_cm"] > 0.5  # the nudged poses were used
     assert r["psnr"] < own["psnr"]
     refined = r["refined"]
@@ -489,3 +502,20 @@ def test_a_slam_log_records_the_sigma_d_derived_from_its_first_frame(gt_log, seq
     first = sequence.frame(0)
     assert meta.results["sigma_d"] == pytest.approx(median_range(first.depth, sequence.intrinsics))
     assert 0.3 < meta.results["sigma_d"] < 10  # a room's scale, not the paper's 20 m
+
+
+def test_a_score_of_a_foreign_ply_is_posed_at_the_ground_truth_and_has_no_ate(
+    gt_log, seq_dir, tmp_path
+):
+    from gscompress.io.mcap_log import read_map
+    from gscompress.io.ply import write_ply
+    from gscompress.pipeline.scoring import score_file
+
+    ply = write_ply(read_map(gt_log), tmp_path / "foreign.ply", importance=False)
+    scored = tmp_path / "scored.mcap"
+    assert score_file(ply, scored, seq_dir)["poses"] == "ground-truth"
+    with LogReader(scored) as log:
+        assert log.metadata.pose_origin() == "ground-truth"
+    r = run("eval", scored, "--seq", seq_dir, "--every", "6", "--no-lpips")
+    assert r.exit_code == 0, r.output
+    assert "ATE          unavailable: the log's poses are the sequence's ground truth" in r.output

@@ -183,7 +183,7 @@ def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(tiny_sequence, tmp_p
     (seq / "groundtruth.txt").unlink()
     slam_file(seq, tmp_path / "a.mcap", preset="tiny", frames="odd", size=(24, 18))
     r = score_file(tmp_path / "a.mcap", tmp_path / "s.mcap", seq)
-    assert r["views"] == 3 and r["poses"] == "log"  # frames 1, 3, 5 at their estimated poses
+    assert r["views"] == 3 and r["poses"] == "estimated"  # frames 1, 3, 5 at the log's poses
     assert r["frames_without_pose"] == 0
     every = score_file(tmp_path / "a.mcap", tmp_path / "e.mcap", seq, frames="all")
     assert every["views"] == 3 and every["frames_without_pose"] == 3  # the even frames

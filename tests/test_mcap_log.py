@@ -12,9 +12,8 @@ from mcap.writer import IndexType
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
 from gscompress.errors import LogFormatError, OutputError
 from gscompress.gaussians import GaussianMap, random_map
+from gscompress.io.mcap_bounds import LZ4_MAGIC, MAX_CHUNK_BYTES, ChunkHeader, check_chunk
 from gscompress.io.mcap_log import (
-    _LZ4_MAGIC,
-    MAX_CHUNK_BYTES,
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
@@ -256,12 +255,15 @@ def test_a_zstd_frame_declaring_more_than_its_chunk_is_refused_before_decompress
     assert path.stat().st_size < 2**20
     with pytest.raises(LogFormatError, match=r"zstd frame declares \d+ bytes, its record"):
         LogReader(path)
-    with LogReader(_plain_log(tmp_path)) as reader:
-        with pytest.raises(LogFormatError, match="claims"):  # 1000 times its compressed size
-            reader._check_chunk(200 * 2**20, 100_000, "", b"")
-        reader._check_chunk(200 * 2**20, 300_000, "", b"")
-        with pytest.raises(LogFormatError, match="claims"):  # too large at any ratio
-            reader._check_chunk(MAX_CHUNK_BYTES + 1, MAX_CHUNK_BYTES, "", b"")
+    with pytest.raises(LogFormatError, match="claims"):  # 100 times its compressed size
+        _check(200 * 2**20, 1_000_000, "lz4", b"")
+    _check(200 * 2**20, 3_000_000, "lz4", b"")
+    with pytest.raises(LogFormatError, match="claims"):  # too large at any ratio
+        _check(MAX_CHUNK_BYTES + 1, MAX_CHUNK_BYTES, "lz4", b"")
+
+
+def _check(size, compressed, compression, head):
+    check_chunk(ChunkHeader(size, 0, compression, 0, compressed), head, "f.mcap")
 
 
 def _plain_log(tmp_path, snapshots=1):
@@ -296,11 +298,10 @@ def test_an_unindexed_log_gives_its_last_snapshot(tmp_path, options):
 
 
 def test_an_lz4_frame_declaring_more_than_its_chunk_is_refused(tmp_path):
-    head = _LZ4_MAGIC + bytes([0x68, 0x40]) + (2**40).to_bytes(8, "little") + bytes(4)
-    with LogReader(_plain_log(tmp_path)) as reader:
-        with pytest.raises(LogFormatError, match=r"lz4 frame declares 1099511627776 bytes"):
-            reader._check_chunk(1000, 500, "lz4", head)
-        reader._check_chunk(1000, 500, "lz4", head[:4] + bytes([0x60]) + head[5:])  # no size
+    head = LZ4_MAGIC + bytes([0x68, 0x40]) + (2**40).to_bytes(8, "little") + bytes(4)
+    with pytest.raises(LogFormatError, match=r"lz4 frame declares 1099511627776 bytes"):
+        _check(1000, 500, "lz4", head)
+    _check(1000, 500, "lz4", head[:4] + bytes([0x60]) + head[5:])  # no size
 
 
 @pytest.mark.parametrize(("w", "readable"), [(1e-7, False), (2e-6, True), (1e300, True)])

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from gscompress.camera import Intrinsics
 from gscompress.datasets.base import (
+    DepthCoding,
     FileSequence,
     Frame,
     FrameSelection,
@@ -25,6 +26,7 @@ from gscompress.datasets.tum import is_tum_folder, open_tum, write_tum_sequence
 from gscompress.errors import DatasetError
 
 __all__ = [
+    "DepthCoding",
     "FileSequence",
     "Frame",
     "FrameSelection",

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
@@ -198,8 +198,39 @@ def load_color(path: Path) -> np.ndarray:
     return arr.astype(np.float32) / np.float32(255.0)
 
 
-def load_depth(path: Path, depth_scale: float) -> np.ndarray:
-    """[H, W] float32 metres from a 16-bit depth PNG holding `depth_scale` units per metre."""
+DEFAULT_INVALID_DEPTH = (65535,)
+"""Raw depth values that mark a pixel without a measurement besides 0: the 16-bit saturation
+value, which Microsoft 7-Scenes and several RealSense and Kinect exports write there."""
+
+
+@dataclass(frozen=True)
+class DepthCoding:
+    """How a sequence's 16-bit depth PNGs hold metres.
+
+    Attributes:
+        scale: units per metre (None: the layout's default, e.g. 5000 for TUM).
+        invalid: raw values that mean "no measurement" (read as 0, as 0 itself is).
+        max_depth: metres beyond which a measurement is dropped (read as 0); None: no limit.
+    """
+
+    scale: float | None = None
+    invalid: tuple[int, ...] = DEFAULT_INVALID_DEPTH
+    max_depth: float | None = None
+
+    def with_default_scale(self, scale: float) -> DepthCoding:
+        """This coding, its scale `scale` when it has none."""
+        return self if self.scale is not None else replace(self, scale=scale)
+
+
+def load_depth(
+    path: Path,
+    depth_scale: float,
+    invalid: Sequence[int] = DEFAULT_INVALID_DEPTH,
+    max_depth: float | None = None,
+) -> np.ndarray:
+    """[H, W] float32 metres from a 16-bit depth PNG holding `depth_scale` units per metre;
+    pixels of an `invalid` raw value or beyond `max_depth` metres read as 0 (no depth), as 0
+    itself does."""
     img = _open_image(path, "depth")
     with img:
         if img.mode in ("L", "P", "RGB", "RGBA", "LA", "1"):
@@ -211,7 +242,12 @@ def load_depth(path: Path, depth_scale: float) -> np.ndarray:
         raw = np.asarray(img)
     if raw.dtype.kind == "i" and (raw.min(initial=0) < 0 or raw.max(initial=0) > 65535):
         raise DatasetError(f"depth image {path} has values outside 0..65535")
-    return (raw.astype(np.float64) / depth_scale).astype(np.float32)
+    depth = raw.astype(np.float64) / depth_scale
+    dropped = np.isin(raw, invalid)
+    if max_depth is not None:
+        dropped |= depth > max_depth
+    depth[dropped] = 0.0
+    return depth.astype(np.float32)
 
 
 def _open_image(path: Path, what: str) -> Image.Image:
@@ -280,12 +316,14 @@ class FileSequence:
         name: str,
         records: Sequence[FrameRecord],
         native_intrinsics: Intrinsics,
-        depth_scale: float,
+        depth: DepthCoding,
         selection: FrameSelection,
         size: tuple[int, int] | None = None,
     ) -> None:
-        if depth_scale <= 0 or not np.isfinite(depth_scale):
+        depth_scale = depth.scale
+        if depth_scale is None or depth_scale <= 0 or not np.isfinite(depth_scale):
             raise DatasetError(f"{name}: depth scale must be positive, got {depth_scale}")
+        self._depth = depth
         self._name = name
         self._all = list(records)
         self._indices = selection.apply(len(self._all))
@@ -317,6 +355,11 @@ class FileSequence:
         return self._depth_scale
 
     @property
+    def depth_coding(self) -> DepthCoding:
+        """How the depth PNGs hold metres (scale, invalid values, maximum depth)."""
+        return self._depth
+
+    @property
     def indices(self) -> np.ndarray:
         return self._indices.copy()
 
@@ -346,7 +389,9 @@ class FileSequence:
         index = int(self._indices[i])
         rec = self._all[index]
         color = load_color(rec.color_path)
-        depth = load_depth(rec.depth_path, self._depth_scale)
+        depth = load_depth(
+            rec.depth_path, self._depth_scale, self._depth.invalid, self._depth.max_depth
+        )
         if color.shape[:2] != depth.shape:
             raise DatasetError(
                 f"size mismatch: colour {rec.color_path} is {color.shape[1]}x{color.shape[0]}, "
@@ -405,12 +450,15 @@ def check_size(size: tuple[int, int] | None) -> tuple[int, int] | None:
     return w, h
 
 
-def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
-    """Intrinsics and optional depth scale (units per metre) from a JSON file.
+def read_intrinsics_file(path: Path) -> tuple[Intrinsics, DepthCoding]:
+    """Intrinsics and how the depth PNGs hold metres, from a JSON file.
 
     Two schemas are accepted: flat `{"fx", "fy", "cx", "cy", "width", "height",
-    "depth_scale"?}` (ours, written by `gsc synth`) and NICE-SLAM's `cam_params.json`
-    `{"camera": {"fx", "fy", "cx", "cy", "w", "h", "scale"?}}`.
+    "depth_scale"?, "invalid_depth"?, "max_depth"?}` (ours, written by `gsc synth`) and
+    NICE-SLAM's `cam_params.json` `{"camera": {"fx", "fy", "cx", "cy", "w", "h", "scale"?}}`.
+    `depth_scale` is in units per metre; `invalid_depth` lists the raw values that mean "no
+    measurement" besides 0 (default [65535], the 16-bit saturation value; [] for none);
+    `max_depth` drops measurements beyond so many metres.
 
     Raises:
         DatasetError: missing file, bad JSON, or missing / non-positive fields.
@@ -423,13 +471,14 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
         data.setdefault("depth_scale", data.get("scale"))
     if not isinstance(data, dict):
         raise DatasetError(f"intrinsics file {path}: expected a JSON object")
-    names = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
+    names = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale", "max_depth")
     try:
         if any(isinstance(data.get(k), bool) for k in names):
             raise TypeError("true/false is not a number")
         fx, fy, cx, cy, w, h = (float(data[k]) for k in names[:6])
-        scale = data.get("depth_scale")
+        scale, limit = data.get("depth_scale"), data.get("max_depth")
         depth_scale = None if scale is None else float(scale)
+        max_depth = None if limit is None else float(limit)
     except KeyError as exc:
         raise DatasetError(f"intrinsics file {path}: missing field {exc.args[0]!r}") from None
     except (TypeError, ValueError, OverflowError) as exc:
@@ -447,4 +496,15 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, float | None]:
     width, height = int(w), int(h)
     if depth_scale is not None and depth_scale <= 0:
         raise DatasetError(f"intrinsics file {path}: depth_scale must be positive")
-    return Intrinsics(fx, fy, cx, cy, width, height), depth_scale
+    if max_depth is not None and not (np.isfinite(max_depth) and max_depth > 0):
+        raise DatasetError(f"intrinsics file {path}: max_depth must be positive metres")
+    invalid = data.get("invalid_depth", list(DEFAULT_INVALID_DEPTH))
+    if not isinstance(invalid, list) or not all(
+        isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 65535 for v in invalid
+    ):
+        raise DatasetError(
+            f"intrinsics file {path}: invalid_depth must be a list of raw depth values in "
+            f"0..65535, got {clipped(invalid)}"
+        )
+    coding = DepthCoding(depth_scale, tuple(invalid), max_depth)
+    return Intrinsics(fx, fy, cx, cy, width, height), coding

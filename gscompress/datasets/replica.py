@@ -19,6 +19,7 @@ import numpy as np
 
 from gscompress.camera import Intrinsics
 from gscompress.datasets.base import (
+    DepthCoding,
     FileSequence,
     FrameRecord,
     FrameSelection,
@@ -114,24 +115,24 @@ def open_replica(
             FrameRecord(n / REPLICA_FPS, frames[n], depth_path, None if poses is None else poses[n])
         )
 
-    depth_scale: float | None = None
+    depth = DepthCoding()
     if isinstance(intrinsics, Intrinsics):
         native = intrinsics
     elif intrinsics is not None:
-        native, depth_scale = read_intrinsics_file(Path(intrinsics))
+        native, depth = read_intrinsics_file(Path(intrinsics))
     else:
         native = REPLICA_INTRINSICS
         candidates = ("intrinsics.json", "cam_params.json", "../cam_params.json")
         for cand in (scene / name for name in candidates):
             if cand.is_file():
-                native, depth_scale = read_intrinsics_file(cand)
+                native, depth = read_intrinsics_file(cand)
                 break
     name = scene.name if scene == path else f"{path.resolve().name}/{scene.name}"
     return FileSequence(
         name,
         records,
         native,
-        depth_scale if depth_scale is not None else REPLICA_DEPTH_SCALE,
+        depth.with_default_scale(REPLICA_DEPTH_SCALE),
         selection,
         size,
     )

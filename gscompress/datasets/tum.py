@@ -13,9 +13,12 @@ pose. When `rgb.txt`/`depth.txt` are absent but an `associations.txt`
 (`t_rgb rgb_path t_depth depth_path`) is present, its pairs are used as they are.
 
 Depth PNGs are uint16 with `depth_scale` units per metre: 5000 (TUM) unless `intrinsics.json`
-says otherwise. Intrinsics come from, in order: the `intrinsics` argument, `intrinsics.json` in
-the folder, the published freiburg1/2/3 values when the folder name says `freiburg1`/`fr1`
-(etc.). The freiburg images are used undistorted-as-is, as SplaTAM and most 3DGS SLAM do.
+says otherwise. Raw 0 and 65535 (the saturation value some sensors write for no measurement)
+read as no depth; `intrinsics.json` may list other such values (`invalid_depth`) and a
+`max_depth` in metres beyond which depth is dropped. Intrinsics come from, in order: the
+`intrinsics` argument, `intrinsics.json` in the folder, the published freiburg1/2/3 values when
+the folder name says `freiburg1`/`fr1` (etc.). The freiburg images are used undistorted-as-is,
+as SplaTAM and most 3DGS SLAM do.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from PIL import Image
 
 from gscompress.camera import Intrinsics
 from gscompress.datasets.base import (
+    DepthCoding,
     FileSequence,
     FrameRecord,
     FrameSelection,
@@ -207,13 +211,13 @@ def open_tum(
         max_dt_gt: frame/ground-truth association tolerance (s).
     """
     records, _ = _tum_records(path, max_dt, max_dt_gt)
-    depth_scale: float | None = None
+    depth = DepthCoding()
     if isinstance(intrinsics, Intrinsics):
         native = intrinsics
     elif intrinsics is not None:
-        native, depth_scale = read_intrinsics_file(Path(intrinsics))
+        native, depth = read_intrinsics_file(Path(intrinsics))
     elif (path / "intrinsics.json").is_file():
-        native, depth_scale = read_intrinsics_file(path / "intrinsics.json")
+        native, depth = read_intrinsics_file(path / "intrinsics.json")
     else:
         found = freiburg_intrinsics(path.resolve().name)
         if found is None:
@@ -222,13 +226,13 @@ def open_tum(
                 f"cy, width, height, optionally depth_scale) or name the folder after freiburg1/2/3"
             )
         native = found
-    if depth_scale is None and (path / "intrinsics.json").is_file() and intrinsics is not None:
-        depth_scale = read_intrinsics_file(path / "intrinsics.json")[1]
+    if depth.scale is None and (path / "intrinsics.json").is_file() and intrinsics is not None:
+        depth = read_intrinsics_file(path / "intrinsics.json")[1]
     return FileSequence(
         path.resolve().name,
         records,
         native,
-        depth_scale if depth_scale is not None else TUM_DEPTH_SCALE,
+        depth.with_default_scale(TUM_DEPTH_SCALE),
         selection,
         size,
     )
@@ -251,7 +255,7 @@ def write_tum_sequence(
     """Write `sequence` into the empty or new folder `out_dir` in TUM layout.
 
     Writes rgb/NNNNNN.png (8-bit), depth/NNNNNN.png (uint16, `depth_scale` units per metre, 0 =
-    invalid), rgb.txt, depth.txt, groundtruth.txt (when the sequence has poses) and
+    invalid, at most 65534), rgb.txt, depth.txt, groundtruth.txt (when the sequence has poses) and
     intrinsics.json (fx fy cx cy width height depth_scale, plus `extra`). Timestamps are written
     with 6 decimals, as TUM does. The output is byte-identical for identical input.
 
@@ -262,7 +266,7 @@ def write_tum_sequence(
     Raises:
         OutputError: depth beyond the uint16 range at this scale, or an unwritable folder.
     """
-    max_depth = 65535.0 / depth_scale
+    max_depth = 65534.0 / depth_scale  # (65535, saturation, reads as no depth)
     (out_dir / "rgb").mkdir(parents=True, exist_ok=True)
     (out_dir / "depth").mkdir(exist_ok=True)
 

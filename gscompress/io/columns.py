@@ -15,6 +15,7 @@ the float16 range (65504). Decoding turns `_f16` columns back into float32 ones 
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -29,6 +30,12 @@ APPEARANCE = ("opacity", "f_dc_0", "f_dc_1", "f_dc_2")
 """Required columns for opacity and base colour."""
 
 REQUIRED = GEOMETRY + APPEARANCE
+
+MAX_ABS_OPACITY_LOGIT = 80.0
+"""Opacity logits read from a file are clamped to +-this: float32 rounds the sigmoid of +17 to 1,
+that of -80 is 2e-35, and exp() of 89 already overflows float32 (of 710, float64)."""
+
+logger = logging.getLogger(__name__)
 
 IMPORTANCE = ("importance", "importance_sum", "importance_weight", "alpha_t_sum")
 """Optional score columns (the score `importance` is derived; the sums are the state)."""
@@ -69,13 +76,19 @@ def map_to_columns(gaussians: GaussianMap, importance: bool = True) -> dict[str,
     return cols
 
 
-def map_from_columns(cols: Mapping[str, np.ndarray], source: str = "input") -> GaussianMap:
+def map_from_columns(
+    cols: Mapping[str, np.ndarray], source: str = "input", infinite_opacity: bool = False
+) -> GaussianMap:
     """Build a map from named columns (extra columns are ignored).
 
     Missing optional columns get defaults: no higher SH, ids 0..N-1, zero importance. A file that
     holds only the score `importance` (a PLY from another tool) gets importance_sum = score and
     importance_weight = 1, which reproduces the score. When scale_0..2 are bit-identical in every
     row the map is returned isotropic.
+
+    Opacity logits beyond +-`MAX_ABS_OPACITY_LOGIT` are clamped to it, with one warning; with
+    `infinite_opacity` also +-inf (opacity exactly 1 or 0, as some converters write it). NaN
+    and, without `infinite_opacity`, infinities are left for `GaussianMap.validate` to refuse.
 
     Raises:
         MapError: a required column is missing, or the SH columns are not a whole degree.
@@ -113,12 +126,34 @@ def map_from_columns(cols: Mapping[str, np.ndarray], source: str = "input") -> G
         means=stack(["x", "y", "z"]),
         log_scales=log_scales,
         quats=stack([f"rot_{i}" for i in range(4)]),
-        opacity_logits=np.asarray(cols["opacity"]),
+        opacity_logits=_bounded_logits(np.asarray(cols["opacity"]), source, infinite_opacity),
         sh_dc=stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
         sh_rest=rest,
         ids=_ids(cols["id"], source) if "id" in cols else None,
         **sums,
     )
+
+
+def _bounded_logits(logits: np.ndarray, source: str, infinite: bool) -> np.ndarray:
+    """Opacity logits clamped to +-`MAX_ABS_OPACITY_LOGIT` (infinities only when `infinite`)."""
+    as_float = logits.astype(np.float64)
+    with np.errstate(invalid="ignore"):  # (NaN compares false: left for validate)
+        beyond = np.abs(as_float) > MAX_ABS_OPACITY_LOGIT
+    if not infinite:
+        beyond &= np.isfinite(as_float)
+    count = int(np.count_nonzero(beyond))
+    if not count:
+        return logits
+    infinities = int(np.count_nonzero(np.isinf(as_float)))
+    parts = [f"{infinities} infinite"] if infinities else []
+    if count > infinities:
+        parts.append(f"{count - infinities} beyond +-{MAX_ABS_OPACITY_LOGIT:g}")
+    logger.warning(
+        "%s: %s opacity logit(s) read as +-%g (opacity 1 or 0)",
+        source, " and ".join(parts), MAX_ABS_OPACITY_LOGIT,
+    )  # fmt: skip
+    clamped = np.where(beyond, np.sign(as_float) * MAX_ABS_OPACITY_LOGIT, as_float)
+    return clamped.astype(np.float32)
 
 
 def _ids(values: np.ndarray, source: str) -> np.ndarray:

@@ -13,6 +13,7 @@ import json
 import math
 import os
 import re
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -64,9 +65,26 @@ SUFFIXES = {
 
 
 def is_within(path: str | Path, folder: str | Path) -> bool:
-    """Whether `path` is `folder` or lies inside it (links resolved)."""
-    path, folder = Path(path).resolve(), Path(folder).resolve()
+    """Whether `path` is `folder` or lies inside it (links resolved).
+
+    Raises:
+        OutputError: a link on either path that leads back to itself.
+    """
+    path, folder = resolved(path), resolved(folder)
     return path == folder or folder in path.parents
+
+
+def resolved(path: str | Path) -> Path:
+    """`path` absolute with its links resolved, as far as it exists.
+
+    Raises:
+        OutputError: a link loop on the path (which `Path.resolve` reports as a RuntimeError
+            up to Python 3.12, an OSError since).
+    """
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError) as exc:
+        raise OutputError(f"{path}: cannot follow its links ({exc})") from None
 
 
 MAX_TEXT_BYTES = 64 << 20
@@ -112,6 +130,27 @@ def read_json(path: str | Path, what: str, error: type[GscError] = InputError) -
         raise error(f"cannot read {what} file {path}: {' '.join(str(exc).split())}") from None
 
 
+def check_input(path: str | Path, error: type[GscError] = InputError) -> Path:
+    """`path` as a Path when it names a regular file (links followed).
+
+    Raises:
+        error: it does not exist, is a directory, or is something else (a device such as
+            /dev/zero, a FIFO, a socket), each said as such.
+    """
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except OSError as exc:  # a link loop, a name too long, a folder without permission
+        raise error(f"{path}: cannot open ({exc.strerror or exc})") from None
+    if stat.S_ISDIR(mode):
+        raise error(f"{path} is a directory, not a file")
+    if not stat.S_ISREG(mode):
+        raise error(f"{path} is not a regular file (a device, a FIFO or a socket); name a file")
+    return path
+
+
 def check_output(
     output: str | Path, inputs: Sequence[str | Path] = (), force: bool = False, suffix: str = ""
 ) -> Path:
@@ -125,7 +164,7 @@ def check_output(
     output = Path(output)
     for source in map(Path, inputs):
         same = output.exists() and source.exists() and output.samefile(source)
-        if same or output.resolve() == source.resolve():
+        if same or resolved(output) == resolved(source):
             raise OutputError(f"output {output} is also an input; choose another path")
         if source.is_dir() and is_within(output, source):
             raise OutputError(f"output {output} is inside the input folder {source}")

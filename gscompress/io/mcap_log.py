@@ -21,6 +21,8 @@ into place only when complete. Readers treat every file as untrusted.
 from __future__ import annotations
 
 import functools
+import heapq
+import itertools
 import json
 import os
 import re
@@ -40,13 +42,12 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from google.protobuf.message import DecodeError, Message
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, Schema
+from mcap.records import Channel, Metadata, Schema
 from mcap.records import Message as McapMessage
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
-from zstandard import ZstdError, frame_content_size
+from zstandard import ZstdError
 
 from gscompress import __version__
 from gscompress.camera import (
@@ -76,7 +77,15 @@ from gscompress.io.columns import (
     map_to_columns,
     pack_records,
 )
-from gscompress.io.files import AtomicFile, MemoryFile, check_output, sha256
+from gscompress.io.files import AtomicFile, MemoryFile, check_input, check_output, sha256
+from gscompress.io.mcap_bounds import (
+    BoundedStream,
+    chunk_records,
+    decompress_chunk,
+    file_records,
+    read_chunk_header,
+    read_record_at,
+)
 from gscompress_schemas import PROFILE, PROFILE_VERSION, schema_bytes
 
 TOPIC_GAUSSIANS = "/gaussians"
@@ -96,15 +105,6 @@ METADATA_NAME = "gscompress"
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
 STATS_SCHEMA = "slam_stats.v1.schema.json"
-
-MAX_CHUNK_BYTES = 2 * 2**30
-"""Largest decompressed chunk a reader accepts (a snapshot of some 25 million Gaussians): a
-guard against hostile size fields."""
-MAX_CHUNK_RATIO = 1000
-"""A chunk above `_SMALL_CHUNK` bytes may decompress to at most this many times its compressed
-size (a map compresses 1.1-1.5x, JSON records 5-20x; zeros a thousand times and more)."""
-_SMALL_CHUNK = 64 * 2**20
-_LZ4_MAGIC = b"\x04\x22\x4d\x18"
 
 # foxglove.PackedElementField.NumericType values and their numpy equivalents
 _NUMERIC_TYPES: dict[int, np.dtype] = {
@@ -152,6 +152,10 @@ def closed_properly(stream: IO[bytes]) -> bool:
 
 
 # ---------------------------------------------------------------------- metadata
+
+POSES_ESTIMATED = "estimated"
+POSES_GROUND_TRUTH = "ground-truth"
+"""What `LogMetadata.pose_origin` says of a log's poses (or a trajectory file's name)."""
 
 
 @dataclass
@@ -239,6 +243,25 @@ class LogMetadata:
                 "of steps {operation, parent, parent_sha256}"
             )
         return cls(**values)
+
+    def pose_origin(self) -> str:
+        """Where the log's `/camera/pose` messages came from: "ground-truth" (the sequence's,
+        as `gsc score` of a PLY or a SLAM run with `tracking.use_ground_truth` writes them),
+        "estimated" (tracked), or the name of the trajectory file they were read from.
+
+        Said by `results["poses"]`, else by the newest provenance step that names its poses
+        (`gsc score`'s), else by the SLAM config the log carries.
+        """
+        said = self.results.get("poses")
+        if said is None:
+            steps = (step["operation"] for step in reversed(self.provenance))
+            said = next((op["poses"] for op in steps if "poses" in op), None)
+        if isinstance(said, str) and said:
+            return said
+        tracking = self.config.get("tracking")
+        if isinstance(tracking, dict) and tracking.get("use_ground_truth") is True:
+            return POSES_GROUND_TRUTH
+        return POSES_ESTIMATED
 
     def derive(
         self, operation: dict[str, Any], parent: str | Path, command: str | None = None
@@ -650,15 +673,13 @@ class LogReader:
     """
 
     def __init__(self, path: str | Path):
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise LogFormatError(f"{self.path}: no such file")
+        self.path = check_input(path, LogFormatError)
         self._stream: IO[bytes] = open(self.path, "rb")
         try:
             self._open()
         except Exception as exc:
             self._stream.close()
-            if not is_read_error(exc):
+            if not (is_read_error(exc) or isinstance(exc, LogFormatError)):
                 raise
             with open(self.path, "rb") as f:
                 head = f.read(len(MAGIC))
@@ -670,12 +691,13 @@ class LogReader:
                 why = "it looks like an SPZ file; `gsc import-ply` makes a log of it"
             elif head != MAGIC:
                 why = "it does not begin as an MCAP file does"
+            elif isinstance(exc, LogFormatError):
+                raise
             else:
                 why = _describe(exc)
             raise LogFormatError(f"{self.path}: not a readable MCAP log ({why})") from None
 
     def _open(self) -> None:
-        size = self.path.stat().st_size
         if not closed_properly(self._stream):
             self._stream.seek(0)
             if self._stream.read(len(MAGIC)) == MAGIC:
@@ -685,7 +707,13 @@ class LogReader:
                     "other logs' messages"
                 )
         self._stream.seek(0)
-        self._reader = SeekingReader(self._stream, validate_crcs=True, record_size_limit=size)
+        self._bounded = BoundedStream(self._stream, str(self.path))
+        size = self._bounded.size
+        self._reader = SeekingReader(
+            self._bounded,  # type: ignore[arg-type]
+            validate_crcs=True,
+            record_size_limit=size,
+        )
         summary = self._reader.get_summary()
         if summary is None:
             raise LogFormatError(
@@ -693,57 +721,28 @@ class LogReader:
                 "try `mcap recover` on it"
             )
         self._summary = summary
-        self._check_chunks(size)
-        records = [m for m in self._reader.iter_metadata() if m.name == METADATA_NAME]
+        self._check_chunks()
+        found = (
+            read_record_at(self._bounded, i.offset, Metadata) for i in summary.metadata_indexes
+        )
+        records = [record for record in found if record.name == METADATA_NAME]
         self.metadata = (
             LogMetadata.from_record(dict(records[-1].metadata), str(self.path))
             if records
             else LogMetadata(profile_version="", tool_version="")
         )
 
-    def _check_chunks(self, file_size: int) -> None:
-        """Refuse a chunk whose decompressed size is implausible before any is decompressed:
-        above `MAX_CHUNK_BYTES`, above `MAX_CHUNK_RATIO` times its compressed size, or a zstd
-        or lz4 frame that declares more than its chunk record (both libraries allocate what the
-        frame declares). Chunks are found through the summary's index, else (an unindexed file,
-        which `mcap` would read sequentially) by reading the file's records."""
-        stream = self._stream
+    def _check_chunks(self) -> None:
+        """Refuse a chunk whose fields are inconsistent or whose decompressed size is
+        implausible before any is decompressed (see `read_chunk_header`). Chunks are found
+        through the summary's index, else (an unindexed file) by reading the file's records."""
         if self._summary.chunk_indexes:
-            for index in self._summary.chunk_indexes:  # each chunk record's own fields
-                stream.seek(index.chunk_start_offset + 25)  # opcode, length, start and end times
-                size, _crc, name_length = struct.unpack("<QII", stream.read(16))
-                if name_length > 64:
-                    raise LogFormatError(f"{self.path}: a chunk names a {name_length}-byte codec")
-                compression = stream.read(name_length).decode("utf-8", "replace")
-                (compressed,) = struct.unpack("<Q", stream.read(8))
-                head = stream.read(18)  # a zstd frame header's longest
-                self._check_chunk(size, compressed, compression, head)
+            for index in self._summary.chunk_indexes:
+                read_chunk_header(self._bounded, index.chunk_start_offset)
         else:
-            stream.seek(0)
-            records = StreamReader(stream, emit_chunks=True, record_size_limit=file_size).records
-            for record in records:
-                if isinstance(record, Chunk):
-                    self._check_chunk(
-                        record.uncompressed_size, len(record.data), record.compression,
-                        record.data[:18],
-                    )  # fmt: skip
-        stream.seek(0)
-
-    def _check_chunk(self, size: int, compressed: int, compression: str, head: bytes) -> None:
-        declared = -1  # what the codec's frame header says it will allocate (-1: unsaid)
-        if compression == "zstd":
-            declared = frame_content_size(head)
-        elif compression == "lz4" and head[:4] == _LZ4_MAGIC and len(head) >= 14 and head[4] & 8:
-            declared = int.from_bytes(head[6:14], "little")  # FLG bit 3: a content size follows
-        if size > MAX_CHUNK_BYTES or size > max(_SMALL_CHUNK, MAX_CHUNK_RATIO * compressed):
-            raise LogFormatError(
-                f"{self.path}: a chunk of {compressed} bytes claims {size} bytes uncompressed"
-            )
-        if declared > size:
-            raise LogFormatError(
-                f"{self.path}: a chunk's {compression} frame declares {declared} bytes, its "
-                f"record {size}"
-            )
+            for _record in file_records(self._bounded, open_chunks=False):
+                pass
+        self._stream.seek(0)
 
     def __enter__(self) -> LogReader:
         return self
@@ -803,12 +802,80 @@ class LogReader:
     def iter_messages(
         self, topics: Sequence[str] | None = None, reverse: bool = False
     ) -> Iterator[tuple[Schema | None, Channel, McapMessage]]:
-        """Raw (schema, channel, message) records in log-time order (or the reverse)."""
+        """Raw (schema, channel, message) records in log-time order (or the reverse).
+
+        Chunks are read one at a time, as the order needs them, each decompressed within the
+        bounds `read_chunk_header` checked; ties keep the file's order.
+        """
         with self._guard():
-            if reverse and not self._summary.chunk_indexes:  # mcap reads such a file forwards
-                yield from reversed(list(self._reader.iter_messages(topics=topics)))
-            else:
-                yield from self._reader.iter_messages(topics=topics, reverse=reverse)
+            summary = self._summary
+            wanted = None if topics is None else set(topics)
+            channels = {
+                cid for cid, channel in summary.channels.items()
+                if wanted is None or channel.topic in wanted
+            }  # fmt: skip
+            if not summary.chunk_indexes:  # no index to seek by: read the file forwards
+                found = sorted(self._unindexed_messages(wanted), key=lambda m: m[2].log_time)
+                yield from reversed(found) if reverse else found
+                return
+            # a merge by log time: a chunk is opened when its first message (its last, in
+            # reverse) is due; keys (time, chunk before message, file position, arrival, item)
+            sign = -1 if reverse else 1
+            arrival = itertools.count()  # (ties of a hostile index never compare the items)
+            queue: list[tuple[int, int, int, int, Any]] = []
+            for index in summary.chunk_indexes:
+                listed = set(index.message_index_offsets)  # (none listed: not known)
+                if wanted is None or not listed or channels & listed:
+                    first = index.message_end_time if reverse else index.message_start_time
+                    position = sign * index.chunk_start_offset
+                    heapq.heappush(queue, (sign * first, 0, position, next(arrival), index))
+            while queue:
+                _time, kind, position, _arrival, item = heapq.heappop(queue)
+                if kind == 1:
+                    yield item
+                    continue
+                records = self._chunk_records(item.chunk_start_offset, channels)
+                if reverse:
+                    records.reverse()
+                for record in records:
+                    if isinstance(record, McapMessage):
+                        key = (sign * record.log_time, 1, position, next(arrival))
+                        heapq.heappush(queue, (*key, self._resolve(record)))
+
+    def _chunk_records(self, offset: int, channels: set[int] | None) -> list[Any]:
+        """The records of the chunk at file offset `offset` (messages of `channels` only)."""
+        header = read_chunk_header(self._bounded, offset)
+        self._bounded.seek(header.data_offset)
+        data = decompress_chunk(header, self._bounded.read(header.data_length), str(self.path))
+        return chunk_records(data, str(self.path), channels)
+
+    def _unindexed_messages(
+        self, topics: set[str] | None
+    ) -> Iterator[tuple[Schema | None, Channel, McapMessage]]:
+        """Every message of `topics` (None: all) of a file without chunk indexes, in file
+        order; schemas and channels come from the summary and from the records met."""
+        schemas = dict(self._summary.schemas)
+        channels = dict(self._summary.channels)
+        for item in file_records(self._bounded):
+            if isinstance(item, Schema):
+                schemas.setdefault(item.id, item)
+            elif isinstance(item, Channel):
+                channels.setdefault(item.id, item)
+            elif isinstance(item, McapMessage):
+                channel = channels.get(item.channel_id)
+                if channel is None:
+                    raise LogFormatError(
+                        f"{self.path}: a message on channel {item.channel_id}, which no "
+                        "channel record defines"
+                    )
+                if topics is None or channel.topic in topics:
+                    yield schemas.get(channel.schema_id), channel, item
+
+    def _resolve(self, message: McapMessage) -> tuple[Schema | None, Channel, McapMessage]:
+        """(schema, channel, message) of a message in an indexed file (channels listed in the
+        summary, which `chunk_records` was told to keep)."""
+        channel = self._summary.channels[message.channel_id]
+        return self._summary.schemas.get(channel.schema_id), channel, message
 
     def read_map(self, snapshot: int = -1) -> GaussianMap:
         """Decode map snapshot `snapshot` (Python indexing: -1 is the last, "the map").
@@ -915,7 +982,8 @@ class Snapshot:
 def pointcloud_to_gaussians(cloud: PointCloud, source: str = "point cloud") -> GaussianMap:
     """Decode a PointCloud written by `gaussians_to_pointcloud` (or any compatible writer).
 
-    Checks the stride, every field's type and extent and the data length before reading, and
+    Checks the stride (the packed fields' span), every field's type and extent, that no two
+    fields overlap, and the data length before reading, and
     the decoded map's finiteness and id uniqueness. Fields `<name>_f16` (uint16 float16 bit
     patterns) are returned as float32 `<name>`.
 
@@ -944,6 +1012,19 @@ def pointcloud_to_gaussians(cloud: PointCloud, source: str = "point cloud") -> G
         names.append(f.name)
         formats.append(dtype)
         offsets.append(f.offset)
+    spans = sorted(
+        (offset, offset + dtype.itemsize, name)
+        for name, dtype, offset in zip(names, formats, offsets, strict=True)
+    )
+    for (_start, end, name), (start, _end, other) in itertools.pairwise(spans):
+        if start < end:
+            raise MapError(f"{source}: fields {name!r} and {other!r} overlap")
+    span = max((end for _start, end, _name in spans), default=0)
+    if stride != span:
+        raise MapError(
+            f"{source}: point_stride {stride} is not the {span} bytes its fields span "
+            "(the records are packed)"
+        )
     records = np.frombuffer(
         data,
         dtype=np.dtype(

@@ -14,6 +14,7 @@ the file size before anything is allocated.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from gscompress.io.columns import (
     map_to_columns,
     pack_records,
 )
-from gscompress.io.files import AtomicFile, check_output
+from gscompress.io.files import AtomicFile, check_input, check_output
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -101,13 +102,14 @@ def write_ply(
 def read_ply(path: str | Path) -> GaussianMap:
     """Read a 3DGS PLY map (ours or another tool's) into a validated GaussianMap.
 
+    Opacity logits of +-inf (opacity exactly 1 or 0, as `splat-transform` writes them) and
+    beyond +-`MAX_ABS_OPACITY_LOGIT` are read as +-that bound, with one warning.
+
     Raises:
-        PlyFormatError: not a binary PLY, no vertex element, missing required properties,
-            truncated data, or invalid values.
+        PlyFormatError: not a binary PLY, no vertex element, missing required
+            properties, an element running past the end of the file, or invalid values.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise PlyFormatError(f"{path}: no such file")
+    path = check_input(path, PlyFormatError)
     with open(path, "rb") as f:
         head = f.read(_MAX_HEADER_BYTES)
     end = head.find(b"end_header")
@@ -117,27 +119,35 @@ def read_ply(path: str | Path) -> GaussianMap:
     if header_end < 0:
         raise PlyFormatError(f"{path}: header is not terminated")
     try:
-        lines = head[:header_end].decode("ascii").splitlines()
+        text = head[:header_end].decode("ascii")
     except UnicodeDecodeError:
         raise PlyFormatError(f"{path}: header is not ASCII") from None
-    endian, elements = _parse_header(lines, path)
-    offset = header_end
+    endian, elements = _parse_header(text.splitlines(), path)
     file_size = path.stat().st_size
     layout = [(name, count, props, np.dtype([(p, endian + t) for p, t in props]))
               for name, count, props in elements]  # fmt: skip
-    body = sum(count * dtype.itemsize for _name, count, _props, dtype in layout)
-    extra = file_size - header_end - body  # (too few is said below, naming the vertices)
+    offset = header_end
+    vertices: tuple[int, int, list[tuple[str, str]], np.dtype] | None = None
+    for name, count, props, dtype in layout:  # every element checked before any is read
+        if count and not props:
+            raise PlyFormatError(f"{path}: element {name!r} has {count} rows but no properties")
+        size = count * dtype.itemsize
+        if size > file_size - offset:
+            rows = "vertices" if name == "vertex" else f"rows of element {name!r}"
+            raise PlyFormatError(
+                f"{path}: truncated: {count} {rows} of {dtype.itemsize} bytes need "
+                f"{offset + size} bytes, the file has {file_size}"
+            )
+        if name == "vertex" and vertices is None:
+            vertices = (offset, count, props, dtype)
+        offset += size
+    extra = file_size - offset
     if extra > 0 and (extra > 16 or _tail(path, extra).strip(b" \t\r\n")):
         raise PlyFormatError(
             f"{path}: {extra} byte{'s' if extra != 1 else ''} after the elements the header "
             "declares (a wrong vertex count?)"
         )
     if is_compressed_ply(elements):
-        if extra < 0:
-            raise PlyFormatError(
-                f"{path}: truncated: the elements the header declares need "
-                f"{header_end + body} bytes, the file has {file_size}"
-            )
         arrays, offset = {}, header_end
         for name, count, _props, dtype in layout:
             arrays[name] = np.fromfile(path, dtype=dtype, count=count, offset=offset)
@@ -145,22 +155,16 @@ def read_ply(path: str | Path) -> GaussianMap:
         from gscompress.io.compressed_ply import decompress  # (it reads with this module)
 
         return decompress(arrays, str(path))
-    for name, count, props, dtype in layout:
-        if name == "vertex":
-            if offset + count * dtype.itemsize > file_size:
-                raise PlyFormatError(
-                    f"{path}: truncated: {count} vertices of {dtype.itemsize} bytes need "
-                    f"{offset + count * dtype.itemsize} bytes, the file has {file_size}"
-                )
-            records = np.fromfile(path, dtype=dtype, count=count, offset=offset)
-            cols = {p: records[p] for p, _ in props}
-            _check_required(cols, path)
-            try:
-                return map_from_columns(cols, str(path)).validate()
-            except MapError as exc:
-                raise PlyFormatError(led_by(str(path), str(exc))) from None
-        offset += count * dtype.itemsize
-    raise PlyFormatError(f"{path}: no vertex element")
+    if vertices is None:
+        raise PlyFormatError(f"{path}: no vertex element")
+    start, count, props, dtype = vertices
+    records = np.fromfile(path, dtype=dtype, count=count, offset=start)
+    cols = {p: records[p] for p, _ in props}
+    _check_required(cols, path)
+    try:
+        return map_from_columns(cols, str(path), infinite_opacity=True).validate()
+    except MapError as exc:
+        raise PlyFormatError(led_by(str(path), str(exc))) from None
 
 
 COMPRESSED_MARK = "packed_position"
@@ -202,13 +206,13 @@ def _parse_header(
                 )
             endian = "<" if words[1] == "binary_little_endian" else ">"
         elif words[0] == "element":
-            if len(words) != 3 or not words[2].isdigit():
+            if len(words) != 3 or not re.fullmatch(r"[0-9]{1,19}", words[2]):
                 raise PlyFormatError(f"{path}: line {number}: bad element line {line!r}")
             elements.append((words[1], int(words[2]), []))
         elif words[0] == "property":
             if not elements:
                 raise PlyFormatError(f"{path}: line {number}: property before any element")
-            if words[1] == "list":
+            if words[1:2] == ["list"]:
                 raise PlyFormatError(
                     f"{path}: line {number}: list properties are not supported in a 3DGS map"
                 )

@@ -12,11 +12,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.reader import StreamReader
 from mcap.records import Channel, Message, Metadata, Schema
 
 from gscompress.errors import LogFormatError
-from gscompress.io.files import abandoned_files
+from gscompress.io.files import abandoned_files, check_input
+from gscompress.io.mcap_bounds import BoundedStream, file_records
 from gscompress.io.mcap_log import (
     METADATA_NAME,
     TOPIC_GAUSSIANS,
@@ -76,9 +76,7 @@ def read_messages(path: str | Path) -> LogContents:
     Raises:
         LogFormatError: not an MCAP file, or nothing readable in it.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise LogFormatError(f"{path}: no such file")
+    path = check_input(path, LogFormatError)
     with open(path, "rb") as stream:
         finished = closed_properly(stream)
     if not finished:
@@ -94,11 +92,8 @@ def _read_unfinished(path: Path) -> LogContents:
     out = LogContents(LogMetadata(profile_version="", tool_version=""), finished=False)
     metadata: Metadata | None = None
     with open(path, "rb") as stream:
-        reader = StreamReader(
-            stream, skip_magic=False, validate_crcs=True, record_size_limit=path.stat().st_size
-        )
         try:
-            for record in reader.records:
+            for record in file_records(BoundedStream(stream, str(path))):
                 if isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
@@ -108,10 +103,11 @@ def _read_unfinished(path: Path) -> LogContents:
                 elif isinstance(record, Message) and record.channel_id in channels:
                     channel = channels[record.channel_id]
                     out.messages.append((schemas.get(channel.schema_id), channel, record))
+        except LogFormatError:  # the tail a killed writer left half-written
+            pass
         except Exception as exc:
             if not is_read_error(exc):
                 raise
-            # the tail a killed writer left half-written
     if metadata is None:
         raise LogFormatError(f"{path}: no gscompress metadata record; nothing to resume from")
     out.metadata = LogMetadata.from_record(dict(metadata.metadata), str(path))

@@ -43,6 +43,7 @@ import numpy as np
 from gscompress.camera import invert_transform
 from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.io.mcap_log import (
+    POSES_GROUND_TRUTH,
     TOPIC_POSE,
     TOPIC_POSE_GT,
     LogMetadata,
@@ -52,6 +53,12 @@ from gscompress.io.mcap_log import (
 from gscompress.io.trajectory import nearest_times, read_tum_trajectory
 
 log = logging.getLogger(__name__)
+
+GROUND_TRUTH_POSES = (
+    "the log's poses are the sequence's ground truth (a map scored or made at the ground-truth "
+    "poses), not estimated: their error against it measures nothing"
+)
+"""The reason ATE is unavailable for a log posed at the ground truth."""
 
 POSE_MATCH_TOLERANCE_NS = 1_000_000
 """Largest |log time - frame timestamp| (ns) at which a logged pose belongs to a frame."""
@@ -231,16 +238,18 @@ def evaluate_log(
         progress: called with (steps done, steps in total) after each view rendered or refined.
 
     Returns:
-        A flat JSON-ready dict: `poses` (where the poses came from), `ate_rmse_cm`,
-        `ate_splatam_cm` of those poses (None with `ate_reason` when there is no ground
-        truth), `psnr`, `ssim`, `ms_ssim`, `lpips`, `depth_l1_cm` at those poses (each None
-        with `<name>_reason` when unavailable), `gaussians`, `bytes` (the serialized map
-        message), `file_bytes`, frame counts (`frames_selected`, `frames_with_pose`,
-        `frames_without_pose`, `frames_evaluated`), the settings used, `per_frame` (per
-        rendered view: index, timestamp and its metrics) and, with `refine_poses`, `refined`:
-        the same image metrics at the refined poses, `iters`, the median pose change
-        `pose_change_cm` and `pose_change_deg`, and its own `per_frame` (with each frame's
-        pose change).
+        A flat JSON-ready dict: `poses` (where the poses rendered at came from: the log's
+        own, as `LogMetadata.pose_origin` says, "estimated", "ground-truth" or a trajectory
+        file; else the --poses or --poses-from file) and `own_poses`, `ate_rmse_cm`,
+        `ate_splatam_cm` of those poses (None with `ate_reason` when there is no ground truth,
+        or when the log's own poses are the ground truth), `psnr`, `ssim`, `ms_ssim`, `lpips`,
+        `depth_l1_cm` at those poses (each None with `<name>_reason` when unavailable),
+        `gaussians`, `bytes` (the serialized map message), `file_bytes`, frame counts
+        (`frames_selected`, `frames_with_pose`, `frames_without_pose`, `frames_evaluated`), the
+        settings used, `per_frame` (per rendered view: index, timestamp and its metrics) and,
+        with `refine_poses`, `refined`: the same image metrics at the refined poses, `iters`,
+        the median pose change `pose_change_cm` and `pose_change_deg`, and its own `per_frame`
+        (with each frame's pose change).
 
     Raises:
         LogFormatError: unreadable log, or no `/gaussians`, or no `/camera/pose` where the
@@ -288,6 +297,9 @@ def evaluate_log(
     if ate["ate_frames"] == 0 and len(gt_stamps_ns) == 0:
         ate["ate_reason"] = "no ground truth: neither the sequence nor the log has poses"
     ate["ground_truth"] = gt_source if ate["ate_frames"] else None
+    own = poses is None and poses_from is None
+    if own and meta.pose_origin() == POSES_GROUND_TRUTH:
+        ate.update(ate_rmse_cm=None, ate_splatam_cm=None, ate_reason=GROUND_TRUTH_POSES)
 
     chosen = list(range(0, len(positions), every))
     torch_device = resolve_device(device, backend)
@@ -344,7 +356,8 @@ def evaluate_log(
         "frames": str(frames),
         "size": [intr.width, intr.height],
         "every": every,
-        "poses": "log" if poses is None and poses_from is None else str(source),
+        "poses": meta.pose_origin() if own else str(source),
+        "own_poses": own,
         "frames_selected": len(sequence),
         "frames_with_pose": len(positions),
         "frames_without_pose": len(sequence) - len(positions),

@@ -92,8 +92,8 @@ B_NO_SHARE = "B refined, no share"
 
 ROW_KEYS = (
     "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
-    "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes", "share_gaussians",
-    "share_bytes", "seconds_per_frame", "log",
+    "ate_reason", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes",
+    "share_gaussians", "share_bytes", "seconds_per_frame", "log",
 )  # fmt: skip
 """Columns of results.csv (every row of results.json has them)."""
 

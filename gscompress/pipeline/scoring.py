@@ -14,6 +14,7 @@ from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
+    POSES_GROUND_TRUTH,
     TOPIC_POSE,
     LogMetadata,
     LogReader,
@@ -82,7 +83,7 @@ def score_file(
     if poses is None and is_log and len(log_ns):
         positions, index = frames_with_poses(sequence, log_ns, src)
         stamps, T_world_cams = np.asarray(sequence.timestamps)[positions], log_poses[index]
-        source = "log"
+        source = meta.pose_origin()
     else:
         if poses is None and is_log and meta.world_frame.startswith("first-camera:"):
             raise InputError(
@@ -90,7 +91,7 @@ def score_file(
                 f"ground truth of {sequence.name}: pass --poses TRAJ.txt (in its frame)"
             )
         stamps, T_world_cams = view_poses(sequence, poses)
-        source = Path(poses).name if poses else "ground truth"
+        source = Path(poses).name if poses else POSES_GROUND_TRUTH
     skipped = len(sequence) - len(stamps)
     if skipped:
         log.warning("%d of the %d frames selected have no pose (%s): scored from the other %d",

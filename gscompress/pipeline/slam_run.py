@@ -31,6 +31,8 @@ from gscompress.errors import (
 from gscompress.io.codec import check_codec
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
+    POSES_ESTIMATED,
+    POSES_GROUND_TRUTH,
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
@@ -254,7 +256,10 @@ def _fresh_run(
         frames=str(frames),
         world_frame=world_frame_of(sequence, config),
         # in the metadata written at the start, so that a killed run's file has it for --resume
-        results={"first_frame": sequence.frame(0).fingerprint()},
+        results={
+            "first_frame": sequence.frame(0).fingerprint(),
+            "poses": POSES_GROUND_TRUTH if config.tracking.use_ground_truth else POSES_ESTIMATED,
+        },
     )
     if inject is not None:
         from gscompress.pipeline.merge import read_share
