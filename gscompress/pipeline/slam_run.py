@@ -296,11 +296,11 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         raise InputError(f"--resume: there is no log {dst} nor an unfinished run of it")
     source, contents = _furthest(sources)
     meta = contents.metadata
-    if not meta.config:
-        raise InputError(f"{source} records no SLAM config: not a `gsc slam` log")
     derived = len(_injections(meta.provenance)) < len(meta.provenance)  # (pruned, shared...)
     if derived or ("frames" not in meta.results and contents.finished):
         raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
+    if not meta.config:
+        raise InputError(f"{source} records no SLAM config: not a `gsc slam` log")
     if contents.finished and not meta.results.get("interrupted", False):
         raise InputError(
             f"{dst} is a finished run of {meta.results['frames']} frames; nothing to resume"
