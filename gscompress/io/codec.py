@@ -82,6 +82,12 @@ and 9 bits of magnitude)."""
 _SQRT1_2 = np.float32(np.sqrt(0.5))
 """The largest the three smallest components of a unit quaternion can be."""
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+"""Largest value a decoded attribute may take (a map holds float32)."""
+
+_MAX_LOG_SCORE = 88.0
+"""Largest log score a `log-linear` column may code (exp of it is a finite float32)."""
+
 _SIGMOID_EPS = 1e-7
 """Opacities are coded in [eps, 1 - eps], so that every code has a finite logit."""
 
@@ -573,8 +579,15 @@ def decode_compact(
             wanted = 1 if transform == "log-linear" else components
             if low.shape != (wanted,) or high.shape != (wanted,):
                 raise fail(f"column {name!r} lacks its low and high values")
-            if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high >= low)):
-                raise fail(f"column {name!r} has a bad range [{low}, {high}]")
+            bound = _MAX_LOG_SCORE if transform == "log-linear" else _FLOAT32_MAX
+            if not (
+                np.all(np.abs(low) <= bound)
+                and np.all(np.abs(high) <= bound)
+                and np.all(high >= low)
+            ):  # fmt: skip  (also: not NaN)
+                worst = float(np.max(np.abs(np.concatenate([low, high]))))
+                raise fail(f"column {name!r} has a range beyond +-{bound:g} or inverted "
+                           f"(largest |value| {worst:g})")  # fmt: skip
             if not 1 <= column.bits <= dtype.itemsize * 8 or (
                 transform == "log-linear" and column.bits < 2
             ):
@@ -601,7 +614,10 @@ def decode_compact(
     limit = np.uint64(1) << np.uint64(3 * bits)
     if n and (np.any(deltas >= limit) or np.any(total[1:] < total[:-1]) or total[-1] >= limit):
         raise fail(f"has positions outside its {bits}-bit grid")
-    means = (origin + morton_grid(total) * step).astype(np.float32)
+    positions = origin + morton_grid(total) * step
+    if n and not np.all(np.abs(positions) <= _FLOAT32_MAX):
+        raise fail("has positions beyond the float32 range (its grid's origin or step)")
+    means = positions.astype(np.float32)
 
     def linear(name: str) -> np.ndarray:
         c = params[name]
