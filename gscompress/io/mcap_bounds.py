@@ -26,9 +26,10 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
-from zstandard import ZstdDecompressor, ZstdError, frame_content_size
+from zstandard import ZstdError, frame_content_size
 
 from gscompress.errors import LogFormatError
+from gscompress.io.codec import inflate_zstd
 
 MAX_CHUNK_BYTES = 2 * 2**30
 """Largest decompressed chunk a reader accepts (a snapshot of some 25 million Gaussians): a
@@ -188,10 +189,7 @@ def decompress_chunk(header: ChunkHeader, data: bytes, source: str) -> bytes:
     """
     size = header.uncompressed_size
     if header.compression == "zstd":
-        try:  # (a frame's own content size was checked against `size` before)
-            out = ZstdDecompressor().decompress(data, max_output_size=size)
-        except ZstdError as exc:
-            raise LogFormatError(f"{source}: a chunk's zstd data is corrupt ({exc})") from None
+        out = inflate_zstd(data, size, f"{source}: a chunk's zstd data", LogFormatError)
     elif header.compression == "lz4":
         out = _lz4_bounded(data, size, source)
     else:
