@@ -16,8 +16,8 @@ positions:
   2^21 steps along an axis.
 - `log_scale` (1 component isotropic, 3 anisotropic), `opacity` (in sigmoid space), `f_dc`,
   `f_rest`: `linear` codes of `bits` bits between each component's recorded low and high.
-- `rotation` (anisotropic only): `smallest-three`, 2 bits for the largest component's index
-  and 10 bits for each of the other three, 32 bits in all.
+- `rotation` (anisotropic only): `smallest-three` in SPZ's layout, 2 bits for the largest
+  component's index and a sign and 9 bits of magnitude for each of the other three, 32 in all.
 - `id` (optional): `delta`, the difference from the previous id modulo 2^32.
 - the PWAS state (optional): `importance_sum`, `importance_weight`, `alpha_t_sum` as exact
   float32 (`raw`), so that a receiver keeps accumulating; or, without them, the score
