@@ -6,7 +6,7 @@ with the cpu preset, and an anisotropic map of the synthetic sequence), every fo
 - fp32 / fp16: our `/gaussians` foxglove.PointCloud message;
 - compact: our own message, with ids and PWAS sums (a share's default), with ids and the 16-bit
   score (`--no-sums`), and bare (geometry and colour only, what a viewer needs);
-- spz: our SPZ file (where `gscompress.io.spz` is present);
+- spz, spz-v3: our SPZ file, version 4 (zstd streams) and 3 (gzip);
 - st-spz, st-sog, st-cply: `@playcanvas/splat-transform`'s SPZ, SOG and compressed PLY of our
   PLY (where node and tests/js/node_modules are present; `make js-deps`), read back by
   converting each to PLY with the same tool; a SOG's size is its `.sog` file as written;
@@ -39,6 +39,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,7 @@ import numpy as np
 import zstandard
 
 from gscompress.gaussians import GaussianMap
+from gscompress.io import spz
 from gscompress.io.codec import CompactOptions, decode_compact_bytes
 from gscompress.io.mcap_log import LogReader, encode_map, pointcloud_to_gaussians
 from gscompress.io.ply import read_ply, write_ply
@@ -94,12 +96,8 @@ def our_codecs() -> dict[str, Codec]:
 
     codecs = {"fp32": pointcloud("fp32"), "fp16": pointcloud("fp16")}
     codecs.update({name: compact(options) for name, options in COMPACT_VARIANTS.items()})
-    try:
-        from gscompress.io import spz
-
-        codecs["spz"] = (spz.encode_bytes, spz.decode_bytes)
-    except (ImportError, AttributeError):
-        logging.warning("gscompress.io.spz is not here: our SPZ is left out")
+    codecs["spz"] = (spz.encode_bytes, spz.decode_bytes)  # version 4 (zstd streams)
+    codecs["spz-v3"] = (partial(spz.encode_bytes, version=3), spz.decode_bytes)  # gzip
     return codecs
 
 
