@@ -111,7 +111,7 @@ class LogRefiner:
         from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
         from gscompress.render import resolve_backend, resolve_device
         from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
-        from gscompress.slam.keyframes import View, is_keyframe
+        from gscompress.slam.keyframes import View
 
         options.check()
         self.options, self.progress, self.instead = options, progress, instead
@@ -136,9 +136,7 @@ class LogRefiner:
         def chosen(k: int, pose: int) -> bool:
             if options.views == "frames":
                 return True
-            if keyframe_ns is not None:
-                return int(pose_ns[pose]) in keyframe_ns
-            return is_keyframe(k, config.keyframes)
+            return is_log_keyframe(k, int(pose_ns[pose]), keyframe_ns, config)
 
         self.views = [
             View.from_frame(k, sequence.frame(int(p)), poses[i], self.device)
@@ -172,6 +170,19 @@ class LogRefiner:
         stats["views"] = len(self.views)
         stats["backend"] = self.backend
         return refined, stats
+
+
+def is_log_keyframe(
+    position: int, log_time_ns: int, recorded: set[int] | None, config: Any
+) -> bool:
+    """Whether the frame at this position among those with a pose (log time `log_time_ns`) is
+    one of the log's keyframes (`KEYFRAME_RULE`): one its stats mark (`recorded`, from
+    `recorded_keyframes`), else every `keyframes.every`-th of `config` (a `SlamConfig`)."""
+    from gscompress.slam.keyframes import is_keyframe
+
+    if recorded is not None:
+        return log_time_ns in recorded
+    return is_keyframe(position, config.keyframes)
 
 
 def recorded_keyframes(reader: LogReader) -> set[int] | None:

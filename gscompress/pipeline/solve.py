@@ -132,9 +132,8 @@ def _views(
     """Poses of `views` keyframes spread over the log, with their images and valid-depth masks
     when `seq` is given (else None and all-pixel masks), and the intrinsics."""
     from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
-    from gscompress.pipeline.refine import recorded_keyframes
+    from gscompress.pipeline.refine import is_log_keyframe, recorded_keyframes
     from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
-    from gscompress.slam.keyframes import is_keyframe
 
     with LogReader(src) as reader:
         meta = reader.metadata
@@ -145,9 +144,7 @@ def _views(
         raise InputError(f"{src} has no {TOPIC_POSE}: the solver renders at the sender's poses")
     config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
     keyframes = [
-        i
-        for i, t in enumerate(pose_ns)
-        if (int(t) in keyframe_ns if keyframe_ns is not None else is_keyframe(i, config.keyframes))
+        i for i, t in enumerate(pose_ns) if is_log_keyframe(i, int(t), keyframe_ns, config)
     ] or list(range(len(pose_ns)))
     chosen = [keyframes[int(k)] for k in np.linspace(0, len(keyframes) - 1, views).round()]
     chosen = sorted(set(chosen))
