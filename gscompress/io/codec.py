@@ -619,21 +619,23 @@ def decode_compact(
         raise fail("has positions beyond the float32 range (its grid's origin or step)")
     means = positions.astype(np.float32)
 
-    def linear(name: str) -> np.ndarray:
+    def codes(name: str) -> tuple[np.ndarray, Message]:
+        """A quantised column's codes, checked to fit its bits, and its parameters."""
         c = params[name]
-        codes = columns[name]
-        if np.any(codes > (1 << c.bits) - 1):
+        if np.any(columns[name] > (1 << c.bits) - 1):
             raise fail(f"column {name!r} has codes beyond {c.bits} bits")
-        return dequantise_linear(codes, np.array(c.low), np.array(c.high), c.bits)
+        return columns[name], c
+
+    def linear(name: str) -> np.ndarray:
+        values, c = codes(name)
+        return dequantise_linear(values, np.array(c.low), np.array(c.high), c.bits)
 
     rotation = columns.get("rotation")
     k = SH_REST_COUNTS[message.sh_degree]
     extra: dict[str, Any] = {name: columns[name][:, 0] for name in sums}
     if "importance" in columns and not sums:
-        c = params["importance"]
-        if np.any(columns["importance"] > (1 << c.bits) - 1):
-            raise fail(f"column 'importance' has codes beyond {c.bits} bits")
-        score = dequantise_log(columns["importance"][:, 0], c.low[0], c.high[0], c.bits)
+        values, c = codes("importance")
+        score = dequantise_log(values[:, 0], c.low[0], c.high[0], c.bits)
         extra = {"importance_sum": score, "importance_weight": np.ones(n, np.float32)}
     if "id" in columns:
         extra["ids"] = np.cumsum(columns["id"][:, 0], dtype=np.uint32)
