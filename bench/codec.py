@@ -48,8 +48,8 @@ import zstandard
 
 from gscompress.gaussians import GaussianMap
 from gscompress.io import spz
-from gscompress.io.codec import CompactOptions, decode_compact_bytes
-from gscompress.io.mcap_log import LogReader, encode_map, pointcloud_to_gaussians
+from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions
+from gscompress.io.mcap_log import LogReader, decode_map_message, encode_map
 from gscompress.io.ply import read_ply, write_ply
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,27 +75,15 @@ Codec = tuple[Callable[[GaussianMap], bytes], Callable[[bytes], GaussianMap]]
 
 def our_codecs() -> dict[str, Codec]:
     """Format name -> (encode to bytes, decode bytes), torch-free."""
-    from google.protobuf.message import Message
 
-    def pointcloud(codec: str) -> Codec:
-        from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+    def ours(codec: str, options: CompactOptions = COMPACT_DEFAULTS) -> Codec:
+        return (
+            lambda g: encode_map(g, codec, 0, options).SerializeToString(),
+            lambda data: decode_map_message(data, codec == "compact")[0],
+        )
 
-        def decode(data: bytes) -> GaussianMap:
-            cloud = PointCloud()
-            cloud.ParseFromString(data)
-            return pointcloud_to_gaussians(cloud)
-
-        return (lambda g: encode_map(g, codec).SerializeToString(), decode)
-
-    def compact(options: CompactOptions) -> Codec:
-        def encode(g: GaussianMap) -> bytes:
-            message: Message = encode_map(g, "compact", 0, options)
-            return message.SerializeToString()
-
-        return (encode, lambda data: decode_compact_bytes(data)[0])
-
-    codecs = {"fp32": pointcloud("fp32"), "fp16": pointcloud("fp16")}
-    codecs.update({name: compact(options) for name, options in COMPACT_VARIANTS.items()})
+    codecs = {"fp32": ours("fp32"), "fp16": ours("fp16")}
+    codecs.update({name: ours("compact", options) for name, options in COMPACT_VARIANTS.items()})
     codecs["spz"] = (spz.encode_bytes, spz.decode_bytes)  # version 4 (zstd streams)
     codecs["spz-v3"] = (partial(spz.encode_bytes, version=3), spz.decode_bytes)  # gzip
     return codecs

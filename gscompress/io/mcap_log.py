@@ -571,10 +571,21 @@ def decoded_map(gaussians: GaussianMap, codec: str = "fp32", *, sums: bool = Tru
     if codec == "fp32":
         return gaussians
     message = encode_map(gaussians, codec, 0, CompactOptions(sums=sums))
-    data = message.SerializeToString()
-    if codec == "compact":
-        return decode_compact(CompactGaussians.FromString(data), len(data))
-    return pointcloud_to_gaussians(PointCloud.FromString(data))
+    return decode_map_message(message.SerializeToString(), codec == "compact")[0]
+
+
+def decode_map_message(data: bytes, compact: bool, source: str = "map") -> tuple[GaussianMap, str]:
+    """The validated map of a serialized `/gaussians` message (a CompactGaussians if `compact`,
+    else a PointCloud) and the codec it was stored in.
+
+    Raises:
+        DecodeError: not such a protobuf message.
+        MapError: a malformed map.
+    """
+    if compact:
+        return decode_compact(CompactGaussians.FromString(data), len(data), source), "compact"
+    cloud = PointCloud.FromString(data)
+    return pointcloud_to_gaussians(cloud, source), columns_precision(f.name for f in cloud.fields)
 
 
 def encoded_size(
@@ -599,16 +610,8 @@ def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "
         raise LogFormatError(
             f"{source}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud or {COMPACT_SCHEMA}"
         )
-    compact = schema.name == COMPACT_SCHEMA
-    stored: Message = CompactGaussians() if compact else PointCloud()
     try:
-        stored.ParseFromString(message.data)
-        if compact:
-            gaussians = decode_compact(stored, len(message.data), source)
-            codec = "compact"
-        else:
-            gaussians = pointcloud_to_gaussians(stored, source=source)
-            codec = columns_precision(f.name for f in stored.fields)
+        gaussians, codec = decode_map_message(message.data, schema.name == COMPACT_SCHEMA, source)
     except DecodeError:
         raise LogFormatError(f"{source}: a corrupt {TOPIC_GAUSSIANS} message") from None
     except MapError as exc:
