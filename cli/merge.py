@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
-from gscompress.ops.refine import REFINE_VIEWS
 from gscompress.pipeline import merge_logs
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.slam.config import REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,

@@ -18,7 +18,7 @@ from gscompress.errors import InputError, clipped
 from gscompress.io.codec import CODECS
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
-from gscompress.ops.select import is_fraction
+from gscompress.selection import is_fraction
 
 if TYPE_CHECKING:
     from gscompress.datasets.base import FrameSelection

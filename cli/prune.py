@@ -7,8 +7,8 @@ from pathlib import Path
 import click
 
 from gscompress.io.codec import CompactOptions
-from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import prune_log
+from gscompress.selection import STRATEGIES
 
 from .options import (
     INPUT_FILE,

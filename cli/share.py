@@ -10,9 +10,9 @@ from click.core import ParameterSource
 
 from gscompress.io.columns import PRECISIONS
 from gscompress.ops.budget import Budget
-from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import share_log
 from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC
+from gscompress.selection import STRATEGIES
 
 from .options import (
     INPUT_FILE,

@@ -23,8 +23,8 @@ from gscompress.errors import GscError
 from gscompress.io.codec import CODECS
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, encoded_size
-from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline import evaluate_log, prune_log
+from gscompress.selection import STRATEGIES
 
 
 def main() -> None:

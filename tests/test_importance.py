@@ -16,7 +16,7 @@ from gscompress.importance import PAPER_SIGMA_D, ImportanceSums
 from gscompress.io.mcap_log import LogReader, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.score import score_map
-from gscompress.ops.select import select_top
+from gscompress.selection import select_top
 from gscompress.slam.densify import gaussians_from_rgbd
 from gscompress_cli.main import cli
 

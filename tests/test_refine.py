@@ -12,9 +12,9 @@ from click.testing import CliRunner
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import InputError
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
-from gscompress.ops.select import select_top
 from gscompress.pipeline import evaluate_log, prune_log, share_log
 from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
+from gscompress.selection import select_top
 from gscompress_cli.main import cli
 
 

@@ -18,9 +18,9 @@ from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_se
 from gscompress.errors import DatasetError
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogReader, read_map
 from gscompress.metrics import ate_rmse_cm
-from gscompress.ops.select import keep_count
 from gscompress.pipeline import slam_file
 from gscompress.render import resolve_backend
+from gscompress.selection import keep_count
 from gscompress.slam.config import load_config, preset
 from gscompress_cli.main import cli
 from gscompress_schemas import load_schema

@@ -10,8 +10,8 @@ from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.errors import BudgetError, DivergenceError, MapError
 from gscompress.gaussians import SH_C0, random_map
-from gscompress.ops.select import STRATEGIES, keep_count, strategy_scores
 from gscompress.render import render
+from gscompress.selection import STRATEGIES, keep_count, strategy_scores
 from gscompress.slam.config import TrackingConfig, preset
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, overlap_fraction, sample_points, select_window

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from gscompress.errors import BudgetError, InputError
-from gscompress.ops.select import is_fraction, keep_count
+from gscompress.selection import is_fraction, keep_count
 
 _UNITS = {"B": 1, "kB": 1000, "MB": 1000**2, "GB": 1000**3, "KiB": 1024, "MiB": 1024**2,
           "GiB": 1024**3}  # fmt: skip

@@ -19,10 +19,6 @@ from gscompress.errors import DivergenceError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.seeds import seeded_rng
 
-REFINE_VIEWS = ("frames", "keyframes")
-"""What a refinement runs on: every frame of a run, or its keyframes (every `keyframes.every`-th;
-the SLAM's own final refinement adds the last frame)."""
-
 
 def refine(
     gaussians: GaussianMap,

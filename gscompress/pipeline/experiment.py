@@ -65,11 +65,11 @@ from gscompress.io.files import (
 )
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.budget import Budget
-from gscompress.ops.refine import REFINE_VIEWS
-from gscompress.ops.select import STRATEGIES, is_fraction, strategy_scores
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import log_edges, smallest_share_bytes
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.selection import STRATEGIES, is_fraction, strategy_scores
+from gscompress.slam.config import REFINE_VIEWS
 
 if TYPE_CHECKING:
     from gscompress.slam.config import SlamConfig

@@ -32,7 +32,7 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import write_ply
 from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
-from gscompress.ops.select import check_ratio, select_count, select_top, strategy_scores
+from gscompress.selection import check_ratio, select_count, select_top, strategy_scores
 
 log = logging.getLogger(__name__)
 

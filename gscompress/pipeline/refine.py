@@ -21,8 +21,8 @@ from typing import Any
 from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader
-from gscompress.ops.refine import REFINE_VIEWS
-from gscompress.ops.select import is_fraction
+from gscompress.selection import is_fraction
+from gscompress.slam.config import REFINE_VIEWS
 
 DEFAULT_LR_FINAL = 0.3
 """A refinement's learning rates decay to this fraction over its iterations. Its optimizer is

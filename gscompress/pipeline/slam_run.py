@@ -50,8 +50,8 @@ from gscompress.io.recover import (
     resume_sources,
     unfinished_files,
 )
-from gscompress.ops.select import check_ratio
 from gscompress.pipeline.evaluate import check_first_frame
+from gscompress.selection import check_ratio
 
 log = logging.getLogger(__name__)
 

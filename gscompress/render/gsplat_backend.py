@@ -32,7 +32,7 @@ import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, MissingDependencyError
-from gscompress.render.core import RenderOutput, finish_output
+from gscompress.render.output import RenderOutput, finish_output
 from gscompress.render.projection import project_gaussians
 from gscompress.render.torch_backend import ALPHA_MAX
 
@@ -108,13 +108,8 @@ def render_gsplat(
 
     dtype, device = means.dtype, means.device
     n = means.shape[0]
-    if n == 0:  # nothing to rasterize; the pure-torch path handles an empty map on any device
-        from gscompress.render.core import render
-
-        return render(
-            means, quats, scales, opacities, colors, intrinsics, T_cam_world, backend="torch",
-            want_contribution=want_contribution, near=near, background=background,
-        )  # fmt: skip
+    if n == 0:
+        raise InputError("render_gsplat needs at least one Gaussian (render() draws an empty map)")
     width, height = intrinsics.width, intrinsics.height
     K = torch.tensor(
         [[intrinsics.fx, 0.0, intrinsics.cx + 0.5],

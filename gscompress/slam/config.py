@@ -42,8 +42,11 @@ from gscompress.datasets.base import MAX_SIDE, parse_size
 from gscompress.errors import InputError, OptionError, clipped
 from gscompress.importance import PwasConfig
 from gscompress.io.files import read_text, write_text_atomic
-from gscompress.ops.refine import REFINE_VIEWS
-from gscompress.ops.select import STRATEGIES, is_fraction
+from gscompress.selection import STRATEGIES, is_fraction
+
+REFINE_VIEWS = ("frames", "keyframes")
+"""What a refinement runs on: every frame of a run, or its keyframes (every `keyframes.every`-th;
+the SLAM's own final refinement adds the last frame)."""
 
 
 @dataclass(frozen=True)
@@ -197,7 +200,7 @@ class PruneConfig:
         stages: positions in the sequence (fractions of its frames) of the PWAS pruning
             stages; empty for none (`gsc slam --no-prune`).
         keep: fraction of Gaussians kept at each stage (the top ones by `by`).
-        by: the score a stage ranks by (`gscompress.ops.select.STRATEGIES`): "pwas" (the
+        by: the score a stage ranks by (`gscompress.selection.STRATEGIES`): "pwas" (the
             paper's), "opacity", "alpha-t" (unweighted alpha*T sum) or "random" (seeded by
             `seed` and the stage); exact counts and ties as `gsc prune`.
         refine_iters: mapping iterations right after each stage over all keyframes so far and

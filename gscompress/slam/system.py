@@ -48,8 +48,8 @@ from gscompress.datasets.base import Frame
 from gscompress.errors import BudgetError, InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.importance import median_range, resolve_sigma_d
-from gscompress.ops.select import keep_count, strategy_scores, top_k
 from gscompress.render import render, resolve_device
+from gscompress.selection import keep_count, strategy_scores, top_k
 from gscompress.slam.config import MappingConfig, SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, frame_tensors, is_keyframe, select_window
@@ -405,7 +405,7 @@ class SlamSystem:
 
         Of the N Gaussians with ids from `own_ids_from` on (all of them unless a share was
         received), exactly `keep_count(N, keep)` survive, ranked as `gsc prune` ranks a map
-        (`gscompress.ops.select.strategy_scores`, ties to the lower id); received Gaussians
+        (`gscompress.selection.strategy_scores`, ties to the lower id); received Gaussians
         all stay.
 
         Args:

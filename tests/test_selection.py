@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import random_map
-from gscompress.ops.select import keep_count, select_top, strategy_scores, top_k
+from gscompress.selection import keep_count, select_top, strategy_scores, top_k
 
 
 @pytest.mark.parametrize(
