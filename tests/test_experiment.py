@@ -263,11 +263,11 @@ def test_a_folder_of_other_files_is_not_written_into(
     assert (tmp_path / "results.md").read_text() == "mine"
 
 
-def test_budgets_written_differently_are_the_same_budget() -> None:
-    from gscompress.pipeline.experiment import _same_budget
+def test_budgets_written_differently_are_thesame_budget() -> None:
+    from gscompress.pipeline.experiment.protocol import same_budget
 
-    assert _same_budget("0.2", "20%") and _same_budget("2MB", "2000kB")
-    assert not _same_budget("0.2", "0.3") and not _same_budget("0.2", "")
+    assert same_budget("0.2", "20%") and same_budget("2MB", "2000kB")
+    assert not same_budget("0.2", "0.3") and not same_budget("0.2", "")
     # the main budget written as a percentage is not run twice in the sweep
     settings = ExperimentSettings(budget="20%", sweep=("0.2", "0.4"), seeds=1)
     assert plan_size(settings) == plan_size(ExperimentSettings(sweep=("0.4",), seeds=1))
@@ -440,7 +440,7 @@ def test_the_config_file_sets_preset_and_keep_unless_options_do(tmp_path: Path) 
 
 def test_a_rerun_removes_what_killed_workers_left_half_written(tmp_path: Path) -> None:
     from gscompress.io.files import AtomicFile
-    from gscompress.pipeline.experiment import _Runner
+    from gscompress.pipeline.experiment.execution import LocalRunner
 
     runs = tmp_path / "exp" / "runs"
     runs.mkdir(parents=True)
@@ -448,7 +448,7 @@ def test_a_rerun_removes_what_killed_workers_left_half_written(tmp_path: Path) -
     left.write_bytes(b"x")
     live = AtomicFile(runs / "s0_agent_b.mcap")  # another runner's worker still writing
     try:
-        _Runner(tmp_path / "seq", tmp_path / "exp", ExperimentSettings(), None, total=1)
+        LocalRunner(tmp_path / "seq", tmp_path / "exp", ExperimentSettings(), None, total=1)
         assert not left.exists() and live.tmp_path.exists()
     finally:
         live.discard()

@@ -1,0 +1,33 @@
+"""`gsc experiment`: the paper's protocol on any sequence, in one command.
+
+- `protocol`: which runs exist (settings, the split of frames between agents, the run graph);
+- `execution`: how they run (in this process or on a pool of workers, reusing finished runs);
+- `report`: results rows, verdicts, tables and plots;
+- `run`: `run_experiment`, which ties the three together.
+"""
+
+from gscompress.pipeline.experiment.protocol import (
+    SPLITS,
+    ExperimentSettings,
+    halves,
+    plan_size,
+    resolve_settings,
+)
+from gscompress.pipeline.experiment.report import (
+    ROW_KEYS,
+    paired_difference,
+    rate_distortion_curves,
+)
+from gscompress.pipeline.experiment.run import run_experiment
+
+__all__ = [
+    "ROW_KEYS",
+    "SPLITS",
+    "ExperimentSettings",
+    "halves",
+    "paired_difference",
+    "plan_size",
+    "rate_distortion_curves",
+    "resolve_settings",
+    "run_experiment",
+]

@@ -1,0 +1,310 @@
+"""How an experiment's runs are executed: one after another, or on a pool of worker processes,
+each started once the logs it reads exist, reusing every run whose record matches its settings."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import (
+    CancelledError,
+    Future,
+    ProcessPoolExecutor,
+    ThreadPoolExecutor,
+    wait,
+)
+from dataclasses import dataclass
+from multiprocessing.queues import SimpleQueue
+from pathlib import Path
+from typing import Any
+
+from gscompress import __version__
+from gscompress.errors import GscError
+from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
+from gscompress.pipeline.experiment.protocol import ExperimentSettings, RunHandle
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Record:
+    """One step: its log, its settings key and what it reported (waited for when running in a
+    worker process)."""
+
+    path: Path
+    key: str
+    _result: dict[str, Any] | None = None
+    _future: Future[dict[str, Any]] | None = None
+
+    @property
+    def result(self) -> dict[str, Any]:
+        if self._result is None:
+            assert self._future is not None
+            self._result = self._future.result()
+        return self._result
+
+
+def _score(log_path: Path, seq: Path, every: int, lpips: bool, device: str) -> dict[str, Any]:
+    """`gsc eval` of a run on its own frames (without the per-frame list)."""
+    from gscompress.pipeline.evaluate import evaluate_log
+
+    scores = evaluate_log(log_path, seq, every=every, lpips=lpips, device=device)
+    scores.pop("per_frame", None)
+    return scores
+
+
+def _slam_job(
+    path: Path, seq: Path, config: Any, frames: str, inject: Path | None, s: ExperimentSettings
+) -> dict[str, Any]:
+    from gscompress.pipeline.slam_run import slam_file
+
+    run = slam_file(seq, path, config=config, frames=frames, device=s.device, inject=inject,
+                    force=True)  # fmt: skip
+    return {"slam": run, "eval": _score(path, seq, s.every, s.lpips, s.device)}
+
+
+def _merge_job(
+    path: Path, seq: Path, receiver: Path, share: Path | None, frames: str, seed: int,
+    s: ExperimentSettings,
+) -> dict[str, Any]:  # fmt: skip
+    from gscompress.pipeline.merge import merge_logs
+
+    merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
+                        views=s.merge_views, lr_final=s.merge_lr_final, device=s.device,
+                        seed=seed, force=True)  # fmt: skip
+    return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
+
+
+def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) -> dict[str, Any]:
+    from gscompress.pipeline.offline import share_log
+
+    return share_log(source, path, budget, strategy=strategy, seed=seed, force=True)
+
+
+def _digest(result: dict[str, Any]) -> str:
+    """What a run record checks its result against: a record damaged (or edited) since it was
+    written is a run to do again, not a traceback in the tables."""
+    return hashlib.sha256(json_text(result).encode()).hexdigest()
+
+
+def _intact(record: dict[str, Any]) -> bool:
+    """Whether a run record's result is as written (records before the digest: a mapping)."""
+    result, digest = record.get("result"), record.get("result_sha256")
+    return isinstance(result, dict) and (digest is None or digest == _digest(result))
+
+
+def _init_worker(threads: int, pids: SimpleQueue[int]) -> None:
+    """A worker process: its share of the threads; Ctrl-C is for the run it is in (which
+    stops after its frame, as `gsc slam` does), not for a worker waiting for work. Its pid goes
+    to `pids`, so that the runner can signal exactly its own workers. It ends with the runner:
+    a runner killed outright (SIGKILL) cannot stop its workers, which would otherwise wait for
+    work forever. Only its warnings reach the console (lines of another process cannot be
+    written above the runner's progress bar, so `gsc -v` speaks for --jobs 1 alone)."""
+    import torch
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    pids.put(os.getpid())
+    torch.set_num_threads(threads)
+    threading.Thread(target=_end_with_parent, name="end-with-parent", daemon=True).start()
+
+
+def _end_with_parent() -> None:
+    """Wait for this process's parent to end, then end at once. A runner that ends normally
+    has joined its workers before, so this only acts when it was killed; the run under way
+    is cut, as the runner's own was (it keeps no record, so a rerun redoes it)."""
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        parent.join()
+        os._exit(1)
+
+
+class LocalRunner:
+    """Runs the steps of an experiment, reusing those whose records match.
+
+    With `jobs` > 1 the steps run in that many worker processes, each as soon as the steps it
+    reads have finished, with the torch threads of this process shared among them.
+    """
+
+    def __init__(
+        self,
+        seq: Path,
+        out: Path,
+        settings: ExperimentSettings,
+        progress: Callable[[str, int, int], object] | None,
+        total: int,
+        jobs: int = 1,
+    ) -> None:
+        self.seq, self.settings, self.progress, self.total = seq, settings, progress, total
+        self.runs = out / "runs"
+        self.runs.mkdir(parents=True, exist_ok=True)
+        for unfinished in abandoned_files(self.runs):  # a killed runner's workers' (no record
+            unfinished.unlink(missing_ok=True)  # points at them: their steps are redone)
+        self.done = 0
+        self.reused = 0
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._pool: ProcessPoolExecutor | None = None
+        self._worker_pids: SimpleQueue[int] | None = None
+        self._waiters: ThreadPoolExecutor | None = None
+        jobs = min(jobs, total)  # no more workers than steps
+        if jobs > 1:
+            import torch
+
+            available = torch.get_num_threads()
+            threads = max(1, available // jobs)
+            if threads * jobs != available:
+                log.warning(
+                    "%d torch threads do not split evenly over %d jobs: each run gets %d (%d in "
+                    "all; see gsc --threads)", available, jobs, threads, threads * jobs,
+                )  # fmt: skip
+            spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
+            self._worker_pids = spawn.SimpleQueue()  # each worker's pid, sent as it starts
+            self._pool = ProcessPoolExecutor(
+                jobs, spawn, _init_worker, (threads, self._worker_pids)
+            )
+            # one waiting thread per step: each starts its job once the steps it reads are done
+            # (they were submitted before it, so they are under way: no waiting in a circle)
+            self._waiters = ThreadPoolExecutor(max(1, total))
+
+    def close(self, cancel: bool) -> None:
+        """Wait for the steps under way; with `cancel`, start no more and stop the SLAM runs
+        under way after their frame (a stopped run keeps no record, so a rerun redoes it)."""
+        if cancel:
+            self._stopping.set()
+            if self._worker_pids is not None:  # a worker between runs ignores it, a merge too
+                workers = set()
+                while not self._worker_pids.empty():
+                    workers.add(self._worker_pids.get())
+                for pid in workers:
+                    with contextlib.suppress(OSError):  # ended meanwhile
+                        os.kill(pid, signal.SIGINT)
+        for pool in (self._waiters, self._pool):
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=cancel)
+
+    def _key(self, spec: dict[str, Any]) -> str:  # (of what a run is; _digest: of what it gave)
+        text = json.dumps({"tool": __version__, **spec}, sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def _step(
+        self,
+        name: str,
+        spec: dict[str, Any],
+        job: functools.partial[dict[str, Any]],
+        after: Sequence[RunHandle] = (),
+        extra: Callable[[], dict[str, Any]] | None = None,
+    ) -> Record:
+        """Run `job(log path)` unless a record with the same key exists; `after`: the steps
+        whose logs it reads; `extra()`: what the record adds to the job's result."""
+        path = self.runs / f"{name}.mcap"
+        record_path = self.runs / f"{name}.json"
+        key = self._key(spec)
+        if path.is_file() and record_path.is_file():
+            try:  # a damaged record is a run to do again
+                saved = read_json(record_path, "run record")
+            except GscError:
+                saved = None
+            if isinstance(saved, dict) and saved.get("key") == key and _intact(saved):
+                self.reused += 1
+                self._finished(name)
+                return Record(path, key, saved["result"])
+        if self._pool is None or self._waiters is None:
+            if self.progress is not None:
+                self.progress(name, self.done, self.total)
+            result = self._record(name, record_path, spec, key, job(path), extra)
+            return Record(path, key, result)
+
+        def run() -> dict[str, Any]:
+            for step in after:
+                _ = step.result  # waits; a failed step fails this one
+            if self._stopping.is_set():
+                raise CancelledError
+            assert self._pool is not None
+            future = self._pool.submit(job, path)
+            while not wait([future], timeout=0.2).done:
+                if self._stopping.is_set() and future.cancel():  # queued, not started
+                    raise CancelledError
+            return self._record(name, record_path, spec, key, future.result(), extra)
+
+        return Record(path, key, _future=self._waiters.submit(run))
+
+    def _record(
+        self,
+        name: str,
+        record_path: Path,
+        spec: dict[str, Any],
+        key: str,
+        result: dict[str, Any],
+        extra: Callable[[], dict[str, Any]] | None,
+    ) -> dict[str, Any]:
+        result = {**result, **(extra() if extra else {})}
+        record = {"key": key, "spec": spec, "result": result, "result_sha256": _digest(result)}
+        write_text_atomic(record_path, json_text(record, indent=1))
+        self._finished(name)
+        return result
+
+    def _finished(self, name: str) -> None:
+        with self._lock:
+            self.done += 1
+            if self.progress is not None:
+                self.progress(name, self.done, self.total)
+
+    def slam(self, name: str, config: Any, frames: str, inject: RunHandle | None = None) -> Record:
+        """A SLAM run on `frames`, evaluated on them."""
+        s = self.settings
+        spec = {
+            "kind": "slam", "sequence": str(self.seq.resolve()), "config": config.to_dict(),
+            "frames": frames, "inject": inject.key if inject else None, "every": s.every,
+            "lpips": s.lpips,
+        }  # fmt: skip
+        job = functools.partial(
+            _slam_job, seq=self.seq, config=config, frames=frames,
+            inject=inject.path if inject else None, s=s,
+        )  # fmt: skip
+        return self._step(name, spec, job, after=[inject] if inject else [])
+
+    def receive(
+        self,
+        name: str,
+        receiver: RunHandle,
+        share: RunHandle | None,
+        config: Any,
+        frames: str,
+        seed: int,
+    ) -> Record:
+        """Agent B with a share: merged into B's map and refined, or injected into a new run.
+
+        With `share` None (merge mode only): B's map refined the same way without a share, the
+        control that separates what the share brings from what the refinement brings.
+        """
+        s = self.settings
+        if s.mode == "inject":  # its own name: both modes' runs can share one folder
+            assert share is not None
+            return self.slam(f"{name}_inject", config, frames, inject=share)
+        spec = {
+            "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
+            "frames": frames, "iters": s.merge_iters, "views": s.merge_views,
+            "lr_final": s.merge_lr_final, "seed": seed, "every": s.every, "lpips": s.lpips,
+        }  # fmt: skip
+        job = functools.partial(
+            _merge_job, seq=self.seq, receiver=receiver.path,
+            share=share.path if share else None, frames=frames, seed=seed, s=s,
+        )  # fmt: skip
+        after = [receiver, share] if share else [receiver]
+        return self._step(name, spec, job, after, extra=lambda: {"slam": receiver.result["slam"]})
+
+    def share(self, name: str, source: RunHandle, budget: str, strategy: str, seed: int) -> Record:
+        """A share of `source`'s map."""
+        spec = {"kind": "share", "source": source.key, "budget": budget, "strategy": strategy,
+                "seed": seed}  # fmt: skip
+        job = functools.partial(
+            _share_job, source=source.path, budget=budget, strategy=strategy, seed=seed
+        )
+        return self._step(name, spec, job, after=[source])

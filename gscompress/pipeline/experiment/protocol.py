@@ -1,0 +1,275 @@
+"""Which runs an experiment has: its settings, the split of frames between the agents and
+the graph of runs (each SLAM run, share and merge, and the results row it feeds)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+from gscompress.errors import InputError, OptionError
+from gscompress.ops.budget import Budget
+from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
+from gscompress.pipeline.offline import smallest_share_bytes
+from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.selection import STRATEGIES, is_fraction
+from gscompress.slam.config import REFINE_VIEWS
+
+if TYPE_CHECKING:
+    from gscompress.slam.config import SlamConfig
+
+
+SPLITS = ("odd-even", "halves")
+"""How the experiment's frames are split between agents A and B (`ExperimentSettings.split`)."""
+
+
+AGENT_ROWS = {
+    "odd-even": ("agent A (odd frames)", "agent B (even frames)"),
+    "halves": ("agent A (first part)", "agent B (last part)"),
+}
+"""Row names of A's and B's own runs, per split."""
+
+
+B_ALONE = AGENT_ROWS["odd-even"][1]
+"""Row name of B's own run (no share) in the paper's split."""
+
+
+B_NO_SHARE = "B refined, no share"
+"""Row name of B's map refined like a merge but with nothing merged (merge mode's control)."""
+
+
+@dataclass(frozen=True)
+class ExperimentSettings:
+    """What an experiment runs.
+
+    Attributes:
+        preset: SLAM preset of every run (None: the config file's `preset:`, else cpu).
+        config_path: optional YAML config on top of the preset.
+        budget: the main share budget (Table 4): a fraction ("0.2") or bytes ("2MB").
+        keep: PWAS keep ratio of the pruning stages (None: the config's).
+        seeds: seeds of the two-agent protocol (SLAM seed and random selection seed).
+        sweep: budgets of the rate-distortion sweep.
+        sweep_seeds: how many of the seeds the sweep runs on.
+        strategies: share strategies compared.
+        size: working size (W, H), or None for the config's.
+        every: evaluate every N-th frame.
+        lpips: compute LPIPS.
+        device: torch device.
+        frames: the frames the experiment uses (`all` or `START:STOP:STEP`), split between the
+            agents by `split`.
+        split: "odd-even": agent A gets the odd positions among the frames, agent B the even
+            ones (the paper's protocol; B then sees nearly everything A saw). "halves": A gets
+            the first part, B the last, overlapping by `overlap` (`halves`), so that each
+            sees places the other has not.
+        overlap: with split "halves", the fraction of the frames both agents get, in [0, 1).
+        mode: how B receives a share: "merge" (into its finished map, then refined) or
+            "inject" (before its first frame).
+        merge_iters: refinement iterations of a merge.
+        merge_views: what a merge refines on: B's "frames" (all) or "keyframes".
+        merge_lr_final: a merge's learning rates decay to this fraction over its refinement.
+    """
+
+    preset: str | None = None
+    config_path: str | None = None
+    budget: str = "0.2"
+    keep: float | None = None
+    seeds: int = 3
+    sweep: tuple[str, ...] = ("0.05", "0.1", "0.2", "0.4")
+    sweep_seeds: int = 1
+    strategies: tuple[str, ...] = ("random", "opacity", "alpha-t", "pwas")
+    size: tuple[int, int] | None = None
+    every: int = 1
+    lpips: bool = True
+    device: str = "auto"
+    frames: str = "all"
+    split: str = "odd-even"
+    overlap: float = 0.2
+    mode: str = "merge"
+    merge_iters: int = 200
+    merge_views: str = DEFAULT_REFINE_VIEWS
+    merge_lr_final: float = DEFAULT_LR_FINAL
+
+    def agent_frames(self, n: int | None = None) -> tuple[str, str]:
+        """The frame subsets of agents A and B: the odd and even positions within `frames`, or
+        with split "halves" the positions `halves(n, overlap)` of the `n` frames `frames`
+        selects (without `n`, only the settings are checked and ("", "") returned).
+        """
+        from gscompress.datasets.base import parse_frames
+
+        usage = f"--frames {self.frames!r}: an experiment takes all or START:STOP:STEP (from 0)"
+        try:
+            base = parse_frames(self.frames)
+        except InputError:
+            raise InputError(usage) from None
+        if base.spec in ("odd", "even") or (base.start or 0) < 0 or (base.stop or 0) < 0:
+            raise InputError(usage)
+        start, step = base.start or 0, base.step
+        if self.split == "halves":
+            if n is None:
+                return "", ""
+            a, b = halves(n, self.overlap)
+            return tuple(  # type: ignore[return-value]
+                f"{start + r.start * step}:{start + r.stop * step}:{step}" for r in (a, b)
+            )
+        if base.spec == "all":
+            return "odd", "even"
+        stop = "" if base.stop is None else base.stop
+        return f"{start + step}:{stop}:{2 * step}", f"{start}:{stop}:{2 * step}"
+
+    def check(self) -> None:
+        """Refuse settings that cannot run (an OptionError: each comes from an option)."""
+        try:
+            self._check()
+        except InputError as exc:
+            raise OptionError(str(exc)) from None
+
+    def _check(self) -> None:
+        self.agent_frames()
+        if self.split not in SPLITS:
+            raise InputError(f"--split is one of {', '.join(SPLITS)}")
+        if not 0.0 <= self.overlap < 1.0:  # (nan too)
+            raise InputError(f"--overlap must be in [0, 1), got {self.overlap}")
+        if self.mode not in ("merge", "inject") or self.merge_iters < 0:
+            raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
+        if self.merge_views not in REFINE_VIEWS:
+            raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
+        if not is_fraction(self.merge_lr_final):
+            raise InputError("a merge's final learning-rate fraction must be in (0, 1]")
+        smallest = smallest_share_bytes()
+        for text in (self.budget, *self.sweep):  # (refused now, not after the SLAM runs)
+            budget = Budget.parse(text)
+            if budget.budget_bytes is not None and budget.budget_bytes < smallest:
+                raise InputError(
+                    f"a budget of {text} cannot hold one Gaussian: a share file of one takes "
+                    f"at least {smallest} B; raise the budget"
+                )
+        if self.seeds < 1 or self.sweep_seeds < 0:
+            raise OptionError("--seeds must be >= 1 and --sweep-seeds >= 0")
+        if self.sweep_seeds > self.seeds:
+            raise OptionError(
+                f"--sweep-seeds {self.sweep_seeds} is more than --seeds {self.seeds}: the sweep "
+                "runs on the first seeds"
+            )
+        unknown = sorted(set(self.strategies) - set(STRATEGIES))
+        if unknown or not self.strategies:
+            raise InputError(f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}")
+        if "random" not in self.strategies or "pwas" not in self.strategies:
+            raise InputError("the strategies must include random and pwas (they are compared)")
+
+
+def halves(n: int, overlap: float) -> tuple[range, range]:
+    """Positions of agents A and B among `n` frames with split "halves".
+
+    A gets the first a = ceil(n (1 + overlap) / 2) positions, [0, a); B the last a, [n - a, n).
+    Both get the 2a - n positions in the middle: `overlap` x n, or up to two more where
+    rounding a up asks for it (with overlap 0 and n odd, the middle frame). For n = 50 and overlap
+    0.2: A = [0, 30), B = [20, 50), 10 frames shared.
+    """
+    a = min(n, math.ceil(round(n * (1.0 + overlap) / 2.0, 9)))  # (round: 50 * 1.2 / 2 > 30)
+    return range(0, a), range(n - a, n)
+
+
+def plan_size(settings: ExperimentSettings) -> int:
+    """How many steps an experiment has (for progress)."""
+    s = settings
+    main = 2 + len(s.strategies) + 1  # A, B, B+share per strategy, B+full
+    main += s.mode == "merge"  # B refined without a share (the control)
+    shares = len(s.strategies) + 1
+    extra_budgets = [b for b in s.sweep if not same_budget(b, s.budget)]
+    sweep = s.sweep_seeds * len(extra_budgets) * len(s.strategies) * 2
+    return 2 + s.seeds * (main + shares) + sweep
+
+
+def resolve_settings(settings: ExperimentSettings) -> tuple[ExperimentSettings, SlamConfig]:
+    """The SLAM config every run starts from (preset, then the config file, then --size and
+    --keep), and the settings with the preset and keep ratio it resolved to (for the reports)."""
+    from gscompress.slam.config import resolve_config
+
+    base = resolve_config(
+        settings.preset, settings.config_path, size=settings.size, keep=settings.keep
+    )
+    return replace(settings, preset=base.preset, keep=base.prune.keep), base
+
+
+class RunHandle(Protocol):
+    """A run started by an executor: its log, its settings key and (waited for) its result."""
+
+    path: Path
+    key: str
+
+    @property
+    def result(self) -> dict[str, Any]: ...
+
+
+class Executor(Protocol):
+    """What runs the graph of `plan_runs`: each method starts one run and returns its handle at
+    once; a run waits for the handles it is given (the logs it reads) before it starts."""
+
+    settings: ExperimentSettings
+
+    def slam(
+        self, name: str, config: Any, frames: str, inject: RunHandle | None = None
+    ) -> RunHandle: ...
+
+    def receive(
+        self,
+        name: str,
+        receiver: RunHandle,
+        share: RunHandle | None,
+        config: Any,
+        frames: str,
+        seed: int,
+    ) -> RunHandle: ...
+
+    def share(
+        self, name: str, source: RunHandle, budget: str, strategy: str, seed: int
+    ) -> RunHandle: ...
+
+
+def plan_runs(runner: Executor, base: Any, n: int) -> list[tuple[Any, ...]]:
+    """Start every step of the experiment (on `n` frames); the arguments of `result_row` for each
+    results row. Table 3's PWAS-pruned run of every frame is the centralised reference: one
+    agent, the agents' preset, all the frames the two share out."""
+    s = runner.settings
+    rows: list[tuple[Any, ...]] = []
+    frames_a, frames_b = s.agent_frames(n)
+    a_alone, b_alone = AGENT_ROWS[s.split]
+    full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
+    pruned = runner.slam("full_pwas", base, s.frames)
+    rows.append(("full, no pruning", "table3", full))
+    rows.append(("full, PWAS pruning", "table3", pruned))
+
+    budgets = [s.budget] + [b for b in s.sweep if not same_budget(b, s.budget)]
+    for seed in range(s.seeds):
+        config = base.with_overrides(seed=seed)
+        a = runner.slam(f"s{seed}_agent_a", config, frames_a)
+        b = runner.slam(f"s{seed}_agent_b", config, frames_b)
+        rows.append((a_alone, "table4", a, seed))
+        rows.append((b_alone, "table4", b, seed))
+        if s.mode == "merge":
+            alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
+            rows.append((B_NO_SHARE, "table4", alone, seed, "none"))
+        for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
+            table = "table4" if budget == s.budget else "sweep"
+            for strategy in s.strategies:
+                tag = f"s{seed}_{strategy}_{_slug(budget)}"
+                share = runner.share(f"{tag}_share", a, budget, strategy, seed)
+                got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed)
+                rows.append((f"B + {strategy} {budget}", table, got, seed, strategy, budget, share))
+        whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
+        got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed)
+        rows.append(("B + A's full map", "table4", got, seed, "full", "1", whole))
+    return rows
+
+
+def _slug(budget: str) -> str:
+    return budget.replace(".", "p").replace("%", "pct").replace(" ", "")
+
+
+def same_budget(a: str, b: str) -> bool:
+    """Whether two written budgets mean the same (`0.2` and `20%` do)."""
+    if not a or not b:
+        return False
+    x, y = Budget.parse(a), Budget.parse(b)
+    return (x.ratio, x.budget_bytes) == (y.ratio, y.budget_bytes)

@@ -1,0 +1,454 @@
+"""What an experiment reports: results rows, the PWAS-against-random verdicts, tables
+(results.md, results.csv, results.json) and plots."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress import __version__
+from gscompress.io.files import json_text, write_text_atomic
+from gscompress.io.mcap_log import LogReader
+from gscompress.pipeline.experiment.protocol import (
+    AGENT_ROWS,
+    B_NO_SHARE,
+    ExperimentSettings,
+    RunHandle,
+    same_budget,
+)
+from gscompress.pipeline.offline import log_edges
+from gscompress.selection import strategy_scores
+
+ROW_KEYS = (
+    "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
+    "ate_reason", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes",
+    "share_gaussians", "share_bytes", "seconds_per_frame", "log",
+)  # fmt: skip
+"""Columns of results.csv (every row of results.json has them)."""
+
+
+def result_row(
+    name: str,
+    table: str,
+    run: RunHandle,
+    seed: int | None = None,
+    strategy: str = "",
+    budget: str = "",
+    share: RunHandle | None = None,
+) -> dict[str, Any]:
+    """A results row from a SLAM run's record (and the share it received)."""
+    ev, slam = run.result["eval"], run.result["slam"]
+    row = {key: ev.get(key) for key in ROW_KEYS}
+    row.update(
+        name=name, table=table, seed=seed, strategy=strategy, budget=budget,
+        frames=ev.get("frames"), seconds_per_frame=slam.get("seconds_per_frame"),
+        share_gaussians=share.result.get("selected") if share else None,
+        share_bytes=share.result.get("bytes") if share else None,
+        log=f"runs/{run.path.name}",
+    )  # fmt: skip
+    return row
+
+
+def _sweep_rows(
+    rows: list[dict[str, Any]], s: ExperimentSettings, budget: str, strategy: str | None = None
+) -> list[dict]:
+    """Rows of B with a share at `budget` on the sweep seeds (the main budget's included), of
+    one strategy or (None) of every compared one."""
+    return [
+        r for r in rows
+        if r["table"] in ("table4", "sweep")
+        and (r["strategy"] == strategy if strategy else r["strategy"] in s.strategies)
+        and r["seed"] is not None and r["seed"] < s.sweep_seeds
+        and same_budget(r["budget"], budget)
+    ]  # fmt: skip
+
+
+def rate_distortion_curves(
+    rows: list[dict[str, Any]], s: ExperimentSettings
+) -> dict[str, list[tuple[float, float | None, float | None]]]:
+    """(share bytes, PSNR, ATE cm) of B per strategy over the sweep budgets, means over the
+    sweep seeds, sorted by bytes.
+
+    Each strategy's curve starts at B without a share (0 bytes: "B refined, no share" in merge
+    mode, B's own run in inject mode), the point every share is a gain over; "full" is the one
+    point of A's whole map, the upper end.
+    """
+    seeds = [r for r in rows if r["seed"] is not None and r["seed"] < s.sweep_seeds]
+    reference = B_NO_SHARE if s.mode == "merge" else AGENT_ROWS[s.split][1]
+    base = [r for r in seeds if r["name"] == reference]
+
+    def point(group: list[dict[str, Any]]) -> tuple[float, float | None, float | None]:
+        size = mean_of([r["share_bytes"] or 0 for r in group]) or 0.0
+        return size, mean_of([r["psnr"] for r in group]), mean_of([r["ate_rmse_cm"] for r in group])
+
+    curves: dict[str, list[tuple[float, float | None, float | None]]] = {}
+    for strategy in s.strategies:
+        groups = [_sweep_rows(rows, s, budget, strategy) for budget in s.sweep]
+        shared = [point(group) for group in groups if group]
+        if shared:
+            start = [point(base)] if base else []
+            curves[strategy] = sorted(start + shared, key=lambda p: p[0])
+    full = [r for r in seeds if r["strategy"] == "full"]
+    if full and curves:
+        curves["full"] = [point(full)]
+    return curves
+
+
+def mean_of(values: Sequence[Any]) -> float | None:
+    numbers = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    return float(np.mean(numbers)) if numbers else None
+
+
+def paired_difference(group: list[dict[str, Any]], key: str) -> dict[str, Any]:
+    """PWAS minus random in `key`, paired by seed, over the rows of one budget.
+
+    Seeds without a finite value for both strategies are left out. Returns the number of pairs,
+    the mean difference, its standard error (sample standard deviation / sqrt(pairs); None
+    below two pairs) and how many differences are positive and negative.
+    """
+    values: dict[int, dict[str, float]] = {}
+    for row in group:
+        value = row.get(key)
+        if row["strategy"] in ("pwas", "random") and value is not None and math.isfinite(value):
+            values.setdefault(row["seed"], {})[row["strategy"]] = float(value)
+    diffs = np.array([v["pwas"] - v["random"] for v in values.values() if len(v) == 2])
+    n = len(diffs)
+    return {
+        "pairs": n,
+        "mean": float(diffs.mean()) if n else None,
+        "se": float(diffs.std(ddof=1) / math.sqrt(n)) if n > 1 else None,
+        "positive": int((diffs > 0).sum()),
+        "negative": int((diffs < 0).sum()),
+    }
+
+
+def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, Any]:
+    """PWAS against random: per seed at the main budget, and per budget in the sweep."""
+
+    def pick(table: str, strategy: str, budget: str, seed: int) -> dict[str, Any] | None:
+        for row in rows:
+            if (row["table"], row["strategy"], row["budget"], row["seed"]) == (
+                table, strategy, budget, seed,
+            ):  # fmt: skip
+                return row
+        return None
+
+    psnr_wins = ate_wins = 0
+    per_seed = []
+    for seed in range(s.seeds):
+        p, r = pick("table4", "pwas", s.budget, seed), pick("table4", "random", s.budget, seed)
+        assert p is not None and r is not None
+        psnr_win = (p["psnr"] or 0) > (r["psnr"] or 0)
+        ate_win = (p["ate_rmse_cm"] or math.inf) < (r["ate_rmse_cm"] or math.inf)
+        psnr_wins += psnr_win
+        ate_wins += ate_win
+        per_seed.append({"seed": seed, "pwas_beats_random_psnr": psnr_win,
+                         "pwas_beats_random_ate": ate_win})  # fmt: skip
+    sweep = []
+    for budget in s.sweep:
+        group = _sweep_rows(rows, s, budget)
+        mp = mean_of([r["psnr"] for r in group if r["strategy"] == "pwas"])
+        mr = mean_of([r["psnr"] for r in group if r["strategy"] == "random"])
+        if mp is None or mr is None:
+            continue
+        psnr = paired_difference(group, "psnr")
+        ate = paired_difference(group, "ate_rmse_cm")
+        sweep.append({"budget": budget, "pwas_psnr": mp, "random_psnr": mr,
+                      "pwas_at_or_above_random": mp >= mr, "pairs": psnr["pairs"],
+                      "psnr_difference": psnr["mean"], "psnr_difference_se": psnr["se"],
+                      "pwas_higher_psnr": psnr["positive"],
+                      "ate_difference_cm": ate["mean"], "ate_difference_se_cm": ate["se"],
+                      "pwas_lower_ate": ate["negative"]})  # fmt: skip
+    return {
+        "budget": s.budget,
+        "seeds": s.seeds,
+        "mode": s.mode,
+        "pwas_beats_random_psnr": psnr_wins,
+        "pwas_beats_random_ate": ate_wins,
+        "per_seed": per_seed,
+        "sweep": sweep,
+    }
+
+
+def _fmt(value: Any, spec: str = ".2f") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return format(value, spec)
+
+
+def _mean_cell(group: list[dict[str, Any]], key: str, spec: str = ".2f") -> str:
+    """The mean of `key` over a group of rows, formatted for a table (n/a without values)."""
+    return _fmt(mean_of([r[key] for r in group]), spec)
+
+
+def _plus_minus(mean: float | None, se: float | None, spec: str) -> str:
+    """`mean ± se` (`mean` alone without a standard error; n/a without a mean)."""
+    if mean is None or se is None:
+        return _fmt(mean, "+" + spec)
+    return f"{mean:+{spec}} ± {se:{spec}}"
+
+
+def write_reports(
+    out: Path,
+    seq: Path,
+    s: ExperimentSettings,
+    rows: list[dict[str, Any]],
+    verdicts: dict[str, Any],
+    full_log: Path,
+) -> dict[str, str]:
+    """results.json, results.csv, results.md and plots/*.png."""
+    write_text_atomic(out / "results.json", json_text(rows, indent=1))
+    write_text_atomic(out / "results.csv", _csv(rows))
+    plots = _plots(out / "plots", rows, s, full_log)
+    write_text_atomic(out / "results.md", _markdown(seq, s, rows, verdicts, plots, out))
+    return {
+        "results_md": str(out / "results.md"),
+        "results_csv": str(out / "results.csv"),
+        "results_json": str(out / "results.json"),
+        "plots": ", ".join(str(p) for p in plots),
+    }
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    import io
+
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=ROW_KEYS, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in ROW_KEYS})
+    return buffer.getvalue()
+
+
+def _receive_text(s: ExperimentSettings) -> str:
+    if s.mode == "inject":
+        return "B's run starts with the share injected. "
+    return (
+        f"B merges a share into its map and refines it ({s.merge_iters} iterations on its "
+        f"{s.merge_views}, the learning rates decaying to {s.merge_lr_final:g} of their start; "
+        "B's poses, so its ATE, do not change). "
+    )
+
+
+def _markdown(
+    seq: Path,
+    s: ExperimentSettings,
+    rows: list[dict[str, Any]],
+    verdicts: dict[str, Any],
+    plots: list[Path],
+    out: Path,
+) -> str:
+    frames_a, frames_b = (
+        next((r["frames"] for r in rows if r["name"] == name), "?") for name in AGENT_ROWS[s.split]
+    )
+    split = (
+        "B maps the even frames, A the odd ones"
+        if s.split == "odd-even"
+        else f"A maps the first part of the frames, B the last, overlapping by {s.overlap:g}"
+    )
+    lines = [
+        f"# gsc experiment: {seq.name}",
+        "",
+        f"Frames `{s.frames}` (A: `{frames_a}`, B: `{frames_b}`); "
+        + _receive_text(s)
+        + f"Preset `{s.preset}`"
+        + (f" + `{s.config_path}`" if s.config_path else "")
+        + f", keep {s.keep}, budget {s.budget}, seeds {s.seeds}, evaluated every {s.every} "
+        "frame(s) of each run's own frames at its estimated poses (PSNR/SSIM on valid-depth "
+        "pixels; ATE RMSE after SE(3) alignment, cm). gscompress " + __version__ + ".",
+        "",
+        "## Table 3: PWAS pruning over the whole sequence",
+        "",
+        "| Method | Gaussians | Reduction | PSNR | SSIM | LPIPS | ATE RMSE (cm) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    t3 = [r for r in rows if r["table"] == "table3"]
+    base = t3[0]["gaussians"] or 1
+    for r in t3:
+        reduction = 100.0 * (1 - (r["gaussians"] or 0) / base)
+        lines.append(
+            f"| {r['name']} | {r['gaussians']} | {reduction:.1f}% | {_fmt(r['psnr'])} | "
+            f"{_fmt(r['ssim'], '.3f')} | {_fmt(r['lpips'], '.3f')} | "
+            f"{_fmt(r['ate_rmse_cm'], '.3f')} |"
+        )
+    lines += [
+        "",
+        f"## Table 4: sharing at budget {s.budget} ({split})",
+        "",
+        "| Seed | Method | ATE RMSE (cm) | PSNR | SSIM | LPIPS | Gaussians | Shared "
+        "| Bytes shared |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    t4 = [r for r in rows if r["table"] == "table4"]
+    for r in t4:
+        lines.append(
+            f"| {r['seed']} | {r['name']} | {_fmt(r['ate_rmse_cm'], '.3f')} | {_fmt(r['psnr'])} | "
+            f"{_fmt(r['ssim'], '.3f')} | {_fmt(r['lpips'], '.3f')} | {r['gaussians']} | "
+            f"{_fmt(r['share_gaussians'], 'd')} | {_fmt(r['share_bytes'], 'd')} |"
+        )
+    lines += ["", f"Mean over {s.seeds} seed(s):", "",
+              "| Method | ATE RMSE (cm) | PSNR | SSIM | LPIPS | Gaussians | Bytes shared |",
+              "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name in dict.fromkeys(r["name"] for r in t4):
+        group = [r for r in t4 if r["name"] == name]
+        lines.append(
+            f"| {name} | {_mean_cell(group, 'ate_rmse_cm', '.3f')} | {_mean_cell(group, 'psnr')} "
+            f"| {_mean_cell(group, 'ssim', '.3f')} | {_mean_cell(group, 'lpips', '.3f')} | "
+            f"{_mean_cell(group, 'gaussians', '.0f')} | {_mean_cell(group, 'share_bytes', '.0f')} |"
+        )
+    v = verdicts
+    ate_text = (
+        "ATE: a merge leaves B's poses as they were (compare ATE with --mode inject)."
+        if s.mode == "merge"
+        else f"On ATE in {v['pwas_beats_random_ate']} of {s.seeds}."
+    )
+    lines += [
+        "",
+        f"PWAS beats random at {s.budget}: on PSNR in {v['pwas_beats_random_psnr']} of "
+        f"{s.seeds} seed(s). {ate_text}",
+        "",
+        "## Rate-distortion (B with A's share, mean over the sweep seeds)",
+        "",
+    ]
+    if s.sweep_seeds == 0:
+        lines.append("No sweep was run (`--sweep-seeds 0`).")
+    else:
+        lines += [
+            "| Budget | Strategy | PSNR | ATE RMSE (cm) | Gaussians shared | Bytes shared |",
+            "|---|---|---|---|---|---|",
+        ]
+    for budget in s.sweep:  # no rows without sweep seeds (_sweep_rows)
+        for strategy in s.strategies:
+            group = _sweep_rows(rows, s, budget, strategy)
+            if group:
+                lines.append(
+                    f"| {budget} | {strategy} | {_mean_cell(group, 'psnr')} | "
+                    f"{_mean_cell(group, 'ate_rmse_cm', '.3f')} | "
+                    f"{_mean_cell(group, 'share_gaussians', '.0f')} | "
+                    f"{_mean_cell(group, 'share_bytes', '.0f')} |"
+                )
+    if v["sweep"]:
+        inject = s.mode == "inject"
+        lines += [
+            "",
+            "PWAS minus random, paired by seed (mean ± standard error over the seeds; a mean "
+            "within about two standard errors of 0 is not resolved by this many seeds):",
+            "",
+            "| Budget | Seeds | PSNR (dB) | PWAS higher |"
+            + (" ATE RMSE (cm) | PWAS lower |" if inject else ""),
+            "|---|---|---|---|" + ("---|---|" if inject else ""),
+        ]
+        for b in v["sweep"]:
+            cells = [
+                b["budget"], b["pairs"],
+                _plus_minus(b["psnr_difference"], b["psnr_difference_se"], ".2f"),
+                f"{b['pwas_higher_psnr']} of {b['pairs']}",
+            ]  # fmt: skip
+            if inject:
+                cells += [
+                    _plus_minus(b["ate_difference_cm"], b["ate_difference_se_cm"], ".3f"),
+                    f"{b['pwas_lower_ate']} of {b['pairs']}",
+                ]
+            lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    lines += ["", "## Plots", ""]
+    lines += [f"![{p.stem}]({p.relative_to(out)})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def _plot_rate_distortion(
+    folder: Path,
+    curves: dict[str, list[tuple[float, float | None, float | None]]],
+    s: ExperimentSettings,
+) -> Path:
+    """PSNR and ATE of B against the share's bytes, one curve per strategy."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for name, points in curves.items():
+        x = [p[0] / 1e6 for p in points]
+        full = name == "full"
+        style = dict(marker="*", markersize=12, linestyle="none") if full else dict(marker="o")
+        for ax, column in zip(axes, (1, 2), strict=True):
+            ax.plot(x, [p[column] for p in points], label="A's full map" if full else name, **style)
+    for ax, label in zip(axes, ("PSNR of agent B (dB)", "ATE RMSE of agent B (cm)"), strict=True):
+        ax.set_xlabel("share size (MB; 0 = no share)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend()
+    if s.mode == "merge":
+        axes[1].set_title("a merge leaves B's poses as they were", fontsize="medium")
+    fig.suptitle("Rate-distortion: B with A's share")
+    fig.tight_layout()
+    return _save(fig, folder / "rate_distortion.png")
+
+
+def _plots(
+    folder: Path, rows: list[dict[str, Any]], s: ExperimentSettings, full_log: Path
+) -> list[Path]:
+    """Rate-distortion curves, importance histogram and top-down importance map (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+
+    curves = rate_distortion_curves(rows, s)
+    if curves:  # none without a sweep (--sweep-seeds 0)
+        paths.append(_plot_rate_distortion(folder, curves, s))
+
+    with LogReader(full_log) as reader:
+        gaussians = reader.read_map()
+    scores = strategy_scores(gaussians, "pwas")
+    assert s.keep is not None  # resolved from the config by run_experiment
+    kept = np.sort(scores)[::-1][: max(1, round(s.keep * len(scores)))]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    positive = scores[scores > 0]
+    bins = list(log_edges(positive, 49))
+    ax.hist(positive, bins=bins, alpha=0.6, label=f"all ({len(scores)})")
+    ax.hist(kept[kept > 0], bins=bins, alpha=0.6, label=f"kept at {s.keep:g} ({len(kept)})")
+    ax.set_xscale("log")
+    ax.set_xlabel("PWAS importance")
+    ax.set_ylabel("Gaussians")
+    ax.set_title("Importance before and after pruning (unpruned run's map)")
+    ax.legend()
+    fig.tight_layout()
+    paths.append(_save(fig, folder / "importance_hist.png"))
+
+    plan = _plan_view(gaussians.means)
+    fig, ax = plt.subplots(figsize=(6, 6))
+    order = np.argsort(scores)
+    shown = ax.scatter(plan[order, 0], plan[order, 1], c=np.log10(scores[order] + 1e-12), s=1,
+                       cmap="turbo")  # fmt: skip
+    fig.colorbar(shown, ax=ax, label="log10 PWAS importance")
+    ax.set_aspect("equal")
+    ax.set_title("Top-down view coloured by importance")
+    ax.set_xlabel("m")
+    ax.set_ylabel("m")
+    fig.tight_layout()
+    paths.append(_save(fig, folder / "importance_topdown.png"))
+    return paths
+
+
+def _plan_view(means: np.ndarray) -> np.ndarray:
+    """[N, 2] coordinates on the plane of the two largest principal axes (the floor plan).
+
+    Indoor maps are wider than they are tall, so the axis of least spread is taken as up.
+    """
+    centred = means - means.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred[:: max(1, len(centred) // 20000)], full_matrices=False)
+    return centred @ vt[:2].T
+
+
+def _save(fig: Any, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
