@@ -66,6 +66,14 @@ from .options import (
 @backend_option()
 @device_option
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS (reported as not asked for).")
+@click.option(
+    "--save-images",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    metavar="DIR",
+    help="Also write a picture of every frame scored: the render (DIR/rgb/) and observed | "
+    "render | error side by side (DIR/side_by_side/); at refined poses in DIR/refined/.",
+)
 @json_option
 def eval_command(
     src: Path,
@@ -79,6 +87,7 @@ def eval_command(
     backend: str,
     device: str,
     no_lpips: bool,
+    save_images: Path | None,
     as_json: bool,
 ) -> None:
     """Score the map and trajectory of a SLAM log against its sequence.
@@ -100,6 +109,7 @@ def eval_command(
       gsc eval run.mcap --seq data/room
       gsc eval run.mcap --seq data/room --every 5 --json | jq .psnr
       gsc eval B.mcap --seq data/room --frames odd --poses-from A.mcap --refine-poses 100
+      gsc eval run.mcap --seq data/room --every 10 --save-images pictures/
     """
     with progress_bar("eval", "view", hidden=as_json) as bar:
         result = evaluate_log(
@@ -114,6 +124,7 @@ def eval_command(
             backend=backend,
             device=device,
             lpips=not no_lpips,
+            save_images=save_images,
             progress=partial(advance, bar),
         )
     emit(result, as_json, format_eval(result))
@@ -177,4 +188,14 @@ def format_eval(r: dict[str, Any]) -> str:
         f"{r['file_bytes']} bytes of log file"
     )
     lines.append(f"  {'time':<13}{r['seconds']:.1f} s")
+    if "images" in r:
+        lines.append(f"  {'pictures':<13}{images_text(r['images'])}")
     return "\n".join(lines)
+
+
+def images_text(paths: list[str]) -> str:
+    """How many pictures were written, and where."""
+    if not paths:
+        return "none written (no frame was rendered)"
+    folders = sorted({str(Path(p).parent) for p in paths})
+    return f"{len(paths)} written to {', '.join(folders)}"

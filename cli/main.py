@@ -35,6 +35,7 @@ COMMANDS: dict[str, str] = {
     "synth": "synth:synth",
     "slam": "slam:slam",
     "eval": "eval:eval_command",
+    "render": "render:render",
     "merge": "merge:merge",
     "experiment": "experiment:experiment",
 }

@@ -127,6 +127,7 @@ def evaluate_map(
     device: str | torch.device = "cpu",
     lpips: bool | LpipsAlex = True,
     progress: Callable[[int], object] | None = None,
+    on_render: Callable[[EvalView, np.ndarray, np.ndarray], object] | None = None,
 ) -> dict[str, Any]:
     """Render `gaussians` at every view and score the renders against the observations.
 
@@ -140,6 +141,8 @@ def evaluate_map(
         lpips: compute LPIPS (True: load the weights; or a loaded `LpipsAlex`); False reports
             it unavailable ("not asked for").
         progress: called with 1 after each view.
+        on_render: called with (view, colour [H, W, 3], depth [H, W]) of each view rendered
+            (e.g. to save pictures of it).
 
     Returns:
         A JSON-ready dict. For each of `psnr`, `ssim`, `ms_ssim`, `lpips`, `depth_l1_cm`: the
@@ -183,6 +186,8 @@ def evaluate_map(
                 progress(1)
             continue
         color, depth = render_view(params, view.T_world_cam, intrinsics, backend)
+        if on_render is not None:
+            on_render(view, color, depth)
         record: dict[str, Any] = {
             "index": int(view.index),
             "timestamp": None if math.isnan(view.timestamp) else float(view.timestamp),

@@ -217,6 +217,9 @@ def evaluate_log(
     backend: str = "auto",
     device: str = "auto",
     lpips: bool = True,
+    save_images: str | Path | None = None,
+    colorings: tuple[str, ...] = ("rgb",),
+    side_by_side: bool = True,
     progress: Callable[[int, int], object] | None = None,
 ) -> dict[str, Any]:
     """Score a log's final map and estimated trajectory against the sequence it was made from.
@@ -235,6 +238,10 @@ def evaluate_log(
         backend: render backend.
         device: torch device to render on, or "auto".
         lpips: compute LPIPS (reported unavailable with the reason when it cannot be).
+        save_images: a folder to write pictures of every view scored into
+            (`gscompress.pipeline.images.ImageSaver`; those at refined poses in `refined/`).
+        colorings: what the pictures are coloured by (`gscompress.pipeline.images.COLORINGS`).
+        side_by_side: also write one labelled figure per view (observed, render, error).
         progress: called with (steps done, steps in total) after each view rendered or refined.
 
     Returns:
@@ -249,7 +256,7 @@ def evaluate_log(
         settings used, `per_frame` (per rendered view: index, timestamp and its metrics) and,
         with `refine_poses`, `refined`: the same image metrics at the refined poses, `iters`,
         the median pose change `pose_change_cm` and `pose_change_deg`, and its own `per_frame`
-        (with each frame's pose change).
+        (with each frame's pose change). With `save_images`, `images` lists the files written.
 
     Raises:
         LogFormatError: unreadable log, or no `/gaussians`, or no `/camera/pose` where the
@@ -260,6 +267,7 @@ def evaluate_log(
     """
     from gscompress.ops.evaluate import EvalView, evaluate_map, pose_change
     from gscompress.ops.evaluate import refine_poses as refine
+    from gscompress.pipeline.images import ImageSaver
     from gscompress.render import resolve_device
 
     if every < 1:
@@ -318,12 +326,23 @@ def evaluate_log(
         if progress is not None:
             progress(done, total)
 
+    savers: dict[str, ImageSaver] = {}
+
+    def saver(folder: str) -> ImageSaver | None:
+        if save_images is None:
+            return None
+        savers[folder] = ImageSaver(
+            Path(save_images) / folder, gaussians, sequence.intrinsics, colorings,
+            side_by_side, backend, torch_device, title=f"{log_path.name} on {sequence.name}",
+        )  # fmt: skip
+        return savers[folder]
+
     T_given = [T_est[k] for k in chosen]
     score = partial(
         evaluate_map, gaussians, intrinsics=sequence.intrinsics, backend=backend,
         device=torch_device, lpips=lpips, progress=step,
     )  # fmt: skip
-    images = score(views(T_given))
+    images = score(views(T_given), on_render=saver(""))
     per_frame = images.pop("per_view")
     refined: dict[str, Any] | None = None
     if refine_poses:
@@ -332,7 +351,7 @@ def evaluate_log(
             gaussians, views(T_given), sequence.intrinsics, tracking, backend=backend,
             device=torch_device, progress=step,
         )  # fmt: skip
-        refined = score(views(T_refined))
+        refined = score(views(T_refined), on_render=saver("refined"))
         changes = {
             int(sequence.indices[positions[k]]): pose_change(T_given[i], T_refined[i])
             for i, k in enumerate(chosen)
@@ -371,4 +390,5 @@ def evaluate_log(
         "seconds": round(time.perf_counter() - start, 3),
         "per_frame": per_frame,
         **({"refined": refined} if refined is not None else {}),
+        **({"images": [str(p) for s in savers.values() for p in s.written]} if savers else {}),
     }

@@ -1,0 +1,249 @@
+"""Pictures of a map at known views: `gsc render` and `gsc eval --save-images`.
+
+Each view the evaluation renders is handed to an `ImageSaver`, which writes, per colouring
+asked for, the exact render as an 8-bit PNG (`DIR/<colouring>/<frame index>.png`, as other
+tools read it), and with `side_by_side` one labelled figure per view
+(`DIR/side_by_side/<frame index>.png`): the observed frame, each colouring with its colour bar,
+and the error of the RGB render against the observation.
+
+Colourings:
+- `rgb`: the map's own colours (what `gsc eval` scores).
+- `importance`: every Gaussian coloured by its PWAS importance (log10 of S / (W + eps)), on the
+  perceptual `viridis` map between the 1st and 99th percentiles of the map's positive scores,
+  then rendered like the colours: bright where the Gaussians that decide the picture are.
+- `depth`: the rendered depth sum_i w_i z_i on `magma`, over the observed frame's valid range.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.camera import Intrinsics
+from gscompress.errors import InputError, MapError
+from gscompress.gaussians import GaussianMap
+
+log = logging.getLogger(__name__)
+
+COLORINGS = ("rgb", "importance", "depth")
+"""What a render can be coloured by (`gsc render --color`)."""
+
+IMPORTANCE_CMAP = "viridis"
+DEPTH_CMAP = "magma"
+ERROR_CMAP = "inferno"
+ERROR_MAX = 0.5
+"""Top of the error map's colour scale: mean absolute RGB error per pixel, in [0, 1]."""
+
+FIGURE_DPI = 200
+
+
+def check_colorings(colorings: tuple[str, ...]) -> tuple[str, ...]:
+    """The colourings asked for, in order and once each.
+
+    Raises:
+        InputError: none, or one that is not in `COLORINGS`.
+    """
+    unknown = [c for c in colorings if c not in COLORINGS]
+    if unknown or not colorings:
+        raise InputError(f"--color takes {', '.join(COLORINGS)}; got {', '.join(colorings)}")
+    return tuple(dict.fromkeys(colorings))
+
+
+def importance_range(scores: np.ndarray) -> tuple[float, float]:
+    """(low, high) of log10 importance that the colour map spans: the 1st and 99th percentiles
+    of the positive scores.
+
+    Raises:
+        MapError: no Gaussian has a positive score (a map without PWAS sums).
+    """
+    positive = scores[scores > 0]
+    if len(positive) == 0:
+        raise MapError(
+            "the map has no PWAS importance (no positive sums): score it first with `gsc score`"
+        )
+    low, high = np.percentile(np.log10(positive), [1.0, 99.0])
+    return float(low), float(max(high, low + 1e-6))
+
+
+def colormap(values: np.ndarray, low: float, high: float, name: str) -> np.ndarray:
+    """[..., 3] float32 RGB of `values` on matplotlib's colour map `name`, clipped to
+    [low, high]; NaN maps to black."""
+    from matplotlib import colormaps
+
+    t = np.clip((values - low) / (high - low), 0.0, 1.0)
+    rgb = np.asarray(colormaps[name](np.nan_to_num(t, nan=0.0)))[..., :3].astype(np.float32)
+    rgb[np.isnan(values)] = 0.0
+    return rgb
+
+
+def importance_colors(gaussians: GaussianMap) -> tuple[np.ndarray, tuple[float, float]]:
+    """[N, 3] colour of each Gaussian by its log10 PWAS importance, and the range it spans."""
+    from gscompress.selection import strategy_scores
+
+    scores = strategy_scores(gaussians, "pwas")
+    low, high = importance_range(scores)
+    with np.errstate(divide="ignore"):
+        logs = np.where(scores > 0, np.log10(np.maximum(scores, 1e-300)), low)
+    return colormap(logs, low, high, IMPORTANCE_CMAP), (low, high)
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """[H, W, 3] float in [0, 1] to 8-bit."""
+    return np.round(np.clip(image, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def write_png(path: Path, image: np.ndarray) -> Path:
+    """Write an [H, W, 3] float image in [0, 1] as an 8-bit PNG."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(to_uint8(image)).save(path)
+    return path
+
+
+@dataclass
+class ImageSaver:
+    """Writes the pictures of each rendered view (called by `evaluate_map` as `on_render`).
+
+    Attributes:
+        folder: where the PNGs go.
+        gaussians: the map rendered.
+        intrinsics: the views' camera.
+        colorings: the colourings written (`COLORINGS`).
+        side_by_side: also write a labelled figure per view: observed, colourings, error.
+        backend: render backend (for the colourings other than rgb, rendered again).
+        device: torch device.
+        title: the figure's title before the frame index (e.g. the log's name).
+        written: the files written so far.
+    """
+
+    folder: Path
+    gaussians: GaussianMap
+    intrinsics: Intrinsics
+    colorings: tuple[str, ...] = ("rgb",)
+    side_by_side: bool = False
+    backend: str = "auto"
+    device: Any = "cpu"
+    title: str = ""
+    written: list[Path] = field(default_factory=list)
+    _importance: tuple[dict[str, Any], tuple[float, float]] | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        self.colorings = check_colorings(self.colorings)
+        for folder in (self.folder, *self.folder.parents):
+            if folder.exists() and not folder.is_dir():
+                raise InputError(f"cannot write pictures into {self.folder}: {folder} is a file")
+        if "importance" in self.colorings:  # refused before any view is rendered
+            self._importance_inputs()
+
+    def _importance_inputs(self) -> tuple[dict[str, Any], tuple[float, float]]:
+        if self._importance is None:
+            import torch
+
+            from gscompress.ops.score import activated_tensors
+
+            colors, span = importance_colors(self.gaussians)
+            params = activated_tensors(self.gaussians, self.device)
+            params["colors"] = torch.as_tensor(colors, device=params["means"].device)
+            self._importance = params, span
+        return self._importance
+
+    def __call__(self, view: Any, color: np.ndarray, depth: np.ndarray) -> None:
+        """Write the pictures of one view: `color` [H, W, 3] and `depth` [H, W], its RGB render."""
+        from gscompress.ops.evaluate import render_view
+
+        pictures: dict[str, np.ndarray] = {}
+        for coloring in self.colorings:
+            if coloring == "rgb":
+                pictures[coloring] = color
+            elif coloring == "importance":
+                params, _ = self._importance_inputs()
+                pictures[coloring] = render_view(
+                    params, view.T_world_cam, self.intrinsics, self.backend
+                )[0]
+            else:
+                pictures[coloring] = colormap(depth, *self._depth_range(view), DEPTH_CMAP)
+        name = f"{int(view.index):06d}.png"
+        for coloring, image in pictures.items():
+            self.written.append(write_png(self.folder / coloring / name, image))
+        if self.side_by_side:
+            path = self.folder / "side_by_side" / name
+            self.written.append(self._figure(path, view, color, depth, pictures))
+
+    def _depth_range(self, view: Any) -> tuple[float, float]:
+        valid = view.depth[view.depth > 0]
+        if len(valid) == 0:
+            return 0.0, 1.0
+        low, high = np.percentile(valid, [1.0, 99.0])
+        return float(low), float(max(high, low + 1e-6))
+
+    def _figure(
+        self,
+        path: Path,
+        view: Any,
+        color: np.ndarray,
+        depth: np.ndarray,
+        pictures: dict[str, np.ndarray],
+    ) -> Path:
+        """Observed frame | each colouring | error map, with titles and colour bars."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from matplotlib.cm import ScalarMappable
+        from matplotlib.colors import Normalize
+
+        from gscompress.metrics import psnr
+
+        valid = view.depth > 0
+        error = np.abs(color - view.color).mean(axis=-1)
+        error[~valid] = np.nan  # no observation to compare with
+        panels: list[tuple[str, np.ndarray, tuple[str, float, float, str] | None]] = [
+            (f"observed frame {view.index}", view.color, None)
+        ]
+        for coloring, image in pictures.items():
+            if coloring == "rgb":
+                panels.append(("render", image, None))
+            elif coloring == "importance":
+                low, high = self._importance_inputs()[1]
+                span = (IMPORTANCE_CMAP, low, high, "log10 PWAS importance")
+                panels.append(("render coloured by importance", image, span))
+            else:
+                low, high = self._depth_range(view)
+                panels.append(("rendered depth", image, (DEPTH_CMAP, low, high, "depth (m)")))
+        score = psnr(color, view.color, valid) if valid.any() else float("nan")
+        panels.append(
+            (
+                f"|render - observed|, PSNR {score:.2f} dB",
+                colormap(error, 0.0, ERROR_MAX, ERROR_CMAP),
+                (ERROR_CMAP, 0.0, ERROR_MAX, "mean abs. RGB error"),
+            )
+        )
+        height, width = view.color.shape[:2]
+        panel_width = 3.2
+        fig, axes = plt.subplots(
+            1, len(panels), figsize=(panel_width * len(panels), panel_width * height / width + 1.0)
+        )
+        for ax, (label, image, scale) in zip(np.atleast_1d(axes), panels, strict=True):
+            ax.imshow(np.clip(image, 0.0, 1.0), interpolation="nearest")
+            ax.set_title(label, fontsize="small")
+            ax.set_axis_off()
+            if scale is not None:
+                cmap, low, high, what = scale
+                bar = fig.colorbar(
+                    ScalarMappable(Normalize(low, high), cmap), ax=ax, orientation="horizontal",
+                    fraction=0.05, pad=0.04,
+                )  # fmt: skip
+                bar.set_label(what, fontsize="x-small")
+                bar.ax.tick_params(labelsize="x-small")
+        if self.title:
+            fig.suptitle(f"{self.title}, frame {view.index}", fontsize="medium")
+        fig.tight_layout()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=FIGURE_DPI)
+        plt.close(fig)
+        return path
