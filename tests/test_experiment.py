@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from PIL import Image
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import InputError, OptionError
@@ -71,6 +72,11 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert result["verdicts"]["mode"] == "merge"
     for name in ("rate_distortion", "importance_hist", "importance_topdown"):
         assert (out / "plots" / f"{name}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        with Image.open(out / "plots" / f"{name}.png") as png:
+            assert round(png.info["dpi"][0]) == 200
+        svg = (out / "plots" / f"{name}.svg").read_text()
+        assert "<svg" in svg and f"{_seq.name}, split odd-even" in svg  # the title says which
+    assert "shows PSNR alone: a merge leaves B's poses as they were" in md
     assert result["verdicts"]["seeds"] == 1 and len(result["verdicts"]["sweep"]) == 2
     first = result["verdicts"]["sweep"][0]  # one seed: a difference, no standard error
     pwas, random = (by_name[(f"B + {k} 0.2", "table4")]["psnr"] for k in ("pwas", "random"))

@@ -204,7 +204,7 @@ def write_reports(
     """results.json, results.csv, results.md and plots/*.png."""
     write_text_atomic(out / "results.json", json_text(rows, indent=1))
     write_text_atomic(out / "results.csv", _csv(rows))
-    plots = _plots(out / "plots", rows, s, full_log)
+    plots = _plots(out / "plots", rows, s, full_log, seq)
     write_text_atomic(out / "results.md", _markdown(seq, s, rows, verdicts, plots, out))
     return {
         "results_md": str(out / "results.md"),
@@ -356,81 +356,121 @@ def _markdown(
                 ]
             lines.append("| " + " | ".join(str(c) for c in cells) + " |")
     lines += ["", "## Plots", ""]
+    if s.mode == "merge" and s.sweep_seeds:
+        lines += [
+            "The rate-distortion plot shows PSNR alone: a merge leaves B's poses as they were, "
+            "so B's ATE cannot vary with the share (run `--mode inject` for an ATE curve). "
+            "Each plot is also written as an SVG beside its PNG.",
+            "",
+        ]
     lines += [f"![{p.stem}]({p.relative_to(out)})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+PLOT_DPI = 200
+"""Resolution of the PNG plots (an SVG of each is written beside it)."""
+
+
+def _plot_title(seq: Path, s: ExperimentSettings, what: str, seeds: str) -> str:
+    """A plot's title: what it shows, the sequence, the split and the seeds it averages."""
+    split = "odd-even" if s.split == "odd-even" else f"halves, overlap {s.overlap:g}"
+    return f"{what}\n{seq.name}, split {split}, {s.mode}, {seeds}"
 
 
 def _plot_rate_distortion(
     folder: Path,
     curves: dict[str, list[tuple[float, float | None, float | None]]],
     s: ExperimentSettings,
+    seq: Path,
 ) -> Path:
-    """PSNR and ATE of B against the share's bytes, one curve per strategy."""
+    """PSNR (and, when a share can move B's poses, ATE) of B against the share's bytes on a log
+    axis, one curve per strategy; B without a share is the dashed line every share starts from.
+    In merge mode B's poses are fixed, so the ATE panel is left out (results.md says why)."""
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for name, points in curves.items():
-        x = [p[0] / 1e6 for p in points]
-        full = name == "full"
-        style = dict(marker="*", markersize=12, linestyle="none") if full else dict(marker="o")
-        for ax, column in zip(axes, (1, 2), strict=True):
-            ax.plot(x, [p[column] for p in points], label="A's full map" if full else name, **style)
-    for ax, label in zip(axes, ("PSNR of agent B (dB)", "ATE RMSE of agent B (cm)"), strict=True):
-        ax.set_xlabel("share size (MB; 0 = no share)")
+    columns = [(1, "PSNR of agent B (dB)")]
+    if s.mode == "inject":
+        columns.append((2, "ATE RMSE of agent B (cm)"))
+    fig, axes = plt.subplots(1, len(columns), figsize=(5.5 * len(columns), 4.2), squeeze=False)
+    for ax, (column, label) in zip(axes[0], columns, strict=True):
+        baseline = None
+        for name, points in curves.items():
+            shared = [p for p in points if p[0] > 0 and p[column] is not None]
+            baseline = next((p[column] for p in points if p[0] == 0), baseline)
+            if not shared:
+                continue
+            full = name == "full"
+            ax.plot(
+                [p[0] for p in shared], [p[column] for p in shared],
+                label="A's whole map" if full else name,
+                **(dict(marker="*", markersize=12, linestyle="none") if full else dict(marker="o")),
+            )  # fmt: skip
+        if baseline is not None:
+            ax.axhline(baseline, color="grey", linestyle="--", label="B, no share")
+        ax.set_xscale("log")
+        ax.set_xlabel("share size (bytes, log scale)")
         ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-        ax.legend()
-    if s.mode == "merge":
-        axes[1].set_title("a merge leaves B's poses as they were", fontsize="medium")
-    fig.suptitle("Rate-distortion: B with A's share")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize="small")
+    seeds = f"mean over seed(s) 0-{s.sweep_seeds - 1}" if s.sweep_seeds > 1 else "seed 0"
+    fig.suptitle(_plot_title(seq, s, "Rate-distortion: agent B with A's share", seeds),
+                 fontsize="medium")  # fmt: skip
     fig.tight_layout()
     return _save(fig, folder / "rate_distortion.png")
 
 
 def _plots(
-    folder: Path, rows: list[dict[str, Any]], s: ExperimentSettings, full_log: Path
+    folder: Path, rows: list[dict[str, Any]], s: ExperimentSettings, full_log: Path, seq: Path
 ) -> list[Path]:
-    """Rate-distortion curves, importance histogram and top-down importance map (PNG)."""
+    """Rate-distortion curves, importance histogram and top-down importance map (PNG + SVG)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
 
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
 
     curves = rate_distortion_curves(rows, s)
     if curves:  # none without a sweep (--sweep-seeds 0)
-        paths.append(_plot_rate_distortion(folder, curves, s))
+        paths.append(_plot_rate_distortion(folder, curves, s, seq))
 
     with LogReader(full_log) as reader:
         gaussians = reader.read_map()
     scores = strategy_scores(gaussians, "pwas")
     assert s.keep is not None  # resolved from the config by run_experiment
     kept = np.sort(scores)[::-1][: max(1, round(s.keep * len(scores)))]
-    fig, ax = plt.subplots(figsize=(6, 4))
+    run = "Table 3's unpruned run (seed 0)"
+    fig, ax = plt.subplots(figsize=(6, 4.2))
     positive = scores[scores > 0]
     bins = list(log_edges(positive, 49))
     ax.hist(positive, bins=bins, alpha=0.6, label=f"all ({len(scores)})")
     ax.hist(kept[kept > 0], bins=bins, alpha=0.6, label=f"kept at {s.keep:g} ({len(kept)})")
     ax.set_xscale("log")
-    ax.set_xlabel("PWAS importance")
-    ax.set_ylabel("Gaussians")
-    ax.set_title("Importance before and after pruning (unpruned run's map)")
-    ax.legend()
+    ax.set_xlabel("PWAS importance S / (W + eps) (log scale)")
+    ax.set_ylabel("Gaussians (count)")
+    ax.legend(fontsize="small")
+    fig.suptitle(_plot_title(seq, s, "PWAS importance before and after pruning", run),
+                 fontsize="medium")  # fmt: skip
     fig.tight_layout()
     paths.append(_save(fig, folder / "importance_hist.png"))
 
     plan = _plan_view(gaussians.means)
-    fig, ax = plt.subplots(figsize=(6, 6))
-    order = np.argsort(scores)
-    shown = ax.scatter(plan[order, 0], plan[order, 1], c=np.log10(scores[order] + 1e-12), s=1,
-                       cmap="turbo")  # fmt: skip
-    fig.colorbar(shown, ax=ax, label="log10 PWAS importance")
+    fig, ax = plt.subplots(figsize=(6.4, 6))
+    order = np.argsort(scores)  # the most important drawn last, on top
+    shown = positive.size > 0
+    low, high = (positive.min(), positive.max()) if shown else (1e-12, 1.0)
+    dots = ax.scatter(
+        plan[order, 0], plan[order, 1], c=np.maximum(scores[order], low), s=1, cmap="viridis",
+        norm=LogNorm(low, max(high, low * (1 + 1e-9))),
+    )  # fmt: skip
+    fig.colorbar(dots, ax=ax, label="PWAS importance (log scale)")
     ax.set_aspect("equal")
-    ax.set_title("Top-down view coloured by importance")
-    ax.set_xlabel("m")
-    ax.set_ylabel("m")
+    ax.set_xlabel("first principal axis of the map (m)")
+    ax.set_ylabel("second principal axis of the map (m)")
+    fig.suptitle(_plot_title(seq, s, "Top-down view of the map coloured by importance", run),
+                 fontsize="medium")  # fmt: skip
     fig.tight_layout()
     paths.append(_save(fig, folder / "importance_topdown.png"))
     return paths
@@ -447,8 +487,10 @@ def _plan_view(means: np.ndarray) -> np.ndarray:
 
 
 def _save(fig: Any, path: Path) -> Path:
+    """Write `fig` as a PNG at `PLOT_DPI` and as an SVG beside it; returns the PNG's path."""
     import matplotlib.pyplot as plt
 
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=PLOT_DPI)
+    fig.savefig(path.with_suffix(".svg"))
     plt.close(fig)
     return path
