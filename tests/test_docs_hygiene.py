@@ -26,8 +26,9 @@ WORK_PERIOD = re.compile(
     r"(?:last|previous|this|that|next|earlier|same|current)\s+(?:work\s+)?(?:session|turn)\b",
     re.IGNORECASE,
 )
-"""A work period named as one: a session or turn with its number, or one placed relative to another ("since the
-last one"). A bare "session" (pytest's fixture scope, a client's connection) is not one."""
+"""A work period named as one: a session or turn with its number, or one placed relative to
+another ("since the last one"). A bare "session" (pytest's fixture scope, a client's connection)
+is not one."""
 
 
 def work_period_mentions(text: str) -> list[tuple[int, str]]:
