@@ -8,16 +8,16 @@ Prints one JSON object per case, in ms per tracking iteration (median and fastes
   pose increment, `pose_gradient` from a given dL/dT and a `PoseAdam` step.
 - `pose_autograd`: the same update with the six numbers as torch leaves: the quaternion
   rotation as torch operations (`gscompress.render.projection.rotation_rows`), autograd back
-  from dL/dT, torch's Adam and ExponentialLR. This is the tracker's way before session 18
-  with the rotation built by the renderer's batched code (a review timed that about 13% slower
+  from dL/dT, torch's Adam and ExponentialLR. This is the tracker's way before e262dbf
+  with the rotation built by the renderer's batched code (timed about 13% slower
   than the old tracker's own code). Its row carries `x_vs_numpy`, the ratio of its time to
   `pose_numpy`'s in this call.
 - `track_iteration`: a whole `track` call on the scene (render, loss, backward and
   pose update, cpu backend) divided by its iterations; its row carries `pose_autograd_extra`,
   (pose_autograd - pose_numpy) / track_iteration: what the autograd update would add.
 - `project_backward_all` / `project_backward_camera`: the C++ projection's backward on the
-  scene with every gradient, and with the camera's only (what tracking asks for since session
-  18); the second row carries `x_vs_all`.
+  scene with every gradient, and with the camera's only (what tracking asks for since
+  77b0266); the second row carries `x_vs_all`.
 The scene is `bench/render.py`'s random SLAM-like view at 160x120 with `--gaussians` of them,
 observed as it renders from the identity pose, where tracking starts. The cases run
 interleaved round by round, so that load from other processes affects all alike.

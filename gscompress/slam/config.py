@@ -167,7 +167,7 @@ class DensifyConfig:
             mean absolute RGB error (0-1 units): detail the map does not hold yet. The render
             is not divided by its silhouette, so a thinly covered bright pixel can qualify too.
             0: SplaTAM's rule alone (the default, and every preset but cpu, which uses 0.25;
-            docs/performance-history.md, "Densifying where the colour is wrong").
+            docs/design-experiments.md, "Densifying where the colour is wrong").
         received_color_error: with a received share (`gsc slam --inject`), do not add where the
             whole map, share included, already explains the pixel: covered, no new geometry,
             and a mean absolute RGB error below this. 0: densify wherever the run's own
@@ -216,7 +216,7 @@ class PruneConfig:
             `--resume`); mapping, densification, scores and the log use the pruned map (0: off).
             A stage thins the view the camera is in, and tracking against the thinned map drifts.
 
-    Why these values (and what else was tried): docs/performance-history.md, "Pruning stage
+    Why these values (and what else was tried): docs/design-experiments.md, "Pruning stage
     settings".
     """
 
@@ -241,7 +241,7 @@ class SlamConfig:
         size: working image size (W, H), or None for the sequence's own.
         isotropic: one scale per Gaussian (SplaTAM) instead of three and a rotation. False
             gives higher PSNR unpruned but no smaller PWAS pruning cost
-            (docs/performance-history.md, "Anisotropic Gaussians").
+            (docs/design-experiments.md, "Anisotropic Gaussians").
         backend: render backend (`gscompress.render.BACKENDS`).
         seed: seed of the random choices (window views).
         init_from_ground_truth: put the first frame at its ground-truth pose when the sequence
