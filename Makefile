@@ -12,7 +12,7 @@ JS := tests/js
 
 FUZZ_CASES ?= 10000
 
-.PHONY: install demo test test-fast lint format bench fuzz js-deps clean
+.PHONY: install demo picture test test-fast lint format bench fuzz js-deps clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,6 +33,14 @@ js-deps:
 
 demo: install
 	$(PY) examples/demo.py --out demo_out
+
+# The README's picture: robot A's map of the demo room, rendered beside its importance.
+picture: install
+	test -f demo_out/robot_a.mcap || $(PY) examples/demo.py --out demo_out
+	$(VENV)/bin/gsc render demo_out/robot_a.mcap --seq demo_out/synthetic --frames 12:13 \
+		--color rgb --color importance --side-by-side -o demo_out/pictures
+	mkdir -p docs/images
+	$(PY) -c "from PIL import Image; Image.open('demo_out/pictures/side_by_side/000012.png').convert('RGB').quantize(128).save('docs/images/map_importance.png', optimize=True)"
 
 test: install js-deps
 	$(PY) -m pytest -q

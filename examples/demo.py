@@ -1,10 +1,14 @@
-"""The embedded demo: synthetic sequence -> SLAM with PWAS -> eval -> prune -> share -> PLY.
+"""The five-minute walk: two robots map a room, one sends the other 50 kB of its map.
 
 Runs every step through the `gsc` command line, as a user would, and prints each command:
-`gsc synth` makes the project's synthetic RGB-D sequence, `gsc slam` maps it (cpu preset) and
-scores every Gaussian, `gsc eval` reports its ATE, PSNR, SSIM and LPIPS, then the offline
-commands prune the map, cut a 20% share for another agent
-and export PLY files for splat viewers.
+1. `gsc synth` makes the project's synthetic RGB-D room (40 frames).
+2. Record: `gsc slam` maps it twice, as two robots: A on frames 0-23, B on frames 16-39.
+3. Look: `gsc render` draws A's map beside the same map coloured by PWAS importance.
+4. Prune: `gsc prune --keep 0.3 --map-only` keeps A's 30% most important Gaussians.
+5. Share: `gsc share --budget 50kB` cuts the best of A's map that fits in 50 kB.
+6. Merge: `gsc merge` puts the share into B's map and refines it on B's frames.
+7. Eval: `gsc eval` scores B alone and B with the share on A's frames (poses refined).
+8. Export: `gsc export-ply` writes a PLY any splat viewer opens.
 
 Usage: python examples/demo.py [--out demo_out] [--frames 40] [--size 160x120]
 """
@@ -34,19 +38,25 @@ def main() -> None:
     out: Path = opts.out
     out.mkdir(parents=True, exist_ok=True)  # a rerun replaces the demo's own outputs only
     seq = out / "synthetic"
+    n = opts.frames
+    frames_a, frames_b = f"0:{(3 * n) // 5}", f"{(2 * n) // 5}:{n}"  # overlapping by a fifth
+    a, b = out / "robot_a.mcap", out / "robot_b.mcap"
 
-    gsc("synth", seq, "--frames", opts.frames, "--size", opts.size, "--supersample", 2, "--force")
-    gsc("slam", seq, "-o", out / "map.mcap", "--size", opts.size, "--force")
-    gsc("info", out / "map.mcap")
-    gsc("eval", out / "map.mcap", "--seq", seq)
-    gsc("prune", out / "map.mcap", "--keep", "0.3", "-o", out / "map_pruned.mcap", "--force")
-    gsc(
-        "share", "--budget", "0.2", out / "map.mcap", out / "share.mcap",
-        "--ply", out / "share.ply", "--force",
-    )  # fmt: skip
-    gsc("export-ply", out / "map.mcap", "-o", out / "map.ply", "--force")
-    gsc("info", out / "share.mcap")
-    print(f"\nDone. Open {out}/*.ply in a 3DGS viewer and {out}/*.mcap in Foxglove.")
+    gsc("synth", seq, "--frames", n, "--size", opts.size, "--supersample", 2, "--force")
+    gsc("slam", seq, "--frames", frames_a, "-o", a, "--force")
+    gsc("slam", seq, "--frames", frames_b, "-o", b, "--force")
+    middle = (3 * n) // 10
+    gsc("render", a, "--seq", seq, "--frames", f"{middle}:{middle + 1}", "--color", "rgb",
+        "--color", "importance", "--side-by-side", "-o", out / "pictures")  # fmt: skip
+    gsc("prune", a, "--keep", "0.3", "--map-only", "-o", out / "robot_a_pruned.mcap", "--force")
+    gsc("share", a, out / "share.mcap", "--budget", "50kB", "--force")
+    gsc("merge", b, out / "share.mcap", "-o", out / "robot_b_merged.mcap", "--seq", seq, "--force")
+    for log in (b, out / "robot_b_merged.mcap"):
+        gsc("eval", log, "--seq", seq, "--frames", frames_a, "--poses-from", a,
+            "--refine-poses", 100, "--no-lpips")  # fmt: skip
+    gsc("export-ply", a, "-o", out / "robot_a.ply", "--force")
+    print(f"\nDone. Open {out}/*.ply in a splat viewer, {out}/*.mcap in Foxglove, and "
+          f"{out}/pictures/side_by_side/ for the pictures.")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -91,3 +91,15 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     log = root / "run.mcap"
     slam_file(seq, log, preset="tiny")
     return {"seq": seq, "log": log, "root": root}
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
+    """A test skipped without saying why fails instead: every skip in the summary has a reason."""
+    outcome = yield
+    report = outcome.get_result()  # type: ignore[attr-defined]
+    if report.skipped and isinstance(report.longrepr, tuple):
+        reason = str(report.longrepr[2]).removeprefix("Skipped:").strip()
+        if reason in ("", "Skipped", "unconditional skip", "condition: True"):
+            report.outcome = "failed"
+            report.longrepr = f"{item.nodeid} was skipped without a reason: say why it skips"
