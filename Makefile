@@ -40,7 +40,7 @@ picture: install
 	$(VENV)/bin/gsc render demo_out/robot_a.mcap --seq demo_out/synthetic --frames 12:13 \
 		--color rgb --color importance --side-by-side -o demo_out/pictures
 	mkdir -p docs/images
-	$(PY) -c "from PIL import Image; Image.open('demo_out/pictures/side_by_side/000012.png').convert('RGB').quantize(128).save('docs/images/map_importance.png', optimize=True)"
+	$(PY) -c "from PIL import Image; Image.open('demo_out/pictures/side_by_side/000012.png').convert('RGB').save('docs/images/map_importance.png', optimize=True)"
 
 test: install js-deps
 	$(PY) -m pytest -q

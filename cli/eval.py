@@ -12,7 +12,6 @@ from gscompress.pipeline import evaluate_log
 
 from .options import (
     INPUT_FILE,
-    FrameSubset,
     advance,
     backend_option,
     device_option,
@@ -20,41 +19,14 @@ from .options import (
     json_option,
     progress_bar,
     seq_option,
-    size_option,
+    view_options,
 )
 
 
 @click.command("eval", short_help="Score a log's map and poses: ATE, PSNR, SSIM, LPIPS.")
 @click.argument("src", metavar="LOG.mcap", type=INPUT_FILE)
 @seq_option(help="The RGB-D sequence the log was made from (TUM or Replica layout).")
-@click.option(
-    "--frames",
-    type=FrameSubset(),
-    default=None,
-    help="Frames to evaluate: all, odd, even or START:STOP:STEP [default: the log's subset].",
-)
-@click.option(
-    "--every",
-    type=click.IntRange(min=1),
-    default=1,
-    show_default=True,
-    help="Render every N-th frame that has an estimated pose (ATE uses all of them).",
-)
-@size_option(help="Render at this size WxH [default: the log's working size].")
-@click.option(
-    "--poses",
-    type=INPUT_FILE,
-    default=None,
-    help="Render at the poses of this TUM trajectory (matched to frames within 20 ms) "
-    "[default: the log's estimated poses].",
-)
-@click.option(
-    "--poses-from",
-    type=INPUT_FILE,
-    default=None,
-    metavar="OTHER.mcap",
-    help="Render at another log's estimated poses (e.g. the map of agent B on agent A's frames).",
-)
+@view_options
 @click.option(
     "--refine-poses",
     type=click.IntRange(min=1),

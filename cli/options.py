@@ -418,3 +418,43 @@ def refined_text(result: dict[str, Any]) -> str:
         f" (refined {result['refine_iters']} iterations on {result['refine_views']} views: "
         f"mean loss {result['refine_loss_before']:.4f} -> {result['refine_loss_after']:.4f})"
     )
+
+
+def view_options(f: F) -> F:
+    """--frames, --every, --size, --poses and --poses-from: which frames a command that draws a
+    log's map renders (`gsc eval`, `gsc render`), and at which poses."""
+    options = [
+        click.option(
+            "--frames",
+            type=FrameSubset(),
+            default=None,
+            help="Frames to render: all, odd, even or START:STOP:STEP [default: the log's subset].",
+        ),
+        click.option(
+            "--every",
+            type=click.IntRange(min=1),
+            default=1,
+            show_default=True,
+            help="Render every N-th frame that has a pose (ATE uses all of them).",
+        ),
+        size_option(help="Render at this size WxH [default: the log's working size]."),
+        click.option(
+            "--poses",
+            type=INPUT_FILE,
+            default=None,
+            help="Render at the poses of this TUM trajectory (matched to frames within 20 ms; "
+            "for a map without poses: a share, an imported PLY or SPZ) [default: the log's "
+            "estimated poses].",
+        ),
+        click.option(
+            "--poses-from",
+            type=INPUT_FILE,
+            default=None,
+            metavar="OTHER.mcap",
+            help="Render at another log's estimated poses (e.g. the map of agent B on agent "
+            "A's frames).",
+        ),
+    ]
+    for option in reversed(options):
+        f = option(f)
+    return f

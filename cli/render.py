@@ -12,7 +12,6 @@ from gscompress.pipeline.images import COLORINGS
 from .eval import images_text
 from .options import (
     INPUT_FILE,
-    FrameSubset,
     advance,
     backend_option,
     device_option,
@@ -20,7 +19,7 @@ from .options import (
     json_option,
     progress_bar,
     seq_option,
-    size_option,
+    view_options,
 )
 
 
@@ -35,19 +34,7 @@ from .options import (
     type=click.Path(file_okay=False, path_type=Path),
     help="Folder for the PNGs (made if missing).",
 )
-@click.option(
-    "--frames",
-    type=FrameSubset(),
-    default=None,
-    help="Frames to render: all, odd, even or START:STOP:STEP [default: the log's subset].",
-)
-@click.option(
-    "--every",
-    type=click.IntRange(min=1),
-    default=1,
-    show_default=True,
-    help="Render every N-th frame that has a pose.",
-)
+@view_options
 @click.option(
     "--color",
     "colorings",
@@ -62,21 +49,6 @@ from .options import (
     "--side-by-side",
     is_flag=True,
     help="Also write one labelled figure per frame: observed | each colouring | error map.",
-)
-@size_option(help="Render at this size WxH [default: the log's working size].")
-@click.option(
-    "--poses",
-    type=INPUT_FILE,
-    default=None,
-    help="Render at the poses of this TUM trajectory (for a map without poses: a share, an "
-    "imported PLY or SPZ) [default: the log's estimated poses].",
-)
-@click.option(
-    "--poses-from",
-    type=INPUT_FILE,
-    default=None,
-    metavar="OTHER.mcap",
-    help="Render at another log's estimated poses.",
 )
 @backend_option()
 @device_option
