@@ -17,7 +17,7 @@ FUZZ_CASES ?= 10000
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q $(TORCH_PIP_ARGS) "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,view]'
 	touch $(STAMP)
 
 install: $(STAMP)
