@@ -3,6 +3,8 @@ previews against the commands' own files, and the page itself in headless Chromi
 
 from __future__ import annotations
 
+import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
-from gscompress.gaussians import GaussianMap, random_map
+from gscompress.gaussians import SH_C0, GaussianMap, random_map
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.budget import Budget
@@ -34,10 +36,37 @@ def camera_path(frames: int = FRAMES, drift: float = 0.0) -> list[np.ndarray]:
     return poses
 
 
+def room_corner(n: int = 300, seed: int = 0) -> GaussianMap:
+    """A scored, anisotropic map of `n` Gaussians on a back wall, a floor and a side wall in
+    front of `camera_path`'s cameras (something a screenshot shows as a scene)."""
+    rng = np.random.default_rng(seed)
+    g = random_map(n, seed=seed, isotropic=False)
+    u, v = rng.uniform(0.0, 1.0, (2, n))
+    face = np.arange(n) % 3
+    means = np.where(
+        (face == 0)[:, None],
+        np.stack([3 * u - 1.5, 2 * v - 1.0, np.zeros(n)], 1),  # back wall
+        np.where(
+            (face == 1)[:, None],
+            np.stack([3 * u - 1.5, np.ones(n), -1.5 * v], 1),  # floor (+y is down)
+            np.stack([np.full(n, -1.5), 2 * v - 1.0, -1.5 * u], 1),  # side wall
+        ),
+    )
+    palette = np.array([[0.25, 0.45, 0.85], [0.85, 0.55, 0.25], [0.35, 0.75, 0.4]])
+    rgb = np.clip(palette[face] * (0.7 + 0.5 * u)[:, None], 0.0, 1.0)
+    return replace(
+        g,
+        means=means,
+        log_scales=np.log(rng.uniform(0.05, 0.12, (n, 3))),
+        opacity_logits=rng.uniform(1.5, 4.0, n),
+        sh_dc=(rgb - 0.5) / SH_C0,
+    )
+
+
 def write_tiny_log(path: Path, n: int = 300, seed: int = 0, stats: bool = True) -> GaussianMap:
-    """A log of a `n`-Gaussian map (anisotropic, scored) with an earlier snapshot of its
-    first 200, estimated and ground-truth poses, a camera and (if `stats`) keyframe marks."""
-    gaussians = random_map(n, seed=seed, isotropic=False)
+    """A log of a `n`-Gaussian map (`room_corner`) with an earlier snapshot of its first 200,
+    estimated and ground-truth poses, a camera and (if `stats`) keyframe marks."""
+    gaussians = room_corner(n, seed)
     with LogWriter(path, LogMetadata(command="test")) as out:
         out.write_calibration(Intrinsics(40.0, 40.0, 15.5, 11.5, 32, 24), 0)
         for i, (est, gt) in enumerate(zip(camera_path(drift=0.02), camera_path(), strict=True)):
@@ -308,13 +337,15 @@ def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: 
 
     why = browser.missing()
     if why is not None:
+        if os.environ.get("GSC_REQUIRE_BROWSER"):  # (CI installs both: a skip there is a failure)
+            pytest.fail(f"GSC_REQUIRE_BROWSER is set, but {why}")
         pytest.skip(f"no browser test: {why}")
     from gscompress.view import MapViewer, ViewOptions
 
     viewer = MapViewer(tiny_log, ViewOptions(port=0, out_dir=tmp_path))
     try:
         url = f"http://127.0.0.1:{viewer.port}"
-        with browser.open_page(url, 800, 600) as (page, errors):
+        with browser.open_page(url, 1024, 600) as (page, errors):
             browser.wait_for_text(page, "Kept 300 of 300 Gaussians")
             page.wait_for_timeout(1500)  # (the splats sorted and drawn)
             png = page.screenshot()
@@ -325,9 +356,54 @@ def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: 
             browser.wait_for_text(page, "Kept 150 of 300 Gaussians")
             assert viewer.updates == updates + 1  # the splats were redrawn once
             assert int(viewer.splats.opacities.astype(bool).sum()) <= 150  # the rest hidden
-            page.wait_for_timeout(500)
-            assert browser.canvas_spread(page.screenshot())[0] > 1000
+            viewer.colour.value = "importance"  # (as a click in its menu sets it)
+            browser.wait_for_text(page, "log10 PWAS score")  # the legend
+            browser.dismiss_notices(page)
+            page.wait_for_timeout(1000)
+            screenshot = os.environ.get("GSC_VIEW_SCREENSHOT")  # (`make screenshot`)
+            png = page.screenshot(path=screenshot)
+            assert browser.canvas_spread(png)[0] > 1000
             own = [e for e in errors if VISER_SPLAT_WARNING not in e]
             assert own == [], f"console errors: {own}"
+    finally:
+        viewer.close()
+
+
+def test_viewer_follows_its_controls(tiny_log: Path, tmp_path: Path) -> None:
+    """The server side without a browser: snapshots, the share preview, B with the share, the
+    write button."""
+    pytest.importorskip("viser")
+    from gscompress.view import MapViewer, ViewOptions
+    from gscompress.view.app import COMPARE_MODES, SELECTIONS
+
+    other = tmp_path / "b.mcap"
+    write_tiny_log(other, n=120, seed=9)
+    viewer = MapViewer(tiny_log, ViewOptions(port=0, compare=other, out_dir=tmp_path))
+    try:
+        assert len(viewer.splats.centers) == 300
+        viewer.snapshot_slider.value = 0
+        viewer._on_snapshot()
+        viewer._redraw()
+        assert len(viewer.splats.centers) == 200 and "Snapshot 1 of 2" in viewer.map_info.content
+        viewer._on_write()
+        assert "show it first" in viewer.status.content  # only the last snapshot is cut
+        viewer.snapshot_slider.value = 1
+        viewer._on_snapshot()
+        viewer.selection.value = SELECTIONS[1]
+        viewer.budget.value = 5
+        viewer._redraw()
+        share = viewer._share
+        assert share is not None and 0 < share.count < 300
+        assert f"Sent {share.count:,} of 300" in viewer.counts.content
+        hidden = viewer.splats.opacities[:, 0] == 0
+        np.testing.assert_array_equal(~hidden, share.kept)  # only the sent ones drawn
+        viewer.compare.value = COMPARE_MODES[3]
+        viewer._redraw()
+        assert not viewer.splats.visible and viewer.splats_b.visible
+        assert len(viewer._drawn["share_node"].centers) == share.count
+        viewer._on_write()
+        written = tmp_path / "tiny_share5kB_compact.mcap"
+        assert "wrote" in viewer.status.content and written.exists()
+        assert written.stat().st_size == share.file_bytes
     finally:
         viewer.close()

@@ -64,6 +64,13 @@ def open_page(url: str, width: int = 1280, height: int = 720) -> Iterator[tuple[
             browser.close()
 
 
+def dismiss_notices(page: Any) -> None:
+    """Close the page's notices (viser's note that WebGL runs in software, here by design)."""
+    buttons = page.locator(".mantine-Notification-closeButton")
+    for i in reversed(range(buttons.count())):
+        buttons.nth(i).click()
+
+
 def wait_for_text(page: Any, text: str, timeout_s: float = 30.0) -> float:
     """Seconds until `text` shows on the page (TimeoutError past `timeout_s`)."""
     started = time.perf_counter()
