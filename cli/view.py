@@ -12,8 +12,13 @@ from .options import INPUT_FILE, seed_option, seq_option
 
 @click.command("view", short_help="See a map, its importance, a prune or a share in the browser.")
 @click.argument("src", type=INPUT_FILE)
-@click.option("--port", type=click.IntRange(0, 65535), default=8080, show_default=True,
-              help="Port to serve the page on (0: any free one).")  # fmt: skip
+@click.option(
+    "--port",
+    type=click.IntRange(0, 65535),
+    default=8080,
+    show_default=True,
+    help="Port to serve the page on (taken: the next free one; 0: any free one).",
+)
 @click.option(
     "--host",
     default="127.0.0.1",

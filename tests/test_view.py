@@ -4,8 +4,11 @@ previews against the commands' own files, and the page itself in headless Chromi
 from __future__ import annotations
 
 import os
+import sys
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -303,6 +306,16 @@ def test_view_help_and_bad_input(tmp_path: Path) -> None:
     result = runner.invoke(cli, ["view", str(tmp_path / "bad.mcap"), "--port", "0"])
     assert result.exit_code == 1 and "bad.mcap" in result.output
     assert "Traceback" not in result.output
+
+
+def test_view_serves_until_stopped(tiny_log: Path, terminated: Callable[..., Any]) -> None:
+    pytest.importorskip("viser")
+    gsc = str(Path(sys.executable).parent / "gsc")
+    code, stderr = terminated([gsc, "view", str(tiny_log), "--port", "0"],
+                              lambda text: "gsc view: http://127.0.0.1:" in text)  # fmt: skip
+    port = int(stderr.split("gsc view: http://127.0.0.1:")[1].split()[0])
+    assert port > 0 and code == 0  # stopped cleanly: nothing to write, nothing interrupted
+    assert "Traceback" not in stderr
 
 
 def test_view_without_viser_names_the_extra(
