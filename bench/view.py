@@ -196,6 +196,7 @@ def main() -> None:
         **({} if args.skip_startup else startup_s(log, args.runs)),
         **browser_figures(log, args.count, args.seconds, viewport),
     }
+    figures["load_average_1min"] = os.getloadavg()[0]  # (the cores are shared: what else ran)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(figures, indent=2) + "\n")
     print(json.dumps(figures, indent=2))

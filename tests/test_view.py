@@ -183,6 +183,8 @@ def test_source_reads_snapshots_poses_and_keyframes(tiny_log: Path) -> None:
     assert source.poses.shape == source.poses_gt.shape == (FRAMES, 4, 4)
     assert source.poses[-1, 1, 3] == pytest.approx(0.02 * (FRAMES - 1))
     assert source.keyframes() == list(KEYFRAMES)
+    truth = source.keyframe_truth(source.keyframes())
+    np.testing.assert_allclose(truth, np.array(camera_path())[list(KEYFRAMES)], atol=1e-12)
     assert source.intrinsics is not None and source.intrinsics.width == 32
 
 
@@ -394,6 +396,12 @@ def test_viewer_follows_its_controls(tiny_log: Path, tmp_path: Path) -> None:
     viewer = MapViewer(tiny_log, ViewOptions(port=0, compare=other, out_dir=tmp_path))
     try:
         assert len(viewer.splats.centers) == 300
+        viewer.frustums_drawn.join()  # (drawn from a thread: the SLAM config may load torch)
+        assert [len(viewer._trajectory_nodes[k]) for k in ("frustums", "gt_frustums")] == [3, 3]
+        viewer.show_truth.value = False
+        viewer._on_trajectory_visibility()
+        assert not any(node.visible for node in viewer._trajectory_nodes["gt_frustums"])
+        assert all(node.visible for node in viewer._trajectory_nodes["frustums"])
         viewer.snapshot_slider.value = 0
         viewer._on_snapshot()
         viewer._redraw()
@@ -418,5 +426,24 @@ def test_viewer_follows_its_controls(tiny_log: Path, tmp_path: Path) -> None:
         written = tmp_path / "tiny_share5kB_compact.mcap"
         assert "wrote" in viewer.status.content and written.exists()
         assert written.stat().st_size == share.file_bytes
+    finally:
+        viewer.close()
+
+
+def test_solver_button_picks_a_codec(tiny_log: Path) -> None:
+    pytest.importorskip("viser")
+    from gscompress.view import MapViewer, ViewOptions
+    from gscompress.view.app import SELECTIONS
+
+    viewer = MapViewer(tiny_log, ViewOptions(port=0))
+    try:
+        viewer.budget.value = 6
+        viewer._on_solve()
+        status = viewer.status.content
+        assert "Solver (against the map renders" in status, status
+        assert status.count("\n| ") == 1 + 4  # a header and the four candidates
+        assert viewer.selection.value == SELECTIONS[1]
+        chosen = status.split("**")[1]  # the best candidate, named in bold
+        assert chosen == cuts.codec_label(viewer.codec.value, viewer.sums.value)
     finally:
         viewer.close()

@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 SELECTIONS = ("prune (keep ratio)", "share (byte budget)")
 COMPARE_MODES = ("A", "B", "A | B side by side", "B + share of A")
 CODECS = ("compact", "fp16", "fp32")
+ESTIMATE_RGB = (255, 140, 0)
+TRUTH_RGB = (40, 200, 80)
 
 
 def import_viser() -> Any:
@@ -338,9 +340,11 @@ class MapViewer:
 
     def _draw_trajectories(self) -> None:
         src = self.source
-        self._trajectory_nodes: dict[str, list[Any]] = {"est": [], "gt": [], "frustums": []}
-        for kind, poses, colour in (("est", src.poses, (255, 140, 0)),
-                                    ("gt", src.poses_gt, (40, 200, 80))):  # fmt: skip
+        self._trajectory_nodes: dict[str, list[Any]] = {
+            "est": [], "gt": [], "frustums": [], "gt_frustums": []
+        }  # fmt: skip
+        for kind, poses, colour in (("est", src.poses, ESTIMATE_RGB),
+                                    ("gt", src.poses_gt, TRUTH_RGB)):  # fmt: skip
             if len(poses) > 1:
                 node = self.server.scene.add_line_segments(
                     f"/trajectory/{kind}", scene.trajectory_segments(poses), colors=colour,
@@ -348,29 +352,36 @@ class MapViewer:
                 )  # fmt: skip
                 self._trajectory_nodes[kind].append(node)
         if len(src.poses):  # (keyframes may need the SLAM config: seconds, after start-up)
-            threading.Thread(target=self._draw_frustums, name="gsc-frustums", daemon=True).start()
+            self.frustums_drawn = threading.Thread(
+                target=self._draw_frustums, name="gsc-frustums", daemon=True
+            )
+            self.frustums_drawn.start()
 
     def _draw_frustums(self) -> None:
         src = self.source
         keyframes = src.keyframes()
-        wxyz, positions = scene.frustum_poses(src.poses[keyframes])
         camera = src.intrinsics
         fov = 2 * np.arctan2(camera.height / 2, camera.fy) if camera else np.pi / 3
         aspect = camera.width / camera.height if camera else 4 / 3
         extent = np.ptp(src.poses[:, :3, 3], axis=0).max() if len(src.poses) > 1 else 1.0
-        for i, (q, p) in enumerate(zip(wxyz, positions, strict=True)):
-            node = self.server.scene.add_camera_frustum(
-                f"/trajectory/keyframes/{i}", fov=float(fov), aspect=float(aspect),
-                scale=float(max(extent, 0.1) * 0.04), thickness=1.5, thickness_units="screen",
-                color=(255, 140, 0),
-                wxyz=q, position=p,
-            )  # fmt: skip
-            self._trajectory_nodes["frustums"].append(node)
+        truth = src.keyframe_truth(keyframes)
+        for kind, poses, colour in (("frustums", src.poses[keyframes], ESTIMATE_RGB),
+                                    ("gt_frustums", truth, TRUTH_RGB)):  # fmt: skip
+            wxyz, positions = scene.frustum_poses(poses)
+            for i, (q, p) in enumerate(zip(wxyz, positions, strict=True)):
+                node = self.server.scene.add_camera_frustum(
+                    f"/trajectory/{kind}/{i}", fov=float(fov), aspect=float(aspect),
+                    scale=float(max(extent, 0.1) * 0.04), thickness=1.5,
+                    thickness_units="screen", color=colour, wxyz=q, position=p,
+                )  # fmt: skip
+                self._trajectory_nodes[kind].append(node)
         self._on_trajectory_visibility()
 
     def _on_trajectory_visibility(self, *_args: Any) -> None:
+        frustums = self.show_frustums.value
         shown = {"est": self.show_estimate.value, "gt": self.show_truth.value,
-                 "frustums": self.show_frustums.value}  # fmt: skip
+                 "frustums": frustums and self.show_estimate.value,
+                 "gt_frustums": frustums and self.show_truth.value}  # fmt: skip
         for kind, nodes in self._trajectory_nodes.items():
             for node in nodes:
                 node.visible = shown[kind]
@@ -438,7 +449,7 @@ class MapViewer:
             else:
                 budget = Budget.parse(f"{int(self.budget.value)}kB")
                 codec, sums = self.codec.value, self.sums.value
-                dst = out / f"{src.stem}_share{budget}_{codec}.mcap"
+                dst = out / f"{src.stem}_share{budget}_{codec}{'' if sums else '_nosums'}.mcap"
                 result = cuts.write_share(src, self._source_pair(), dst, budget,
                                           strategy=strategy, codec=codec, sums=sums,
                                           seed=seed)  # fmt: skip

@@ -34,6 +34,7 @@ class MapSource:
         poses: [P, 4, 4] estimated camera-to-world poses (empty without).
         poses_gt: [G, 4, 4] ground-truth camera-to-world poses (empty without).
         pose_ns: [P] log times of the estimated poses.
+        pose_gt_ns: [G] log times of the ground-truth poses.
         recorded_keyframes: log times of the frames the log's stats mark as keyframes (None
             when they mark none: see `keyframes`).
         intrinsics: the log's camera, or None.
@@ -46,6 +47,7 @@ class MapSource:
     poses: np.ndarray
     poses_gt: np.ndarray
     pose_ns: np.ndarray
+    pose_gt_ns: np.ndarray
     recorded_keyframes: set[int] | None
     intrinsics: Intrinsics | None
     _maps: dict[int, GaussianMap] = field(default_factory=dict, repr=False)
@@ -62,8 +64,9 @@ class MapSource:
         empty = np.zeros((0, 4, 4))
         if path.suffix.lower() != ".mcap":
             gaussians = read_map_file(path)
-            return cls(path, False, LogMetadata(), np.zeros(1, np.int64), empty, empty,
-                       np.zeros(0, np.int64), None, None, {0: gaussians})  # fmt: skip
+            none = np.zeros(0, np.int64)
+            return cls(path, False, LogMetadata(), np.zeros(1, np.int64), empty, empty, none,
+                       none, None, None, {0: gaussians})  # fmt: skip
         with LogReader(path) as reader:
             count = reader.require_snapshots()
             times = np.array(
@@ -71,17 +74,24 @@ class MapSource:
             )
             last = reader.read_map()
             pose_ns, poses = reader.read_poses(TOPIC_POSE)
-            _gt_ns, poses_gt = reader.read_poses(TOPIC_POSE_GT)
+            gt_ns, poses_gt = reader.read_poses(TOPIC_POSE_GT)
             metadata = reader.metadata
             recorded = recorded_keyframes(reader)
             intrinsics = reader.read_intrinsics()
-        return cls(path, True, metadata, times, poses, poses_gt, pose_ns, recorded, intrinsics,
-                   {count - 1: last})  # fmt: skip
+        return cls(path, True, metadata, times, poses, poses_gt, pose_ns, gt_ns, recorded,
+                   intrinsics, {count - 1: last})  # fmt: skip
 
     def keyframes(self) -> list[int]:
         """Positions among `poses` of the log's keyframes (`KEYFRAME_RULE`; for a log whose
         stats mark none, by its SLAM config, which loads torch: seconds)."""
         return keyframe_positions(self.pose_ns, self.recorded_keyframes, self.metadata.config)
+
+    def keyframe_truth(self, keyframes: list[int]) -> np.ndarray:
+        """[K', 4, 4] the ground-truth poses at the log times of these keyframes (those that
+        have one)."""
+        at = {int(t): i for i, t in enumerate(self.pose_gt_ns)}
+        found = [at[int(t)] for t in self.pose_ns[keyframes] if int(t) in at]
+        return self.poses_gt[found]
 
     @property
     def snapshot_count(self) -> int:
