@@ -38,7 +38,8 @@ from gscompress.gaussians import GaussianMap
 from gscompress.pipeline.offline import rewrite_map
 
 ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_SOURCE = ROOT.parent.parent / "main" / "bench_out" / "codec" / "icl-living1.mcap"
+DEFAULT_SOURCE = ROOT / "bench_out" / "codec" / "icl-living1.mcap"
+"""A SLAM log `bench/codec.py` leaves (any log serves: --source)."""
 
 
 def tiled(gaussians: GaussianMap, count: int, seed: int = 0) -> GaussianMap:
@@ -181,6 +182,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "bench_out" / "view")
     parser.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "view.json")
     args = parser.parse_args()
+    if not args.source.is_file():
+        parser.error(f"no log {args.source}: give one with --source (bench/codec.py makes it)")
     args.out.mkdir(parents=True, exist_ok=True)
     log = grown_log(args.source, args.count, args.out)
     width, height = (int(v) for v in args.viewport.split("x"))
