@@ -12,12 +12,12 @@ JS := tests/js
 
 FUZZ_CASES ?= 10000
 
-.PHONY: install demo picture test test-fast lint format bench fuzz js-deps clean
+.PHONY: install demo picture test test-fast lint format bench fuzz js-deps screenshot clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q $(TORCH_PIP_ARGS) "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,view]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -64,6 +64,13 @@ bench: install
 # Structural fuzzing of every reader of untrusted files (the fast part runs in `make test`).
 fuzz: install
 	nice -n 10 $(PY) tests/fuzzing.py --cases $(FUZZ_CASES)
+
+# The README's picture of `gsc view`: its browser test (tiny map, headless Chromium), saved.
+screenshot: install
+	rm -f docs/images/viewer.png
+	GSC_VIEW_SCREENSHOT=docs/images/viewer.png GSC_REQUIRE_BROWSER=1 \
+		$(PY) -m pytest -q tests/test_view.py -k page_loads
+	test -s docs/images/viewer.png
 
 clean:
 	rm -rf $(VENV) $(JS)/node_modules build *.egg-info .pytest_cache .mypy_cache .ruff_cache demo_out

@@ -38,6 +38,7 @@ COMMANDS: dict[str, str] = {
     "render": "render:render",
     "merge": "merge:merge",
     "experiment": "experiment:experiment",
+    "view": "view:view",
 }
 
 
@@ -187,6 +188,7 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
       gsc export-ply a.mcap -o a.ply      open the map in any 3DGS viewer
       gsc export-traj a.mcap -o a.txt     the trajectory for evo (TUM text)
       gsc info a.mcap                     what a log holds
+      gsc view a.mcap                     see the map, a prune or a share in the browser
     """
     if threads is not None:
         set_threads(threads)

@@ -183,6 +183,9 @@ class ShareCut:
     """The share files of a log's map for one budget, strategy and codec: the file holding the
     K best Gaussians, written in memory, for any K (what a byte budget searches over).
 
+    `source` gives the map and metadata of `src` when they are already read (the viewer cuts
+    many shares of one map; a map file has no metadata: `LogMetadata()`).
+
     Attributes:
         full: the map shared from (the log's last snapshot).
     """
@@ -199,12 +202,14 @@ class ShareCut:
         refine: MapRefiner | None = None,
         solve: dict[str, Any] | None = None,
         command: str = "",
+        source: tuple[GaussianMap, LogMetadata] | None = None,
     ):
         self.src = Path(src)
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
-        with LogReader(src) as log_in:
-            self.full = log_in.read_map()
-            meta = log_in.metadata
+        if source is None:
+            with LogReader(src) as log_in:
+                source = log_in.read_map(), log_in.metadata
+        self.full, meta = source
         fp32_bytes = pointcloud_bytes(self.full, "fp32")(len(self.full))
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
@@ -273,6 +278,7 @@ def share_log(
     solve: dict[str, Any] | None = None,
     command: str = "",
     force: bool = False,
+    source: tuple[GaussianMap, LogMetadata] | None = None,
 ) -> dict[str, Any]:
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
 
@@ -301,6 +307,8 @@ def share_log(
             see `gscompress.pipeline.solve`).
         command: command line for the provenance record.
         force: overwrite existing outputs.
+        source: the map and metadata of `src` when they are already read (a map file's map,
+            with `LogMetadata()`: see `ShareCut`).
 
     Raises:
         InputError: bad budget, codec or strategy (OptionError: --ply equal to the MCAP
@@ -316,7 +324,7 @@ def share_log(
     for path, suffix in outputs:
         check_output(path, [src], force, suffix)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
-                   refine=refine, solve=solve, command=command)  # fmt: skip
+                   refine=refine, solve=solve, command=command, source=source)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
     if refine is not None:
         count = cut.refined(count, refine)

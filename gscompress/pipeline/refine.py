@@ -18,6 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader
@@ -183,6 +185,23 @@ def is_log_keyframe(
     if recorded is not None:
         return log_time_ns in recorded
     return is_keyframe(position, config.keyframes)
+
+
+def keyframe_positions(
+    pose_ns: np.ndarray, recorded: set[int] | None, config: dict[str, Any]
+) -> list[int]:
+    """Positions among a log's poses (log times `pose_ns`) of its keyframes (`KEYFRAME_RULE`;
+    `recorded` from `recorded_keyframes`, `config` the log's recorded SLAM config), or every
+    position when none is one. The SLAM config (and torch with it) is loaded only for a log
+    whose stats mark no keyframes."""
+    slam_config: Any = None
+    if recorded is None:
+        from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
+
+        slam_config = SlamConfig.from_dict(config) if config else preset(DEFAULT_PRESET)
+    return [
+        i for i, t in enumerate(pose_ns) if is_log_keyframe(i, int(t), recorded, slam_config)
+    ] or list(range(len(pose_ns)))
 
 
 def recorded_keyframes(reader: LogReader) -> set[int] | None:

@@ -132,8 +132,7 @@ def _views(
     """Poses of `views` keyframes spread over the log, with their images and valid-depth masks
     when `seq` is given (else None and all-pixel masks), and the intrinsics."""
     from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
-    from gscompress.pipeline.refine import is_log_keyframe, recorded_keyframes
-    from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
+    from gscompress.pipeline.refine import keyframe_positions, recorded_keyframes
 
     with LogReader(src) as reader:
         meta = reader.metadata
@@ -142,10 +141,7 @@ def _views(
         intrinsics = reader.read_intrinsics()
     if len(pose_ns) == 0:
         raise InputError(f"{src} has no {TOPIC_POSE}: the solver renders at the sender's poses")
-    config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
-    keyframes = [
-        i for i, t in enumerate(pose_ns) if is_log_keyframe(i, int(t), keyframe_ns, config)
-    ] or list(range(len(pose_ns)))
+    keyframes = keyframe_positions(pose_ns, keyframe_ns, meta.config)
     chosen = [keyframes[int(k)] for k in np.linspace(0, len(keyframes) - 1, views).round()]
     chosen = sorted(set(chosen))
     if seq is None:

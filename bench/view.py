@@ -1,0 +1,209 @@
+"""How fluid `gsc view` is on a large map: start-up, slider-to-scene latency, frame rate.
+
+A map of N Gaussians (default 100k) is grown from a SLAM log by tiling its map (each copy
+jittered by its Gaussians' own scales, with fresh ids; poses, calibration and stats kept).
+Then, with every splat drawn (no subsampling):
+
+- start-up: `gsc view LOG` run as a process, until it prints its address (the map read,
+  its covariances computed, the scene ready), against `gsc info LOG` (the same log read and
+  summarised) as the baseline; the median of --runs;
+- first scene: a headless Chromium (WebGL in SwiftShader, on the CPU) opening the page, until
+  the count shows and the first frame with the splats is rendered;
+- slider latency: the keep-ratio and byte-budget sliders moved in the page (typed into their
+  boxes), until the page shows the new count (the recoloured splats travel in the same flush);
+  the server's own share of it is reported beside;
+- frame rate: frames three.js renders per second while the camera orbits (mouse drags).
+
+Usage:
+    python bench/view.py [--source LOG] [--count 100000] [--json bench/results/view.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.gaussians import GaussianMap
+from gscompress.pipeline.offline import rewrite_map
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_SOURCE = ROOT / "bench_out" / "codec" / "icl-living1.mcap"
+"""A SLAM log `bench/codec.py` leaves (any log serves: --source)."""
+
+
+def tiled(gaussians: GaussianMap, count: int, seed: int = 0) -> GaussianMap:
+    """`count` Gaussians: copies of the map, each jittered by its Gaussians' scales, fresh ids."""
+    rng = np.random.default_rng(seed)
+    copies = -(-count // len(gaussians))
+    parts = []
+    for k in range(copies):
+        jitter = rng.normal(0.0, 1.0, gaussians.means.shape) * gaussians.scales() * (k > 0)
+        parts.append(replace(gaussians, means=gaussians.means + jitter))
+    ids = np.arange(copies * len(gaussians), dtype=np.uint32).reshape(copies, -1)
+    joined = GaussianMap.concat([replace(p, ids=i) for p, i in zip(parts, ids, strict=True)])
+    return joined.select(slice(0, count))
+
+
+def grown_log(source: Path, count: int, out: Path) -> Path:
+    """A copy of the log `source` whose map is tiled to `count` Gaussians (made once)."""
+    dst = out / f"{source.stem}_{count // 1000}k.mcap"
+    if not dst.exists():
+        rewrite_map(source, dst, {"name": "bench-tile", "count": count},
+                    lambda g: (tiled(g, count), {"gaussians": count}))  # fmt: skip
+    return dst
+
+
+def startup_s(log: Path, runs: int) -> dict[str, float]:
+    """Median seconds until `gsc view` prints its address, and `gsc info` as the baseline."""
+    gsc = str(Path(sys.executable).parent / "gsc")
+    view, info = [], []
+    for run in range(runs):
+        started = time.perf_counter()
+        subprocess.run([gsc, "info", str(log)], check=True, capture_output=True)
+        info.append(time.perf_counter() - started)
+        started = time.perf_counter()
+        command = [gsc, "view", str(log), "--port", str(8300 + run)]
+        proc = subprocess.Popen(
+            command, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True
+        )
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if line.startswith("gsc view: http"):
+                view.append(time.perf_counter() - started)
+                break
+        proc.terminate()
+        proc.wait(timeout=30)
+    return {"view_s": statistics.median(view), "info_s": statistics.median(info)}
+
+
+def frames_while_orbiting(page: Any, seconds: float) -> float:
+    """Frames per second three.js renders while the mouse drags the camera round."""
+    counter = "() => window.__viserTestpoints.rendererInfo.render.frame"
+    width, height = page.viewport_size["width"], page.viewport_size["height"]
+    x, y = width * 0.35, height * 0.5
+    page.mouse.move(x, y)
+    page.mouse.down()
+    first, started = page.evaluate(counter), time.perf_counter()
+    step = 0
+    while time.perf_counter() - started < seconds:
+        step += 1
+        page.mouse.move(x + 120 * np.sin(step / 15), y + 40 * np.cos(step / 15))
+        page.wait_for_timeout(10)
+    frames, elapsed = page.evaluate(counter) - first, time.perf_counter() - started
+    page.mouse.up()
+    return float(frames / elapsed)
+
+
+def browser_figures(
+    log: Path, count: int, seconds: float, viewport: tuple[int, int]
+) -> dict[str, Any]:
+    """First scene, slider latencies and frame rate in headless Chromium."""
+    from gscompress.view import MapViewer, ViewOptions, browser
+    from gscompress.view.app import SELECTIONS
+
+    viewer = MapViewer(log, ViewOptions(port=8290))
+    out: dict[str, Any] = {}
+    try:
+        started = time.perf_counter()
+        url = f"http://127.0.0.1:{viewer.port}"
+        with browser.open_page(url, *viewport) as (page, errors):
+            browser.wait_for_text(page, f"Kept {count:,} of {count:,}", 120)
+            out["page_count_shown_s"] = time.perf_counter() - started
+            page.wait_for_function(
+                "() => window.__viserTestpoints && "
+                "window.__viserTestpoints.rendererInfo.render.triangles > 0",
+                timeout=120_000,
+            )
+            out["first_frame_s"] = time.perf_counter() - started
+            browser.dismiss_notices(page)
+            keep_s, keep_server_s = [], []
+            for keep in (0.5, 0.3, 0.1, 0.7, 1.0):
+                moved = time.perf_counter()
+                browser.set_slider(page, "Keep ratio", keep)
+                kept = int(np.floor(keep * count + 0.5 + 1e-9))
+                browser.wait_for_text(page, f"Kept {kept:,} of {count:,}", 60)
+                keep_s.append(time.perf_counter() - moved)
+                keep_server_s.append(viewer.last_update_s)
+            out["keep_slider_s"] = statistics.median(keep_s)
+            out["keep_slider_server_s"] = statistics.median(keep_server_s)
+            out["fps_orbit"] = frames_while_orbiting(page, seconds)
+            viewer.selection.value = SELECTIONS[1]  # (as a click in its menu sets it)
+            budget_s, budget_server_s = [], []
+            for kb in (50, 200, 500, 100):
+                moved = time.perf_counter()
+                browser.set_slider(page, "Budget (kB)", kb)
+                browser.wait_for_text(page, f"of {kb * 1000:,} B in", 120)
+                budget_s.append(time.perf_counter() - moved)
+                budget_server_s.append(viewer.last_update_s)
+            out["budget_slider_s"] = statistics.median(budget_s)
+            out["budget_slider_server_s"] = statistics.median(budget_server_s)
+            out["console_errors"] = sorted(set(errors))
+            renderer = page.evaluate(
+                "() => { const g = document.createElement('canvas').getContext('webgl2');"
+                " const e = g.getExtension('WEBGL_debug_renderer_info');"
+                " return g.getParameter(e ? e.UNMASKED_RENDERER_WEBGL : g.RENDERER); }"
+            )
+            out["webgl_renderer"] = renderer
+    finally:
+        viewer.close()
+    return out
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux), else the machine type."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.machine()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--source", type=Path, default=DEFAULT_SOURCE)
+    parser.add_argument("--count", type=int, default=100_000)
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=5.0, help="orbiting time for the fps")
+    parser.add_argument("--viewport", default="1280x720", help="page size, WIDTHxHEIGHT")
+    parser.add_argument("--skip-startup", action="store_true", help="browser figures only")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench_out" / "view")
+    parser.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "view.json")
+    args = parser.parse_args()
+    if not args.source.is_file():
+        parser.error(f"no log {args.source}: give one with --source (bench/codec.py makes it)")
+    args.out.mkdir(parents=True, exist_ok=True)
+    log = grown_log(args.source, args.count, args.out)
+    width, height = (int(v) for v in args.viewport.split("x"))
+    viewport = (width, height)
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    figures: dict[str, Any] = {
+        "commit": commit,
+        "machine": f"{cpu_model()}, {os.cpu_count()} cores, no GPU in the browser",
+        "log": log.name,
+        "gaussians": args.count,
+        "viewport": args.viewport,
+        **({} if args.skip_startup else startup_s(log, args.runs)),
+        **browser_figures(log, args.count, args.seconds, viewport),
+    }
+    figures["load_average_1min"] = os.getloadavg()[0]  # (the cores are shared: what else ran)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    print(json.dumps(figures, indent=2))
+
+
+if __name__ == "__main__":
+    main()

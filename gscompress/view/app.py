@@ -1,0 +1,459 @@
+"""The viewer's web page (viser): the map as splats, its colourings, the live prune and share
+previews, the trajectories, the snapshots and a second map to compare.
+
+Every control only records what it wants; one worker thread redraws from the latest values,
+so a dragged slider never queues stale work behind it.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.errors import GscError, OptionError
+from gscompress.gaussians import GaussianMap
+from gscompress.io.mcap_log import decoded_map
+from gscompress.ops.budget import Budget
+from gscompress.ops.select import STRATEGIES
+from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC, ShareCut, smallest_share_bytes
+from gscompress.view import cuts, scene
+from gscompress.view.source import MapSource
+
+log = logging.getLogger(__name__)
+
+SELECTIONS = ("prune (keep ratio)", "share (byte budget)")
+COMPARE_MODES = ("A", "B", "A | B side by side", "B + share of A")
+CODECS = ("compact", "fp16", "fp32")
+ESTIMATE_RGB = (255, 140, 0)
+TRUTH_RGB = (40, 200, 80)
+
+
+def import_viser() -> Any:
+    """The viser module, or an OptionError saying how to install it."""
+    try:
+        import viser
+    except ImportError:
+        raise OptionError(
+            "gsc view needs viser, the optional [view] extra: pip install 'gscompress[view]'"
+        ) from None
+    return viser
+
+
+@dataclass(frozen=True)
+class ViewOptions:
+    """How the viewer is served.
+
+    Attributes:
+        host: the address it listens on (127.0.0.1: this machine only).
+        port: its port.
+        seq: the sequence the log was made from (the solver scores against its frames).
+        compare: a second log or map file, shown beside the first or on its own.
+        out_dir: where the write buttons put files.
+        seed: seed of the random strategy.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 8080
+    seq: Path | None = None
+    compare: Path | None = None
+    out_dir: Path = Path(".")
+    seed: int = 0
+
+
+class MapViewer:
+    """A running viewer of one log or map file (and optionally a second to compare).
+
+    Attributes:
+        server: the viser server.
+        source: the file viewed.
+        updates: how many times the splats were redrawn.
+        last_update_s: seconds the last redraw took, from the control's change to the scene
+            message queued.
+    """
+
+    def __init__(self, path: str | Path, options: ViewOptions = ViewOptions()):
+        viser = import_viser()
+        self.options = options
+        self.source = MapSource.open(path)
+        self.other = None if options.compare is None else MapSource.open(options.compare)
+        self.snapshot = self.source.snapshot_count - 1
+        self.gaussians = self.source.snapshot(self.snapshot)
+        self.updates, self.last_update_s = 0, 0.0
+        self._wanted = threading.Event()
+        self._requested_at = 0.0
+        self._lock = threading.Lock()
+        self._closed = False
+        self._drawn: dict[str, Any] = {}
+        self._share: cuts.SharePreview | None = None
+        self._share_key: tuple[Any, ...] | None = None
+        self.server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
+        # (no share button: a map stays on this machine unless a file is sent on purpose)
+        self.server.gui.configure_theme(control_width="large", show_share_button=False)
+        self.server.scene.set_up_direction("-y")  # (camera frames: +y down, +z forward)
+        self._build_gui()
+        self._load_map()
+        self._draw_trajectories()
+        self._place_camera()
+        self._redraw()
+        self._worker = threading.Thread(target=self._work, name="gsc-view", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def port(self) -> int:
+        """The port the viewer listens on."""
+        return int(self.server.get_port())
+
+    def close(self) -> None:
+        """Stop the server and the worker."""
+        self._closed = True
+        self._wanted.set()
+        self._worker.join(timeout=5)
+        self.server.stop()
+
+    def _request(self, *_args: Any) -> None:
+        """Ask the worker to redraw from the controls' latest values."""
+        self._requested_at = time.perf_counter()
+        self._wanted.set()
+
+    def _work(self) -> None:
+        while True:
+            self._wanted.wait()
+            if self._closed:
+                return
+            self._wanted.clear()
+            started = self._requested_at
+            try:
+                self._redraw()
+            except GscError as exc:
+                self._say(f"**{exc}**")
+            self.last_update_s = time.perf_counter() - started
+
+    def _say(self, text: str) -> None:
+        self.status.content = text
+
+    # ------------------------------------------------------------------ controls
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        src = self.source
+        gui.add_markdown(f"**{src.path.name}**" + (f" vs **{self.other.path.name}**"
+                                                    if self.other else ""))  # fmt: skip
+        self.map_info = gui.add_markdown("")
+        with gui.add_folder("Colour"):
+            self.colour = gui.add_dropdown("Colour by", scene.COLOUR_MODES, initial_value="rgb")
+            self.legend = gui.add_image(scene.legend_image(), label="importance", visible=False)
+            self.legend_text = gui.add_markdown("", visible=False)
+            self.hide_dropped = gui.add_checkbox("Hide dropped", True)
+        with gui.add_folder("Prune / share"):
+            scored = self.gaussians.has_importance
+            self.selection = gui.add_dropdown("Preview", SELECTIONS, initial_value=SELECTIONS[0])
+            self.strategy = gui.add_dropdown(
+                "Rank by", STRATEGIES, initial_value="pwas" if scored else "opacity"
+            )
+            self.keep = gui.add_slider("Keep ratio", 0.01, 1.0, 0.01, 1.0)
+            self.codec = gui.add_dropdown("Codec", CODECS, initial_value=DEFAULT_SHARE_CODEC)
+            self.sums = gui.add_checkbox("PWAS sums", True)
+            self.budget = gui.add_slider("Budget (kB)", 1, 2, 1, 2)
+            self.counts = gui.add_markdown("")
+            self.sizes = gui.add_markdown("")
+            self.solve = gui.add_button("Solve codec for this budget", visible=src.is_log)
+            self.write = gui.add_button("Write this prune / share")
+            self.status = gui.add_markdown("")
+        if src.snapshot_count > 1:
+            with gui.add_folder("Snapshots"):
+                self.snapshot_slider = gui.add_slider("Snapshot", 0, src.snapshot_count - 1, 1,
+                                                      src.snapshot_count - 1)  # fmt: skip
+                self.snapshot_slider.on_update(self._on_snapshot)
+        if len(src.poses) or len(src.poses_gt):
+            with gui.add_folder("Trajectory"):
+                self.show_estimate = gui.add_checkbox("Estimated (orange)", True)
+                self.show_truth = gui.add_checkbox("Ground truth (green)", len(src.poses_gt) > 0)
+                self.show_frustums = gui.add_checkbox("Keyframe cameras", True)
+                for box in (self.show_estimate, self.show_truth, self.show_frustums):
+                    box.on_update(self._on_trajectory_visibility)
+        self.compare = gui.add_dropdown("Show", COMPARE_MODES, initial_value=COMPARE_MODES[0],
+                                        visible=self.other is not None)  # fmt: skip
+        for control in (self.colour, self.hide_dropped, self.selection, self.strategy, self.keep,
+                        self.codec, self.sums, self.budget, self.compare):  # fmt: skip
+            control.on_update(self._request)
+        self.codec.on_update(self._on_codec)
+        self.sums.on_update(self._on_codec)
+        self.solve.on_click(self._on_solve)
+        self.write.on_click(self._on_write)
+
+    def _budget_range(self) -> None:
+        """Fit the budget slider to the map: from the smallest share file to the whole map's,
+        in the chosen codec."""
+        codec, sums = self.codec.value, self.sums.value
+        smallest = smallest_share_bytes(codec)
+        whole = ShareCut(self.source.path, Budget(ratio=1.0), codec=codec, sums=sums,
+                         source=self._source_pair()).size(len(self.gaussians))  # fmt: skip
+        low, high = int(np.ceil(smallest / 1000)) + 1, max(int(np.ceil(whole / 1000)), 3)
+        self.budget.min, self.budget.max = low, high
+        if not low <= self.budget.value <= high:
+            self.budget.value = int(np.clip(round(high * 0.1), low, high))
+
+    def _on_codec(self, *_args: Any) -> None:
+        with self._lock:
+            self._budget_range()
+        self._request()
+
+    def _on_snapshot(self, *_args: Any) -> None:
+        with self._lock:
+            self.snapshot = int(self.snapshot_slider.value)
+            self.gaussians = self.source.snapshot(self.snapshot)
+            self._load_map()
+        self._request()
+
+    # ------------------------------------------------------------------ the map
+
+    def _source_pair(self) -> tuple[GaussianMap, Any]:
+        return self.gaussians, self.source.metadata
+
+    def _load_map(self) -> None:
+        """Draw the current snapshot: its splats (geometry once; colours by `_redraw`)."""
+        g = self.gaussians
+        self.scores = g.importance.astype(np.float64) if g.has_importance else None
+        self.scale = None if self.scores is None else scene.LogScale.of(self.scores)
+        if self.scale is not None:
+            self.legend_text.content = (
+                f"log10 PWAS score: {self.scale.low:.2f} (left) to {self.scale.high:.2f} "
+                "(right), 1st to 99th percentile"
+            )
+        times = self.source.snapshot_times_ns
+        when = f" at {(times[self.snapshot] - times[0]) / 1e9:.1f} s" if len(times) > 1 else ""
+        self.map_info.content = (
+            f"Snapshot {self.snapshot + 1} of {len(times)}{when}: {len(g):,} Gaussians, "
+            f"{'scored' if g.has_importance else 'no PWAS scores'}"
+        )
+        self._geometry = (g.means, scene.covariances(g))
+        self._drawn.pop("a", None)
+        self._share_key = None
+        self._budget_range()
+        if self.other is not None and "b" not in self._drawn:
+            b = self.other.snapshot()
+            self.splats_b = self.server.scene.add_gaussian_splats(
+                "/map_b", centers=b.means, covariances=scene.covariances(b), rgbs=b.colors(),
+                opacities=b.opacities()[:, None], visible=False,
+            )  # fmt: skip
+            self._drawn["b"] = True
+
+    def _current_selection(self) -> np.ndarray:
+        """[N] bool: what the chosen preview keeps (and its counts and sizes shown)."""
+        g, strategy, seed = self.gaussians, self.strategy.value, self.options.seed
+        if self.selection.value == SELECTIONS[0]:
+            keep = float(self.keep.value)
+            kept = cuts.kept_by_prune(g, keep, strategy, seed)
+            self.counts.content = (
+                f"Kept {int(kept.sum()):,} of {len(g):,} Gaussians ({kept.mean():.1%}) by "
+                f"{strategy}: `gsc prune --keep {keep:g} --by {strategy}`"
+            )
+            self.sizes.content = ""
+            return kept
+        budget = Budget.parse(f"{int(self.budget.value)}kB")
+        key = (self.snapshot, str(budget), strategy, self.codec.value, self.sums.value)
+        if key != self._share_key or self._share is None:
+            self._share = cuts.preview_share(
+                self.source.path, self._source_pair(), budget, strategy=strategy,
+                codec=self.codec.value, sums=self.sums.value, seed=seed,
+            )  # fmt: skip
+            self._share_key = key
+        share = self._share
+        self.counts.content = (
+            f"Sent {share.count:,} of {len(g):,} Gaussians ({share.count / len(g):.1%}) by "
+            f"{strategy}: {share.file_bytes:,} B of {budget.budget_bytes:,} B in "
+            f"{cuts.codec_label(share.codec, share.sums)}: `gsc share --budget {budget}`"
+        )
+        self.sizes.content = "The same Gaussians in each codec:\n\n" + "\n".join(
+            f"- {label}: {size:,} B" for label, size in share.sizes.items()
+        )
+        return share.kept
+
+    def _redraw(self) -> None:
+        """Recolour the splats from the controls (one buffer message when anything changed)."""
+        with self._lock:
+            try:
+                kept = self._current_selection()
+            except GscError as exc:
+                kept = np.ones(len(self.gaussians), bool)
+                self.counts.content = f"**{exc}**"
+            mode = self.colour.value
+            if mode == "importance" and self.scores is None:
+                self._say("**this map has no PWAS scores to colour by**")
+                mode = "rgb"
+            self.legend.visible = self.legend_text.visible = mode == "importance"
+            key = (self.snapshot, mode, self.hide_dropped.value, kept.tobytes())
+            if self._drawn.get("a") != key:
+                rgbs = scene.splat_colours(self.gaussians, mode, kept, self.scores, self.scale)
+                opacities = scene.splat_opacities(self.gaussians, kept, self.hide_dropped.value)
+                if "a" not in self._drawn:  # a new map: its geometry with its colours
+                    self.splats = self.server.scene.add_gaussian_splats(
+                        "/map_a", *self._geometry, rgbs=rgbs, opacities=opacities
+                    )
+                else:  # the same map: only the colour words change
+                    buffer = self.splats.buffer.copy()
+                    buffer[:, 7] = scene.rgba_words(rgbs, opacities)
+                    self.splats.buffer = buffer
+                self._drawn["a"] = key
+                self.updates += 1
+            self._show_compare()
+
+    def _show_compare(self) -> None:
+        """Show A, B, both side by side, or B with A's current share."""
+        if self.other is None:
+            return
+        mode = self.compare.value
+        self.splats.visible = mode in (COMPARE_MODES[0], COMPARE_MODES[2])
+        self.splats_b.visible = mode != COMPARE_MODES[0]
+        offset = 0.0
+        if mode == COMPARE_MODES[2]:
+            a, b = self.gaussians.means, self.other.snapshot().means
+            offset = float(a[:, 0].max() - b[:, 0].min()) * 1.1 if len(a) and len(b) else 0.0
+        self.splats_b.position = (offset, 0.0, 0.0)
+        share_node = self._drawn.get("share_node")
+        if mode != COMPARE_MODES[3]:
+            if share_node is not None:
+                share_node.visible = False
+            return
+        share = self._share
+        if share is None or self.selection.value != SELECTIONS[1]:
+            self._say("choose the share preview to see B with A's share")
+            return
+        received = decoded_map(share.shared, share.codec, sums=share.sums)
+        if self._drawn.get("share_key") != self._share_key:
+            self._drawn["share_node"] = self.server.scene.add_gaussian_splats(
+                "/share_on_b", centers=received.means, covariances=scene.covariances(received),
+                rgbs=received.colors(), opacities=received.opacities()[:, None],
+            )  # fmt: skip
+            self._drawn["share_key"] = self._share_key
+        self._drawn["share_node"].visible = True
+
+    # ------------------------------------------------------------------ trajectories
+
+    def _draw_trajectories(self) -> None:
+        src = self.source
+        self._trajectory_nodes: dict[str, list[Any]] = {
+            "est": [], "gt": [], "frustums": [], "gt_frustums": []
+        }  # fmt: skip
+        for kind, poses, colour in (("est", src.poses, ESTIMATE_RGB),
+                                    ("gt", src.poses_gt, TRUTH_RGB)):  # fmt: skip
+            if len(poses) > 1:
+                node = self.server.scene.add_line_segments(
+                    f"/trajectory/{kind}", scene.trajectory_segments(poses), colors=colour,
+                    thickness=2.0, thickness_units="screen",
+                )  # fmt: skip
+                self._trajectory_nodes[kind].append(node)
+        if len(src.poses):  # (keyframes may need the SLAM config: seconds, after start-up)
+            self.frustums_drawn = threading.Thread(
+                target=self._draw_frustums, name="gsc-frustums", daemon=True
+            )
+            self.frustums_drawn.start()
+
+    def _draw_frustums(self) -> None:
+        src = self.source
+        keyframes = src.keyframes()
+        camera = src.intrinsics
+        fov = 2 * np.arctan2(camera.height / 2, camera.fy) if camera else np.pi / 3
+        aspect = camera.width / camera.height if camera else 4 / 3
+        extent = np.ptp(src.poses[:, :3, 3], axis=0).max() if len(src.poses) > 1 else 1.0
+        truth = src.keyframe_truth(keyframes)
+        for kind, poses, colour in (("frustums", src.poses[keyframes], ESTIMATE_RGB),
+                                    ("gt_frustums", truth, TRUTH_RGB)):  # fmt: skip
+            wxyz, positions = scene.frustum_poses(poses)
+            for i, (q, p) in enumerate(zip(wxyz, positions, strict=True)):
+                node = self.server.scene.add_camera_frustum(
+                    f"/trajectory/{kind}/{i}", fov=float(fov), aspect=float(aspect),
+                    scale=float(max(extent, 0.1) * 0.04), thickness=1.5,
+                    thickness_units="screen", color=colour, wxyz=q, position=p,
+                )  # fmt: skip
+                self._trajectory_nodes[kind].append(node)
+        self._on_trajectory_visibility()
+
+    def _on_trajectory_visibility(self, *_args: Any) -> None:
+        frustums = self.show_frustums.value
+        shown = {"est": self.show_estimate.value, "gt": self.show_truth.value,
+                 "frustums": frustums and self.show_estimate.value,
+                 "gt_frustums": frustums and self.show_truth.value}  # fmt: skip
+        for kind, nodes in self._trajectory_nodes.items():
+            for node in nodes:
+                node.visible = shown[kind]
+
+    def _place_camera(self) -> None:
+        """Start the browser's camera behind the first pose of the log, looking along it (or,
+        without poses, in front of the map)."""
+        camera = self.server.initial_camera
+        means = self.gaussians.means.astype(np.float64)
+        extent = float(np.ptp(means, axis=0).max()) if len(means) else 1.0
+        if len(self.source.poses):
+            T = self.source.poses[0]
+            forward, down = T[:3, 2], T[:3, 1]
+            position = T[:3, 3] - (forward + 0.5 * down) * 0.3 * extent
+            look_at, up = T[:3, 3] + forward * 0.5 * extent, -down
+        else:
+            look_at = np.median(means, axis=0) if len(means) else np.zeros(3)
+            position = look_at + np.array([0.0, -0.3, -1.2]) * extent
+            up = np.array([0.0, -1.0, 0.0])
+        camera.position = tuple(float(v) for v in position)
+        camera.look_at = tuple(float(v) for v in look_at)
+        camera.up = tuple(float(v) for v in up)
+
+    # ------------------------------------------------------------------ buttons
+
+    def _on_solve(self, *_args: Any) -> None:
+        from gscompress.pipeline.solve import solve_share
+
+        budget = Budget.parse(f"{int(self.budget.value)}kB")
+        self._say(f"solving for {budget} (rendering candidates)...")
+        try:
+            best, weighed, record = solve_share(
+                self.source.path, budget, strategy=self.strategy.value, seed=self.options.seed,
+                seq=self.options.seq,
+            )  # fmt: skip
+        except GscError as exc:
+            self._say(f"**{exc}**")
+            return
+        rows = "\n".join(
+            f"| {cuts.codec_label(c.codec, c.sums)} | {c.count:,} | {c.file_bytes:,} | "
+            f"{c.psnr:.2f} |"
+            for c in weighed
+        )
+        self._say(
+            f"Solver (against the {record['against']}, {record['views']} views): "
+            f"**{cuts.codec_label(best.codec, best.sums)}**\n\n"
+            f"| codec | Gaussians | bytes | PSNR |\n|---|---|---|---|\n{rows}"
+        )
+        self.selection.value = SELECTIONS[1]
+        self.codec.value, self.sums.value = best.codec, best.sums
+        self._on_codec()
+
+    def _on_write(self, *_args: Any) -> None:
+        src, seed, strategy = self.source.path, self.options.seed, self.strategy.value
+        try:
+            if self.snapshot != self.source.snapshot_count - 1:
+                raise OptionError("prune and share cut the map, the last snapshot: show it first")
+            out = self.options.out_dir
+            if self.selection.value == SELECTIONS[0]:
+                keep = float(self.keep.value)
+                suffix = ".mcap" if self.source.is_log else ".ply"
+                dst = out / f"{src.stem}_keep{keep:g}_{strategy}{suffix}"
+                result = cuts.write_prune(src, self._source_pair(), self.source.is_log, dst,
+                                          keep, strategy, seed)  # fmt: skip
+            else:
+                budget = Budget.parse(f"{int(self.budget.value)}kB")
+                codec, sums = self.codec.value, self.sums.value
+                dst = out / f"{src.stem}_share{budget}_{codec}{'' if sums else '_nosums'}.mcap"
+                result = cuts.write_share(src, self._source_pair(), dst, budget,
+                                          strategy=strategy, codec=codec, sums=sums,
+                                          seed=seed)  # fmt: skip
+        except (GscError, OSError) as exc:
+            self._say(f"**not written: {exc}**")
+            return
+        self._say(f"wrote `{result['output']}`")

@@ -1,0 +1,134 @@
+"""The prune and share the viewer previews, cut by the code `gsc prune` and `gsc share` run
+(`select_top`, `ShareCut`), and written by it (`prune_log`, `share_log`)."""
+
+from __future__ import annotations
+
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gscompress.gaussians import GaussianMap
+from gscompress.io.files import check_output
+from gscompress.io.map_files import write_map_file
+from gscompress.io.mcap_log import LogMetadata
+from gscompress.ops.budget import Budget
+from gscompress.ops.select import select_top
+from gscompress.pipeline.offline import ShareCut, prune_log, share_log
+
+SHARE_CODECS = (("compact", True), ("compact", False), ("fp16", True), ("fp32", True))
+"""(codec, sums) pairs a share's size is shown in."""
+
+
+def codec_label(codec: str, sums: bool) -> str:
+    """How a (codec, sums) pair is named in the viewer: `compact`, `compact, no sums`..."""
+    return codec if sums else f"{codec}, no sums"
+
+
+def prune_command(src: Path, keep: float, by: str, seed: int) -> str:
+    """The `gsc prune` command line a prune in the viewer stands for (its provenance)."""
+    return shlex.join(["gsc", "prune", src.name, "--keep", f"{keep:g}", "--by", by,
+                       "--seed", str(seed)])  # fmt: skip
+
+
+def share_command(src: Path, budget: Budget, strategy: str, codec: str, sums: bool,
+                  seed: int) -> str:  # fmt: skip
+    """The `gsc share` command line a share in the viewer stands for (its provenance: recorded
+    in the file, so the preview's bytes are those written)."""
+    words = ["gsc", "share", src.name, "--budget", str(budget), "--strategy", strategy,
+             "--codec", codec, "--seed", str(seed)]  # fmt: skip
+    return shlex.join([*words, *([] if sums else ["--no-sums"])])
+
+
+def kept_by_prune(gaussians: GaussianMap, keep: float, by: str, seed: int) -> np.ndarray:
+    """[N] bool: the Gaussians `gsc prune --keep KEEP --by BY` keeps."""
+    mask = np.zeros(len(gaussians), bool)
+    mask[select_top(gaussians, keep, by, seed)[1]] = True
+    return mask
+
+
+@dataclass(frozen=True)
+class SharePreview:
+    """What `gsc share --budget B` would send.
+
+    Attributes:
+        budget: the budget.
+        codec, sums: how it is sent.
+        kept: [N] bool, the Gaussians it sends.
+        file_bytes: bytes of the share file.
+        sizes: bytes of the file of the same Gaussians in each of `SHARE_CODECS` (by label).
+        shared: the Gaussians sent, as selected (before encoding).
+    """
+
+    budget: Budget
+    codec: str
+    sums: bool
+    kept: np.ndarray
+    file_bytes: int
+    sizes: dict[str, int]
+    shared: GaussianMap
+
+    @property
+    def count(self) -> int:
+        """How many Gaussians the share holds."""
+        return len(self.shared)
+
+
+def preview_share(
+    src: Path,
+    source: tuple[GaussianMap, LogMetadata],
+    budget: Budget,
+    *,
+    strategy: str,
+    codec: str,
+    sums: bool,
+    seed: int,
+) -> SharePreview:
+    """The share `gsc share --budget BUDGET` would cut of the map `source` (of `src`): the count
+    its byte search finds, and the size of that share in every codec.
+
+    Raises:
+        BudgetError: the budget holds no Gaussian, or the map has no such scores.
+    """
+
+    def cut(codec: str, sums: bool) -> ShareCut:
+        command = share_command(src, budget, strategy, codec, sums, seed)
+        return ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
+                        command=command, source=source)  # fmt: skip
+
+    chosen = cut(codec, sums)
+    count = chosen.budget.count(len(chosen.full), chosen.size)
+    data, shared, _results = chosen.file(count)
+    sizes = {
+        codec_label(c, s): len(data) if (c, s) == (codec, sums) else cut(c, s).size(count)
+        for c, s in SHARE_CODECS
+    }
+    kept = np.isin(source[0].ids, shared.ids)
+    return SharePreview(budget, codec, sums, kept, len(data), sizes, shared)
+
+
+def write_prune(
+    src: Path, source: tuple[GaussianMap, LogMetadata], is_log: bool, dst: Path, keep: float,
+    by: str, seed: int,
+) -> dict[str, Any]:  # fmt: skip
+    """Write the prune of `src` as `gsc prune` does (a log; for a map file, the kept Gaussians
+    as a map file named by `dst`'s suffix)."""
+    command = prune_command(src, keep, by, seed)
+    if is_log:
+        return prune_log(src, dst, keep, by=by, seed=seed, command=command)
+    check_output(dst, [src], False, dst.suffix.lower() or ".ply")
+    kept, _ = select_top(source[0], keep, by, seed)
+    write_map_file(kept, dst, inputs=(src,))
+    return {"output": str(dst), "kept": len(kept), "total": len(source[0])}
+
+
+def write_share(
+    src: Path, source: tuple[GaussianMap, LogMetadata], dst: Path, budget: Budget, *,
+    strategy: str, codec: str, sums: bool, seed: int,
+) -> dict[str, Any]:  # fmt: skip
+    """Write the share of `src` as `gsc share` does (`share_log`)."""
+    command = share_command(src, budget, strategy, codec, sums, seed)
+    return share_log(src, dst, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
+                     command=command, source=source)  # fmt: skip

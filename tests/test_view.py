@@ -1,0 +1,449 @@
+"""`gsc view`: what the viewer draws (colours, covariances, frustums), the prune and share it
+previews against the commands' own files, and the page itself in headless Chromium."""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
+from gscompress.gaussians import SH_C0, GaussianMap, random_map
+from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
+from gscompress.io.ply import write_ply
+from gscompress.ops.budget import Budget
+from gscompress.ops.select import select_top
+from gscompress.pipeline.offline import share_log
+from gscompress.view import cuts, scene
+from gscompress.view.source import MapSource
+from gscompress_cli.main import cli
+
+FRAMES = 6
+KEYFRAMES = (0, 2, 4)
+
+
+def camera_path(frames: int = FRAMES, drift: float = 0.0) -> list[np.ndarray]:
+    """Camera-to-world poses stepping along x and turning a little, `drift` m off in y."""
+    poses = []
+    for i in range(frames):
+        angle = 0.05 * i
+        R = quat_to_rotmat(np.array([np.cos(angle / 2), 0.0, np.sin(angle / 2), 0.0]))
+        poses.append(make_transform(R, np.array([0.1 * i, drift * i, -3.0])))
+    return poses
+
+
+def room_corner(n: int = 300, seed: int = 0) -> GaussianMap:
+    """A scored, anisotropic map of `n` Gaussians on a back wall, a floor and a side wall in
+    front of `camera_path`'s cameras (something a screenshot shows as a scene)."""
+    rng = np.random.default_rng(seed)
+    g = random_map(n, seed=seed, isotropic=False)
+    u, v = rng.uniform(0.0, 1.0, (2, n))
+    face = np.arange(n) % 3
+    means = np.where(
+        (face == 0)[:, None],
+        np.stack([3 * u - 1.5, 2 * v - 1.0, np.zeros(n)], 1),  # back wall
+        np.where(
+            (face == 1)[:, None],
+            np.stack([3 * u - 1.5, np.ones(n), -1.5 * v], 1),  # floor (+y is down)
+            np.stack([np.full(n, -1.5), 2 * v - 1.0, -1.5 * u], 1),  # side wall
+        ),
+    )
+    palette = np.array([[0.25, 0.45, 0.85], [0.85, 0.55, 0.25], [0.35, 0.75, 0.4]])
+    rgb = np.clip(palette[face] * (0.7 + 0.5 * u)[:, None], 0.0, 1.0)
+    return replace(
+        g,
+        means=means,
+        log_scales=np.log(rng.uniform(0.05, 0.12, (n, 3))),
+        opacity_logits=rng.uniform(1.5, 4.0, n),
+        sh_dc=(rgb - 0.5) / SH_C0,
+    )
+
+
+def write_tiny_log(path: Path, n: int = 300, seed: int = 0, stats: bool = True) -> GaussianMap:
+    """A log of a `n`-Gaussian map (`room_corner`) with an earlier snapshot of its first 200,
+    estimated and ground-truth poses, a camera and (if `stats`) keyframe marks."""
+    gaussians = room_corner(n, seed)
+    with LogWriter(path, LogMetadata(command="test")) as out:
+        out.write_calibration(Intrinsics(40.0, 40.0, 15.5, 11.5, 32, 24), 0)
+        for i, (est, gt) in enumerate(zip(camera_path(drift=0.02), camera_path(), strict=True)):
+            t = (i + 1) * 100_000_000
+            out.write_pose(est, t)
+            out.write_pose(gt, t, ground_truth=True)
+            if stats:
+                record = {"frame": i, "gaussians": n, "keyframe": i in KEYFRAMES}
+                out.write_stats(record, t)
+        out.write_gaussians(gaussians.select(slice(0, 200)), 300_000_000)
+        out.write_gaussians(gaussians, FRAMES * 100_000_000)
+    return gaussians
+
+
+@pytest.fixture(scope="module")
+def tiny_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("view") / "tiny.mcap"
+    write_tiny_log(path)
+    return path
+
+
+# ---------------------------------------------------------------------- what is drawn
+
+
+def test_covariances_are_rotated_squared_scales() -> None:
+    g = random_map(50, seed=3, isotropic=False)
+    cov = scene.covariances(g)
+    R = quat_to_rotmat(g.quats)
+    for i in (0, 17, 49):
+        expected = R[i] @ np.diag(np.exp(2.0 * g.log_scales[i].astype(np.float64))) @ R[i].T
+        np.testing.assert_allclose(cov[i], expected, rtol=1e-5, atol=1e-12)
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2), rtol=1e-6, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(cov.astype(np.float64)) > 0)
+
+
+def test_isotropic_covariance_is_diagonal() -> None:
+    g = random_map(20, seed=4, isotropic=True)
+    cov = scene.covariances(g)
+    variances = np.exp(2.0 * g.log_scales[:, 0])
+    np.testing.assert_allclose(cov, variances[:, None, None] * np.eye(3), rtol=1e-5, atol=1e-9)
+
+
+def test_importance_colours_follow_a_log_scale() -> None:
+    scores = np.array([0.0, 1e-4, 1e-3, 1e-2, 1e-1, 1.0])
+    scale = scene.LogScale.of(np.logspace(-4, 0, 101))
+    unit = scale.unit(scores)
+    assert unit[0] == 0.0  # an unscored Gaussian takes the lowest colour
+    assert unit[1] == 0.0 and unit[-1] == 1.0  # beyond the 1st and 99th percentiles: clipped
+    assert np.all(np.diff(unit[1:]) > 0)  # each decade brighter...
+    np.testing.assert_allclose(np.diff(unit[2:5]), np.diff(unit[2:5])[0], rtol=1e-6)  # evenly
+    colours = scene.colormap(unit)
+    lightness = colours @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    assert np.all(np.diff(lightness[1:]) > 0)  # perceptual: lightness rises with the score
+    legend = scene.legend_image(64, 5)
+    assert legend.shape == (5, 64, 3) and legend.dtype == np.uint8
+    np.testing.assert_array_equal(legend[0, 0], (scene.colormap(np.zeros(1))[0] * 255).round())
+
+
+def test_kept_and_dropped_colours_and_hidden_splats() -> None:
+    g = random_map(10, seed=1)
+    kept = np.arange(10) < 4
+    colours = scene.splat_colours(g, "kept / dropped", kept)
+    np.testing.assert_array_equal(colours[:4], np.tile(scene.KEPT_RGB, (4, 1)))
+    np.testing.assert_array_equal(colours[4:], np.tile(scene.DROPPED_RGB, (6, 1)))
+    np.testing.assert_array_equal(scene.splat_colours(g, "rgb", kept), g.colors())
+    hidden = scene.splat_opacities(g, kept, hide_dropped=True)
+    assert hidden.shape == (10, 1)
+    np.testing.assert_array_equal(hidden[4:], 0.0)
+    np.testing.assert_array_equal(hidden[:4, 0], g.opacities()[:4])
+    np.testing.assert_array_equal(scene.splat_opacities(g, kept, False)[:, 0], g.opacities())
+    with pytest.raises(ValueError, match="unknown colour mode"):
+        scene.splat_colours(g, "depth", kept)
+
+
+def test_rgba_words_pack_like_the_splat_buffer() -> None:
+    rgbs = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.0]], np.float32)
+    opacities = np.array([[1.0], [0.2]], np.float32)
+    words = scene.rgba_words(rgbs, opacities)
+    assert words.dtype == np.uint32 and words.shape == (2,)
+    bytes_ = words.view(np.uint8).reshape(2, 4)
+    np.testing.assert_array_equal(bytes_, [[255, 0, 127, 255], [0, 255, 0, 51]])
+    viser = pytest.importorskip("viser")  # the same bytes viser packs itself
+    server = viser.ViserServer(port=0, verbose=False)
+    try:
+        handle = server.scene.add_gaussian_splats(
+            "/x", centers=np.zeros((2, 3)), covariances=np.tile(np.eye(3), (2, 1, 1)) * 0.01,
+            rgbs=rgbs, opacities=opacities,
+        )  # fmt: skip
+        np.testing.assert_array_equal(handle.buffer[:, 7], words)
+    finally:
+        server.stop()
+
+
+def test_frustum_poses_round_trip() -> None:
+    poses = np.array(camera_path())
+    wxyz, positions = scene.frustum_poses(poses)
+    np.testing.assert_allclose(quat_to_rotmat(wxyz), poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_array_equal(positions, poses[:, :3, 3])
+    segments = scene.trajectory_segments(poses)
+    assert segments.shape == (FRAMES - 1, 2, 3)
+    np.testing.assert_allclose(segments[2, 1], poses[3, :3, 3], rtol=1e-6)
+
+
+# ---------------------------------------------------------------------- what is read
+
+
+def test_source_reads_snapshots_poses_and_keyframes(tiny_log: Path) -> None:
+    source = MapSource.open(tiny_log)
+    assert source.is_log and source.snapshot_count == 2
+    assert len(source.snapshot()) == 300 and len(source.snapshot(0)) == 200
+    assert source.poses.shape == source.poses_gt.shape == (FRAMES, 4, 4)
+    assert source.poses[-1, 1, 3] == pytest.approx(0.02 * (FRAMES - 1))
+    assert source.keyframes() == list(KEYFRAMES)
+    truth = source.keyframe_truth(source.keyframes())
+    np.testing.assert_allclose(truth, np.array(camera_path())[list(KEYFRAMES)], atol=1e-12)
+    assert source.intrinsics is not None and source.intrinsics.width == 32
+
+
+def test_source_reads_a_map_file(tmp_path: Path) -> None:
+    g = random_map(40, seed=2)
+    write_ply(g, tmp_path / "m.ply")
+    source = MapSource.open(tmp_path / "m.ply")
+    assert not source.is_log and source.snapshot_count == 1
+    assert source.snapshot().equals(read_map_file_of(tmp_path / "m.ply"))
+    assert len(source.poses) == 0 and source.keyframes() == []
+
+
+def read_map_file_of(path: Path) -> GaussianMap:
+    from gscompress.io.map_files import read_map_file
+
+    return read_map_file(path)
+
+
+# ---------------------------------------------------------------------- the previews
+
+
+@pytest.mark.parametrize(("keep", "by"), [(0.3, "pwas"), (0.55, "opacity"), (1.0, "alpha-t")])
+def test_prune_preview_is_what_prune_keeps(tiny_log: Path, keep: float, by: str) -> None:
+    g = read_map(tiny_log)
+    kept = cuts.kept_by_prune(g, keep, by, seed=0)
+    _pruned, index = select_top(g, keep, by)
+    assert kept.sum() == len(index) == round(keep * 300)
+    np.testing.assert_array_equal(np.flatnonzero(kept), index)
+
+
+def test_prune_button_writes_what_prune_writes(tiny_log: Path, tmp_path: Path) -> None:
+    source = MapSource.open(tiny_log)
+    pair = (source.snapshot(), source.metadata)
+    result = cuts.write_prune(tiny_log, pair, True, tmp_path / "p.mcap", 0.4, "pwas", 0)
+    assert result["kept"] == 120
+    written = read_map(tmp_path / "p.mcap")
+    expected, _ = select_top(pair[0], 0.4, "pwas")
+    assert written.equals(expected)
+    with LogReader(tmp_path / "p.mcap") as reader:
+        assert reader.metadata.provenance[-1]["operation"]["keep"] == 0.4
+        assert reader.metadata.command.startswith("gsc prune tiny.mcap --keep 0.4")
+
+
+def test_prune_button_on_a_map_file_writes_a_map_file(tmp_path: Path) -> None:
+    g = random_map(50, seed=5)
+    write_ply(g, tmp_path / "m.ply")
+    source = MapSource.open(tmp_path / "m.ply")
+    pair = (source.snapshot(), source.metadata)
+    cuts.write_prune(tmp_path / "m.ply", pair, False, tmp_path / "k.ply", 0.2, "opacity", 0)
+    written = read_map_file_of(tmp_path / "k.ply")
+    assert len(written) == 10
+    assert np.array_equal(np.sort(written.ids), np.sort(select_top(g, 0.2, "opacity")[0].ids))
+
+
+@pytest.mark.parametrize(("codec", "sums"), [("compact", True), ("compact", False), ("fp16", True)])
+def test_share_preview_is_the_file_share_writes(
+    tiny_log: Path, tmp_path: Path, codec: str, sums: bool
+) -> None:
+    source = MapSource.open(tiny_log)
+    pair = (source.snapshot(), source.metadata)
+    budget = Budget.parse("4kB")
+    preview = cuts.preview_share(tiny_log, pair, budget, strategy="pwas", codec=codec,
+                                 sums=sums, seed=0)  # fmt: skip
+    assert 0 < preview.count < 300
+    assert preview.file_bytes <= 4000
+    dst = tmp_path / f"s_{codec}_{sums}.mcap"
+    result = cuts.write_share(tiny_log, pair, dst, budget, strategy="pwas", codec=codec,
+                              sums=sums, seed=0)  # fmt: skip
+    assert result["selected"] == preview.count
+    assert dst.stat().st_size == preview.file_bytes  # the bytes shown are the bytes written
+    shared = read_map(dst)
+    np.testing.assert_array_equal(np.sort(shared.ids), np.sort(pair[0].ids[preview.kept]))
+    # the sizes in the other codecs are those files of the same Gaussians
+    assert set(preview.sizes) == {"compact", "compact, no sums", "fp16", "fp32"}
+    assert preview.sizes["compact, no sums"] < preview.sizes["compact"] < preview.sizes["fp16"]
+    assert preview.sizes["fp16"] < preview.sizes["fp32"]
+    assert preview.sizes[cuts.codec_label(codec, sums)] == preview.file_bytes
+
+
+def test_share_preview_matches_the_share_command(tiny_log: Path, tmp_path: Path) -> None:
+    source = MapSource.open(tiny_log)
+    preview = cuts.preview_share(tiny_log, (source.snapshot(), source.metadata),
+                                 Budget.parse("3kB"), strategy="opacity", codec="compact",
+                                 sums=True, seed=0)  # fmt: skip
+    # the command line recorded in the share is part of its bytes: the preview records the
+    # command it stands for, so `gsc share` run as that command sends the same file
+    command = cuts.share_command(tiny_log, Budget.parse("3kB"), "opacity", "compact", True, 0)
+    assert command == "gsc share tiny.mcap --budget 3kB --strategy opacity --codec compact --seed 0"
+    result = share_log(tiny_log, tmp_path / "cmd.mcap", "3kB", strategy="opacity",
+                       command=command)  # fmt: skip
+    assert result["selected"] == preview.count
+    assert result["file_bytes"] == preview.file_bytes
+
+
+def test_share_of_a_map_file(tmp_path: Path) -> None:
+    g = random_map(120, seed=6)
+    write_ply(g, tmp_path / "m.ply")
+    source = MapSource.open(tmp_path / "m.ply")
+    pair = (source.snapshot(), source.metadata)
+    budget = Budget.parse("4kB")
+    preview = cuts.preview_share(tmp_path / "m.ply", pair, budget, strategy="pwas",
+                                 codec="compact", sums=False, seed=0)  # fmt: skip
+    cuts.write_share(tmp_path / "m.ply", pair, tmp_path / "s.mcap", budget, strategy="pwas",
+                     codec="compact", sums=False, seed=0)  # fmt: skip
+    assert (tmp_path / "s.mcap").stat().st_size == preview.file_bytes <= 4000
+    assert 0 < preview.count < 120
+    assert len(read_map(tmp_path / "s.mcap")) == preview.count
+
+
+# ---------------------------------------------------------------------- the command
+
+
+def test_view_help_and_bad_input(tmp_path: Path) -> None:
+    runner = CliRunner()
+    result = runner.invoke(cli, ["view", "--help"])
+    assert result.exit_code == 0 and "--compare" in result.output and "--port" in result.output
+    result = runner.invoke(cli, ["view", str(tmp_path / "missing.mcap")])
+    assert result.exit_code == 2 and "does not exist" in result.output
+    (tmp_path / "bad.mcap").write_bytes(b"not an mcap file at all")
+    pytest.importorskip("viser")
+    result = runner.invoke(cli, ["view", str(tmp_path / "bad.mcap"), "--port", "0"])
+    assert result.exit_code == 1 and "bad.mcap" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_view_serves_until_stopped(tiny_log: Path, terminated: Callable[..., Any]) -> None:
+    pytest.importorskip("viser")
+    gsc = str(Path(sys.executable).parent / "gsc")
+    code, stderr = terminated([gsc, "view", str(tiny_log), "--port", "0"],
+                              lambda text: "gsc view: http://127.0.0.1:" in text)  # fmt: skip
+    port = int(stderr.split("gsc view: http://127.0.0.1:")[1].split()[0])
+    assert port > 0 and code == 0  # stopped cleanly: nothing to write, nothing interrupted
+    assert "Traceback" not in stderr
+
+
+def test_view_without_viser_names_the_extra(
+    tiny_log: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_viser(name: str, *args: object, **kwargs: object) -> object:
+        if name == "viser" or name.startswith("viser."):
+            raise ImportError("No module named 'viser'")
+        return real_import(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(builtins, "__import__", no_viser)
+    result = CliRunner().invoke(cli, ["view", str(tiny_log), "--port", "0"])
+    assert result.exit_code == 2
+    assert "pip install 'gscompress[view]'" in result.output
+
+
+# ---------------------------------------------------------------------- the page
+
+
+VISER_SPLAT_WARNING = "THREE.BufferGeometry.computeBoundingSphere(): Computed radius is NaN"
+"""What three.js logs of viser's own splat mesh (its quad's "position" attribute has two
+components; three.js reads a third), with any splats at all, this map's or not."""
+
+
+@pytest.mark.browser
+def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: Path) -> None:
+    from gscompress.view import browser
+
+    why = browser.missing()
+    if why is not None:
+        if os.environ.get("GSC_REQUIRE_BROWSER"):  # (CI installs both: a skip there is a failure)
+            pytest.fail(f"GSC_REQUIRE_BROWSER is set, but {why}")
+        pytest.skip(f"no browser test: {why}")
+    from gscompress.view import MapViewer, ViewOptions
+
+    viewer = MapViewer(tiny_log, ViewOptions(port=0, out_dir=tmp_path))
+    try:
+        url = f"http://127.0.0.1:{viewer.port}"
+        with browser.open_page(url, 1024, 600) as (page, errors):
+            browser.wait_for_text(page, "Kept 300 of 300 Gaussians")
+            page.wait_for_timeout(1500)  # (the splats sorted and drawn)
+            png = page.screenshot()
+            colours, spread = browser.canvas_spread(png)
+            assert colours > 1000 and spread > 10.0, "the page is blank"
+            updates = viewer.updates
+            browser.set_slider(page, "Keep ratio", 0.5)
+            browser.wait_for_text(page, "Kept 150 of 300 Gaussians")
+            assert viewer.updates == updates + 1  # the splats were redrawn once
+            assert int(viewer.splats.opacities.astype(bool).sum()) <= 150  # the rest hidden
+            viewer.colour.value = "importance"  # (as a click in its menu sets it)
+            browser.wait_for_text(page, "log10 PWAS score")  # the legend
+            browser.dismiss_notices(page)
+            page.wait_for_timeout(1000)
+            screenshot = os.environ.get("GSC_VIEW_SCREENSHOT")  # (`make screenshot`)
+            png = page.screenshot(path=screenshot)
+            assert browser.canvas_spread(png)[0] > 1000
+            own = [e for e in errors if VISER_SPLAT_WARNING not in e]
+            assert own == [], f"console errors: {own}"
+    finally:
+        viewer.close()
+
+
+def test_viewer_follows_its_controls(tiny_log: Path, tmp_path: Path) -> None:
+    """The server side without a browser: snapshots, the share preview, B with the share, the
+    write button."""
+    pytest.importorskip("viser")
+    from gscompress.view import MapViewer, ViewOptions
+    from gscompress.view.app import COMPARE_MODES, SELECTIONS
+
+    other = tmp_path / "b.mcap"
+    write_tiny_log(other, n=120, seed=9)
+    viewer = MapViewer(tiny_log, ViewOptions(port=0, compare=other, out_dir=tmp_path))
+    try:
+        assert len(viewer.splats.centers) == 300
+        viewer.frustums_drawn.join()  # (drawn from a thread: the SLAM config may load torch)
+        assert [len(viewer._trajectory_nodes[k]) for k in ("frustums", "gt_frustums")] == [3, 3]
+        viewer.show_truth.value = False
+        viewer._on_trajectory_visibility()
+        assert not any(node.visible for node in viewer._trajectory_nodes["gt_frustums"])
+        assert all(node.visible for node in viewer._trajectory_nodes["frustums"])
+        viewer.snapshot_slider.value = 0
+        viewer._on_snapshot()
+        viewer._redraw()
+        assert len(viewer.splats.centers) == 200 and "Snapshot 1 of 2" in viewer.map_info.content
+        viewer._on_write()
+        assert "show it first" in viewer.status.content  # only the last snapshot is cut
+        viewer.snapshot_slider.value = 1
+        viewer._on_snapshot()
+        viewer.selection.value = SELECTIONS[1]
+        viewer.budget.value = 5
+        viewer._redraw()
+        share = viewer._share
+        assert share is not None and 0 < share.count < 300
+        assert f"Sent {share.count:,} of 300" in viewer.counts.content
+        hidden = viewer.splats.opacities[:, 0] == 0
+        np.testing.assert_array_equal(~hidden, share.kept)  # only the sent ones drawn
+        viewer.compare.value = COMPARE_MODES[3]
+        viewer._redraw()
+        assert not viewer.splats.visible and viewer.splats_b.visible
+        assert len(viewer._drawn["share_node"].centers) == share.count
+        viewer._on_write()
+        written = tmp_path / "tiny_share5kB_compact.mcap"
+        assert "wrote" in viewer.status.content and written.exists()
+        assert written.stat().st_size == share.file_bytes
+    finally:
+        viewer.close()
+
+
+def test_solver_button_picks_a_codec(tiny_log: Path) -> None:
+    pytest.importorskip("viser")
+    from gscompress.view import MapViewer, ViewOptions
+    from gscompress.view.app import SELECTIONS
+
+    viewer = MapViewer(tiny_log, ViewOptions(port=0))
+    try:
+        viewer.budget.value = 6
+        viewer._on_solve()
+        status = viewer.status.content
+        assert "Solver (against the map renders" in status, status
+        assert status.count("\n| ") == 1 + 4  # a header and the four candidates
+        assert viewer.selection.value == SELECTIONS[1]
+        chosen = status.split("**")[1]  # the best candidate, named in bold
+        assert chosen == cuts.codec_label(viewer.codec.value, viewer.sums.value)
+    finally:
+        viewer.close()
