@@ -3,8 +3,9 @@ once on the same cluster (each command a Ray driver whose runs are tasks on the 
 nodes), then one table of PWAS against random at the main budget, per sequence.
 
 The sequences and the study folder must be on storage that every node sees at the same path
-(docs/cluster.md). Options after `--` go to every `gsc experiment` as they are. With
-`--executor local` the sequences run one after another on this machine instead. A rerun reuses
+(docs/cluster.md). Options after `--` go to every `gsc experiment` as they are. Without
+`--address` (each command then starts Ray for itself) or with `--executor local`, the
+sequences run one after another on this machine instead. A rerun reuses
 every finished run; the table lists the runs that failed.
 
 Usage: python examples/cluster_study.py SEQ [SEQ ...] -o STUDY [--address auto]
@@ -77,7 +78,7 @@ def main() -> None:
         experiment_command(s, o, opts, extra) for s, o in zip(opts.sequences, outs, strict=True)
     ]
     status = 0
-    if opts.executor == "ray":  # every sequence's runs at once on the cluster
+    if opts.executor == "ray" and opts.address:  # every sequence's runs at once on the cluster
         procs = [subprocess.Popen(c, stdout=subprocess.PIPE, text=True) for c in commands]
         outputs = [(p.communicate()[0], p.returncode) for p in procs]
     else:

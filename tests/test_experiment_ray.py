@@ -4,6 +4,7 @@ rows; failed runs are retried once, then reported while the rest of the study co
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -16,6 +17,13 @@ from gscompress.pipeline.experiment import ExperimentSettings, execution, run_ex
 from gscompress_cli.main import cli
 
 TIMING = {"seconds_per_frame"}
+
+NEEDS_A = [
+    f"s0_{kind}_{end}"
+    for kind in ("random_0p2", "pwas_0p2", "full")
+    for end in ("share", "agent_b")
+]
+"""The tiny study's runs that need agent A's log (its shares and the merges of them)."""
 
 
 def rows_of(folder: Path) -> list[dict]:
@@ -46,6 +54,16 @@ def test_two_node_ray_cluster_gives_the_local_executors_rows(
         again = CliRunner().invoke(cli, args)  # a rerun on the cluster reuses every run
         assert again.exit_code == 0, again.output
         assert json.loads(again.output)["reused"] == result["steps"]
+        # a frame that cannot be read: the runs on it fail on their node (twice), the runs
+        # that need them are not run, agent B's runs complete
+        broken = tmp_path / "broken"
+        shutil.copytree(tiny_sequence, broken)
+        (broken / "depth" / "000003.png").write_bytes(b"not a png")
+        args = ["experiment", str(broken), "-o", str(tmp_path / "failing"), *TINY_STUDY,
+                "--executor", "ray", "--address", cluster.address]  # fmt: skip
+        failing = CliRunner().invoke(cli, args)
+        # runs that no node can hold are refused, not left waiting for ever
+        big = CliRunner().invoke(cli, [*args, "--cpus-per-run", "2"])
     finally:
         cluster.shutdown()
     assert result["reused"] == 0 and result["failed"] == {}
@@ -53,6 +71,17 @@ def test_two_node_ray_cluster_gives_the_local_executors_rows(
     assert len(records) == result["steps"] == 11
     ran_on = {record["ran_on"]["node"] for record in records}
     assert len(ids) == 2 and ran_on == ids  # both nodes ran tasks
+
+    assert big.exit_code == 2 and "no node of the Ray cluster has 2 CPUs" in big.output
+    assert failing.exit_code == 1, failing.output
+    failed = json.loads(failing.stdout)["failed"]
+    assert set(failed) == {"full_no_prune", "full_pwas", "s0_agent_a", *NEEDS_A}
+    assert failed["s0_agent_a"].startswith("DatasetError: cannot read depth image")
+    assert "its last log lines" in failed["s0_agent_a"]
+    md = (tmp_path / "failing" / "results.md").read_text()
+    assert "## Failed runs" in md and "| s0_agent_a | DatasetError: cannot read" in md
+    for name in ("s0_agent_b", "s0_no_share_agent_b"):  # B's frames are even: 0 and 2
+        assert (tmp_path / "failing" / "runs" / f"{name}.json").is_file()
 
     local = tmp_path / "local"
     args = ["--threads", "1", "experiment", str(tiny_sequence), "-o", str(local), *TINY_STUDY]

@@ -95,13 +95,24 @@ class RayRunner(Runner):
                 ray.init(address=address, **options)
             except ConnectionError as exc:
                 raise OptionError(f"--address {address}: no Ray cluster there ({exc})") from None
-        super().__init__(seq, out, settings, progress, total)
         if gpus_per_run is None:
             device = settings.device
             gpus = ray.cluster_resources().get("GPU", 0)
             on_cuda = device.startswith("cuda") or (device == "auto" and gpus > 0)
             gpus_per_run = 1.0 if on_cuda else 0.0
         self.resources = {"num_cpus": cpus_per_run, "num_gpus": gpus_per_run}
+        nodes = [node["Resources"] for node in ray.nodes() if node.get("Alive")]
+        if not any(
+            r.get("CPU", 0) >= cpus_per_run and r.get("GPU", 0) >= gpus_per_run for r in nodes
+        ):  # (Ray would wait for such a node for ever)
+            if self._own:
+                ray.shutdown()
+            gpu = f" and {gpus_per_run:g} GPU" if gpus_per_run else ""
+            raise OptionError(
+                f"no node of the Ray cluster has {cpus_per_run:g} CPUs{gpu} for a run: lower "
+                "--cpus-per-run" + (" or run on --device cpu" if gpu else "")
+            )
+        super().__init__(seq, out, settings, progress, total)
         self._threads = max(1, math.ceil(cpus_per_run))
         self._remote = ray.remote(
             max_retries=RETRIES, retry_exceptions=[RunFailed], **self.resources
