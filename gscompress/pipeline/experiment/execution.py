@@ -198,9 +198,6 @@ class Runner:
     (RunFailed when it failed); `_waiters`, when set, waits for each run on its own thread.
     """
 
-    retries_here = True
-    """Whether a failed run is retried by this class (False: the executor retries it)."""
-
     def __init__(
         self,
         seq: Path,
@@ -235,8 +232,7 @@ class Runner:
     ) -> Callable[[], dict[str, Any]]:
         """A function that runs `job(path)` once the steps in `after` are done (or waits for it
         to: an executor may start it at once, `after` passed on as its dependencies) and
-        returns its result, or raises RunFailed. Each call is a new attempt where
-        `retries_here`."""
+        returns its result, or raises RunFailed. A second call is a second attempt."""
         raise NotImplementedError
 
     def _where(self, name: str) -> dict[str, Any]:
@@ -289,12 +285,12 @@ class Runner:
         after: Sequence[Record],
         extra: Callable[[], dict[str, Any]] | None,
     ) -> dict[str, Any]:
-        """Wait for a step (retried once here or by the executor); its record once done. A
-        step fails unrun when a step it needs failed."""
+        """Wait for a step, and start it again once if it fails; its record once done. A step
+        fails unrun when a step it needs failed."""
         missing = [step.path.stem for step in after if step.error is not None]  # (waits)
         if missing:
             return self._failed(name, f"not run: it needs {', '.join(missing)}, which failed")
-        attempts = 1 + RETRIES if self.retries_here else 1
+        attempts = 1 + RETRIES
         for attempt in range(attempts):
             try:
                 result = wait_for()

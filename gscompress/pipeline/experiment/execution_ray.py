@@ -5,8 +5,9 @@ Each run is one task that declares its CPUs (and one GPU where the runs render o
 tasks it reads are passed to it as arguments, so that Ray starts it as soon as they have
 finished, on whichever node has the resources free. Every node reads the sequence and writes
 the logs at the same paths: the experiment folder and the sequence must be on storage that
-every node sees (a shared filesystem). A task that fails is started again once by Ray
-(perhaps on another node), then reported as failed. Ray is imported here only, on first use.
+every node sees (a shared filesystem). A task that fails (or whose worker or node is lost) is
+started again once as a new task, on any node, then reported as failed. Ray is imported here
+only, on first use.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from gscompress.errors import MissingDependencyError, OptionError
-from gscompress.pipeline.experiment.execution import RETRIES, Record, RunFailed, Runner, run_job
+from gscompress.pipeline.experiment.execution import Record, RunFailed, Runner, run_job
 from gscompress.pipeline.experiment.protocol import ExperimentSettings
 
 log = logging.getLogger(__name__)
@@ -69,8 +70,6 @@ class RayRunner(Runner):
             device is cuda, or auto on a cluster that has GPUs), else none.
     """
 
-    retries_here = False  # (Ray retries a failed task, perhaps on another node)
-
     def __init__(
         self,
         seq: Path,
@@ -114,11 +113,12 @@ class RayRunner(Runner):
             )
         super().__init__(seq, out, settings, progress, total)
         self._threads = max(1, math.ceil(cpus_per_run))
-        self._remote = ray.remote(
-            max_retries=RETRIES, retry_exceptions=[RunFailed], **self.resources
-        )(_task)
+        # a failed task is started again by Runner._run, as a new task (on any node): Ray's own
+        # retries would print their notices on this process's standard output
+        self._remote = ray.remote(max_retries=0, **self.resources)(_task)
         self._refs: dict[Path, Any] = {}
         self._where_ran: dict[str, dict[str, Any]] = {}
+        self._retried: set[Path] = set()  # logs whose first task failed
         # one waiting thread per step: each writes its record once its task has finished
         self._waiters = ThreadPoolExecutor(max(1, total))
         log.info(
@@ -141,26 +141,43 @@ class RayRunner(Runner):
         self, name: str, job: functools.partial[dict[str, Any]], path: Path, after: Sequence[Record]
     ) -> Callable[[], dict[str, Any]]:
         needs = [self._refs[step.path] for step in after if step.path in self._refs]
-        ref = self._remote.options(name=name).remote(job, path, self._threads, *needs)
-        self._refs[path] = ref
-        exceptions = self._ray.exceptions
+        self._refs[path] = self._remote.options(name=name).remote(job, path, self._threads, *needs)
+        attempts = [0]
 
-        def wait_for() -> dict[str, Any]:
-            try:
-                result, where = self._ray.get(ref)
-            except exceptions.TaskCancelledError:
-                raise CancelledError from None
-            except exceptions.RayTaskError as exc:
-                cause = exc.cause
-                if isinstance(cause, RunFailed):
-                    raise RunFailed(str(cause)) from None
-                raise RunFailed(f"{type(cause).__name__}: {cause}") from None
-            except exceptions.RayError as exc:  # a worker or node lost, out of memory...
-                raise RunFailed(f"{type(exc).__name__}: {exc}") from None
-            self._where_ran[name] = where
-            return result
+        def wait_for() -> dict[str, Any]:  # (once the steps in `after` have their results)
+            while True:
+                if attempts[0]:  # a new task, the tasks it reads done
+                    ref = self._remote.options(name=name).remote(job, path, self._threads)
+                    self._refs[path] = ref
+                attempts[0] += 1
+                try:
+                    result, where = self._get(self._refs[path])
+                except RunFailed:
+                    if attempts[0] > 1:
+                        raise
+                    self._retried.add(path)
+                    if not any(step.path in self._retried for step in after):
+                        raise
+                    continue  # a task it reads failed once, then made its log: not its failure
+                self._where_ran[name] = where
+                return result
 
         return wait_for
+
+    def _get(self, ref: Any) -> Any:
+        """A task's result; RunFailed if it failed (CancelledError if it was cancelled)."""
+        exceptions = self._ray.exceptions
+        try:
+            return self._ray.get(ref)
+        except exceptions.TaskCancelledError:
+            raise CancelledError from None
+        except exceptions.RayTaskError as exc:
+            cause = exc.cause
+            if isinstance(cause, RunFailed):
+                raise RunFailed(str(cause)) from None
+            raise RunFailed(f"{type(cause).__name__}: {cause}") from None
+        except exceptions.RayError as exc:  # a worker or node lost, out of memory...
+            raise RunFailed(f"{type(exc).__name__}: {exc}") from None
 
     def _where(self, name: str) -> dict[str, Any]:
         return self._where_ran.get(name, {})
