@@ -7,8 +7,12 @@ TORCH_SPEC ?= torch==2.13.0
 # Extra pip arguments for torch, e.g. TORCH_PIP_ARGS=--index-url=https://download.pytorch.org/whl/cpu
 # where pip's default index would pick the CUDA build (this workplace's pip config finds a CPU one).
 TORCH_PIP_ARGS ?=
+# Optional extras installed with dev, e.g. EXTRAS=cluster for Ray (.ci/run does).
+EXTRAS ?=
 STAMP := $(VENV)/.installed-stamp
 JS := tests/js
+
+comma := ,
 
 FUZZ_CASES ?= 10000
 
@@ -17,7 +21,7 @@ FUZZ_CASES ?= 10000
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q $(TORCH_PIP_ARGS) "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e '.[dev,view]'
+	$(PY) -m pip install -q -e '.[dev,view$(if $(EXTRAS),$(comma)$(EXTRAS))]'
 	touch $(STAMP)
 
 install: $(STAMP)

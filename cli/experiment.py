@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.experiment import SPLITS, ExperimentSettings, run_experiment
+from gscompress.pipeline.experiment import EXECUTORS, SPLITS, ExperimentSettings, run_experiment
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 from gscompress.slam.config import REFINE_VIEWS
@@ -114,6 +114,23 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "--threads 4 ... --jobs 2` as `gsc --threads 2 ... --jobs 1`): thread counts change "
     "the rounding.",
 )  # fmt: skip
+@click.option(
+    "--executor", type=click.Choice(EXECUTORS), default="local", show_default=True,
+    help="What runs the runs: this machine (--jobs at once), or Ray tasks on a cluster "
+    "(--address), each started as soon as the runs it reads have finished. Needs the "
+    "gscompress[cluster] extra; see docs/cluster.md.",
+)  # fmt: skip
+@click.option(
+    "--address", default=None,
+    help="With --executor ray: the cluster, `auto` (the one this machine joined with `ray "
+    "start`, or RAY_ADDRESS) or the head's HOST:PORT [default: start Ray on this machine]. "
+    "The sequence and -o must be on storage every node sees at the same path.",
+)  # fmt: skip
+@click.option(
+    "--cpus-per-run", type=click.FloatRange(0.0, 1024.0, min_open=True), default=None,
+    help="With --executor ray: CPUs each run declares, and its torch threads (rounded up) "
+    "[default: 1].",
+)  # fmt: skip
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
 @device_option
 @json_option
@@ -138,6 +155,9 @@ def experiment(
     merge_views: str,
     merge_lr_final: float,
     jobs: int,
+    executor: str,
+    address: str | None,
+    cpus_per_run: float | None,
     no_lpips: bool,
     device: str,
     as_json: bool,
@@ -157,7 +177,9 @@ def experiment(
     reference.
     Every run is scored with `gsc eval` on its own frames. Outputs: results.md (tables like the
     paper's), results.csv, results.json, plots/*.png; each run's log stays in runs/. A rerun
-    reuses every finished run whose settings are unchanged.
+    reuses every finished run whose settings are unchanged. A run that fails is tried once
+    more, then listed in results.md with its error (the runs it feeds are not run, the rest
+    go on) and the command exits with status 1 once the reports are written.
 
     \b
     Examples:
@@ -165,6 +187,7 @@ def experiment(
           --frames 0:10 --size 80x60                           # a smoke test, seconds
       gsc experiment data/office -o exp_office --seeds 3        # cpu preset
       gsc --threads 8 experiment data/office -o exp_office --jobs 4   # 4 runs at a time
+      gsc experiment /shared/office -o /shared/exp --executor ray --address auto
     """
     settings = ExperimentSettings(
         preset=preset,
@@ -194,7 +217,10 @@ def experiment(
             advance(bar, done, total)
 
         try:
-            result = run_experiment(seq, out_dir, settings, progress=progress, jobs=jobs)
+            result = run_experiment(
+                seq, out_dir, settings, progress=progress, jobs=jobs, executor=executor,
+                address=address, cpus_per_run=cpus_per_run,
+            )  # fmt: skip
         except KeyboardInterrupt:
             bar.close()
             click.echo(
@@ -216,3 +242,10 @@ def experiment(
             else f" seeds, ATE in {v['pwas_beats_random_ate']}/{v['seeds']}"
         ),
     )
+    if result["failed"]:
+        click.echo(
+            f"{len(result['failed'])} run(s) failed or were not run (listed in "
+            f"{result['results_md']}); the same command redoes them",
+            err=True,
+        )
+        raise SystemExit(1)

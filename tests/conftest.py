@@ -93,6 +93,20 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {"seq": seq, "log": log, "root": root}
 
 
+TINY_STUDY = ("--preset", "tiny", "--seeds", "1", "--sweep", "0.2", "--strategies",
+              "random,pwas", "--merge-iters", "5", "--no-lpips", "--json")  # fmt: skip
+"""`gsc experiment` options of a study of a few seconds: one seed, two strategies, one budget,
+short merges (11 runs)."""
+
+
+@pytest.fixture(scope="session")
+def tiny_sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A synthetic sequence of four 32x24 frames (for TINY_STUDY)."""
+    from gscompress.datasets.synthetic import write_synthetic_sequence
+
+    return write_synthetic_sequence(tmp_path_factory.mktemp("tiny") / "room", 4, (32, 24))
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[None]:
     """A test skipped without saying why fails instead: every skip in the summary has a reason."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -75,3 +76,24 @@ def test_budget_sweep_counts_the_bytes_a_share_of_each_budget_writes(
                 share = share_log(log, dst, row["budget"], strategy=row["strategy"],
                                   codec=codec)  # fmt: skip
                 assert share["bytes"] == row[f"bytes_{codec}"]
+
+
+@pytest.mark.slow
+def test_cluster_study_runs_each_sequence_and_tabulates_pwas_against_random(
+    tiny_sequence: Path, tmp_path: Path
+) -> None:
+    from conftest import TINY_STUDY
+
+    other = tmp_path / "room2"
+    shutil.copytree(tiny_sequence, other)
+    study = tmp_path / "study"
+    options = [o for o in TINY_STUDY if o != "--json"]
+    out = example("cluster_study.py", tiny_sequence, other, "-o", study, "--executor", "local",
+                  "--", *options)  # fmt: skip
+    table = json.loads((study / "summary.json").read_text())
+    assert [row["sequence"] for row in table] == ["room", "room2"]
+    for row in table:
+        rows = json.loads((study / row["sequence"] / "results.json").read_text())
+        pwas = next(r for r in rows if r["name"] == "B + pwas 0.2")
+        assert row["pwas_psnr"] == pwas["psnr"] and row["runs"] == 11 and row["failed"] == 0
+    assert out.splitlines()[2].startswith("| room | 0.2 |")

@@ -2,6 +2,7 @@
 
 - `protocol`: which runs exist (settings, the split of frames between agents, the run graph);
 - `execution`: how they run (in this process or on a pool of workers, reusing finished runs);
+- `execution_ray`: as Ray tasks on a cluster (Ray imported only there);
 - `report`: results rows, verdicts, tables and plots;
 - `run`: `run_experiment`, which ties the three together.
 """
@@ -18,9 +19,10 @@ from gscompress.pipeline.experiment.report import (
     paired_difference,
     rate_distortion_curves,
 )
-from gscompress.pipeline.experiment.run import run_experiment
+from gscompress.pipeline.experiment.run import EXECUTORS, run_experiment
 
 __all__ = [
+    "EXECUTORS",
     "ROW_KEYS",
     "SPLITS",
     "ExperimentSettings",

@@ -3,6 +3,7 @@ each started once the logs it reads exist, reusing every run whose record matche
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import hashlib
@@ -11,7 +12,9 @@ import logging
 import multiprocessing
 import os
 import signal
+import socket
 import threading
+import traceback
 from collections.abc import Callable, Sequence
 from concurrent.futures import (
     CancelledError,
@@ -23,7 +26,7 @@ from concurrent.futures import (
 from dataclasses import dataclass
 from multiprocessing.queues import SimpleQueue
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from gscompress import __version__
 from gscompress.errors import GscError
@@ -33,22 +36,84 @@ from gscompress.pipeline.experiment.protocol import ExperimentSettings, RunHandl
 log = logging.getLogger(__name__)
 
 
+class RunFailed(Exception):
+    """A run that raised, after its retry: its message is the error, the traceback and the
+    last lines the run logged. Not a GscError: the experiment reports it (results.md) and goes
+    on with the runs that do not need it."""
+
+
 @dataclass
 class Record:
-    """One step: its log, its settings key and what it reported (waited for when running in a
-    worker process)."""
+    """One step: its log, its settings key and what it reported (waited for when it runs in a
+    worker process or on a cluster), or why it failed."""
 
     path: Path
     key: str
     _result: dict[str, Any] | None = None
     _future: Future[dict[str, Any]] | None = None
+    _error: str | None = None
+
+    def _settle(self) -> None:
+        if self._result is None and self._error is None:
+            assert self._future is not None
+            try:
+                self._result = self._future.result()
+            except RunFailed as exc:
+                self._error = str(exc)
 
     @property
     def result(self) -> dict[str, Any]:
-        if self._result is None:
-            assert self._future is not None
-            self._result = self._future.result()
+        """What the run reported (waits for it); RunFailed if it failed."""
+        self._settle()
+        if self._error is not None:
+            raise RunFailed(self._error)
+        assert self._result is not None
         return self._result
+
+    @property
+    def error(self) -> str | None:
+        """Why the run failed (waits for it), or None."""
+        self._settle()
+        return self._error
+
+
+RETRIES = 1
+"""How many times a failed run is started again before it is reported as failed."""
+
+
+TAIL_LINES = 20
+"""How many of a failed run's last log lines its report keeps."""
+
+
+class _Tail(logging.Handler):
+    """The last TAIL_LINES lines logged (a run's, for its failure report)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        self.lines: collections.deque[str] = collections.deque(maxlen=TAIL_LINES)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(self.format(record))
+
+
+def run_job(job: Callable[[Path], dict[str, Any]], path: Path) -> dict[str, Any]:
+    """`job(path)`, with any exception it raises turned into RunFailed carrying the error, its
+    traceback and the run's last log lines (an interrupt goes through as it is)."""
+    tail = _Tail()
+    logger = logging.getLogger("gscompress")
+    logger.addHandler(tail)
+    try:
+        return job(path)
+    except Exception as exc:
+        trace = traceback.format_exception(type(exc), exc, exc.__traceback__)
+        text = "".join(trace[-3:]).rstrip()  # (the innermost frames and the error)
+        lines = "\n".join(tail.lines)
+        error = f"{type(exc).__name__}: {exc}"
+        more = f"\nits last log lines:\n{lines}" if lines else ""
+        raise RunFailed(f"{error}\n{text}{more}") from None
+    finally:
+        logger.removeHandler(tail)
 
 
 def _score(log_path: Path, seq: Path, every: int, lpips: bool, device: str) -> dict[str, Any]:
@@ -125,11 +190,12 @@ def _end_with_parent() -> None:
         os._exit(1)
 
 
-class LocalRunner:
-    """Runs the steps of an experiment, reusing those whose records match.
+class Runner:
+    """What every executor shares: the runs folder, each run's settings key, the records that
+    let a rerun reuse finished runs, progress, retries and the report of a failed run.
 
-    With `jobs` > 1 the steps run in that many worker processes, each as soon as the steps it
-    reads have finished, with the torch threads of this process shared among them.
+    A subclass starts a run with `_start`, which returns a function that waits for its result
+    (RunFailed when it failed); `_waiters`, when set, waits for each run on its own thread.
     """
 
     def __init__(
@@ -139,7 +205,6 @@ class LocalRunner:
         settings: ExperimentSettings,
         progress: Callable[[str, int, int], object] | None,
         total: int,
-        jobs: int = 1,
     ) -> None:
         self.seq, self.settings, self.progress, self.total = seq, settings, progress, total
         self.runs = out / "runs"
@@ -148,50 +213,31 @@ class LocalRunner:
             unfinished.unlink(missing_ok=True)  # points at them: their steps are redone)
         self.done = 0
         self.reused = 0
+        self.failed: dict[str, str] = {}
+        """Name and error of each run that failed (or was not run: a run it needs failed)."""
         self._lock = threading.Lock()
-        self._stopping = threading.Event()
-        self._pool: ProcessPoolExecutor | None = None
-        self._worker_pids: SimpleQueue[int] | None = None
         self._waiters: ThreadPoolExecutor | None = None
-        jobs = min(jobs, total)  # no more workers than steps
-        if jobs > 1:
-            import torch
-
-            available = torch.get_num_threads()
-            threads = max(1, available // jobs)
-            if threads * jobs != available:
-                log.warning(
-                    "%d torch threads do not split evenly over %d jobs: each run gets %d (%d in "
-                    "all; see gsc --threads)", available, jobs, threads, threads * jobs,
-                )  # fmt: skip
-            spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
-            self._worker_pids = spawn.SimpleQueue()  # each worker's pid, sent as it starts
-            self._pool = ProcessPoolExecutor(
-                jobs, spawn, _init_worker, (threads, self._worker_pids)
-            )
-            # one waiting thread per step: each starts its job once the steps it reads are done
-            # (they were submitted before it, so they are under way: no waiting in a circle)
-            self._waiters = ThreadPoolExecutor(max(1, total))
 
     def close(self, cancel: bool) -> None:
-        """Wait for the steps under way; with `cancel`, start no more and stop the SLAM runs
-        under way after their frame (a stopped run keeps no record, so a rerun redoes it)."""
-        if cancel:
-            self._stopping.set()
-            if self._worker_pids is not None:  # a worker between runs ignores it, a merge too
-                workers = set()
-                while not self._worker_pids.empty():
-                    workers.add(self._worker_pids.get())
-                for pid in workers:
-                    with contextlib.suppress(OSError):  # ended meanwhile
-                        os.kill(pid, signal.SIGINT)
-        for pool in (self._waiters, self._pool):
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=cancel)
+        """Wait for the steps under way; with `cancel`, start no more."""
+        if self._waiters is not None:
+            self._waiters.shutdown(wait=True, cancel_futures=cancel)
 
     def _key(self, spec: dict[str, Any]) -> str:  # (of what a run is; _digest: of what it gave)
         text = json.dumps({"tool": __version__, **spec}, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def _start(
+        self, name: str, job: functools.partial[dict[str, Any]], path: Path, after: Sequence[Record]
+    ) -> Callable[[], dict[str, Any]]:
+        """A function that runs `job(path)` once the steps in `after` are done (or waits for it
+        to: an executor may start it at once, `after` passed on as its dependencies) and
+        returns its result, or raises RunFailed. A second call is a second attempt."""
+        raise NotImplementedError
+
+    def _where(self, name: str) -> dict[str, Any]:
+        """Where a run ran, for its record."""
+        return {"host": socket.gethostname()}
 
     def _step(
         self,
@@ -215,40 +261,58 @@ class LocalRunner:
                 self.reused += 1
                 self._finished(name)
                 return Record(path, key, saved["result"])
-        if self._pool is None or self._waiters is None:
+        needs = [step for step in after if isinstance(step, Record)]
+        wait_for = self._start(name, job, path, needs)
+        args = (name, record_path, spec, key, wait_for, needs, extra)
+        if self._waiters is None:  # in this process: the steps it needs are done
             if self.progress is not None:
                 self.progress(name, self.done, self.total)
-            result = self._record(name, record_path, spec, key, job(path), extra)
-            return Record(path, key, result)
+            record = Record(path, key)
+            try:
+                record._result = self._run(*args)
+            except RunFailed as exc:
+                record._error = str(exc)
+            return record
+        return Record(path, key, _future=self._waiters.submit(self._run, *args))
 
-        def run() -> dict[str, Any]:
-            for step in after:
-                _ = step.result  # waits; a failed step fails this one
-            if self._stopping.is_set():
-                raise CancelledError
-            assert self._pool is not None
-            future = self._pool.submit(job, path)
-            while not wait([future], timeout=0.2).done:
-                if self._stopping.is_set() and future.cancel():  # queued, not started
-                    raise CancelledError
-            return self._record(name, record_path, spec, key, future.result(), extra)
-
-        return Record(path, key, _future=self._waiters.submit(run))
-
-    def _record(
+    def _run(
         self,
         name: str,
         record_path: Path,
         spec: dict[str, Any],
         key: str,
-        result: dict[str, Any],
+        wait_for: Callable[[], dict[str, Any]],
+        after: Sequence[Record],
         extra: Callable[[], dict[str, Any]] | None,
     ) -> dict[str, Any]:
+        """Wait for a step, and start it again once if it fails; its record once done. A step
+        fails unrun when a step it needs failed."""
+        missing = [step.path.stem for step in after if step.error is not None]  # (waits)
+        if missing:
+            return self._failed(name, f"not run: it needs {', '.join(missing)}, which failed")
+        attempts = 1 + RETRIES
+        for attempt in range(attempts):
+            try:
+                result = wait_for()
+                break
+            except RunFailed as exc:
+                if attempt + 1 == attempts:
+                    log.error("run %s failed: %s", name, exc)
+                    return self._failed(name, str(exc))
+                log.warning("run %s failed; trying it again: %s", name, str(exc).split("\n")[0])
         result = {**result, **(extra() if extra else {})}
-        record = {"key": key, "spec": spec, "result": result, "result_sha256": _digest(result)}
+        record = {"key": key, "spec": spec, "result": result, "result_sha256": _digest(result),
+                  "ran_on": self._where(name)}  # fmt: skip
         write_text_atomic(record_path, json_text(record, indent=1))
         self._finished(name)
         return result
+
+    def _failed(self, name: str, error: str) -> NoReturn:
+        """Count a failed run done, and keep its error for the report."""
+        with self._lock:
+            self.failed[name] = error
+        self._finished(name)
+        raise RunFailed(error)
 
     def _finished(self, name: str) -> None:
         with self._lock:
@@ -308,3 +372,78 @@ class LocalRunner:
             _share_job, source=source.path, budget=budget, strategy=strategy, seed=seed
         )
         return self._step(name, spec, job, after=[source])
+
+
+class LocalRunner(Runner):
+    """Runs the steps of an experiment on this machine, reusing those whose records match.
+
+    With `jobs` > 1 the steps run in that many worker processes, each as soon as the steps it
+    reads have finished, with the torch threads of this process shared among them.
+    """
+
+    def __init__(
+        self,
+        seq: Path,
+        out: Path,
+        settings: ExperimentSettings,
+        progress: Callable[[str, int, int], object] | None,
+        total: int,
+        jobs: int = 1,
+    ) -> None:
+        super().__init__(seq, out, settings, progress, total)
+        self._stopping = threading.Event()
+        self._pool: ProcessPoolExecutor | None = None
+        self._worker_pids: SimpleQueue[int] | None = None
+        jobs = min(jobs, total)  # no more workers than steps
+        if jobs > 1:
+            import torch
+
+            available = torch.get_num_threads()
+            threads = max(1, available // jobs)
+            if threads * jobs != available:
+                log.warning(
+                    "%d torch threads do not split evenly over %d jobs: each run gets %d (%d in "
+                    "all; see gsc --threads)", available, jobs, threads, threads * jobs,
+                )  # fmt: skip
+            spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
+            self._worker_pids = spawn.SimpleQueue()  # each worker's pid, sent as it starts
+            self._pool = ProcessPoolExecutor(
+                jobs, spawn, _init_worker, (threads, self._worker_pids)
+            )
+            # one waiting thread per step: each starts its job once the steps it reads are done
+            # (they were submitted before it, so they are under way: no waiting in a circle)
+            self._waiters = ThreadPoolExecutor(max(1, total))
+
+    def close(self, cancel: bool) -> None:
+        """Wait for the steps under way; with `cancel`, start no more and stop the SLAM runs
+        under way after their frame (a stopped run keeps no record, so a rerun redoes it)."""
+        if cancel:
+            self._stopping.set()
+            if self._worker_pids is not None:  # a worker between runs ignores it, a merge too
+                workers = set()
+                while not self._worker_pids.empty():
+                    workers.add(self._worker_pids.get())
+                for pid in workers:
+                    with contextlib.suppress(OSError):  # ended meanwhile
+                        os.kill(pid, signal.SIGINT)
+        super().close(cancel)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=cancel)
+
+    def _start(
+        self, name: str, job: functools.partial[dict[str, Any]], path: Path, after: Sequence[Record]
+    ) -> Callable[[], dict[str, Any]]:
+        if self._pool is None:
+            return functools.partial(run_job, job, path)
+
+        def wait_for() -> dict[str, Any]:  # (on its waiting thread: the steps it reads are done)
+            if self._stopping.is_set():
+                raise CancelledError
+            assert self._pool is not None
+            future = self._pool.submit(run_job, job, path)
+            while not wait([future], timeout=0.2).done:
+                if self._stopping.is_set() and future.cancel():  # queued, not started
+                    raise CancelledError
+            return future.result()
+
+        return wait_for

@@ -193,13 +193,17 @@ def resolve_settings(settings: ExperimentSettings) -> tuple[ExperimentSettings, 
 
 
 class RunHandle(Protocol):
-    """A run started by an executor: its log, its settings key and (waited for) its result."""
+    """A run started by an executor: its log, its settings key and (waited for) its result,
+    or why it failed."""
 
     path: Path
     key: str
 
     @property
     def result(self) -> dict[str, Any]: ...
+
+    @property
+    def error(self) -> str | None: ...
 
 
 class Executor(Protocol):

@@ -27,7 +27,7 @@ from gscompress.selection import strategy_scores
 ROW_KEYS = (
     "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
     "ate_reason", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes",
-    "share_gaussians", "share_bytes", "seconds_per_frame", "log",
+    "share_gaussians", "share_bytes", "seconds_per_frame", "log", "error",
 )  # fmt: skip
 """Columns of results.csv (every row of results.json has them)."""
 
@@ -41,17 +41,32 @@ def result_row(
     budget: str = "",
     share: RunHandle | None = None,
 ) -> dict[str, Any]:
-    """A results row from a SLAM run's record (and the share it received)."""
-    ev, slam = run.result["eval"], run.result["slam"]
+    """A results row from a SLAM run's record (and the share it received); a run that failed
+    (or was not run, a run it needs having failed) gives a row of its error, the rest empty."""
+    error = run.error
+    ev, slam = ({}, {}) if error else (run.result["eval"], run.result["slam"])
+    got = share.result if share is not None and share.error is None else {}
     row = {key: ev.get(key) for key in ROW_KEYS}
     row.update(
         name=name, table=table, seed=seed, strategy=strategy, budget=budget,
         frames=ev.get("frames"), seconds_per_frame=slam.get("seconds_per_frame"),
-        share_gaussians=share.result.get("selected") if share else None,
-        share_bytes=share.result.get("bytes") if share else None,
-        log=f"runs/{run.path.name}",
+        share_gaussians=got.get("selected"), share_bytes=got.get("bytes"),
+        log=None if error else f"runs/{run.path.name}", error=error,
     )  # fmt: skip
     return row
+
+
+def failed_runs(runs: dict[str, str]) -> list[str]:
+    """results.md's lines on the runs that failed: name and first line of the error each."""
+    if not runs:
+        return []
+    lines = ["", "## Failed runs", "",
+             f"{len(runs)} run(s) failed (after one retry) or were not run; a rerun redoes them.",
+             "", "| Run | Error |", "|---|---|"]  # fmt: skip
+    for name, error in sorted(runs.items()):
+        first = error.split("\n", 1)[0].replace("|", "\\|")
+        lines.append(f"| {name} | {first} |")
+    return lines
 
 
 def _sweep_rows(
@@ -143,6 +158,8 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
     for seed in range(s.seeds):
         p, r = pick("table4", "pwas", s.budget, seed), pick("table4", "random", s.budget, seed)
         assert p is not None and r is not None
+        if p["error"] or r["error"]:  # (in results.md's failed runs)
+            continue
         psnr_win = (p["psnr"] or 0) > (r["psnr"] or 0)
         ate_win = (p["ate_rmse_cm"] or math.inf) < (r["ate_rmse_cm"] or math.inf)
         psnr_wins += psnr_win
@@ -199,13 +216,18 @@ def write_reports(
     s: ExperimentSettings,
     rows: list[dict[str, Any]],
     verdicts: dict[str, Any],
-    full_log: Path,
+    full_log: Path | None,
+    failed: dict[str, str] | None = None,
 ) -> dict[str, str]:
-    """results.json, results.csv, results.md and plots/*.png."""
+    """results.json, results.csv, results.md and plots/*.png; `full_log`: Table 3's unpruned
+    run (None: it failed, and the importance plots are left out); `failed`: the name and
+    error of each run that failed."""
     write_text_atomic(out / "results.json", json_text(rows, indent=1))
     write_text_atomic(out / "results.csv", _csv(rows))
     plots = _plots(out / "plots", rows, s, full_log, seq)
-    write_text_atomic(out / "results.md", _markdown(seq, s, rows, verdicts, plots, out))
+    text = _markdown(seq, s, rows, verdicts, plots, out)
+    text += "".join(line + "\n" for line in failed_runs(failed or {}))
+    write_text_atomic(out / "results.md", text)
     return {
         "results_md": str(out / "results.md"),
         "results_csv": str(out / "results.csv"),
@@ -420,7 +442,11 @@ def _plot_rate_distortion(
 
 
 def _plots(
-    folder: Path, rows: list[dict[str, Any]], s: ExperimentSettings, full_log: Path, seq: Path
+    folder: Path,
+    rows: list[dict[str, Any]],
+    s: ExperimentSettings,
+    full_log: Path | None,
+    seq: Path,
 ) -> list[Path]:
     """Rate-distortion curves, importance histogram and top-down importance map (PNG + SVG)."""
     import matplotlib
@@ -435,6 +461,8 @@ def _plots(
     curves = rate_distortion_curves(rows, s)
     if curves:  # none without a sweep (--sweep-seeds 0)
         paths.append(_plot_rate_distortion(folder, curves, s, seq))
+    if full_log is None:
+        return paths
 
     with LogReader(full_log) as reader:
         gaussians = reader.read_map()

@@ -18,7 +18,9 @@ Every SLAM run is scored by `evaluate_log` on its own frames at its estimated po
 reuses every run whose record matches its settings (and those of the runs it depends on), so an
 interrupted experiment continues where it stopped and a changed setting redoes only what it
 touches. With `jobs` > 1 the runs go on in worker processes, each started once the logs it reads
-exist.
+exist; with `executor` "ray", as tasks on a Ray cluster (`execution_ray`). A run that fails is
+tried once more, then reported in results.md with its error, and the runs that need it are
+not run; the rest of the experiment goes on.
 
 Outputs in DIR: results.json (a list of rows), results.csv, results.md (tables laid out like
 the paper's) and plots/ (rate-distortion, importance distribution, top-down importance map).
@@ -31,10 +33,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from gscompress.errors import InputError
+from gscompress.errors import InputError, OptionError
 from gscompress.interrupts import sigterm_interrupts
 from gscompress.io.files import check_only_entries, is_within
-from gscompress.pipeline.experiment.execution import LocalRunner
+from gscompress.pipeline.experiment.execution import LocalRunner, Runner
 from gscompress.pipeline.experiment.protocol import (
     ExperimentSettings,
     plan_runs,
@@ -44,6 +46,10 @@ from gscompress.pipeline.experiment.protocol import (
 from gscompress.pipeline.experiment.report import result_row, verdicts_of, write_reports
 
 log = logging.getLogger(__name__)
+
+
+EXECUTORS = ("local", "ray")
+"""What runs an experiment's runs: this machine's processes, or Ray (`execution_ray`)."""
 
 
 EXPERIMENT_ENTRIES = frozenset({"runs", "plots", "results.md", "results.csv", "results.json"})
@@ -56,6 +62,9 @@ def run_experiment(
     settings: ExperimentSettings,
     progress: Callable[[str, int, int], object] | None = None,
     jobs: int = 1,
+    executor: str = "local",
+    address: str | None = None,
+    cpus_per_run: float | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the two-agent experiment on a sequence and write its report.
 
@@ -67,14 +76,27 @@ def run_experiment(
         jobs: steps run at once, each in a worker process with its share of the torch threads
             (1: one after another in this process). With as many threads per step, the results
             are the same.
+        executor: "local" (this machine, `jobs` at once) or "ray" (Ray tasks: `address`
+            names the cluster, None starts Ray here; each task declares `cpus_per_run` CPUs
+            (default 1) and as many torch threads, and a GPU where the runs render on CUDA).
 
     Returns:
-        Paths of the outputs, row count, steps run and reused, and the PWAS-vs-random verdicts.
+        Paths of the outputs, row count, steps run, reused and failed (name: error), and the
+        PWAS-vs-random verdicts.
     """
     from gscompress.datasets import open_sequence
     from gscompress.pipeline.slam_run import check_working_size
 
     settings.check()
+    if executor not in EXECUTORS:
+        raise OptionError(f"--executor is one of {', '.join(EXECUTORS)}, got {executor!r}")
+    if executor == "ray" and jobs != 1:
+        raise OptionError(
+            "--jobs is for the local executor: on Ray, the cluster's CPUs and --cpus-per-run "
+            "set how many runs go at once"
+        )
+    if executor == "local" and (address is not None or cpus_per_run is not None):
+        raise OptionError("--address and --cpus-per-run are for --executor ray")
     seq, out = Path(seq), Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder is a file: {out}")
@@ -92,7 +114,13 @@ def run_experiment(
             f"of {seq}; an experiment needs at least two frames"
         )
     check_working_size(sequence.intrinsics)
-    runner = LocalRunner(seq, out, s, progress, plan_size(s), jobs)
+    runner: Runner
+    if executor == "ray":
+        from gscompress.pipeline.experiment.execution_ray import RayRunner
+
+        runner = RayRunner(seq, out, s, progress, plan_size(s), address, cpus_per_run or 1.0)
+    else:
+        runner = LocalRunner(seq, out, s, progress, plan_size(s), jobs)
     try:
         with sigterm_interrupts():
             planned = plan_runs(runner, base, len(sequence))
@@ -103,11 +131,13 @@ def run_experiment(
     runner.close(cancel=False)
     verdicts = verdicts_of(rows, s)
     full = planned[0][2]  # Table 3's unpruned run
-    paths = write_reports(out, seq, s, rows, verdicts, full.path)
+    full_log = None if full.error else full.path
+    paths = write_reports(out, seq, s, rows, verdicts, full_log, runner.failed)
     return {
         **paths,
         "rows": len(rows),
         "steps": runner.total,
         "reused": runner.reused,
+        "failed": dict(sorted(runner.failed.items())),
         "verdicts": verdicts,
     }
