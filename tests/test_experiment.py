@@ -274,6 +274,8 @@ def test_budgets_written_differently_are_thesame_budget() -> None:
 
     assert same_budget("0.2", "20%") and same_budget("2MB", "2000kB")
     assert not same_budget("0.2", "0.3") and not same_budget("0.2", "")
+    assert same_budget("5%bytes", "5.0%bytes") and not same_budget("2%bytes", "5%bytes")
+    assert not same_budget("5%bytes", "5%")  # of the bytes, not of the Gaussians
     # the main budget written as a percentage is not run twice in the sweep
     settings = ExperimentSettings(budget="20%", sweep=("0.2", "0.4"), seeds=1)
     assert plan_size(settings) == plan_size(ExperimentSettings(sweep=("0.4",), seeds=1))

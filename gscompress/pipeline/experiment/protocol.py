@@ -272,8 +272,9 @@ def _slug(budget: str) -> str:
 
 
 def same_budget(a: str, b: str) -> bool:
-    """Whether two written budgets mean the same (`0.2` and `20%` do)."""
+    """Whether two written budgets mean the same (`0.2` and `20%` do, `2%bytes` and `5%bytes`
+    do not)."""
     if not a or not b:
         return False
     x, y = Budget.parse(a), Budget.parse(b)
-    return (x.ratio, x.budget_bytes) == (y.ratio, y.budget_bytes)
+    return (x.ratio, x.budget_bytes, x.fp32_fraction) == (y.ratio, y.budget_bytes, y.fp32_fraction)
