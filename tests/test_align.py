@@ -176,7 +176,8 @@ def test_too_little_overlap_is_refused() -> None:
     with pytest.raises(AlignmentError, match="overlap") as caught:
         align_clouds(source, target)
     assert "\n" not in str(caught.value)
-    assert caught.value.alignment.refused == str(caught.value)  # type: ignore[attr-defined]
+    assert caught.value.alignment is not None
+    assert caught.value.alignment.refused == str(caught.value)
 
 
 def _symmetric_room(spacing: float = SPACING) -> tuple[np.ndarray, np.ndarray]:
@@ -249,7 +250,7 @@ def test_map_cloud_keeps_opaque_gaussians_and_flat_normals() -> None:
 
 
 def _write_log(path: Path, points: np.ndarray, colors: np.ndarray, views: np.ndarray,
-               world: str) -> None:  # fmt: skip
+               world: str, gt_first: np.ndarray | None = None) -> None:  # fmt: skip
     n = len(points)
     gaussians = GaussianMap.new(
         means=points.astype(np.float32),
@@ -263,6 +264,8 @@ def _write_log(path: Path, points: np.ndarray, colors: np.ndarray, views: np.nda
             pose = np.eye(4)
             pose[:3, 3] = c
             out.write_pose(pose, i)
+            if gt_first is not None:  # (only the first ground-truth pose matters here)
+                out.write_pose(gt_first, i, ground_truth=True)
         out.write_gaussians(gaussians, len(views))
 
 
@@ -274,8 +277,9 @@ def logs(tmp_path: Path) -> tuple[Path, Path, np.ndarray]:
     source, target = tmp_path / "a.mcap", tmp_path / "b.mcap"
     inv = np.linalg.inv(T)
     _write_log(source, transform_points(inv, points[src_mask]), colors[src_mask],
-               transform_points(inv, VIEWS), "first-camera:room:0")  # fmt: skip
-    _write_log(target, points[tgt_mask], colors[tgt_mask], VIEWS, "first-camera:room:20")
+               transform_points(inv, VIEWS), "first-camera:room:0", gt_first=T)  # fmt: skip
+    _write_log(target, points[tgt_mask], colors[tgt_mask], VIEWS, "first-camera:room:20",
+               gt_first=np.eye(4))  # fmt: skip
     return source, target, T
 
 
@@ -348,3 +352,24 @@ def test_gsc_align_does_not_import_torch(logs: tuple[Path, Path, np.ndarray],
         capture_output=True, text=True, check=True,
     )  # fmt: skip
     assert out.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_align_agents_scores_the_estimate_against_the_first_poses(
+    logs: tuple[Path, Path, np.ndarray], tmp_path: Path
+) -> None:
+    from gscompress.pipeline.align import align_agents
+
+    source, target, T = logs
+    est, true = tmp_path / "est.txt", tmp_path / "true.txt"
+    record = align_agents(source, target, est, true)
+    np.testing.assert_allclose(read_transform(true), T, atol=1e-9)  # A's first pose, B's at I
+    assert record["refused"] == "" and record["error_cm"] < 1.0 and record["error_deg"] < 0.5
+    assert record["drift_cm"] < 1.0  # (the maps were cut from one scene: nothing to drift)
+    assert transform_error(read_transform(est), T)[0] * 100 == pytest.approx(record["error_cm"])
+    far = tmp_path / "far.mcap"  # a map that shares too little with the target
+    points, colors = room()
+    mask = points[:, 0] < 0.5
+    _write_log(far, points[mask], colors[mask], VIEWS, "first-camera:room:0", np.eye(4))
+    record = align_agents(far, target, est, true)
+    assert record["refused"].startswith("align far.mcap to b.mcap: too little overlap")
+    assert est.exists()  # (the untrusted estimate, for what is counted a miss)

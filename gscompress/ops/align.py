@@ -46,7 +46,15 @@ MIN_POINTS = 30
 
 class AlignmentError(GscError):
     """Two maps whose alignment cannot be trusted (too little overlap, a symmetric or
-    degenerate scene): refused rather than a transform that may be wrong."""
+    degenerate scene): refused rather than a transform that may be wrong.
+
+    Attributes:
+        alignment: the refused result with its figures (None when none was found).
+    """
+
+    def __init__(self, message: str, alignment: Alignment | None = None) -> None:
+        super().__init__(message)
+        self.alignment = alignment
 
 
 @dataclass(frozen=True)
@@ -271,10 +279,15 @@ def _local(
         criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
                                               max_iteration=iters)  # fmt: skip
         if colored:
-            result = reg.registration_colored_icp(
-                source, target, scale * voxel, T,
-                reg.TransformationEstimationForColoredICP(lambda_geometric=0.968), criteria,
-            )  # fmt: skip
+            try:
+                result = reg.registration_colored_icp(
+                    source, target, scale * voxel, T,
+                    reg.TransformationEstimationForColoredICP(lambda_geometric=0.968), criteria,
+                )  # fmt: skip
+            except RuntimeError as exc:  # (Open3D's coloured ICP raises where others return 0)
+                if "No correspondences" not in str(exc):
+                    raise
+                break
         else:
             result = reg.registration_icp(
                 source, target, scale * voxel, T,
@@ -375,9 +388,7 @@ def align_clouds(
     o.check()
     alignment = _align(source, target, o, init)
     if alignment.refused:
-        error = AlignmentError(alignment.refused)
-        error.alignment = alignment  # type: ignore[attr-defined]
-        raise error
+        raise AlignmentError(alignment.refused, alignment)
     return alignment
 
 

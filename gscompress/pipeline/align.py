@@ -65,7 +65,8 @@ def align_logs_transform(
     try:
         alignment = align_clouds(src_cloud, tgt_cloud, options, init=T0)
     except AlignmentError as exc:
-        raise AlignmentError(f"align {Path(source).name} to {Path(target).name}: {exc}") from None
+        where = f"align {Path(source).name} to {Path(target).name}"
+        raise AlignmentError(f"{where}: {exc}", exc.alignment) from None
     record = alignment.to_dict()
     record.pop("hypotheses")
     record.update(
@@ -139,3 +140,68 @@ def share_alignment(source: str | Path, target: str | Path) -> tuple[np.ndarray,
     out.update(target=Path(target).name, target_sha256=sha256(target),
                transform=np.round(T, 12).tolist())  # fmt: skip
     return T, out
+
+
+def first_frames_transform(source: str | Path, target: str | Path) -> np.ndarray:
+    """The true transform from `source`'s world frame to `target`'s for two agents each at the
+    identity at its own first frame: from the ground-truth poses of those first frames.
+
+    Raises:
+        InputError: a log without ground-truth poses.
+    """
+    from gscompress.errors import InputError
+    from gscompress.io.mcap_log import TOPIC_POSE_GT
+
+    firsts = []
+    for path in (source, target):
+        with LogReader(path) as log:
+            _, poses = log.read_poses(TOPIC_POSE_GT)
+        if not len(poses):
+            raise InputError(f"{path} has no ground-truth poses to compare an alignment with")
+        firsts.append(poses[0])
+    return np.linalg.inv(firsts[1]) @ firsts[0]
+
+
+def align_agents(
+    source: str | Path,
+    target: str | Path,
+    estimated: str | Path,
+    true: str | Path,
+    options: AlignOptions | None = None,
+) -> dict[str, Any]:
+    """Two agents' alignment against the truth (`gsc experiment --anchor own`).
+
+    Writes the estimated transform to `estimated` and the one from the agents' ground-truth
+    first-frame poses to `true`. An alignment that is refused still writes its estimate (so
+    that what depends on it can run and be counted a miss) and says so in `refused`.
+
+    Returns:
+        `align_logs`'s figures, `refused` ("" when trusted), `error_cm` / `error_deg` of the
+        estimate against the truth, and `drift_cm` / `drift_deg`: how far local refinement
+        alone moves the true transform (the agents' own drift: their maps sit that far apart
+        even when placed exactly).
+    """
+    from gscompress.io.trajectory import format_transform
+    from gscompress.ops.align import refine_alignment, transform_error
+
+    T_true = first_frames_transform(source, target)
+    write_text_atomic(true, format_transform(T_true, ["from the agents' ground-truth first poses"]))
+    try:
+        T, record = align_logs_transform(source, target, options=options)
+        record["refused"] = ""
+    except AlignmentError as exc:
+        if exc.alignment is None:  # (nothing found at all)
+            raise
+        T, record = exc.alignment.T_target_source, exc.alignment.to_dict()
+        record.pop("hypotheses")
+        record.update(source=str(source), target=str(target), source_world_frame="",
+                      target_world_frame="", refused=str(exc))  # fmt: skip
+    write_transform_file(estimated, T, record)
+    src_cloud, _ = log_cloud(source)
+    tgt_cloud, _ = log_cloud(target)
+    drift = refine_alignment(src_cloud, tgt_cloud, T_true, options)
+    dt, dr = transform_error(T, T_true)
+    ot, orot = transform_error(drift.T_target_source, T_true)
+    record.update(error_cm=100 * dt, error_deg=dr, drift_cm=100 * ot, drift_deg=orot,
+                  T_true=T_true.tolist())  # fmt: skip
+    return record
