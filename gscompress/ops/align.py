@@ -159,6 +159,7 @@ class Alignment:
         global_step: "ransac-fpfh", or "init" when an initial guess replaced it.
         seconds: wall time of the alignment.
         refused: why the result cannot be trusted ("" when it can).
+        hypotheses: the agreement of every hypothesis tried (global step and rivals).
     """
 
     T_target_source: np.ndarray
@@ -422,7 +423,7 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
     tgt_normals = np.asarray(tgt_fine.normals)
     src_colors, tgt_colors = np.asarray(src_fine.colors), np.asarray(tgt_fine.colors)
 
-    hypotheses: list[tuple[np.ndarray, float]] = []  # (transform, overlap on the coarse grid)
+    hypotheses: list[tuple[np.ndarray, float]] = []  # (transform, agreement)
     inliers: int | None = None
     inlier_ratio: float | None = None
     if init is None:
@@ -456,15 +457,16 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
         best = max(hypotheses, key=lambda h: h[1])
         rivals = [h[1] for h in hypotheses if _distinct(h[0], best[0], down_pts.mean(0), o, voxel)]
         ambiguity = max(rivals) / best[1] if rivals and best[1] > 0 else 0.0
-        pairs = np.asarray(matches)
-        moved = transform_points(best[0], down_pts[pairs[:, 0]])
-        err = np.linalg.norm(moved - np.asarray(tgt_down.points)[pairs[:, 1]], axis=1)
-        inliers = int(np.sum(err < 1.5 * voxel))
-        inlier_ratio = inliers / len(pairs)
         T = best[0]
     else:
         T, ambiguity = np.asarray(init, dtype=np.float64), 0.0
     T = _local(src_fine, tgt_fine, T, voxel, ((1.0, 30), (0.5, 30)), o.colored)
+    if init is None:  # the feature matches that agree with the result
+        pairs = np.asarray(matches)
+        moved = transform_points(T, down_pts[pairs[:, 0]])
+        err = np.linalg.norm(moved - np.asarray(tgt_down.points)[pairs[:, 1]], axis=1)
+        inliers = int(np.sum(err < 1.5 * voxel))
+        inlier_ratio = inliers / len(pairs)
     fit, _ = _fit(src_pts, tgt_tree, T, voxel)
     _, rms = _fit(source.points, cKDTree(target.points), T, voxel)  # (every Gaussian)
     tgt_fit, _ = _fit(tgt_pts, src_tree, np.linalg.inv(T), voxel)
