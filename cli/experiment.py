@@ -86,6 +86,14 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     help="Evaluate every N-th frame of each run.",
 )  # fmt: skip
 @click.option(
+    "--anchor", type=click.Choice(["gt", "own"]), default="gt", show_default=True,
+    help="Where each agent's world frame starts: gt, at the ground-truth pose of its first "
+    "frame (the two maps share a frame); own, at the identity at its own first frame: A's map "
+    "is aligned to B's as `gsc align` does, shares are moved by that transform, and the "
+    "report adds its error against the true one and B with the PWAS share at the true one. "
+    "Needs `pip install 'gscompress[align]'`.",
+)  # fmt: skip
+@click.option(
     "--mode", type=click.Choice(["merge", "inject"]), default="merge", show_default=True,
     help="How B receives a share: merged into its finished map and refined (the paper's "
     "protocol; B's poses do not change), or injected before its first frame (a new B run).",
@@ -150,6 +158,7 @@ def experiment(
     split: str,
     overlap: float,
     every: int,
+    anchor: str,
     mode: str,
     merge_iters: int,
     merge_views: str,
@@ -204,6 +213,7 @@ def experiment(
         overlap=overlap,
         every=every,
         mode=mode,
+        anchor=anchor,
         merge_iters=merge_iters,
         merge_views=merge_views,
         merge_lr_final=merge_lr_final,

@@ -37,6 +37,7 @@ COMMANDS: dict[str, str] = {
     "eval": "eval:eval_command",
     "render": "render:render",
     "merge": "merge:merge",
+    "align": "align:align",
     "experiment": "experiment:experiment",
     "view": "view:view",
 }

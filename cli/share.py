@@ -83,6 +83,14 @@ from .options import (
     "of the log's keyframes and scored against the frames of --seq (else against the whole "
     "map's renders). An explicit --codec or --no-sums constrains the search. Needs torch.",
 )
+@click.option(
+    "--align-to",
+    type=INPUT_FILE,
+    default=None,
+    help="The receiver's log, when its world frame is not SRC's: the share is cut already "
+    "expressed in that frame, the transform found as `gsc align SRC ALIGN_TO` finds it (and "
+    "refused as it refuses); the receiver merges it without --share-transform.",
+)
 @refine_options
 @seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
@@ -98,6 +106,7 @@ def share(
     sums: bool,
     ply: Path | None,
     solve: bool,
+    align_to: Path | None,
     refine_iters: int,
     seq: Path | None,
     device: str,
@@ -129,6 +138,7 @@ def share(
       gsc share --budget 5%bytes --no-sums agent_a.mcap share.mcap
       gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
       gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
+      gsc share agent_a.mcap share.mcap --align-to agent_b.mcap
     """
     if precision is not None:
         if codec != DEFAULT_SHARE_CODEC and codec != precision:
@@ -147,7 +157,8 @@ def share(
         refine = log_refiner(src, refine_iters, refine_seq, device, seed, bar,
                              "share without --refine")  # fmt: skip
         common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
-                                      command=command_line(), force=force)  # fmt: skip
+                                      align_to=align_to, command=command_line(),
+                                      force=force)  # fmt: skip
         if solve:
             from gscompress.pipeline.solve import share_solved
 

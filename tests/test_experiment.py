@@ -8,6 +8,7 @@ import math
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 from PIL import Image
@@ -499,3 +500,41 @@ def test_halves_split_names_frame_subsets_of_the_experiment_frames() -> None:
     r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--split", "halves", "--overlap",
                                  "1"])  # fmt: skip
     assert r.exit_code == 2 and "--overlap" in r.output
+
+
+@pytest.mark.slow
+def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Path) -> None:
+    pytest.importorskip("open3d", reason="--anchor own needs Open3D: pip install '.[align]'")
+    from gscompress.io.mcap_log import TOPIC_POSE_GT
+    from gscompress.io.trajectory import read_transform
+
+    seq = write_synthetic_sequence(tmp_path / "room", 4, (64, 48))
+    out = tmp_path / "exp"
+    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2", "--strategies", "random,pwas", "--sweep-seeds", "0",
+            "--split", "halves", "--anchor", "own", "--merge-iters", "0", "--no-lpips",
+            "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2",), sweep_seeds=0,
+                                  strategies=("random", "pwas"), split="halves", anchor="own",
+                                  merge_iters=0, lpips=False)  # fmt: skip
+    assert json.loads(r.output)["steps"] == plan_size(settings)
+    rows = {row["name"]: row for row in json.loads((out / "results.json").read_text())}
+    est, true = rows["B + pwas 0.2"], rows["B + pwas at the true transform 0.2"]
+    assert est["share_gaussians"] == true["share_gaussians"]
+    assert est["align_error_cm"] is not None and true["align_error_cm"] is None
+    firsts = []
+    for name in ("agent A (first part)", "agent B (last part)"):
+        with LogReader(out / rows[name]["log"]) as log:
+            assert log.metadata.world_frame.startswith("first-camera:")
+            firsts.append(log.read_poses(TOPIC_POSE_GT)[1][0])
+    T_true = read_transform(out / "runs" / "s0_align_true.txt")
+    np.testing.assert_allclose(T_true, np.linalg.inv(firsts[1]) @ firsts[0], atol=1e-9)
+    T_est = read_transform(out / "runs" / "s0_align.txt")
+    error = np.linalg.norm((np.linalg.inv(T_true) @ T_est)[:3, 3]) * 100
+    assert error == pytest.approx(est["align_error_cm"], abs=1e-6)
+    with LogReader(out / true["log"]) as log:
+        step = log.metadata.provenance[-1]["operation"]
+    np.testing.assert_allclose(step["transform"], T_true, atol=1e-9)  # merged at the truth
+    assert "## Alignment" in (out / "results.md").read_text()

@@ -154,6 +154,17 @@ def read_transform(path: str | Path) -> np.ndarray:
     return T
 
 
+def format_transform(T: np.ndarray, comments: Iterable[str] = ()) -> str:
+    """`read_transform`'s text of the rigid [4, 4] `T`: the comment lines (each `# `), then the
+    matrix as four rows of shortest round-trip numbers (read back bit for bit)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError("a transform to write must be a finite 4x4 matrix")
+    lines = [f"# {c}" for c in comments]
+    lines += [" ".join(repr(float(v)) for v in row) for row in T.tolist()]
+    return "\n".join(lines) + "\n"
+
+
 def format_tum_trajectory(
     timestamps: np.ndarray, T_world_cam: np.ndarray, comments: Iterable[str] = ()
 ) -> str:

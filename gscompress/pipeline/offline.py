@@ -32,6 +32,7 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import write_ply
 from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
+from gscompress.ops.merge import transform_map
 from gscompress.selection import check_ratio, select_count, select_top, strategy_scores
 
 log = logging.getLogger(__name__)
@@ -203,6 +204,7 @@ class ShareCut:
         solve: dict[str, Any] | None = None,
         command: str = "",
         source: tuple[GaussianMap, LogMetadata] | None = None,
+        align: tuple[np.ndarray, dict[str, Any]] | None = None,
     ):
         self.src = Path(src)
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
@@ -218,8 +220,13 @@ class ShareCut:
             operation["refine"] = refine.record()
         if solve is not None:
             operation["solve"] = solve
+        self.T_target_source = None if align is None else align[0]
+        if align is not None:
+            operation["align_to"] = align[1]
         self._meta = meta.derive(operation, src, command)
         self._meta.config = {}  # bytes on the link: the receiver maps with its own config
+        if align is not None:  # the share is expressed in the target's frame
+            self._meta.world_frame = align[1]["target_world_frame"]
         self.pool = self.full  # what the K best are taken from
         self.extra: dict[str, Any] = {}  # further results (a refinement's)
         self._sizes: dict[int, int] = {}
@@ -229,7 +236,7 @@ class ShareCut:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
         count that then fits (the refined values may compress less well than the first ones:
         the budget still holds)."""
-        selected = self.file(count)[1]
+        selected, _ = select_count(self.pool, count, self.strategy, self.seed)
         self.pool, self.extra = refined(selected, {}, refine)
         self._sizes, self._last = {}, None
         if self.budget.budget_bytes is None:
@@ -241,6 +248,8 @@ class ShareCut:
         encoding) and the results its metadata records. (Only the last one is kept.)"""
         if self._last is None or self._last[0] != count:
             shared, _ = select_count(self.pool, count, self.strategy, self.seed)
+            if self.T_target_source is not None:  # (the sender's frames refine, before this)
+                shared = transform_map(shared, self.T_target_source)
             meta = self._meta
             meta.results = {
                 "source": self.src.name,
@@ -276,6 +285,7 @@ def share_log(
     ply: str | Path | None = None,
     refine: MapRefiner | None = None,
     solve: dict[str, Any] | None = None,
+    align_to: str | Path | None = None,
     command: str = "",
     force: bool = False,
     source: tuple[GaussianMap, LogMetadata] | None = None,
@@ -305,6 +315,9 @@ def share_log(
             still bounds the file of the refined values (the last few may then be left out).
         solve: the byte-budget solver's record of how it chose the codec (for the provenance;
             see `gscompress.pipeline.solve`).
+        align_to: a log of the receiving agent whose world frame differs: the share is cut
+            in that log's frame, the transform found by `gsc align`'s aligner (recorded in the
+            provenance with its overlap and residual); the receiver then merges it as is.
         command: command line for the provenance record.
         force: overwrite existing outputs.
         source: the map and metadata of `src` when they are already read (a map file's map,
@@ -321,10 +334,17 @@ def share_log(
     outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
         raise OptionError("--ply must differ from the MCAP output")
+    inputs = [src] if align_to is None else [src, align_to]
     for path, suffix in outputs:
-        check_output(path, [src], force, suffix)
+        check_output(path, inputs, force, suffix)
+    align = None
+    if align_to is not None:
+        from gscompress.pipeline.align import share_alignment
+
+        align = share_alignment(src, align_to)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
-                   refine=refine, solve=solve, command=command, source=source)  # fmt: skip
+                   refine=refine, solve=solve, command=command, source=source,
+                   align=align)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
     if refine is not None:
         count = cut.refined(count, refine)

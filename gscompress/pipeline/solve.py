@@ -178,6 +178,7 @@ def share_solved(
     device: str = "auto",
     ply: str | Path | None = None,
     refine: MapRefiner | None = None,
+    align_to: str | Path | None = None,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
@@ -192,7 +193,7 @@ def share_solved(
     )  # fmt: skip
     record["predicted_psnr"] = best.psnr
     result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
-                       seed=seed, ply=ply, refine=refine, solve=record, command=command,
-                       force=force)  # fmt: skip
+                       seed=seed, ply=ply, refine=refine, solve=record, align_to=align_to,
+                       command=command, force=force)  # fmt: skip
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result

@@ -126,25 +126,37 @@ def _score(log_path: Path, seq: Path, every: int, lpips: bool, device: str) -> d
 
 
 def _slam_job(
-    path: Path, seq: Path, config: Any, frames: str, inject: Path | None, s: ExperimentSettings
-) -> dict[str, Any]:
+    path: Path, seq: Path, config: Any, frames: str, inject: Path | None, s: ExperimentSettings,
+    share_transform: Path | None = None,
+) -> dict[str, Any]:  # fmt: skip
     from gscompress.pipeline.slam_run import slam_file
 
     run = slam_file(seq, path, config=config, frames=frames, device=s.device, inject=inject,
-                    force=True)  # fmt: skip
+                    share_transform=share_transform, force=True)  # fmt: skip
     return {"slam": run, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
 def _merge_job(
     path: Path, seq: Path, receiver: Path, share: Path | None, frames: str, seed: int,
-    s: ExperimentSettings,
+    s: ExperimentSettings, share_transform: Path | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     from gscompress.pipeline.merge import merge_logs
 
     merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
                         views=s.merge_views, lr_final=s.merge_lr_final, device=s.device,
-                        seed=seed, force=True)  # fmt: skip
+                        seed=seed, share_transform=share_transform, force=True)  # fmt: skip
     return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
+
+
+def _align_job(path: Path, source: Path, target: Path) -> dict[str, Any]:
+    from gscompress.pipeline.align import align_agents
+
+    return align_agents(source, target, path, true_transform(path))
+
+
+def true_transform(estimated: Path) -> Path:
+    """Where an align step writes the true transform, beside its estimate."""
+    return estimated.with_name(f"{estimated.stem}_true{estimated.suffix}")
 
 
 def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) -> dict[str, Any]:
@@ -246,10 +258,12 @@ class Runner:
         job: functools.partial[dict[str, Any]],
         after: Sequence[RunHandle] = (),
         extra: Callable[[], dict[str, Any]] | None = None,
+        suffix: str = ".mcap",
     ) -> Record:
         """Run `job(log path)` unless a record with the same key exists; `after`: the steps
-        whose logs it reads; `extra()`: what the record adds to the job's result."""
-        path = self.runs / f"{name}.mcap"
+        whose logs it reads; `extra()`: what the record adds to the job's result; `suffix`:
+        of the file the job writes (a log, or an alignment's transform)."""
+        path = self.runs / f"{name}{suffix}"
         record_path = self.runs / f"{name}.json"
         key = self._key(spec)
         if path.is_file() and record_path.is_file():
@@ -320,19 +334,32 @@ class Runner:
             if self.progress is not None:
                 self.progress(name, self.done, self.total)
 
-    def slam(self, name: str, config: Any, frames: str, inject: RunHandle | None = None) -> Record:
-        """A SLAM run on `frames`, evaluated on them."""
+    def slam(
+        self, name: str, config: Any, frames: str, inject: RunHandle | None = None,
+        align: RunHandle | None = None, transform: Path | None = None,
+    ) -> Record:  # fmt: skip
+        """A SLAM run on `frames`, evaluated on them (starting with the share `inject`, moved
+        by the `transform` file of the step `align`)."""
         s = self.settings
-        spec = {
+        spec: dict[str, Any] = {
             "kind": "slam", "sequence": str(self.seq.resolve()), "config": config.to_dict(),
             "frames": frames, "inject": inject.key if inject else None, "every": s.every,
             "lpips": s.lpips,
         }  # fmt: skip
+        if transform is not None and align is not None:
+            spec["transform"] = {"align": align.key, "file": transform.name}
         job = functools.partial(
             _slam_job, seq=self.seq, config=config, frames=frames,
-            inject=inject.path if inject else None, s=s,
+            inject=inject.path if inject else None, s=s, share_transform=transform,
         )  # fmt: skip
-        return self._step(name, spec, job, after=[inject] if inject else [])
+        after = [r for r in (inject, align) if r is not None]
+        return self._step(name, spec, job, after=after)
+
+    def align(self, name: str, source: RunHandle, target: RunHandle) -> Record:
+        """`source`'s map aligned to `target`'s, against their ground-truth first poses."""
+        spec = {"kind": "align", "source": source.key, "target": target.key}
+        job = functools.partial(_align_job, source=source.path, target=target.path)
+        return self._step(name, spec, job, after=[source, target], suffix=".txt")
 
     def receive(
         self,
@@ -342,26 +369,39 @@ class Runner:
         config: Any,
         frames: str,
         seed: int,
+        align: RunHandle | None = None,
+        true: bool = False,
     ) -> Record:
         """Agent B with a share: merged into B's map and refined, or injected into a new run.
 
         With `share` None (merge mode only): B's map refined the same way without a share, the
-        control that separates what the share brings from what the refinement brings.
+        control that separates what the share brings from what the refinement brings. With
+        `align` (anchor "own"), the share is moved by that step's estimated transform, or by
+        the true one with `true`.
         """
         s = self.settings
+        transform = None
+        if align is not None and share is not None:
+            transform = true_transform(align.path) if true else align.path
         if s.mode == "inject":  # its own name: both modes' runs can share one folder
             assert share is not None
-            return self.slam(f"{name}_inject", config, frames, inject=share)
-        spec = {
+            return self.slam(f"{name}_inject", config, frames, inject=share, align=align,
+                             transform=transform)  # fmt: skip
+        spec: dict[str, Any] = {
             "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
             "frames": frames, "iters": s.merge_iters, "views": s.merge_views,
             "lr_final": s.merge_lr_final, "seed": seed, "every": s.every, "lpips": s.lpips,
         }  # fmt: skip
+        if transform is not None:
+            assert align is not None
+            spec["transform"] = {"align": align.key, "true": true}
         job = functools.partial(
             _merge_job, seq=self.seq, receiver=receiver.path,
             share=share.path if share else None, frames=frames, seed=seed, s=s,
+            share_transform=transform,
         )  # fmt: skip
         after = [receiver, share] if share else [receiver]
+        after += [align] if transform is not None and align is not None else []
         return self._step(name, spec, job, after, extra=lambda: {"slam": receiver.result["slam"]})
 
     def share(self, name: str, source: RunHandle, budget: str, strategy: str, seed: int) -> Record:

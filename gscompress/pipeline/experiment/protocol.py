@@ -20,6 +20,10 @@ if TYPE_CHECKING:
     from gscompress.slam.config import SlamConfig
 
 
+ANCHORS = ("gt", "own")
+"""Where each agent's world frame starts (`ExperimentSettings.anchor`)."""
+
+
 SPLITS = ("odd-even", "halves")
 """How the experiment's frames are split between agents A and B (`ExperimentSettings.split`)."""
 
@@ -37,6 +41,11 @@ B_ALONE = AGENT_ROWS["odd-even"][1]
 
 B_NO_SHARE = "B refined, no share"
 """Row name of B's map refined like a merge but with nothing merged (merge mode's control)."""
+
+
+TRUE_TRANSFORM_ROW = "B + pwas at the true transform"
+"""Row name (before the budget) of B with the PWAS share moved by the true transform instead
+of the estimated one (anchor "own")."""
 
 
 @dataclass(frozen=True)
@@ -68,6 +77,11 @@ class ExperimentSettings:
         merge_iters: refinement iterations of a merge.
         merge_views: what a merge refines on: B's "frames" (all) or "keyframes".
         merge_lr_final: a merge's learning rates decay to this fraction over its refinement.
+        anchor: "gt": both agents start at the ground-truth pose of their first frame, so their
+            maps share a frame; "own": each starts at the identity at its own first frame, A's
+            map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives
+            shares moved by the estimated transform, with the PWAS share at the main budget
+            also merged at the true one (from the agents' ground-truth first poses) beside it.
     """
 
     preset: str | None = None
@@ -89,6 +103,7 @@ class ExperimentSettings:
     merge_iters: int = 200
     merge_views: str = DEFAULT_REFINE_VIEWS
     merge_lr_final: float = DEFAULT_LR_FINAL
+    anchor: str = "gt"
 
     def agent_frames(self, n: int | None = None) -> tuple[str, str]:
         """The frame subsets of agents A and B: the odd and even positions within `frames`, or
@@ -132,6 +147,8 @@ class ExperimentSettings:
             raise InputError(f"--overlap must be in [0, 1), got {self.overlap}")
         if self.mode not in ("merge", "inject") or self.merge_iters < 0:
             raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
+        if self.anchor not in ANCHORS:
+            raise InputError(f"--anchor is one of {', '.join(ANCHORS)}")
         if self.merge_views not in REFINE_VIEWS:
             raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
         if not is_fraction(self.merge_lr_final):
@@ -175,6 +192,7 @@ def plan_size(settings: ExperimentSettings) -> int:
     s = settings
     main = 2 + len(s.strategies) + 1  # A, B, B+share per strategy, B+full
     main += s.mode == "merge"  # B refined without a share (the control)
+    main += 2 * (s.anchor == "own")  # the alignment, B with the share at the true transform
     shares = len(s.strategies) + 1
     extra_budgets = [b for b in s.sweep if not same_budget(b, s.budget)]
     sweep = s.sweep_seeds * len(extra_budgets) * len(s.strategies) * 2
@@ -224,7 +242,11 @@ class Executor(Protocol):
         config: Any,
         frames: str,
         seed: int,
+        align: RunHandle | None = None,
+        true: bool = False,
     ) -> RunHandle: ...
+
+    def align(self, name: str, source: RunHandle, target: RunHandle) -> RunHandle: ...
 
     def share(
         self, name: str, source: RunHandle, budget: str, strategy: str, seed: int
@@ -245,12 +267,16 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[tuple[Any, ...]]:
     rows.append(("full, PWAS pruning", "table3", pruned))
 
     budgets = [s.budget] + [b for b in s.sweep if not same_budget(b, s.budget)]
+    own = s.anchor == "own"
     for seed in range(s.seeds):
         config = base.with_overrides(seed=seed)
+        if own:  # each agent at the identity at its own first frame
+            config = config.with_overrides(init_from_ground_truth=False)
         a = runner.slam(f"s{seed}_agent_a", config, frames_a)
         b = runner.slam(f"s{seed}_agent_b", config, frames_b)
         rows.append((a_alone, "table4", a, seed))
         rows.append((b_alone, "table4", b, seed))
+        align = runner.align(f"s{seed}_align", a, b) if own else None
         if s.mode == "merge":
             alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
             rows.append((B_NO_SHARE, "table4", alone, seed, "none"))
@@ -259,11 +285,17 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[tuple[Any, ...]]:
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
                 share = runner.share(f"{tag}_share", a, budget, strategy, seed)
-                got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed)
-                rows.append((f"B + {strategy} {budget}", table, got, seed, strategy, budget, share))
+                got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed, align)
+                rows.append((f"B + {strategy} {budget}", table, got, seed, strategy, budget, share,
+                             align))  # fmt: skip
+                if own and table == "table4" and strategy == "pwas":
+                    got = runner.receive(f"{tag}_true_agent_b", b, share, config, frames_b, seed,
+                                         align, true=True)  # fmt: skip
+                    rows.append((f"{TRUE_TRANSFORM_ROW} {budget}", table, got, seed, "",
+                                 budget, share))  # fmt: skip
         whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
-        got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed)
-        rows.append(("B + A's full map", "table4", got, seed, "full", "1", whole))
+        got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed, align)
+        rows.append(("B + A's full map", "table4", got, seed, "full", "1", whole, align))
     return rows
 
 

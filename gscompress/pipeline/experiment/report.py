@@ -17,6 +17,7 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline.experiment.protocol import (
     AGENT_ROWS,
     B_NO_SHARE,
+    TRUE_TRANSFORM_ROW,
     ExperimentSettings,
     RunHandle,
     same_budget,
@@ -27,7 +28,8 @@ from gscompress.selection import strategy_scores
 ROW_KEYS = (
     "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
     "ate_reason", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes",
-    "share_gaussians", "share_bytes", "seconds_per_frame", "log", "error",
+    "share_gaussians", "share_bytes", "seconds_per_frame", "log", "error", "align_error_cm",
+    "align_error_deg", "align_refused",
 )  # fmt: skip
 """Columns of results.csv (every row of results.json has them)."""
 
@@ -40,9 +42,11 @@ def result_row(
     strategy: str = "",
     budget: str = "",
     share: RunHandle | None = None,
+    align: RunHandle | None = None,
 ) -> dict[str, Any]:
-    """A results row from a SLAM run's record (and the share it received); a run that failed
-    (or was not run, a run it needs having failed) gives a row of its error, the rest empty."""
+    """A results row from a SLAM run's record (and the share it received, moved by the
+    transform of `align`); a run that failed (or was not run, a run it needs having failed)
+    gives a row of its error, the rest empty."""
     error = run.error
     ev, slam = ({}, {}) if error else (run.result["eval"], run.result["slam"])
     got = share.result if share is not None and share.error is None else {}
@@ -53,6 +57,10 @@ def result_row(
         share_gaussians=got.get("selected"), share_bytes=got.get("bytes"),
         log=None if error else f"runs/{run.path.name}", error=error,
     )  # fmt: skip
+    if align is not None and align.error is None:
+        row.update(align_error_cm=align.result["error_cm"],
+                   align_error_deg=align.result["error_deg"],
+                   align_refused=align.result["refused"])  # fmt: skip
     return row
 
 
@@ -377,6 +385,8 @@ def _markdown(
                     f"{b['pwas_lower_ate']} of {b['pairs']}",
                 ]
             lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    if s.anchor == "own":
+        lines += _alignment_lines(rows, s)
     lines += ["", "## Plots", ""]
     if s.mode == "merge" and s.sweep_seeds:
         lines += [
@@ -397,6 +407,40 @@ def _plot_title(seq: Path, s: ExperimentSettings, what: str, seeds: str) -> str:
     """A plot's title: what it shows, the sequence, the split and the seeds it averages."""
     split = "odd-even" if s.split == "odd-even" else f"halves, overlap {s.overlap:g}"
     return f"{what}\n{seq.name}, split {split}, {s.mode}, {seeds}"
+
+
+def _alignment_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[str]:
+    """results.md's section on anchor "own": per seed, the error of the transform from A's
+    frame to B's against the true one, and B with the PWAS share at each."""
+    lines = [
+        "",
+        "## Alignment (each agent at the identity at its own first frame)",
+        "",
+        "`gsc align` of A's map to B's, against the transform between the agents' ground-truth "
+        "first poses (the agents' own drift is part of the error); B's PSNR with the PWAS share "
+        f"at {s.budget} merged at the estimated and at the true transform.",
+        "",
+        "| Seed | Error (cm) | Error (deg) | PSNR, estimated | PSNR, true | Difference (dB) "
+        "| Refused |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for seed in range(s.seeds):
+        est = next((r for r in rows if r["seed"] == seed and r["table"] == "table4"
+                    and r["name"] == f"B + pwas {s.budget}"), None)  # fmt: skip
+        true = next((r for r in rows if r["seed"] == seed
+                     and r["name"] == f"{TRUE_TRANSFORM_ROW} {s.budget}"), None)  # fmt: skip
+        if est is None or true is None:
+            continue
+        diff = None if est["psnr"] is None or true["psnr"] is None else est["psnr"] - true["psnr"]
+        lines.append(
+            f"| {seed} | {_fmt(est['align_error_cm'])} | {_fmt(est['align_error_deg'])} | "
+            f"{_fmt(est['psnr'])} | {_fmt(true['psnr'])} | {_fmt(diff)} | "
+            f"{est['align_refused'] or 'no'} |"
+        )
+    lines += ["", "Each alignment's figures (overlap, residual, inliers, the drift that local "
+              "refinement finds from the true transform, a refusal) are in runs/s*_align.json; "
+              "a refused alignment's estimate is still merged, and counts as a miss."]  # fmt: skip
+    return lines
 
 
 def _plot_rate_distortion(
