@@ -10,7 +10,7 @@ from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import EXECUTORS, SPLITS, ExperimentSettings, run_experiment
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
-from gscompress.slam.config import REFINE_VIEWS
+from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (
     INPUT_FOLDER,

@@ -10,7 +10,7 @@ import click
 from gscompress.pipeline import merge_logs
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
-from gscompress.slam.config import REFINE_VIEWS
+from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,

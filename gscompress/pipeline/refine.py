@@ -24,7 +24,7 @@ from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader
 from gscompress.selection import is_fraction
-from gscompress.slam.config import REFINE_VIEWS
+from gscompress.slam.views import REFINE_VIEWS
 
 DEFAULT_LR_FINAL = 0.3
 """A refinement's learning rates decay to this fraction over its iterations. Its optimizer is

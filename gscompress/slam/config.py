@@ -43,10 +43,7 @@ from gscompress.errors import InputError, OptionError, clipped
 from gscompress.importance import PwasConfig
 from gscompress.io.files import read_text, write_text_atomic
 from gscompress.selection import STRATEGIES, is_fraction
-
-REFINE_VIEWS = ("frames", "keyframes")
-"""What a refinement runs on: every frame of a run, or its keyframes (every `keyframes.every`-th;
-the SLAM's own final refinement adds the last frame)."""
+from gscompress.slam.views import REFINE_VIEWS
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import smallest_share_bytes
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 from gscompress.selection import STRATEGIES, is_fraction
-from gscompress.slam.config import REFINE_VIEWS
+from gscompress.slam.views import REFINE_VIEWS
 
 if TYPE_CHECKING:
     from gscompress.slam.config import SlamConfig
