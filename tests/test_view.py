@@ -19,8 +19,8 @@ from gscompress.gaussians import SH_C0, GaussianMap, random_map
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.budget import Budget
-from gscompress.ops.select import select_top
 from gscompress.pipeline.offline import share_log
+from gscompress.selection import select_top
 from gscompress.view import cuts, scene
 from gscompress.view.source import MapSource
 from gscompress_cli.main import cli

@@ -20,8 +20,8 @@ from gscompress.errors import GscError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import decoded_map
 from gscompress.ops.budget import Budget
-from gscompress.ops.select import STRATEGIES
 from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC, ShareCut, smallest_share_bytes
+from gscompress.selection import STRATEGIES
 from gscompress.view import cuts, scene
 from gscompress.view.source import MapSource
 

@@ -15,8 +15,8 @@ from gscompress.io.files import check_output
 from gscompress.io.map_files import write_map_file
 from gscompress.io.mcap_log import LogMetadata
 from gscompress.ops.budget import Budget
-from gscompress.ops.select import select_top
 from gscompress.pipeline.offline import ShareCut, prune_log, share_log
+from gscompress.selection import select_top
 
 SHARE_CODECS = (("compact", True), ("compact", False), ("fp16", True), ("fp32", True))
 """(codec, sums) pairs a share's size is shown in."""
