@@ -145,23 +145,24 @@ def merge(
     still sit centimetres apart, each map agreeing with its own trajectory, so the merge:
 
     \b
-    1. aligns the share to the receiver where their surfaces overlap (--align: ICP on the
-       opaque Gaussians' centres, pairs at most --voxel apart; the identity when they
-       hardly overlap);
-    2. resolves what both maps hold (--resolve): in each --voxel cell with Gaussians of both,
-       only the map whose Gaussians there its own agent saw more (their alpha*T sums) keeps
-       them, instead of stacking two copies of one surface;
-    3. refines the result on the receiver's own frames (--views) at its estimated poses with a
-       fresh optimizer, each view once per shuffled pass, its learning rates decaying to
-       --lr-final of the receiver's mapping rates; the share's Gaussians move at --share-rate
-       of those rates (0: they keep the sender's values, which the receiver's views cannot
-       judge where they barely see them).
+    1. aligns the share to the receiver where their surfaces overlap (--align:
+       ICP on the opaque Gaussians' centres, pairs at most --voxel apart; the
+       identity when they hardly overlap);
+    2. resolves what both maps hold (--resolve): in each --voxel cell with
+       Gaussians of both, only the map whose Gaussians there its own agent saw
+       more (their alpha*T sums) keeps them, instead of stacking two copies;
+    3. refines the result on the receiver's own frames (--views) at its
+       estimated poses with a fresh optimizer, each view once per shuffled
+       pass, the learning rates decaying to --lr-final of the receiver's
+       mapping rates; the share's Gaussians move at --share-rate of those
+       rates (0: they keep the sender's values, which the receiver's views,
+       seeing them from elsewhere or not at all, would bend).
 
     Every Gaussian kept has its id and PWAS sums (the share's ids move past the receiver's
     when they clash; the offset is reported). --no-align --resolve stack --share-rate 1 is
-    the exact concatenation of both maps, refined as one. `gsc slam --inject` is the other
-    path: the share enters before the receiver maps, so its tracking benefits too (it is not
-    aligned or resolved: the receiver has no map yet).
+    the exact concatenation of both maps, refined as one; docs/merge.md has the figures.
+    `gsc slam --inject` is the other path: the share enters before the receiver maps, so its
+    tracking benefits too (it is not aligned or resolved: the receiver has no map yet).
 
     \b
     Examples:

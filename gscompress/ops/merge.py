@@ -1,12 +1,17 @@
 """Merging another agent's share into a map, and refining the result.
 
-`merge_maps` is exact: every Gaussian of both maps, with all its parameters and PWAS sums, is
-in the result. Ids stay as they are unless the two maps share some; then the share's ids are
-all moved by one offset past the receiver's largest id, so `id - offset` still names the
-Gaussian in the sending agent's map.
+`combine` is the merge (`MergeOptions`): the share is moved onto the receiver where their
+surfaces overlap (`align_share`, a local rigid refinement: two agents anchored in one frame
+still sit centimetres apart), the surfaces both maps hold are resolved in favour of the map
+whose agent saw them more (`resolve_overlap`) instead of being stacked, and what is kept is
+concatenated by `merge_maps`. `share_rates` says how fast the share's Gaussians may move in
+the refinement that follows on the receiver's views (`gscompress.ops.refine.refine`), which
+never drops a Gaussian.
 
-The merged map is then refined on the receiver's own views by `gscompress.ops.refine.refine`
-(a merge never drops a Gaussian).
+`merge_maps` alone is exact: every Gaussian of both maps, with all its parameters and PWAS
+sums, is in the result. Ids stay as they are unless the two maps share some; then the share's
+ids are all moved by one offset past the receiver's largest id, so `id - offset` still names
+the Gaussian in the sending agent's map.
 """
 
 from __future__ import annotations

@@ -1,11 +1,13 @@
 """`gsc merge`: inject another agent's share into a receiver's map and refine it there.
 
-The receiver's log is copied with its map (the last snapshot) replaced by receiver + share,
+The receiver's log is copied with its map (the last snapshot) replaced by the merge of its map
+and the share (`gscompress.ops.merge.combine`: aligned, the surfaces both hold resolved),
 refined on the receiver's own frames (all of them, or its keyframes only) at the receiver's
-estimated poses (see `gscompress.ops.merge`). Both inputs are in the output's provenance: the
-receiver as the parent, the share (name, sha256, id offset) in the merge operation. The
-refinement is `gscompress.pipeline.refine`'s, which prune and share use too. Maps are
-merged only when their world frames agree (`LogMetadata.world_frame`).
+estimated poses, the share's Gaussians held still or slowed (`MergeOptions.share_rate`). Both
+inputs are in the output's provenance: the receiver as the parent, the share (name, sha256, id
+offset) and the merge's options in the merge operation. The refinement is
+`gscompress.pipeline.refine`'s, which prune and share use too. Maps are merged only when their
+world frames agree (`LogMetadata.world_frame`).
 """
 
 from __future__ import annotations

@@ -28,6 +28,7 @@ from typing import Any
 from gscompress import __version__
 from gscompress.errors import GscError
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
+from gscompress.ops.merge import MergeOptions
 from gscompress.pipeline.experiment.protocol import ExperimentSettings, RunHandle
 
 log = logging.getLogger(__name__)
@@ -292,6 +293,7 @@ class LocalRunner:
             "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
             "frames": frames, "iters": s.merge_iters, "views": s.merge_views,
             "lr_final": s.merge_lr_final, "seed": seed, "every": s.every, "lpips": s.lpips,
+            "merge": MergeOptions().record(),  # (what the merge does: runs before it differ)
         }  # fmt: skip
         job = functools.partial(
             _merge_job, seq=self.seq, receiver=receiver.path,
