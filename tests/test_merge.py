@@ -23,7 +23,6 @@ from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
 from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
 
-
 STACK = MergeOptions(align=False, resolve="stack", share_rate=1.0)
 """The exact merge: every Gaussian of both maps, none held still."""
 

@@ -30,6 +30,8 @@ from gscompress.slam.params import GaussianParams
 
 K = Intrinsics(fx=80.0, fy=80.0, cx=16.0, cy=12.0, width=32, height=24)
 SPACING = 0.04
+RESOLVED = MergeOptions(align=True, resolve="evidence", share_rate=0.0)
+"""Aligned, the overlap resolved by evidence, the share held still in the refinement."""
 B_OFFSET = np.array([0.012, -0.006, 0.01])
 """Where B's world frame sits in A's (B's map and views are moved by it)."""
 
@@ -93,7 +95,7 @@ def agents() -> dict[str, object]:
 
 def test_merge_of_a_map_with_itself_renders_like_the_map(agents: dict) -> None:
     scene = agents["scene"]
-    merged, from_share, offset, stats = combine(scene, scene, MergeOptions())
+    merged, from_share, offset, stats = combine(scene, scene, RESOLVED)
     assert stats["align_shift_cm"] == 0.0 and stats["share_dropped"] == len(scene)
     assert not from_share.any() and offset == 0
     stacked, *_ = combine(scene, scene, MergeOptions(align=False, resolve="stack"))
@@ -116,7 +118,7 @@ def test_align_share_recovers_the_offset_between_two_agents(agents: dict) -> Non
 
 def test_merge_of_two_halves_renders_each_half_as_well_as_its_source(agents: dict) -> None:
     scene, a, b = agents["scene"], agents["a"], agents["b"]
-    merged, from_share, _, stats = combine(b, a, MergeOptions())  # B receives A's whole map
+    merged, from_share, _, stats = combine(b, a, RESOLVED)  # B receives A's whole map
     stacked, *_ = combine(b, a, MergeOptions(align=False, resolve="stack"))
     assert stats["share_dropped"] > 0 and stats["receiver_dropped"] == 0  # a tie: B keeps its own
     assert from_share.sum() == len(a) - stats["share_dropped"]
@@ -147,13 +149,13 @@ def test_refinement_keeps_the_share_still_where_its_rate_is_zero(agents: dict) -
     from gscompress.ops.refine import refine
 
     scene, a, b = agents["scene"], agents["a"], agents["b"]
-    merged, from_share, _, _ = combine(b, a, MergeOptions())
+    merged, from_share, _, _ = combine(b, a, RESOLVED)
     views = []
     for T in agents["b_views"]:
         color = image(scene, T)
         views.append(View(0, color, torch.full(color.shape[:2], 2.0), shift(B_OFFSET) @ T))
     config = preset("tiny")
-    rates = share_rates(from_share, MergeOptions(share_rate=0.0))
+    rates = share_rates(from_share, RESOLVED)
     assert rates is not None and np.array_equal(rates, (~from_share).astype(np.float32))
     out, _ = refine(merged, views, K, config, 5, rates=rates)
     assert np.array_equal(out.means[from_share], merged.means[from_share])
