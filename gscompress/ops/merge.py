@@ -101,6 +101,10 @@ RESOLVE = ("evidence", "receiver", "share", "stack")
 class MergeOptions:
     """How a share is merged into a receiver's map.
 
+    The defaults are the exact merge (every Gaussian of both, all refined alike): on office
+    frag1 the aligned, resolved merges lift the sender's frames by up to 1.0 dB but cost the
+    receiver's own frames 2.1-2.5 dB against it (docs/merge.md), so they are asked for.
+
     Attributes:
         align: move the share by a local rigid refinement onto the receiver where their
             surfaces overlap (`align_share`) before merging.
@@ -116,10 +120,10 @@ class MergeOptions:
             to the sender's evidence (`share_rates`).
     """
 
-    align: bool = True
-    resolve: str = "evidence"
+    align: bool = False
+    resolve: str = "stack"
     voxel: float = 0.04
-    share_rate: float = 0.0
+    share_rate: float = 1.0
     by_view: bool = False
 
     def check(self) -> None:
