@@ -141,39 +141,37 @@ def merge(
     """Merge SHARE.mcap (another agent's share) into the map of RECEIVER.mcap.
 
     Both maps must be in one world frame (agents anchored at the ground-truth pose of their
-    first frame on one sequence are; else give --share-transform). By default every Gaussian
-    of both maps is kept with its id and PWAS sums (the share's ids move past the receiver's
-    when they clash; the offset is reported), and the merged map is refined on the
-    receiver's own frames (--views) at its estimated poses with a fresh optimizer, each view
-    once per shuffled pass, the learning rates decaying to --lr-final of the receiver's
-    mapping rates.
-
-    Two agents in one frame still sit centimetres apart, each map agreeing with its own
-    trajectory; three steps, each asked for, address what that costs:
+    first frame on one sequence are; else give --share-transform), yet they still sit
+    centimetres apart, each map agreeing with its own trajectory. The merge:
 
     \b
-    --align       move the share onto the receiver where their surfaces overlap
+    --align       moves the share onto the receiver where their surfaces overlap
                   (ICP on the opaque Gaussians' centres, pairs at most --voxel
                   apart; the identity when they hardly overlap);
-    --resolve     in each --voxel cell with Gaussians of both maps keep only one
-                  map's: the one whose agent saw them more (evidence: their
+    --resolve     keeps, in each --voxel cell with Gaussians of both maps, only
+                  one map's: the one whose agent saw them more (evidence: their
                   alpha*T sums), the receiver's, or the share's (stack: both);
-    --share-rate  the share's Gaussians move at this fraction of the rates in the
-                  refinement (0: they keep the sender's values); --by-view lets
-                  those the receiver's views see much move more.
+    refinement    on the receiver's own frames (--views) at its estimated poses,
+                  a fresh optimizer, each view once per shuffled pass, the rates
+                  decaying to --lr-final of the receiver's mapping rates; the
+                  share's Gaussians move at --share-rate of them (0: they keep
+                  the sender's values), or with --by-view at the fraction of
+                  their evidence that the receiver's views give them.
 
-    On office frag1 (A frames 0-29, B 20-49, B receiving A's whole map, poses refined)
-    --align --resolve evidence --share-rate 0 renders A's frames 1.0 dB better than the
-    default but B's own frames 2.5 dB worse; docs/merge.md has every figure. `gsc slam
-    --inject` is the other path: the share enters before the receiver maps, so its tracking
-    benefits too (it is not aligned or resolved: the receiver has no map yet).
+    Every Gaussian kept has its id and PWAS sums (the share's ids move past the receiver's
+    when they clash; the offset is reported). --no-align --resolve stack --share-rate 1
+    --no-by-view is the exact concatenation, refined as one map. On office frag1 (A frames
+    0-29, B 20-49, B receiving A's whole map, poses refined) the default rendered A's frames
+    0.7 dB better than that and B's own 0.2 dB worse; docs/merge.md has every figure.
+    `gsc slam --inject` is the other path: the share enters before the receiver maps, so its
+    tracking benefits too (it is not aligned or resolved: the receiver has no map yet).
 
     \b
     Examples:
       gsc share a.mcap a_share.mcap --budget 0.2
       gsc merge b.mcap a_share.mcap --seq data/room -o b_merged.mcap
-      gsc merge b.mcap a.mcap --seq data/room --align --resolve evidence \\
-          --share-rate 0 -o b_resolved.mcap
+      gsc merge b.mcap a.mcap --seq data/room --no-align --resolve stack \\
+          --share-rate 1 --no-by-view -o b_stacked.mcap
       gsc eval b_merged.mcap --seq data/room
     """
     with progress_bar("refine", "iter", total=iters, hidden=as_json) as bar:

@@ -18,13 +18,12 @@ from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.mcap_log import LogReader
 from gscompress.io.ply import write_ply
-from gscompress.ops.merge import MergeOptions, merge_maps
+from gscompress.ops.merge import EXACT, merge_maps
 from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
 from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
 
-STACK = MergeOptions(align=False, resolve="stack", share_rate=1.0)
-"""The exact merge: every Gaussian of both maps, none held still."""
+STACK = EXACT
 
 
 def by_id(gaussians: GaussianMap) -> GaussianMap:

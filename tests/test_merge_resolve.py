@@ -16,6 +16,7 @@ import torch
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.merge import (
+    EXACT,
     MergeOptions,
     align_share,
     combine,
@@ -30,7 +31,7 @@ from gscompress.slam.params import GaussianParams
 
 K = Intrinsics(fx=80.0, fy=80.0, cx=16.0, cy=12.0, width=32, height=24)
 SPACING = 0.04
-RESOLVED = MergeOptions(align=True, resolve="evidence", share_rate=0.0)
+RESOLVED = MergeOptions(align=True, resolve="evidence", share_rate=0.0, by_view=False)
 """Aligned, the overlap resolved by evidence, the share held still in the refinement."""
 B_OFFSET = np.array([0.012, -0.006, 0.01])
 """Where B's world frame sits in A's (B's map and views are moved by it)."""
@@ -98,7 +99,7 @@ def test_merge_of_a_map_with_itself_renders_like_the_map(agents: dict) -> None:
     merged, from_share, offset, stats = combine(scene, scene, RESOLVED)
     assert stats["align_shift_cm"] == 0.0 and stats["share_dropped"] == len(scene)
     assert not from_share.any() and offset == 0
-    stacked, *_ = combine(scene, scene, MergeOptions(align=False, resolve="stack"))
+    stacked, *_ = combine(scene, scene, EXACT)
     assert len(stacked) == 2 * len(scene)
     for T in agents["a_views"] + agents["b_views"]:
         own = image(scene, T)
@@ -119,7 +120,7 @@ def test_align_share_recovers_the_offset_between_two_agents(agents: dict) -> Non
 def test_merge_of_two_halves_renders_each_half_as_well_as_its_source(agents: dict) -> None:
     scene, a, b = agents["scene"], agents["a"], agents["b"]
     merged, from_share, _, stats = combine(b, a, RESOLVED)  # B receives A's whole map
-    stacked, *_ = combine(b, a, MergeOptions(align=False, resolve="stack"))
+    stacked, *_ = combine(b, a, EXACT)
     assert stats["share_dropped"] > 0 and stats["receiver_dropped"] == 0  # a tie: B keeps its own
     assert from_share.sum() == len(a) - stats["share_dropped"]
     for T in agents["a_views"]:  # A's frames, at A's poses moved into B's frame
@@ -164,7 +165,7 @@ def test_refinement_keeps_the_share_still_where_its_rate_is_zero(agents: dict) -
     moving, _ = refine(merged, views, K, config, 5)
     seen = ~np.all(moving.sh_dc == merged.sh_dc, axis=1) & from_share
     assert seen.any()  # without rates, B's views move some of A's Gaussians
-    assert share_rates(from_share, MergeOptions(share_rate=1.0)) is None
+    assert share_rates(from_share, EXACT) is None
     by_view = share_rates(
         from_share, MergeOptions(share_rate=0.0, by_view=True),
         np.full(len(merged), 3.0), np.full(len(merged), 1.0),
