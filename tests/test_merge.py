@@ -18,10 +18,12 @@ from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.mcap_log import LogReader
 from gscompress.io.ply import write_ply
-from gscompress.ops.merge import merge_maps
+from gscompress.ops.merge import EXACT, merge_maps
 from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
 from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
+
+STACK = EXACT
 
 
 def by_id(gaussians: GaussianMap) -> GaussianMap:
@@ -58,7 +60,7 @@ def agents(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 def test_merge_refines_and_keeps_every_gaussian_and_sum(agents: dict[str, Path]) -> None:
     out = agents["root"] / "merged.mcap"
-    result = merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=30)
+    result = merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=30, merge=STACK)
     with LogReader(agents["b"]) as log:
         own = log.read_map()
     with LogReader(agents["share"]) as log:
@@ -101,7 +103,7 @@ def test_merge_refines_on_keyframes_only_when_asked(agents: dict[str, Path]) -> 
 
 def test_merge_without_refinement_is_exact_concatenation(agents: dict[str, Path]) -> None:
     out = agents["root"] / "concat.mcap"
-    merge_logs(agents["b"], agents["share"], out, iters=0)
+    merge_logs(agents["b"], agents["share"], out, iters=0, merge=STACK)
     with LogReader(agents["b"]) as log:
         own = log.read_map()
     with LogReader(agents["share"]) as log:
@@ -197,7 +199,7 @@ def test_merge_across_world_frames_with_an_explicit_transform(
     transform = tmp_path / "T.txt"
     transform.write_text("# share frame -> receiver frame\n0.5 0 0  0 0 0 1\n")
     out = tmp_path / "merged.mcap"
-    result = merge_logs(agents["b"], other, out, iters=0, share_transform=transform)
+    result = merge_logs(agents["b"], other, out, iters=0, share_transform=transform, merge=STACK)
     with LogReader(other) as log:
         shared = log.read_map()
     with LogReader(out) as log:

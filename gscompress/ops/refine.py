@@ -32,6 +32,7 @@ def refine(
     lr_final_fraction: float = 1.0,
     progress: Callable[[int], object] | None = None,
     instead: str = "merge with --iters 0 to concatenate only",
+    rates: Any = None,
 ) -> tuple[GaussianMap, dict[str, Any]]:
     """Optimise a map on fixed views for `iters` iterations, each view once per shuffled pass.
 
@@ -47,6 +48,9 @@ def refine(
             to this fraction of their value at the last iteration (1: constant).
         progress: called with 1 after each iteration.
         instead: what to do without a refinement, said when it diverges.
+        rates: [N] factors in [0, 1] on each Gaussian's steps (0: it keeps its values; None: 1
+            for every Gaussian). A merge slows the share's Gaussians that the receiver's views
+            barely see.
 
     Returns:
         The refined map (same Gaussians, same order, same ids and sums) and
@@ -79,7 +83,12 @@ def refine(
     loss_before = mapper.loss(views)
     on_step = None if progress is None else lambda _: progress(1)
     try:
-        mapper.refine(views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction)
+        mapper.refine(
+            views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction,
+            row_rates=None if rates is None else torch.as_tensor(
+                rates, dtype=torch.float32, device=mapper.device
+            ),
+        )  # fmt: skip
     except DivergenceError as exc:  # (its rates are the log's mapping ones, from its config)
         raise DivergenceError(
             "the refinement", exc.detail, f"it ran at the log's mapping rates; {instead}"

@@ -1,11 +1,13 @@
 """`gsc merge`: inject another agent's share into a receiver's map and refine it there.
 
-The receiver's log is copied with its map (the last snapshot) replaced by receiver + share,
+The receiver's log is copied with its map (the last snapshot) replaced by the merge of its map
+and the share (`gscompress.ops.merge.combine`: aligned, the surfaces both hold resolved),
 refined on the receiver's own frames (all of them, or its keyframes only) at the receiver's
-estimated poses (see `gscompress.ops.merge`). Both inputs are in the output's provenance: the
-receiver as the parent, the share (name, sha256, id offset) in the merge operation. The
-refinement is `gscompress.pipeline.refine`'s, which prune and share use too. Maps are
-merged only when their world frames agree (`LogMetadata.world_frame`).
+estimated poses, the share's Gaussians held still or slowed (`MergeOptions.share_rate`). Both
+inputs are in the output's provenance: the receiver as the parent, the share (name, sha256, id
+offset) and the merge's options in the merge operation. The refinement is
+`gscompress.pipeline.refine`'s, which prune and share use too. Maps are merged only when their
+world frames agree (`LogMetadata.world_frame`).
 """
 
 from __future__ import annotations
@@ -20,8 +22,8 @@ from gscompress.errors import OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output, sha256
 from gscompress.io.mcap_log import LogReader
-from gscompress.ops.merge import check_same_world
-from gscompress.pipeline.offline import refined, rewrite_map
+from gscompress.ops.merge import MergeOptions, check_same_world
+from gscompress.pipeline.offline import rewrite_map
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL, RefineOptions
 
 DEFAULT_REFINE_VIEWS = "frames"
@@ -73,6 +75,7 @@ def merge_logs(
     seed: int = 0,
     share_transform: str | Path | None = None,
     codec: str | None = None,
+    merge: MergeOptions | None = None,
     command: str = "",
     force: bool = False,
     progress: Callable[[int, int], object] | None = None,
@@ -98,6 +101,8 @@ def merge_logs(
         share_transform: a file with the rigid transform from the share's world frame to the
             receiver's (4x4 or TUM `tx ty tz qx qy qz qw`), for maps whose frames differ.
         codec: how the merged map is stored (None: as the receiver's map).
+        merge: how the share is aligned, resolved against the receiver's map and refined
+            (`gscompress.ops.merge.MergeOptions`; None: its defaults).
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called with (iterations done, iterations) during refinement.
@@ -106,10 +111,12 @@ def merge_logs(
         Output path, Gaussian counts (receiver, share, merged), the id offset given to the
         share, and the refinement's first/last loss, views and render backend.
     """
-    from gscompress.ops.merge import merge_maps
+    from gscompress.ops.merge import combine, share_rates
 
     options = RefineOptions(iters, views, lr_final, frames, size, device, backend, seed)
     options.check("--iters")
+    how = merge or MergeOptions()
+    how.check()
     if iters > 0 and seq is None:
         raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
     inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
@@ -132,17 +139,24 @@ def merge_logs(
         instead = "merge with --iters 0 to concatenate only"
         refiner = LogRefiner(receiver, seq, options, progress, instead)
 
-    def merge(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+    def merge_into(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         received = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)
-        merged, offset = merge_maps(own, received)
+        merged, from_share, offset, done = combine(own, received, how)
         results: dict[str, Any] = {
             "receiver": len(own),
             "share": len(received),
             "gaussians": len(merged),
             "id_offset": offset,
+            **done,
         }
-        return refined(merged, results, refiner)
+        if refiner is None:
+            return merged, results
+        seen = refiner.contributions(merged) if how.by_view and from_share.any() else None
+        rates = share_rates(from_share, how, seen, merged.alpha_t_sum)
+        merged, stats = refiner(merged, rates)
+        return merged, {**results, **{f"refine_{k}": v for k, v in stats.items()}}
 
-    operation = {"name": "merge", **share_record, **options.record()}
-    out = rewrite_map(receiver, dst, operation, merge, codec=codec, command=command, force=force)
-    return out
+    operation = {"name": "merge", **share_record, **options.record(), **how.record()}
+    return rewrite_map(
+        receiver, dst, operation, merge_into, codec=codec, command=command, force=force
+    )

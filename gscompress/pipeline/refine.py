@@ -151,9 +151,12 @@ class LogRefiner:
         """What a provenance step records of this refinement (its options)."""
         return self.options.record()
 
-    def __call__(self, gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
+    def __call__(
+        self, gaussians: GaussianMap, rates: Any = None
+    ) -> tuple[GaussianMap, dict[str, Any]]:
         """`gaussians` refined, and {"iters", "loss_before", "loss_after", "views", "backend"}
-        (the mean mapping loss over the views before and after)."""
+        (the mean mapping loss over the views before and after). `rates`: per-Gaussian factors
+        on the steps (`gscompress.ops.refine.refine`)."""
         from gscompress.ops.refine import refine
 
         done, iters = 0, self.options.iters
@@ -167,11 +170,39 @@ class LogRefiner:
         refined, stats = refine(
             gaussians, self.views, self.intrinsics, self.config, iters, device=self.device,
             seed=self.options.seed, lr_final_fraction=self.options.lr_final, progress=step,
-            **({"instead": self.instead} if self.instead else {}),
+            rates=rates, **({"instead": self.instead} if self.instead else {}),
         )  # fmt: skip
         stats["views"] = len(self.views)
         stats["backend"] = self.backend
         return refined, stats
+
+    def contributions(self, gaussians: GaussianMap) -> Any:
+        """[N] how much this log's views see of each Gaussian (`view_contributions`)."""
+        return view_contributions(gaussians, self.views, self.intrinsics, self.backend, self.device)
+
+
+def view_contributions(
+    gaussians: GaussianMap, views: list[Any], intrinsics: Any, backend: str, device: Any
+) -> Any:
+    """[N] each Gaussian's alpha*T summed over the pixels of every view (how much the views
+    see of it; 0 for one they never see)."""
+    import torch
+
+    from gscompress.render import render
+    from gscompress.slam.params import GaussianParams
+
+    total = torch.zeros(len(gaussians), dtype=torch.float64)
+    if not len(gaussians):
+        return total.numpy()
+    params = GaussianParams.from_map(gaussians, device)
+    with torch.no_grad():
+        inputs = params.render_inputs()
+        for view in views:
+            out = render(*inputs, intrinsics, view.T_cam_world(), backend=backend,
+                         want_contribution=True)  # fmt: skip
+            assert out.contribution is not None
+            total += out.contribution.detach().cpu().to(torch.float64)
+    return total.numpy()
 
 
 def is_log_keyframe(

@@ -152,6 +152,7 @@ class Mapper:
         on_step: Callable[[float], object] | None = None,
         lr_final_fraction: float = 1.0,
         stop: Callable[[], bool] | None = None,
+        row_rates: torch.Tensor | None = None,
     ) -> MappingStats:
         """Run `iters` mapping iterations over `views`, each view once per shuffled pass.
 
@@ -170,6 +171,9 @@ class Mapper:
         order: list[int] = []
         base = [group["lr"] for group in self.optimizer.param_groups]
         gamma = decay_per_step(lr_final_fraction, iters)
+        if row_rates is not None and row_rates.shape != (len(self.params),):
+            raise ValueError(f"row_rates has shape {tuple(row_rates.shape)}, not [{len(self)}]")
+        self.optimizer.row_rates = row_rates
         try:
             for k in range(iters):
                 if len(self.params) == 0 or not views or (stop is not None and stop()):
@@ -182,6 +186,7 @@ class Mapper:
                 if on_step is not None:
                     on_step(stats.last_loss)
         finally:  # the per-frame mapping goes on at its own rates
+            self.optimizer.row_rates = None
             for group, lr in zip(self.optimizer.param_groups, base, strict=True):
                 group["lr"] = lr
         self._check_finite()

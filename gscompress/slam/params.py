@@ -98,6 +98,10 @@ class Adam:
         self.param_groups = [dict(group, params=list(group["params"])) for group in groups]
         self.betas = betas
         self.eps = eps
+        self.row_rates: torch.Tensor | None = None
+        """[N] factors on each row's step (None: 1 for every row); a refinement that keeps some
+        Gaussians still (0) or slows them sets it. It must have one row per Gaussian while set
+        (nothing added or removed meanwhile)."""
         self.state: dict[torch.Tensor, dict[str, Any]] = {}
 
     def zero_grad(self) -> None:
@@ -128,7 +132,12 @@ class Adam:
                 exp_avg_sq.mul_(beta2).addcmul_(p.grad, p.grad, value=1 - beta2)
                 step_size = group["lr"] / (1 - beta1**step)
                 denom = (exp_avg_sq.sqrt() / (1 - beta2**step) ** 0.5).add_(self.eps)
-                p.addcdiv_(exp_avg, denom, value=-step_size)
+                rates = self.row_rates
+                if rates is None:
+                    p.addcdiv_(exp_avg, denom, value=-step_size)
+                else:
+                    rows = rates.reshape(-1, *([1] * (p.dim() - 1)))
+                    p.sub_(exp_avg / denom * rows * step_size)
 
 
 def resize_adam_rows(

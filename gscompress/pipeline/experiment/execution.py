@@ -31,6 +31,7 @@ from typing import Any, NoReturn
 from gscompress import __version__
 from gscompress.errors import GscError
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
+from gscompress.ops.merge import EXACT
 from gscompress.pipeline.experiment.protocol import ExperimentSettings, RunHandle
 
 log = logging.getLogger(__name__)
@@ -142,9 +143,12 @@ def _merge_job(
 ) -> dict[str, Any]:  # fmt: skip
     from gscompress.pipeline.merge import merge_logs
 
+    # The exact merge (every Gaussian of both maps): the tables so far were made with it; the
+    # aligned, resolved merge (gsc merge's default, docs/merge.md) is not yet measured here.
     merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
                         views=s.merge_views, lr_final=s.merge_lr_final, device=s.device,
-                        seed=seed, share_transform=share_transform, force=True)  # fmt: skip
+                        seed=seed, share_transform=share_transform, merge=EXACT,
+                        force=True)  # fmt: skip
     return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
@@ -391,6 +395,7 @@ class Runner:
             "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
             "frames": frames, "iters": s.merge_iters, "views": s.merge_views,
             "lr_final": s.merge_lr_final, "seed": seed, "every": s.every, "lpips": s.lpips,
+            "merge": EXACT.record(),  # (what the merge does: runs before it differ)
         }  # fmt: skip
         if transform is not None:
             assert align is not None
