@@ -302,6 +302,7 @@ def test_gsc_align_writes_what_merge_reads(logs: tuple[Path, Path, np.ndarray],
     assert transform_error(read_transform(again), T)[0] < 0.01
     merged = tmp_path / "m.mcap"
     r = CliRunner().invoke(cli, ["merge", str(target), str(source), "--iters", "0",
+                                 "--no-align", "--resolve", "stack",  # the exact concatenation
                                  "--share-transform", str(out), "-o", str(merged)])  # fmt: skip
     assert r.exit_code == 0, r.output
     with LogReader(merged) as log, LogReader(target) as b:
