@@ -43,7 +43,8 @@ def test_rgb_pictures_are_the_renders_at_the_logs_poses(run, tmp_path):
 def test_importance_colours_span_the_colour_map_from_least_to_most_important(run):
     with LogReader(run["log"]) as log:
         gaussians = log.read_map()
-    colors, (low, high) = importance_colors(gaussians)
+    colors, scale = importance_colors(gaussians)
+    low, high = scale.low, scale.high
     scores = strategy_scores(gaussians, "pwas")
     top, bottom = np.argmax(scores), np.argmin(np.where(scores > 0, scores, np.inf))
     assert low < high

@@ -120,12 +120,12 @@ def test_importance_colours_follow_a_log_scale() -> None:
     assert unit[1] == 0.0 and unit[-1] == 1.0  # beyond the 1st and 99th percentiles: clipped
     assert np.all(np.diff(unit[1:]) > 0)  # each decade brighter...
     np.testing.assert_allclose(np.diff(unit[2:5]), np.diff(unit[2:5])[0], rtol=1e-6)  # evenly
-    colours = scene.colormap(unit)
+    colours = scene.unit_colors(unit)
     lightness = colours @ np.array([0.2126, 0.7152, 0.0722], np.float32)
     assert np.all(np.diff(lightness[1:]) > 0)  # perceptual: lightness rises with the score
     legend = scene.legend_image(64, 5)
     assert legend.shape == (5, 64, 3) and legend.dtype == np.uint8
-    np.testing.assert_array_equal(legend[0, 0], (scene.colormap(np.zeros(1))[0] * 255).round())
+    np.testing.assert_array_equal(legend[0, 0], (scene.unit_colors(np.zeros(1))[0] * 255).round())
 
 
 def test_kept_and_dropped_colours_and_hidden_splats() -> None:

@@ -53,42 +53,64 @@ def check_colorings(colorings: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(colorings))
 
 
-def importance_range(scores: np.ndarray) -> tuple[float, float]:
-    """(low, high) of log10 importance that the colour map spans: the 1st and 99th percentiles
-    of the positive scores.
+@dataclass(frozen=True)
+class LogScale:
+    """The span of log10 importance a colour map covers: the 1st to the 99th percentile of the
+    positive scores (a few dominant Gaussians would squeeze every other colour into one end).
+    `gsc render` and `gsc view` colour by it alike."""
 
-    Raises:
-        MapError: no Gaussian has a positive score (a map without PWAS sums).
-    """
-    positive = scores[scores > 0]
-    if len(positive) == 0:
-        raise MapError(
-            "the map has no PWAS importance (no positive sums): score it first with `gsc score`"
-        )
-    low, high = np.percentile(np.log10(positive), [1.0, 99.0])
-    return float(low), float(max(high, low + 1e-6))
+    low: float
+    high: float
+
+    @classmethod
+    def of(cls, scores: np.ndarray) -> LogScale:
+        """The span of these scores (zero and negative scores take the lowest colour)."""
+        positive = scores[scores > 0]
+        if len(positive) == 0:
+            return cls(-6.0, 0.0)
+        low, high = np.log10(np.percentile(positive, [1.0, 99.0]))
+        return cls(float(low), float(max(high, low + 1e-3)))
+
+    def unit(self, scores: np.ndarray) -> np.ndarray:
+        """[N] positions in [0, 1] of the scores on this scale."""
+        with np.errstate(divide="ignore"):
+            logs = np.log10(np.maximum(scores.astype(np.float64), 0.0))
+        return np.clip((logs - self.low) / (self.high - self.low), 0.0, 1.0)
+
+
+def unit_colors(values: np.ndarray, name: str = IMPORTANCE_CMAP) -> np.ndarray:
+    """[..., 3] float32 colours of values in [0, 1] on matplotlib's colour map `name` (256
+    levels)."""
+    from matplotlib import colormaps
+
+    table = colormaps[name](np.linspace(0.0, 1.0, 256))[:, :3].astype(np.float32)
+    return table[np.clip(np.round(values * 255), 0, 255).astype(np.int64)]
 
 
 def colormap(values: np.ndarray, low: float, high: float, name: str) -> np.ndarray:
-    """[..., 3] float32 RGB of `values` on matplotlib's colour map `name`, clipped to
-    [low, high]; NaN maps to black."""
-    from matplotlib import colormaps
-
+    """[..., 3] float32 RGB of `values` on the colour map `name`, clipped to [low, high]; NaN
+    maps to black."""
     t = np.clip((values - low) / (high - low), 0.0, 1.0)
-    rgb = np.asarray(colormaps[name](np.nan_to_num(t, nan=0.0)))[..., :3].astype(np.float32)
+    rgb = unit_colors(np.nan_to_num(t, nan=0.0), name)
     rgb[np.isnan(values)] = 0.0
     return rgb
 
 
-def importance_colors(gaussians: GaussianMap) -> tuple[np.ndarray, tuple[float, float]]:
-    """[N, 3] colour of each Gaussian by its log10 PWAS importance, and the range it spans."""
+def importance_colors(gaussians: GaussianMap) -> tuple[np.ndarray, LogScale]:
+    """[N, 3] colour of each Gaussian by its log10 PWAS importance, and the scale it spans.
+
+    Raises:
+        MapError: no Gaussian has a positive score (a map without PWAS sums).
+    """
     from gscompress.selection import strategy_scores
 
     scores = strategy_scores(gaussians, "pwas")
-    low, high = importance_range(scores)
-    with np.errstate(divide="ignore"):
-        logs = np.where(scores > 0, np.log10(np.maximum(scores, 1e-300)), low)
-    return colormap(logs, low, high, IMPORTANCE_CMAP), (low, high)
+    if not (scores > 0).any():
+        raise MapError(
+            "the map has no PWAS importance (no positive sums): score it first with `gsc score`"
+        )
+    scale = LogScale.of(scores)
+    return unit_colors(scale.unit(scores), IMPORTANCE_CMAP), scale
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
@@ -146,10 +168,10 @@ class ImageSaver:
 
             from gscompress.ops.score import activated_tensors
 
-            colors, span = importance_colors(self.gaussians)
+            colors, scale = importance_colors(self.gaussians)
             params = activated_tensors(self.gaussians, self.device)
             params["colors"] = torch.as_tensor(colors, device=params["means"].device)
-            self._importance = params, span
+            self._importance = params, (scale.low, scale.high)
         return self._importance
 
     def __call__(self, view: Any, color: np.ndarray, depth: np.ndarray) -> None:

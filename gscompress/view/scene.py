@@ -5,18 +5,14 @@ of use), so it is tested without a browser.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from gscompress.camera import quat_to_rotmat, rotmat_to_quat
 from gscompress.gaussians import GaussianMap
+from gscompress.pipeline.images import IMPORTANCE_CMAP, LogScale, unit_colors
 
 COLOUR_MODES = ("rgb", "importance", "opacity", "kept / dropped")
 """What the splats can be coloured by."""
-
-IMPORTANCE_COLORMAP = "viridis"
-"""A perceptually uniform colour map (lightness rises with the score)."""
 
 KEPT_RGB = np.array([0.15, 0.75, 0.35], np.float32)
 DROPPED_RGB = np.array([0.85, 0.2, 0.2], np.float32)
@@ -29,41 +25,9 @@ def covariances(gaussians: GaussianMap) -> np.ndarray:
     return np.einsum("nij,nj,nkj->nik", R, variances, R).astype(np.float32)
 
 
-@dataclass(frozen=True)
-class LogScale:
-    """The span of log10 scores a colour map covers (the 1st to the 99th percentile of the
-    positive scores: a few dominant Gaussians would squeeze every other colour into one end)."""
-
-    low: float
-    high: float
-
-    @classmethod
-    def of(cls, scores: np.ndarray) -> LogScale:
-        """The span of these scores (zero and negative scores take the lowest colour)."""
-        positive = scores[scores > 0]
-        if len(positive) == 0:
-            return cls(-6.0, 0.0)
-        low, high = np.log10(np.percentile(positive, [1.0, 99.0]))
-        return cls(float(low), float(max(high, low + 1e-3)))
-
-    def unit(self, scores: np.ndarray) -> np.ndarray:
-        """[N] positions in [0, 1] of the scores on this scale."""
-        with np.errstate(divide="ignore"):
-            logs = np.log10(np.maximum(scores.astype(np.float64), 0.0))
-        return np.clip((logs - self.low) / (self.high - self.low), 0.0, 1.0)
-
-
-def colormap(values: np.ndarray, name: str = IMPORTANCE_COLORMAP) -> np.ndarray:
-    """[N, 3] float32 colours of values in [0, 1] on matplotlib's colour map `name`."""
-    from matplotlib import colormaps
-
-    table = colormaps[name](np.linspace(0.0, 1.0, 256))[:, :3].astype(np.float32)
-    return table[np.clip(np.round(values * 255), 0, 255).astype(np.int64)]
-
-
-def legend_image(width: int = 256, height: int = 14, name: str = IMPORTANCE_COLORMAP) -> np.ndarray:
+def legend_image(width: int = 256, height: int = 14, name: str = IMPORTANCE_CMAP) -> np.ndarray:
     """[height, width, 3] uint8 colour bar of the colour map, low scores on the left."""
-    row = colormap(np.linspace(0.0, 1.0, width), name)
+    row = unit_colors(np.linspace(0.0, 1.0, width), name)
     return np.repeat((row * 255).round().astype(np.uint8)[None], height, axis=0)
 
 
@@ -88,9 +52,9 @@ def splat_colours(
     if mode == "importance":
         if scores is None:
             raise ValueError("colouring by importance needs the scores")
-        return colormap((scale or LogScale.of(scores)).unit(scores))
+        return unit_colors((scale or LogScale.of(scores)).unit(scores))
     if mode == "opacity":
-        return colormap(gaussians.opacities().astype(np.float64), "cividis")
+        return unit_colors(gaussians.opacities().astype(np.float64), "cividis")
     if mode == "kept / dropped":
         return np.where(kept[:, None], KEPT_RGB, DROPPED_RGB).astype(np.float32)
     raise ValueError(f"unknown colour mode {mode!r}; choose one of {', '.join(COLOUR_MODES)}")
