@@ -137,6 +137,12 @@ def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle in degrees of the rotation [3, 3] `R` (about its axis)."""
+    cos = (np.trace(np.asarray(R, np.float64)) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
 def invert_transform(T: np.ndarray) -> np.ndarray:
     """Inverse of rigid transform(s) [..., 4, 4] without a general matrix inverse."""
     T = np.asarray(T, dtype=np.float64)

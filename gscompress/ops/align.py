@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from gscompress.camera import rotation_angle_deg
 from gscompress.errors import GscError, InputError, MissingDependencyError
 
 log = logging.getLogger(__name__)
@@ -203,8 +204,7 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (degrees) of `T_est` relative to `T_true`."""
     D = np.linalg.inv(T_true) @ T_est
-    cos = np.clip((np.trace(D[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(cos)))
+    return float(np.linalg.norm(D[:3, 3])), rotation_angle_deg(D[:3, :3])
 
 
 def auto_voxel(*clouds: Cloud, points: int = 4000) -> float:

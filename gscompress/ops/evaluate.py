@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from gscompress.camera import Intrinsics, invert_transform
+from gscompress.camera import Intrinsics, invert_transform, rotation_angle_deg
 from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.metrics import (
@@ -259,5 +259,4 @@ def pose_change(T_from: np.ndarray, T_to: np.ndarray) -> tuple[float, float]:
     centres in centimetres and the angle of the relative rotation in degrees."""
     T_from, T_to = np.asarray(T_from, np.float64), np.asarray(T_to, np.float64)
     shift = float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3])) * 100.0
-    cos = (np.trace(T_from[:3, :3].T @ T_to[:3, :3]) - 1.0) / 2.0
-    return shift, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return shift, rotation_angle_deg(T_from[:3, :3].T @ T_to[:3, :3])

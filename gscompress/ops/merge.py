@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.camera import make_transform, quat_to_rotmat, rotmat_to_quat
+from gscompress.camera import make_transform, quat_to_rotmat, rotation_angle_deg, rotmat_to_quat
 from gscompress.errors import MapError, OptionError
 from gscompress.gaussians import GaussianMap
 
@@ -198,7 +198,7 @@ def align_share(
     moved = src @ T[:3, :3].T + T[:3, 3]
     dist, _ = tree.query(moved, distance_upper_bound=max_distance)
     close = np.isfinite(dist)
-    angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    angle = rotation_angle_deg(T[:3, :3])
     stats.update(
         align_pairs=int(close.sum()),
         align_rmse_before_cm=round(100.0 * rmse_before, 3),
