@@ -38,8 +38,7 @@ class Intrinsics:
         optical axis), seen by the camera at camera-to-world pose T_world_cam."""
         z = np.asarray(z, dtype=np.float64)
         cam = np.stack([(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z], axis=1)
-        T = np.asarray(T_world_cam, dtype=np.float64)
-        return cam @ T[:3, :3].T + T[:3, 3]
+        return transform_points(np.asarray(T_world_cam, dtype=np.float64), cam)
 
     def scaled(self, width: int, height: int) -> Intrinsics:
         """Intrinsics for the same camera with the image resized to `width` x `height`.
@@ -135,6 +134,11 @@ def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
     return T
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """`points` [N, 3] moved by the rigid [4, 4] `T`."""
+    return points @ T[:3, :3].T + T[:3, 3]
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.camera import rotation_angle_deg
+from gscompress.camera import rotation_angle_deg, transform_points
 from gscompress.errors import GscError, InputError, MissingDependencyError
 
 log = logging.getLogger(__name__)
@@ -194,11 +194,6 @@ def _o3d() -> Any:
         ) from None
     open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)  # (no stdout chatter)
     return open3d
-
-
-def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """`points` [N, 3] moved by the rigid [4, 4] `T`."""
-    return points @ T[:3, :3].T + T[:3, 3]
 
 
 def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:

@@ -22,7 +22,13 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.camera import make_transform, quat_to_rotmat, rotation_angle_deg, rotmat_to_quat
+from gscompress.camera import (
+    make_transform,
+    quat_to_rotmat,
+    rotation_angle_deg,
+    rotmat_to_quat,
+    transform_points,
+)
 from gscompress.errors import MapError, OptionError
 from gscompress.gaussians import GaussianMap
 
@@ -180,7 +186,7 @@ def align_share(
     rmse_before: float | None = None
     pairs = 0
     for _ in range(iters):
-        moved = src @ T[:3, :3].T + T[:3, 3]
+        moved = transform_points(T, src)
         dist, nearest = tree.query(moved, distance_upper_bound=max_distance)
         close = np.isfinite(dist)
         pairs = int(close.sum())
@@ -195,7 +201,7 @@ def align_share(
             break
     if rmse_before is None:
         return np.eye(4), stats
-    moved = src @ T[:3, :3].T + T[:3, 3]
+    moved = transform_points(T, src)
     dist, _ = tree.query(moved, distance_upper_bound=max_distance)
     close = np.isfinite(dist)
     angle = rotation_angle_deg(T[:3, :3])

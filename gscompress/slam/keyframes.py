@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from gscompress.camera import Intrinsics, invert_transform
+from gscompress.camera import Intrinsics, invert_transform, transform_points
 from gscompress.slam.config import KeyframeConfig
 from gscompress.slam.losses import depth_edges
 
@@ -94,8 +94,7 @@ def overlap_fraction(points: np.ndarray, intrinsics: Intrinsics, T_world_cam: np
     """Fraction of world points [M, 3] that project inside the image in front of the camera."""
     if len(points) == 0:
         return 0.0
-    T = invert_transform(T_world_cam)
-    cam = points @ T[:3, :3].T + T[:3, 3]
+    cam = transform_points(invert_transform(T_world_cam), points)
     z = cam[:, 2]
     front = z > 1e-6
     zs = np.where(front, z, 1.0)
