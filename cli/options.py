@@ -102,6 +102,19 @@ def sums_option(f: F) -> F:
     )(f)
 
 
+def fold_option(f: F) -> F:
+    """`--fold/--no-fold`: fold what a prune or share leaves out into what it keeps."""
+    return click.option(
+        "--fold/--no-fold",
+        default=True,
+        show_default=True,
+        help="Fold each Gaussian left out into the nearest kept one (within 4x their summed "
+        "scales): the kept Gaussian takes the centre, spread, colour and opacity of the group "
+        "it stands for, so the surface it covered is not left as a hole. Same count and ids; "
+        "--no-fold keeps the selected Gaussians exactly as they were.",
+    )(f)
+
+
 class Ratio(click.ParamType):
     """A fraction in (0, 1]; also accepts percentages such as `30%`."""
 

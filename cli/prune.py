@@ -16,6 +16,7 @@ from .options import (
     codec_option,
     command_line,
     emit,
+    fold_option,
     force_option,
     json_option,
     log_refiner,
@@ -43,6 +44,7 @@ from .options import (
     show_default=True,
     help="Score to rank by.",
 )
+@fold_option
 @refine_options
 @click.option(
     "--map-only",
@@ -60,6 +62,7 @@ def prune(
     src: Path,
     keep: float,
     by: str,
+    fold: bool,
     refine_iters: int,
     seq: Path | None,
     device: str,
@@ -76,6 +79,7 @@ def prune(
     Only the last /gaussians snapshot (the map) is pruned; poses, calibration, stats and earlier
     snapshots pass through unchanged (with --map-only, only the calibration), and the output
     records where it came from. Rounding is half up; ties are broken by ascending Gaussian id.
+    Each Gaussian left out is folded into the nearest kept one (--no-fold: dropped).
 
     With --refine N the kept Gaussians are refined on the log's keyframes (the sequence given
     by --seq must be the one the log was made from); the pruned ones never come back, and one
@@ -85,6 +89,7 @@ def prune(
     Examples:
       gsc prune run.mcap --keep 0.3 -o run_30.mcap
       gsc prune run.mcap --keep 0.3 --by opacity -o run_30_opacity.mcap
+      gsc prune run.mcap --keep 0.3 --no-fold -o run_30_exact.mcap   # the kept ones as they were
       gsc prune run.mcap --keep 0.3 --codec compact -o run_30_compact.mcap
       gsc prune run.mcap --keep 0.3 --refine 500 --seq data/room --map-only -o run_30r.mcap
     """
@@ -92,6 +97,7 @@ def prune(
         refine = log_refiner(src, refine_iters, seq, device, seed, bar, "prune without --refine")
         result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
                            options=CompactOptions(sums=sums), refine=refine, map_only=map_only,
+                           fold_dropped=fold,
                            command=command_line(), force=force)  # fmt: skip
     text = (
         f"kept {result['kept']} of {result['total']} Gaussians (by {by}, {result['codec']})"

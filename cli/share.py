@@ -21,6 +21,7 @@ from .options import (
     codec_option,
     command_line,
     emit,
+    fold_option,
     force_option,
     json_option,
     log_refiner,
@@ -69,6 +70,7 @@ from .options import (
     help="Deprecated: --codec fp32|fp16 says the same.",
 )
 @sums_option
+@fold_option
 @click.option(
     "--ply",
     type=OUTPUT_FILE,
@@ -81,7 +83,8 @@ from .options import (
     help="Choose the codec (and whether to send the PWAS sums) that give the best picture for "
     "a byte budget: each candidate is cut to the most Gaussians that fit, rendered at a few "
     "of the log's keyframes and scored against the frames of --seq (else against the whole "
-    "map's renders). An explicit --codec or --no-sums constrains the search. Needs torch.",
+    "map's renders); each with and without --fold. An explicit --codec, --no-sums or "
+    "--fold/--no-fold constrains the search. Needs torch.",
 )
 @click.option(
     "--align-to",
@@ -104,6 +107,7 @@ def share(
     codec: str,
     precision: str | None,
     sums: bool,
+    fold: bool,
     ply: Path | None,
     solve: bool,
     align_to: Path | None,
@@ -118,7 +122,8 @@ def share(
 
     The share holds the selected Gaussians with their ids and PWAS sums (or, with --no-sums,
     the score alone), and records its source, strategy, budget, codec, bytes and the selected /
-    total counts. It is stored compact by default (quantised, compressed columns: about 19
+    total counts. Each Gaussian left out is folded into the nearest one sent (--no-fold: left
+    out). It is stored compact by default (quantised, compressed columns: about 19
     bytes per Gaussian with ids and PWAS sums, 11-12 with --no-sums, against 76 at fp32); --codec
     fp32 or fp16 sends a foxglove.PointCloud that Foxglove draws.
 
@@ -151,7 +156,7 @@ def share(
         raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
     context = click.get_current_context()
     given = {name: context.get_parameter_source(name) != ParameterSource.DEFAULT
-             for name in ("codec", "sums")}  # fmt: skip
+             for name in ("codec", "sums", "fold")}  # fmt: skip
     with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
         refine_seq = seq if refine_iters or not solve else None  # (--seq also serves --solve)
         refine = log_refiner(src, refine_iters, refine_seq, device, seed, bar,
@@ -164,16 +169,19 @@ def share(
 
             result = share_solved(
                 src, dst, budget, codec=codec if given["codec"] else None,
-                sums=sums if given["sums"] else None, seq=seq, device=device, **common,
+                sums=sums if given["sums"] else None, fold=fold if given["fold"] else None,
+                seq=seq, device=device, **common,
             )  # fmt: skip
             codec = result["codec"]
             click.echo(
-                f"solver: {codec}{'' if result['sums'] else ' without sums'} predicted "
+                f"solver: {codec}{'' if result['sums'] else ' without sums'}"
+                f"{', folded,' if result['fold'] else ', not folded,'} predicted "
                 f"{result['predicted_psnr']:.2f} dB against the {result['solved_against']}",
                 err=True,
             )
         else:
-            result = share_log(src, dst, budget, codec=codec, sums=sums, **common)
+            result = share_log(src, dst, budget, codec=codec, sums=sums, fold_dropped=fold,
+                               **common)  # fmt: skip
     extra = f" and {ply}" if ply else ""
     emit(
         result,

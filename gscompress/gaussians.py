@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gscompress.camera import quat_to_rotmat
 from gscompress.errors import MapError
 
 if TYPE_CHECKING:
@@ -316,6 +317,12 @@ class GaussianMap:
         """[N, 4] float32 unit quaternions (w, x, y, z)."""
         norm = np.linalg.norm(self.quats, axis=1, keepdims=True)
         return (self.quats / np.maximum(norm, np.float32(1e-12))).astype(np.float32)
+
+    def covariances(self) -> np.ndarray:
+        """[N, 3, 3] float64 world covariances R diag(s^2) R^T."""
+        R = quat_to_rotmat(self.quats)
+        variances = np.square(self.scales().astype(np.float64))
+        return np.einsum("nij,nj,nkj->nik", R, variances, R)
 
     def colors(self) -> np.ndarray:
         """[N, 3] float32 view-independent RGB from the SH DC term, clipped to [0, 1]."""

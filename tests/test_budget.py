@@ -340,7 +340,7 @@ def test_pruning_an_fp16_share_keeps_it_fp16(tmp_path):
     share = tmp_path / "s.mcap"
     share_log(src, share, 0.5, codec="fp16")
     pruned = tmp_path / "p.mcap"
-    prune_log(share, pruned, 0.5)
+    prune_log(share, pruned, 0.5, fold_dropped=False)
     assert log_info(pruned)["map"]["codec"] == "fp16"
     kept, received = read_map(pruned), read_map(share)
     where = {int(i): k for k, i in enumerate(received.ids)}

@@ -50,7 +50,7 @@ def snapshot_of(path):
 
 def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path):
     out = tmp_path / "p.mcap"
-    r = run("prune", log_path, "--keep", "0.3", "-o", out)
+    r = run("prune", log_path, "--keep", "0.3", "--no-fold", "-o", out)
     assert r.exit_code == 0, r.output
     assert "kept 300 of 1000 Gaussians (by pwas, fp32)" in r.output
     full, pruned = read_map(log_path), read_map(out)
@@ -69,9 +69,11 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
         ]
         assert raw_a == raw_b
         step = b.metadata.provenance[-1]
-        assert step["operation"] == {"name": "prune", "keep": 0.3, "by": "pwas", "seed": 0}
+        assert step["operation"] == {
+            "name": "prune", "keep": 0.3, "by": "pwas", "seed": 0, "fold": False,
+        }  # fmt: skip
         assert step["parent"] == "run.mcap" and b.metadata.sequence == "synthetic"
-        assert b.metadata.results == {"kept": 300, "total": 1000, "codec": "fp32"}
+        assert b.metadata.results == {"kept": 300, "total": 1000, "codec": "fp32", "fold": False}
 
 
 def test_prune_map_only_writes_the_same_map_alone(log_path, tmp_path):
@@ -98,7 +100,7 @@ def test_prune_map_only_writes_the_same_map_alone(log_path, tmp_path):
 
 def test_prune_by_opacity_and_percent_syntax(log_path, tmp_path):
     out = tmp_path / "p.mcap"
-    r = run("prune", log_path, "--keep", "10%", "--by", "opacity", "-o", out, "--json")
+    r = run("prune", log_path, "--keep", "10%", "--by", "opacity", "--no-fold", "-o", out, "--json")
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["kept"] == 100
     full, pruned = read_map(log_path), read_map(out)
@@ -122,6 +124,7 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
             "budget": 0.2,
             "codec": "compact",  # the default
             "sums": True,
+            "fold": True,  # the default
             "bytes": log_info(out)["map"]["bytes"],
             "selected": 200,
             "total": 1000,

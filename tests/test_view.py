@@ -19,6 +19,7 @@ from gscompress.gaussians import SH_C0, GaussianMap, random_map
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.budget import Budget
+from gscompress.ops.fold import fold
 from gscompress.pipeline.offline import share_log
 from gscompress.selection import select_top
 from gscompress.view import cuts, scene
@@ -96,7 +97,7 @@ def tiny_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_covariances_are_rotated_squared_scales() -> None:
     g = random_map(50, seed=3, isotropic=False)
-    cov = scene.covariances(g)
+    cov = g.covariances().astype(np.float32)
     R = quat_to_rotmat(g.quats)
     for i in (0, 17, 49):
         expected = R[i] @ np.diag(np.exp(2.0 * g.log_scales[i].astype(np.float64))) @ R[i].T
@@ -107,7 +108,7 @@ def test_covariances_are_rotated_squared_scales() -> None:
 
 def test_isotropic_covariance_is_diagonal() -> None:
     g = random_map(20, seed=4, isotropic=True)
-    cov = scene.covariances(g)
+    cov = g.covariances().astype(np.float32)
     variances = np.exp(2.0 * g.log_scales[:, 0])
     np.testing.assert_allclose(cov, variances[:, None, None] * np.eye(3), rtol=1e-5, atol=1e-9)
 
@@ -221,7 +222,8 @@ def test_prune_button_writes_what_prune_writes(tiny_log: Path, tmp_path: Path) -
     result = cuts.write_prune(tiny_log, pair, True, tmp_path / "p.mcap", 0.4, "pwas", 0)
     assert result["kept"] == 120
     written = read_map(tmp_path / "p.mcap")
-    expected, _ = select_top(pair[0], 0.4, "pwas")
+    _, index = select_top(pair[0], 0.4, "pwas")
+    expected = fold(pair[0], index)  # (gsc prune folds by default)
     assert written.equals(expected)
     with LogReader(tmp_path / "p.mcap") as reader:
         assert reader.metadata.provenance[-1]["operation"]["keep"] == 0.4

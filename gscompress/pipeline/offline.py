@@ -32,8 +32,9 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import write_ply
 from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
+from gscompress.ops.fold import fold
 from gscompress.ops.merge import transform_map
-from gscompress.selection import check_ratio, select_count, select_top, strategy_scores
+from gscompress.selection import check_ratio, keep_count, select_count, strategy_scores
 
 log = logging.getLogger(__name__)
 
@@ -79,10 +80,12 @@ def prune_log(
     options: CompactOptions = COMPACT_DEFAULTS,
     refine: MapRefiner | None = None,
     map_only: bool = False,
+    fold_dropped: bool = True,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
-    """Keep the `keep` fraction of a log's map with the highest `by` scores.
+    """Keep the `keep` fraction of a log's map with the highest `by` scores (`cut_map`: with
+    `fold_dropped`, what is dropped is folded into the kept Gaussians).
 
     The last `/gaussians` snapshot is replaced by its pruned version (same log time), stored in
     `codec` (None: the codec of the map it replaces); every other message, earlier snapshots
@@ -93,16 +96,28 @@ def prune_log(
     check_ratio(keep, "--keep")
 
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
-        kept, _ = select_top(full, keep, by, seed)
-        return refined(kept, {"kept": len(kept), "total": len(full)}, refine)
+        kept = cut_map(full, keep_count(len(full), keep), by, seed, fold_dropped)
+        return refined(kept, {"kept": len(kept), "total": len(full), "fold": fold_dropped},
+                       refine)  # fmt: skip
 
-    operation: dict[str, Any] = {"name": "prune", "keep": keep, "by": by, "seed": seed}
+    operation: dict[str, Any] = {"name": "prune", "keep": keep, "by": by, "seed": seed,
+                                 "fold": fold_dropped}  # fmt: skip
     if refine is not None:
         operation["refine"] = refine.record()
     if map_only:
         operation["map_only"] = True
     return rewrite_map(src, dst, operation, prune, codec=codec, options=options,
                        command=command, force=force, map_only=map_only)  # fmt: skip
+
+
+def cut_map(
+    full: GaussianMap, count: int, strategy: str, seed: int, fold_dropped: bool
+) -> GaussianMap:
+    """The `count` Gaussians of `full` with the highest `strategy` scores, each with the dropped
+    ones near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians,
+    ids and order either way). What `gsc prune` keeps and `gsc share` sends."""
+    kept, index = select_count(full, count, strategy, seed)
+    return fold(full, index) if fold_dropped else kept
 
 
 def refined(
@@ -200,6 +215,7 @@ class ShareCut:
         codec: str = DEFAULT_SHARE_CODEC,
         sums: bool = True,
         seed: int = 0,
+        fold_dropped: bool = True,
         refine: MapRefiner | None = None,
         solve: dict[str, Any] | None = None,
         command: str = "",
@@ -207,6 +223,7 @@ class ShareCut:
         align: tuple[np.ndarray, dict[str, Any]] | None = None,
     ):
         self.src = Path(src)
+        self.fold = fold_dropped
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
         if source is None:
             with LogReader(src) as log_in:
@@ -215,7 +232,7 @@ class ShareCut:
         fp32_bytes = pointcloud_bytes(self.full, "fp32")(len(self.full))
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
-        operation.update(codec=codec, sums=sums)
+        operation.update(codec=codec, sums=sums, fold=fold_dropped)
         if refine is not None:
             operation["refine"] = refine.record()
         if solve is not None:
@@ -236,7 +253,7 @@ class ShareCut:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
         count that then fits (the refined values may compress less well than the first ones:
         the budget still holds)."""
-        selected, _ = select_count(self.pool, count, self.strategy, self.seed)
+        selected = cut_map(self.pool, count, self.strategy, self.seed, self.fold)
         self.pool, self.extra = refined(selected, {}, refine)
         self._sizes, self._last = {}, None
         if self.budget.budget_bytes is None:
@@ -247,7 +264,7 @@ class ShareCut:
         """The share file of the `count` best Gaussians: its bytes, its map (as selected, before
         encoding) and the results its metadata records. (Only the last one is kept.)"""
         if self._last is None or self._last[0] != count:
-            shared, _ = select_count(self.pool, count, self.strategy, self.seed)
+            shared = cut_map(self.pool, count, self.strategy, self.seed, self.fold)
             if self.T_target_source is not None:  # (the sender's frames refine, before this)
                 shared = transform_map(shared, self.T_target_source)
             meta = self._meta
@@ -257,6 +274,7 @@ class ShareCut:
                 **self.budget.record(),
                 "codec": self.codec,
                 "sums": self.sums,
+                "fold": self.fold,
                 "selected": len(shared),
                 "total": len(self.full),
                 **self.extra,
@@ -282,6 +300,7 @@ def share_log(
     codec: str = DEFAULT_SHARE_CODEC,
     sums: bool = True,
     seed: int = 0,
+    fold_dropped: bool = True,
     ply: str | Path | None = None,
     refine: MapRefiner | None = None,
     solve: dict[str, Any] | None = None,
@@ -309,6 +328,7 @@ def share_log(
         sums: send the PWAS sums (a receiver that keeps accumulating needs them); without them
             a compact share sends the score in 16 bits (fp32 and fp16 always send the sums).
         seed: seed of the random strategy.
+        fold_dropped: fold what the share leaves out into the Gaussians it sends (`cut_map`).
         ply: also write the share as a float32 3DGS PLY (the decoded values).
         refine: refines the selected Gaussians before they are sent (a
             `gscompress.pipeline.refine.LogRefiner` on the sender's frames); a byte budget
@@ -343,8 +363,8 @@ def share_log(
 
         align = share_alignment(src, align_to)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
-                   refine=refine, solve=solve, command=command, source=source,
-                   align=align)  # fmt: skip
+                   fold_dropped=fold_dropped, refine=refine, solve=solve, command=command,
+                   source=source, align=align)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
     if refine is not None:
         count = cut.refined(count, refine)

@@ -1,7 +1,7 @@
 """The byte-budget solver of `gsc share --solve`: the count, codec and PWAS state that give the
 best picture for the bytes (needs torch, to render).
 
-Every candidate (codec, sums) that the options allow is cut to the most Gaussians whose share
+Every candidate (codec, sums, fold) that the options allow is cut to the most Gaussians whose share
 file fits the budget (`ShareCut`), decoded as the receiver would decode it, rendered at a few of
 the sender's keyframes and scored by PSNR: against the keyframes' own images when the sender's
 sequence is given, else against the renders of the sender's whole map at the same poses. More
@@ -27,8 +27,13 @@ from gscompress.pipeline.offline import MapRefiner, ShareCut, share_log
 
 log = logging.getLogger(__name__)
 
-CANDIDATES = (("compact", False), ("compact", True), ("fp16", True), ("fp32", True))
-"""(codec, sums) pairs the solver weighs (fp32 and fp16 always carry the sums)."""
+CANDIDATES = tuple(
+    (codec, sums, folded)
+    for codec, sums in (("compact", False), ("compact", True), ("fp16", True), ("fp32", True))
+    for folded in (True, False)
+)
+"""(codec, sums, fold) the solver weighs (fp32 and fp16 always carry the sums; fold: what the
+share leaves out folded into what it sends, `gscompress.ops.fold`)."""
 
 SOLVE_VIEWS = 4
 """Keyframes the candidates are rendered at, spread over the sender's trajectory."""
@@ -36,11 +41,13 @@ SOLVE_VIEWS = 4
 
 @dataclass(frozen=True)
 class Candidate:
-    """One weighed share: its codec, whether it carries the PWAS sums, its count, its file's
+    """One weighed share: its codec, whether it carries the PWAS sums, whether it folds what it
+    leaves out into what it sends, its count, its file's
     bytes and the PSNR of its decoded map at the solver's views."""
 
     codec: str
     sums: bool
+    fold: bool
     count: int
     file_bytes: int
     psnr: float
@@ -54,6 +61,7 @@ def solve_share(
     seed: int = 0,
     codec: str | None = None,
     sums: bool | None = None,
+    fold: bool | None = None,
     seq: str | Path | None = None,
     views: int = SOLVE_VIEWS,
     device: str = "auto",
@@ -65,7 +73,8 @@ def solve_share(
         budget: the share budget (bytes, or a fraction of the map's fp32 bytes; a fraction of
             the Gaussians fixes the count, leaving the codec to choose).
         strategy, seed: how Gaussians are ranked (as `gsc share`).
-        codec, sums: constrain the search to this codec / PWAS state (None: any).
+        codec, sums, fold: constrain the search to this codec / PWAS state / folding (None:
+            any).
         seq: the sender's sequence: score against its keyframe images (else against the whole
             map's renders).
         views: how many keyframes to render at.
@@ -95,11 +104,12 @@ def solve_share(
         targets = [render_view(params, pose, intrinsics)[0] for pose in poses]
     weighed: list[Candidate] = []
     refusals: list[str] = []  # (one per candidate the budget cannot hold)
-    for cand_codec, cand_sums in CANDIDATES:
-        if (codec is not None and cand_codec != codec) or (sums is not None and cand_sums != sums):
+    for cand_codec, cand_sums, cand_fold in CANDIDATES:
+        wanted = zip((codec, sums, fold), (cand_codec, cand_sums, cand_fold), strict=True)
+        if any(w is not None and w != c for w, c in wanted):
             continue
         cut = ShareCut(src, budget, strategy=strategy, codec=cand_codec, sums=cand_sums,
-                       seed=seed)  # fmt: skip
+                       seed=seed, fold_dropped=cand_fold)  # fmt: skip
         try:
             count = cut.budget.count(len(cut.full), cut.size)
         except BudgetError as exc:
@@ -112,9 +122,11 @@ def solve_share(
             psnr(render_view(params, pose, intrinsics)[0], target, mask)
             for pose, target, mask in zip(poses, targets, masks, strict=True)
         ]
-        weighed.append(Candidate(cand_codec, cand_sums, count, len(data), float(np.mean(scores))))
-        log.info("solver: %s%s, %d Gaussians, %d B: %.2f dB", cand_codec,
-                 "" if cand_sums else " (no sums)", count, len(data), weighed[-1].psnr)  # fmt: skip
+        weighed.append(Candidate(cand_codec, cand_sums, cand_fold, count, len(data),
+                                 float(np.mean(scores))))  # fmt: skip
+        log.info("solver: %s%s%s, %d Gaussians, %d B: %.2f dB", cand_codec,
+                 "" if cand_sums else " (no sums)", " folded" if cand_fold else "", count,
+                 len(data), weighed[-1].psnr)  # fmt: skip
     if not weighed:
         raise BudgetError(refusals[0])  # (the smallest codec's: the others hold no more)
     weighed.sort(key=lambda c: (-c.psnr, c.file_bytes))
@@ -173,6 +185,7 @@ def share_solved(
     seed: int = 0,
     codec: str | None = None,
     sums: bool | None = None,
+    fold: bool | None = None,
     seq: str | Path | None = None,
     views: int = SOLVE_VIEWS,
     device: str = "auto",
@@ -188,12 +201,12 @@ def share_solved(
     budget = Budget.parse(budget)
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
     best, _weighed, record = solve_share(
-        src, budget, strategy=strategy, seed=seed, codec=codec, sums=sums, seq=seq, views=views,
-        device=device,
+        src, budget, strategy=strategy, seed=seed, codec=codec, sums=sums, fold=fold, seq=seq,
+        views=views, device=device,
     )  # fmt: skip
     record["predicted_psnr"] = best.psnr
     result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
-                       seed=seed, ply=ply, refine=refine, solve=record, align_to=align_to,
-                       command=command, force=force)  # fmt: skip
+                       seed=seed, fold_dropped=best.fold, ply=ply, refine=refine, solve=record,
+                       align_to=align_to, command=command, force=force)  # fmt: skip
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result

@@ -234,14 +234,15 @@ class MapViewer:
             f"Snapshot {self.snapshot + 1} of {len(times)}{when}: {len(g):,} Gaussians, "
             f"{'scored' if g.has_importance else 'no PWAS scores'}"
         )
-        self._geometry = (g.means, scene.covariances(g))
+        self._geometry = (g.means, g.covariances().astype(np.float32))
         self._drawn.pop("a", None)
         self._share_key = None
         self._budget_range()
         if self.other is not None and "b" not in self._drawn:
             b = self.other.snapshot()
             self.splats_b = self.server.scene.add_gaussian_splats(
-                "/map_b", centers=b.means, covariances=scene.covariances(b), rgbs=b.colors(),
+                "/map_b", centers=b.means, covariances=b.covariances().astype(np.float32),
+                rgbs=b.colors(),
                 opacities=b.opacities()[:, None], visible=False,
             )  # fmt: skip
             self._drawn["b"] = True
@@ -330,7 +331,8 @@ class MapViewer:
         received = decoded_map(share.shared, share.codec, sums=share.sums)
         if self._drawn.get("share_key") != self._share_key:
             self._drawn["share_node"] = self.server.scene.add_gaussian_splats(
-                "/share_on_b", centers=received.means, covariances=scene.covariances(received),
+                "/share_on_b", centers=received.means,
+                covariances=received.covariances().astype(np.float32),
                 rgbs=received.colors(), opacities=received.opacities()[:, None],
             )  # fmt: skip
             self._drawn["share_key"] = self._share_key
@@ -415,8 +417,8 @@ class MapViewer:
         try:
             best, weighed, record = solve_share(
                 self.source.path, budget, strategy=self.strategy.value, seed=self.options.seed,
-                seq=self.options.seq,
-            )  # fmt: skip
+                fold=True, seq=self.options.seq,
+            )  # fmt: skip  # (the viewer's shares fold, as gsc share's do by default)
         except GscError as exc:
             self._say(f"**{exc}**")
             return

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gscompress.camera import quat_to_rotmat, rotmat_to_quat
+from gscompress.camera import rotmat_to_quat
 from gscompress.gaussians import GaussianMap
 from gscompress.pipeline.images import IMPORTANCE_CMAP, LogScale, unit_colors
 
@@ -16,13 +16,6 @@ COLOUR_MODES = ("rgb", "importance", "opacity", "kept / dropped")
 
 KEPT_RGB = np.array([0.15, 0.75, 0.35], np.float32)
 DROPPED_RGB = np.array([0.85, 0.2, 0.2], np.float32)
-
-
-def covariances(gaussians: GaussianMap) -> np.ndarray:
-    """[N, 3, 3] float32 world covariances R diag(s^2) R^T of the Gaussians."""
-    R = quat_to_rotmat(gaussians.quats)  # [N, 3, 3] float64
-    variances = np.square(gaussians.scales().astype(np.float64))  # [N, 3]
-    return np.einsum("nij,nj,nkj->nik", R, variances, R).astype(np.float32)
 
 
 def legend_image(width: int = 256, height: int = 14, name: str = IMPORTANCE_CMAP) -> np.ndarray:
