@@ -94,6 +94,16 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "Needs `pip install 'gscompress[align]'`.",
 )  # fmt: skip
 @click.option(
+    "--refine-poses", type=click.IntRange(min=0), default=100, show_default=True,
+    help="Cross-agent scoring: the centralised run, A, B, B refined without a share, B with "
+    "each share at each budget and B with A's whole map are scored on A's frames, B's frames "
+    "and all frames after refining each frame's pose against the fixed map with this many "
+    "tracking iterations (`gsc eval --refine-poses`), starting from the poses of the agent "
+    "that made the map on its frames, the other agent's on the other's (moved by the "
+    "alignment with --anchor own), and on all frames the map's own where it has them, the "
+    "other agent's on the rest. 0: each run scored on its own frames only.",
+)  # fmt: skip
+@click.option(
     "--mode", type=click.Choice(["merge", "inject"]), default="merge", show_default=True,
     help="How B receives a share: merged into its finished map and refined (the paper's "
     "protocol; B's poses do not change), or injected before its first frame (a new B run).",
@@ -159,6 +169,7 @@ def experiment(
     overlap: float,
     every: int,
     anchor: str,
+    refine_poses: int,
     mode: str,
     merge_iters: int,
     merge_views: str,
@@ -184,7 +195,9 @@ def experiment(
     - Rate-distortion: PSNR and ATE of B against the share size, per strategy.
     Table 3's PWAS run (one agent on all the frames, the agents' preset) is the centralised
     reference.
-    Every run is scored with `gsc eval` on its own frames. Outputs: results.md (tables like the
+    Every run is scored with `gsc eval` on its own frames; with --refine-poses N (default
+    100) the centralised run, A and every run of B are also scored on A's frames, B's frames
+    and all frames at poses refined against the fixed map. Outputs: results.md (tables like the
     paper's), results.csv, results.json, plots/*.png; each run's log stays in runs/. A rerun
     reuses every finished run whose settings are unchanged. A run that fails is tried once
     more, then listed in results.md with its error (the runs it feeds are not run, the rest
@@ -193,7 +206,7 @@ def experiment(
     \b
     Examples:
       gsc experiment demo_seq -o exp --preset tiny --seeds 1 --sweep-seeds 0 \\
-          --frames 0:10 --size 80x60                           # a smoke test, seconds
+          --frames 0:10 --size 80x60 --refine-poses 10         # a smoke test, seconds
       gsc experiment data/office -o exp_office --seeds 3        # cpu preset
       gsc --threads 8 experiment data/office -o exp_office --jobs 4   # 4 runs at a time
       gsc experiment /shared/office -o /shared/exp --executor ray --address auto
@@ -214,6 +227,7 @@ def experiment(
         every=every,
         mode=mode,
         anchor=anchor,
+        refine_poses=refine_poses,
         merge_iters=merge_iters,
         merge_views=merge_views,
         merge_lr_final=merge_lr_final,

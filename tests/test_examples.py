@@ -95,5 +95,5 @@ def test_cluster_study_runs_each_sequence_and_tabulates_pwas_against_random(
     for row in table:
         rows = json.loads((study / row["sequence"] / "results.json").read_text())
         pwas = next(r for r in rows if r["name"] == "B + pwas 0.2")
-        assert row["pwas_psnr"] == pwas["psnr"] and row["runs"] == 11 and row["failed"] == 0
+        assert row["pwas_psnr"] == pwas["psnr"] and row["runs"] == 18 and row["failed"] == 0
     assert out.splitlines()[2].startswith("| room | 0.2 |")

@@ -30,6 +30,11 @@ from gscompress_cli.main import cli
 
 REQUIRED = ("name", "ate_rmse_cm", "psnr", "ssim", "lpips", "gaussians", "bytes")
 
+REFINE = ("--refine-poses", "3")
+"""The fixture's cross-agent scoring: 3 tracking iterations per frame (seconds, not minutes)."""
+
+CROSS = ("refined_psnr_a", "refined_psnr_b", "refined_psnr_all")
+
 
 @pytest.fixture(scope="module")
 def experiment(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
@@ -37,7 +42,7 @@ def experiment(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, di
     seq = write_synthetic_sequence(root / "room", 4, (64, 48))
     out = root / "exp"
     args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     return seq, out, json.loads(r.output)
@@ -45,7 +50,9 @@ def experiment(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, di
 
 def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, dict]) -> None:
     _seq, out, result = experiment
-    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), lpips=False)
+    settings = ExperimentSettings(
+        preset="tiny", seeds=1, sweep=("0.2", "0.5"), lpips=False, refine_poses=3
+    )
     assert result["steps"] == plan_size(settings) and result["reused"] == 0
     rows = json.loads((out / "results.json").read_text())
     assert all(set(REQUIRED) <= set(row) for row in rows)
@@ -86,6 +93,78 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert "PWAS minus random, paired by seed" in md and "ATE RMSE (cm) | PWAS lower" not in md
 
 
+def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Path, dict]) -> None:
+    """The centralised run, A, B and every run of B are scored on A's, B's and all frames at
+    refined poses; each B map starts at B's poses on B's frames, at A's on A's, and on all
+    frames at its own where it has them and A's elsewhere."""
+    from gscompress.io.trajectory import read_tum_trajectory
+    from gscompress.pipeline.evaluate import pose_source
+
+    _seq, out, _result = experiment
+    rows = json.loads((out / "results.json").read_text())
+    scored = [r for r in rows if r["refine_iters"] is not None]
+    assert [r["name"] for r in rows if r not in scored] == ["full, no pruning"]
+    assert len(scored) == 13 and all(r["refine_iters"] == 3 for r in scored)
+    for row in scored:
+        for name in ("a", "b", "all"):
+            assert math.isfinite(row[f"refined_psnr_{name}"]), row
+            assert math.isfinite(row[f"start_psnr_{name}"]), row
+            assert 0 <= row[f"pose_change_cm_{name}"] < 50, row
+    record = json.loads((out / "runs" / "s0_pwas_0p2_agent_b_xeval.json").read_text())
+    cross = record["result"]["cross"]
+    assert [cross[k]["start"] for k in ("a", "b", "all")] == [
+        "the other agent's", "own", "own, the other agent's elsewhere",
+    ]  # fmt: skip
+    assert (cross["a"]["frames"], cross["b"]["frames"]) == ("odd", "even")
+    assert cross["all"]["frames_evaluated"] == 4 and cross["a"]["frames_evaluated"] == 2
+    centralised = json.loads((out / "runs" / "full_pwas_xeval.json").read_text())["result"]
+    assert {v["start"] for v in centralised["cross"].values()} == {"own"}
+    # on all frames: B's own poses on the even frames, A's on the odd ones
+    start = read_tum_trajectory(out / "runs" / "s0_pwas_0p2_agent_b_xeval_start_all.txt")
+    _, poses_a, _ = pose_source(out / "runs" / "s0_agent_a.mcap")
+    _, poses_b, _ = pose_source(out / "runs" / "s0_pwas_0p2_agent_b.mcap")
+    np.testing.assert_allclose(start.T_world_cam[0::2], poses_b, atol=1e-12)
+    np.testing.assert_allclose(start.T_world_cam[1::2], poses_a, atol=1e-12)
+    with open(out / "results.csv", newline="") as f:
+        assert set(CROSS) <= set(next(iter(csv.DictReader(f))))
+    md = (out / "results.md").read_text()
+    title = "## PSNR on A's frames / B's frames / all frames, poses refined (3 iterations)"
+    assert title in md
+    table = md.split(title)[1].split("\n## ")[0]
+    assert "| centralised (full, PWAS pruning) |" in table and "| B + A's full map |" in table
+    assert table.count(" cm) |\n") == 13 and "n/a" not in table
+
+
+def test_refine_poses_0_leaves_the_own_frame_scores_alone(
+    experiment: tuple[Path, Path, dict], tmp_path: Path
+) -> None:
+    """--refine-poses 0: no scoring step, and the rows and results.md are those of the same
+    experiment with cross-agent scoring, less its columns (empty) and its table."""
+    seq, out, _first = experiment
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
+    r = CliRunner().invoke(cli, [*args, *REFINE])  # (the fixture's reports, rewritten)
+    assert r.exit_code == 0, r.output
+    scored = json.loads((copy / "results.json").read_text())
+    scored_md = (copy / "results.md").read_text()
+    r = CliRunner().invoke(cli, [*args, "--refine-poses", "0"])
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output)
+    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), refine_poses=0)
+    assert result["steps"] == result["reused"] == plan_size(settings) == 23
+    rows = json.loads((copy / "results.json").read_text())
+    cross = {k for k in ROW_KEYS if k.endswith(("_a", "_b", "_all")) or k == "refine_iters"}
+    assert len(cross) == 13
+    assert all(row[k] is None for row in rows for k in cross)
+    assert rows == [{k: (None if k in cross else v) for k, v in row.items()} for row in scored]
+    md = (copy / "results.md").read_text()
+    assert "poses refined" not in md
+    start = scored_md.index("\n## PSNR on A's frames")
+    assert md == scored_md[:start] + scored_md[scored_md.index("\n## Plots") :]
+
+
 def test_parallel_runs_give_the_same_rows(
     experiment: tuple[Path, Path, dict], threads_restored: None
 ) -> None:
@@ -98,7 +177,7 @@ def test_parallel_runs_give_the_same_rows(
     threads = 2 * torch.get_num_threads()  # each worker gets what the fixture's runs had
     args = ["--threads", str(threads), "experiment", str(seq), "-o", str(parallel),
             "--preset", "tiny", "--seeds", "1", "--sweep", "0.2,0.5", "--no-lpips", "--json",
-            "--jobs", "2"]  # fmt: skip
+            "--jobs", "2", *REFINE]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
@@ -162,16 +241,20 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
 ) -> None:
     seq, out, first = experiment
     base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--no-lpips", "--json"]  # fmt: skip
+            "--no-lpips", "--json", *REFINE]  # fmt: skip
+    scoring = sorted((out / "runs").glob("*_xeval.json"))
+    assert len(scoring) == 13  # all the rows but Table 3's unpruned run
+    before = {p.name: p.read_bytes() for p in scoring}
     r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5"])
     assert r.exit_code == 0, r.output
     again = json.loads(r.output)
-    assert again["reused"] == again["steps"] == first["steps"]
-    # a new sweep budget: only its shares and B runs are new (four strategies x 2 steps)
+    assert again["reused"] == again["steps"] == first["steps"]  # the scoring steps too
+    assert {p.name: p.read_bytes() for p in scoring} == before
+    # a new sweep budget: only its shares, B runs and their scoring are new (4 strategies x 3)
     r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5,0.3"])
     assert r.exit_code == 0, r.output
     third = json.loads(r.output)
-    assert third["steps"] - third["reused"] == 8
+    assert third["steps"] - third["reused"] == 12
     # another merge learning-rate decay: every merge again, nothing else (in a copy: the
     # folder is shared with the other tests of this module)
     copy = tmp_path / "copy"
@@ -181,7 +264,8 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
     assert r.exit_code == 0, r.output
     fourth = json.loads(r.output)
     merges = list((copy / "runs").glob("s0_*_agent_b.json"))  # not B's own run, s0_agent_b
-    assert len(merges) == fourth["steps"] - fourth["reused"] == 14  # 4 strategies x 3 + 2
+    assert len(merges) == 14  # 4 strategies x 3 + 2, each scored again: 28 steps
+    assert fourth["steps"] - fourth["reused"] == 2 * len(merges)
     assert all(json.loads(p.read_text())["spec"]["lr_final"] == 0.5 for p in merges)
 
 
@@ -200,11 +284,11 @@ def test_a_damaged_run_record_is_a_run_to_do_again(
     record_path.write_text(json.dumps(record))
     damaged["s0_agent_a"] = b""
     args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     again = json.loads(r.output)
-    assert again["steps"] - again["reused"] == len(damaged)  # those two, nothing else
+    assert again["steps"] - again["reused"] == len(damaged)  # those three, nothing else
     for name in damaged:
         assert json.loads((copy / "runs" / f"{name}.json").read_text())["result"]
 
@@ -302,7 +386,7 @@ def test_inject_mode_runs_b_again_with_the_share(experiment: tuple[Path, Path, d
     inject = out.parent / "inject"
     args = ["experiment", str(seq), "-o", str(inject), "--preset", "tiny",
             "--seeds", "1", "--sweep", "0.2", "--strategies", "random,pwas", "--mode", "inject",
-            "--sweep-seeds", "0", "--no-lpips", "--json"]  # fmt: skip
+            "--sweep-seeds", "0", "--no-lpips", "--json", "--refine-poses", "0"]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     rows = json.loads((inject / "results.json").read_text())
@@ -321,12 +405,13 @@ def test_both_modes_share_one_folder_without_overwriting_runs(
 ) -> None:
     seq, out, first = experiment
     base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE]  # fmt: skip
     r = CliRunner().invoke(cli, [*base, "--mode", "inject", "--strategies", "random,pwas"])
     assert r.exit_code == 0, r.output
     inject = json.loads(r.output)
-    # A, B and the shares are reused; only B's runs with a share are new (2 x 2 budgets + full)
-    assert inject["steps"] - inject["reused"] == 5
+    # A, B, the shares and their scoring are reused; only B's runs with a share (2 x 2
+    # budgets + full) and their scoring are new
+    assert inject["steps"] - inject["reused"] == 2 * 5
     assert "ATE RMSE (cm) | PWAS lower" in (out / "results.md").read_text()  # B's poses move
     r = CliRunner().invoke(cli, base)  # back to merge mode: every merge run is still there
     assert r.exit_code == 0, r.output
@@ -368,7 +453,7 @@ def test_sigterm_stops_the_workers_and_a_rerun_goes_on(tmp_path: Path) -> None:
     seq = write_synthetic_sequence(tmp_path / "room", 16, (64, 48))
     out = tmp_path / "exp"
     args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep-seeds", "0", "--no-lpips", "--json"]  # fmt: skip
+            "--sweep-seeds", "0", "--no-lpips", "--json", "--refine-poses", "0"]  # fmt: skip
     cmd = [sys.executable, "-m", "gscompress_cli", "--threads", "2", *args, "--jobs", "2"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
@@ -387,7 +472,9 @@ def test_sigterm_stops_the_workers_and_a_rerun_goes_on(tmp_path: Path) -> None:
     time.sleep(1.0)  # an orphan is reaped by its new parent
     assert not [pid for pid in workers if _alive(pid)]
     records = sorted(p.stem for p in (out / "runs").glob("*.json"))
-    total = plan_size(ExperimentSettings(preset="tiny", seeds=1, sweep_seeds=0, lpips=False))
+    total = plan_size(
+        ExperimentSettings(preset="tiny", seeds=1, sweep_seeds=0, lpips=False, refine_poses=0)
+    )
     assert 0 < len(records) < total  # stopped part-way, nothing recorded for the runs it cut
     for name in records:
         with LogReader(out / "runs" / f"{name}.mcap") as log:
@@ -412,7 +499,7 @@ def test_workers_end_when_the_runner_is_killed_outright(tmp_path: Path) -> None:
     out = tmp_path / "exp"
     cmd = [sys.executable, "-m", "gscompress_cli", "--threads", "2", "experiment", str(seq),
            "-o", str(out), "--preset", "tiny", "--seeds", "1", "--sweep-seeds", "0",
-           "--no-lpips", "--jobs", "2"]  # fmt: skip
+           "--no-lpips", "--jobs", "2", "--refine-poses", "0"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + 300
@@ -513,12 +600,12 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
     args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
             "--sweep", "0.2", "--strategies", "random,pwas", "--sweep-seeds", "0",
             "--split", "halves", "--anchor", "own", "--merge-iters", "0", "--no-lpips",
-            "--json"]  # fmt: skip
+            "--json", "--refine-poses", "2"]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2",), sweep_seeds=0,
                                   strategies=("random", "pwas"), split="halves", anchor="own",
-                                  merge_iters=0, lpips=False)  # fmt: skip
+                                  merge_iters=0, lpips=False, refine_poses=2)  # fmt: skip
     assert json.loads(r.output)["steps"] == plan_size(settings)
     rows = {row["name"]: row for row in json.loads((out / "results.json").read_text())}
     est, true = rows["B + pwas 0.2"], rows["B + pwas at the true transform 0.2"]
@@ -538,3 +625,11 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
         step = log.metadata.provenance[-1]["operation"]
     np.testing.assert_allclose(step["transform"], T_true, atol=1e-9)  # merged at the truth
     assert "## Alignment" in (out / "results.md").read_text()
+    # cross-agent scoring: B's map on A's frames starts at A's poses moved by the estimate
+    from gscompress.io.trajectory import read_tum_trajectory
+    from gscompress.pipeline.evaluate import pose_source
+
+    start = read_tum_trajectory(out / "runs" / "s0_pwas_0p2_agent_b_xeval_start_a.txt")
+    _, poses_a, _ = pose_source(out / rows["agent A (first part)"]["log"])
+    np.testing.assert_allclose(start.T_world_cam, T_est @ poses_a, atol=1e-9)
+    assert all(math.isfinite(rows["B + pwas 0.2"][key]) for key in CROSS)

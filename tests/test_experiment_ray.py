@@ -67,15 +67,22 @@ def test_two_node_ray_cluster_gives_the_local_executors_rows(
     finally:
         cluster.shutdown()
     assert result["reused"] == 0 and result["failed"] == {}
-    records = [json.loads(p.read_text()) for p in sorted((on_ray / "runs").glob("*.json"))]
-    assert len(records) == result["steps"] == 11
+    records = [
+        json.loads(p.read_text())
+        for p in sorted((on_ray / "runs").glob("*.json"))
+        if not p.name.endswith(".scores.json")
+    ]  # (a scoring step's full results)
+    assert len(records) == result["steps"] == 18  # 11 runs, 7 cross-agent scoring steps
+    assert len(list((on_ray / "runs").glob("*_xeval.scores.json"))) == 7
     ran_on = {record["ran_on"]["node"] for record in records}
     assert len(ids) == 2 and ran_on == ids  # both nodes ran tasks
 
     assert big.exit_code == 2 and "no node of the Ray cluster has 2 CPUs" in big.output
     assert failing.exit_code == 1, failing.output
     failed = json.loads(failing.stdout)["failed"]
-    assert set(failed) == {"full_no_prune", "full_pwas", "s0_agent_a", *NEEDS_A}
+    scoring = [f"{name}_xeval" for name in ("full_pwas", "s0_agent_a", "s0_agent_b",
+                                            "s0_no_share_agent_b", *NEEDS_A[1::2])]  # fmt: skip
+    assert set(failed) == {"full_no_prune", "full_pwas", "s0_agent_a", *NEEDS_A, *scoring}
     assert failed["s0_agent_a"].startswith("DatasetError: cannot read depth image")
     assert "its last log lines" in failed["s0_agent_a"]
     md = (tmp_path / "failing" / "results.md").read_text()
@@ -142,7 +149,7 @@ def test_a_failing_run_is_retried_once_then_reported_and_the_rest_completes(
     assert attempts == ["s0_random_0p2_share.mcap"] * 2
     result = json.loads(r.stdout)
     share, merge = "s0_random_0p2_share", "s0_random_0p2_agent_b"
-    assert set(result["failed"]) == {share, merge}
+    assert set(result["failed"]) == {share, merge, f"{merge}_xeval"}
     assert result["failed"][share].startswith("RuntimeError: disk on fire")
     assert result["failed"][merge] == f"not run: it needs {share}, which failed"
     assert "about to fail" in result["failed"][share]  # the run's own log lines
@@ -161,5 +168,5 @@ def test_a_failing_run_is_retried_once_then_reported_and_the_rest_completes(
     again = CliRunner().invoke(cli, args)
     assert again.exit_code == 0, again.output
     result = json.loads(again.output)
-    assert result["failed"] == {} and result["reused"] == result["steps"] - 2
+    assert result["failed"] == {} and result["reused"] == result["steps"] - 3
     assert "## Failed runs" not in (out / "results.md").read_text()

@@ -3,6 +3,7 @@
 - `protocol`: which runs exist (settings, the split of frames between agents, the run graph);
 - `execution`: how they run (in this process or on a pool of workers, reusing finished runs);
 - `execution_ray`: as Ray tasks on a cluster (Ray imported only there);
+- `cross_agent`: a map scored on A's, B's and all frames at refined poses (a step of the graph);
 - `report`: results rows, verdicts, tables and plots;
 - `run`: `run_experiment`, which ties the three together.
 """

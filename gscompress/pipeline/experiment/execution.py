@@ -418,6 +418,32 @@ class Runner:
         )
         return self._step(name, spec, job, after=[source])
 
+    def score(
+        self,
+        run: RunHandle,
+        own: str,
+        frames: dict[str, str],
+        other: RunHandle | None = None,
+        align: RunHandle | None = None,
+    ) -> Record:
+        """`run`'s map scored on A's frames, B's frames and all frames at refined poses
+        (`gscompress.pipeline.experiment.cross_agent`), a step named after the run; `own`: the
+        frame set of the agent that made the map ("a", "b", or "all"), `other`: the other
+        agent's run, `align`: the alignment that moves its poses (anchor "own")."""
+        from gscompress.pipeline.experiment.cross_agent import cross_scores
+
+        s = self.settings
+        spec = {"kind": "cross-score", "map": run.key, "own": own, "frames": frames,
+                "other": other.key if other else None, "align": align.key if align else None,
+                "iters": s.refine_poses, "every": s.every, "lpips": s.lpips}  # fmt: skip
+        job = functools.partial(
+            cross_scores, seq=self.seq, log_path=run.path, own=own, frames=frames,
+            other=other.path if other else None, transform=align.path if align else None,
+            iters=s.refine_poses, every=s.every, lpips=s.lpips, device=s.device,
+        )  # fmt: skip
+        after = [r for r in (run, other, align) if r is not None]
+        return self._step(f"{run.path.stem}_xeval", spec, job, after, suffix=".scores.json")
+
 
 class LocalRunner(Runner):
     """Runs the steps of an experiment on this machine, reusing those whose records match.

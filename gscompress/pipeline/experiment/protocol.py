@@ -82,6 +82,11 @@ class ExperimentSettings:
             map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives
             shares moved by the estimated transform, with the PWAS share at the main budget
             also merged at the true one (from the agents' ground-truth first poses) beside it.
+        refine_poses: tracking iterations of the cross-agent scoring
+            (`gscompress.pipeline.experiment.cross_agent`): the centralised run, A, B and every B
+            with a share scored on A's frames, on B's frames and on all frames at poses refined
+            against the fixed map (0: no cross-agent scoring, each run scored on its own
+            frames only).
     """
 
     preset: str | None = None
@@ -104,6 +109,7 @@ class ExperimentSettings:
     merge_views: str = DEFAULT_REFINE_VIEWS
     merge_lr_final: float = DEFAULT_LR_FINAL
     anchor: str = "gt"
+    refine_poses: int = 100
 
     def agent_frames(self, n: int | None = None) -> tuple[str, str]:
         """The frame subsets of agents A and B: the odd and even positions within `frames`, or
@@ -149,6 +155,10 @@ class ExperimentSettings:
             raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
         if self.anchor not in ANCHORS:
             raise InputError(f"--anchor is one of {', '.join(ANCHORS)}")
+        if self.refine_poses < 0:
+            raise InputError(
+                f"--refine-poses must be 0 or more iterations, got {self.refine_poses}"
+            )
         if self.merge_views not in REFINE_VIEWS:
             raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
         if not is_fraction(self.merge_lr_final):
@@ -196,7 +206,12 @@ def plan_size(settings: ExperimentSettings) -> int:
     shares = len(s.strategies) + 1
     extra_budgets = [b for b in s.sweep if not same_budget(b, s.budget)]
     sweep = s.sweep_seeds * len(extra_budgets) * len(s.strategies) * 2
-    return 2 + s.seeds * (main + shares) + sweep
+    table3 = 2
+    if s.refine_poses:  # a scoring step for every run of B, A's run and the centralised run
+        main += main - (s.anchor == "own")  # (every step of `main` but the alignment)
+        sweep += sweep // 2  # (one per B run of the sweep, none per share)
+        table3 += 1
+    return table3 + s.seeds * (main + shares) + sweep
 
 
 def resolve_settings(settings: ExperimentSettings) -> tuple[ExperimentSettings, SlamConfig]:
@@ -252,19 +267,39 @@ class Executor(Protocol):
         self, name: str, source: RunHandle, budget: str, strategy: str, seed: int
     ) -> RunHandle: ...
 
+    def score(
+        self,
+        run: RunHandle,
+        own: str,
+        frames: dict[str, str],
+        other: RunHandle | None = None,
+        align: RunHandle | None = None,
+    ) -> RunHandle: ...
 
-def plan_runs(runner: Executor, base: Any, n: int) -> list[tuple[Any, ...]]:
-    """Start every step of the experiment (on `n` frames); the arguments of `result_row` for each
-    results row. Table 3's PWAS-pruned run of every frame is the centralised reference: one
-    agent, the agents' preset, all the frames the two share out."""
+
+def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
+    """Start every step of the experiment (on `n` frames); the keyword arguments of `result_row`
+    for each results row. Table 3's PWAS-pruned run of every frame is the centralised reference:
+    one agent, the agents' preset, all the frames the two share out. With `refine_poses`, the
+    centralised run, A, B and every run of B with a share (or refined without one) are also
+    scored on A's frames, B's frames and all frames at refined poses (`Executor.score`)."""
     s = runner.settings
-    rows: list[tuple[Any, ...]] = []
+    rows: list[dict[str, Any]] = []
     frames_a, frames_b = s.agent_frames(n)
+    frames = {"a": frames_a, "b": frames_b, "all": s.frames}
     a_alone, b_alone = AGENT_ROWS[s.split]
+
+    def score(run: RunHandle, own: str, other: RunHandle | None = None,
+              align: RunHandle | None = None) -> dict[str, Any]:  # fmt: skip
+        if not s.refine_poses:
+            return {}
+        return {"cross": runner.score(run, own, frames, other, align)}
+
     full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
     pruned = runner.slam("full_pwas", base, s.frames)
-    rows.append(("full, no pruning", "table3", full))
-    rows.append(("full, PWAS pruning", "table3", pruned))
+    rows.append({"name": "full, no pruning", "table": "table3", "run": full})
+    rows.append({"name": "full, PWAS pruning", "table": "table3", "run": pruned,
+                 **score(pruned, "all")})  # fmt: skip
 
     budgets = [s.budget] + [b for b in s.sweep if not same_budget(b, s.budget)]
     own = s.anchor == "own"
@@ -274,28 +309,36 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[tuple[Any, ...]]:
             config = config.with_overrides(init_from_ground_truth=False)
         a = runner.slam(f"s{seed}_agent_a", config, frames_a)
         b = runner.slam(f"s{seed}_agent_b", config, frames_b)
-        rows.append((a_alone, "table4", a, seed))
-        rows.append((b_alone, "table4", b, seed))
         align = runner.align(f"s{seed}_align", a, b) if own else None
+        rows.append({"name": a_alone, "table": "table4", "run": a, "seed": seed,
+                     **score(a, "a", b, align)})  # fmt: skip
+        rows.append({"name": b_alone, "table": "table4", "run": b, "seed": seed,
+                     **score(b, "b", a, align)})  # fmt: skip
         if s.mode == "merge":
             alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
-            rows.append((B_NO_SHARE, "table4", alone, seed, "none"))
+            rows.append({"name": B_NO_SHARE, "table": "table4", "run": alone, "seed": seed,
+                         "strategy": "none", **score(alone, "b", a, align)})  # fmt: skip
         for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
                 share = runner.share(f"{tag}_share", a, budget, strategy, seed)
                 got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed, align)
-                rows.append((f"B + {strategy} {budget}", table, got, seed, strategy, budget, share,
-                             align))  # fmt: skip
+                rows.append({"name": f"B + {strategy} {budget}", "table": table, "run": got,
+                             "seed": seed, "strategy": strategy, "budget": budget,
+                             "share": share, "align": align,
+                             **score(got, "b", a, align)})  # fmt: skip
                 if own and table == "table4" and strategy == "pwas":
                     got = runner.receive(f"{tag}_true_agent_b", b, share, config, frames_b, seed,
                                          align, true=True)  # fmt: skip
-                    rows.append((f"{TRUE_TRANSFORM_ROW} {budget}", table, got, seed, "",
-                                 budget, share))  # fmt: skip
+                    rows.append({"name": f"{TRUE_TRANSFORM_ROW} {budget}", "table": table,
+                                 "run": got, "seed": seed, "budget": budget, "share": share,
+                                 **score(got, "b", a, align)})  # fmt: skip
         whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
         got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed, align)
-        rows.append(("B + A's full map", "table4", got, seed, "full", "1", whole, align))
+        rows.append({"name": "B + A's full map", "table": "table4", "run": got, "seed": seed,
+                     "strategy": "full", "budget": "1", "share": whole, "align": align,
+                     **score(got, "b", a, align)})  # fmt: skip
     return rows
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from gscompress import __version__
 from gscompress.io.files import json_text, write_text_atomic
 from gscompress.io.mcap_log import LogReader
+from gscompress.pipeline.experiment.cross_agent import FRAME_SETS
 from gscompress.pipeline.experiment.protocol import (
     AGENT_ROWS,
     B_NO_SHARE,
@@ -25,13 +26,22 @@ from gscompress.pipeline.experiment.protocol import (
 from gscompress.pipeline.offline import log_edges
 from gscompress.selection import strategy_scores
 
+CROSS_KEYS = ("refined_psnr", "pose_change_cm", "pose_change_deg", "start_psnr")
+"""Per frame set (`FRAME_SETS`), the cross-agent columns of a results row."""
+
+
 ROW_KEYS = (
     "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
     "ate_reason", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes",
     "share_gaussians", "share_bytes", "seconds_per_frame", "log", "error", "align_error_cm",
-    "align_error_deg", "align_refused",
+    "align_error_deg", "align_refused", "refine_iters",
+    *(f"{key}_{name}" for name in FRAME_SETS for key in CROSS_KEYS),
 )  # fmt: skip
-"""Columns of results.csv (every row of results.json has them)."""
+"""Columns of results.csv (every row of results.json has them). The cross-agent scores
+(`cross_agent`) are empty in rows not scored so (and with `refine_poses` 0): `refined_psnr_a`,
+`refined_psnr_b`, `refined_psnr_all` (PSNR on A's, B's and all frames at refined poses),
+`pose_change_cm_*` and `pose_change_deg_*` (the median pose change from the starting poses),
+`start_psnr_*` (PSNR at the starting poses) and `refine_iters` (tracking iterations)."""
 
 
 def result_row(
@@ -43,10 +53,12 @@ def result_row(
     budget: str = "",
     share: RunHandle | None = None,
     align: RunHandle | None = None,
+    cross: RunHandle | None = None,
 ) -> dict[str, Any]:
     """A results row from a SLAM run's record (and the share it received, moved by the
-    transform of `align`); a run that failed (or was not run, a run it needs having failed)
-    gives a row of its error, the rest empty."""
+    transform of `align`, and its cross-agent scoring step `cross`); a run that failed (or was
+    not run, a run it needs having failed) gives a row of its error, the rest empty (a scoring
+    step that failed leaves its columns empty, and is listed with the failed runs)."""
     error = run.error
     ev, slam = ({}, {}) if error else (run.result["eval"], run.result["slam"])
     got = share.result if share is not None and share.error is None else {}
@@ -61,6 +73,22 @@ def result_row(
         row.update(align_error_cm=align.result["error_cm"],
                    align_error_deg=align.result["error_deg"],
                    align_refused=align.result["refused"])  # fmt: skip
+    if cross is not None and cross.error is None:
+        row.update(cross_columns(cross.result["cross"]))
+    return row
+
+
+def cross_columns(scores: dict[str, Any]) -> dict[str, Any]:
+    """A row's cross-agent columns from a scoring step's result (`cross_agent.cross_scores`)."""
+    row: dict[str, Any] = {}
+    for name in FRAME_SETS:
+        got = scores[name]
+        refined = got["refined"]
+        row["refine_iters"] = refined["iters"]
+        row[f"refined_psnr_{name}"] = refined["psnr"]
+        row[f"pose_change_cm_{name}"] = refined["pose_change_cm"]
+        row[f"pose_change_deg_{name}"] = refined["pose_change_deg"]
+        row[f"start_psnr_{name}"] = got["psnr"]
     return row
 
 
@@ -385,6 +413,8 @@ def _markdown(
                     f"{b['pwas_lower_ate']} of {b['pairs']}",
                 ]
             lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    if s.refine_poses:
+        lines += _cross_lines(rows, s)
     if s.anchor == "own":
         lines += _alignment_lines(rows, s)
     lines += ["", "## Plots", ""]
@@ -407,6 +437,41 @@ def _plot_title(seq: Path, s: ExperimentSettings, what: str, seeds: str) -> str:
     """A plot's title: what it shows, the sequence, the split and the seeds it averages."""
     split = "odd-even" if s.split == "odd-even" else f"halves, overlap {s.overlap:g}"
     return f"{what}\n{seq.name}, split {split}, {s.mode}, {seeds}"
+
+
+def _cross_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[str]:
+    """results.md's table of the cross-agent scores: per row (mean over the seeds), PSNR on A's
+    frames, B's frames and all frames at refined poses, with the median pose change."""
+    moved = "moved by the estimated alignment, " if s.anchor == "own" else ""
+    lines = [
+        "",
+        f"## PSNR on A's frames / B's frames / all frames, poses refined ({s.refine_poses} "
+        "iterations)",
+        "",
+        "Each map scored on every frame set after refining each frame's pose against the fixed "
+        f"map ({s.refine_poses} tracking iterations, `gsc eval --refine-poses`), starting from "
+        "the estimated poses of the agent that made the map on its own frames, the other "
+        f"agent's ({moved}as `gsc eval --poses-from`) on the other's, and on all frames the "
+        "map's own poses where it has them, the other agent's on the rest; the centralised run "
+        "starts at its own poses everywhere. In brackets: the median pose change (cm). Mean "
+        f"over {s.seeds} seed(s), every {s.every} frame(s) of each set.",
+        "",
+        "| Method | A's frames | B's frames | All frames |",
+        "|---|---|---|---|",
+    ]
+    scored = [r for r in rows if r["refine_iters"] is not None]
+    for name in dict.fromkeys(r["name"] for r in scored):
+        group = [r for r in scored if r["name"] == name]
+        label = f"centralised ({name})" if group[0]["table"] == "table3" else name
+        cells = [
+            f"{_mean_cell(group, f'refined_psnr_{key}')} "
+            f"({_mean_cell(group, f'pose_change_cm_{key}')} cm)"
+            for key in FRAME_SETS
+        ]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    if not scored:
+        lines.append("| (no run was scored: see the failed runs) | | | |")
+    return lines
 
 
 def _alignment_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[str]:

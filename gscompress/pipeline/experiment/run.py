@@ -14,7 +14,10 @@ Runs, each a log under DIR/runs/ with a JSON record of its settings and results 
 - Rate-distortion: B with A's share at every sweep budget for every strategy (on the first
   `sweep_seeds` seeds).
 
-Every SLAM run is scored by `evaluate_log` on its own frames at its estimated poses. A rerun
+Every SLAM run is scored by `evaluate_log` on its own frames at its estimated poses. With
+`refine_poses` > 0, the centralised run, A, B and every run of B with a share (or refined
+without one) are also scored on A's frames, B's frames and all frames at poses refined against
+the fixed map (`cross_agent`), each a step of its own. A rerun
 reuses every run whose record matches its settings (and those of the runs it depends on), so an
 interrupted experiment continues where it stopped and a changed setting redoes only what it
 touches. With `jobs` > 1 the runs go on in worker processes, each started once the logs it reads
@@ -124,13 +127,13 @@ def run_experiment(
     try:
         with sigterm_interrupts():
             planned = plan_runs(runner, base, len(sequence))
-            rows = [result_row(*args) for args in planned]  # waits for every step
+            rows = [result_row(**args) for args in planned]  # waits for every step
     except BaseException:
         runner.close(cancel=True)
         raise
     runner.close(cancel=False)
     verdicts = verdicts_of(rows, s)
-    full = planned[0][2]  # Table 3's unpruned run
+    full = planned[0]["run"]  # Table 3's unpruned run
     full_log = None if full.error else full.path
     paths = write_reports(out, seq, s, rows, verdicts, full_log, runner.failed)
     return {
