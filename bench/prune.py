@@ -4,8 +4,12 @@ For each sequence (default: the synthetic room, made here), one `gsc slam` log (
 `--out`/NAME/slam.mcap and reused when present; pass `--log` to score an existing one), then:
 
 - the unpruned map, and the unpruned map refined for `--refine` iterations (`prune --keep 1`);
-- for each keep ratio and strategy: `gsc prune --keep K --by S` without and with
-  `--refine N --seq SEQ`, and the file's bytes with and without `--map-only`.
+- for each keep ratio and strategy: `gsc prune --keep K --by S` (with `--fold` and
+  `--no-fold`: `--folds`) without and with `--refine N --seq SEQ`, and the file's bytes with and
+  without `--map-only`;
+- with `--inrun LOG` (a `gsc slam` run of the same sequence with its in-run PWAS pruning, the
+  one Table 3 compares): that log's map, scored on the same frames at its own poses, and the
+  keep ratio `inrun` prunes to its count.
 
 Every map is rendered at the log's estimated poses of the frames that are NOT keyframes (the
 refinement's views are the keyframes, `gscompress.pipeline.refine.KEYFRAME_RULE`) and scored
@@ -16,6 +20,8 @@ Usage:
     python bench/prune.py                                   # the synthetic room, 40 frames
     python bench/prune.py /work/shared/data/tsdffusion_tabletop_box --keep 0.3 --refine 500
     python bench/prune.py SEQ --log demo_out/map.mcap --keep 0.1,0.3,0.5 --by pwas,opacity
+    python bench/prune.py SEQ --log unpruned.mcap --inrun pwas.mcap --keep 0.3,inrun --by pwas \
+        --refine 1000                                      # against Table 3's in-run pruning
 """
 
 from __future__ import annotations
@@ -30,13 +36,14 @@ from typing import Any
 import numpy as np
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
-from gscompress.io.mcap_log import LogReader, seconds_to_ns
+from gscompress.io.mcap_log import LogReader, read_map, seconds_to_ns
 from gscompress.pipeline import evaluate_log, prune_log, slam_file
 from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
 
 
 def off_keyframes(log: Path, keyframe_ns: set[int], seq: Path, lpips: bool) -> dict[str, Any]:
-    """Mean PSNR / SSIM / LPIPS of a log's map over its frames that are not keyframes."""
+    """Mean PSNR / SSIM / LPIPS of a log's map over the frames that are not keyframes (of the
+    log the map was cut from, `keyframe_ns`), at the log's own poses."""
     result = evaluate_log(log, seq, lpips=lpips)
     frames = [f for f in result["per_frame"] if seconds_to_ns(f["timestamp"]) not in keyframe_ns]
     scores: dict[str, Any] = {"frames": len(frames), "gaussians": result["gaussians"]}
@@ -62,20 +69,29 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
         logging.getLogger("bench").warning("%s", row)
 
     score("unpruned", log, 0.0, keep=1.0, by="-", refine=0)
-    maps = [(1.0, "pwas")] + [(k, s) for k in opts.keep for s in opts.by]
-    for keep, by in maps:
+    keeps = list(opts.keep)
+    if opts.inrun is not None:
+        inrun_count = len(read_map(opts.inrun))
+        score("in-run PWAS pruning (gsc slam)", opts.inrun, 0.0, keep="-", by="pwas", refine=0)
+        keeps = [inrun_count / len(read_map(log)) if k == "inrun" else float(k) for k in keeps]
+    maps = [(1.0, "pwas", False)] + [
+        (k, s, f == "fold") for k in keeps for s in opts.by for f in opts.folds
+    ]
+    for keep, by, fold in maps:
         for refine in [opts.refine] if keep == 1.0 else [0, opts.refine]:
-            out = work / f"prune_{by}_{keep:g}_r{refine}.mcap"
+            tag = f"{by}_{keep:g}_{'fold' if fold else 'nofold'}"
+            out = work / f"prune_{tag}_r{refine}.mcap"
             start = time.perf_counter()
-            prune_log(log, out, keep, by=by, refine=refiner if refine else None, force=True)
+            prune_log(log, out, keep, by=by, refine=refiner if refine else None,
+                      fold_dropped=fold, force=True)  # fmt: skip
             seconds = time.perf_counter() - start
-            fields: dict[str, Any] = {"keep": keep, "by": by, "refine": refine}
+            fields: dict[str, Any] = {"keep": keep, "by": by, "fold": fold, "refine": refine}
             if not refine:
-                alone = work / f"prune_{by}_{keep:g}_maponly.mcap"
-                prune_log(log, alone, keep, by=by, map_only=True, force=True)
+                alone = work / f"prune_{tag}_maponly.mcap"
+                prune_log(log, alone, keep, by=by, map_only=True, fold_dropped=fold, force=True)
                 fields["map_only_bytes"] = alone.stat().st_size
-            score(f"prune {keep:g} {by}" + (f" +refine {refine}" if refine else ""), out,
-                  seconds, **fields)  # fmt: skip
+            name = f"prune {keep:.4g} {by}" + (" folded" if fold and keep < 1 else "")
+            score(name + (f" +refine {refine}" if refine else ""), out, seconds, **fields)
     return {"sequence": str(seq), "log": str(log), "keyframes": len(keyframe_ns),
             "refine_iters": opts.refine, "rows": rows}  # fmt: skip
 
@@ -85,7 +101,9 @@ def main() -> None:
     parser.add_argument("seqs", nargs="*", type=Path, help="sequences (default: synthetic)")
     parser.add_argument("--log", type=Path, default=None, help="an existing log (one sequence)")
     parser.add_argument("--out", type=Path, default=Path("bench_out/prune"))
-    parser.add_argument("--keep", default="0.1,0.3,0.5")
+    parser.add_argument("--keep", default="0.1,0.3,0.5", help="ratios; inrun: --inrun's count")
+    parser.add_argument("--folds", default="fold,no-fold", help="fold, no-fold or both")
+    parser.add_argument("--inrun", type=Path, default=None, help="in-run pruned log to compare")
     parser.add_argument("--by", default="pwas,opacity")
     parser.add_argument("--refine", type=int, default=200)
     parser.add_argument("--preset", default="cpu")
@@ -93,7 +111,10 @@ def main() -> None:
     parser.add_argument("--device", default="auto")
     parser.add_argument("--lpips", action="store_true")
     opts = parser.parse_args()
-    opts.keep = [float(k) for k in opts.keep.split(",")]
+    opts.keep = opts.keep.split(",")
+    opts.folds = opts.folds.split(",")
+    if "inrun" in opts.keep and opts.inrun is None:
+        raise SystemExit("--keep inrun needs --inrun LOG")
     opts.by = opts.by.split(",")
     logging.basicConfig(format="%(message)s")
     seqs = opts.seqs or [opts.out / "synthetic" / "room"]

@@ -126,6 +126,21 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     return q.reshape((*R.shape[:-2], 4))
 
 
+def interpolate_pose(T_a: np.ndarray, T_b: np.ndarray, t: float) -> np.ndarray:
+    """The 4x4 pose a fraction `t` in [0, 1] of the way from `T_a` to `T_b`: rotation by
+    spherical linear interpolation of the quaternions (the shorter arc), translation linearly."""
+    q_a, q_b = rotmat_to_quat(np.stack([T_a[:3, :3], T_b[:3, :3]]))
+    if np.dot(q_a, q_b) < 0:
+        q_b = -q_b
+    angle = np.arccos(np.clip(np.dot(q_a, q_b), -1.0, 1.0))
+    if angle < 1e-9:
+        q = q_a
+    else:
+        q = (np.sin((1 - t) * angle) * q_a + np.sin(t * angle) * q_b) / np.sin(angle)
+    translation = (1 - t) * np.asarray(T_a)[:3, 3] + t * np.asarray(T_b)[:3, 3]
+    return make_transform(quat_to_rotmat(q), translation)
+
+
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 rigid transform(s) from rotation [..., 3, 3] and translation [..., 3]."""
     R = np.asarray(R, dtype=np.float64)

@@ -97,3 +97,20 @@ def test_a_folded_prune_draws_the_surface_a_dropped_one_leaves_as_holes():
     err_dropped = np.abs(dropped - whole).mean()
     err_folded = np.abs(folded - whole).mean()
     assert err_folded < 0.8 * err_dropped, (err_folded, err_dropped)  # (0.046 against 0.066)
+
+
+def test_interpolate_pose_follows_the_shorter_arc_and_the_segment():
+    from gscompress.camera import interpolate_pose, rotation_angle_deg
+
+    def about_z(deg: float, x: float) -> np.ndarray:
+        a = np.deg2rad(deg)
+        R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        return make_transform(R, np.array([x, 0.0, 0.0]))
+
+    T_a, T_b = about_z(10, 0.0), about_z(100, 2.0)
+    np.testing.assert_allclose(interpolate_pose(T_a, T_b, 0.0), T_a, atol=1e-12)
+    np.testing.assert_allclose(interpolate_pose(T_a, T_b, 1.0), T_b, atol=1e-12)
+    np.testing.assert_allclose(interpolate_pose(T_a, T_b, 0.25), about_z(32.5, 0.5), atol=1e-12)
+    T_c = about_z(-170, 0.0)  # 90 degrees on from T_b through 180 (270 the other way)
+    mid = interpolate_pose(T_b, T_c, 0.5)
+    assert rotation_angle_deg(mid[:3, :3] @ about_z(145, 0)[:3, :3].T) < 1e-5

@@ -13,7 +13,14 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import InputError
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
 from gscompress.pipeline import evaluate_log, prune_log, share_log
-from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
+from gscompress.pipeline.refine import (
+    PSEUDO_VIEWS,
+    LogRefiner,
+    RefineOptions,
+    pseudo_poses,
+    recorded_keyframes,
+    teacher_views,
+)
 from gscompress.selection import select_top
 from gscompress_cli.main import cli
 
@@ -52,6 +59,7 @@ def test_refinement_improves_a_pruned_map_off_its_keyframes(run: dict[str, Path]
     result = prune_log(run["log"], refined, 0.3, refine=refiner)
     assert result["refine_loss_after"] < result["refine_loss_before"]
     assert result["refine_views"] == 3 and result["refine_iters"] == 80
+    assert result["refine_pseudo_views"] == 2 * PSEUDO_VIEWS  # between the 3 keyframes
     before, after = read_map(plain), read_map(refined)
     # the same Gaussians in the same order: none of the pruned ones came back, none dropped
     assert np.array_equal(before.ids, after.ids) and len(after) == result["kept"]
@@ -64,6 +72,24 @@ def test_refinement_improves_a_pruned_map_off_its_keyframes(run: dict[str, Path]
     with LogReader(refined) as reader:
         step = reader.metadata.provenance[-1]["operation"]
     assert step["refine"]["iters"] == 80 and step["refine"]["views"] == "keyframes"
+
+
+def test_pseudo_views_lie_between_keyframes_and_show_the_teacher(run: dict[str, Path]) -> None:
+    refiner = LogRefiner(run["log"], run["seq"], RefineOptions(1))
+    poses = [v.T_world_cam for v in refiner.views]
+    between = pseudo_poses(poses, 3)
+    assert len(between) == 3 * (len(poses) - 1)
+    for k, pose in enumerate(between):  # on the segment between its two keyframes, in order
+        a, b = poses[k // 3][:3, 3], poses[k // 3 + 1][:3, 3]
+        t = (k % 3 + 1) / 4
+        np.testing.assert_allclose(pose[:3, 3], (1 - t) * a + t * b, atol=1e-12)
+    full = read_map(run["log"])
+    views = teacher_views(full, between[:1], refiner.intrinsics, refiner.backend, "cpu")
+    assert views[0].color.shape == refiner.views[0].color.shape
+    assert float(views[0].color.std()) > 0.01  # a picture of the map, not a blank
+    assert float((views[0].depth > 0).float().mean()) > 0.5  # opaque where the map is
+    unscored = LogRefiner(run["log"], run["seq"], RefineOptions(5, pseudo_views=0))
+    assert unscored(select_top(full, 0.3)[0], teacher=full)[1]["pseudo_views"] == 0
 
 
 def test_a_refined_share_stays_within_its_budget(run: dict[str, Path]) -> None:

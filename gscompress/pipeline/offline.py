@@ -46,8 +46,12 @@ class MapRefiner(Protocol):
     (`gscompress.pipeline.refine.LogRefiner`, which needs torch: prune and share take one only
     when asked to refine)."""
 
-    def __call__(self, gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
-        """The map refined (same Gaussians, same order) and the refinement's statistics."""
+    def __call__(
+        self, gaussians: GaussianMap, rates: Any = None, teacher: GaussianMap | None = None
+    ) -> tuple[GaussianMap, dict[str, Any]]:
+        """The map refined (same Gaussians, same order) and the refinement's statistics;
+        `teacher`, the map it was cut from, is also rendered between the keyframes and refined
+        on (`gscompress.pipeline.refine.PSEUDO_VIEWS`)."""
         ...
 
     def record(self) -> dict[str, Any]:
@@ -98,7 +102,7 @@ def prune_log(
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         kept = cut_map(full, keep_count(len(full), keep), by, seed, fold_dropped)
         return refined(kept, {"kept": len(kept), "total": len(full), "fold": fold_dropped},
-                       refine)  # fmt: skip
+                       refine, teacher=full)  # fmt: skip
 
     operation: dict[str, Any] = {"name": "prune", "keep": keep, "by": by, "seed": seed,
                                  "fold": fold_dropped}  # fmt: skip
@@ -121,13 +125,16 @@ def cut_map(
 
 
 def refined(
-    gaussians: GaussianMap, results: dict[str, Any], refine: MapRefiner | None
+    gaussians: GaussianMap,
+    results: dict[str, Any],
+    refine: MapRefiner | None,
+    teacher: GaussianMap | None = None,
 ) -> tuple[GaussianMap, dict[str, Any]]:
-    """`gaussians` through `refine` when there is one, its statistics added to `results` as
-    `refine_*`."""
+    """`gaussians` through `refine` when there is one (with `teacher`, the map they were cut
+    from), its statistics added to `results` as `refine_*`."""
     if refine is None:
         return gaussians, results
-    gaussians, stats = refine(gaussians)
+    gaussians, stats = refine(gaussians, teacher=teacher)
     return gaussians, {**results, **{f"refine_{k}": v for k, v in stats.items()}}
 
 
@@ -254,7 +261,7 @@ class ShareCut:
         count that then fits (the refined values may compress less well than the first ones:
         the budget still holds)."""
         selected = cut_map(self.pool, count, self.strategy, self.seed, self.fold)
-        self.pool, self.extra = refined(selected, {}, refine)
+        self.pool, self.extra = refined(selected, {}, refine, teacher=self.pool)
         self._sizes, self._last = {}, None
         if self.budget.budget_bytes is None:
             return count

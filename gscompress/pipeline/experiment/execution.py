@@ -166,7 +166,9 @@ def true_transform(estimated: Path) -> Path:
 def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) -> dict[str, Any]:
     from gscompress.pipeline.offline import share_log
 
-    return share_log(source, path, budget, strategy=strategy, seed=seed, force=True)
+    # (the paper's top-K shares: nothing folded, so that the strategies differ only in the choice)
+    return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=False,
+                     force=True)  # fmt: skip
 
 
 def _digest(result: dict[str, Any]) -> str:
