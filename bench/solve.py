@@ -4,8 +4,9 @@ For one SLAM log and its sequence, and each budget (fractions of the map's fp32 
 default: 2%bytes, 5%bytes, 20%bytes), writes three shares of the map with the same strategy:
 
 - `gsc share LOG --budget B --solve --seq SEQ` (the solver picks codec and sums),
-- `gsc share LOG --budget B --codec compact` (compact top-K with the sums, the default),
-- `gsc share LOG --budget B --codec fp32` (fp32 top-K),
+- `gsc share LOG --budget B --codec compact` (compact with the sums, folded: the default),
+- `gsc share LOG --budget B --codec compact --no-fold` (compact top-K),
+- `gsc share LOG --budget B --codec fp32 --no-fold` (fp32 top-K),
 
 and scores each alone at the sender's estimated poses on the frames that are NOT the log's
 keyframes (`gsc eval SHARE --seq SEQ --poses-from LOG`, its `per_frame` entries filtered against
@@ -33,8 +34,9 @@ from gscompress.pipeline.refine import recorded_keyframes
 
 CHOICES = {
     "solve": ["--solve"],
-    "compact": ["--codec", "compact"],
-    "fp32": ["--codec", "fp32"],
+    "compact folded": ["--codec", "compact"],
+    "compact top-K": ["--codec", "compact", "--no-fold"],
+    "fp32 top-K": ["--codec", "fp32", "--no-fold"],
 }
 
 
@@ -70,11 +72,11 @@ def main() -> None:
     if keyframe_ns is None:
         raise SystemExit(f"{opts.log} records no keyframes (/slam/stats): make it with gsc slam")
     rows: list[dict[str, Any]] = []
-    print("| budget | share | codec | Gaussians | file bytes | PSNR off keyframes |")
+    print("| budget | share | codec (sums, folded) | Gaussians | file bytes | PSNR off keyframes |")
     print("|---|---|---|---|---|---|")
     for budget in opts.budgets.split(","):
         for name, flags in CHOICES.items():
-            path = out / f"{name}_{budget.replace('%', 'pct')}.mcap"
+            path = out / f"{name.replace(' ', '_')}_{budget.replace('%', 'pct')}.mcap"
             extra = ["--seq", str(opts.seq)] if name == "solve" else []
             shared = gsc("share", str(opts.log), str(path), "--budget", budget, "--by", opts.by,
                          *flags, *extra, "--force")  # fmt: skip
@@ -82,11 +84,15 @@ def main() -> None:
                          str(opts.log), "--no-lpips")  # fmt: skip
             frames, psnr = off_keyframe_psnr(scored, keyframe_ns)
             row = {"budget": budget, "share": name, "codec": shared.get("codec"),
-                   "sums": shared.get("sums"), "gaussians": shared.get("selected"),
+                   "sums": shared.get("sums"), "fold": shared.get("fold"),
+                   "gaussians": shared.get("selected"),
                    "file_bytes": path.stat().st_size, "frames": frames, "psnr": psnr,
                    "predicted_psnr": shared.get("predicted_psnr")}  # fmt: skip
             rows.append(row)
-            print(f"| {budget} | {name} | {row['codec']} | {row['gaussians']} | "
+            how = f"{row['codec']} ({'sums' if row['sums'] else 'no sums'}, " + (
+                "folded)" if row["fold"] else "top-K)"
+            )
+            print(f"| {budget} | {name} | {how} | {row['gaussians']} | "
                   f"{row['file_bytes']:,} | {psnr:.2f} |", flush=True)  # fmt: skip
     (out / "solve.json").write_text(json.dumps({"log": str(opts.log), "rows": rows}, indent=1))
 

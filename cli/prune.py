@@ -100,7 +100,8 @@ def prune(
                            fold_dropped=fold,
                            command=command_line(), force=force)  # fmt: skip
     text = (
-        f"kept {result['kept']} of {result['total']} Gaussians (by {by}, {result['codec']})"
-        + refined_text(result)
+        f"kept {result['kept']} of {result['total']} Gaussians (by {by}"
+        f"{', the rest folded in' if result['fold'] and result['kept'] < result['total'] else ''}"
+        f", {result['codec']})" + refined_text(result)
     )
     emit(result, as_json, f"{text} -> {dst}")

@@ -183,9 +183,11 @@ def share(
             result = share_log(src, dst, budget, codec=codec, sums=sums, fold_dropped=fold,
                                **common)  # fmt: skip
     extra = f" and {ply}" if ply else ""
+    folded = result["fold"] and result["selected"] < result["total"]
     emit(
         result,
         as_json,
-        f"shared {result['selected']} of {result['total']} Gaussians ({strategy}, "
-        f"{codec}, {result['file_bytes']} B){refined_text(result)} -> {dst}{extra}",
+        f"shared {result['selected']} of {result['total']} Gaussians ({strategy}"
+        f"{', the rest folded in' if folded else ''}, {codec}, {result['file_bytes']} B)"
+        f"{refined_text(result)} -> {dst}{extra}",
     )
