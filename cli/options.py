@@ -396,7 +396,8 @@ def refine_options(f: F) -> F:
         default=0,
         show_default=True,
         help="Refine the kept Gaussians for this many iterations on the log's keyframes at its "
-        "estimated poses, with its mapping losses and rates (decaying to "
+        "estimated poses and on the whole map's renders at poses between them (3 per gap), "
+        "with its mapping losses and rates (decaying to "
         f"{DEFAULT_LR_FINAL:g} of them), before writing; none is added or dropped. The "
         f"keyframes are {KEYFRAME_RULE}. 0: no refinement (no torch, no sequence).",
     )(f)

@@ -82,8 +82,8 @@ def prune(
     Each Gaussian left out is folded into the nearest kept one (--no-fold: dropped).
 
     With --refine N the kept Gaussians are refined on the log's keyframes (the sequence given
-    by --seq must be the one the log was made from); the pruned ones never come back, and one
-    whose opacity collapses stays.
+    by --seq must be the one the log was made from) and on the unpruned map's renders between
+    them; the pruned ones never come back, and one whose opacity collapses stays.
 
     \b
     Examples:
