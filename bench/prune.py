@@ -69,11 +69,11 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
         logging.getLogger("bench").warning("%s", row)
 
     score("unpruned", log, 0.0, keep=1.0, by="-", refine=0)
-    keeps = list(opts.keep)
+    inrun_ratio = 1.0  # (main() refuses --keep inrun without --inrun)
     if opts.inrun is not None:
-        inrun_count = len(read_map(opts.inrun))
         score("in-run PWAS pruning (gsc slam)", opts.inrun, 0.0, keep="-", by="pwas", refine=0)
-        keeps = [inrun_count / len(read_map(log)) if k == "inrun" else float(k) for k in keeps]
+        inrun_ratio = len(read_map(opts.inrun)) / len(read_map(log))
+    keeps = [inrun_ratio if k == "inrun" else float(k) for k in opts.keep]
     maps = [(1.0, "pwas", False)] + [
         (k, s, f == "fold") for k in keeps for s in opts.by for f in opts.folds
     ]
