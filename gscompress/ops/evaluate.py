@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from gscompress.camera import Intrinsics, invert_transform, rotation_angle_deg
+from gscompress.camera import Intrinsics, rotation_angle_deg
 from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.metrics import (
@@ -46,8 +46,7 @@ from gscompress.metrics import (
     ssim,
 )
 from gscompress.metrics import lpips as lpips_score
-from gscompress.ops.score import activated_tensors
-from gscompress.render import render
+from gscompress.ops.score import activated_tensors, render_at
 from gscompress.slam.config import TrackingConfig
 from gscompress.slam.keyframes import frame_tensors
 from gscompress.slam.params import RenderInputs
@@ -90,13 +89,7 @@ def render_view(
     Returns:
         (colour [H, W, 3] float32 clamped to [0, 1], depth [H, W] float32 = sum_i w_i z_i).
     """
-    device = params["means"].device
-    T_cam_world = torch.as_tensor(invert_transform(np.asarray(T_world_cam)), dtype=torch.float32)
-    with torch.no_grad():
-        out = render(
-            params["means"], params["quats"], params["scales"], params["opacities"],
-            params["colors"], intrinsics, T_cam_world.to(device), backend=backend,
-        )  # fmt: skip
+    out = render_at(params, T_world_cam, intrinsics, backend)
     color = out.color.clamp(0.0, 1.0).cpu().numpy()
     return color, out.depth.cpu().numpy()
 

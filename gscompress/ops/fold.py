@@ -36,10 +36,14 @@ LOGIT_BOUND = 1e-6
 """Opacities are kept within [bound, 1 - bound] before taking their logit."""
 
 
+def mean_scales(gaussians: GaussianMap) -> np.ndarray:
+    """[N] float64 mean of each Gaussian's three standard deviations (metres)."""
+    return gaussians.scales().astype(np.float64).mean(axis=1)
+
+
 def fold_weights(gaussians: GaussianMap) -> np.ndarray:
     """[N] float64 weight of each Gaussian in a fold: opacity x (mean scale)^2."""
-    scale = gaussians.scales().astype(np.float64).mean(axis=1)
-    return gaussians.opacities().astype(np.float64) * np.square(scale)
+    return gaussians.opacities().astype(np.float64) * np.square(mean_scales(gaussians))
 
 
 def fold_groups(gaussians: GaussianMap, kept: np.ndarray, reach: float = FOLD_REACH) -> np.ndarray:
@@ -52,7 +56,7 @@ def fold_groups(gaussians: GaussianMap, kept: np.ndarray, reach: float = FOLD_RE
     if len(dropped) == 0 or len(kept) == 0:
         return group
     means = gaussians.means.astype(np.float64)
-    scale = gaussians.scales().astype(np.float64).mean(axis=1)
+    scale = mean_scales(gaussians)
     distance, nearest = cKDTree(means[kept]).query(means[dropped])
     near = distance <= reach * (scale[kept][nearest] + scale[dropped])
     group[dropped[near]] = nearest[near]

@@ -16,6 +16,7 @@ from gscompress.camera import Intrinsics, invert_transform
 from gscompress.gaussians import GaussianMap
 from gscompress.importance import ImportanceSums
 from gscompress.render import render
+from gscompress.render.output import RenderOutput
 from gscompress.slam.params import activate
 
 
@@ -26,6 +27,25 @@ def activated_tensors(
     t = gaussians.to_tensors(device)
     inputs = activate(t["means"], t["log_scales"], t["quats"], t["opacity_logits"], t["sh_dc"])
     return dict(inputs._asdict())
+
+
+def render_at(
+    params: dict[str, torch.Tensor],
+    T_world_cam: np.ndarray,
+    intrinsics: Intrinsics,
+    backend: str = "auto",
+    want_contribution: bool = False,
+) -> RenderOutput:
+    """Render activated Gaussians (`activated_tensors`) from a camera-to-world pose, without
+    gradients."""
+    device = params["means"].device
+    T_cam_world = torch.as_tensor(invert_transform(np.asarray(T_world_cam)), dtype=torch.float32)
+    with torch.no_grad():
+        return render(
+            params["means"], params["quats"], params["scales"], params["opacities"],
+            params["colors"], intrinsics, T_cam_world.to(device), backend=backend,
+            want_contribution=want_contribution,
+        )  # fmt: skip
 
 
 def score_map(
@@ -62,13 +82,7 @@ def score_map(
         t = gaussians.to_tensors(device, torch.float64)
         sums = ImportanceSums(t["importance_sum"], t["importance_weight"], t["alpha_t_sum"])
     for T_world_cam in T_world_cams:
-        T_cam_world = torch.as_tensor(invert_transform(T_world_cam), dtype=torch.float32)
-        with torch.no_grad():
-            out = render(
-                params["means"], params["quats"], params["scales"], params["opacities"],
-                params["colors"], intrinsics, T_cam_world.to(device),
-                backend=backend, want_contribution=True,
-            )  # fmt: skip
+        out = render_at(params, T_world_cam, intrinsics, backend, want_contribution=True)
         assert out.contribution is not None
         center = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], device=device)
         sums.accumulate(out.contribution, out.visible, params["means"], center, sigma_d)

@@ -229,19 +229,13 @@ def teacher_views(
     expected depth where its silhouette exceeds `PSEUDO_DEPTH_SILHOUETTE` (0 elsewhere)."""
     import torch
 
-    from gscompress.camera import invert_transform
-    from gscompress.ops.score import activated_tensors
-    from gscompress.render import render
+    from gscompress.ops.score import activated_tensors, render_at
     from gscompress.slam.keyframes import View
 
     params = activated_tensors(teacher, device)
     views = []
     for k, T_world_cam in enumerate(poses):
-        T_cam_world = torch.as_tensor(invert_transform(T_world_cam), dtype=torch.float32)
-        with torch.no_grad():
-            out = render(params["means"], params["quats"], params["scales"],
-                         params["opacities"], params["colors"], intrinsics,
-                         T_cam_world.to(device), backend=backend)  # fmt: skip
+        out = render_at(params, T_world_cam, intrinsics, backend)
         opaque = out.silhouette > PSEUDO_DEPTH_SILHOUETTE
         depth = torch.where(opaque, out.depth_normalized, torch.zeros_like(out.depth_normalized))
         color = out.color.clamp(0.0, 1.0).contiguous()
