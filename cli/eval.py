@@ -46,6 +46,15 @@ from .options import (
     help="Also write a picture of every frame scored: the render (DIR/rgb/) and observed | "
     "render | error side by side (DIR/side_by_side/); at refined poses in DIR/refined/.",
 )
+@click.option(
+    "--leave-out",
+    type=INPUT_FILE,
+    multiple=True,
+    metavar="FILE",
+    help="Also leave out the frames that FILE (a share, or a map merged from one) carries "
+    "as keyframes, to score maps on the same frames as one refined on them (repeatable). A "
+    "map's own carried frames are always left out.",
+)
 @json_option
 def eval_command(
     src: Path,
@@ -60,6 +69,7 @@ def eval_command(
     device: str,
     no_lpips: bool,
     save_images: Path | None,
+    leave_out: tuple[Path, ...],
     as_json: bool,
 ) -> None:
     """Score the map and trajectory of a SLAM log against its sequence.
@@ -97,6 +107,7 @@ def eval_command(
             device=device,
             lpips=not no_lpips,
             save_images=save_images,
+            leave_out=leave_out,
             progress=partial(advance, bar),
         )
     emit(result, as_json, format_eval(result))
@@ -121,6 +132,10 @@ def format_eval(r: dict[str, Any]) -> str:
         f"  {'frames':<13}{r['frames_evaluated']} rendered of {r['frames_with_pose']} with an "
         f"estimated pose ({r['frames_without_pose']} of {r['frames_selected']} without)",
     ]
+    if r["frames_carried_left_out"]:
+        lines.append(
+            f"  {'':<13}{r['frames_carried_left_out']} left out: carried by a share and refined on"
+        )
     if r["frames_without_depth"]:
         lines.append(f"  {'':<13}{r['frames_without_depth']} left out: no valid depth")
     if r["ate_rmse_cm"] is None:

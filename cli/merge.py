@@ -108,6 +108,13 @@ from .options import (
     help="Let each of the share's Gaussians move at least at the fraction of its evidence "
     "that the receiver's views give it (what they see of it against what the sender's did).",
 )
+@click.option(
+    "--keyframes/--no-keyframes",
+    default=True,
+    show_default=True,
+    help="Also refine on the sender's keyframes the share carries (`gsc share --keyframes`), "
+    "at their poses moved as the share is; `gsc eval` of the result leaves those frames out.",
+)
 @device_option
 @backend_option("the receiver log's `backend:`, auto")
 @seed_option("Seed of the order of the refinement views.")
@@ -130,6 +137,7 @@ def merge(
     voxel: float,
     share_rate: float,
     by_view: bool,
+    keyframes: bool,
     device: str,
     backend: str | None,
     seed: int,
@@ -151,7 +159,8 @@ def merge(
     --resolve     keeps, in each --voxel cell with Gaussians of both maps, only
                   one map's: the one whose agent saw them more (evidence: their
                   alpha*T sums), the receiver's, or the share's (stack: both);
-    refinement    on the receiver's own frames (--views) at its estimated poses,
+    refinement    on the receiver's own frames (--views) at its estimated poses
+                  and on the sender's keyframes the share carries, if any,
                   a fresh optimizer, each view once per shuffled pass, the rates
                   decaying to --lr-final of the receiver's mapping rates; the
                   share's Gaussians move at --share-rate of them (0: they keep
@@ -191,6 +200,7 @@ def merge(
             share_transform=share_transform,
             codec=codec,
             merge=MergeOptions(align, resolve, voxel, share_rate, by_view),
+            keyframes=keyframes,
             command=command_line(),
             force=force,
             progress=partial(advance, bar),
@@ -200,4 +210,6 @@ def merge(
         f"{result['gaussians']} Gaussians in {dst}"
     )
     text += refined_text(result)
+    if result.get("refine_carried_views"):
+        text += f", {result['refine_carried_views']} of them the sender's keyframes"
     emit(result, as_json, text)

@@ -9,6 +9,7 @@ import click
 from click.core import ParameterSource
 
 from gscompress.io.columns import PRECISIONS
+from gscompress.io.keyframes import MAX_CARRIED
 from gscompress.ops.budget import Budget
 from gscompress.pipeline import share_log
 from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC
@@ -94,6 +95,17 @@ from .options import (
     "expressed in that frame, the transform found as `gsc align SRC ALIGN_TO` finds it (and "
     "refused as it refuses); the receiver merges it without --share-transform.",
 )
+@click.option(
+    "--keyframes",
+    "keyframes",
+    type=click.IntRange(min=0, max=MAX_CARRIED),
+    default=0,
+    show_default=True,
+    help="Also send this many of the sender's keyframes, spread over its run (colour as JPEG, "
+    "depth as 16-bit PNG, the estimated pose; needs --seq), so that `gsc merge` refines the "
+    "merged map on the sender's views as well as the receiver's. A byte budget counts their "
+    "bytes too (about 15-25 kB each at 160x120), leaving fewer Gaussians.",
+)
 @refine_options
 @seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
@@ -111,6 +123,7 @@ def share(
     ply: Path | None,
     solve: bool,
     align_to: Path | None,
+    keyframes: int,
     refine_iters: int,
     seq: Path | None,
     device: str,
@@ -144,6 +157,7 @@ def share(
       gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
       gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
       gsc share agent_a.mcap share.mcap --align-to agent_b.mcap
+      gsc share --budget 1 --keyframes 3 --seq data/room agent_a.mcap share.mcap
     """
     if precision is not None:
         if codec != DEFAULT_SHARE_CODEC and codec != precision:
@@ -158,11 +172,19 @@ def share(
     given = {name: context.get_parameter_source(name) != ParameterSource.DEFAULT
              for name in ("codec", "sums", "fold")}  # fmt: skip
     with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
-        refine_seq = seq if refine_iters or not solve else None  # (--seq also serves --solve)
+        # (--seq also serves --solve and --keyframes)
+        refine_seq = seq if refine_iters or not (solve or keyframes) else None
         refine = log_refiner(src, refine_iters, refine_seq, device, seed, bar,
                              "share without --refine")  # fmt: skip
+        carry = None
+        if keyframes:
+            if seq is None:
+                raise click.UsageError("--keyframes takes the frames from --seq: pass it")
+            from gscompress.pipeline.refine import carried_keyframes
+
+            carry = carried_keyframes(src, keyframes, seq)
         common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
-                                      align_to=align_to, command=command_line(),
+                                      align_to=align_to, carry=carry, command=command_line(),
                                       force=force)  # fmt: skip
         if solve:
             from gscompress.pipeline.solve import share_solved
@@ -184,10 +206,12 @@ def share(
                                **common)  # fmt: skip
     extra = f" and {ply}" if ply else ""
     folded = result["fold"] and result["selected"] < result["total"]
+    carried = (f" with {result['keyframes']} keyframes ({result['keyframe_bytes']} B)"
+               if result.get("keyframes") else "")  # fmt: skip
     emit(
         result,
         as_json,
         f"shared {result['selected']} of {result['total']} Gaussians ({strategy}"
         f"{', the rest folded in' if folded else ''}, {codec}, {result['file_bytes']} B)"
-        f"{refined_text(result)} -> {dst}{extra}",
+        f"{carried}{refined_text(result)} -> {dst}{extra}",
     )

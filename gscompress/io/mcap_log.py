@@ -475,9 +475,7 @@ class LogWriter:
         """Write a camera-to-world pose; estimated poses also go to `/tf` (world -> camera)."""
         T = np.asarray(T_world_cam, dtype=np.float64)
         q = rotmat_to_quat(T[:3, :3])
-        msg = PoseInFrame(frame_id=WORLD_FRAME)
-        msg.timestamp.FromNanoseconds(log_time_ns)
-        _set_pose(msg.pose.position, msg.pose.orientation, T[:3, 3], q)
+        msg = pose_message(T, log_time_ns)
         self.write_protobuf(TOPIC_POSE_GT if ground_truth else TOPIC_POSE, msg, log_time_ns)
         if not ground_truth:
             tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=CAMERA_FRAME)
@@ -622,6 +620,15 @@ def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "
         message_bytes=len(message.data),
         codec=codec,
     )
+
+
+def pose_message(T_world_cam: np.ndarray, log_time_ns: int) -> PoseInFrame:
+    """A camera-to-world pose as a foxglove.PoseInFrame in the world frame."""
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    msg = PoseInFrame(frame_id=WORLD_FRAME)
+    msg.timestamp.FromNanoseconds(log_time_ns)
+    _set_pose(msg.pose.position, msg.pose.orientation, T[:3, 3], rotmat_to_quat(T[:3, :3]))
+    return msg
 
 
 def decode_pose(schema: Schema | None, message: McapMessage, source: str = "log") -> np.ndarray:

@@ -279,7 +279,9 @@ def combine(
 
     Returns:
         The merged map, a boolean mask of its rows that came from the share, the id offset
-        given to the share, and what was done (alignment figures, Gaussians dropped).
+        given to the share, and what was done (alignment figures, Gaussians dropped; with
+        `align_transform`, the [4, 4] rigid transform the share was moved by, as nested
+        lists, when the alignment moved it).
     """
     options.check()
     stats: dict[str, Any] = {}
@@ -288,6 +290,7 @@ def combine(
         stats.update(found)
         if found["align_pairs"]:
             share = transform_map(share, T)
+            stats["align_transform"] = np.round(T, 12).tolist()
     keep_r = np.ones(len(receiver), bool)
     keep_s = np.ones(len(share), bool)
     if options.resolve == "evidence":

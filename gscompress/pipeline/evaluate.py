@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -173,6 +173,23 @@ def frames_with_poses(
     return positions, index[positions]
 
 
+def carried_times(meta: LogMetadata, reader: LogReader | None = None) -> np.ndarray:
+    """[K] int64 timestamps (ns) of the frames a share carried into this map and a merge
+    refined it on (`carried_ns` of its provenance's merge steps), and, given the file's
+    `reader`, of the keyframes it carries itself (a share's), sorted."""
+    times: set[int] = set()
+    if reader is not None:
+        from gscompress.io.keyframes import TOPIC_KEYFRAME_POSE
+
+        times.update(reader.read_poses(TOPIC_KEYFRAME_POSE)[0].tolist())
+    for step in meta.provenance:
+        operation = step.get("operation") if isinstance(step, dict) else None
+        values = operation.get("carried_ns") if isinstance(operation, dict) else None
+        if isinstance(values, list):
+            times.update(int(t) for t in values if isinstance(t, int) and not isinstance(t, bool))
+    return np.array(sorted(times), dtype=np.int64)
+
+
 def trajectory_errors(T_world_cam_gt: np.ndarray, T_world_cam_est: np.ndarray) -> dict[str, Any]:
     """Both ATE conventions (cm), or None with the reason when fewer than 2 poses pair up."""
     from gscompress.metrics import ate_rmse_cm, ate_splatam_cm
@@ -220,6 +237,7 @@ def evaluate_log(
     save_images: str | Path | None = None,
     colorings: tuple[str, ...] = ("rgb",),
     side_by_side: bool = True,
+    leave_out: Sequence[str | Path] = (),
     progress: Callable[[int, int], object] | None = None,
 ) -> dict[str, Any]:
     """Score a log's final map and estimated trajectory against the sequence it was made from.
@@ -242,7 +260,13 @@ def evaluate_log(
             (`gscompress.pipeline.images.ImageSaver`; those at refined poses in `refined/`).
         colorings: what the pictures are coloured by (`gscompress.pipeline.images.COLORINGS`).
         side_by_side: also write one labelled figure per view (observed, render, error).
+        leave_out: other files whose carried keyframes are left out of the scores too
+            (`carried_times`): score maps that were not refined on them on the same frames
+            as one that was.
         progress: called with (steps done, steps in total) after each view rendered or refined.
+
+    The frames a share carried into this map, which its merge refined on, are never scored
+    (`frames_carried_left_out` counts them with those of `leave_out`).
 
     Returns:
         A flat JSON-ready dict: `poses` (where the poses rendered at came from: the log's
@@ -310,6 +334,19 @@ def evaluate_log(
         ate.update(ate_rmse_cm=None, ate_splatam_cm=None, ate_reason=GROUND_TRUTH_POSES)
 
     chosen = list(range(0, len(positions), every))
+    carried, left_out = carried_times(meta), 0
+    for path in leave_out:
+        with LogReader(path) as other:
+            carried = np.union1d(carried, carried_times(other.metadata, other))
+    if len(carried):  # frames a merge refined on: scoring them would flatter the map
+        near = nearest_times(frame_ns, carried, POSE_MATCH_TOLERANCE_NS) >= 0
+        chosen = [k for k in chosen if not near[k]]
+        left_out = len(range(0, len(positions), every)) - len(chosen)
+        if not chosen:
+            raise InputError(
+                f"every frame chosen in {sequence.name} was carried into "
+                f"{log_path.name} by a share and refined on: none is left to score"
+            )
     torch_device = resolve_device(device, backend)
 
     def views(T_world_cams: Any) -> Iterator[EvalView]:
@@ -381,6 +418,7 @@ def evaluate_log(
         "frames_with_pose": len(positions),
         "frames_without_pose": len(sequence) - len(positions),
         "frames_evaluated": images.pop("views"),
+        "frames_carried_left_out": left_out,
         "frames_without_depth": images.pop("views_without_depth"),
         **ate,
         **images,

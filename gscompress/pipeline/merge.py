@@ -18,9 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import OptionError
+from gscompress.camera import Intrinsics
+from gscompress.errors import InputError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output, sha256
+from gscompress.io.keyframes import CarriedFrame
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.merge import MergeOptions, check_same_world
 from gscompress.pipeline.offline import rewrite_map
@@ -59,6 +61,38 @@ def read_share(
     return shared, record
 
 
+def read_share_keyframes(
+    share: str | Path, transform: str | Path | None = None
+) -> tuple[list[CarriedFrame], Intrinsics | None]:
+    """The keyframes a share carries (`gscompress.io.keyframes`), moved by the transform in
+    the file `transform` when given (as `read_share` moves its map), and their camera."""
+    from gscompress.io.keyframes import read_carried
+    from gscompress.io.trajectory import read_transform
+
+    with LogReader(share) as share_log:
+        carried, camera = read_carried(share_log)
+    if transform is not None and carried:
+        T = read_transform(transform)
+        carried = [f.moved(T) for f in carried]
+    return carried, camera
+
+
+def check_same_camera(carried: Intrinsics | None, receiver: Intrinsics, share: Path | str) -> None:
+    """Refuse keyframes taken with another camera (or size) than the receiver refines at: one
+    refinement renders every view with one camera."""
+    if carried is None or not np.allclose(
+        [carried.fx, carried.fy, carried.cx, carried.cy, carried.width, carried.height],
+        [receiver.fx, receiver.fy, receiver.cx, receiver.cy, receiver.width, receiver.height],
+        rtol=1e-3,
+    ):  # fmt: skip
+        got = "no camera" if carried is None else f"{carried.width}x{carried.height}"
+        raise InputError(
+            f"{share} carries keyframes of another camera ({got}) than the receiver's "
+            f"{receiver.width}x{receiver.height} at which the merge refines: merge with "
+            "--no-keyframes"
+        )
+
+
 def merge_logs(
     receiver: str | Path,
     share: str | Path | None,
@@ -76,6 +110,7 @@ def merge_logs(
     share_transform: str | Path | None = None,
     codec: str | None = None,
     merge: MergeOptions | None = None,
+    keyframes: bool = True,
     command: str = "",
     force: bool = False,
     progress: Callable[[int, int], object] | None = None,
@@ -103,6 +138,9 @@ def merge_logs(
         codec: how the merged map is stored (None: as the receiver's map).
         merge: how the share is aligned, resolved against the receiver's map and refined
             (`gscompress.ops.merge.MergeOptions`; None: its defaults).
+        keyframes: also refine on the sender's keyframes the share carries (`gsc share
+            --keyframes`), at their poses moved as the share is; their timestamps are in the
+            merge's provenance (`carried_ns`), and `gsc eval` leaves those frames out.
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called with (iterations done, iterations) during refinement.
@@ -128,8 +166,13 @@ def merge_logs(
         receiver_log.require_snapshots()
     shared: GaussianMap | None = None
     share_record: dict[str, Any] = {"share": None}
+    carried: list[CarriedFrame] = []
+    camera: Intrinsics | None = None
     if share is not None:
         shared, share_record = read_share(share, meta.world_frame, "merge", share_transform)
+        if keyframes:
+            carried, camera = read_share_keyframes(share, share_transform)
+            share_record["carried_ns"] = [f.time_ns for f in carried]
 
     refiner = None
     if iters > 0:
@@ -138,6 +181,13 @@ def merge_logs(
         assert seq is not None
         instead = "merge with --iters 0 to concatenate only"
         refiner = LogRefiner(receiver, seq, options, progress, instead)
+        if carried:
+            check_same_camera(camera, refiner.intrinsics, str(share))
+    elif carried:
+        raise OptionError(
+            "the share's keyframes serve the refinement: merge them with --iters "
+            "above 0, or leave them out with --no-keyframes"
+        )
 
     def merge_into(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         received = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)
@@ -151,6 +201,9 @@ def merge_logs(
         }
         if refiner is None:
             return merged, results
+        if carried:
+            T_align = np.asarray(done.get("align_transform", np.eye(4)), np.float64)
+            refiner.carry([f.moved(T_align) for f in carried])
         seen = refiner.contributions(merged) if how.by_view and from_share.any() else None
         rates = share_rates(from_share, how, seen, merged.alpha_t_sum)
         merged, stats = refiner(merged, rates)

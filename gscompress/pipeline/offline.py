@@ -12,10 +12,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from gscompress.camera import Intrinsics
 from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions, check_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
+from gscompress.io.keyframes import CarriedFrame, write_carried
 from gscompress.io.map_files import map_suffix, read_map_file, write_map_file
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -228,8 +230,10 @@ class ShareCut:
         command: str = "",
         source: tuple[GaussianMap, LogMetadata] | None = None,
         align: tuple[np.ndarray, dict[str, Any]] | None = None,
+        carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
     ):
         self.src = Path(src)
+        self.carry = carry
         self.fold = fold_dropped
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
         if source is None:
@@ -289,6 +293,12 @@ class ShareCut:
             with LogWriter(None, meta) as out:
                 options = CompactOptions(sums=self.sums)
                 meta.results["bytes"] = out.write_gaussians(shared, 0, self.codec, options)
+                if self.carry is not None:
+                    frames, camera = self.carry
+                    if self.T_target_source is not None:
+                        frames = [f.moved(self.T_target_source) for f in frames]
+                    meta.results["keyframes"] = len(frames)
+                    meta.results["keyframe_bytes"] = write_carried(out, frames, camera)
             self._last = (count, (out.data, shared, dict(meta.results)))
             self._sizes[count] = len(out.data)
         return self._last[1]
@@ -315,6 +325,7 @@ def share_log(
     command: str = "",
     force: bool = False,
     source: tuple[GaussianMap, LogMetadata] | None = None,
+    carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
 ) -> dict[str, Any]:
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
 
@@ -349,6 +360,9 @@ def share_log(
         force: overwrite existing outputs.
         source: the map and metadata of `src` when they are already read (a map file's map,
             with `LogMetadata()`: see `ShareCut`).
+        carry: keyframes of the sender to send along, and their camera
+            (`gscompress.pipeline.refine.carried_keyframes`; `gscompress.io.keyframes`): a
+            byte budget counts their bytes too, leaving fewer Gaussians.
 
     Raises:
         InputError: bad budget, codec or strategy (OptionError: --ply equal to the MCAP
@@ -371,7 +385,7 @@ def share_log(
         align = share_alignment(src, align_to)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
                    fold_dropped=fold_dropped, refine=refine, solve=solve, command=command,
-                   source=source, align=align)  # fmt: skip
+                   source=source, align=align, carry=carry)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
     if refine is not None:
         count = cut.refined(count, refine)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import LogFormatError, OptionError
+from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader
 from gscompress.selection import is_fraction
@@ -168,6 +168,18 @@ class LogRefiner:
             if chosen(k, int(i))
         ]
         self.keyframes_recorded = keyframe_ns is not None
+        self.carried: list[Any] = []  # another agent's views (`carry`)
+
+    def carry(self, frames: list[Any]) -> None:
+        """Also refine on these frames (`gscompress.io.keyframes.CarriedFrame`s, another
+        agent's keyframes at their poses in this log's world frame), taken with this log's
+        camera (the caller checks)."""
+        from gscompress.slam.keyframes import View
+
+        start = -1 - len(self.views) - len(self.carried)
+        self.carried += [
+            View.from_frame(start - k, f, f.T_world_cam, self.device) for k, f in enumerate(frames)
+        ]
 
     def record(self) -> dict[str, Any]:
         """What a provenance step records of this refinement (its options)."""
@@ -196,19 +208,22 @@ class LogRefiner:
             poses = pseudo_poses([v.T_world_cam for v in self.views], self.options.pseudo_views)
             pseudo = teacher_views(teacher, poses, self.intrinsics, self.backend, self.device)
         refined, stats = refine(
-            gaussians, self.views + pseudo, self.intrinsics, self.config, iters,
+            gaussians, self.views + self.carried + pseudo, self.intrinsics, self.config, iters,
             device=self.device,
             seed=self.options.seed, lr_final_fraction=self.options.lr_final, progress=step,
             rates=rates, **({"instead": self.instead} if self.instead else {}),
         )  # fmt: skip
-        stats["views"] = len(self.views)
+        stats["views"] = len(self.views) + len(self.carried)
         stats["pseudo_views"] = len(pseudo)
+        stats["carried_views"] = len(self.carried)
         stats["backend"] = self.backend
         return refined, stats
 
     def contributions(self, gaussians: GaussianMap) -> Any:
-        """[N] how much this log's views see of each Gaussian (`view_contributions`)."""
-        return view_contributions(gaussians, self.views, self.intrinsics, self.backend, self.device)
+        """[N] how much this log's views (and those carried) see of each Gaussian
+        (`view_contributions`)."""
+        views = self.views + self.carried
+        return view_contributions(gaussians, views, self.intrinsics, self.backend, self.device)
 
 
 def pseudo_poses(keyframe_poses: list[np.ndarray], per_gap: int) -> list[np.ndarray]:
@@ -295,6 +310,85 @@ def keyframe_positions(
     return [
         i for i, t in enumerate(pose_ns) if is_log_keyframe(i, int(t), recorded, slam_config)
     ] or list(range(len(pose_ns)))
+
+
+@dataclass(frozen=True)
+class SpreadKeyframes:
+    """Keyframes chosen evenly over a log (`spread_keyframes`).
+
+    Attributes:
+        times: their log times (ns).
+        poses: their estimated camera-to-world poses.
+        frames: their frames of the sequence (`gscompress.datasets.base.Frame`), or None
+            when no sequence was given.
+        intrinsics: the camera of those frames (the sequence's at the log's working size),
+            else the log's calibration.
+    """
+
+    times: list[int]
+    poses: list[np.ndarray]
+    frames: list[Any] | None
+    intrinsics: Any
+
+
+def spread_keyframes(
+    src: str | Path, count: int, seq: str | Path | None, purpose: str
+) -> SpreadKeyframes:
+    """Up to `count` of a log's keyframes (`KEYFRAME_RULE`) spread evenly from its first to its
+    last, with their frames when `seq` is given (those with a frame in it).
+
+    Raises:
+        InputError: the log has no poses; no keyframe is a frame of `seq`; no calibration
+            (without `seq`). `purpose` names what needs them.
+    """
+    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
+
+    with LogReader(src) as reader:
+        meta = reader.metadata
+        pose_ns, poses = reader.read_poses(TOPIC_POSE)
+        keyframe_ns = recorded_keyframes(reader)
+        intrinsics = reader.read_intrinsics()
+    if len(pose_ns) == 0:
+        raise InputError(f"{src} has no {TOPIC_POSE}: {purpose} needs the sender's poses")
+    keyframes = keyframe_positions(pose_ns, keyframe_ns, meta.config)
+    spread = np.linspace(0, len(keyframes) - 1, min(count, len(keyframes))).round()
+    chosen = sorted({keyframes[int(k)] for k in spread})
+    if seq is None:
+        if intrinsics is None:
+            raise InputError(f"{src} has no camera calibration: give --seq to render at its size")
+        times = [int(pose_ns[i]) for i in chosen]
+        return SpreadKeyframes(times, [poses[i] for i in chosen], None, intrinsics)
+    sequence = open_log_sequence(seq, src, meta)
+    positions, pose_index = frames_with_poses(sequence, pose_ns, src)
+    by_pose = {int(i): int(p) for p, i in zip(positions, pose_index, strict=True)}
+    chosen = [i for i in chosen if i in by_pose]
+    if not chosen:
+        raise InputError(f"no keyframe of {src} is a frame of {sequence.name}")
+    frames = [sequence.frame(by_pose[i]) for i in chosen]
+    times = [int(pose_ns[i]) for i in chosen]
+    return SpreadKeyframes(times, [poses[i] for i in chosen], frames, sequence.intrinsics)
+
+
+def carried_keyframes(src: str | Path, count: int, seq: str | Path) -> tuple[list[Any], Any]:
+    """`count` of the log's keyframes spread over its run (`spread_keyframes`) as a share
+    carries them (`gscompress.io.keyframes.CarriedFrame`: the frame's timestamp, colour and
+    depth at the log's working size, its estimated pose), and their camera.
+
+    Raises:
+        InputError: `count` outside 1..`MAX_CARRIED`, or as `spread_keyframes`.
+    """
+    from gscompress.io.keyframes import MAX_CARRIED, CarriedFrame
+    from gscompress.io.mcap_log import seconds_to_ns
+
+    if not 1 <= count <= MAX_CARRIED:
+        raise InputError(f"--keyframes is 1 to {MAX_CARRIED}, got {count}")
+    chosen = spread_keyframes(src, count, seq, "carrying keyframes")
+    assert chosen.frames is not None
+    frames = [
+        CarriedFrame(seconds_to_ns(f.timestamp), f.color, f.depth, np.asarray(T, np.float64))
+        for f, T in zip(chosen.frames, chosen.poses, strict=True)
+    ]
+    return frames, chosen.intrinsics
 
 
 def recorded_keyframes(reader: LogReader) -> set[int] | None:

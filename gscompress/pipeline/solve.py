@@ -21,7 +21,7 @@ import numpy as np
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output
-from gscompress.io.mcap_log import TOPIC_POSE, LogReader, decoded_map
+from gscompress.io.mcap_log import LogReader, decoded_map
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.offline import MapRefiner, ShareCut, share_log
 
@@ -143,36 +143,17 @@ def _views(
 ) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[np.ndarray], Any]:
     """Poses of `views` keyframes spread over the log, with their images and valid-depth masks
     when `seq` is given (else None and all-pixel masks), and the intrinsics."""
-    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
-    from gscompress.pipeline.refine import keyframe_positions, recorded_keyframes
+    from gscompress.pipeline.refine import spread_keyframes
 
-    with LogReader(src) as reader:
-        meta = reader.metadata
-        pose_ns, poses = reader.read_poses(TOPIC_POSE)
-        keyframe_ns = recorded_keyframes(reader)
-        intrinsics = reader.read_intrinsics()
-    if len(pose_ns) == 0:
-        raise InputError(f"{src} has no {TOPIC_POSE}: the solver renders at the sender's poses")
-    keyframes = keyframe_positions(pose_ns, keyframe_ns, meta.config)
-    chosen = [keyframes[int(k)] for k in np.linspace(0, len(keyframes) - 1, views).round()]
-    chosen = sorted(set(chosen))
-    if seq is None:
-        if intrinsics is None:
-            raise InputError(f"{src} has no camera calibration: give --seq to render at its size")
-        shape = (intrinsics.height, intrinsics.width)
-        return [poses[i] for i in chosen], None, [np.ones(shape, bool)] * len(chosen), intrinsics
-    sequence = open_log_sequence(seq, src, meta)
-    positions, pose_index = frames_with_poses(sequence, pose_ns, src)
-    by_pose = {int(i): int(p) for p, i in zip(positions, pose_index, strict=True)}
-    chosen = [i for i in chosen if i in by_pose]
-    if not chosen:
-        raise InputError(f"no keyframe of {src} is a frame of {sequence.name}")
-    frames = [sequence.frame(by_pose[i]) for i in chosen]
+    chosen = spread_keyframes(src, views, seq, "the solver")
+    if chosen.frames is None:
+        shape = (chosen.intrinsics.height, chosen.intrinsics.width)
+        return chosen.poses, None, [np.ones(shape, bool)] * len(chosen.poses), chosen.intrinsics
     return (
-        [poses[i] for i in chosen],
-        [f.color for f in frames],
-        [f.depth > 0 for f in frames],
-        sequence.intrinsics,
+        chosen.poses,
+        [f.color for f in chosen.frames],
+        [f.depth > 0 for f in chosen.frames],
+        chosen.intrinsics,
     )
 
 
@@ -192,12 +173,15 @@ def share_solved(
     ply: str | Path | None = None,
     refine: MapRefiner | None = None,
     align_to: str | Path | None = None,
+    carry: Any = None,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
     """`share_log` with the codec and PWAS state the solver chose (`solve_share`), the solver's
     record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and
-    `solved_against`: "frames" or "map renders")."""
+    `solved_against`: "frames" or "map renders"). Keyframes to `carry` are weighed as the
+    Gaussians' bytes are not: the solver compares the codecs without them, and the share then
+    holds the most Gaussians that fit beside them."""
     budget = Budget.parse(budget)
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
     best, _weighed, record = solve_share(
@@ -207,6 +191,7 @@ def share_solved(
     record["predicted_psnr"] = best.psnr
     result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
                        seed=seed, fold_dropped=best.fold, ply=ply, refine=refine, solve=record,
-                       align_to=align_to, command=command, force=force)  # fmt: skip
+                       align_to=align_to, carry=carry, command=command,
+                       force=force)  # fmt: skip
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result
