@@ -7,7 +7,13 @@ from pathlib import Path
 import click
 
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.experiment import EXECUTORS, SPLITS, ExperimentSettings, run_experiment
+from gscompress.pipeline.experiment import (
+    EXECUTORS,
+    MERGE_HOWS,
+    SPLITS,
+    ExperimentSettings,
+    run_experiment,
+)
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 from gscompress.slam.views import REFINE_VIEWS
@@ -109,6 +115,17 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "protocol; B's poses do not change), or injected before its first frame (a new B run).",
 )  # fmt: skip
 @click.option(
+    "--merge", "merge_how", type=click.Choice(MERGE_HOWS), default="exact", show_default=True,
+    help="How each merge combines the maps: exact (every Gaussian of both, refined as one: the "
+    "paper's merge) or default (`gsc merge`'s: the share aligned, the surfaces both maps hold "
+    "resolved, its Gaussians moving as much as B's views see them).",
+)  # fmt: skip
+@click.option(
+    "--fold/--no-fold", default=False, show_default=True,
+    help="Fold what each share leaves out into what it sends (`gsc share`'s default); "
+    "without, the shares are the paper's top K, the strategies differing only in their choice.",
+)  # fmt: skip
+@click.option(
     "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
     help="Refinement iterations of each merge.",
 )  # fmt: skip
@@ -174,6 +191,8 @@ def experiment(
     merge_iters: int,
     merge_views: str,
     merge_lr_final: float,
+    merge_how: str,
+    fold: bool,
     jobs: int,
     executor: str,
     address: str | None,
@@ -231,6 +250,8 @@ def experiment(
         merge_iters=merge_iters,
         merge_views=merge_views,
         merge_lr_final=merge_lr_final,
+        merge_how=merge_how,
+        fold=fold,
         lpips=not no_lpips,
         device=device,
     )

@@ -6,6 +6,7 @@ from functools import partial
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from gscompress.ops.merge import RESOLVE, MergeOptions
 from gscompress.pipeline import merge_logs
@@ -172,6 +173,11 @@ def merge(
     --no-by-view is the exact concatenation, refined as one map. On office frag1 (A frames
     0-29, B 20-49, B receiving A's whole map, poses refined) the default rendered A's frames
     0.7 dB better than that and B's own 0.2 dB worse; docs/merge.md has every figure.
+    A share that carries the sender's keyframes (`gsc share --keyframes`) is merged aligned
+    and stacked, every Gaussian moving at the receiver's rates, on both agents' views (the
+    options above, when given, change that): B receiving A's whole map and A's keyframes came
+    within 0.5 dB of one agent mapping every frame, on both agents' frames of three sequences.
+    `gsc eval` of the result leaves the carried frames out.
     `gsc slam --inject` is the other path: the share enters before the receiver maps, so its
     tracking benefits too (it is not aligned or resolved: the receiver has no map yet).
 
@@ -182,7 +188,15 @@ def merge(
       gsc merge b.mcap a.mcap --seq data/room --no-align --resolve stack \\
           --share-rate 1 --no-by-view -o b_stacked.mcap
       gsc eval b_merged.mcap --seq data/room
+      gsc share a.mcap a_views.mcap --budget 1 --keyframes 6 --seq data/room
+      gsc merge b.mcap a_views.mcap --seq data/room -o b_merged.mcap
     """
+    context = click.get_current_context()
+    given = {"align": align, "resolve": resolve, "voxel": voxel, "share_rate": share_rate,
+             "by_view": by_view}  # fmt: skip
+    # (the rest as the merge chooses: WITH_SENDER_VIEWS for a share that carries keyframes)
+    told = {k: v for k, v in given.items()
+            if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip
     with progress_bar("refine", "iter", total=iters, hidden=as_json) as bar:
         result = merge_logs(
             receiver,
@@ -199,7 +213,7 @@ def merge(
             seed=seed,
             share_transform=share_transform,
             codec=codec,
-            merge=MergeOptions(align, resolve, voxel, share_rate, by_view),
+            merge=told,
             keyframes=keyframes,
             command=command_line(),
             force=force,

@@ -633,3 +633,26 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
     _, poses_a, _ = pose_source(out / rows["agent A (first part)"]["log"])
     np.testing.assert_allclose(start.T_world_cam, T_est @ poses_a, atol=1e-9)
     assert all(math.isfinite(rows["B + pwas 0.2"][key]) for key in CROSS)
+
+
+def test_folded_shares_and_the_default_merge_rerun_only_what_they_change(
+    experiment: tuple[Path, Path, dict], tmp_path: Path
+) -> None:
+    seq, out, _result = experiment
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE,
+            "--merge", "default", "--fold"]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    again = json.loads(r.output)
+    assert 0 < again["steps"] - again["reused"] < again["steps"]  # the SLAM runs were reused
+    shares = [json.loads(p.read_text()) for p in (copy / "runs").glob("*.json")]
+    shares = [s for s in shares if s.get("spec", {}).get("kind") == "share"]
+    assert shares and all(s["spec"]["fold"] and s["result"]["fold"] for s in shares)
+    merged = [p for p in (copy / "runs").glob("*.mcap") if "_pwas_" in p.name]
+    with LogReader(merged[0]) as log:
+        assert log.metadata.provenance[-1]["operation"]["resolve"] == "evidence"
+    assert "`gsc merge`'s default" in (copy / "results.md").read_text()
+    assert "folds what it leaves out" in (copy / "results.md").read_text()

@@ -149,7 +149,16 @@ def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
     assert result["refine_views"] == 5 + 2  # B's five frames and A's two keyframes
     times = [f.time_ns for f in carry[0]]
     with LogReader(merged) as log:
-        assert log.metadata.provenance[-1]["operation"]["carried_ns"] == times
+        operation = log.metadata.provenance[-1]["operation"]
+    assert operation["carried_ns"] == times
+    # with the sender's views, the merge stacks and refines every Gaussian alike
+    assert operation["resolve"] == "stack" and operation["share_rate"] == 1.0
+    told = merge_logs(agents["b"], share, root / "t.mcap", seq=seq, iters=2,
+                      merge={"resolve": "evidence"}, force=True)  # fmt: skip
+    with LogReader(root / "t.mcap") as log:
+        operation = log.metadata.provenance[-1]["operation"]
+    assert operation["resolve"] == "evidence" and operation["share_rate"] == 1.0
+    assert told["refine_carried_views"] == 2
 
     scored = evaluate_log(merged, seq, frames="0:5", poses_from=agents["a"], lpips=False)
     assert scored["frames_carried_left_out"] == 2 and scored["frames_evaluated"] == 3
@@ -161,6 +170,8 @@ def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
     plain = merge_logs(agents["b"], share, root / "p.mcap", seq=seq, iters=6, keyframes=False,
                        force=True)  # fmt: skip
     assert plain["refine_carried_views"] == 0 and plain["refine_views"] == 5
+    with LogReader(root / "p.mcap") as log:  # the merge of a share without views
+        assert log.metadata.provenance[-1]["operation"]["resolve"] == "evidence"
 
 
 def test_keyframes_of_another_camera_are_refused(agents: dict[str, Path]) -> None:

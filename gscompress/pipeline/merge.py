@@ -13,6 +13,7 @@ world frames agree (`LogMetadata.world_frame`).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output, sha256
 from gscompress.io.keyframes import CarriedFrame
 from gscompress.io.mcap_log import LogReader
-from gscompress.ops.merge import MergeOptions, check_same_world
+from gscompress.ops.merge import WITH_SENDER_VIEWS, MergeOptions, check_same_world
 from gscompress.pipeline.offline import rewrite_map
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL, RefineOptions
 
@@ -109,7 +110,7 @@ def merge_logs(
     seed: int = 0,
     share_transform: str | Path | None = None,
     codec: str | None = None,
-    merge: MergeOptions | None = None,
+    merge: MergeOptions | dict[str, Any] | None = None,
     keyframes: bool = True,
     command: str = "",
     force: bool = False,
@@ -137,7 +138,9 @@ def merge_logs(
             receiver's (4x4 or TUM `tx ty tz qx qy qz qw`), for maps whose frames differ.
         codec: how the merged map is stored (None: as the receiver's map).
         merge: how the share is aligned, resolved against the receiver's map and refined
-            (`gscompress.ops.merge.MergeOptions`; None: its defaults).
+            (`gscompress.ops.merge.MergeOptions`; None: its defaults, or `WITH_SENDER_VIEWS`
+            when the share carries keyframes the refinement uses; a dict: those with the
+            fields it names changed).
         keyframes: also refine on the sender's keyframes the share carries (`gsc share
             --keyframes`), at their poses moved as the share is; their timestamps are in the
             merge's provenance (`carried_ns`), and `gsc eval` leaves those frames out.
@@ -153,8 +156,6 @@ def merge_logs(
 
     options = RefineOptions(iters, views, lr_final, frames, size, device, backend, seed)
     options.check("--iters")
-    how = merge or MergeOptions()
-    how.check()
     if iters > 0 and seq is None:
         raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
     inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
@@ -170,10 +171,16 @@ def merge_logs(
     camera: Intrinsics | None = None
     if share is not None:
         shared, share_record = read_share(share, meta.world_frame, "merge", share_transform)
-        if keyframes:
+        if keyframes and iters > 0:  # (they serve the refinement only)
             carried, camera = read_share_keyframes(share, share_transform)
             share_record["carried_ns"] = [f.time_ns for f in carried]
 
+    how = (
+        merge
+        if isinstance(merge, MergeOptions)
+        else replace(WITH_SENDER_VIEWS if carried else MergeOptions(), **(merge or {}))
+    )
+    how.check()
     refiner = None
     if iters > 0:
         from gscompress.pipeline.refine import LogRefiner
@@ -183,11 +190,6 @@ def merge_logs(
         refiner = LogRefiner(receiver, seq, options, progress, instead)
         if carried:
             check_same_camera(camera, refiner.intrinsics, str(share))
-    elif carried:
-        raise OptionError(
-            "the share's keyframes serve the refinement: merge them with --iters "
-            "above 0, or leave them out with --no-keyframes"
-        )
 
     def merge_into(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         received = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)

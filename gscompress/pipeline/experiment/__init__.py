@@ -9,6 +9,7 @@
 """
 
 from gscompress.pipeline.experiment.protocol import (
+    MERGE_HOWS,
     SPLITS,
     ExperimentSettings,
     halves,
@@ -24,6 +25,7 @@ from gscompress.pipeline.experiment.run import EXECUTORS, run_experiment
 
 __all__ = [
     "EXECUTORS",
+    "MERGE_HOWS",
     "ROW_KEYS",
     "SPLITS",
     "ExperimentSettings",

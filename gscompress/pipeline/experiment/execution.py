@@ -31,7 +31,7 @@ from typing import Any, NoReturn
 from gscompress import __version__
 from gscompress.errors import GscError
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
-from gscompress.ops.merge import EXACT
+from gscompress.ops.merge import EXACT, MergeOptions
 from gscompress.pipeline.experiment.protocol import ExperimentSettings, RunHandle
 
 log = logging.getLogger(__name__)
@@ -143,12 +143,10 @@ def _merge_job(
 ) -> dict[str, Any]:  # fmt: skip
     from gscompress.pipeline.merge import merge_logs
 
-    # The exact merge (every Gaussian of both maps): the tables so far were made with it; the
-    # aligned, resolved merge (gsc merge's default, docs/merge.md) is not yet measured here.
     merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
                         views=s.merge_views, lr_final=s.merge_lr_final, device=s.device,
-                        seed=seed, share_transform=share_transform, merge=EXACT,
-                        force=True)  # fmt: skip
+                        seed=seed, share_transform=share_transform,
+                        merge=merge_options(s.merge_how), force=True)  # fmt: skip
     return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
@@ -163,11 +161,19 @@ def true_transform(estimated: Path) -> Path:
     return estimated.with_name(f"{estimated.stem}_true{estimated.suffix}")
 
 
-def _share_job(path: Path, source: Path, budget: str, strategy: str, seed: int) -> dict[str, Any]:
+def merge_options(how: str) -> MergeOptions:
+    """The merge an experiment's `merge_how` names: the exact concatenation, or `gsc merge`'s
+    default."""
+    return EXACT if how == "exact" else MergeOptions()
+
+
+def _share_job(
+    path: Path, source: Path, budget: str, strategy: str, seed: int, fold: bool = False
+) -> dict[str, Any]:
     from gscompress.pipeline.offline import share_log
 
-    # (the paper's top-K shares: nothing folded, so that the strategies differ only in the choice)
-    return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=False,
+    # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
+    return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
                      force=True)  # fmt: skip
 
 
@@ -397,7 +403,8 @@ class Runner:
             "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
             "frames": frames, "iters": s.merge_iters, "views": s.merge_views,
             "lr_final": s.merge_lr_final, "seed": seed, "every": s.every, "lpips": s.lpips,
-            "merge": EXACT.record(),  # (what the merge does: runs before it differ)
+            # (what the merge does: runs before it differ)
+            "merge": merge_options(s.merge_how).record(),
         }  # fmt: skip
         if transform is not None:
             assert align is not None
@@ -413,11 +420,14 @@ class Runner:
 
     def share(self, name: str, source: RunHandle, budget: str, strategy: str, seed: int) -> Record:
         """A share of `source`'s map."""
-        spec = {"kind": "share", "source": source.key, "budget": budget, "strategy": strategy,
-                "seed": seed}  # fmt: skip
+        spec: dict[str, Any] = {"kind": "share", "source": source.key, "budget": budget,
+                                "strategy": strategy, "seed": seed}  # fmt: skip
+        if self.settings.fold:  # (unfolded steps keep the spec they always had)
+            spec["fold"] = True
         job = functools.partial(
-            _share_job, source=source.path, budget=budget, strategy=strategy, seed=seed
-        )
+            _share_job, source=source.path, budget=budget, strategy=strategy, seed=seed,
+            fold=self.settings.fold,
+        )  # fmt: skip
         return self._step(name, spec, job, after=[source])
 
     def score(

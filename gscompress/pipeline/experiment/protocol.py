@@ -27,6 +27,9 @@ ANCHORS = ("gt", "own")
 SPLITS = ("odd-even", "halves")
 """How the experiment's frames are split between agents A and B (`ExperimentSettings.split`)."""
 
+MERGE_HOWS = ("exact", "default")
+"""How the experiment's merges combine the maps (`ExperimentSettings.merge_how`)."""
+
 
 AGENT_ROWS = {
     "odd-even": ("agent A (odd frames)", "agent B (even frames)"),
@@ -77,6 +80,12 @@ class ExperimentSettings:
         merge_iters: refinement iterations of a merge.
         merge_views: what a merge refines on: B's "frames" (all) or "keyframes".
         merge_lr_final: a merge's learning rates decay to this fraction over its refinement.
+        merge_how: "exact" (every Gaussian of both maps, refined as one: the paper's merge and
+            the tables so far) or "default" (`gsc merge`'s: aligned, the surfaces both hold
+            resolved, the share's Gaussians moving as B's views see them; docs/merge.md).
+        fold: each share folds what it leaves out into what it sends (`gsc share`'s default);
+            off, the shares are the paper's top K, so that the strategies differ only in their
+            choice.
         anchor: "gt": both agents start at the ground-truth pose of their first frame, so their
             maps share a frame; "own": each starts at the identity at its own first frame, A's
             map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives
@@ -108,6 +117,8 @@ class ExperimentSettings:
     merge_iters: int = 200
     merge_views: str = DEFAULT_REFINE_VIEWS
     merge_lr_final: float = DEFAULT_LR_FINAL
+    merge_how: str = "exact"
+    fold: bool = False
     anchor: str = "gt"
     refine_poses: int = 100
 
@@ -159,6 +170,8 @@ class ExperimentSettings:
             raise InputError(
                 f"--refine-poses must be 0 or more iterations, got {self.refine_poses}"
             )
+        if self.merge_how not in MERGE_HOWS:
+            raise InputError(f"--merge is one of {', '.join(MERGE_HOWS)}")
         if self.merge_views not in REFINE_VIEWS:
             raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
         if not is_fraction(self.merge_lr_final):

@@ -284,12 +284,22 @@ def _csv(rows: list[dict[str, Any]]) -> str:
 
 
 def _receive_text(s: ExperimentSettings) -> str:
+    shares = (
+        "Each share folds what it leaves out into what it sends. "
+        if s.fold
+        else "Each share is the top K of its strategy, nothing folded. "
+    )
     if s.mode == "inject":
-        return "B's run starts with the share injected. "
-    return (
-        f"B merges a share into its map and refines it ({s.merge_iters} iterations on its "
-        f"{s.merge_views}, the learning rates decaying to {s.merge_lr_final:g} of their start; "
-        "B's poses, so its ATE, do not change). "
+        return shares + "B's run starts with the share injected. "
+    how = (
+        "the exact merge: every Gaussian of both maps"
+        if s.merge_how == "exact"
+        else "`gsc merge`'s default: the share aligned, the surfaces both maps hold resolved"
+    )
+    return shares + (
+        f"B merges a share into its map ({how}) and refines it ({s.merge_iters} iterations on "
+        f"its {s.merge_views}, the learning rates decaying to {s.merge_lr_final:g} of their "
+        "start; B's poses, so its ATE, do not change). "
     )
 
 
