@@ -104,7 +104,7 @@ from .options import (
     help="Also send this many of the sender's keyframes, spread over its run (colour as JPEG, "
     "depth as 16-bit PNG, the estimated pose; needs --seq), so that `gsc merge` refines the "
     "merged map on the sender's views as well as the receiver's. A byte budget counts their "
-    "bytes too (about 15-25 kB each at 160x120), leaving fewer Gaussians.",
+    "bytes too (14-19 kB each at 160x120), leaving fewer Gaussians.",
 )
 @refine_options
 @seed_option("Seed of the random strategy and of the refinement's view order.")
