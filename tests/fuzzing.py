@@ -136,10 +136,18 @@ def _valid_log(c: Chooser) -> bytes:
         path = Path(tmp) / "log.mcap"
         meta = LogMetadata(command="fuzz", sequence="s", frames="all", results={"poses": "x"})
         with LogWriter(path, meta, chunk_size=256 if layout == "small-chunks" else 1 << 20) as w:
-            w.write_calibration(Intrinsics(20.0, 20.0, 8.0, 6.0, 16, 12), 0)
+            camera = Intrinsics(20.0, 20.0, 8.0, 6.0, 16, 12)
+            w.write_calibration(camera, 0)
             for t in range(2):
                 w.write_pose(np.eye(4), t)
                 w.write_gaussians(random_map(6 + 3 * t, seed=seed, sh_degree=t), t)
+            if seed % 2:  # a share's carried keyframe (JPEG and PNG inside the chunks)
+                from gscompress.io.keyframes import CarriedFrame, write_carried
+
+                rng = np.random.default_rng(seed)
+                color = rng.random((12, 16, 3)).astype(np.float32)
+                depth = rng.uniform(0.5, 3.0, (12, 16)).astype(np.float32)
+                write_carried(w, [CarriedFrame(5, color, depth, np.eye(4))], camera)
         data = path.read_bytes()
         if layout not in ("zstd", "small-chunks"):
             from conftest import rewrite_log
@@ -418,11 +426,13 @@ def serialize_as_is(records: list[Any]) -> bytes:
 
 
 def read_log(path: Path) -> None:
-    """What `gsc info`, `prune`, `share` and `eval` read of a log."""
+    """What `gsc info`, `prune`, `share`, `merge` and `eval` read of a log."""
+    from gscompress.io.keyframes import read_carried
     from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 
     with LogReader(path) as log:
         _ = log.channels, log.metadata.pose_origin()
+        read_carried(log)
         if log.snapshot_count:
             log.read_map().opacities()
             log.read_map(0)

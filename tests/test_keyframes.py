@@ -95,6 +95,17 @@ def test_hostile_carried_images_are_refused_before_decoding(
         read_carried(reader)
 
 
+def test_a_camera_too_large_for_a_keyframe_is_refused(tmp_path: Path) -> None:
+    frame = smooth_frame(9, 0)
+    huge = Intrinsics(1e4, 1e4, 5e3, 5e3, 20_000, 20_000)  # 400 Mpx: 800 MB of depth
+    with LogWriter(tmp_path / "b.mcap", LogMetadata()) as out:
+        out.write_gaussians(random_map(5, seed=1), 0, "compact")
+        write_carried(out, [frame], CAMERA)
+        out.write_calibration(huge, 10)  # the last calibration is the camera
+    with LogReader(tmp_path / "b.mcap") as reader, pytest.raises(LogFormatError, match="more"):
+        read_carried(reader)
+
+
 def test_a_carried_frame_without_its_depth_is_refused(tmp_path: Path) -> None:
     frame = smooth_frame(9, 0)
     path = written(tmp_path / "s.mcap", [frame])

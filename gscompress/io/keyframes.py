@@ -11,8 +11,8 @@ shows as they are:
 
 The share's `/camera/calibration` is the camera of those images (the sender's working size).
 Every image is checked before it is decoded: its format, and a size equal to the calibration's
-(so a file cannot make the reader allocate more than the camera it declares), and at most
-`MAX_CARRIED` frames are read.
+(so a file cannot make the reader allocate more than the camera it declares, itself at most
+`MAX_PIXELS`), and at most `MAX_CARRIED` frames are read.
 """
 
 from __future__ import annotations
@@ -49,6 +49,10 @@ DEPTH_UNIT_M = 0.001
 
 MAX_CARRIED = 64
 """The most keyframes a share may carry (more is refused: a share is a few of them)."""
+
+MAX_PIXELS = 4096 * 4096
+"""The largest carried image read (pixels): a camera declaring more is refused before any
+image is decoded (16-bit depth at this size is 32 MiB)."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,8 @@ def decode_image(data: bytes, fmt: str, size: tuple[int, int], where: str) -> np
             raise LogFormatError(f"{where} has pixel mode {image.mode}, not {' or '.join(modes)}")
         image.load()
         return np.asarray(image)
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError,
+            SyntaxError, EOFError) as exc:  # fmt: skip
         raise LogFormatError(f"{where} is not a readable {fmt} image ({exc})") from None
 
 
@@ -174,6 +179,11 @@ def read_carried(reader: LogReader) -> tuple[list[CarriedFrame], Intrinsics | No
     if camera is None:
         raise LogFormatError(f"{reader.path} carries keyframes but no {CAMERA_FRAME} calibration")
     size = (camera.width, camera.height)
+    if camera.width * camera.height > MAX_PIXELS:
+        raise LogFormatError(
+            f"{reader.path} carries keyframes of {size[0]}x{size[1]} pixels, more than the "
+            f"{MAX_PIXELS} a share's keyframe may have"
+        )
     frames = []
     for t in sorted(parts):
         entry = parts[t]
