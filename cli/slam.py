@@ -111,7 +111,9 @@ def _modified_ns(path: Path) -> int | None:
     type=INPUT_FILE,
     default=None,
     help="Start the map with another agent's share (a `gsc share` log in the same world "
-    "frame): its Gaussians, ids and PWAS sums, so tracking uses them from the first frame.",
+    "frame): its Gaussians, ids and PWAS sums, so tracking uses them from the first frame; "
+    "the sender's keyframes it carries (`gsc share --keyframes`) join the run's keyframes "
+    "(such a run cannot be resumed: its log does not hold them).",
 )
 @share_transform_option
 @click.option(

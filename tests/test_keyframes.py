@@ -217,3 +217,34 @@ def test_share_and_merge_commands_carry_keyframes(agents: dict[str, Path]) -> No
                                str(agents["a"]), "--no-lpips"])  # fmt: skip
     assert done.exit_code == 0, done.output
     assert "2 left out: carried by a share" in done.output
+
+
+def test_an_injected_share_brings_its_keyframes_into_the_run(agents: dict[str, Path]) -> None:
+    from gscompress.slam.system import SlamSystem
+
+    root, seq = agents["root"], agents["seq"]
+    carry = carried_keyframes(agents["a"], 2, seq)
+    share = root / "inject_kf.mcap"
+    share_log(agents["a"], share, 0.5, carry=carry, force=True)
+    received: list[int] = []
+    original = SlamSystem.receive
+
+    def spy(self: SlamSystem, gaussians: object, views: object = None) -> int:
+        added = original(self, gaussians, views)  # type: ignore[arg-type]
+        received.append(len(self.keyframes))
+        return added
+
+    out = root / "b_inject.mcap"
+    SlamSystem.receive = spy  # type: ignore[method-assign]
+    try:
+        slam_file(seq, out, preset="tiny", frames="3:8", inject=share, force=True)
+    finally:
+        SlamSystem.receive = original  # type: ignore[method-assign]
+    assert received == [2]  # A's two keyframes were keyframes before B's first frame
+    with LogReader(out) as log:
+        step = log.metadata.provenance[0]["operation"]
+    assert step["name"] == "inject" and step["carried_ns"] == [f.time_ns for f in carry[0]]
+    scored = evaluate_log(out, seq, frames="0:5", poses_from=agents["a"], lpips=False)
+    assert scored["frames_carried_left_out"] == 2
+    with pytest.raises(InputError, match="afresh"):
+        slam_file(seq, out, resume=True)

@@ -262,10 +262,17 @@ def _fresh_run(
         },
     )
     if inject is not None:
-        from gscompress.pipeline.merge import read_share
+        from gscompress.pipeline.merge import check_same_camera, read_share, read_share_keyframes
+        from gscompress.slam.keyframes import View
 
         share, record = read_share(inject, meta.world_frame, "--inject", share_transform)
-        injected = system.receive(share)
+        carried, camera = read_share_keyframes(inject, share_transform)
+        if carried:
+            check_same_camera(camera, sequence.intrinsics, str(inject))
+            record["carried_ns"] = [f.time_ns for f in carried]
+        views = [View.from_frame(-1 - k, f, f.T_world_cam, system.device)
+                 for k, f in enumerate(carried)]  # fmt: skip
+        injected = system.receive(share, views)
         operation = {
             "name": "inject",
             "gaussians": injected,
@@ -297,6 +304,11 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     source, contents = _furthest(sources)
     meta = contents.metadata
     derived = len(_injections(meta.provenance)) < len(meta.provenance)  # (pruned, shared...)
+    if any(step.get("carried_ns") for step in _injections(meta.provenance)):
+        raise InputError(
+            f"{dst} started with the keyframes of the share it received, which its log does "
+            "not hold: run it afresh (--inject SHARE --force)"
+        )
     if derived or ("frames" not in meta.results and contents.finished):
         raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
     if not meta.config:

@@ -184,6 +184,8 @@ class SlamSystem:
         self.device = resolve_device(device, config.backend)
         self.mapper = Mapper(config, intrinsics, self.device)
         self.keyframes: list[View] = []
+        self.carried: list[View] = []
+        """Another agent's keyframes received with its share (`receive`)."""
         self.views: list[View] = []
         """Every frame's view when the final refinement runs on every frame, else empty."""
         self.poses: list[np.ndarray] = []
@@ -251,10 +253,14 @@ class SlamSystem:
             self.next_id = max(self.next_id, int(gaussians.ids.max()) + 1)
         return added
 
-    def receive(self, share: GaussianMap) -> int:
+    def receive(self, share: GaussianMap, views: list[View] | None = None) -> int:
         """Start the map with another agent's share (ids and PWAS sums kept); returns its size.
 
         Densification and the pruning stages look past the received Gaussians (module docstring).
+        `views`, the sender's keyframes the share carries (at their poses in this run's world
+        frame), become keyframes before this run's own: mapping windows take them where they
+        overlap the frame, and the refinements after a pruning stage and at the end map on
+        them too.
 
         Raises:
             MapError: the run has already started (the map is not empty).
@@ -263,6 +269,8 @@ class SlamSystem:
             raise MapError("a share can only be received before the first frame")
         added = self.add_gaussians(share, renumber=False)
         self.own_ids_from = self.next_id
+        self.carried = list(views or [])
+        self.keyframes = list(self.carried)
         return added
 
     def restore(
@@ -535,7 +543,7 @@ class SlamSystem:
             final = True
             iters += final_iterations(self.config.mapping, self.total_frames)
             fraction = self.config.mapping.final_lr_fraction
-            views = self.views if self.keeps_every_view else keyframes
+            views = [*self.carried, *self.views] if self.keeps_every_view else keyframes
             stop = self.stop_requested
             if iters:
                 log.info("final refinement: %d iterations over %d views", iters, len(views))
