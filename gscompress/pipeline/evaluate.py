@@ -340,8 +340,8 @@ def evaluate_log(
             carried = np.union1d(carried, carried_times(other.metadata, other))
     if len(carried):  # frames a merge refined on: scoring them would flatter the map
         near = nearest_times(frame_ns, carried, POSE_MATCH_TOLERANCE_NS) >= 0
+        left_out = int(near[chosen].sum())
         chosen = [k for k in chosen if not near[k]]
-        left_out = len(range(0, len(positions), every)) - len(chosen)
         if not chosen:
             raise InputError(
                 f"every frame chosen in {sequence.name} was carried into "

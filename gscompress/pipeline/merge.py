@@ -13,7 +13,7 @@ world frames agree (`LogMetadata.world_frame`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,47 +35,65 @@ Keyframes alone are few (5 of tabletop's 25 even frames), and 200 iterations on 
 the receiver's PSNR on its other frames; every frame raises it."""
 
 
+@dataclass(frozen=True)
+class ReceivedShare:
+    """A share as a receiver takes it (`read_share`).
+
+    Attributes:
+        gaussians: its map in the receiver's world frame.
+        record: what a provenance step keeps of it (name, sha256, transform; `carried_ns`,
+            the timestamps of the keyframes it carries, when it carries some and they were
+            asked for).
+        carried: the sender's keyframes it carries, at their poses in the receiver's world
+            frame (when asked for).
+        camera: the camera of those keyframes (None without any).
+    """
+
+    gaussians: GaussianMap
+    record: dict[str, Any]
+    carried: list[CarriedFrame]
+    camera: Intrinsics | None
+
+
 def read_share(
-    share: str | Path, receiver_world: str, what: str, transform: str | Path | None = None
-) -> tuple[GaussianMap, dict[str, Any]]:
-    """A share's map in the receiver's world frame, and what to record of it.
+    share: str | Path,
+    receiver_world: str,
+    what: str,
+    transform: str | Path | None = None,
+    keyframes: bool = False,
+) -> ReceivedShare:
+    """A share's map in the receiver's world frame, what to record of it and, with `keyframes`,
+    the keyframes it carries (`gscompress.io.keyframes`) moved alike.
 
     Without `transform` the share's recorded world frame must be the receiver's; with it, the
     share is moved by the transform in the file (share frame -> receiver frame) instead.
 
     Raises:
         MapError: world frames unknown or different (without a transform).
+        LogFormatError: keyframes that cannot be read (`read_carried`).
     """
+    from gscompress.io.keyframes import read_carried
     from gscompress.io.trajectory import read_transform
     from gscompress.ops.merge import transform_map
 
+    carried: list[CarriedFrame] = []
+    camera: Intrinsics | None = None
     with LogReader(share) as share_log:
         shared = share_log.read_map()
         world = share_log.metadata.world_frame
+        if keyframes:
+            carried, camera = read_carried(share_log)
     record: dict[str, Any] = {"share": Path(share).name, "share_sha256": sha256(share)}
     if transform is None:
         check_same_world(receiver_world, world, what)
     else:
         T = read_transform(transform)
         shared = transform_map(shared, T)
-        record.update(share_world_frame=world, transform=np.round(T, 12).tolist())
-    return shared, record
-
-
-def read_share_keyframes(
-    share: str | Path, transform: str | Path | None = None
-) -> tuple[list[CarriedFrame], Intrinsics | None]:
-    """The keyframes a share carries (`gscompress.io.keyframes`), moved by the transform in
-    the file `transform` when given (as `read_share` moves its map), and their camera."""
-    from gscompress.io.keyframes import read_carried
-    from gscompress.io.trajectory import read_transform
-
-    with LogReader(share) as share_log:
-        carried, camera = read_carried(share_log)
-    if transform is not None and carried:
-        T = read_transform(transform)
         carried = [f.moved(T) for f in carried]
-    return carried, camera
+        record.update(share_world_frame=world, transform=np.round(T, 12).tolist())
+    if carried:
+        record["carried_ns"] = [f.time_ns for f in carried]
+    return ReceivedShare(shared, record, carried, camera)
 
 
 def check_same_camera(carried: Intrinsics | None, receiver: Intrinsics, share: Path | str) -> None:
@@ -170,10 +188,11 @@ def merge_logs(
     carried: list[CarriedFrame] = []
     camera: Intrinsics | None = None
     if share is not None:
-        shared, share_record = read_share(share, meta.world_frame, "merge", share_transform)
-        if keyframes and iters > 0:  # (they serve the refinement only)
-            carried, camera = read_share_keyframes(share, share_transform)
-            share_record["carried_ns"] = [f.time_ns for f in carried]
+        # (the keyframes serve the refinement only)
+        received = read_share(share, meta.world_frame, "merge", share_transform,
+                              keyframes=keyframes and iters > 0)  # fmt: skip
+        shared, share_record = received.gaussians, received.record
+        carried, camera = received.carried, received.camera
 
     how = (
         merge

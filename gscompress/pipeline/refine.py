@@ -174,12 +174,9 @@ class LogRefiner:
         """Also refine on these frames (`gscompress.io.keyframes.CarriedFrame`s, another
         agent's keyframes at their poses in this log's world frame), taken with this log's
         camera (the caller checks)."""
-        from gscompress.slam.keyframes import View
+        from gscompress.slam.keyframes import carried_views
 
-        start = -1 - len(self.views) - len(self.carried)
-        self.carried += [
-            View.from_frame(start - k, f, f.T_world_cam, self.device) for k, f in enumerate(frames)
-        ]
+        self.carried += carried_views(frames, self.device, -1 - len(self.carried))
 
     def record(self) -> dict[str, Any]:
         """What a provenance step records of this refinement (its options)."""

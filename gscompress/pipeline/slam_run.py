@@ -262,17 +262,15 @@ def _fresh_run(
         },
     )
     if inject is not None:
-        from gscompress.pipeline.merge import check_same_camera, read_share, read_share_keyframes
-        from gscompress.slam.keyframes import View
+        from gscompress.pipeline.merge import check_same_camera, read_share
+        from gscompress.slam.keyframes import carried_views
 
-        share, record = read_share(inject, meta.world_frame, "--inject", share_transform)
-        carried, camera = read_share_keyframes(inject, share_transform)
-        if carried:
-            check_same_camera(camera, sequence.intrinsics, str(inject))
-            record["carried_ns"] = [f.time_ns for f in carried]
-        views = [View.from_frame(-1 - k, f, f.T_world_cam, system.device)
-                 for k, f in enumerate(carried)]  # fmt: skip
-        injected = system.receive(share, views)
+        received = read_share(inject, meta.world_frame, "--inject", share_transform, True)
+        record = received.record
+        if received.carried:
+            check_same_camera(received.camera, sequence.intrinsics, str(inject))
+        views = carried_views(received.carried, system.device)
+        injected = system.receive(received.gaussians, views)
         operation = {
             "name": "inject",
             "gaussians": injected,

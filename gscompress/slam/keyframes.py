@@ -64,6 +64,12 @@ class View:
         )
 
 
+def carried_views(frames: list[Any], device: Any, first: int = -1) -> list[View]:
+    """Views of another agent's keyframes (`gscompress.io.keyframes.CarriedFrame`s, at their
+    poses), numbered down from `first` (negative: no frame position of this run)."""
+    return [View.from_frame(first - k, f, f.T_world_cam, device) for k, f in enumerate(frames)]
+
+
 def is_keyframe(position: int, config: KeyframeConfig) -> bool:
     """Whether the frame at this processing position becomes a keyframe."""
     return position % config.every == 0
