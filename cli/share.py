@@ -96,6 +96,17 @@ from .options import (
     "refused as it refuses); the receiver merges it without --share-transform.",
 )
 @click.option(
+    "--for",
+    "receiver",
+    type=INPUT_FILE,
+    default=None,
+    help="The receiver's log: send first the Gaussians its camera has not seen. Only its "
+    "estimated poses (up to 64, spread over its run) and calibration are read, what the "
+    "receiver would send (28 bytes a pose, counted in a byte budget); the map is rendered "
+    "from them and a Gaussian drawing under one pixel there counts as unseen. In the "
+    "receiver's world frame: with another frame, add --align-to. Needs torch.",
+)
+@click.option(
     "--keyframes",
     "keyframes",
     type=click.IntRange(min=0, max=MAX_CARRIED),
@@ -123,6 +134,7 @@ def share(
     ply: Path | None,
     solve: bool,
     align_to: Path | None,
+    receiver: Path | None,
     keyframes: int,
     refine_iters: int,
     seq: Path | None,
@@ -149,6 +161,10 @@ def share(
     are sent (--seq: the sequence SRC was made from); a byte budget still bounds the file of
     the refined values (which may compress a little less well, leaving out the last few).
 
+    With --for B.mcap the share is cut for that receiver: the Gaussians its views do not draw
+    (where it has not been) are sent first, each group in the strategy's order; the receiver's
+    request (its poses and calibration) counts in a byte budget.
+
     \b
     Examples:
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
@@ -158,6 +174,7 @@ def share(
       gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
       gsc share agent_a.mcap share.mcap --align-to agent_b.mcap
       gsc share --budget 1 --keyframes 3 --seq data/room agent_a.mcap share.mcap
+      gsc share --budget 5%bytes agent_a.mcap share.mcap --for agent_b.mcap
     """
     if precision is not None:
         if codec != DEFAULT_SHARE_CODEC and codec != precision:
@@ -184,7 +201,8 @@ def share(
 
             carry = carried_keyframes(src, keyframes, seq)
         common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
-                                      align_to=align_to, carry=carry, command=command_line(),
+                                      align_to=align_to, carry=carry, receiver=receiver,
+                                      device=device, command=command_line(),
                                       force=force)  # fmt: skip
         if solve:
             from gscompress.pipeline.solve import share_solved
@@ -192,7 +210,7 @@ def share(
             result = share_solved(
                 src, dst, budget, codec=codec if given["codec"] else None,
                 sums=sums if given["sums"] else None, fold=fold if given["fold"] else None,
-                seq=seq, device=device, **common,
+                seq=seq, **common,
             )  # fmt: skip
             codec = result["codec"]
             click.echo(
@@ -208,6 +226,9 @@ def share(
     folded = result["fold"] and result["selected"] < result["total"]
     carried = (f" with {result['keyframes']} keyframes ({result['keyframe_bytes']} B)"
                if result.get("keyframes") else "")  # fmt: skip
+    if receiver is not None:
+        carried += (f", unseen by {receiver.name} first ({result['unseen']} of them; its request "
+                    f"{result['request_bytes']} B)")  # fmt: skip
     emit(
         result,
         as_json,

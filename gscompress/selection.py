@@ -141,12 +141,38 @@ def select_top(
 
 
 def select_count(
-    gaussians: GaussianMap, k: int, strategy: str | Strategy = Strategy.PWAS, seed: int = 0
+    gaussians: GaussianMap,
+    k: int,
+    strategy: str | Strategy = Strategy.PWAS,
+    seed: int = 0,
+    first: np.ndarray | None = None,
 ) -> tuple[GaussianMap, np.ndarray]:
     """Keep the `k` most important Gaussians of a map (a count, e.g. what a byte budget allows).
+
+    `first` ([N] bool) ranks the Gaussians it marks above all the others (each group in the
+    strategy's order): what a receiver-aware share sends before anything else.
 
     Returns:
         The kept map and the [k] indices of the kept Gaussians in the input.
     """
-    index = top_k(strategy_scores(gaussians, strategy, seed), gaussians.ids, k)
+    scores = strategy_scores(gaussians, strategy, seed)
+    if first is None:
+        index = top_k(scores, gaussians.ids, k)
+    else:
+        index = top_k_first(scores, gaussians.ids, k, np.asarray(first, dtype=bool))
     return gaussians.select(index), index
+
+
+def top_k_first(scores: np.ndarray, ids: np.ndarray, k: int, first: np.ndarray) -> np.ndarray:
+    """`top_k` with the entries `first` marks ranked above every other entry.
+
+    Returns:
+        [k] int64 indices, sorted ascending.
+    """
+    if first.shape != scores.shape:
+        raise InputError(f"the preferred set has {first.shape[0]} entries for {len(scores)} scores")
+    head, rest = np.flatnonzero(first), np.flatnonzero(~first)
+    if k <= len(head):
+        return np.sort(head[top_k(scores[head], ids[head], k)])
+    tail = rest[top_k(scores[rest], ids[rest], k - len(head))]
+    return np.sort(np.concatenate([head, tail]))

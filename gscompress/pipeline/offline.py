@@ -13,7 +13,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from gscompress.camera import Intrinsics
-from gscompress.errors import LogFormatError, OptionError
+from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions, check_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
@@ -36,6 +36,7 @@ from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.fold import fold
 from gscompress.ops.merge import transform_map
+from gscompress.pipeline.receiver import Request, budget_less_request, read_request, unseen_ids
 from gscompress.selection import check_ratio, keep_count, select_count, strategy_scores
 
 log = logging.getLogger(__name__)
@@ -117,12 +118,19 @@ def prune_log(
 
 
 def cut_map(
-    full: GaussianMap, count: int, strategy: str, seed: int, fold_dropped: bool
+    full: GaussianMap,
+    count: int,
+    strategy: str,
+    seed: int,
+    fold_dropped: bool,
+    first_ids: np.ndarray | None = None,
 ) -> GaussianMap:
     """The `count` Gaussians of `full` with the highest `strategy` scores, each with the dropped
     ones near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians,
-    ids and order either way). What `gsc prune` keeps and `gsc share` sends."""
-    kept, index = select_count(full, count, strategy, seed)
+    ids and order either way). What `gsc prune` keeps and `gsc share` sends. With `first_ids`,
+    the Gaussians of those ids rank above all the others (a receiver-aware share)."""
+    first = None if first_ids is None else np.isin(full.ids, first_ids)
+    kept, index = select_count(full, count, strategy, seed, first)
     return fold(full, index) if fold_dropped else kept
 
 
@@ -231,6 +239,8 @@ class ShareCut:
         source: tuple[GaussianMap, LogMetadata] | None = None,
         align: tuple[np.ndarray, dict[str, Any]] | None = None,
         carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
+        receiver: Request | None = None,
+        device: str = "auto",
     ):
         self.src = Path(src)
         self.carry = carry
@@ -244,6 +254,20 @@ class ShareCut:
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
         operation.update(codec=codec, sums=sums, fold=fold_dropped)
+        self.first_ids: np.ndarray | None = None  # what the receiver has not seen (sent first)
+        self.receiver: dict[str, Any] = {}
+        if receiver is not None:
+            if align is None and receiver.world_frame != meta.world_frame:
+                raise InputError(
+                    f"{receiver.source} is in the world frame {receiver.world_frame!r}, {self.src}"
+                    f" in {meta.world_frame!r}: add --align-to {receiver.source} to find the "
+                    "transform between them"
+                )
+            self.budget = budget_less_request(budget, receiver)
+            self.first_ids = unseen_ids(self.full, receiver, None if align is None else align[0],
+                                        device=device)  # fmt: skip
+            self.receiver = {**receiver.record(), "unseen": len(self.first_ids)}
+            operation["for"] = self.receiver
         if refine is not None:
             operation["refine"] = refine.record()
         if solve is not None:
@@ -264,7 +288,7 @@ class ShareCut:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
         count that then fits (the refined values may compress less well than the first ones:
         the budget still holds)."""
-        selected = cut_map(self.pool, count, self.strategy, self.seed, self.fold)
+        selected = cut_map(self.pool, count, self.strategy, self.seed, self.fold, self.first_ids)
         self.pool, self.extra = refined(selected, {}, refine, teacher=self.pool)
         self._sizes, self._last = {}, None
         if self.budget.budget_bytes is None:
@@ -275,7 +299,8 @@ class ShareCut:
         """The share file of the `count` best Gaussians: its bytes, its map (as selected, before
         encoding) and the results its metadata records. (Only the last one is kept.)"""
         if self._last is None or self._last[0] != count:
-            shared = cut_map(self.pool, count, self.strategy, self.seed, self.fold)
+            shared = cut_map(self.pool, count, self.strategy, self.seed, self.fold,
+                             self.first_ids)  # fmt: skip
             if self.T_target_source is not None:  # (the sender's frames refine, before this)
                 shared = transform_map(shared, self.T_target_source)
             meta = self._meta
@@ -288,6 +313,7 @@ class ShareCut:
                 "fold": self.fold,
                 "selected": len(shared),
                 "total": len(self.full),
+                **self.receiver,
                 **self.extra,
             }
             with LogWriter(None, meta) as out:
@@ -326,6 +352,8 @@ def share_log(
     force: bool = False,
     source: tuple[GaussianMap, LogMetadata] | None = None,
     carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
+    receiver: str | Path | None = None,
+    device: str = "auto",
 ) -> dict[str, Any]:
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
 
@@ -363,6 +391,10 @@ def share_log(
         carry: keyframes of the sender to send along, and their camera
             (`gscompress.pipeline.refine.carried_keyframes`; `gscompress.io.keyframes`): a
             byte budget counts their bytes too, leaving fewer Gaussians.
+        receiver: the receiving agent's log: the Gaussians its views do not draw are sent
+            first (`gscompress.pipeline.receiver`; needs torch, rendered on `device`); a byte
+            budget counts its request's bytes too. In its own world frame, which must be the
+            map's unless `align_to` gives the transform.
 
     Raises:
         InputError: bad budget, codec or strategy (OptionError: --ply equal to the MCAP
@@ -375,7 +407,7 @@ def share_log(
     outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
         raise OptionError("--ply must differ from the MCAP output")
-    inputs = [src] if align_to is None else [src, align_to]
+    inputs = [p for p in (src, align_to, receiver) if p is not None]
     for path, suffix in outputs:
         check_output(path, inputs, force, suffix)
     align = None
@@ -385,7 +417,9 @@ def share_log(
         align = share_alignment(src, align_to)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
                    fold_dropped=fold_dropped, refine=refine, solve=solve, command=command,
-                   source=source, align=align, carry=carry)  # fmt: skip
+                   source=source, align=align, carry=carry,
+                   receiver=None if receiver is None else read_request(receiver),
+                   device=device)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
     if refine is not None:
         count = cut.refined(count, refine)

@@ -174,6 +174,7 @@ def share_solved(
     refine: MapRefiner | None = None,
     align_to: str | Path | None = None,
     carry: Any = None,
+    receiver: str | Path | None = None,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
@@ -181,7 +182,9 @@ def share_solved(
     record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and
     `solved_against`: "frames" or "map renders"). Keyframes to `carry` are weighed as the
     Gaussians' bytes are not: the solver compares the codecs without them, and the share then
-    holds the most Gaussians that fit beside them."""
+    holds the most Gaussians that fit beside them. So is a `receiver` (`share_log`): the codecs
+    are compared on the sender's views, and the share then sends first what the receiver has
+    not seen."""
     budget = Budget.parse(budget)
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
     best, _weighed, record = solve_share(
@@ -191,7 +194,7 @@ def share_solved(
     record["predicted_psnr"] = best.psnr
     result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
                        seed=seed, fold_dropped=best.fold, ply=ply, refine=refine, solve=record,
-                       align_to=align_to, carry=carry, command=command,
-                       force=force)  # fmt: skip
+                       align_to=align_to, carry=carry, receiver=receiver, device=device,
+                       command=command, force=force)  # fmt: skip
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result
