@@ -70,7 +70,8 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 )  # fmt: skip
 @click.option(
     "--strategies", default="random,opacity,alpha-t,pwas", show_default=True,
-    help="Comma-separated share strategies to compare (random and pwas required).",
+    help="Comma-separated share strategies to compare (random and pwas required); NAME-for-b "
+    "cuts that strategy's shares for B (`gsc share --for`: what B has not seen first).",
 )  # fmt: skip
 @size_option(help="Working size WxH of every run [default: the preset's].")
 @click.option(

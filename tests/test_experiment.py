@@ -661,3 +661,25 @@ def test_folded_shares_and_the_default_merge_rerun_only_what_they_change(
             assert log.metadata.provenance[-1]["operation"]["resolve"] == "evidence"
     assert "`gsc merge`'s default" in (copy / "results.md").read_text()
     assert "folds what it leaves out" in (copy / "results.md").read_text()
+
+
+def test_shares_cut_for_b_sit_beside_the_blind_ones(
+    experiment: tuple[Path, Path, dict], tmp_path: Path
+) -> None:
+    seq, out, _result = experiment
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE,
+            "--strategies", "random,pwas,pwas-for-b"]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    again = json.loads(r.output)
+    # only the new shares, their merges and their scoring ran: 2 budgets x 3 steps
+    assert again["steps"] - again["reused"] == 6
+    record = json.loads((copy / "runs" / "s0_pwas-for-b_0p2_share.json").read_text())
+    assert record["spec"]["for"] and record["result"]["for"] == "s0_agent_b.mcap"
+    assert record["result"]["strategy"] == "pwas" and record["result"]["request_bytes"] > 0
+    assert "B + pwas-for-b 0.2" in (copy / "results.md").read_text()
+    r = CliRunner().invoke(cli, [*args[:-1], "opacity-for-c"])
+    assert r.exit_code != 0 and "unknown strategies ['opacity-for-c']" in r.output

@@ -32,7 +32,7 @@ from gscompress import __version__
 from gscompress.errors import GscError
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
 from gscompress.ops.merge import EXACT, MergeOptions
-from gscompress.pipeline.experiment.protocol import ExperimentSettings, RunHandle
+from gscompress.pipeline.experiment.protocol import FOR_B, ExperimentSettings, RunHandle
 
 log = logging.getLogger(__name__)
 
@@ -168,13 +168,20 @@ def merge_options(how: str) -> MergeOptions:
 
 
 def _share_job(
-    path: Path, source: Path, budget: str, strategy: str, seed: int, fold: bool = False
+    path: Path,
+    source: Path,
+    budget: str,
+    strategy: str,
+    seed: int,
+    fold: bool = False,
+    receiver: Path | None = None,
+    device: str = "auto",
 ) -> dict[str, Any]:
     from gscompress.pipeline.offline import share_log
 
     # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
     return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
-                     force=True)  # fmt: skip
+                     receiver=receiver, device=device, force=True)  # fmt: skip
 
 
 def _digest(result: dict[str, Any]) -> str:
@@ -418,17 +425,29 @@ class Runner:
         after += [align] if transform is not None and align is not None else []
         return self._step(name, spec, job, after, extra=lambda: {"slam": receiver.result["slam"]})
 
-    def share(self, name: str, source: RunHandle, budget: str, strategy: str, seed: int) -> Record:
-        """A share of `source`'s map."""
+    def share(
+        self,
+        name: str,
+        source: RunHandle,
+        budget: str,
+        strategy: str,
+        seed: int,
+        receiver: RunHandle | None = None,
+    ) -> Record:
+        """A share of `source`'s map by `strategy`; with `receiver`, cut for that run (what its
+        views do not draw first; `strategy` then ends in `FOR_B`, which the share drops)."""
         spec: dict[str, Any] = {"kind": "share", "source": source.key, "budget": budget,
                                 "strategy": strategy, "seed": seed}  # fmt: skip
         if self.settings.fold:  # (unfolded steps keep the spec they always had)
             spec["fold"] = True
+        if receiver is not None:
+            spec["for"] = receiver.key
         job = functools.partial(
-            _share_job, source=source.path, budget=budget, strategy=strategy, seed=seed,
-            fold=self.settings.fold,
+            _share_job, source=source.path, budget=budget, strategy=strategy.removesuffix(FOR_B),
+            seed=seed, fold=self.settings.fold, device=self.settings.device,
+            receiver=None if receiver is None else receiver.path,
         )  # fmt: skip
-        return self._step(name, spec, job, after=[source])
+        return self._step(name, spec, job, after=[source] + ([receiver] if receiver else []))
 
     def score(
         self,

@@ -63,7 +63,8 @@ class ExperimentSettings:
         seeds: seeds of the two-agent protocol (SLAM seed and random selection seed).
         sweep: budgets of the rate-distortion sweep.
         sweep_seeds: how many of the seeds the sweep runs on.
-        strategies: share strategies compared.
+        strategies: share strategies compared; a name ending in `FOR_B` (e.g. "pwas-for-b") is
+            that strategy cut for B (`gsc share --for`: what B's views do not draw first).
         size: working size (W, H), or None for the config's.
         every: evaluate every N-th frame.
         lpips: compute LPIPS.
@@ -191,11 +192,22 @@ class ExperimentSettings:
                 f"--sweep-seeds {self.sweep_seeds} is more than --seeds {self.seeds}: the sweep "
                 "runs on the first seeds"
             )
-        unknown = sorted(set(self.strategies) - set(STRATEGIES))
+        unknown = sorted({x.removesuffix(FOR_B) for x in self.strategies} - set(STRATEGIES))
         if unknown or not self.strategies:
-            raise InputError(f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}")
+            raise InputError(
+                f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}, each also "
+                f"as NAME{FOR_B} (cut for B: what B has not seen first)"
+            )
+        if self.anchor == "own" and any(x.endswith(FOR_B) for x in self.strategies):
+            raise OptionError(
+                f"a share cut for B ({FOR_B}) needs B's poses in A's frame: use --anchor gt"
+            )
         if "random" not in self.strategies or "pwas" not in self.strategies:
             raise InputError("the strategies must include random and pwas (they are compared)")
+
+
+FOR_B = "-for-b"
+"""Suffix of a strategy whose shares are cut for B (`gscompress.pipeline.receiver`)."""
 
 
 def halves(n: int, overlap: float) -> tuple[range, range]:
@@ -277,7 +289,13 @@ class Executor(Protocol):
     def align(self, name: str, source: RunHandle, target: RunHandle) -> RunHandle: ...
 
     def share(
-        self, name: str, source: RunHandle, budget: str, strategy: str, seed: int
+        self,
+        name: str,
+        source: RunHandle,
+        budget: str,
+        strategy: str,
+        seed: int,
+        receiver: RunHandle | None = None,
     ) -> RunHandle: ...
 
     def score(
@@ -335,7 +353,8 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
-                share = runner.share(f"{tag}_share", a, budget, strategy, seed)
+                share = runner.share(f"{tag}_share", a, budget, strategy, seed,
+                                     b if strategy.endswith(FOR_B) else None)  # fmt: skip
                 got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed, align)
                 rows.append({"name": f"B + {strategy} {budget}", "table": table, "run": got,
                              "seed": seed, "strategy": strategy, "budget": budget,
