@@ -7,6 +7,7 @@ import json
 import shutil
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from click.testing import CliRunner
@@ -134,14 +135,13 @@ def test_a_failing_run_is_retried_once_then_reported_and_the_rest_completes(
     attempts = []
     share_job = execution._share_job
 
-    def failing(
-        path: Path, source: Path, budget: str, strategy: str, seed: int, fold: bool = False
-    ) -> dict:
+    def failing(path: Path, source: Path, budget: str, strategy: str, seed: int,
+                **options: Any) -> dict:  # fmt: skip
         if strategy == "random":
             attempts.append(path.name)
             execution.log.warning("about to fail")
             raise RuntimeError("disk on fire")
-        return share_job(path, source, budget, strategy, seed, fold)
+        return share_job(path, source, budget, strategy, seed, **options)
 
     monkeypatch.setattr(execution, "_share_job", failing)
     out = tmp_path / "exp"
