@@ -127,6 +127,11 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "without, the shares are the paper's top K, the strategies differing only in their choice.",
 )  # fmt: skip
 @click.option(
+    "--spread/--no-spread", default=False, show_default=True,
+    help="Spread every strategy's order over space (`gsc share --spread`): the best Gaussian "
+    "of each of K distinct places first.",
+)  # fmt: skip
+@click.option(
     "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
     help="Refinement iterations of each merge.",
 )  # fmt: skip
@@ -194,6 +199,7 @@ def experiment(
     merge_lr_final: float,
     merge_how: str,
     fold: bool,
+    spread: bool,
     jobs: int,
     executor: str,
     address: str | None,
@@ -217,11 +223,12 @@ def experiment(
     reference.
     Every run is scored with `gsc eval` on its own frames; with --refine-poses N (default
     100) the centralised run, A and every run of B are also scored on A's frames, B's frames
-    and all frames at poses refined against the fixed map. Outputs: results.md (tables like the
-    paper's), results.csv, results.json, plots/*.png; each run's log stays in runs/. A rerun
-    reuses every finished run whose settings are unchanged. A run that fails is tried once
-    more, then listed in results.md with its error (the runs it feeds are not run, the rest
-    go on) and the command exits with status 1 once the reports are written.
+    and all frames at poses refined against the fixed map, and the shares are ranked on all
+    frames (PWAS against each strategy, cell by cell, in results.md). Outputs: results.md
+    (tables like the paper's), results.csv, results.json, plots/*.png; each run's log stays
+    in runs/. A rerun reuses every finished run whose settings are unchanged. A run that
+    fails is tried once more, then listed in results.md with its error (the runs it feeds are
+    not run, the rest go on) and the command exits with status 1 once the reports are written.
 
     \b
     Examples:
@@ -253,6 +260,7 @@ def experiment(
         merge_lr_final=merge_lr_final,
         merge_how=merge_how,
         fold=fold,
+        spread=spread,
         lpips=not no_lpips,
         device=device,
     )

@@ -73,6 +73,12 @@ from .options import (
 @sums_option
 @fold_option
 @click.option(
+    "--spread/--no-spread", default=False, show_default=True,
+    help="Spread the strategy's order over space: the best Gaussian of each of K distinct "
+    "places before any place gets a second one (space cut by ever finer grids). Off: the K "
+    "highest scores, wherever they cluster.",
+)  # fmt: skip
+@click.option(
     "--ply",
     type=OUTPUT_FILE,
     default=None,
@@ -131,6 +137,7 @@ def share(
     precision: str | None,
     sums: bool,
     fold: bool,
+    spread: bool,
     ply: Path | None,
     solve: bool,
     align_to: Path | None,
@@ -203,7 +210,7 @@ def share(
         common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
                                       align_to=align_to, carry=carry, receiver=receiver,
                                       device=device, command=command_line(),
-                                      force=force)  # fmt: skip
+                                      force=force, spread=spread)  # fmt: skip
         if solve:
             from gscompress.pipeline.solve import share_solved
 

@@ -123,6 +123,54 @@ def top_k(scores: np.ndarray, ids: np.ndarray, k: int) -> np.ndarray:
     return np.sort(np.concatenate([above, tied]))
 
 
+SPREAD_LEVELS = 32
+"""How many times `spread_ranks` halves its grid (cells of 1/2^32 of the map's extent: finer
+than float32 centres tell apart); entries that share a cell even then come last."""
+
+
+def spread_ranks(scores: np.ndarray, ids: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """[N] int64 rank of each entry (0 first) when a selection is spread over space.
+
+    Space is cut by ever finer grids (a cube of the map's extent, then halves, quarters, ...
+    of its edge). An entry's level is the coarsest grid in which it is the best of its cell
+    (highest score, then lowest id); the ranks go by level, then score, then id. The first K
+    entries are then the best of K distinct places before any place gets a second one: the K
+    best scores when they lie apart, one per cell of a grid when they cluster. The grids nest,
+    so an entry that wins its cell wins every finer cell too, and a larger K keeps everything
+    a smaller one kept.
+
+    Args:
+        scores: [N] scores (higher is better).
+        ids: [N] unique ids used to break ties.
+        means: [N, 3] positions.
+    """
+    n = len(scores)
+    order = np.lexsort((ids, -scores))  # best first
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    level = np.full(n, SPREAD_LEVELS + 1, dtype=np.int64)
+    if n == 0:
+        return rank
+    points = np.asarray(means, dtype=np.float64)
+    low = points.min(axis=0)
+    extent = float((points.max(axis=0) - low).max())
+    if not math.isfinite(extent) or extent <= 0:
+        return rank  # one place: the scores alone
+    for k in range(SPREAD_LEVELS + 1):
+        cells = np.floor((points - low) / (extent / 2**k)).astype(np.int64)
+        _, cell = np.unique(cells, axis=0, return_inverse=True)
+        cell = cell.ravel()
+        by_cell = np.lexsort((rank, cell))  # each cell's best first
+        best = by_cell[np.r_[True, cell[by_cell][1:] != cell[by_cell][:-1]]]
+        level[best] = np.minimum(level[best], k)
+        if len(best) == n:
+            break
+    ranked = np.lexsort((rank, level))
+    out = np.empty(n, dtype=np.int64)
+    out[ranked] = np.arange(n)
+    return out
+
+
 def select_top(
     gaussians: GaussianMap, ratio: float, strategy: str | Strategy = Strategy.PWAS, seed: int = 0
 ) -> tuple[GaussianMap, np.ndarray]:
@@ -146,16 +194,20 @@ def select_count(
     strategy: str | Strategy = Strategy.PWAS,
     seed: int = 0,
     first: np.ndarray | None = None,
+    spread: bool = False,
 ) -> tuple[GaussianMap, np.ndarray]:
     """Keep the `k` most important Gaussians of a map (a count, e.g. what a byte budget allows).
 
     `first` ([N] bool) ranks the Gaussians it marks above all the others (each group in the
-    strategy's order): what a receiver-aware share sends before anything else.
+    strategy's order): what a receiver-aware share sends before anything else. With `spread`,
+    the strategy's order is spread over space first (`spread_ranks`).
 
     Returns:
         The kept map and the [k] indices of the kept Gaussians in the input.
     """
     scores = strategy_scores(gaussians, strategy, seed)
+    if spread:
+        scores = -spread_ranks(scores, gaussians.ids, gaussians.means).astype(np.float64)
     if first is None:
         index = top_k(scores, gaussians.ids, k)
     else:

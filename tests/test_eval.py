@@ -1,6 +1,7 @@
 """`gsc eval` (map + trajectory metrics of a log) and the Foxglove layout in examples/."""
 
 import json
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -460,6 +461,33 @@ def test_eval_at_a_trajectory_and_with_poses_refined(gt_log, seq_dir, nudged_tra
     degrees = [f["pose_change_deg"] for f in refined["per_frame"]]
     assert refined["pose_change_deg"] == pytest.approx(np.median(degrees)) and min(degrees) > 0
     assert "refined" not in own
+
+
+def test_the_union_of_two_evaluations_is_one_evaluation_of_their_frames(
+    gt_log, seq_dir, nudged_trajectory
+):
+    """The experiment's all-frame scores are the union of A's frames and B's: each frame's
+    figures (a pose is refined frame by frame) as one evaluation of every frame gives them,
+    the first result's where both scored a frame."""
+    from gscompress.pipeline.evaluate import union_results
+
+    score = partial(evaluate_log, gt_log, seq_dir, poses=nudged_trajectory, refine_poses=5,
+                    lpips=False)  # fmt: skip
+    first, second, whole = score(frames="0:4"), score(frames="2:6"), score(frames="0:6")
+    union = union_results(first, second)
+    assert union["frames_evaluated"] == whole["frames_evaluated"] == 6
+    for key in ("psnr", "ssim", "depth_l1_cm"):
+        assert union[key] == pytest.approx(whole[key], rel=1e-9)
+        assert union["refined"][key] == pytest.approx(whole["refined"][key], rel=1e-9)
+    for key in ("pose_change_cm", "pose_change_deg"):
+        assert union["refined"][key] == pytest.approx(whole["refined"][key], rel=1e-9)
+    assert union["lpips"] is None and union["lpips_reason"] == whole["lpips_reason"]
+    # where both scored a frame, the first result's figures count
+    doctored = {**second, "per_frame": [{**r, "psnr": 0.0} for r in second["per_frame"]]}
+    lowered = union_results(first, doctored)
+    expected = np.mean([r["psnr"] for r in first["per_frame"]] + [0.0, 0.0])
+    assert lowered["psnr"] == pytest.approx(expected)
+    assert union_results(doctored, first)["psnr"] < lowered["psnr"]
 
 
 def test_eval_at_another_logs_poses(gt_log, seq_dir):

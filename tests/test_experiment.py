@@ -6,6 +6,7 @@ import csv
 import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,16 +37,29 @@ REFINE = ("--refine-poses", "3")
 CROSS = ("refined_psnr_a", "refined_psnr_b", "refined_psnr_all")
 
 
+def _run(seq: Path, out: Path, *extra: str, refine: tuple[str, ...] = REFINE) -> dict:
+    """The fixture's experiment written to `out`, with `extra` options; its JSON result."""
+    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *refine, *extra]  # fmt: skip
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    return json.loads(r.output)
+
+
+def _copy(experiment: tuple[Path, Path, dict], tmp_path: Path) -> Path:
+    """A copy of the fixture's folder for a test that reruns it otherwise (the folder itself is
+    shared by the tests of this module)."""
+    copy = tmp_path / "copy"
+    shutil.copytree(experiment[1], copy)
+    return copy
+
+
 @pytest.fixture(scope="module")
 def experiment(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
     root = tmp_path_factory.mktemp("exp")
     seq = write_synthetic_sequence(root / "room", 4, (64, 48))
     out = root / "exp"
-    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE]  # fmt: skip
-    r = CliRunner().invoke(cli, args)
-    assert r.exit_code == 0, r.output
-    return seq, out, json.loads(r.output)
+    return seq, out, _run(seq, out)
 
 
 def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, dict]) -> None:
@@ -87,9 +101,27 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert "shows PSNR alone: a merge leaves B's poses as they were" in md
     assert result["verdicts"]["seeds"] == 1 and len(result["verdicts"]["sweep"]) == 2
     first = result["verdicts"]["sweep"][0]  # one seed: a difference, no standard error
-    pwas, random = (by_name[(f"B + {k} 0.2", "table4")]["psnr"] for k in ("pwas", "random"))
+    # ranked on all frames at refined poses (B's own frames barely see what a share brings)
+    assert result["verdicts"]["psnr_key"] == "refined_psnr_all"
+    pwas, random = (
+        by_name[(f"B + {k} 0.2", "table4")]["refined_psnr_all"] for k in ("pwas", "random")
+    )  # fmt: skip
     assert first["pairs"] == 1 and first["psnr_difference_se"] is None
     assert first["psnr_difference"] == pytest.approx(pwas - random)
+    cells = result["verdicts"]["cells"]  # 1 seed x 2 budgets, PWAS against three others
+    assert cells["cells"] == 2 and set(cells["against"]) == {"random", "opacity", "alpha-t"}
+    against = cells["against"]["random"]
+    assert against["above"] + against["ties"] + against["below"] == against["pairs"] == 2
+
+    def psnr(strategy: str, budget: str, table: str) -> float:
+        return by_name[(f"B + {strategy} {budget}", table)]["refined_psnr_all"]
+
+    margins = [
+        min(psnr("pwas", b, t) - psnr(o, b, t) for o in ("random", "opacity", "alpha-t"))
+        for b, t in (("0.2", "table4"), ("0.5", "sweep"))
+    ]
+    assert cells["at_or_above"] == sum(m >= -0.005 for m in margins)
+    assert f"PWAS is at or above every other strategy in {cells['at_or_above']} of 2" in md
     assert "PWAS minus random, paired by seed" in md and "ATE RMSE (cm) | PWAS lower" not in md
 
 
@@ -140,18 +172,11 @@ def test_refine_poses_0_leaves_the_own_frame_scores_alone(
 ) -> None:
     """--refine-poses 0: no scoring step, and the rows and results.md are those of the same
     experiment with cross-agent scoring, less its columns (empty) and its table."""
-    seq, out, _first = experiment
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
-    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json"]  # fmt: skip
-    r = CliRunner().invoke(cli, [*args, *REFINE])  # (the fixture's reports, rewritten)
-    assert r.exit_code == 0, r.output
+    seq, copy = experiment[0], _copy(experiment, tmp_path)
+    _run(seq, copy)  # (the fixture's reports, rewritten)
     scored = json.loads((copy / "results.json").read_text())
     scored_md = (copy / "results.md").read_text()
-    r = CliRunner().invoke(cli, [*args, "--refine-poses", "0"])
-    assert r.exit_code == 0, r.output
-    result = json.loads(r.output)
+    result = _run(seq, copy, refine=("--refine-poses", "0"))
     settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), refine_poses=0)
     assert result["steps"] == result["reused"] == plan_size(settings) == 23
     rows = json.loads((copy / "results.json").read_text())
@@ -160,9 +185,12 @@ def test_refine_poses_0_leaves_the_own_frame_scores_alone(
     assert all(row[k] is None for row in rows for k in cross)
     assert rows == [{k: (None if k in cross else v) for k, v in row.items()} for row in scored]
     md = (copy / "results.md").read_text()
-    assert "poses refined" not in md
-    start = scored_md.index("\n## PSNR on A's frames")
-    assert md == scored_md[:start] + scored_md[scored_md.index("\n## Plots") :]
+    assert "poses refined" not in md and "## PSNR on A's frames" not in md
+    verdict = "PWAS beats random at"
+    assert md[: md.index(verdict)] == scored_md[: scored_md.index(verdict)]  # Tables 3 and 4
+    # the shares are ranked on B's own frames, all frames needing refined poses
+    assert "on PSNR (B's own frames at B's estimated poses)" in md
+    assert "on PSNR (all frames, each pose refined" in scored_md
 
 
 def test_parallel_runs_give_the_same_rows(
@@ -197,28 +225,30 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
     _seq, out, _result = experiment
     settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), lpips=False)
     rows = json.loads((out / "results.json").read_text())
-    curves = rate_distortion_curves(rows, settings)
-    assert set(curves) == {"random", "opacity", "alpha-t", "pwas", "full"}
     alone = next(r for r in rows if r["name"] == "B refined, no share")
-    for strategy in ("random", "opacity", "alpha-t", "pwas"):
-        (x0, psnr0, ate0), *shared = curves[strategy]
-        assert (x0, psnr0, ate0) == (0.0, alone["psnr"], alone["ate_rmse_cm"])
-        sweep = [r for r in rows if r["strategy"] == strategy]
-        assert [p[0] for p in shared] == sorted(r["share_bytes"] for r in sweep)
-        assert [p[1] for p in shared] == [
-            r["psnr"] for r in sorted(sweep, key=lambda r: r["share_bytes"])
-        ]
     full = next(r for r in rows if r["strategy"] == "full")
-    assert curves["full"] == [(full["share_bytes"], full["psnr"], full["ate_rmse_cm"])]
+    # PSNR on all frames at refined poses; with --refine-poses 0, B's own frames
+    for refine, key in ((100, "refined_psnr_all"), (0, "psnr")):
+        curves = rate_distortion_curves(rows, replace(settings, refine_poses=refine))
+        assert set(curves) == {"random", "opacity", "alpha-t", "pwas", "full"}
+        for strategy in ("random", "opacity", "alpha-t", "pwas"):
+            (x0, psnr0, ate0), *shared = curves[strategy]
+            assert (x0, psnr0, ate0) == (0.0, alone[key], alone["ate_rmse_cm"])
+            sweep = [r for r in rows if r["strategy"] == strategy]
+            assert [p[0] for p in shared] == sorted(r["share_bytes"] for r in sweep)
+            assert [p[1] for p in shared] == [
+                r[key] for r in sorted(sweep, key=lambda r: r["share_bytes"])
+            ]
+        assert curves["full"] == [(full["share_bytes"], full[key], full["ate_rmse_cm"])]
     inject = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), mode="inject")
     b = next(r for r in rows if r["name"] == "agent B (even frames)")
-    assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["psnr"]
+    assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["refined_psnr_all"]
     assert rate_distortion_curves(rows, ExperimentSettings(preset="tiny", sweep_seeds=0)) == {}
 
 
 def test_pwas_minus_random_is_paired_by_seed() -> None:
     def row(seed: int, strategy: str, psnr: float | None) -> dict:
-        return {"seed": seed, "strategy": strategy, "psnr": psnr}
+        return {"seed": seed, "budget": "0.2", "strategy": strategy, "psnr": psnr}
 
     group = [
         row(0, "pwas", 25.0), row(0, "random", 24.9), row(1, "random", 25.3),
@@ -230,39 +260,41 @@ def test_pwas_minus_random_is_paired_by_seed() -> None:
     ]  # fmt: skip
     d = paired_difference(group, "psnr")  # differences +0.1, -0.1, +0.3
     assert (d["pairs"], d["positive"], d["negative"]) == (3, 2, 1)
+    assert (d["above"], d["ties"], d["below"]) == (2, 0, 1)
     assert d["mean"] == pytest.approx(0.1)
     assert d["se"] == pytest.approx(0.2 / 3**0.5)
     none = paired_difference(group[6:8], "psnr")
-    assert none == {"pairs": 0, "mean": None, "se": None, "positive": 0, "negative": 0}
+    assert none == {"pairs": 0, "mean": None, "se": None, "positive": 0, "negative": 0,
+                    "above": 0, "below": 0, "ties": 0}  # fmt: skip
+    opacity = paired_difference(group, "psnr", "opacity")  # seed 2 only: 24.9 - 30.0
+    assert opacity["pairs"] == 1 and opacity["mean"] == pytest.approx(-5.1)
+    # pairs are (seed, budget) cells; a difference within TIE_DB is a tie, counted apart
+    cells = [
+        {"seed": 0, "budget": b, "strategy": k, "psnr": v}
+        for b, k, v in [("1%", "pwas", 20.0), ("1%", "random", 20.004), ("2%", "pwas", 21.0),
+                        ("2%", "random", 20.5)]
+    ]  # fmt: skip
+    tied = paired_difference(cells, "psnr")
+    assert (tied["pairs"], tied["above"], tied["ties"], tied["below"]) == (2, 1, 1, 0)
 
 
 def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
     seq, out, first = experiment
-    base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--no-lpips", "--json", *REFINE]  # fmt: skip
     scoring = sorted((out / "runs").glob("*_xeval.json"))
     assert len(scoring) == 13  # all the rows but Table 3's unpruned run
     before = {p.name: p.read_bytes() for p in scoring}
-    r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5"])
-    assert r.exit_code == 0, r.output
-    again = json.loads(r.output)
+    again = _run(seq, out)
     assert again["reused"] == again["steps"] == first["steps"]  # the scoring steps too
     assert {p.name: p.read_bytes() for p in scoring} == before
     # a new sweep budget: only its shares, B runs and their scoring are new (4 strategies x 3)
-    r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5,0.3"])
-    assert r.exit_code == 0, r.output
-    third = json.loads(r.output)
+    third = _run(seq, out, "--sweep", "0.2,0.5,0.3")  # (the last --sweep counts)
     assert third["steps"] - third["reused"] == 12
     # another merge learning-rate decay: every merge again, nothing else (in a copy: the
     # folder is shared with the other tests of this module)
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
-    base[base.index(str(out))] = str(copy)
-    r = CliRunner().invoke(cli, [*base, "--sweep", "0.2,0.5,0.3", "--merge-lr-final", "0.5"])
-    assert r.exit_code == 0, r.output
-    fourth = json.loads(r.output)
+    copy = _copy(experiment, tmp_path)
+    fourth = _run(seq, copy, "--sweep", "0.2,0.5,0.3", "--merge-lr-final", "0.5")
     merges = list((copy / "runs").glob("s0_*_agent_b.json"))  # not B's own run, s0_agent_b
     assert len(merges) == 14  # 4 strategies x 3 + 2, each scored again: 28 steps
     assert fourth["steps"] - fourth["reused"] == 2 * len(merges)
@@ -272,9 +304,7 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
 def test_a_damaged_run_record_is_a_run_to_do_again(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
-    seq, out, _first = experiment
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
+    seq, copy = experiment[0], _copy(experiment, tmp_path)
     damaged = {"full_pwas": b"\xff\xfe not text", "full_no_prune": b"[]"}
     for name, data in damaged.items():
         (copy / "runs" / f"{name}.json").write_bytes(data)
@@ -283,11 +313,7 @@ def test_a_damaged_run_record_is_a_run_to_do_again(
     record["result"]["eval"] = {}
     record_path.write_text(json.dumps(record))
     damaged["s0_agent_a"] = b""
-    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE]  # fmt: skip
-    r = CliRunner().invoke(cli, args)
-    assert r.exit_code == 0, r.output
-    again = json.loads(r.output)
+    again = _run(seq, copy)
     assert again["steps"] - again["reused"] == len(damaged)  # those three, nothing else
     for name in damaged:
         assert json.loads((copy / "runs" / f"{name}.json").read_text())["result"]
@@ -638,15 +664,8 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
 def test_folded_shares_and_the_default_merge_rerun_only_what_they_change(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
-    seq, out, _result = experiment
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
-    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE,
-            "--merge", "default", "--fold"]  # fmt: skip
-    r = CliRunner().invoke(cli, args)
-    assert r.exit_code == 0, r.output
-    again = json.loads(r.output)
+    seq, copy = experiment[0], _copy(experiment, tmp_path)
+    again = _run(seq, copy, "--merge", "default", "--fold")
     assert 0 < again["steps"] - again["reused"] < again["steps"]  # the SLAM runs were reused
     records = {p.stem: json.loads(p.read_text()) for p in (copy / "runs").glob("*.json")}
     shares = [s for s in records.values() if s.get("spec", {}).get("kind") == "share"]
@@ -666,20 +685,15 @@ def test_folded_shares_and_the_default_merge_rerun_only_what_they_change(
 def test_shares_cut_for_b_sit_beside_the_blind_ones(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
-    seq, out, _result = experiment
-    copy = tmp_path / "copy"
-    shutil.copytree(out, copy)
-    args = ["experiment", str(seq), "-o", str(copy), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE,
-            "--strategies", "random,pwas,pwas-for-b"]  # fmt: skip
-    r = CliRunner().invoke(cli, args)
-    assert r.exit_code == 0, r.output
-    again = json.loads(r.output)
+    seq, copy = experiment[0], _copy(experiment, tmp_path)
+    again = _run(seq, copy, "--strategies", "random,pwas,pwas-for-b")
     # only the new shares, their merges and their scoring ran: 2 budgets x 3 steps
     assert again["steps"] - again["reused"] == 6
     record = json.loads((copy / "runs" / "s0_pwas-for-b_0p2_share.json").read_text())
     assert record["spec"]["for"] and record["result"]["for"] == "s0_agent_b.mcap"
     assert record["result"]["strategy"] == "pwas" and record["result"]["request_bytes"] > 0
     assert "B + pwas-for-b 0.2" in (copy / "results.md").read_text()
-    r = CliRunner().invoke(cli, [*args[:-1], "opacity-for-c"])
+    r = CliRunner().invoke(
+        cli, ["experiment", str(seq), "-o", str(copy), "--strategies", "pwas,random,opacity-for-c"]
+    )  # fmt: skip
     assert r.exit_code != 0 and "unknown strategies ['opacity-for-c']" in r.output

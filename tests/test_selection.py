@@ -7,7 +7,14 @@ from hypothesis import strategies as st
 
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import random_map
-from gscompress.selection import keep_count, select_top, strategy_scores, top_k
+from gscompress.selection import (
+    keep_count,
+    select_count,
+    select_top,
+    spread_ranks,
+    strategy_scores,
+    top_k,
+)
 
 
 @pytest.mark.parametrize(
@@ -116,3 +123,65 @@ def test_refinement_checks_its_seed_before_anything_else():
 def test_an_empty_map_is_said_to_be_empty(strategy):
     with pytest.raises(BudgetError, match="the map is empty"):
         strategy_scores(random_map(0), strategy)
+
+
+def test_a_spread_selection_takes_each_place_once_before_any_twice():
+    """Ten high scores crowd one corner, four low ones lie far apart: the spread order takes
+    the crowd's best, then every far one, before a second of the crowd."""
+    rng = np.random.default_rng(0)
+    crowd = rng.normal(0.0, 0.01, (10, 3))
+    far = np.array([[3.0, 0, 0], [0, 3.0, 0], [0, 0, 3.0], [3.0, 3.0, 3.0]])
+    scores = np.r_[np.linspace(10.0, 20.0, 10), [1.0, 2.0, 3.0, 4.0]]
+    ids = np.arange(14)
+    ranks = spread_ranks(scores, ids, np.r_[crowd, far])
+    assert sorted(ranks) == list(range(14))
+    order = np.argsort(ranks)
+    assert order[0] == 9  # the crowd's best
+    assert set(order[1:5]) == {10, 11, 12, 13}  # then each far place
+    assert list(order[5:]) == list(np.argsort(-scores[:9]))  # then the crowd by score
+    # plain top-k of the same scores would take the crowd only
+    assert set(top_k(scores, ids, 5)) == {5, 6, 7, 8, 9}
+
+
+def test_spread_ranks_follow_the_scores_where_nothing_crowds_or_all_coincide():
+    g = random_map(300, seed=5)
+    scores = strategy_scores(g, "pwas")
+    at_one_place = np.zeros((300, 3))
+    assert list(np.argsort(spread_ranks(scores, g.ids, at_one_place))) == list(
+        np.lexsort((g.ids, -scores))
+    )
+    # a larger selection keeps every Gaussian a smaller one kept (the grids nest)
+    ranks = spread_ranks(scores, g.ids, g.means)
+    kept = [set(np.flatnonzero(ranks < k)) for k in (10, 50, 200)]
+    assert kept[0] <= kept[1] <= kept[2]
+    spread, index = select_count(g, 50, "pwas", spread=True)
+    assert set(index) == kept[1] and len(spread) == 50
+
+
+def test_a_spread_share_records_it_and_sends_the_places_a_plain_one_leaves(tmp_path):
+    from dataclasses import replace
+
+    from gscompress.io.mcap_log import LogMetadata, LogReader
+    from gscompress.io.ply import write_ply
+    from gscompress.pipeline.offline import share_log
+
+    g = random_map(200, seed=6)
+    means = g.means.copy()
+    means[:150] = means[:150] * 0.001  # 150 crowd the origin
+    sums = g.importance_sum.copy()
+    sums[:150] += 100.0 * g.importance_weight[:150]  # and hold the highest scores
+    g = replace(g, means=means, importance_sum=sums)
+    assert g.importance[:150].min() > g.importance[150:].max()
+    src = tmp_path / "src.ply"
+    write_ply(g, src)
+    plain = share_log(src, tmp_path / "plain.mcap", 0.2, source=(g, LogMetadata()))
+    spread = share_log(src, tmp_path / "spread.mcap", 0.2, source=(g, LogMetadata()), spread=True)
+    assert spread["spread"] is True and "spread" not in plain
+    sent = {}
+    for name in ("plain", "spread"):
+        with LogReader(tmp_path / f"{name}.mcap") as log:
+            sent[name] = set(log.read_map().ids.tolist())
+            operation = log.metadata.provenance[-1]["operation"]
+            assert operation.get("spread", False) is (name == "spread")
+    outside = set(g.ids[150:].tolist())
+    assert not sent["plain"] & outside and len(sent["spread"] & outside) > 20

@@ -52,6 +52,9 @@ from gscompress.slam.keyframes import frame_tensors
 from gscompress.slam.params import RenderInputs
 from gscompress.slam.tracker import track
 
+METRICS = ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm")
+"""The image and depth figures of a scored view, each averaged over the views."""
+
 MS_SSIM_MIN_SIDE = (SSIM_WINDOW - 1) * 2 ** (len(MS_SSIM_WEIGHTS) - 1) + 1
 """Smallest image side MS-SSIM accepts (161: the window must fit after 4 downsamplings)."""
 
@@ -198,14 +201,22 @@ def evaluate_map(
             progress(1)
 
     result: dict[str, Any] = {"views": len(per_view), "views_without_depth": without_depth}
-    for name in ("psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm"):
+    result.update(mean_metrics(per_view, reasons))
+    result["per_view"] = per_view
+    return result
+
+
+def mean_metrics(per_view: list[dict[str, Any]], reasons: dict[str, str]) -> dict[str, Any]:
+    """Each of `METRICS` averaged over the views scored, or None with the reason in
+    `<name>_reason` ("" when available; `reasons` gives why a metric was not computed)."""
+    result: dict[str, Any] = {}
+    for name in METRICS:
         reason = reasons.get(name, "")
         if not per_view and not reason:
             reason = "no view was evaluated"
         values = [r[name] for r in per_view if name in r]
         result[name] = float(np.mean(values)) if values and not reason else None
         result[f"{name}_reason"] = reason
-    result["per_view"] = per_view
     return result
 
 

@@ -397,11 +397,9 @@ def evaluate_log(
         for record in refined_frames:
             record["pose_change_cm"], record["pose_change_deg"] = changes[record["index"]]
         # (over the frames scored: one without valid depth is neither refined nor scored)
-        moved = np.array([changes[r["index"]] for r in refined_frames]).reshape(-1, 2)
         refined = {
             "iters": refine_poses,
-            "pose_change_cm": float(np.median(moved[:, 0])) if len(moved) else None,
-            "pose_change_deg": float(np.median(moved[:, 1])) if len(moved) else None,
+            **median_pose_change(refined_frames),
             **{k: v for k, v in refined.items() if k not in ("views", "views_without_depth")},
             "per_frame": refined_frames,
         }
@@ -430,3 +428,49 @@ def evaluate_log(
         **({"refined": refined} if refined is not None else {}),
         **({"images": [str(p) for s in savers.values() for p in s.written]} if savers else {}),
     }
+
+
+def median_pose_change(per_frame: list[dict[str, Any]]) -> dict[str, float | None]:
+    """The median `pose_change_cm` and `pose_change_deg` of the frames whose poses were
+    refined (None for none)."""
+    moved = np.array([(r["pose_change_cm"], r["pose_change_deg"]) for r in per_frame])
+    moved = moved.reshape(-1, 2)
+    return {
+        "pose_change_cm": float(np.median(moved[:, 0])) if len(moved) else None,
+        "pose_change_deg": float(np.median(moved[:, 1])) if len(moved) else None,
+    }
+
+
+def union_results(first: dict[str, Any], second: dict[str, Any]) -> dict[str, Any]:
+    """The figures of every frame that either of two `evaluate_log` results of one map scored,
+    each frame once: `first`'s where both scored it, so `first` decides where such a frame's
+    pose started. Each frame's figures are its own (a pose is refined frame by frame), so the
+    union is what one evaluation of those frames from those poses would give, without rendering
+    or refining any frame again.
+
+    Returns:
+        `frames_evaluated`, the image figures (`METRICS`, their reasons as `first` gives them)
+        and `per_frame`, at the starting poses; `refined`, when both refined the poses: the same
+        at the refined poses with `iters` and the median pose change.
+    """
+    from gscompress.ops.evaluate import METRICS, mean_metrics
+
+    def union(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+        seen = {r["index"] for r in a["per_frame"]}
+        per_frame = sorted(
+            [*a["per_frame"], *(r for r in b["per_frame"] if r["index"] not in seen)],
+            key=lambda r: r["index"],
+        )  # fmt: skip
+        reasons = {m: a.get(f"{m}_reason") or "" for m in METRICS}
+        return {**mean_metrics(per_frame, reasons), "per_frame": per_frame}
+
+    result = union(first, second)
+    result["frames_evaluated"] = len(result["per_frame"])
+    if "refined" in first and "refined" in second:
+        refined = union(first["refined"], second["refined"])
+        result["refined"] = {
+            "iters": first["refined"]["iters"],
+            **median_pose_change(refined["per_frame"]),
+            **refined,
+        }
+    return result

@@ -96,9 +96,12 @@ def read_share(
     return ReceivedShare(shared, record, carried, camera)
 
 
-def check_same_camera(carried: Intrinsics | None, receiver: Intrinsics, share: Path | str) -> None:
+def check_same_camera(
+    carried: Intrinsics | None, receiver: Intrinsics, share: Path | str, what: str, remedy: str
+) -> None:
     """Refuse keyframes taken with another camera (or size) than the receiver refines at: one
-    refinement renders every view with one camera."""
+    refinement renders every view with one camera. `what` names the receiving step ("the
+    merge refines"), `remedy` what the user can do instead."""
     if carried is None or not np.allclose(
         [carried.fx, carried.fy, carried.cx, carried.cy, carried.width, carried.height],
         [receiver.fx, receiver.fy, receiver.cx, receiver.cy, receiver.width, receiver.height],
@@ -107,8 +110,7 @@ def check_same_camera(carried: Intrinsics | None, receiver: Intrinsics, share: P
         got = "no camera" if carried is None else f"{carried.width}x{carried.height}"
         raise InputError(
             f"{share} carries keyframes of another camera ({got}) than the receiver's "
-            f"{receiver.width}x{receiver.height} at which the merge refines: merge with "
-            "--no-keyframes"
+            f"{receiver.width}x{receiver.height} at which {what}: {remedy}"
         )
 
 
@@ -208,7 +210,8 @@ def merge_logs(
         instead = "merge with --iters 0 to concatenate only"
         refiner = LogRefiner(receiver, seq, options, progress, instead)
         if carried:
-            check_same_camera(camera, refiner.intrinsics, str(share))
+            check_same_camera(camera, refiner.intrinsics, str(share), "the merge refines",
+                              "merge with --no-keyframes")  # fmt: skip
 
     def merge_into(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         received = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)

@@ -124,13 +124,15 @@ def cut_map(
     seed: int,
     fold_dropped: bool,
     first_ids: np.ndarray | None = None,
+    spread: bool = False,
 ) -> GaussianMap:
     """The `count` Gaussians of `full` with the highest `strategy` scores, each with the dropped
     ones near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians,
     ids and order either way). What `gsc prune` keeps and `gsc share` sends. With `first_ids`,
-    the Gaussians of those ids rank above all the others (a receiver-aware share)."""
+    the Gaussians of those ids rank above all the others (a receiver-aware share); with
+    `spread`, the best of distinct places come first (`selection.spread_ranks`)."""
     first = None if first_ids is None else np.isin(full.ids, first_ids)
-    kept, index = select_count(full, count, strategy, seed, first)
+    kept, index = select_count(full, count, strategy, seed, first, spread)
     return fold(full, index) if fold_dropped else kept
 
 
@@ -241,10 +243,11 @@ class ShareCut:
         carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
         receiver: Request | None = None,
         device: str = "auto",
+        spread: bool = False,
     ):
         self.src = Path(src)
         self.carry = carry
-        self.fold = fold_dropped
+        self.fold, self.spread = fold_dropped, spread
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
         if source is None:
             with LogReader(src) as log_in:
@@ -254,6 +257,8 @@ class ShareCut:
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
         operation.update(codec=codec, sums=sums, fold=fold_dropped)
+        if spread:
+            operation["spread"] = True
         self.first_ids: np.ndarray | None = None  # what the receiver has not seen (sent first)
         self.receiver: dict[str, Any] = {}
         if receiver is not None:
@@ -288,7 +293,8 @@ class ShareCut:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
         count that then fits (the refined values may compress less well than the first ones:
         the budget still holds)."""
-        selected = cut_map(self.pool, count, self.strategy, self.seed, self.fold, self.first_ids)
+        selected = cut_map(self.pool, count, self.strategy, self.seed, self.fold, self.first_ids,
+                           self.spread)  # fmt: skip
         self.pool, self.extra = refined(selected, {}, refine, teacher=self.pool)
         self._sizes, self._last = {}, None
         if self.budget.budget_bytes is None:
@@ -300,7 +306,7 @@ class ShareCut:
         encoding) and the results its metadata records. (Only the last one is kept.)"""
         if self._last is None or self._last[0] != count:
             shared = cut_map(self.pool, count, self.strategy, self.seed, self.fold,
-                             self.first_ids)  # fmt: skip
+                             self.first_ids, self.spread)  # fmt: skip
             if self.T_target_source is not None:  # (the sender's frames refine, before this)
                 shared = transform_map(shared, self.T_target_source)
             meta = self._meta
@@ -311,6 +317,7 @@ class ShareCut:
                 "codec": self.codec,
                 "sums": self.sums,
                 "fold": self.fold,
+                **({"spread": True} if self.spread else {}),
                 "selected": len(shared),
                 "total": len(self.full),
                 **self.receiver,
@@ -354,6 +361,7 @@ def share_log(
     carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
     receiver: str | Path | None = None,
     device: str = "auto",
+    spread: bool = False,
 ) -> dict[str, Any]:
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
 
@@ -395,6 +403,8 @@ def share_log(
             first (`gscompress.pipeline.receiver`; needs torch, rendered on `device`); a byte
             budget counts its request's bytes too. In its own world frame, which must be the
             map's unless `align_to` gives the transform.
+        spread: send the best of distinct places first (`selection.spread_ranks`): the
+            strategy's order, spread over space.
 
     Raises:
         InputError: bad budget, codec or strategy (OptionError: --ply equal to the MCAP
@@ -419,7 +429,7 @@ def share_log(
                    fold_dropped=fold_dropped, refine=refine, solve=solve, command=command,
                    source=source, align=align, carry=carry,
                    receiver=None if receiver is None else read_request(receiver),
-                   device=device)  # fmt: skip
+                   device=device, spread=spread)  # fmt: skip
     count = cut.budget.count(len(cut.full), cut.size)
     if refine is not None:
         count = cut.refined(count, refine)

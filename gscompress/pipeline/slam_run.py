@@ -268,7 +268,10 @@ def _fresh_run(
         received = read_share(inject, meta.world_frame, "--inject", share_transform, True)
         record = received.record
         if received.carried:
-            check_same_camera(received.camera, sequence.intrinsics, str(inject))
+            check_same_camera(
+                received.camera, sequence.intrinsics, str(inject), "this run maps",
+                "run at the sender's --size, or inject a share cut without --keyframes",
+            )  # fmt: skip
         views = carried_views(received.carried, system.device)
         injected = system.receive(received.gaussians, views)
         operation = {

@@ -65,6 +65,7 @@ def solve_share(
     seq: str | Path | None = None,
     views: int = SOLVE_VIEWS,
     device: str = "auto",
+    spread: bool = False,
 ) -> tuple[Candidate, list[Candidate], dict[str, Any]]:
     """Weigh the candidate shares of `src`'s map under `budget` and pick the best picture.
 
@@ -72,7 +73,7 @@ def solve_share(
         src: the sender's SLAM log.
         budget: the share budget (bytes, or a fraction of the map's fp32 bytes; a fraction of
             the Gaussians fixes the count, leaving the codec to choose).
-        strategy, seed: how Gaussians are ranked (as `gsc share`).
+        strategy, seed, spread: how Gaussians are ranked (as `gsc share`).
         codec, sums, fold: constrain the search to this codec / PWAS state / folding (None:
             any).
         seq: the sender's sequence: score against its keyframe images (else against the whole
@@ -109,7 +110,7 @@ def solve_share(
         if any(w is not None and w != c for w, c in wanted):
             continue
         cut = ShareCut(src, budget, strategy=strategy, codec=cand_codec, sums=cand_sums,
-                       seed=seed, fold_dropped=cand_fold)  # fmt: skip
+                       seed=seed, fold_dropped=cand_fold, spread=spread)  # fmt: skip
         try:
             count = cut.budget.count(len(cut.full), cut.size)
         except BudgetError as exc:
@@ -177,6 +178,7 @@ def share_solved(
     receiver: str | Path | None = None,
     command: str = "",
     force: bool = False,
+    spread: bool = False,
 ) -> dict[str, Any]:
     """`share_log` with the codec and PWAS state the solver chose (`solve_share`), the solver's
     record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and
@@ -189,12 +191,12 @@ def share_solved(
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
     best, _weighed, record = solve_share(
         src, budget, strategy=strategy, seed=seed, codec=codec, sums=sums, fold=fold, seq=seq,
-        views=views, device=device,
+        views=views, device=device, spread=spread,
     )  # fmt: skip
     record["predicted_psnr"] = best.psnr
     result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
                        seed=seed, fold_dropped=best.fold, ply=ply, refine=refine, solve=record,
                        align_to=align_to, carry=carry, receiver=receiver, device=device,
-                       command=command, force=force)  # fmt: skip
+                       command=command, force=force, spread=spread)  # fmt: skip
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result

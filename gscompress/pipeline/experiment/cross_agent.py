@@ -14,6 +14,11 @@ to where the fixed map explains it best, and the scores are taken there. Startin
   transform of the experiment's alignment step (A's world to B's; its inverse for A's map);
 - on all frames: the map's own poses where its log has them, the other agent's (moved) on the
   rest. The centralised run (one agent on every frame) starts at its own poses everywhere.
+
+A pose is refined frame by frame, so the figures on all frames are not computed again: they
+are those of A's frames and B's together, each frame once, from the set whose starting pose
+the all-frame set gives it (the map's own agent's set; either for the centralised run). With
+`every` > 1 the all-frame set is therefore the frames scored on A's and B's.
 """
 
 from __future__ import annotations
@@ -108,7 +113,7 @@ def cross_scores(
         pose change in cm and degrees, without the per-frame list).
     """
     from gscompress.io.trajectory import read_transform, write_tum_trajectory
-    from gscompress.pipeline.evaluate import evaluate_log
+    from gscompress.pipeline.evaluate import evaluate_log, union_results
 
     T_own_other = None
     if transform is not None and own != "all":
@@ -134,10 +139,14 @@ def cross_scores(
                     [f"starting poses of {log_path.name} on {name} frames: {start}"],
                 )  # fmt: skip
                 poses["poses"] = tum
-        result = evaluate_log(
-            log_path, seq, frames=frames[name], every=every, refine_poses=iters, lpips=lpips,
-            device=device, **poses,
-        )  # fmt: skip
+        if name == "all":  # A's frames and B's hold every frame, each from its starting pose
+            first, second = ("a", "b") if own == "all" else (own, "b" if own == "a" else "a")
+            result = union_results(full[first], full[second])
+        else:
+            result = evaluate_log(
+                log_path, seq, frames=frames[name], every=every, refine_poses=iters,
+                lpips=lpips, device=device, **poses,
+            )  # fmt: skip
         full[name] = result
         refined = {k: v for k, v in result["refined"].items() if k != "per_frame"}
         summary[name] = {"frames": frames[name], "start": start, "refined": refined,

@@ -176,12 +176,13 @@ def _share_job(
     fold: bool = False,
     receiver: Path | None = None,
     device: str = "auto",
+    spread: bool = False,
 ) -> dict[str, Any]:
     from gscompress.pipeline.offline import share_log
 
     # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
     return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
-                     receiver=receiver, device=device, force=True)  # fmt: skip
+                     receiver=receiver, device=device, spread=spread, force=True)  # fmt: skip
 
 
 def _digest(result: dict[str, Any]) -> str:
@@ -440,12 +441,14 @@ class Runner:
                                 "strategy": strategy, "seed": seed}  # fmt: skip
         if self.settings.fold:  # (unfolded steps keep the spec they always had)
             spec["fold"] = True
+        if self.settings.spread:
+            spec["spread"] = True
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(
             _share_job, source=source.path, budget=budget, strategy=strategy.removesuffix(FOR_B),
             seed=seed, fold=self.settings.fold, device=self.settings.device,
-            receiver=None if receiver is None else receiver.path,
+            receiver=None if receiver is None else receiver.path, spread=self.settings.spread,
         )  # fmt: skip
         return self._step(name, spec, job, after=[source] + ([receiver] if receiver else []))
 
@@ -466,7 +469,8 @@ class Runner:
         s = self.settings
         spec = {"kind": "cross-score", "map": run.key, "own": own, "frames": frames,
                 "other": other.key if other else None, "align": align.key if align else None,
-                "iters": s.refine_poses, "every": s.every, "lpips": s.lpips}  # fmt: skip
+                "iters": s.refine_poses, "every": s.every, "lpips": s.lpips,
+                "all": "a and b"}  # fmt: skip
         job = functools.partial(
             cross_scores, seq=self.seq, log_path=run.path, own=own, frames=frames,
             other=other.path if other else None, transform=align.path if align else None,

@@ -87,6 +87,7 @@ class ExperimentSettings:
         fold: each share folds what it leaves out into what it sends (`gsc share`'s default);
             off, the shares are the paper's top K, so that the strategies differ only in their
             choice.
+        spread: every strategy's order spread over space (`gsc share --spread`).
         anchor: "gt": both agents start at the ground-truth pose of their first frame, so their
             maps share a frame; "own": each starts at the identity at its own first frame, A's
             map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives
@@ -120,6 +121,7 @@ class ExperimentSettings:
     merge_lr_final: float = DEFAULT_LR_FINAL
     merge_how: str = "exact"
     fold: bool = False
+    spread: bool = False
     anchor: str = "gt"
     refine_poses: int = 100
 

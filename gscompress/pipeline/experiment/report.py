@@ -26,6 +26,9 @@ from gscompress.pipeline.experiment.protocol import (
 from gscompress.pipeline.offline import log_edges
 from gscompress.selection import strategy_scores
 
+TIE_DB = 0.005
+"""Two PSNRs closer than this (they print alike at 0.01 dB) are a tie, counted apart."""
+
 CROSS_KEYS = ("refined_psnr", "pose_change_cm", "pose_change_deg", "start_psnr")
 """Per frame set (`FRAME_SETS`), the cross-agent columns of a results row."""
 
@@ -105,6 +108,13 @@ def failed_runs(runs: dict[str, str]) -> list[str]:
     return lines
 
 
+def quality_key(s: ExperimentSettings) -> str:
+    """The PSNR column that ranks the shares: all frames at refined poses (what B with a share
+    gains on A's places as well as its own), or, with `refine_poses` 0, B's own frames at its
+    estimated poses."""
+    return "refined_psnr_all" if s.refine_poses else "psnr"
+
+
 def _sweep_rows(
     rows: list[dict[str, Any]], s: ExperimentSettings, budget: str, strategy: str | None = None
 ) -> list[dict]:
@@ -123,7 +133,7 @@ def rate_distortion_curves(
     rows: list[dict[str, Any]], s: ExperimentSettings
 ) -> dict[str, list[tuple[float, float | None, float | None]]]:
     """(share bytes, PSNR, ATE cm) of B per strategy over the sweep budgets, means over the
-    sweep seeds, sorted by bytes.
+    sweep seeds, sorted by bytes; the PSNR is `quality_key`'s.
 
     Each strategy's curve starts at B without a share (0 bytes: "B refined, no share" in merge
     mode, B's own run in inject mode), the point every share is a gain over; "full" is the one
@@ -133,9 +143,11 @@ def rate_distortion_curves(
     reference = B_NO_SHARE if s.mode == "merge" else AGENT_ROWS[s.split][1]
     base = [r for r in seeds if r["name"] == reference]
 
+    key = quality_key(s)
+
     def point(group: list[dict[str, Any]]) -> tuple[float, float | None, float | None]:
         size = mean_of([r["share_bytes"] or 0 for r in group]) or 0.0
-        return size, mean_of([r["psnr"] for r in group]), mean_of([r["ate_rmse_cm"] for r in group])
+        return size, mean_of([r[key] for r in group]), mean_of([r["ate_rmse_cm"] for r in group])
 
     curves: dict[str, list[tuple[float, float | None, float | None]]] = {}
     for strategy in s.strategies:
@@ -155,19 +167,23 @@ def mean_of(values: Sequence[Any]) -> float | None:
     return float(np.mean(numbers)) if numbers else None
 
 
-def paired_difference(group: list[dict[str, Any]], key: str) -> dict[str, Any]:
-    """PWAS minus random in `key`, paired by seed, over the rows of one budget.
+def paired_difference(
+    group: list[dict[str, Any]], key: str, other: str = "random"
+) -> dict[str, Any]:
+    """PWAS minus `other` in `key`, paired by (seed, budget), over the rows of `group`.
 
-    Seeds without a finite value for both strategies are left out. Returns the number of pairs,
+    Cells without a finite value for both strategies are left out. Returns the number of pairs,
     the mean difference, its standard error (sample standard deviation / sqrt(pairs); None
-    below two pairs) and how many differences are positive and negative.
+    below two pairs), how many differences are positive and negative, and how many of each
+    lie beyond `TIE_DB` (`above`, `below`; the rest are `ties`).
     """
-    values: dict[int, dict[str, float]] = {}
+    values: dict[tuple[int, str], dict[str, float]] = {}
     for row in group:
         value = row.get(key)
-        if row["strategy"] in ("pwas", "random") and value is not None and math.isfinite(value):
-            values.setdefault(row["seed"], {})[row["strategy"]] = float(value)
-    diffs = np.array([v["pwas"] - v["random"] for v in values.values() if len(v) == 2])
+        if row["strategy"] in ("pwas", other) and value is not None and math.isfinite(value):
+            cell = (row["seed"], str(row["budget"]))
+            values.setdefault(cell, {})[row["strategy"]] = float(value)
+    diffs = np.array([v["pwas"] - v[other] for v in values.values() if len(v) == 2])
     n = len(diffs)
     return {
         "pairs": n,
@@ -175,11 +191,40 @@ def paired_difference(group: list[dict[str, Any]], key: str) -> dict[str, Any]:
         "se": float(diffs.std(ddof=1) / math.sqrt(n)) if n > 1 else None,
         "positive": int((diffs > 0).sum()),
         "negative": int((diffs < 0).sum()),
+        "above": int((diffs > TIE_DB).sum()),
+        "below": int((diffs < -TIE_DB).sum()),
+        "ties": int((abs(diffs) <= TIE_DB).sum()),
+    }
+
+
+def pwas_cells(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, Any]:
+    """PWAS against every other compared strategy, cell by cell: each (seed, budget) of the
+    sweep (the sweep seeds, every sweep budget) where all of them were scored, by
+    `quality_key`. A cell counts as `at_or_above` when PWAS is above or tied with each other
+    strategy, `above` when above every one by more than `TIE_DB`."""
+    key = quality_key(s)
+    others = [name for name in s.strategies if name != "pwas"]
+    group = [r for b in s.sweep for r in _sweep_rows(rows, s, b)]
+    cells: dict[tuple[int, str], dict[str, float]] = {}
+    for row in group:
+        value = row.get(key)
+        if value is not None and math.isfinite(value):
+            cell = (row["seed"], str(row["budget"]))
+            cells.setdefault(cell, {})[row["strategy"]] = float(value)
+    full = [c for c in cells.values() if "pwas" in c and all(o in c for o in others)]
+    margins = [min(c["pwas"] - c[o] for o in others) for c in full] if others else []
+    return {
+        "key": key,
+        "cells": len(full),
+        "at_or_above": sum(m >= -TIE_DB for m in margins),
+        "above": sum(m > TIE_DB for m in margins),
+        "against": {o: paired_difference(group, key, o) for o in others},
     }
 
 
 def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, Any]:
-    """PWAS against random: per seed at the main budget, and per budget in the sweep."""
+    """PWAS against random: per seed at the main budget, and per budget in the sweep; and
+    against every compared strategy cell by cell (`pwas_cells`). PSNR is `quality_key`'s."""
 
     def pick(table: str, strategy: str, budget: str, seed: int) -> dict[str, Any] | None:
         for row in rows:
@@ -189,6 +234,7 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
                 return row
         return None
 
+    key = quality_key(s)
     psnr_wins = ate_wins = 0
     per_seed = []
     for seed in range(s.seeds):
@@ -196,7 +242,7 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
         assert p is not None and r is not None
         if p["error"] or r["error"]:  # (in results.md's failed runs)
             continue
-        psnr_win = (p["psnr"] or 0) > (r["psnr"] or 0)
+        psnr_win = (p[key] or 0) > (r[key] or 0)
         ate_win = (p["ate_rmse_cm"] or math.inf) < (r["ate_rmse_cm"] or math.inf)
         psnr_wins += psnr_win
         ate_wins += ate_win
@@ -205,11 +251,11 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
     sweep = []
     for budget in s.sweep:
         group = _sweep_rows(rows, s, budget)
-        mp = mean_of([r["psnr"] for r in group if r["strategy"] == "pwas"])
-        mr = mean_of([r["psnr"] for r in group if r["strategy"] == "random"])
+        mp = mean_of([r[key] for r in group if r["strategy"] == "pwas"])
+        mr = mean_of([r[key] for r in group if r["strategy"] == "random"])
         if mp is None or mr is None:
             continue
-        psnr = paired_difference(group, "psnr")
+        psnr = paired_difference(group, key)
         ate = paired_difference(group, "ate_rmse_cm")
         sweep.append({"budget": budget, "pwas_psnr": mp, "random_psnr": mr,
                       "pwas_at_or_above_random": mp >= mr, "pairs": psnr["pairs"],
@@ -223,8 +269,10 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
         "mode": s.mode,
         "pwas_beats_random_psnr": psnr_wins,
         "pwas_beats_random_ate": ate_wins,
+        "psnr_key": key,
         "per_seed": per_seed,
         "sweep": sweep,
+        "cells": pwas_cells(rows, s),
     }
 
 
@@ -288,7 +336,7 @@ def _receive_text(s: ExperimentSettings) -> str:
         "Each share folds what it leaves out into what it sends. "
         if s.fold
         else "Each share is the top K of its strategy, nothing folded. "
-    )
+    ) + ("Every strategy's order is spread over space (`--spread`). " if s.spread else "")
     if s.mode == "inject":
         return shares + "B's run starts with the share injected. "
     how = (
@@ -377,8 +425,8 @@ def _markdown(
     )
     lines += [
         "",
-        f"PWAS beats random at {s.budget}: on PSNR in {v['pwas_beats_random_psnr']} of "
-        f"{s.seeds} seed(s). {ate_text}",
+        f"PWAS beats random at {s.budget}: on PSNR ({_psnr_text(s)}) in "
+        f"{v['pwas_beats_random_psnr']} of {s.seeds} seed(s). {ate_text}",
         "",
         "## Rate-distortion (B with A's share, mean over the sweep seeds)",
         "",
@@ -387,6 +435,8 @@ def _markdown(
         lines.append("No sweep was run (`--sweep-seeds 0`).")
     else:
         lines += [
+            f"PSNR: {_psnr_text(s)}.",
+            "",
             "| Budget | Strategy | PSNR | ATE RMSE (cm) | Gaussians shared | Bytes shared |",
             "|---|---|---|---|---|---|",
         ]
@@ -395,7 +445,7 @@ def _markdown(
             group = _sweep_rows(rows, s, budget, strategy)
             if group:
                 lines.append(
-                    f"| {budget} | {strategy} | {_mean_cell(group, 'psnr')} | "
+                    f"| {budget} | {strategy} | {_mean_cell(group, quality_key(s))} | "
                     f"{_mean_cell(group, 'ate_rmse_cm', '.3f')} | "
                     f"{_mean_cell(group, 'share_gaussians', '.0f')} | "
                     f"{_mean_cell(group, 'share_bytes', '.0f')} |"
@@ -423,6 +473,7 @@ def _markdown(
                     f"{b['pwas_lower_ate']} of {b['pairs']}",
                 ]
             lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    lines += _cell_lines(v["cells"], s)
     if s.refine_poses:
         lines += _cross_lines(rows, s)
     if s.anchor == "own":
@@ -441,6 +492,39 @@ def _markdown(
 
 PLOT_DPI = 200
 """Resolution of the PNG plots (an SVG of each is written beside it)."""
+
+
+def _psnr_text(s: ExperimentSettings) -> str:
+    """What the PSNR that ranks the shares (`quality_key`) is, in words."""
+    if s.refine_poses:
+        return f"all frames, each pose refined against the map ({s.refine_poses} iterations)"
+    return "B's own frames at B's estimated poses"
+
+
+def _cell_lines(cells: dict[str, Any], s: ExperimentSettings) -> list[str]:
+    """results.md's count of PWAS against each other strategy, cell by cell (`pwas_cells`)."""
+    if not cells["cells"]:
+        return []
+    n = cells["cells"]
+    lines = [
+        "",
+        "## PWAS against each strategy, cell by cell",
+        "",
+        f"Each (seed, budget) of the sweep where every strategy was scored ({n} cells; PSNR: "
+        f"{_psnr_text(s)}). PWAS is at or above every other strategy in "
+        f"{cells['at_or_above']} of {n} cells ({100 * cells['at_or_above'] / n:.0f}%), above "
+        f"every one by more than {TIE_DB:g} dB in {cells['above']}. Against each, PWAS minus "
+        "the strategy (mean ± standard error over the cells):",
+        "",
+        "| Strategy | Cells | PWAS above | Tied | PWAS below | PWAS minus it (dB) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, d in cells["against"].items():
+        lines.append(
+            f"| {name} | {d['pairs']} | {d['above']} | {d['ties']} | {d['below']} | "
+            f"{_plus_minus(d['mean'], d['se'], '.2f')} |"
+        )
+    return lines
 
 
 def _plot_title(seq: Path, s: ExperimentSettings, what: str, seeds: str) -> str:
@@ -529,7 +613,8 @@ def _plot_rate_distortion(
     In merge mode B's poses are fixed, so the ATE panel is left out (results.md says why)."""
     import matplotlib.pyplot as plt
 
-    columns = [(1, "PSNR of agent B (dB)")]
+    columns = [(1, "PSNR of B, all frames, poses refined (dB)" if s.refine_poses
+                else "PSNR of agent B on its frames (dB)")]  # fmt: skip
     if s.mode == "inject":
         columns.append((2, "ATE RMSE of agent B (cm)"))
     fig, axes = plt.subplots(1, len(columns), figsize=(5.5 * len(columns), 4.2), squeeze=False)
