@@ -661,17 +661,19 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
     assert all(math.isfinite(rows["B + pwas 0.2"][key]) for key in CROSS)
 
 
-def test_folded_shares_and_the_default_merge_rerun_only_what_they_change(
+def test_folded_spread_shares_and_the_default_merge_rerun_only_what_they_change(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
     seq, copy = experiment[0], _copy(experiment, tmp_path)
-    again = _run(seq, copy, "--merge", "default", "--fold")
+    again = _run(seq, copy, "--merge", "default", "--fold", "--spread")
     assert 0 < again["steps"] - again["reused"] < again["steps"]  # the SLAM runs were reused
     records = {p.stem: json.loads(p.read_text()) for p in (copy / "runs").glob("*.json")}
     shares = [s for s in records.values() if s.get("spec", {}).get("kind") == "share"]
     # (records of other tests' steps in the fixture's folder stay as they were)
     folded = [s for s in shares if s["spec"].get("fold")]
     assert len(folded) >= 2 and all(s["result"]["fold"] for s in folded)  # pwas and random
+    assert all(s["spec"]["spread"] and s["result"]["spread"] for s in folded)
+    assert "spread over space (`--spread`)" in (copy / "results.md").read_text()
     merges = [name for name, r in records.items() if r.get("spec", {}).get("kind") == "merge"
               and r["spec"].get("merge", {}).get("resolve") == "evidence"]  # fmt: skip
     assert merges
