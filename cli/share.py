@@ -240,6 +240,7 @@ def share(
         result,
         as_json,
         f"shared {result['selected']} of {result['total']} Gaussians ({strategy}"
-        f"{', the rest folded in' if folded else ''}, {codec}, {result['file_bytes']} B)"
+        f"{', spread' if spread else ''}{', the rest folded in' if folded else ''}, {codec}, "
+        f"{result['file_bytes']} B)"
         f"{carried}{refined_text(result)} -> {dst}{extra}",
     )
