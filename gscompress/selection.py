@@ -205,9 +205,26 @@ def select_count(
     Returns:
         The kept map and the [k] indices of the kept Gaussians in the input.
     """
+    scores = selection_scores(gaussians, strategy, seed, spread)
+    return select_by(gaussians, k, scores, first)
+
+
+def selection_scores(
+    gaussians: GaussianMap, strategy: str | Strategy, seed: int = 0, spread: bool = False
+) -> np.ndarray:
+    """[N] float64 what a selection ranks by, higher first: the strategy's scores, or with
+    `spread` their order spread over space (`spread_ranks`)."""
     scores = strategy_scores(gaussians, strategy, seed)
     if spread:
         scores = -spread_ranks(scores, gaussians.ids, gaussians.means).astype(np.float64)
+    return scores
+
+
+def select_by(
+    gaussians: GaussianMap, k: int, scores: np.ndarray, first: np.ndarray | None = None
+) -> tuple[GaussianMap, np.ndarray]:
+    """The `k` Gaussians with the highest `scores` (`selection_scores`), those `first` marks
+    ranked above the rest (`top_k_first`): the kept map and their [k] indices."""
     if first is None:
         index = top_k(scores, gaussians.ids, k)
     else:

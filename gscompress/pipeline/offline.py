@@ -37,7 +37,13 @@ from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.fold import fold
 from gscompress.ops.merge import transform_map
 from gscompress.pipeline.receiver import Request, budget_less_request, read_request, unseen_ids
-from gscompress.selection import check_ratio, keep_count, select_count, strategy_scores
+from gscompress.selection import (
+    check_ratio,
+    keep_count,
+    select_by,
+    selection_scores,
+    strategy_scores,
+)
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +109,8 @@ def prune_log(
     check_ratio(keep, "--keep")
 
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
-        kept = cut_map(full, keep_count(len(full), keep), by, seed, fold_dropped)
+        scores = selection_scores(full, by, seed)
+        kept = cut_map(full, keep_count(len(full), keep), scores, fold_dropped)
         return refined(kept, {"kept": len(kept), "total": len(full), "fold": fold_dropped},
                        refine, teacher=full)  # fmt: skip
 
@@ -120,19 +127,16 @@ def prune_log(
 def cut_map(
     full: GaussianMap,
     count: int,
-    strategy: str,
-    seed: int,
+    scores: np.ndarray,
     fold_dropped: bool,
-    first_ids: np.ndarray | None = None,
-    spread: bool = False,
+    first: np.ndarray | None = None,
 ) -> GaussianMap:
-    """The `count` Gaussians of `full` with the highest `strategy` scores, each with the dropped
-    ones near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians,
-    ids and order either way). What `gsc prune` keeps and `gsc share` sends. With `first_ids`,
-    the Gaussians of those ids rank above all the others (a receiver-aware share); with
-    `spread`, the best of distinct places come first (`selection.spread_ranks`)."""
-    first = None if first_ids is None else np.isin(full.ids, first_ids)
-    kept, index = select_count(full, count, strategy, seed, first, spread)
+    """The `count` Gaussians of `full` with the highest `scores` (a strategy's, from
+    `selection.selection_scores`: spread over space there if asked), each with the dropped ones
+    near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians, ids and
+    order either way). What `gsc prune` keeps and `gsc share` sends. `first` ([N] bool) ranks
+    the Gaussians it marks above all the others (a receiver-aware share)."""
+    kept, index = select_by(full, count, scores, first)
     return fold(full, index) if fold_dropped else kept
 
 
@@ -284,18 +288,27 @@ class ShareCut:
         self._meta.config = {}  # bytes on the link: the receiver maps with its own config
         if align is not None:  # the share is expressed in the target's frame
             self._meta.world_frame = align[1]["target_world_frame"]
-        self.pool = self.full  # what the K best are taken from
+        self._take_from(self.full)
         self.extra: dict[str, Any] = {}  # further results (a refinement's)
         self._sizes: dict[int, int] = {}
         self._last: tuple[int, tuple[bytes, GaussianMap, dict[str, Any]]] | None = None
+
+    def _take_from(self, pool: GaussianMap) -> None:
+        """Take the K best from `pool`: its ranking and the receiver's preference are computed
+        here once, not for every count a byte budget tries."""
+        self.pool = pool
+        self._scores = selection_scores(pool, self.strategy, self.seed, self.spread)
+        self._first = None if self.first_ids is None else np.isin(pool.ids, self.first_ids)
+
+    def _cut(self, count: int) -> GaussianMap:
+        return cut_map(self.pool, count, self._scores, self.fold, self._first)
 
     def refined(self, count: int, refine: MapRefiner) -> int:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
         count that then fits (the refined values may compress less well than the first ones:
         the budget still holds)."""
-        selected = cut_map(self.pool, count, self.strategy, self.seed, self.fold, self.first_ids,
-                           self.spread)  # fmt: skip
-        self.pool, self.extra = refined(selected, {}, refine, teacher=self.pool)
+        pool, self.extra = refined(self._cut(count), {}, refine, teacher=self.pool)
+        self._take_from(pool)
         self._sizes, self._last = {}, None
         if self.budget.budget_bytes is None:
             return count
@@ -305,8 +318,7 @@ class ShareCut:
         """The share file of the `count` best Gaussians: its bytes, its map (as selected, before
         encoding) and the results its metadata records. (Only the last one is kept.)"""
         if self._last is None or self._last[0] != count:
-            shared = cut_map(self.pool, count, self.strategy, self.seed, self.fold,
-                             self.first_ids, self.spread)  # fmt: skip
+            shared = self._cut(count)
             if self.T_target_source is not None:  # (the sender's frames refine, before this)
                 shared = transform_map(shared, self.T_target_source)
             meta = self._meta

@@ -167,6 +167,17 @@ def mean_of(values: Sequence[Any]) -> float | None:
     return float(np.mean(numbers)) if numbers else None
 
 
+def cell_values(group: list[dict[str, Any]], key: str) -> dict[tuple[int, str], dict[str, float]]:
+    """Per (seed, budget) cell of `group`'s rows, each strategy's finite value of `key`."""
+    cells: dict[tuple[int, str], dict[str, float]] = {}
+    for row in group:
+        value = row.get(key)
+        if value is not None and math.isfinite(value):
+            cell = (row["seed"], str(row["budget"]))
+            cells.setdefault(cell, {})[row["strategy"]] = float(value)
+    return cells
+
+
 def paired_difference(
     group: list[dict[str, Any]], key: str, other: str = "random"
 ) -> dict[str, Any]:
@@ -177,13 +188,8 @@ def paired_difference(
     below two pairs), how many differences are positive and negative, and how many of each
     lie beyond `TIE_DB` (`above`, `below`; the rest are `ties`).
     """
-    values: dict[tuple[int, str], dict[str, float]] = {}
-    for row in group:
-        value = row.get(key)
-        if row["strategy"] in ("pwas", other) and value is not None and math.isfinite(value):
-            cell = (row["seed"], str(row["budget"]))
-            values.setdefault(cell, {})[row["strategy"]] = float(value)
-    diffs = np.array([v["pwas"] - v[other] for v in values.values() if len(v) == 2])
+    cells = cell_values(group, key).values()
+    diffs = np.array([v["pwas"] - v[other] for v in cells if "pwas" in v and other in v])
     n = len(diffs)
     return {
         "pairs": n,
@@ -205,13 +211,8 @@ def pwas_cells(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, A
     key = quality_key(s)
     others = [name for name in s.strategies if name != "pwas"]
     group = [r for b in s.sweep for r in _sweep_rows(rows, s, b)]
-    cells: dict[tuple[int, str], dict[str, float]] = {}
-    for row in group:
-        value = row.get(key)
-        if value is not None and math.isfinite(value):
-            cell = (row["seed"], str(row["budget"]))
-            cells.setdefault(cell, {})[row["strategy"]] = float(value)
-    full = [c for c in cells.values() if "pwas" in c and all(o in c for o in others)]
+    cells = cell_values(group, key).values()
+    full = [c for c in cells if "pwas" in c and all(o in c for o in others)]
     margins = [min(c["pwas"] - c[o] for o in others) for c in full] if others else []
     return {
         "key": key,
