@@ -33,7 +33,6 @@ import argparse
 import json
 import logging
 import platform
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -51,10 +50,10 @@ from gscompress.io import spz
 from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions
 from gscompress.io.mcap_log import LogReader, decode_map_message, encode_map
 from gscompress.io.ply import read_ply, write_ply
+from gscompress.io.sog import splat_transform
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
-SPLAT_TRANSFORM = ROOT / "tests" / "js" / "node_modules" / ".bin" / "splat-transform"
 
 SEQUENCES = {
     "tabletop": ("tsdffusion_tabletop_box", None),
@@ -98,8 +97,8 @@ def file_formats(g: GaussianMap, tmp: Path) -> dict[str, tuple[int, GaussianMap 
         "ply": (len(data), read_ply(ply)),
         "ply+zstd": (len(zstandard.ZstdCompressor(level=19).compress(data)), read_ply(ply)),
     }
-    node = shutil.which("node")
-    if node is None or not SPLAT_TRANSFORM.exists():
+    tool = splat_transform()
+    if tool is None:
         logging.warning("node or splat-transform missing (make js-deps): its formats left out")
         return out
     for name, suffix in (("st-spz", ".spz"), ("st-sog", ".sog"), ("st-cply", ".compressed.ply")):
@@ -107,7 +106,7 @@ def file_formats(g: GaussianMap, tmp: Path) -> dict[str, tuple[int, GaussianMap 
         back = tmp / f"back_{name}.ply"
         for path in (target, back):
             path.unlink(missing_ok=True)
-        run = [str(SPLAT_TRANSFORM), "-w"]
+        run = [tool, "-w"]
         subprocess.run([*run, str(ply), str(target)], check=True, capture_output=True)
         subprocess.run([*run, str(target), str(back)], check=True, capture_output=True)
         out[name] = (target.stat().st_size, _read_clamped(back))

@@ -15,6 +15,7 @@ from gscompress.pipeline.experiment import (
     run_experiment,
 )
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
+from gscompress.pipeline.offline import REFERENCE_FORMATS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 from gscompress.slam.views import REFINE_VIEWS
 
@@ -38,6 +39,19 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     if not items:
         raise click.BadParameter("give at least one budget")
     return tuple(str(BudgetParam().convert(item, param, ctx)) for item in items)
+
+
+def _formats(value: str) -> tuple[str, ...]:
+    """Comma-separated reference formats, or none."""
+    items = tuple(v.strip() for v in value.split(",") if v.strip())
+    if items == ("none",):
+        return ()
+    unknown = [v for v in items if v not in REFERENCE_FORMATS]
+    if unknown:
+        raise click.BadParameter(
+            f"unknown format {unknown[0]!r}: give none or some of {', '.join(REFERENCE_FORMATS)}"
+        )
+    return items
 
 
 @click.command("experiment", short_help="Run the paper's two-agent protocol: tables and plots.")
@@ -67,6 +81,15 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 @click.option(
     "--sweep-seeds", type=click.IntRange(min=0), default=1, show_default=True,
     help="How many of the seeds (the first ones) run the sweep, at most --seeds (0: none).",
+)  # fmt: skip
+@click.option(
+    "--references", default=",".join(REFERENCE_FORMATS), show_default=True,
+    callback=lambda ctx, param, value: _formats(value),
+    help="On the sweep seeds, A's whole map also sent whole in these formats and received by "
+    "B like a share: the field's points on the rate-distortion plot and a table beside the "
+    "PWAS curve at the same bytes. fp32: our fp32 codec; spz: SPZ v4; sog: PlayCanvas SOG, "
+    "written by @playcanvas/splat-transform (left out, with a note, where it is missing: "
+    "`make js-deps`). none: no such points.",
 )  # fmt: skip
 @click.option(
     "--strategies", default="random,opacity,alpha-t,pwas", show_default=True,
@@ -132,6 +155,11 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     "of each of K distinct places first.",
 )  # fmt: skip
 @click.option(
+    "--sums/--no-sums", default=True, show_default=True,
+    help="Send the PWAS sums in every compact share (`gsc share`'s default); without them "
+    "each Gaussian's score goes in 16 bits and a byte budget holds more Gaussians.",
+)  # fmt: skip
+@click.option(
     "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
     help="Refinement iterations of each merge.",
 )  # fmt: skip
@@ -185,6 +213,7 @@ def experiment(
     seeds: int,
     sweep: tuple[str, ...],
     sweep_seeds: int,
+    references: tuple[str, ...],
     strategies: str,
     size: tuple[int, int] | None,
     frames: str,
@@ -200,6 +229,7 @@ def experiment(
     merge_how: str,
     fold: bool,
     spread: bool,
+    sums: bool,
     jobs: int,
     executor: str,
     address: str | None,
@@ -218,7 +248,8 @@ def experiment(
       bound): merged into B's map and refined on B's frames (--mode merge; --merge-views
       keyframes for its keyframes only), or injected before B's first frame so that its
       tracking uses it too (--mode inject).
-    - Rate-distortion: PSNR and ATE of B against the share size, per strategy.
+    - Rate-distortion: PSNR and ATE of B against the share's bytes, per strategy, with A's
+      whole map as our compact share and as fp32, SPZ and SOG (--references).
     Table 3's PWAS run (one agent on all the frames, the agents' preset) is the centralised
     reference.
     Every run is scored with `gsc eval` on its own frames; with --refine-poses N (default
@@ -246,6 +277,7 @@ def experiment(
         seeds=seeds,
         sweep=sweep,
         sweep_seeds=sweep_seeds,
+        references=references,
         strategies=tuple(s.strip() for s in strategies.split(",") if s.strip()),
         size=size,
         frames=frames,
@@ -261,6 +293,7 @@ def experiment(
         merge_how=merge_how,
         fold=fold,
         spread=spread,
+        sums=sums,
         lpips=not no_lpips,
         device=device,
     )

@@ -95,9 +95,10 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 TINY_STUDY = ("--preset", "tiny", "--seeds", "1", "--sweep", "0.2", "--strategies",
               "random,pwas", "--merge-iters", "5", "--refine-poses", "2", "--no-lpips",
-              "--json")  # fmt: skip
+              "--references", "none", "--json")  # fmt: skip
 """`gsc experiment` options of a study of a few seconds: one seed, two strategies, one budget,
-short merges, short pose refinement of the cross-agent scoring (11 runs and 7 scoring steps)."""
+short merges, short pose refinement of the cross-agent scoring, no whole map in the field's
+formats (11 runs and 7 scoring steps)."""
 
 
 @pytest.fixture(scope="session")

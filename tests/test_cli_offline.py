@@ -601,3 +601,31 @@ def test_log_lines_go_above_a_shown_bar_and_handlers_come_back(monkeypatch):
         raise RuntimeError
     assert stream.getvalue() == "early\nlate\n" and cleared_for == [stream]
     assert root.handlers == [console]  # put back, after an exception too
+
+
+def test_format_shares_send_the_whole_map_in_each_format(log_path, tmp_path):
+    from scipy.spatial import cKDTree
+
+    from gscompress.errors import InputError
+    from gscompress.io.sog import splat_transform
+    from gscompress.pipeline.offline import format_share
+
+    full = read_map(log_path)
+    sizes = {}
+    for fmt in ("fp32", "spz", *(("sog",) if splat_transform() else ())):
+        out = tmp_path / f"{fmt}.mcap"
+        got = format_share(log_path, out, fmt)
+        back = read_map(out)
+        assert got["format"] == fmt and got["selected"] == len(back) == len(full)
+        dist, idx = cKDTree(back.means).query(full.means)
+        assert len(np.unique(idx)) == len(full) and dist.max() < 2e-3  # within the format's steps
+        assert fmt != "fp32" or dist.max() == 0
+        with LogReader(out) as log:  # in the sender's world frame, without its config
+            assert log.metadata.sequence == "synthetic" and log.metadata.config == {}
+            name = log.metadata.provenance[-1]["operation"]["name"]
+        assert name == ("share" if fmt == "fp32" else "format-share")
+        sizes[fmt] = got["bytes"]
+    assert sizes["spz"] < sizes["fp32"] / 3
+    with pytest.raises(InputError, match="unknown format 'ply'"):
+        format_share(log_path, tmp_path / "x.mcap", "ply")
+    assert not (tmp_path / "x.mcap").exists()

@@ -26,6 +26,8 @@ from gscompress.pipeline.experiment import (
     rate_distortion_curves,
     resolve_settings,
 )
+from gscompress.pipeline.experiment.protocol import reference_formats
+from gscompress.pipeline.experiment.report import curve_at
 from gscompress.pipeline.offline import smallest_share_bytes
 from gscompress_cli.main import cli
 
@@ -86,6 +88,18 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert pwas["gaussians"] == b["gaussians"] + pwas["share_gaussians"]  # a merge drops none
     assert pwas["share_gaussians"] == round(0.2 * a["gaussians"])
     assert full["share_gaussians"] == a["gaussians"] and full["share_bytes"] > pwas["share_bytes"]
+    # A's whole map in the field's formats, each received like a share (SOG where it can be
+    # written: CI installs splat-transform)
+    formats = reference_formats(settings)
+    assert {"fp32", "spz"} <= set(formats)
+    whole = {r["strategy"]: r for r in rows if r["table"] == "reference"}
+    assert set(whole) == set(formats)
+    for fmt, row in whole.items():
+        assert row["name"] == f"B + A's whole map as {fmt}" and not row["error"]
+        assert row["share_gaussians"] == a["gaussians"]
+        assert row["gaussians"] == b["gaussians"] + a["gaussians"]  # (the exact merge)
+        assert row["refined_psnr_all"] is not None
+    assert whole["spz"]["share_bytes"] < full["share_bytes"] < whole["fp32"]["share_bytes"]
     with open(out / "results.csv", newline="") as f:
         assert set(next(iter(csv.DictReader(f)))) == set(ROW_KEYS)
     md = (out / "results.md").read_text()
@@ -123,6 +137,9 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert cells["at_or_above"] == sum(m >= -0.005 for m in margins)
     assert f"PWAS is at or above every other strategy in {cells['at_or_above']} of 2" in md
     assert "PWAS minus random, paired by seed" in md and "ATE RMSE (cm) | PWAS lower" not in md
+    assert "| A's whole map as | Gaussians | Bytes |" in md
+    for fmt in formats:
+        assert f"| {fmt} | {a['gaussians']} | {whole[fmt]['share_bytes']} |" in md
 
 
 def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Path, dict]) -> None:
@@ -136,7 +153,8 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     rows = json.loads((out / "results.json").read_text())
     scored = [r for r in rows if r["refine_iters"] is not None]
     assert [r["name"] for r in rows if r not in scored] == ["full, no pruning"]
-    assert len(scored) == 13 and all(r["refine_iters"] == 3 for r in scored)
+    references = len(reference_formats(ExperimentSettings()))  # (B with A's whole map in each)
+    assert len(scored) == 13 + references and all(r["refine_iters"] == 3 for r in scored)
     for row in scored:
         for name in ("a", "b", "all"):
             assert math.isfinite(row[f"refined_psnr_{name}"]), row
@@ -164,7 +182,8 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     assert title in md
     table = md.split(title)[1].split("\n## ")[0]
     assert "| centralised (full, PWAS pruning) |" in table and "| B + A's full map |" in table
-    assert table.count(" cm) |\n") == 13 and "n/a" not in table
+    references = len(reference_formats(ExperimentSettings()))
+    assert table.count(" cm) |\n") == 13 + references and "n/a" not in table
 
 
 def test_refine_poses_0_leaves_the_own_frame_scores_alone(
@@ -178,7 +197,8 @@ def test_refine_poses_0_leaves_the_own_frame_scores_alone(
     scored_md = (copy / "results.md").read_text()
     result = _run(seq, copy, refine=("--refine-poses", "0"))
     settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), refine_poses=0)
-    assert result["steps"] == result["reused"] == plan_size(settings) == 23
+    references = len(reference_formats(settings))  # (a share and B's run with it, each)
+    assert result["steps"] == result["reused"] == plan_size(settings) == 23 + 2 * references
     rows = json.loads((copy / "results.json").read_text())
     cross = {k for k in ROW_KEYS if k.endswith(("_a", "_b", "_all")) or k == "refine_iters"}
     assert len(cross) == 13
@@ -230,7 +250,11 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
     # PSNR on all frames at refined poses; with --refine-poses 0, B's own frames
     for refine, key in ((100, "refined_psnr_all"), (0, "psnr")):
         curves = rate_distortion_curves(rows, replace(settings, refine_poses=refine))
-        assert set(curves) == {"random", "opacity", "alpha-t", "pwas", "full"}
+        formats = reference_formats(settings)
+        assert set(curves) == {"random", "opacity", "alpha-t", "pwas", "full", *formats}
+        for fmt in formats:
+            whole = next(r for r in rows if r["table"] == "reference" and r["strategy"] == fmt)
+            assert curves[fmt] == [(whole["share_bytes"], whole[key], whole["ate_rmse_cm"])]
         for strategy in ("random", "opacity", "alpha-t", "pwas"):
             (x0, psnr0, ate0), *shared = curves[strategy]
             assert (x0, psnr0, ate0) == (0.0, alone[key], alone["ate_rmse_cm"])
@@ -244,6 +268,22 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
     b = next(r for r in rows if r["name"] == "agent B (even frames)")
     assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["refined_psnr_all"]
     assert rate_distortion_curves(rows, ExperimentSettings(preset="tiny", sweep_seeds=0)) == {}
+
+
+def test_a_curve_is_read_between_its_shares_on_log_bytes() -> None:
+    points = [(0.0, 10.0, None), (100.0, 20.0, None), (10000.0, 30.0, None)]
+    assert curve_at(points, 1000.0) == pytest.approx(25.0)  # halfway on a log axis
+    assert curve_at(points, 100.0) == 20.0 and curve_at(points, 10000.0) == 30.0
+    assert curve_at(points, 50.0) is None  # below the first share (0 bytes is not a share)
+    assert curve_at(points, 20000.0) is None and curve_at([], 5.0) is None
+
+
+def test_unknown_reference_formats_are_refused() -> None:
+    r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--references", "fp32,ply"])
+    assert r.exit_code == 2 and "unknown format 'ply'" in r.output, r.output
+    with pytest.raises(OptionError, match="unknown reference formats"):
+        ExperimentSettings(references=("zip",)).check()
+    assert ExperimentSettings(references=()).references == ()
 
 
 def test_pwas_minus_random_is_paired_by_seed() -> None:
@@ -283,7 +323,8 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
 ) -> None:
     seq, out, first = experiment
     scoring = sorted((out / "runs").glob("*_xeval.json"))
-    assert len(scoring) == 13  # all the rows but Table 3's unpruned run
+    references = len(reference_formats(ExperimentSettings()))
+    assert len(scoring) == 13 + references  # all the rows but Table 3's unpruned run
     before = {p.name: p.read_bytes() for p in scoring}
     again = _run(seq, out)
     assert again["reused"] == again["steps"] == first["steps"]  # the scoring steps too
@@ -296,7 +337,8 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
     copy = _copy(experiment, tmp_path)
     fourth = _run(seq, copy, "--sweep", "0.2,0.5,0.3", "--merge-lr-final", "0.5")
     merges = list((copy / "runs").glob("s0_*_agent_b.json"))  # not B's own run, s0_agent_b
-    assert len(merges) == 14  # 4 strategies x 3 + 2, each scored again: 28 steps
+    # 4 strategies x 3 + 2 + A's whole map in each reference format, each scored again
+    assert len(merges) == 14 + references
     assert fourth["steps"] - fourth["reused"] == 2 * len(merges)
     assert all(json.loads(p.read_text())["spec"]["lr_final"] == 0.5 for p in merges)
 
@@ -436,8 +478,10 @@ def test_both_modes_share_one_folder_without_overwriting_runs(
     assert r.exit_code == 0, r.output
     inject = json.loads(r.output)
     # A, B, the shares and their scoring are reused; only B's runs with a share (2 x 2
-    # budgets + full) and their scoring are new
-    assert inject["steps"] - inject["reused"] == 2 * 5
+    # budgets + full, and A's whole map in each reference format) and their scoring are new
+    assert inject["steps"] - inject["reused"] == 2 * (
+        5 + len(reference_formats(ExperimentSettings()))
+    )
     assert "ATE RMSE (cm) | PWAS lower" in (out / "results.md").read_text()  # B's poses move
     r = CliRunner().invoke(cli, base)  # back to merge mode: every merge run is still there
     assert r.exit_code == 0, r.output
@@ -682,6 +726,23 @@ def test_folded_spread_shares_and_the_default_merge_rerun_only_what_they_change(
             assert log.metadata.provenance[-1]["operation"]["resolve"] == "evidence"
     assert "`gsc merge`'s default" in (copy / "results.md").read_text()
     assert "folds what it leaves out" in (copy / "results.md").read_text()
+
+
+def test_shares_without_sums_are_smaller_and_rerun_only_the_shares_and_what_reads_them(
+    experiment: tuple[Path, Path, dict], tmp_path: Path
+) -> None:
+    seq, copy = experiment[0], _copy(experiment, tmp_path)
+    before = {r["name"]: r for r in json.loads((copy / "results.json").read_text())}
+    again = _run(seq, copy, "--strategies", "random,pwas", "--no-sums")
+    # the shares of 2 strategies x 2 budgets and the whole map, each merged and scored
+    assert again["steps"] - again["reused"] == 3 * 5
+    after = {r["name"]: r for r in json.loads((copy / "results.json").read_text())}
+    for name in ("B + pwas 0.2", "B + random 0.5", "B + A's full map"):
+        assert after[name]["share_gaussians"] == before[name]["share_gaussians"]
+        assert after[name]["share_bytes"] < before[name]["share_bytes"], name
+    record = json.loads((copy / "runs" / "s0_pwas_0p2_share.json").read_text())
+    assert record["spec"]["sums"] is False and record["result"]["sums"] is False
+    assert "carry no PWAS sums (`--no-sums`)" in (copy / "results.md").read_text()
 
 
 def test_shares_cut_for_b_sit_beside_the_blind_ones(

@@ -4,7 +4,6 @@ splat-transform's SOG of our PLY cross-checked (skipped without node)."""
 import io
 import json
 import shutil
-import subprocess
 import zipfile
 from pathlib import Path
 
@@ -13,11 +12,10 @@ import pytest
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from gscompress.errors import SogFormatError
+from gscompress.errors import MissingDependencyError, OutputError, SogFormatError
 from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.map_files import read_map_file
-from gscompress.io.ply import write_ply
-from gscompress.io.sog import read_sog
+from gscompress.io.sog import SPLAT_TRANSFORM_ENV, read_sog, splat_transform, write_sog
 
 TOOL = Path(__file__).parent / "js" / "node_modules" / ".bin" / "splat-transform"
 
@@ -145,19 +143,38 @@ def test_a_broken_zip_is_refused(tmp_path):
 
 
 @pytest.mark.skipif(
-    shutil.which("node") is None or not TOOL.exists(),
+    splat_transform() is None,
     reason="node or tests/js/node_modules (make js-deps) missing: splat-transform cannot run",
 )
-def test_splat_transforms_sog_of_our_ply_reads_close_to_our_map(tmp_path):
+def test_splat_transforms_sog_of_our_map_reads_close_to_it(tmp_path):
     g = random_map(1500, seed=12, isotropic=False, sh_degree=1)
-    write_ply(g, tmp_path / "map.ply", importance=False)
-    subprocess.run(
-        [str(TOOL), "-w", "-g", "cpu", str(tmp_path / "map.ply"), str(tmp_path / "map.sog")],
-        check=True, capture_output=True, timeout=300,
-    )  # fmt: skip
+    size = write_sog(g, tmp_path / "map.sog")  # (splat-transform, from our PLY)
+    assert size == (tmp_path / "map.sog").stat().st_size and list(tmp_path.iterdir()) == [
+        tmp_path / "map.sog"
+    ]
     h = read_map_file(tmp_path / "map.sog")
     dist, idx = cKDTree(h.means).query(g.means)
     assert dist.max() < 1e-3 and len(np.unique(idx)) == len(g)
     h = h.select(idx)
     assert_sog_close(h, g, codebook_error=0.05)  # 256 clustered entries
     assert np.abs(h.sh_rest - g.sh_rest).mean() < 0.05  # a 1024-set palette for 1500 Gaussians
+
+
+def test_writing_sog_without_splat_transform_names_the_fix(tmp_path, monkeypatch):
+    monkeypatch.setenv(SPLAT_TRANSFORM_ENV, str(tmp_path / "no-such-tool"))
+    assert splat_transform() is None
+    with pytest.raises(MissingDependencyError, match="make js-deps"):
+        write_sog(random_map(10), tmp_path / "map.sog")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failing_splat_transform_is_one_line_and_no_file(tmp_path, monkeypatch):
+    if shutil.which("node") is None:
+        pytest.skip("node missing: splat_transform() needs it to name any command")
+    tool = tmp_path / "broken"
+    tool.write_text("#!/bin/sh\necho 'Error: no GPU, no luck' >&2\nexit 3\n")
+    tool.chmod(0o755)
+    monkeypatch.setenv(SPLAT_TRANSFORM_ENV, str(tool))
+    with pytest.raises(OutputError, match=r"map\.sog: splat-transform failed: Error: no GPU"):
+        write_sog(random_map(10), tmp_path / "map.sog")
+    assert not (tmp_path / "map.sog").exists()

@@ -12,8 +12,8 @@ the first `count` pixels):
 - `shN` (optional): a palette of `count` SH sets (an image 64 sets wide, each set `K` pixels
   whose r g b index a 256-entry codebook) and a labels image (16-bit palette index).
 
-Read with Pillow (already a dependency); nothing here writes SOG: its codebooks and palette
-come from k-means clustering, which splat-transform runs (on a GPU or, slowly, on the CPU).
+Read with Pillow (already a dependency). SOG's codebooks and palette come from k-means
+clustering; `write_sog` has `@playcanvas/splat-transform` (node) write the file, on the CPU.
 Every file is untrusted: sizes of the bundle's members, of meta.json and of each image (from its
 header, before decoding) are checked against the declared count and stated ceilings.
 """
@@ -23,6 +23,10 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
+import shutil
+import subprocess
+import tempfile
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -30,9 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import MapError, SogFormatError
+from gscompress.errors import MapError, MissingDependencyError, OutputError, SogFormatError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 from gscompress.io.columns import f_rest_names, map_from_columns
+from gscompress.io.ply import write_ply
 from gscompress.io.spz import opacity_logits
 
 MAX_SOG_GAUSSIANS = 1 << 26
@@ -40,6 +45,55 @@ MAX_SOG_GAUSSIANS = 1 << 26
 
 MAX_META_BYTES = 16 << 20
 """Largest meta.json read."""
+
+SPLAT_TRANSFORM_ENV = "GSC_SPLAT_TRANSFORM"
+"""Environment variable naming the splat-transform command to use."""
+
+SPLAT_TRANSFORM_TIMEOUT_S = 3600
+"""How long one splat-transform conversion may take."""
+
+
+def splat_transform() -> str | None:
+    """The `splat-transform` command: $GSC_SPLAT_TRANSFORM, else one on the PATH, else the one
+    `make js-deps` installs in a source checkout (tests/js); None when there is none or node is
+    missing."""
+    named = os.environ.get(SPLAT_TRANSFORM_ENV)
+    if named:  # (as asked, or nothing)
+        found = shutil.which(named)
+    else:
+        local = Path(__file__).resolve().parents[2] / "tests/js/node_modules/.bin/splat-transform"
+        found = shutil.which("splat-transform") or shutil.which(local)
+    return found if found and shutil.which("node") else None
+
+
+def write_sog(gaussians: GaussianMap, path: str | Path) -> int:
+    """Write a map as a SOG bundle with splat-transform (from a 3DGS PLY, k-means on the CPU);
+    the file's bytes.
+
+    Raises:
+        MissingDependencyError: no node or splat-transform (`make js-deps` installs it).
+        OutputError: splat-transform failed (its last line of output).
+    """
+    command = splat_transform()
+    if command is None:
+        raise MissingDependencyError(
+            "writing SOG needs node and @playcanvas/splat-transform: run `make js-deps`, or set "
+            f"{SPLAT_TRANSFORM_ENV} to its command"
+        )
+    path = Path(path)
+    with tempfile.TemporaryDirectory() as tmp:
+        ply = write_ply(gaussians, Path(tmp) / "map.ply", importance=False)
+        out = Path(tmp) / "map.sog"
+        done = subprocess.run(
+            [command, "-w", "-g", "cpu", str(ply), str(out)],
+            capture_output=True, text=True, timeout=SPLAT_TRANSFORM_TIMEOUT_S,
+        )  # fmt: skip
+        if done.returncode != 0 or not out.is_file():
+            last = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
+            raise OutputError(f"{path}: splat-transform failed: {last[0]}")
+        shutil.move(out, path)
+    return path.stat().st_size
+
 
 _QUAT_SLOTS = {0: (1, 2, 3), 1: (0, 2, 3), 2: (0, 1, 3), 3: (0, 1, 2)}
 """Where the three stored components go (w x y z indices) for each largest component."""

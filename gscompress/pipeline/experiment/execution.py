@@ -177,12 +177,20 @@ def _share_job(
     receiver: Path | None = None,
     device: str = "auto",
     spread: bool = False,
+    sums: bool = True,
 ) -> dict[str, Any]:
     from gscompress.pipeline.offline import share_log
 
     # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
     return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
-                     receiver=receiver, device=device, spread=spread, force=True)  # fmt: skip
+                     receiver=receiver, device=device, spread=spread, sums=sums,
+                     force=True)  # fmt: skip
+
+
+def _reference_job(path: Path, source: Path, fmt: str) -> dict[str, Any]:
+    from gscompress.pipeline.offline import format_share
+
+    return format_share(source, path, fmt, force=True)
 
 
 def _digest(result: dict[str, Any]) -> str:
@@ -443,14 +451,24 @@ class Runner:
             spec["fold"] = True
         if self.settings.spread:
             spec["spread"] = True
+        if not self.settings.sums:
+            spec["sums"] = False
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(
             _share_job, source=source.path, budget=budget, strategy=strategy.removesuffix(FOR_B),
             seed=seed, fold=self.settings.fold, device=self.settings.device,
             receiver=None if receiver is None else receiver.path, spread=self.settings.spread,
+            sums=self.settings.sums,
         )  # fmt: skip
         return self._step(name, spec, job, after=[source] + ([receiver] if receiver else []))
+
+    def reference(self, name: str, source: RunHandle, fmt: str) -> Record:
+        """`source`'s whole map sent in the format `fmt` (`format_share`): a point of the
+        field on the rate-distortion plot."""
+        spec = {"kind": "reference", "source": source.key, "format": fmt}
+        job = functools.partial(_reference_job, source=source.path, fmt=fmt)
+        return self._step(name, spec, job, after=[source])
 
     def score(
         self,

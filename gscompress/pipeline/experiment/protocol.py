@@ -11,13 +11,17 @@ from typing import TYPE_CHECKING, Any, Protocol
 from gscompress.errors import InputError, OptionError
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.offline import smallest_share_bytes
+from gscompress.pipeline.offline import REFERENCE_FORMATS, smallest_share_bytes
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 from gscompress.selection import STRATEGIES, is_fraction
 from gscompress.slam.views import REFINE_VIEWS
 
 if TYPE_CHECKING:
     from gscompress.slam.config import SlamConfig
+
+
+REFERENCE_TABLE = "reference"
+"""The `table` of the rows of B with A's whole map in another format (`format_share`)."""
 
 
 ANCHORS = ("gt", "own")
@@ -88,6 +92,9 @@ class ExperimentSettings:
             off, the shares are the paper's top K, so that the strategies differ only in their
             choice.
         spread: every strategy's order spread over space (`gsc share --spread`).
+        sums: the compact shares carry the PWAS sums (`gsc share`'s default); without them each
+            Gaussian's score goes in 16 bits and a byte budget holds more Gaussians
+            (`gsc share --no-sums`).
         anchor: "gt": both agents start at the ground-truth pose of their first frame, so their
             maps share a frame; "own": each starts at the identity at its own first frame, A's
             map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives
@@ -98,6 +105,10 @@ class ExperimentSettings:
             with a share scored on A's frames, on B's frames and on all frames at poses refined
             against the fixed map (0: no cross-agent scoring, each run scored on its own
             frames only).
+        references: formats of `REFERENCE_FORMATS` in which A's whole map is also sent to B
+            on the sweep seeds (`gscompress.pipeline.offline.format_share`: our fp32 codec,
+            SPZ, SOG), each received like a share: the field's points on the rate-distortion
+            plot. SOG is left out where splat-transform is missing (`reference_formats`).
     """
 
     preset: str | None = None
@@ -122,8 +133,10 @@ class ExperimentSettings:
     merge_how: str = "exact"
     fold: bool = False
     spread: bool = False
+    sums: bool = True
     anchor: str = "gt"
     refine_poses: int = 100
+    references: tuple[str, ...] = REFERENCE_FORMATS
 
     def agent_frames(self, n: int | None = None) -> tuple[str, str]:
         """The frame subsets of agents A and B: the odd and even positions within `frames`, or
@@ -187,6 +200,12 @@ class ExperimentSettings:
                     f"a budget of {text} cannot hold one Gaussian: a share file of one takes "
                     f"at least {smallest} B; raise the budget"
                 )
+        unknown_formats = sorted(set(self.references) - set(REFERENCE_FORMATS))
+        if unknown_formats:
+            raise InputError(
+                f"unknown reference formats {unknown_formats}; choose from "
+                f"{', '.join(REFERENCE_FORMATS)} (or none)"
+            )
         if self.seeds < 1 or self.sweep_seeds < 0:
             raise OptionError("--seeds must be >= 1 and --sweep-seeds >= 0")
         if self.sweep_seeds > self.seeds:
@@ -224,6 +243,14 @@ def halves(n: int, overlap: float) -> tuple[range, range]:
     return range(0, a), range(n - a, n)
 
 
+def reference_formats(s: ExperimentSettings) -> tuple[str, ...]:
+    """The formats of `s.references` this machine can write: SOG only where splat-transform
+    is found (`gscompress.io.sog.splat_transform`)."""
+    from gscompress.io.sog import splat_transform
+
+    return tuple(f for f in s.references if f != "sog" or splat_transform() is not None)
+
+
 def plan_size(settings: ExperimentSettings) -> int:
     """How many steps an experiment has (for progress)."""
     s = settings
@@ -232,7 +259,8 @@ def plan_size(settings: ExperimentSettings) -> int:
     main += 2 * (s.anchor == "own")  # the alignment, B with the share at the true transform
     shares = len(s.strategies) + 1
     extra_budgets = [b for b in s.sweep if not same_budget(b, s.budget)]
-    sweep = s.sweep_seeds * len(extra_budgets) * len(s.strategies) * 2
+    sweep = s.sweep_seeds * (len(extra_budgets) * len(s.strategies) + len(reference_formats(s)))
+    sweep *= 2  # (a share and a run of B with it)
     table3 = 2
     if s.refine_poses:  # a scoring step for every run of B, A's run and the centralised run
         main += main - (s.anchor == "own")  # (every step of `main` but the alignment)
@@ -299,6 +327,8 @@ class Executor(Protocol):
         seed: int,
         receiver: RunHandle | None = None,
     ) -> RunHandle: ...
+
+    def reference(self, name: str, source: RunHandle, fmt: str) -> RunHandle: ...
 
     def score(
         self,
@@ -373,6 +403,13 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
         rows.append({"name": "B + A's full map", "table": "table4", "run": got, "seed": seed,
                      "strategy": "full", "budget": "1", "share": whole, "align": align,
                      **score(got, "b", a, align)})  # fmt: skip
+        for fmt in reference_formats(s) if seed < s.sweep_seeds else ():
+            sent = runner.reference(f"s{seed}_whole_{fmt}_share", a, fmt)
+            got = runner.receive(f"s{seed}_whole_{fmt}_agent_b", b, sent, config, frames_b, seed,
+                                 align)  # fmt: skip
+            rows.append({"name": f"B + A's whole map as {fmt}", "table": REFERENCE_TABLE,
+                         "run": got, "seed": seed, "strategy": fmt, "budget": "1",
+                         "share": sent, "align": align, **score(got, "b", a, align)})  # fmt: skip
     return rows
 
 

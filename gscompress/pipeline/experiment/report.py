@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,6 +19,7 @@ from gscompress.pipeline.experiment.cross_agent import FRAME_SETS
 from gscompress.pipeline.experiment.protocol import (
     AGENT_ROWS,
     B_NO_SHARE,
+    REFERENCE_TABLE,
     TRUE_TRANSFORM_ROW,
     ExperimentSettings,
     RunHandle,
@@ -69,7 +71,8 @@ def result_row(
     row.update(
         name=name, table=table, seed=seed, strategy=strategy, budget=budget,
         frames=ev.get("frames"), seconds_per_frame=slam.get("seconds_per_frame"),
-        share_gaussians=got.get("selected"), share_bytes=got.get("bytes"),
+        share_gaussians=got.get("selected"),
+        share_bytes=got.get("file_bytes", got.get("bytes")),  # (what crosses the link)
         log=None if error else f"runs/{run.path.name}", error=error,
     )  # fmt: skip
     if align is not None and align.error is None:
@@ -137,7 +140,8 @@ def rate_distortion_curves(
 
     Each strategy's curve starts at B without a share (0 bytes: "B refined, no share" in merge
     mode, B's own run in inject mode), the point every share is a gain over; "full" is the one
-    point of A's whole map, the upper end.
+    point of A's whole map (our compact share of it), the upper end, and each format of
+    `s.references` the one point of A's whole map sent in that format.
     """
     seeds = [r for r in rows if r["seed"] is not None and r["seed"] < s.sweep_seeds]
     reference = B_NO_SHARE if s.mode == "merge" else AGENT_ROWS[s.split][1]
@@ -159,7 +163,24 @@ def rate_distortion_curves(
     full = [r for r in seeds if r["strategy"] == "full"]
     if full and curves:
         curves["full"] = [point(full)]
+    for fmt in s.references:
+        group = [r for r in seeds if r["table"] == REFERENCE_TABLE and r["strategy"] == fmt]
+        if group and curves:
+            curves[fmt] = [point(group)]
     return curves
+
+
+def curve_at(
+    points: Sequence[tuple[float, float | None, float | None]], size: float
+) -> float | None:
+    """A curve's PSNR at `size` bytes, linear in log(bytes) between the two points around it;
+    None outside the curve's shares (the 0-byte start is not a share) or without values."""
+    shared = [(p[0], p[1]) for p in points if p[0] > 0 and p[1] is not None]
+    for (x0, y0), (x1, y1) in itertools.pairwise(shared):
+        if x0 <= size <= x1:
+            t = 0.0 if x1 == x0 else math.log(size / x0) / math.log(x1 / x0)
+            return y0 + t * (y1 - y0)
+    return None
 
 
 def mean_of(values: Sequence[Any]) -> float | None:
@@ -334,10 +355,14 @@ def _csv(rows: list[dict[str, Any]]) -> str:
 
 def _receive_text(s: ExperimentSettings) -> str:
     shares = (
-        "Each share folds what it leaves out into what it sends. "
-        if s.fold
-        else "Each share is the top K of its strategy, nothing folded. "
-    ) + ("Every strategy's order is spread over space (`--spread`). " if s.spread else "")
+        (
+            "Each share folds what it leaves out into what it sends. "
+            if s.fold
+            else "Each share is the top K of its strategy, nothing folded. "
+        )
+        + ("Every strategy's order is spread over space (`--spread`). " if s.spread else "")
+        + ("The shares carry no PWAS sums (`--no-sums`). " if not s.sums else "")
+    )
     if s.mode == "inject":
         return shares + "B's run starts with the share injected. "
     how = (
@@ -451,6 +476,7 @@ def _markdown(
                     f"{_mean_cell(group, 'share_gaussians', '.0f')} | "
                     f"{_mean_cell(group, 'share_bytes', '.0f')} |"
                 )
+    lines += _reference_lines(rows, s)
     if v["sweep"]:
         inject = s.mode == "inject"
         lines += [
@@ -500,6 +526,43 @@ def _psnr_text(s: ExperimentSettings) -> str:
     if s.refine_poses:
         return f"all frames, each pose refined against the map ({s.refine_poses} iterations)"
     return "B's own frames at B's estimated poses"
+
+
+def _reference_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[str]:
+    """results.md's points of the field: B with A's whole map in our compact share and in each
+    reference format, beside the PWAS curve read at the same bytes (`curve_at`)."""
+    if not s.references or not s.sweep_seeds:
+        return []
+    from gscompress.io.sog import splat_transform
+
+    curves = rate_distortion_curves(rows, s)
+    lines = [
+        "", "A's whole map, sent whole (mean over the sweep seeds): as our compact share, and as "
+        "the field's formats send it (`gscompress.pipeline.offline.format_share`: fp32 in our "
+        "fp32 codec; SPZ and SOG, which keep no ids or PWAS sums, written and read back), each "
+        "received by B like a share. The last column reads the PWAS curve at the same bytes, "
+        "linear in log(bytes) between the two sweep budgets around it (n/a outside the sweep).",
+        "", "| A's whole map as | Gaussians | Bytes | Bytes per Gaussian | PSNR | PWAS share at "
+        "these bytes |", "|---|---|---|---|---|---|",
+    ]  # fmt: skip
+    for name in ("full", *s.references):
+        point = curves.get(name)
+        label = "compact (our share)" if name == "full" else name
+        if not point:
+            why = ("not measured: splat-transform was not found (`make js-deps` installs it)"
+                   if name == "sog" and splat_transform() is None
+                   else "not measured (see the failed runs)")  # fmt: skip
+            lines.append(f"| {label} | {why} | | | | |")
+            continue
+        size, psnr, _ = point[0]
+        group = [r for r in rows if r["strategy"] == name and r["seed"] is not None
+                 and r["seed"] < s.sweep_seeds]  # fmt: skip
+        count = mean_of([r["share_gaussians"] for r in group])
+        per = size / count if count else None
+        at = curve_at(curves.get("pwas", []), size)
+        lines.append(f"| {label} | {_fmt(count, '.0f')} | {size:.0f} | {_fmt(per, '.2f')} | "
+                     f"{_fmt(psnr)} | {_fmt(at)} |")  # fmt: skip
+    return lines
 
 
 def _cell_lines(cells: dict[str, Any], s: ExperimentSettings) -> list[str]:
@@ -603,6 +666,17 @@ def _alignment_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[
     return lines
 
 
+_WHOLE_MARKERS = {"full": "*", "fp32": "s", "spz": "D", "sog": "P"}
+"""Markers of the one-point curves of A's whole map (ours, and each reference format)."""
+
+
+def _curve_label(name: str, s: ExperimentSettings) -> str:
+    """A rate-distortion curve's legend: a strategy, or A's whole map in a format."""
+    if name == "full":
+        return "A's whole map (compact)"
+    return f"A's whole map as {name.upper()}" if name in s.references else name
+
+
 def _plot_rate_distortion(
     folder: Path,
     curves: dict[str, list[tuple[float, float | None, float | None]]],
@@ -626,11 +700,12 @@ def _plot_rate_distortion(
             baseline = next((p[column] for p in points if p[0] == 0), baseline)
             if not shared:
                 continue
-            full = name == "full"
+            whole = name == "full" or name in s.references
             ax.plot(
                 [p[0] for p in shared], [p[column] for p in shared],
-                label="A's whole map" if full else name,
-                **(dict(marker="*", markersize=12, linestyle="none") if full else dict(marker="o")),
+                label=_curve_label(name, s),
+                **(dict(marker=_WHOLE_MARKERS.get(name, "*"), markersize=11, linestyle="none")
+                   if whole else dict(marker="o")),
             )  # fmt: skip
         if baseline is not None:
             ax.axhline(baseline, color="grey", linestyle="--", label="B, no share")
