@@ -33,9 +33,14 @@ from .options import (
 )
 
 
+def _comma_list(value: str) -> tuple[str, ...]:
+    """The non-empty items of a comma-separated option, stripped."""
+    return tuple(v.strip() for v in value.split(",") if v.strip())
+
+
 def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tuple[str, ...]:
     """Comma-separated budgets, each checked as `--budget` is (kept as written)."""
-    items = tuple(v.strip() for v in value.split(",") if v.strip())
+    items = _comma_list(value)
     if not items:
         raise click.BadParameter("give at least one budget")
     return tuple(str(BudgetParam().convert(item, param, ctx)) for item in items)
@@ -43,7 +48,7 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 
 def _formats(value: str) -> tuple[str, ...]:
     """Comma-separated reference formats, or none."""
-    items = tuple(v.strip() for v in value.split(",") if v.strip())
+    items = _comma_list(value)
     if items == ("none",):
         return ()
     unknown = [v for v in items if v not in REFERENCE_FORMATS]
@@ -278,7 +283,7 @@ def experiment(
         sweep=sweep,
         sweep_seeds=sweep_seeds,
         references=references,
-        strategies=tuple(s.strip() for s in strategies.split(",") if s.strip()),
+        strategies=_comma_list(strategies),
         size=size,
         frames=frames,
         split=split,

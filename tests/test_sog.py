@@ -5,7 +5,6 @@ import io
 import json
 import shutil
 import zipfile
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,8 +15,6 @@ from gscompress.errors import MissingDependencyError, OutputError, SogFormatErro
 from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.map_files import read_map_file
 from gscompress.io.sog import SPLAT_TRANSFORM_ENV, read_sog, splat_transform, write_sog
-
-TOOL = Path(__file__).parent / "js" / "node_modules" / ".bin" / "splat-transform"
 
 
 def _webp(pixels: np.ndarray, width: int) -> bytes:
