@@ -155,7 +155,7 @@ def share(
     The share holds the selected Gaussians with their ids and PWAS sums (or, with --no-sums,
     the score alone), and records its source, strategy, budget, codec, bytes and the selected /
     total counts. Each Gaussian left out is folded into the nearest one sent (--no-fold: left
-    out). It is stored compact by default (quantised, compressed columns: about 19
+    out). It is stored compact by default (quantised, compressed columns: about 13
     bytes per Gaussian with ids and PWAS sums, 11-12 with --no-sums, against 76 at fp32); --codec
     fp32 or fp16 sends a foxglove.PointCloud that Foxglove draws.
 

@@ -90,13 +90,25 @@ def test_round_trip_within_the_stated_bounds(g, ids, sums):
         assert back.ids.tolist() == list(range(len(g)))
         back.ids[:] = g.ids[np.argsort(morton_codes_of(g, message), kind="stable")]
     check_bounds(g, back, message)
-    if sums:  # the PWAS state is exact: accumulation continues
-        a, b = by_id(g), by_id(back)
-        for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
-            assert getattr(a, name).tobytes() == getattr(b, name).tobytes(), name
-    elif len(g):  # the score in 16 bits on a log scale: relative error below 1e-3
+    if len(g):  # the score in 16 bits on a log scale: relative error below 1e-3
         a, b = by_id(g).importance, by_id(back).importance
         assert np.all(np.abs(b - a) <= 1e-3 * a + 1e-30)
+    if sums:  # the sums within half an 8-bit log step: accumulation and evidence carry on
+        check_log_sums(g, back, message)
+
+
+def check_log_sums(g, back, message):
+    """The weight and alpha x T sums of `back` within half a log code step of `g`'s, zero
+    exactly where `g`'s are (the score is checked on its own)."""
+    cols = {c.name: c for c in message.columns}
+    a, b = by_id(g), by_id(back)
+    for name in codec.SUMS:
+        c, want, got = cols[name], getattr(a, name), getattr(b, name)
+        assert c.transform == "log-linear" and c.bits == codec.BITS[name]
+        half = (c.high[0] - c.low[0]) / ((1 << c.bits) - 2) / 2
+        assert np.array_equal(got > 0, want > 0), name
+        ratio = got[want > 0].astype(np.float64) / want[want > 0]
+        assert np.all(np.abs(np.log(ratio)) <= half + 1e-6), name
 
 
 def morton_codes_of(g, message):
@@ -137,10 +149,38 @@ def test_options_decide_the_columns_and_the_bytes():
         _, message, data = round_trip(g, CompactOptions(ids=ids, sums=sums, score=score))
         names = {c.name for c in message.columns}
         assert ("id" in names) == ids
-        assert ("importance_sum" in names) == sums
-        assert ("importance" in names) == (score and not sums)
+        assert ("alpha_t_sum" in names) == ("importance_weight" in names) == sums
+        assert ("importance" in names) == (score or sums)
+        assert "importance_sum" not in names  # (importance_sum = score x (weight + eps))
         sizes[(ids, sums, score)] = len(data)
     assert sizes[(False, False, False)] < sizes[(True, False, True)] < sizes[(True, True, True)]
+
+
+def test_float32_sums_of_earlier_messages_decode_exactly():
+    g = random_map(500, seed=4)
+    message = encode_compact(g, CompactOptions(sums=False, score=False))
+    order = np.argsort(morton_codes_of(g, message), kind="stable")
+    zstd = codec.zstandard.ZstdCompressor()
+    for name in codec.RAW_SUMS:
+        values = getattr(g, name)[order].astype("<f4")
+        message.columns.append(codec._column(name, "raw", values, compressor=zstd))
+    back, _ = decode_compact_bytes(message.SerializeToString())
+    for name in codec.RAW_SUMS:
+        assert getattr(by_id(back), name).tobytes() == getattr(by_id(g), name).tobytes(), name
+    del message.columns[-1]  # importance_sum and importance_weight without alpha_t_sum
+    with pytest.raises(MapError, match="some of the PWAS sums"):
+        decode_compact_bytes(message.SerializeToString())
+
+
+def test_coded_sums_need_the_score_and_both_sums():
+    message = encode_compact(random_map(300, seed=5))
+    names = [c.name for c in message.columns]
+    for drop, what in (("importance", "not the score"), ("alpha_t_sum", "some of the PWAS")):
+        broken = CompactGaussians()
+        broken.CopyFrom(message)
+        del broken.columns[names.index(drop)]
+        with pytest.raises(MapError, match=what):
+            decode_compact_bytes(broken.SerializeToString())
 
 
 def test_morton_codes_invert_and_order_neighbours():
@@ -215,7 +255,7 @@ def _column(message, name):
         (lambda m: m.columns.remove(_column(m, "rotation")), "lacks column"),
         (lambda m: m.columns.add().CopyFrom(_column(m, "f_dc")), "'f_dc' twice"),
         (lambda m: setattr(_column(m, "id"), "name", "colour"), "unknown column"),
-        (lambda m: m.columns.remove(_column(m, "alpha_t_sum")), "not all three"),
+        (lambda m: m.columns.remove(_column(m, "alpha_t_sum")), "not all of them"),
         (lambda m: setattr(m, "isotropic", True), "components|rotations"),
         (lambda m: setattr(m, "sh_degree", 7), "SH degree 7"),
     ],

@@ -19,9 +19,12 @@ positions:
 - `rotation` (anisotropic only): `smallest-three` in SPZ's layout, 2 bits for the largest
   component's index and a sign and 9 bits of magnitude for each of the other three, 32 in all.
 - `id` (optional): `delta`, the difference from the previous id modulo 2^32.
-- the PWAS state (optional): `importance_sum`, `importance_weight`, `alpha_t_sum` as exact
-  float32 (`raw`), so that a receiver keeps accumulating; or, without them, the score
-  `importance` as `log-linear` 16-bit codes (code 0 is a zero score).
+- the PWAS state (optional): the score `importance` as `log-linear` 16-bit codes (code 0 is a
+  zero score), and with the sums also the proximity weight sum `importance_weight` and the
+  alpha x T sum `alpha_t_sum` as `log-linear` 8-bit codes: a receiver keeps accumulating from
+  importance_sum = score x (weight + eps), and a merge weighs each Gaussian's evidence by its
+  alpha x T sum, at 1.7 bytes per Gaussian instead of the 10 that three float32 sums took. Messages
+  that hold the three sums as float32 (`raw`) still decode, exactly.
 
 Every multi-byte column is stored as its byte planes (all first bytes, then all second bytes...),
 which zstd compresses far better than interleaved integers. Decoding checks each count, size and
@@ -43,7 +46,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError, Message
 
 from gscompress.errors import GscError, InputError, MapError
-from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
+from gscompress.gaussians import PWAS_EPS, SH_REST_COUNTS, GaussianMap
 
 CODECS = ("fp32", "fp16", "compact")
 """Map codecs, from the largest to the smallest."""
@@ -62,8 +65,16 @@ Gaussian's own scale (positions set most of a compact map's error: docs/codecs.m
 MAX_POSITION_BITS = 21
 """Largest grid size per axis, in bits (three axes interleave into a 63-bit Morton code)."""
 
-BITS = {"log_scale": 7, "opacity": 6, "f_dc": 8, "f_rest": 8, "importance": 16}
-"""Default quantisation bits of each linear column (chosen by bench/codec.py)."""
+BITS = {"log_scale": 7, "opacity": 6, "f_dc": 8, "f_rest": 8, "importance": 16,
+        "importance_weight": 8, "alpha_t_sum": 8}  # fmt: skip
+"""Default quantisation bits of each linear and log-linear column (chosen by bench/codec.py:
+an 8-bit log code keeps a sum within 3% over the 1e-3..1e4 span of real maps)."""
+
+SUMS = ("importance_weight", "alpha_t_sum")
+"""The PWAS sums a compact message codes beside the score (importance_sum = score x (W + eps))."""
+
+RAW_SUMS = ("importance_sum", "importance_weight", "alpha_t_sum")
+"""The PWAS sums as float32 in messages written before they were coded (still read)."""
 
 ZSTD_LEVEL = 3
 """zstd level of every column."""
@@ -98,8 +109,9 @@ class CompactOptions:
 
     Attributes:
         ids: the Gaussians' ids (without them, the receiver numbers them 0..N-1).
-        sums: the PWAS sums (exact), for a receiver that continues accumulating.
-        score: without the sums, the PWAS score in 16 bits (ignored when `sums`).
+        sums: the PWAS state (the score in 16 bits, the weight and alpha x T sums in 8), for a
+            receiver that continues accumulating and a merge that weighs evidence.
+        score: without the sums, the PWAS score alone (ignored when `sums`).
         step: position grid step in metres (None: `POSITION_STEP_FRACTION` of the median scale).
     """
 
@@ -233,6 +245,7 @@ def quantise_log(scores: np.ndarray, bits: int) -> tuple[np.ndarray, float, floa
     if not positive.any():
         return codes, 0.0, 0.0
     logs = np.log(scores[positive])
+    logs = np.clip(logs, -_MAX_LOG_SCORE, _MAX_LOG_SCORE)  # (subnormal float32 goes below -88)
     low, high = float(logs.min()), float(logs.max())
     steps = (1 << bits) - 2
     span = high - low if high > low else 1.0
@@ -455,13 +468,17 @@ def encode_compact(
     if options.ids:
         deltas = np.diff(ordered("ids"), prepend=np.uint32(0))  # modulo 2^32
         columns.append(_column("id", "delta", deltas, compressor=zstd))
+
+    def log_linear(name: str, values: np.ndarray) -> None:
+        q, low, high = quantise_log(values, BITS[name])
+        columns.append(_column(name, "log-linear", q, bits=BITS[name], low=low, high=high,
+                               compressor=zstd))  # fmt: skip
+
+    if options.sums or (options.score and gaussians.has_importance):
+        log_linear("importance", gaussians.importance[order])
     if options.sums:
-        for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
-            columns.append(_column(name, "raw", ordered(name).astype("<f4"), compressor=zstd))
-    elif options.score and gaussians.has_importance:
-        q16, low16, high16 = quantise_log(gaussians.importance[order], BITS["importance"])
-        columns.append(_column("importance", "log-linear", q16, bits=BITS["importance"],
-                               low=low16, high=high16, compressor=zstd))  # fmt: skip
+        for name in SUMS:
+            log_linear(name, ordered(name))
     return CompactGaussians(
         version=COMPACT_VERSION,
         timestamp_ns=max(int(timestamp_ns), 0),
@@ -478,20 +495,20 @@ def encode_compact(
 
 # ---------------------------------------------------------------------- decoding
 
-_SHAPES: dict[str, tuple[str, Callable[[Message], int]]] = {
-    "position": ("morton-delta", lambda m: 1),
-    "log_scale": ("linear", lambda m: 1 if m.isotropic else 3),
-    "rotation": ("smallest-three", lambda m: 1),
-    "opacity": ("sigmoid-linear", lambda m: 1),
-    "f_dc": ("linear", lambda m: 3),
-    "f_rest": ("linear", lambda m: 3 * SH_REST_COUNTS.get(m.sh_degree, 0)),
-    "id": ("delta", lambda m: 1),
-    "importance_sum": ("raw", lambda m: 1),
-    "importance_weight": ("raw", lambda m: 1),
-    "alpha_t_sum": ("raw", lambda m: 1),
-    "importance": ("log-linear", lambda m: 1),
+_SHAPES: dict[str, tuple[tuple[str, ...], Callable[[Message], int]]] = {
+    "position": (("morton-delta",), lambda m: 1),
+    "log_scale": (("linear",), lambda m: 1 if m.isotropic else 3),
+    "rotation": (("smallest-three",), lambda m: 1),
+    "opacity": (("sigmoid-linear",), lambda m: 1),
+    "f_dc": (("linear",), lambda m: 3),
+    "f_rest": (("linear",), lambda m: 3 * SH_REST_COUNTS.get(m.sh_degree, 0)),
+    "id": (("delta",), lambda m: 1),
+    "importance_sum": (("raw",), lambda m: 1),
+    "importance_weight": (("log-linear", "raw"), lambda m: 1),
+    "alpha_t_sum": (("log-linear", "raw"), lambda m: 1),
+    "importance": (("log-linear",), lambda m: 1),
 }
-"""Column name -> (its transform, its components in a message)."""
+"""Column name -> (the transforms it may have, its components in a message)."""
 
 _DTYPES = {
     "morton-delta": ("<u8",),
@@ -564,8 +581,8 @@ def decode_compact(
             raise fail(f"has an unknown column {name[:40]!r}")
         if name in columns:
             raise fail(f"has column {name!r} twice")
-        transform, components = _SHAPES[name][0], _SHAPES[name][1](message)
-        if column.transform != transform or column.dtype not in _DTYPES[transform]:
+        transform, components = column.transform, _SHAPES[name][1](message)
+        if transform not in _SHAPES[name][0] or column.dtype not in _DTYPES[transform]:
             raise fail(f"column {name!r} is {column.transform[:40]!r} {column.dtype[:8]!r}")
         if column.components != components:
             raise fail(f"column {name!r} has {column.components} components, not {components}")
@@ -602,10 +619,12 @@ def decode_compact(
     missing = [name for name in required if name not in columns]
     if missing:
         raise fail(f"lacks column(s) {', '.join(missing)}")
-    sums = [name for name in ("importance_sum", "importance_weight", "alpha_t_sum")
-            if name in columns]  # fmt: skip
-    if sums and len(sums) != 3:
-        raise fail("has some of the PWAS sums but not all three")
+    raw = {name for name in RAW_SUMS if name in columns and params[name].transform == "raw"}
+    coded = {name for name in SUMS if name in columns} - raw
+    if (raw and len(raw) != len(RAW_SUMS)) or (coded and len(coded) != len(SUMS)):
+        raise fail("has some of the PWAS sums but not all of them")
+    if coded and "importance" not in columns:
+        raise fail("has the PWAS sums but not the score")
     if message.isotropic and "rotation" in columns:
         raise fail("is isotropic but has rotations")
 
@@ -632,11 +651,21 @@ def decode_compact(
 
     rotation = columns.get("rotation")
     k = SH_REST_COUNTS[message.sh_degree]
-    extra: dict[str, Any] = {name: columns[name][:, 0] for name in sums}
-    if "importance" in columns and not sums:
-        values, c = codes("importance")
-        score = dequantise_log(values[:, 0], c.low[0], c.high[0], c.bits)
-        extra = {"importance_sum": score, "importance_weight": np.ones(n, np.float32)}
+
+    def log_linear(name: str) -> np.ndarray:
+        values, c = codes(name)
+        return dequantise_log(values[:, 0], c.low[0], c.high[0], c.bits)
+
+    extra: dict[str, Any] = {name: columns[name][:, 0] for name in raw}
+    if "importance" in columns and not raw:
+        score = log_linear("importance")
+        if coded:
+            weight = log_linear("importance_weight")
+            extra = {"importance_sum": score * (weight + np.float32(PWAS_EPS)),
+                     "importance_weight": weight,
+                     "alpha_t_sum": log_linear("alpha_t_sum")}  # fmt: skip
+        else:
+            extra = {"importance_sum": score, "importance_weight": np.ones(n, np.float32)}
     if "id" in columns:
         extra["ids"] = np.cumsum(columns["id"][:, 0], dtype=np.uint32)
     gaussians = GaussianMap.new(
