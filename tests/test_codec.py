@@ -125,7 +125,9 @@ def test_extreme_but_valid_values():
     g.quats[4] = [0.0, 0.0, 0.0, -1e-3]  # tiny, negative largest component
     g.sh_dc[5] = [-40.0, 40.0, 0.0]
     g.importance_sum[6], g.importance_weight[6] = 3e30, 1.0
+    g.importance_sum[7], g.alpha_t_sum[7] = 1e-44, 1e-44  # subnormal: log below -88
     back, message, _ = round_trip(g)
+    assert 0 < back.alpha_t_sum[back.ids == g.ids[7]][0] < 1e-37
     assert message.position_bits == MAX_POSITION_BITS
     assert message.step >= 1e4 / ((1 << MAX_POSITION_BITS) - 1)  # x spans 10 km
     check_bounds(g, back, message)
