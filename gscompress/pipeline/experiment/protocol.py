@@ -93,8 +93,8 @@ class ExperimentSettings:
             choice.
         spread: every strategy's order spread over space (`gsc share --spread`).
         sums: the compact shares carry the PWAS sums (`gsc share`'s default); without them each
-            Gaussian's score goes in 16 bits and a byte budget holds more Gaussians
-            (`gsc share --no-sums`).
+            Gaussian carries its score alone, so a byte budget holds more Gaussians and the
+            merge has no evidence for them (`gsc share --no-sums`).
         anchor: "gt": both agents start at the ground-truth pose of their first frame, so their
             maps share a frame; "own": each starts at the identity at its own first frame, A's
             map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives
