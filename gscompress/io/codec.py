@@ -254,10 +254,12 @@ def quantise_log(scores: np.ndarray, bits: int) -> tuple[np.ndarray, float, floa
 
 
 def dequantise_log(codes: np.ndarray, low: float, high: float, bits: int) -> np.ndarray:
-    """Scores of log codes (see `quantise_log`), as float32."""
+    """Scores of log codes (see `quantise_log`), as float32: a table of every code's value,
+    indexed (codes must be below 2^bits)."""
     steps = (1 << bits) - 2
-    logs = low + (codes.astype(np.float64) - 1) * ((high - low) / steps)
-    return np.where(codes > 0, np.exp(logs), 0.0).astype(np.float32)
+    table = np.exp(low + (np.arange(1 << bits) - 1.0) * ((high - low) / steps))
+    table[0] = 0.0
+    return table.astype(np.float32)[codes]
 
 
 def encode_smallest_three(quats_wxyz: np.ndarray) -> np.ndarray:
