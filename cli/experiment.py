@@ -30,6 +30,7 @@ from .options import (
     progress_bar,
     size_option,
     slam_config_options,
+    sums_option,
 )
 
 
@@ -159,12 +160,7 @@ def _formats(value: str) -> tuple[str, ...]:
     help="Spread every strategy's order over space (`gsc share --spread`): the best Gaussian "
     "of each of K distinct places first.",
 )  # fmt: skip
-@click.option(
-    "--sums/--no-sums", default=True, show_default=True,
-    help="Send the PWAS sums in every compact share (`gsc share`'s default); without them "
-    "each Gaussian carries its score alone: a byte budget holds about 15% more Gaussians, "
-    "and the merge has no evidence for them.",
-)  # fmt: skip
+@sums_option
 @click.option(
     "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
     help="Refinement iterations of each merge.",

@@ -477,7 +477,7 @@ def encode_compact(
                                compressor=zstd))  # fmt: skip
 
     if options.sums or (options.score and gaussians.has_importance):
-        log_linear("importance", gaussians.importance[order])
+        log_linear("importance", ordered("importance"))
     if options.sums:
         for name in SUMS:
             log_linear(name, ordered(name))
