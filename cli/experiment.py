@@ -26,6 +26,7 @@ from .options import (
     advance,
     device_option,
     emit,
+    ids_option,
     json_option,
     progress_bar,
     size_option,
@@ -161,6 +162,7 @@ def _formats(value: str) -> tuple[str, ...]:
     "of each of K distinct places first.",
 )  # fmt: skip
 @sums_option
+@ids_option
 @click.option(
     "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
     help="Refinement iterations of each merge.",
@@ -232,6 +234,7 @@ def experiment(
     fold: bool,
     spread: bool,
     sums: bool,
+    ids: bool,
     jobs: int,
     executor: str,
     address: str | None,
@@ -296,6 +299,7 @@ def experiment(
         fold=fold,
         spread=spread,
         sums=sums,
+        ids=ids,
         lpips=not no_lpips,
         device=device,
     )

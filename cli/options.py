@@ -104,6 +104,20 @@ def sums_option(f: F) -> F:
     )(f)
 
 
+def ids_option(f: F) -> F:
+    """`--no-ids`: a compact share without the Gaussians' ids."""
+    return click.option(
+        "--ids/--no-ids",
+        default=True,
+        show_default=True,
+        help="Send each Gaussian's id, which names the sender's Gaussian it came from. A merge "
+        "gives the share's Gaussians new ids past the receiver's either way, so the receiver "
+        "needs them only to trace a Gaussian back; with --no-ids a compact share is about 1.9 B "
+        "per Gaussian smaller (about 15% more Gaussians in a byte budget) and the receiver "
+        "numbers them 0..N-1 (fp32 and fp16 always carry the ids).",
+    )(f)
+
+
 def fold_option(f: F) -> F:
     """`--fold/--no-fold`: fold what a prune or share leaves out into what it keeps."""
     return click.option(

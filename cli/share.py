@@ -24,6 +24,7 @@ from .options import (
     emit,
     fold_option,
     force_option,
+    ids_option,
     json_option,
     log_refiner,
     progress_bar,
@@ -71,6 +72,7 @@ from .options import (
     help="Deprecated: --codec fp32|fp16 says the same.",
 )
 @sums_option
+@ids_option
 @fold_option
 @click.option(
     "--spread/--no-spread", default=False, show_default=True,
@@ -136,6 +138,7 @@ def share(
     codec: str,
     precision: str | None,
     sums: bool,
+    ids: bool,
     fold: bool,
     spread: bool,
     ply: Path | None,
@@ -152,12 +155,13 @@ def share(
 ) -> None:
     """Write the top BUDGET share of the map in SRC to DST or -o (a small gscompress log).
 
-    The share holds the selected Gaussians with their ids and PWAS sums (or, with --no-sums,
-    the score alone), and records its source, strategy, budget, codec, bytes and the selected /
-    total counts. Each Gaussian left out is folded into the nearest one sent (--no-fold: left
-    out). It is stored compact by default (quantised, compressed columns: about 13
-    bytes per Gaussian with ids and PWAS sums, 11-12 with --no-sums, against 76 at fp32); --codec
-    fp32 or fp16 sends a foxglove.PointCloud that Foxglove draws.
+    The share holds the selected Gaussians with their ids (unless --no-ids) and PWAS sums
+    (or, with --no-sums, the score alone), and records its source, strategy, budget, codec,
+    bytes and the selected / total counts. Each Gaussian left out is folded into the nearest
+    one sent (--no-fold: left out). It is stored compact by default (quantised, compressed
+    columns: about 13 bytes per Gaussian with ids and PWAS sums, 11-12 with --no-sums, about 2
+    fewer with --no-ids, against 76 at fp32); --codec fp32 or fp16 sends a foxglove.PointCloud
+    that Foxglove draws.
 
     A fraction budget sends round(fraction x N) Gaussians. A byte budget sends the most
     Gaussians whose share file fits in it (the whole file as written: framing, schema,
@@ -177,6 +181,7 @@ def share(
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
       gsc share --budget 50kB agent_a.mcap share.mcap
       gsc share --budget 5%bytes --no-sums agent_a.mcap share.mcap
+      gsc share --budget 72kB --no-ids agent_a.mcap share.mcap
       gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
       gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
       gsc share agent_a.mcap share.mcap --align-to agent_b.mcap
@@ -210,7 +215,7 @@ def share(
         common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
                                       align_to=align_to, carry=carry, receiver=receiver,
                                       device=device, command=command_line(),
-                                      force=force, spread=spread)  # fmt: skip
+                                      force=force, spread=spread, ids=ids)  # fmt: skip
         if solve:
             from gscompress.pipeline.solve import share_solved
 

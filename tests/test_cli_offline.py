@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from conftest import rewrite_log
 from mcap.writer import CompressionType
 
-from gscompress.gaussians import random_map
+from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.mcap_log import (
     LogMetadata,
     LogReader,
@@ -520,6 +520,32 @@ def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
     assert r.exit_code == 2 and "--precision is an old name of --codec" in r.output
     r = run("share", "--budget", "0.5", "--by", "opacity", log_path, tmp_path / "o.mcap", "--json")
     assert json.loads(r.output)["strategy"] == "opacity", r.output
+
+
+def test_a_share_without_ids_holds_more_of_the_map_in_a_byte_budget(log_path, tmp_path):
+    """--no-ids sends the same Gaussians, numbered 0..N-1 by the reader, in fewer bytes; so a
+    byte budget holds more of them, and the budget still holds. fp32 keeps its ids."""
+
+    def share(*args: object) -> tuple[dict, GaussianMap]:
+        out = tmp_path / f"s{len(list(tmp_path.iterdir()))}.mcap"
+        r = run("share", log_path, out, "--json", "--no-fold", *args)
+        assert r.exit_code == 0, r.output
+        return {**json.loads(r.output), "dst": out.name}, read_map(out)
+
+    (with_ids, a), (without, b) = share("--budget", "0.5"), share("--budget", "0.5", "--no-ids")
+    assert without["selected"] == with_ids["selected"] == len(b)
+    assert without["file_bytes"] < with_ids["file_bytes"] - len(b)  # over a byte a Gaussian
+    assert "ids" not in with_ids and without["ids"] is False
+    assert np.array_equal(b.ids, np.arange(len(b))) and not np.array_equal(a.ids, b.ids)
+    assert np.array_equal(a.means, b.means) and np.array_equal(a.importance, b.importance)
+    budget = with_ids["file_bytes"]
+    (fits, _), (more, _) = share("--budget", f"{budget}B"), share("--budget", f"{budget}B",
+                                                                  "--no-ids")  # fmt: skip
+    assert more["selected"] > fits["selected"] and more["file_bytes"] <= budget
+    wide, shared = share("--budget", "0.5", "--no-ids", "--codec", "fp32")
+    assert "ids" not in wide and np.array_equal(np.sort(shared.ids), np.sort(a.ids))
+    with LogReader(tmp_path / without["dst"]) as log:
+        assert log.metadata.provenance[-1]["operation"]["ids"] is False
 
 
 def test_info_histogram_is_log_scaled_so_a_long_tail_does_not_hide_the_shape(tmp_path):

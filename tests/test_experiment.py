@@ -728,12 +728,12 @@ def test_folded_spread_shares_and_the_default_merge_rerun_only_what_they_change(
     assert "folds what it leaves out" in (copy / "results.md").read_text()
 
 
-def test_shares_without_sums_are_smaller_and_rerun_only_the_shares_and_what_reads_them(
+def test_shares_without_sums_or_ids_are_smaller_and_rerun_only_the_shares_and_what_reads_them(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
     seq, copy = experiment[0], _copy(experiment, tmp_path)
     before = {r["name"]: r for r in json.loads((copy / "results.json").read_text())}
-    again = _run(seq, copy, "--strategies", "random,pwas", "--no-sums")
+    again = _run(seq, copy, "--strategies", "random,pwas", "--no-sums", "--no-ids")
     # the shares of 2 strategies x 2 budgets and the whole map, each merged and scored
     assert again["steps"] - again["reused"] == 3 * 5
     after = {r["name"]: r for r in json.loads((copy / "results.json").read_text())}
@@ -742,7 +742,9 @@ def test_shares_without_sums_are_smaller_and_rerun_only_the_shares_and_what_read
         assert after[name]["share_bytes"] < before[name]["share_bytes"], name
     record = json.loads((copy / "runs" / "s0_pwas_0p2_share.json").read_text())
     assert record["spec"]["sums"] is False and record["result"]["sums"] is False
+    assert record["spec"]["ids"] is False and record["result"]["ids"] is False
     assert "carry no PWAS sums (`--no-sums`)" in (copy / "results.md").read_text()
+    assert "carry no ids (`--no-ids`)" in (copy / "results.md").read_text()
 
 
 def test_shares_cut_for_b_sit_beside_the_blind_ones(

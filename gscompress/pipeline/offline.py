@@ -300,6 +300,7 @@ class ShareCut:
         strategy: str = "pwas",
         codec: str = DEFAULT_SHARE_CODEC,
         sums: bool = True,
+        ids: bool = True,
         seed: int = 0,
         fold_dropped: bool = True,
         refine: MapRefiner | None = None,
@@ -316,6 +317,7 @@ class ShareCut:
         self.carry = carry
         self.fold, self.spread = fold_dropped, spread
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
+        self.ids = ids or codec != "compact"  # (fp32 and fp16 always carry them)
         if source is None:
             with LogReader(src) as log_in:
                 source = log_in.read_map(), log_in.metadata
@@ -324,6 +326,8 @@ class ShareCut:
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
         operation.update(codec=codec, sums=sums, fold=fold_dropped)
+        if not self.ids:
+            operation["ids"] = False
         if spread:
             operation["spread"] = True
         self.first_ids: np.ndarray | None = None  # what the receiver has not seen (sent first)
@@ -391,6 +395,7 @@ class ShareCut:
                 **self.budget.record(),
                 "codec": self.codec,
                 "sums": self.sums,
+                **({} if self.ids else {"ids": False}),
                 "fold": self.fold,
                 **({"spread": True} if self.spread else {}),
                 "selected": len(shared),
@@ -399,7 +404,7 @@ class ShareCut:
                 **self.extra,
             }
             with LogWriter(None, meta) as out:
-                options = CompactOptions(sums=self.sums)
+                options = CompactOptions(sums=self.sums, ids=self.ids)
                 meta.results["bytes"] = out.write_gaussians(shared, 0, self.codec, options)
                 if self.carry is not None:
                     frames, camera = self.carry
@@ -424,6 +429,7 @@ def share_log(
     strategy: str = "pwas",
     codec: str = DEFAULT_SHARE_CODEC,
     sums: bool = True,
+    ids: bool = True,
     seed: int = 0,
     fold_dropped: bool = True,
     ply: str | Path | None = None,
@@ -456,6 +462,9 @@ def share_log(
             10-20 bytes per Gaussian), fp16 or fp32 (a foxglove.PointCloud Foxglove draws).
         sums: send the PWAS sums (a receiver that keeps accumulating needs them); without them
             a compact share sends the score in 16 bits (fp32 and fp16 always send the sums).
+        ids: send each Gaussian's id; without them a compact share is about 1.9 bytes a
+            Gaussian smaller and the receiver numbers them 0..N-1 (fp32 and fp16 always send
+            them).
         seed: seed of the random strategy.
         fold_dropped: fold what the share leaves out into the Gaussians it sends (`cut_map`).
         ply: also write the share as a float32 3DGS PLY (the decoded values).
@@ -500,7 +509,7 @@ def share_log(
         from gscompress.pipeline.align import share_alignment
 
         align = share_alignment(src, align_to)
-    cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
+    cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, ids=ids, seed=seed,
                    fold_dropped=fold_dropped, refine=refine, solve=solve, command=command,
                    source=source, align=align, carry=carry,
                    receiver=None if receiver is None else read_request(receiver),

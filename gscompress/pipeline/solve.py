@@ -66,6 +66,7 @@ def solve_share(
     views: int = SOLVE_VIEWS,
     device: str = "auto",
     spread: bool = False,
+    ids: bool = True,
 ) -> tuple[Candidate, list[Candidate], dict[str, Any]]:
     """Weigh the candidate shares of `src`'s map under `budget` and pick the best picture.
 
@@ -80,6 +81,8 @@ def solve_share(
             map's renders).
         views: how many keyframes to render at.
         device: torch device.
+        ids: whether compact candidates send the ids (`share_log`; not weighed: they draw
+            nothing).
 
     Returns:
         The chosen candidate, every candidate weighed (best first), and a record for the
@@ -110,7 +113,7 @@ def solve_share(
         if any(w is not None and w != c for w, c in wanted):
             continue
         cut = ShareCut(src, budget, strategy=strategy, codec=cand_codec, sums=cand_sums,
-                       seed=seed, fold_dropped=cand_fold, spread=spread)  # fmt: skip
+                       ids=ids, seed=seed, fold_dropped=cand_fold, spread=spread)  # fmt: skip
         try:
             count = cut.budget.count(len(cut.full), cut.size)
         except BudgetError as exc:
@@ -179,6 +182,7 @@ def share_solved(
     command: str = "",
     force: bool = False,
     spread: bool = False,
+    ids: bool = True,
 ) -> dict[str, Any]:
     """`share_log` with the codec and PWAS state the solver chose (`solve_share`), the solver's
     record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and
@@ -191,12 +195,12 @@ def share_solved(
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
     best, _weighed, record = solve_share(
         src, budget, strategy=strategy, seed=seed, codec=codec, sums=sums, fold=fold, seq=seq,
-        views=views, device=device, spread=spread,
+        views=views, device=device, spread=spread, ids=ids,
     )  # fmt: skip
     record["predicted_psnr"] = best.psnr
     result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
                        seed=seed, fold_dropped=best.fold, ply=ply, refine=refine, solve=record,
                        align_to=align_to, carry=carry, receiver=receiver, device=device,
-                       command=command, force=force, spread=spread)  # fmt: skip
+                       command=command, force=force, spread=spread, ids=ids)  # fmt: skip
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result

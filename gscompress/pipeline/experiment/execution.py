@@ -178,13 +178,14 @@ def _share_job(
     device: str = "auto",
     spread: bool = False,
     sums: bool = True,
+    ids: bool = True,
 ) -> dict[str, Any]:
     from gscompress.pipeline.offline import share_log
 
     # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
     return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
                      receiver=receiver, device=device, spread=spread, sums=sums,
-                     force=True)  # fmt: skip
+                     ids=ids, force=True)  # fmt: skip
 
 
 def _reference_job(path: Path, source: Path, fmt: str) -> dict[str, Any]:
@@ -453,13 +454,15 @@ class Runner:
             spec["spread"] = True
         if not self.settings.sums:
             spec["sums"] = False
+        if not self.settings.ids:
+            spec["ids"] = False
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(
             _share_job, source=source.path, budget=budget, strategy=strategy.removesuffix(FOR_B),
             seed=seed, fold=self.settings.fold, device=self.settings.device,
             receiver=None if receiver is None else receiver.path, spread=self.settings.spread,
-            sums=self.settings.sums,
+            sums=self.settings.sums, ids=self.settings.ids,
         )  # fmt: skip
         return self._step(name, spec, job, after=[source] + ([receiver] if receiver else []))
 
