@@ -10,7 +10,8 @@ written under --out:
    (the agents' own drift: how far apart their maps sit even when placed exactly). A refused
    alignment is reported as such and its estimate still merged (a miss).
 2. A's share (`--budget`, pwas), merged into B at the estimated and at the true transform,
-   `--iters` refinement iterations (0 by default: the difference is the transform's alone).
+   `--iters` refinement iterations (0 by default) and without the merge's own local
+   re-alignment (`MergeOptions(align=False)`): the difference is the transform's alone.
 3. Each merged log scored on B's own frames at B's poses, and on every `--every`-th frame of the
    sequence at its ground-truth pose expressed in B's frame (A's part included).
 
@@ -32,6 +33,7 @@ from gscompress.io.mcap_log import TOPIC_POSE_GT, LogReader
 from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.pipeline.align import align_agents
 from gscompress.pipeline.evaluate import evaluate_log
+from gscompress.ops.merge import MergeOptions
 from gscompress.pipeline.merge import merge_logs
 from gscompress.pipeline.offline import share_log
 
@@ -55,6 +57,11 @@ def main() -> None:
     parser.add_argument("--budget", default="0.2")
     parser.add_argument("--iters", type=int, default=0)
     parser.add_argument("--every", type=int, default=2)
+    parser.add_argument(
+        "--on-frames",
+        action="store_true",
+        help="refine the registration on B's frames (gsc align --seq)",
+    )
     args = parser.parse_args()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -62,7 +69,8 @@ def main() -> None:
     t_a, gt_a = ground_truth(args.a)
     t_b, gt_b = ground_truth(args.b)
     record: dict[str, Any] = {"a": str(args.a), "b": str(args.b), "seq": str(args.seq)}
-    record["align"] = align_agents(args.a, args.b, out / "T_est.txt", out / "T_true.txt")
+    record["align"] = align_agents(args.a, args.b, out / "T_est.txt", out / "T_true.txt",
+                                   seq=args.seq if args.on_frames else None)  # fmt: skip
     record["align"].pop("hypotheses", None)
     share = out / "a_share.mcap"
     share_log(args.a, share, args.budget, force=True)
@@ -76,7 +84,8 @@ def main() -> None:
     for name, transform in (("est", out / "T_est.txt"), ("true", out / "T_true.txt")):
         merged = out / f"b_merged_{name}.mcap"
         merge_logs(args.b, share, merged, seq=args.seq, iters=args.iters,
-                   share_transform=transform, force=True)  # fmt: skip
+                   share_transform=transform, merge=MergeOptions(align=False),
+                   force=True)  # fmt: skip
         own = evaluate_log(merged, args.seq, lpips=False)
         every = evaluate_log(merged, args.seq, frames="all", poses=gt_in_b, every=args.every,
                              lpips=False)  # fmt: skip

@@ -381,3 +381,40 @@ def test_align_agents_scores_the_estimate_against_the_first_poses(
     record = align_agents(far, target, est, true)
     assert record["refused"].startswith("align far.mcap to b.mcap: ")  # (whatever the reason)
     assert est.exists()  # (the untrusted estimate, for what is counted a miss)
+
+
+@pytest.mark.parametrize("loss, accepted", [(1.5, True), (2.5, False), (None, False)])
+def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
+    logs: tuple[Path, Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    loss: float | None, accepted: bool,
+) -> None:  # fmt: skip
+    """With the target's frames, a registration refused for too few agreeing feature matches
+    stands when, refined on the frames, the source draws them at most twice as badly as the
+    target's own map; a registration refused for anything else is refused as before."""
+    import gscompress.pipeline.align as pipeline_align
+
+    source, target, _ = logs
+    found = align_clouds(*(pipeline_align.log_cloud(p)[0] for p in (source, target)))
+    few = AlignOptions(min_inliers=10**6)  # (so that the feature matches alone refuse it)
+    refined = random_transform(3)  # (what the frames make of it, stood in for)
+
+    def on_frames(*args: object) -> tuple[np.ndarray, dict]:
+        return refined, {"views": 3, "loss": loss, "target_loss": 1.0, "change_cm": 0.0,
+                         "change_deg": 0.0, "seq": "seq"}  # fmt: skip
+
+    monkeypatch.setattr(pipeline_align, "refined_on_frames", on_frames)
+    seq = tmp_path  # (any folder: the frames are stood in for above)
+    if accepted:
+        T_out, record = pipeline_align.align_logs_transform(source, target, options=few, seq=seq)
+        assert record["refused"] == "" and "too few feature matches" in record["on_frames"][
+            "overruled"]  # fmt: skip
+        np.testing.assert_allclose(T_out, refined)
+    else:
+        with pytest.raises(AlignmentError, match=r"too few feature matches agree.*; .*frames"):
+            pipeline_align.align_logs_transform(source, target, options=few, seq=seq)
+    with pytest.raises(AlignmentError, match="too few feature matches"):  # (no frames: refused)
+        pipeline_align.align_logs_transform(source, target, options=few)
+    little = AlignOptions(min_overlap=0.99, min_inliers=10**6)  # (another fault: refused)
+    with pytest.raises(AlignmentError, match="too little overlap"):
+        pipeline_align.align_logs_transform(source, target, options=little, seq=seq)
+    assert found.refused == ""  # (with the default thresholds the registration stands)

@@ -695,6 +695,9 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
         step = log.metadata.provenance[-1]["operation"]
     np.testing.assert_allclose(step["transform"], T_true, atol=1e-9)  # merged at the truth
     assert "## Alignment" in (out / "results.md").read_text()
+    aligned = json.loads((out / "runs" / "s0_align.json").read_text())["result"]
+    assert aligned["on_frames"]["views"] >= 1  # refined on B's frames
+    assert {"registration_error_cm", "drift_cm"} <= aligned["on_frames"].keys()
     # cross-agent scoring: B's map on A's frames starts at A's poses moved by the estimate
     from gscompress.io.trajectory import read_tum_trajectory
     from gscompress.pipeline.evaluate import pose_source

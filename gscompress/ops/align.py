@@ -481,7 +481,7 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
         global_step="ransac-fpfh" if init is None else "init",
         hypotheses=[h[1] for h in hypotheses],
     )
-    alignment.refused = _refusal(alignment, o)
+    alignment.refused = refusal(alignment, o)
     alignment.seconds = time.perf_counter() - started
     log.debug(
         "aligned: overlap %.3f, residual %.4f m, inliers %s, ambiguity %.3f, conditioning %.4f, "
@@ -490,7 +490,7 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
     return alignment
 
 
-def _refusal(a: Alignment, o: AlignOptions) -> str:
+def refusal(a: Alignment, o: AlignOptions) -> str:
     """Why `a` cannot be trusted, in one line ("" when it can)."""
     figures = f"overlap {a.overlap:.0%}, residual {a.residual * 100:.1f} cm"
     if a.overlap < o.min_overlap:

@@ -150,10 +150,11 @@ def _merge_job(
     return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
-def _align_job(path: Path, source: Path, target: Path) -> dict[str, Any]:
+def _align_job(path: Path, source: Path, target: Path, seq: Path) -> dict[str, Any]:
     from gscompress.pipeline.align import align_agents
 
-    return align_agents(source, target, path, true_transform(path))
+    # (refined on the receiver's own frames, which B has)
+    return align_agents(source, target, path, true_transform(path), seq=seq)
 
 
 def true_transform(estimated: Path) -> Path:
@@ -386,8 +387,8 @@ class Runner:
 
     def align(self, name: str, source: RunHandle, target: RunHandle) -> Record:
         """`source`'s map aligned to `target`'s, against their ground-truth first poses."""
-        spec = {"kind": "align", "source": source.key, "target": target.key}
-        job = functools.partial(_align_job, source=source.path, target=target.path)
+        spec = {"kind": "align", "source": source.key, "target": target.key, "on_frames": True}
+        job = functools.partial(_align_job, source=source.path, target=target.path, seq=self.seq)
         return self._step(name, spec, job, after=[source, target], suffix=".txt")
 
     def receive(

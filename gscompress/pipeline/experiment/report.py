@@ -640,8 +640,9 @@ def _alignment_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[
         "",
         "## Alignment (each agent at the identity at its own first frame)",
         "",
-        "`gsc align` of A's map to B's, against the transform between the agents' ground-truth "
-        "first poses (the agents' own drift is part of the error); B's PSNR with the PWAS share "
+        "`gsc align` of A's map to B's, refined on B's frames (`gsc align --seq`), against the "
+        "transform between the agents' ground-truth first poses (the agents' own drift is part "
+        "of the error); B's PSNR with the PWAS share "
         f"at {s.budget} merged at the estimated and at the true transform.",
         "",
         "| Seed | Error (cm) | Error (deg) | PSNR, estimated | PSNR, true | Difference (dB) "
@@ -662,7 +663,9 @@ def _alignment_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[
             f"{est['align_refused'] or 'no'} |"
         )
     lines += ["", "Each alignment's figures (overlap, residual, inliers, the drift that local "
-              "refinement finds from the true transform, a refusal) are in runs/s*_align.json; "
+              "refinement finds from the true transform, a refusal; under `on_frames` the "
+              "registration's error before B's frames refined it, and the drift those frames "
+              "find) are in runs/s*_align.json; "
               "a refused alignment's estimate is still merged, and counts as a miss."]  # fmt: skip
     return lines
 
