@@ -31,9 +31,9 @@ import numpy as np
 from gscompress.io.files import json_text
 from gscompress.io.mcap_log import TOPIC_POSE_GT, LogReader
 from gscompress.io.trajectory import write_tum_trajectory
+from gscompress.ops.merge import MergeOptions
 from gscompress.pipeline.align import align_agents
 from gscompress.pipeline.evaluate import evaluate_log
-from gscompress.ops.merge import MergeOptions
 from gscompress.pipeline.merge import merge_logs
 from gscompress.pipeline.offline import share_log
 
