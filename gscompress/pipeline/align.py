@@ -9,6 +9,7 @@ the target's frame.
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -64,13 +65,14 @@ def refined_on_frames(
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """`T` refined on the target's own frames (`gscompress.ops.align_views`): `source`'s map
     rendered at `views` of `target`'s keyframes (of `seq`, at `target`'s estimated poses).
-    Returns the transform and what to record: the refinement's figures, and `loss` and
+    Returns the transform and what to record: the refinement's figures, `loss` and
     `target_loss`, the mean tracking loss over those frames of the source at the refined
-    transform and of the target's own map. Needs torch."""
+    transform and of the target's own map, and the `seconds` it all took. Needs torch."""
     from gscompress.io.mcap_log import read_map
     from gscompress.ops.align_views import refine_on_views, view_loss
     from gscompress.pipeline.refine import spread_keyframes
 
+    started = time.perf_counter()
     chosen = spread_keyframes(target, views, seq, "aligning on the target's frames")
     assert chosen.frames is not None  # (with a sequence)
     frames, poses, camera = chosen.frames, chosen.poses, chosen.intrinsics
@@ -80,6 +82,7 @@ def refined_on_frames(
     record = {**result.record(T), "seq": str(seq)}
     record["loss"] = view_loss(source_map, found, frames, poses, camera)
     record["target_loss"] = view_loss(read_map(target), np.eye(4), frames, poses, camera)
+    record["seconds"] = time.perf_counter() - started
     return found, record
 
 
