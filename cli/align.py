@@ -110,12 +110,12 @@ def align(
         f"{result['seconds']:.2f} s"
     )
     if on_frames := result.get("on_frames"):
+        from gscompress.pipeline.align import frames_text
+
+        text += "\n" + frames_text(on_frames)
         ratio = on_frames["loss"] / on_frames["target_loss"] if on_frames["target_loss"] else None
-        text += (
-            f"\nrefined on {on_frames['views']} of {Path(target).name}'s frames: moved "
-            f"{on_frames['change_cm']:.2f} cm, {on_frames['change_deg']:.2f} degrees"
-            + ("" if ratio is None else f"; draws them at {ratio:.2f}x its own map's loss")
-        )
+        if ratio is not None and not on_frames.get("kept_registration"):
+            text += f"; draws them at {ratio:.2f}x the target's own map's loss"
         if on_frames.get("overruled"):
             text += f"\naccepted on the frames; the registration alone: {on_frames['overruled']}"
     emit(result, as_json, text)

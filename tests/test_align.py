@@ -393,10 +393,11 @@ def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
     target's own map; a registration refused for anything else is refused as before."""
     import gscompress.pipeline.align as pipeline_align
 
-    source, target, _ = logs
+    source, target, T = logs
     found = align_clouds(*(pipeline_align.log_cloud(p)[0] for p in (source, target)))
     few = AlignOptions(min_inliers=10**6)  # (so that the feature matches alone refuse it)
-    refined = random_transform(3)  # (what the frames make of it, stood in for)
+    refined = T.copy()  # (what the frames make of it, stood in for: 3 mm off)
+    refined[:3, 3] += [0.003, 0.0, 0.0]
 
     def on_frames(*args: object) -> tuple[np.ndarray, dict]:
         return refined, {"views": 3, "loss": loss, "target_loss": 1.0, "change_cm": 0.0,
@@ -408,6 +409,7 @@ def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
         T_out, record = pipeline_align.align_logs_transform(source, target, options=few, seq=seq)
         assert record["refused"] == "" and "too few feature matches" in record["on_frames"][
             "overruled"]  # fmt: skip
+        assert record["on_frames"]["surface_kept"] >= 0.8
         np.testing.assert_allclose(T_out, refined)
     else:
         with pytest.raises(AlignmentError, match=r"too few feature matches agree.*; .*frames"):
@@ -418,3 +420,30 @@ def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
     with pytest.raises(AlignmentError, match="too little overlap"):
         pipeline_align.align_logs_transform(source, target, options=little, seq=seq)
     assert found.refused == ""  # (with the default thresholds the registration stands)
+
+
+def test_frames_that_pull_the_source_off_the_surfaces_are_not_taken(
+    logs: tuple[Path, Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A refinement that leaves less than `SURFACE_KEPT` of the registration's overlap keeps the
+    registration's transform, and cannot vouch for a registration refused alone."""
+    import gscompress.pipeline.align as pipeline_align
+
+    source, target, T = logs
+    off = T.copy()
+    off[:3, 3] += [0.1, 0.1, 0.1]  # (17 cm across every wall: off the room's surfaces)
+
+    def on_frames(*args: object) -> tuple[np.ndarray, dict]:
+        return off, {"views": 3, "loss": 0.5, "target_loss": 1.0, "change_cm": 17.3,
+                     "change_deg": 0.0, "seq": "seq"}  # fmt: skip
+
+    monkeypatch.setattr(pipeline_align, "refined_on_frames", on_frames)
+    T_out, record = pipeline_align.align_logs_transform(source, target, seq=tmp_path)
+    assert record["on_frames"]["kept_registration"] and record["on_frames"]["surface_kept"] < 0.8
+    assert transform_error(T_out, T)[0] < 0.01  # (the registration's)
+    out = tmp_path / "T.txt"
+    pipeline_align.write_transform_file(out, T_out, record)
+    assert "kept the registration" in out.read_text()
+    few = AlignOptions(min_inliers=10**6)
+    with pytest.raises(AlignmentError, match="leaves its surfaces"):
+        pipeline_align.align_logs_transform(source, target, options=few, seq=tmp_path)
