@@ -117,6 +117,7 @@ def align_logs_transform(
     init: str | Path | None = None,
     options: AlignOptions | None = None,
     seq: str | Path | None = None,
+    refuse: bool = True,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The transform from `source`'s world frame to `target`'s and what to record of it; with
     `seq` (the target's sequence), the registration refined on the target's frames
@@ -124,10 +125,15 @@ def align_logs_transform(
     whose only fault is that too few feature matches agree: it is accepted when they bear it
     out (`frames_verdict`; the overruled reason is recorded as `on_frames.overruled`). A
     refinement that pulls the source off the target's surfaces (`SURFACE_KEPT`) is not taken:
-    the registration's transform stays (`on_frames.kept_registration`).
+    the registration's transform stays (`on_frames.kept_registration`), and cannot be vouched
+    for by the frames.
+
+    With `refuse` False, an alignment that cannot be trusted is returned all the same (refined
+    on the frames as any other), `refused` saying why; else it raises.
 
     Raises:
-        AlignmentError: the alignment cannot be trusted (the message names both logs).
+        AlignmentError: the alignment cannot be trusted (the message names both logs); or
+            nothing was found at all, even with `refuse` False.
     """
     from gscompress.io.trajectory import read_transform
 
@@ -136,14 +142,18 @@ def align_logs_transform(
     tgt_cloud, tgt_world = log_cloud(target)
     T0 = None if init is None else read_transform(init)
     where = f"align {Path(source).name} to {Path(target).name}"
-    overruled = ""
+    refused = ""
     try:
         alignment = align_clouds(src_cloud, tgt_cloud, o, init=T0)
     except AlignmentError as exc:
-        found = exc.alignment
-        if seq is None or found is None or refusal(found, replace(o, min_inliers=0)):
-            raise AlignmentError(f"{where}: {exc}", found) from None
-        alignment, overruled = found, str(exc)  # (for the frames to judge)
+        if exc.alignment is None:  # (nothing found at all)
+            raise AlignmentError(f"{where}: {exc}") from None
+        alignment, refused = exc.alignment, str(exc)
+    # (the frames may judge a registration whose only fault is its feature matches)
+    overrulable = seq is not None and bool(refused)
+    overrulable = overrulable and not refusal(alignment, replace(o, min_inliers=0))
+    if refused and refuse and not overrulable:
+        raise AlignmentError(f"{where}: {refused}", alignment)
     record = alignment.to_dict()
     record.pop("hypotheses")
     record.update(
@@ -169,18 +179,21 @@ def align_logs_transform(
             on_frames["kept_registration"] = True
         record["on_frames"] = on_frames
         record["T_target_source"] = T.tolist()
-        if overruled and on_frames.get("kept_registration"):
-            raise AlignmentError(
-                f"{where}: {overruled}; refined on {Path(target).name}'s frames the source "
-                f"leaves its surfaces ({on_frames['surface_kept']:.2f} of the overlap kept)",
-                replace(alignment, refused=overruled),
-            )
-        if overruled:
-            if verdict := frames_verdict(record["on_frames"], target):
-                refused = replace(alignment, T_target_source=T, refused=f"{overruled}; {verdict}")
-                raise AlignmentError(f"{where}: {refused.refused}", refused)
-            record["on_frames"]["overruled"] = overruled
-            record["refused"] = ""
+        if overrulable:
+            verdict = frames_verdict(on_frames, target)
+            if on_frames.get("kept_registration"):
+                verdict = (
+                    f"refined on {Path(target).name}'s frames the source leaves its surfaces "
+                    f"({on_frames['surface_kept']:.2f} of the overlap kept)"
+                )
+            if verdict:
+                refused = f"{refused}; {verdict}"
+            else:
+                on_frames["overruled"], refused = refused, ""
+    if refused and refuse:
+        raise AlignmentError(f"{where}: {refused}", replace(alignment, T_target_source=T,
+                                                            refused=refused))  # fmt: skip
+    record["refused"] = f"{where}: {refused}" if refused else ""
     return T, record
 
 
@@ -311,21 +324,7 @@ def align_agents(
 
     T_true = first_frames_transform(source, target)
     write_text_atomic(true, format_transform(T_true, ["from the agents' ground-truth first poses"]))
-    try:
-        T, record = align_logs_transform(source, target, options=options, seq=seq)
-        record["refused"] = ""
-    except AlignmentError as exc:
-        if exc.alignment is None:  # (nothing found at all)
-            raise
-        T, record = exc.alignment.T_target_source, exc.alignment.to_dict()
-        record.pop("hypotheses")
-        record.update(source=str(source), target=str(target), source_world_frame="",
-                      target_world_frame="", refused=str(exc))  # fmt: skip
-        if seq is not None:  # (what the frames make of it: still refused, still a miss)
-            record["on_frames"] = {"T_registration": T.tolist()}
-            T, found = refined_on_frames(source, target, seq, T)
-            record["on_frames"].update(found)
-            record["T_target_source"] = T.tolist()
+    T, record = align_logs_transform(source, target, options=options, seq=seq, refuse=False)
     write_transform_file(estimated, T, record)
     src_cloud, _ = log_cloud(source)
     tgt_cloud, _ = log_cloud(target)
