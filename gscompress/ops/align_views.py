@@ -95,10 +95,6 @@ def _terms(
     return terms, pose.grad.cpu().double().numpy()
 
 
-def _fixed(gaussians: GaussianMap, device: str | torch.device) -> RenderInputs:
-    return RenderInputs(**{k: v.detach() for k, v in activated_tensors(gaussians, device).items()})
-
-
 def view_loss(
     gaussians: GaussianMap,
     T_target_source: np.ndarray,
@@ -113,7 +109,7 @@ def view_loss(
     """The mean tracking loss over the views that draw any of `gaussians` once moved by
     `T_target_source` (None when none does): how well a map draws the target's frames where
     it covers them (the target's own map at the identity gives the scale to judge by)."""
-    fixed = _fixed(gaussians, device)
+    fixed = RenderInputs(**activated_tensors(gaussians, device))  # (no gradients)
     T = np.asarray(T_target_source, dtype=np.float64)
     losses = []
     for frame, P in zip(frames, poses, strict=True):
@@ -150,7 +146,7 @@ def refine_on_views(
     Returns:
         The refined transform (the starting one when no view draws the source).
     """
-    fixed = _fixed(source, device)
+    fixed = RenderInputs(**activated_tensors(source, device))  # (no gradients)
     observed = [frame_tensors(f, device) for f in frames]
     T = np.asarray(T_target_source, dtype=np.float64)
     centre = np.eye(4)
