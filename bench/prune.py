@@ -5,7 +5,8 @@ For each sequence (default: the synthetic room, made here), one `gsc slam` log (
 
 - the unpruned map, and the unpruned map refined for `--refine` iterations (`prune --keep 1`);
 - for each keep ratio and strategy: `gsc prune --keep K --by S` (with `--fold` and
-  `--no-fold`: `--folds`) without and with `--refine N --seq SEQ`, and the file's bytes with and
+  `--no-fold`: `--folds`) without and with `--refine N --seq SEQ` (anisotropic, as `gsc prune`
+  refines by default; `--isotropic` as `gsc prune --isotropic`), and the file's bytes with and
   without `--map-only`;
 - with `--inrun LOG` (a `gsc slam` run of the same sequence with its in-run PWAS pruning, the
   one Table 3 compares): that log's map, scored on the same frames at its own poses, and the
@@ -59,7 +60,8 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
         keyframe_ns = recorded_keyframes(reader)
     if keyframe_ns is None:
         raise SystemExit(f"{log} records no keyframes (/slam/stats): make it with gsc slam")
-    refiner = LogRefiner(log, seq, RefineOptions(opts.refine, device=opts.device))
+    options = RefineOptions(opts.refine, device=opts.device, anisotropic=not opts.isotropic)
+    refiner = LogRefiner(log, seq, options)
     rows: list[dict[str, Any]] = []
 
     def score(name: str, path: Path, seconds: float, **fields: Any) -> None:
@@ -106,6 +108,7 @@ def main() -> None:
     parser.add_argument("--inrun", type=Path, default=None, help="in-run pruned log to compare")
     parser.add_argument("--by", default="pwas,opacity")
     parser.add_argument("--refine", type=int, default=200)
+    parser.add_argument("--isotropic", action="store_true", help="refine one scale a Gaussian")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--frames", default=None, help="frame subset of the SLAM run")
     parser.add_argument("--device", default="auto")

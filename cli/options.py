@@ -399,11 +399,20 @@ def share_transform_option(f: F) -> F:
 
 
 def refine_options(f: F) -> F:
-    """`--refine N`, `--seq FOLDER` and `--device`: refine what a command keeps on the log's
-    keyframes (`log_refiner` turns them into the refiner)."""
+    """`--refine N`, `--anisotropic/--isotropic`, `--seq FOLDER` and `--device`: refine what a
+    command keeps on the log's keyframes (`log_refiner` turns them into the refiner)."""
     from gscompress.pipeline.refine import DEFAULT_LR_FINAL, KEYFRAME_RULE  # (no torch yet)
 
     f = device_option(f)
+    f = click.option(
+        "--anisotropic/--isotropic",
+        default=True,
+        show_default=True,
+        help="With --refine: refine three scales and a rotation per Gaussian, so that each "
+        "kept one stretches over the surface it now covers (what is folded in keeps its "
+        "shape); about 5.5 bytes more a Gaussian in compact. --isotropic keeps the map's one "
+        "scale per Gaussian.",
+    )(f)
     f = seq_option(False, "The sequence the log was made from (needed by --refine).")(f)
     return click.option(
         "--refine",
@@ -420,7 +429,14 @@ def refine_options(f: F) -> F:
 
 
 def log_refiner(
-    src: Path, iters: int, seq: Path | None, device: str, seed: int, bar: Any, instead: str
+    src: Path,
+    iters: int,
+    seq: Path | None,
+    device: str,
+    seed: int,
+    bar: Any,
+    instead: str,
+    anisotropic: bool = False,
 ) -> Any:
     """The `gscompress.pipeline.refine.LogRefiner` that `refine_options` ask for (drawing on
     `bar`), or None for no refinement.
@@ -436,7 +452,7 @@ def log_refiner(
         raise click.UsageError("--refine needs the sequence the log was made from: pass --seq")
     from gscompress.pipeline.refine import LogRefiner, RefineOptions
 
-    options = RefineOptions(iters, device=device, seed=seed)
+    options = RefineOptions(iters, device=device, seed=seed, anisotropic=anisotropic)
     return LogRefiner(src, seq, options, lambda done, total: advance(bar, done, total), instead)
 
 
@@ -445,7 +461,8 @@ def refined_text(result: dict[str, Any]) -> str:
     if not result.get("refine_iters"):
         return ""
     return (
-        f" (refined {result['refine_iters']} iterations on {result['refine_views']} views: "
+        f" (refined {result['refine_iters']} iterations on {result['refine_views']} views"
+        f"{', anisotropic' if result.get('refine_anisotropic') else ''}: "
         f"mean loss {result['refine_loss_before']:.4f} -> {result['refine_loss_after']:.4f})"
     )
 
@@ -467,7 +484,10 @@ def view_options(f: F) -> F:
             show_default=True,
             help="Render every N-th frame that has a pose (ATE uses all of them).",
         ),
-        size_option(help="Render at this size WxH [default: the log's working size]."),
+        size_option(
+            help="Render at this size WxH [default: the log's working size; for a share, "
+            "which carries no config, that of --poses-from's log, else the sequence's own]."
+        ),
         click.option(
             "--poses",
             type=INPUT_FILE,

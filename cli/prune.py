@@ -64,6 +64,7 @@ def prune(
     by: str,
     fold: bool,
     refine_iters: int,
+    anisotropic: bool,
     seq: Path | None,
     device: str,
     map_only: bool,
@@ -83,7 +84,9 @@ def prune(
 
     With --refine N the kept Gaussians are refined on the log's keyframes (the sequence given
     by --seq must be the one the log was made from) and on the unpruned map's renders between
-    them; the pruned ones never come back, and one whose opacity collapses stays.
+    them; the pruned ones never come back, and one whose opacity collapses stays. Each kept
+    Gaussian gets three scales and a rotation, to stretch over what it now stands for
+    (--isotropic: it keeps one scale).
 
     \b
     Examples:
@@ -94,7 +97,8 @@ def prune(
       gsc prune run.mcap --keep 0.3 --refine 500 --seq data/room --map-only -o run_30r.mcap
     """
     with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
-        refine = log_refiner(src, refine_iters, seq, device, seed, bar, "prune without --refine")
+        refine = log_refiner(src, refine_iters, seq, device, seed, bar,
+                             "prune without --refine", anisotropic)  # fmt: skip
         result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
                            options=CompactOptions(sums=sums), refine=refine, map_only=map_only,
                            fold_dropped=fold,

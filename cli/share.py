@@ -147,6 +147,7 @@ def share(
     receiver: Path | None,
     keyframes: int,
     refine_iters: int,
+    anisotropic: bool,
     seq: Path | None,
     device: str,
     seed: int,
@@ -170,7 +171,9 @@ def share(
 
     With --refine N the selected Gaussians are refined on the sender's own frames before they
     are sent (--seq: the sequence SRC was made from); a byte budget still bounds the file of
-    the refined values (which may compress a little less well, leaving out the last few).
+    the refined values (which may compress a little less well, leaving out the last few). The
+    refinement gives each Gaussian three scales and a rotation (--isotropic: one scale): fewer
+    Gaussians fit, and they draw more.
 
     With --for B.mcap the share is cut for that receiver: the Gaussians its views do not draw
     (where it has not been) are sent first, each group in the strategy's order; the receiver's
@@ -204,7 +207,7 @@ def share(
         # (--seq also serves --solve and --keyframes)
         refine_seq = seq if refine_iters or not (solve or keyframes) else None
         refine = log_refiner(src, refine_iters, refine_seq, device, seed, bar,
-                             "share without --refine")  # fmt: skip
+                             "share without --refine", anisotropic)  # fmt: skip
         carry = None
         if keyframes:
             if seq is None:

@@ -29,7 +29,7 @@ from gscompress.io.mcap_log import (
 from gscompress.metrics import ate_rmse_cm, ate_splatam_cm, psnr
 from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
-from gscompress.pipeline import evaluate_log, slam_file
+from gscompress.pipeline import evaluate_log, share_log, slam_file
 from gscompress_cli.main import cli
 
 LAYOUT = Path(__file__).resolve().parent.parent / "examples" / "foxglove_layout.json"
@@ -547,3 +547,25 @@ def test_a_score_of_a_foreign_ply_is_posed_at_the_ground_truth_and_has_no_ate(
     r = run("eval", scored, "--seq", seq_dir, "--every", "6", "--no-lpips")
     assert r.exit_code == 0, r.output
     assert "ATE          unavailable: the log's poses are the sequence's ground truth" in r.output
+
+
+def test_a_share_is_scored_at_the_working_size_of_the_log_whose_poses_it_takes(
+    gt_log, seq_dir, tmp_path
+):
+    """A share carries no config (it stays with the sender): at another log's poses it is
+    rendered at that log's working size, not at the sequence's own."""
+    share = tmp_path / "share.mcap"
+    share_log(gt_log, share, 1.0)
+    with LogReader(gt_log) as reader:
+        pose_ns, poses = reader.read_poses(TOPIC_POSE)
+        meta = reader.metadata
+    sized = tmp_path / "sized.mcap"
+    with LogWriter(sized, LogMetadata(config={**meta.config, "size": [32, 24]},
+                                      sequence=meta.sequence)) as w:  # fmt: skip
+        for t, T in zip(pose_ns, poses, strict=True):
+            w.write_pose(T, int(t))
+    small = evaluate_log(share, seq_dir, poses_from=sized, lpips=False)
+    assert small["size"] == [32, 24]
+    assert evaluate_log(share, seq_dir, poses_from=gt_log, lpips=False)["size"] == [64, 48]
+    given = evaluate_log(share, seq_dir, poses_from=sized, size=(48, 36), lpips=False)
+    assert given["size"] == [48, 36]

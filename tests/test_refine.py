@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import InputError
+from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
 from gscompress.pipeline import evaluate_log, prune_log, share_log
 from gscompress.pipeline.refine import (
@@ -136,3 +137,108 @@ def test_share_cli_asks_for_the_sequence_to_refine_on(run: dict[str, Path]) -> N
     r = CliRunner().invoke(cli, ["share", str(run["log"]), str(out), "--refine", "3"])
     assert r.exit_code == 2 and "--refine needs the sequence" in r.output
     assert not out.exists()
+
+
+def test_an_anisotropic_refinement_shapes_the_kept_gaussians(run: dict[str, Path]) -> None:
+    """`RefineOptions(anisotropic=True)`: the isotropic map is cut as an anisotropic one, so
+    that each folded group keeps its covariance, and the refinement steps three scales and a
+    rotation; the same Gaussians come out, and the provenance says how they were shaped."""
+    full = read_map(run["log"])
+    assert full.isotropic
+    flat, shaped = run["root"] / "iso.mcap", run["root"] / "aniso.mcap"
+    iso = prune_log(run["log"], flat, 0.3, refine=LogRefiner(run["log"], run["seq"],
+                                                              RefineOptions(40)))  # fmt: skip
+    refiner = LogRefiner(run["log"], run["seq"], RefineOptions(40, anisotropic=True))
+    aniso = prune_log(run["log"], shaped, 0.3, refine=refiner)
+    a, b = read_map(flat), read_map(shaped)
+    assert a.isotropic and not b.isotropic
+    assert np.array_equal(a.ids, b.ids)
+    spread = np.ptp(b.log_scales, axis=1)
+    assert float(np.median(spread)) > 0.05  # the three scales differ: shaped, not promoted
+    assert aniso["refine_loss_after"] < aniso["refine_loss_before"]
+    assert aniso["refine_loss_after"] <= iso["refine_loss_after"] * 1.05
+    with LogReader(shaped) as reader:
+        assert reader.metadata.provenance[-1]["operation"]["refine"]["anisotropic"] is True
+    with LogReader(flat) as reader:
+        assert "anisotropic" not in reader.metadata.provenance[-1]["operation"]["refine"]
+
+
+def test_an_anisotropic_cut_folds_into_the_group_covariance(run: dict[str, Path]) -> None:
+    """Folding into an anisotropic pool keeps each group's moment-matched covariance: a kept
+    Gaussian that absorbs neighbours along a surface becomes elongated, where the isotropic
+    fold keeps only the trace."""
+    from gscompress.pipeline.offline import cut_map, cut_pool
+
+    full = read_map(run["log"])
+    scores = full.importance_sum / np.maximum(full.importance_weight, 1e-12)
+    count = len(full) // 3
+
+    class Shaping:
+        anisotropic = True
+
+    iso = cut_map(cut_pool(full, None), count, scores, True)
+    aniso = cut_map(cut_pool(full, Shaping()), count, scores, True)  # type: ignore[arg-type]
+    assert iso.isotropic and not aniso.isotropic
+    np.testing.assert_allclose(aniso.means, iso.means, atol=1e-6)
+    # the same trace per Gaussian, split unevenly over the axes
+    trace_iso = 3 * np.exp(2 * iso.log_scales[:, 0].astype(np.float64))
+    trace_aniso = np.exp(2 * aniso.log_scales.astype(np.float64)).sum(axis=1)
+    np.testing.assert_allclose(trace_aniso, trace_iso, rtol=1e-4)
+    from gscompress.ops.fold import fold_groups
+    from gscompress.selection import select_by
+
+    _, kept = select_by(full, count, scores)
+    group = fold_groups(full, kept)
+    absorbed = np.bincount(group[group >= 0], None, count) > 1
+    spread = np.ptp(aniso.log_scales, axis=1)
+    assert absorbed.mean() > 0.3 and float(np.median(spread[absorbed])) > 0.1
+    assert np.all(spread[~absorbed] < 1e-5)  # alone in its group: as round as it was
+
+
+def test_prune_cli_refines_anisotropic_unless_told_not_to(run: dict[str, Path]) -> None:
+    args = ["prune", str(run["log"]), "--keep", "0.5", "--refine", "2", "--seq", str(run["seq"])]
+    for flag, isotropic in (([], False), (["--isotropic"], True)):
+        out = run["root"] / f"cli_shape_{isotropic}.mcap"
+        r = CliRunner().invoke(cli, [*args, *flag, "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        assert read_map(out).isotropic is isotropic
+
+
+def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
+    run: dict[str, Path],
+) -> None:
+    """Refined values may compress worse than the cut's (here: every rotation turned at
+    random, as an anisotropic refinement turns them). A probe refinement learns that first, so
+    the full refinement runs on the count that then fits, and nothing refined is left out."""
+    from dataclasses import replace
+
+    from gscompress.pipeline.offline import PROBE_ITERS
+
+    class Turning:
+        anisotropic = True
+
+        def __init__(self) -> None:
+            self.calls: list[tuple[int, int | None]] = []
+
+        def record(self) -> dict[str, object]:
+            return {}
+
+        def __call__(
+            self, gaussians: GaussianMap, rates: object = None,
+            teacher: GaussianMap | None = None, iters: int | None = None,
+        ) -> tuple[GaussianMap, dict[str, object]]:  # fmt: skip
+            self.calls.append((len(gaussians), iters))
+            rng = np.random.default_rng(len(gaussians))
+            quats = rng.normal(size=(len(gaussians), 4)).astype(np.float32)
+            quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+            scales = gaussians.log_scales + rng.normal(0, 0.3, gaussians.log_scales.shape)
+            return replace(gaussians, quats=quats, log_scales=scales.astype(np.float32)), {}
+
+    refine = Turning()
+    plain = share_log(run["log"], run["root"] / "plain.mcap", "12kB")
+    result = share_log(run["log"], run["root"] / "turned.mcap", "12kB", refine=refine)
+    (probed, probe_iters), (refined_count, full_iters) = refine.calls
+    assert probe_iters == PROBE_ITERS and full_iters is None
+    assert probed > refined_count  # the turned values take more bytes a Gaussian
+    assert result["selected"] == refined_count and result["file_bytes"] <= 12_000
+    assert plain["selected"] >= probed

@@ -94,6 +94,13 @@ def pose_source(path: str | Path) -> tuple[np.ndarray, np.ndarray, int]:
     return times_ns, trajectory.T_world_cam, TUM_MATCH_TOLERANCE_NS
 
 
+def working_size(meta: LogMetadata) -> tuple[int, int] | None:
+    """The working size (W, H) a log's run recorded in its config, or None (a share, whose
+    config stays with the sender, or a run at the sequence's own size)."""
+    recorded = meta.config.get("size")
+    return (int(recorded[0]), int(recorded[1])) if recorded else None
+
+
 def open_log_sequence(
     seq: str | Path,
     log_path: str | Path,
@@ -114,8 +121,7 @@ def open_log_sequence(
     from gscompress.datasets.base import enlargement_note
 
     recorded_size = meta.config.get("size")
-    if size is None and recorded_size:
-        size = (int(recorded_size[0]), int(recorded_size[1]))
+    size = size or working_size(meta)
     subset = frames or meta.frames or "all"
     sequence = open_sequence(seq, size=size, frames=subset)
     if meta.sequence and meta.sequence != sequence.name:
@@ -248,7 +254,8 @@ def evaluate_log(
         seq: the sequence folder.
         frames: frame subset; None: the one recorded in the log's metadata (else all).
         every: render every `every`-th frame that has a pose (ATE uses all of them).
-        size: working size (W, H); None: the one in the log's config (else the sequence's own).
+        size: working size (W, H); None: the one in the log's config, else (a share) the one
+            in `poses_from`'s, else the sequence's own.
         poses: a TUM trajectory to render at instead of the log's poses.
         poses_from: another log whose estimated poses to render at instead.
         refine_poses: also refine each rendered frame's pose against the fixed map with this
@@ -310,6 +317,9 @@ def evaluate_log(
     source = poses if poses is not None else poses_from if poses_from is not None else log_path
     est_ns, est_poses, tolerance_ns = pose_source(source)
     frames = frames or meta.frames or "all"
+    if size is None and working_size(meta) is None and poses_from is not None:
+        with LogReader(poses_from) as other:  # (a share scored at its sender's poses)
+            size = working_size(other.metadata)
     sequence = open_log_sequence(seq, log_path, meta, frames, size)
     positions, pose_index = frames_with_poses(sequence, est_ns, source, tolerance_ns)
     T_est = est_poses[pose_index]

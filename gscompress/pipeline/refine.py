@@ -75,6 +75,10 @@ class RefineOptions:
         seed: seed of the view order.
         pseudo_views: pseudo-views per gap between consecutive keyframes when a teacher map
             is given (`PSEUDO_VIEWS`; 0: none).
+        anisotropic: refine three scales and a rotation per Gaussian: a prune or a share then
+            cuts an isotropic map as an anisotropic one (`gscompress.pipeline.offline.cut_pool`),
+            so that what it folds keeps its shape, and the refinement stretches each kept
+            Gaussian over the surface it now covers (docs/prune-refine.md).
     """
 
     iters: int
@@ -86,6 +90,7 @@ class RefineOptions:
     backend: str | None = None
     seed: int = 0
     pseudo_views: int = PSEUDO_VIEWS
+    anisotropic: bool = False
 
     def check(self, iters_option: str = "--refine") -> None:
         """Raise OptionError for an option out of range (named as the command names it)."""
@@ -102,7 +107,8 @@ class RefineOptions:
         """What a provenance step keeps of these options."""
         return {"iters": self.iters, "views": self.views, "lr_final": self.lr_final,
                 "seed": self.seed, "backend": self.backend,
-                "pseudo_views": self.pseudo_views}  # fmt: skip
+                "pseudo_views": self.pseudo_views,
+                **({"anisotropic": True} if self.anisotropic else {})}  # fmt: skip
 
 
 class LogRefiner:
@@ -182,17 +188,28 @@ class LogRefiner:
         """What a provenance step records of this refinement (its options)."""
         return self.options.record()
 
+    @property
+    def anisotropic(self) -> bool:
+        """Whether the maps given should be cut anisotropic (`RefineOptions.anisotropic`)."""
+        return self.options.anisotropic
+
     def __call__(
-        self, gaussians: GaussianMap, rates: Any = None, teacher: GaussianMap | None = None
+        self,
+        gaussians: GaussianMap,
+        rates: Any = None,
+        teacher: GaussianMap | None = None,
+        iters: int | None = None,
     ) -> tuple[GaussianMap, dict[str, Any]]:
         """`gaussians` refined, and {"iters", "loss_before", "loss_after", "views",
         "pseudo_views", "backend"} (the mean mapping loss over the views before and after).
         `rates`: per-Gaussian factors on the steps (`gscompress.ops.refine.refine`). `teacher`:
         the map `gaussians` was cut from, whose renders between the keyframes are refined on
-        too (`PSEUDO_VIEWS`; only with the keyframes as views)."""
+        too (`PSEUDO_VIEWS`; only with the keyframes as views). `iters`: this many iterations
+        instead of the options' (a share's probe, `gscompress.pipeline.offline.PROBE_ITERS`),
+        shown on the progress as they run."""
         from gscompress.ops.refine import refine
 
-        done, iters = 0, self.options.iters
+        done, iters = 0, self.options.iters if iters is None else min(iters, self.options.iters)
 
         def step(n: int) -> None:
             nonlocal done
@@ -214,6 +231,7 @@ class LogRefiner:
         stats["pseudo_views"] = len(pseudo)
         stats["carried_views"] = len(self.carried)
         stats["backend"] = self.backend
+        stats["anisotropic"] = not refined.isotropic
         return refined, stats
 
     def contributions(self, gaussians: GaussianMap) -> Any:
