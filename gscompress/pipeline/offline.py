@@ -301,8 +301,9 @@ PROBE_ITERS = 100
 """A refined share under a byte budget first refines its cut this many iterations to learn how
 the refined values compress (`ShareCut.refined`). Tabletop's map at 10%bytes, refined 1000
 iterations with three scales a Gaussian: sized before the refinement, 4891 Gaussians were
-refined, 4350 of them fit afterwards, and leaving out the rest of a refined map cost 1.6 dB
-(folded; 2.1 dropped): 25.87 dB off the keyframes, against 26.88 for the isotropic share."""
+refined, 4350 of them fit afterwards, and with the rest folded in the share scored 25.87 dB
+off the keyframes, against 26.88 for the isotropic share; with the probe, 4355 are refined
+and sent: 27.22 dB (docs/prune-refine.md)."""
 
 
 class ShareCut:
