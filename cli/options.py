@@ -410,8 +410,9 @@ def refine_options(f: F) -> F:
         show_default=True,
         help="With --refine: refine three scales and a rotation per Gaussian, so that each "
         "kept one stretches over the surface it now covers (what is folded in keeps its "
-        "shape); about 5.5 bytes more a Gaussian in compact. --isotropic keeps the map's one "
-        "scale per Gaussian.",
+        "shape); about 5.5 bytes more a Gaussian in compact, so a share whose byte budget "
+        "holds the whole map stays isotropic. --isotropic keeps the map's one scale per "
+        "Gaussian.",
     )(f)
     f = seq_option(False, "The sequence the log was made from (needed by --refine).")(f)
     return click.option(

@@ -173,7 +173,7 @@ def share(
     are sent (--seq: the sequence SRC was made from); a byte budget still bounds the file of
     the refined values (which may compress a little less well, leaving out the last few). The
     refinement gives each Gaussian three scales and a rotation (--isotropic: one scale): fewer
-    Gaussians fit, and they draw more.
+    Gaussians fit, and they draw more; not when the byte budget holds the whole map as it is.
 
     With --for B.mcap the share is cut for that receiver: the Gaussians its views do not draw
     (where it has not been) are sent first, each group in the strategy's order; the receiver's

@@ -242,3 +242,20 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
     assert probed > refined_count  # the turned values take more bytes a Gaussian
     assert result["selected"] == refined_count and result["file_bytes"] <= 12_000
     assert plain["selected"] >= probed
+
+
+def test_a_refined_share_is_shaped_only_when_its_budget_leaves_gaussians_out(
+    run: dict[str, Path],
+) -> None:
+    """Under a byte budget that holds the whole map as it is, three scales a Gaussian would
+    only leave some out: the share stays isotropic. Below it, and under a count budget, it is
+    shaped."""
+    refiner = LogRefiner(run["log"], run["seq"], RefineOptions(3, anisotropic=True))
+    whole = share_log(run["log"], run["root"] / "w.mcap", 1.0)["file_bytes"]
+    roomy = share_log(run["log"], run["root"] / "roomy.mcap", f"{whole + 2000}B",
+                      refine=refiner)  # fmt: skip
+    assert read_map(run["root"] / "roomy.mcap").isotropic and roomy["selected"] == roomy["total"]
+    share_log(run["log"], run["root"] / "tight.mcap", f"{whole // 2}B", refine=refiner)
+    assert not read_map(run["root"] / "tight.mcap").isotropic
+    share_log(run["log"], run["root"] / "count.mcap", 1.0, refine=refiner)
+    assert not read_map(run["root"] / "count.mcap").isotropic
