@@ -301,12 +301,15 @@ def _fit(src_pts: np.ndarray, tgt_tree: Any, T: np.ndarray, dist: float) -> tupl
     return float(near.mean()), float(np.sqrt(np.mean(d[near] ** 2))) if near.any() else 0.0
 
 
-def surface_fit(source: Cloud, target: Cloud, T: np.ndarray, distance: float) -> float:
-    """Fraction of `source`'s points within `distance` of a `target` point once moved by `T`:
-    how much of the source `T` lays on the target's surfaces."""
+def surface_fit(
+    source: Cloud, target: Cloud, transforms: list[np.ndarray], distance: float
+) -> list[float]:
+    """For each transform T, the fraction of `source`'s points within `distance` of a `target`
+    point once moved by T: how much of the source T lays on the target's surfaces."""
     from scipy.spatial import cKDTree
 
-    return _fit(source.points, cKDTree(target.points), T, distance)[0]
+    tree = cKDTree(target.points)
+    return [_fit(source.points, tree, T, distance)[0] for T in transforms]
 
 
 def _agreement(

@@ -168,11 +168,8 @@ def align_logs_transform(
     if seq is not None:
         refined, on_frames = refined_on_frames(source, target, seq, T)
         on_frames["T_registration"] = record["T_target_source"]
-        half = alignment.voxel / 2
-        before = surface_fit(src_cloud, tgt_cloud, T, half)
-        on_frames["surface_kept"] = surface_fit(src_cloud, tgt_cloud, refined, half) / max(
-            before, 1e-12
-        )
+        before, after = surface_fit(src_cloud, tgt_cloud, [T, refined], alignment.voxel / 2)
+        on_frames["surface_kept"] = after / max(before, 1e-12)
         if on_frames["surface_kept"] >= SURFACE_KEPT:
             T = refined
         else:  # (off the surfaces: the frames are not trusted, the registration stays)

@@ -120,14 +120,14 @@ def open_log_sequence(
     from gscompress.datasets import open_sequence
     from gscompress.datasets.base import enlargement_note
 
-    recorded_size = meta.config.get("size")
-    size = size or working_size(meta)
+    recorded_size = working_size(meta)
+    size = size or recorded_size
     subset = frames or meta.frames or "all"
     sequence = open_sequence(seq, size=size, frames=subset)
     if meta.sequence and meta.sequence != sequence.name:
         log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
                     sequence.name)  # fmt: skip
-    as_recorded = subset == (meta.frames or "all") and list(size or []) == (recorded_size or [])
+    as_recorded = subset == (meta.frames or "all") and list(size or []) == list(recorded_size or [])
     if as_recorded and len(sequence):  # (the first frame then is the one the run saw)
         check_first_frame(log_path, meta.results.get("first_frame"), sequence)
     if note := enlargement_note(sequence):
