@@ -3,7 +3,8 @@
 For each sequence (default: the synthetic room, made here), one `gsc slam` log (cached under
 `--out`/NAME/slam.mcap and reused when present; pass `--log` to score an existing one), then:
 
-- the unpruned map, and the unpruned map refined for `--refine` iterations (`prune --keep 1`);
+- the unpruned map, and the unpruned map refined for `--refine` iterations (`prune --keep 1`;
+  `--no-whole` skips that refinement, the longest step, when an earlier run has it);
 - for each keep ratio and strategy: `gsc prune --keep K --by S` (with `--fold` and
   `--no-fold`: `--folds`) without and with `--refine N --seq SEQ` (anisotropic, as `gsc prune`
   refines by default; `--isotropic` as `gsc prune --isotropic`), and the file's bytes with and
@@ -76,7 +77,7 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
         score("in-run PWAS pruning (gsc slam)", opts.inrun, 0.0, keep="-", by="pwas", refine=0)
         inrun_ratio = len(read_map(opts.inrun)) / len(read_map(log))
     keeps = [inrun_ratio if k == "inrun" else float(k) for k in opts.keep]
-    maps = [(1.0, "pwas", False)] + [
+    maps = ([(1.0, "pwas", False)] if opts.whole else []) + [
         (k, s, f == "fold") for k in keeps for s in opts.by for f in opts.folds
     ]
     for keep, by, fold in maps:
@@ -113,6 +114,12 @@ def main() -> None:
     parser.add_argument("--frames", default=None, help="frame subset of the SLAM run")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--lpips", action="store_true")
+    parser.add_argument(
+        "--no-whole",
+        dest="whole",
+        action="store_false",
+        help="skip refining the whole map (an earlier run at the same N has it)",
+    )
     opts = parser.parse_args()
     opts.keep = opts.keep.split(",")
     opts.folds = opts.folds.split(",")
