@@ -319,10 +319,13 @@ class GaussianMap:
         return (self.quats / np.maximum(norm, np.float32(1e-12))).astype(np.float32)
 
     def covariances(self) -> np.ndarray:
-        """[N, 3, 3] float64 world covariances R diag(s^2) R^T."""
-        R = quat_to_rotmat(self.quats)
+        """[N, 3, 3] float64 world covariances R diag(s^2) R^T (s^2 I for an isotropic map,
+        which no rotation changes)."""
         variances = np.square(self.scales().astype(np.float64))
-        return np.einsum("nij,nj,nkj->nik", R, variances, R)
+        if self.isotropic:
+            return variances[:, :, None] * np.eye(3)
+        R = quat_to_rotmat(self.quats)
+        return np.matmul(R * variances[:, None, :], R.transpose(0, 2, 1))
 
     def colors(self) -> np.ndarray:
         """[N, 3] float32 view-independent RGB from the SH DC term, clipped to [0, 1]."""
