@@ -21,7 +21,7 @@ import click
 
 from gscompress import __version__
 from gscompress.errors import GscError, OptionError
-from gscompress.interrupts import sigterm_interrupts
+from gscompress.interrupts import interrupted, sigterm_interrupts
 
 # command name -> "module:function" inside this package
 COMMANDS: dict[str, str] = {
@@ -118,10 +118,19 @@ class GscGroup(click.Group):
     def invoke(self, ctx: click.Context) -> Any:
         try:
             with sigterm_interrupts():
-                return super().invoke(ctx)
+                return self._invoke_reporting(ctx)
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM; slam and experiment say more themselves
-            click.echo("Interrupted: outputs are only written once complete", err=True)
-            raise SystemExit(130) from None
+            pass
+        except Exception:  # the SIGTERM's interrupt surfacing from inside a library
+            if not interrupted():
+                raise
+        click.echo("Interrupted: outputs are only written once complete", err=True)
+        raise SystemExit(130) from None
+
+    def _invoke_reporting(self, ctx: click.Context) -> Any:
+        """The command, its errors reported on one line."""
+        try:
+            return super().invoke(ctx)
         except OptionError as exc:  # options that do not go together: a usage error, as click's
             command = f"{ctx.command_path} {ctx.invoked_subcommand}"
             raise OneLineUsageError(" ".join(str(exc).split()), ctx, command) from None

@@ -7,9 +7,20 @@ import signal
 import threading
 from collections.abc import Iterator
 
+_received = threading.Event()
+
 
 def _interrupt(signum: int, frame: object) -> None:
+    _received.set()
     raise KeyboardInterrupt
+
+
+def interrupted() -> bool:
+    """Whether SIGTERM arrived within the current `sigterm_interrupts` block. The
+    KeyboardInterrupt it raises can surface as another error when it lands inside library code
+    (in a thread pool's lock, a RuntimeError "release unlocked lock"): such an error is the
+    interrupt, not a failure of its own."""
+    return _received.is_set()
 
 
 @contextlib.contextmanager
@@ -20,6 +31,7 @@ def sigterm_interrupts() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    _received.clear()
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         yield

@@ -192,3 +192,35 @@ def test_huge_or_conflicting_values_are_usage_errors(tmp_path: Path) -> None:
         r = CliRunner().invoke(cli, ["synth", str(tmp_path / "x"), *args])
         assert r.exit_code == 2 and says in r.output and "synth --help" in r.output, r.output
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_interrupt_that_surfaces_as_another_error_still_ends_with_130() -> None:
+    """SIGTERM's KeyboardInterrupt can land inside a library's lock code and come out as a
+    RuntimeError ("release unlocked lock", seen in a thread pool): that is the interrupt, so
+    the command ends as interrupted. The same error with no signal stays an error."""
+    import signal
+
+    import click
+
+    from gscompress_cli.main import GscGroup
+
+    @click.command()
+    @click.option("--signal/--no-signal", "send", default=True)
+    def boom(send: bool) -> None:
+        try:
+            if send:
+                os.kill(os.getpid(), signal.SIGTERM)
+                signal.sigtimedwait([], 5.0)  # (the handler runs here)
+        except KeyboardInterrupt:
+            pass
+        raise RuntimeError("release unlocked lock")
+
+    class Group(GscGroup):
+        def get_command(self, ctx: Any, cmd_name: str) -> click.Command | None:
+            return boom if cmd_name == "boom" else None
+
+    result = CliRunner().invoke(Group(), ["boom"])
+    assert result.exit_code == 130, result.output
+    assert "Interrupted" in result.output
+    plain = CliRunner().invoke(Group(), ["boom", "--no-signal"])
+    assert plain.exit_code == 1 and isinstance(plain.exception, RuntimeError)
