@@ -13,7 +13,6 @@ import importlib
 import logging
 import os
 import re
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ import click
 from gscompress import __version__
 from gscompress.errors import GscError, OptionError
 from gscompress.interrupts import interrupted, sigterm_interrupts
+from gscompress.threads import use_threads
 
 # command name -> "module:function" inside this package
 COMMANDS: dict[str, str] = {
@@ -41,16 +41,6 @@ COMMANDS: dict[str, str] = {
     "experiment": "experiment:experiment",
     "view": "view:view",
 }
-
-
-def set_threads(n: int) -> None:
-    """Use `n` CPU threads in torch, without importing it for the commands that never need it:
-    the OpenMP/MKL variables are read when torch loads; a torch already loaded is told too."""
-    for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[name] = str(n)
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        torch.set_num_threads(n)
 
 
 class OneLineUsageError(click.UsageError):
@@ -201,7 +191,7 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
       gsc view a.mcap                     see the map, a prune or a share in the browser
     """
     if threads is not None:
-        set_threads(threads)
+        use_threads(threads)
     # gscompress says what it is doing at INFO (-q: only warnings; -v: each frame's stats too);
     # the libraries it uses speak from -vv on
     logging.basicConfig(

@@ -12,6 +12,8 @@ from typing import Any
 
 import pytest
 
+from gscompress.threads import THREAD_VARIABLES
+
 
 @pytest.fixture
 def threads_restored() -> Iterator[None]:
@@ -19,7 +21,7 @@ def threads_restored() -> Iterator[None]:
     process; put them back after the test, so that later tests run as before."""
     import torch
 
-    names = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
+    names = THREAD_VARIABLES
     saved, before = {name: os.environ.get(name) for name in names}, torch.get_num_threads()
     yield
     torch.set_num_threads(before)

@@ -7,8 +7,10 @@ import pytest
 
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
 from gscompress.gaussians import GaussianMap, random_map
+from gscompress.ops import fold as fold_module
 from gscompress.ops.fold import FOLD_REACH, fold, fold_groups, moment_match
 from gscompress.selection import select_count
+from gscompress.threads import use_threads
 
 
 def row_map(n: int, spacing: float, scale: float, isotropic: bool = True) -> GaussianMap:
@@ -62,6 +64,23 @@ def test_reach_bounds_the_fold():
     assert fold_groups(g, np.array([0]))[1] == -1
     g = row_map(2, spacing=FOLD_REACH * 0.02 * 0.99, scale=0.01)
     assert fold_groups(g, np.array([0]))[1] == 0
+
+
+def test_the_nearest_kept_query_uses_the_threads_gsc_is_given(monkeypatch, threads_restored):
+    used = []
+
+    class Tree(fold_module.cKDTree):  # type: ignore[misc]
+        def query(self, x, *args, **kwargs):  # type: ignore[no-untyped-def]
+            used.append(kwargs.get("workers"))
+            return super().query(x, *args, **kwargs)
+
+    monkeypatch.setattr(fold_module, "cKDTree", Tree)
+    gaussians = row_map(10, spacing=0.01, scale=0.01)
+    use_threads(3)  # what `gsc --threads 3` and an experiment worker's share do
+    fold_groups(gaussians, np.arange(0, 10, 2))
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    fold_groups(gaussians, np.arange(0, 10, 2))
+    assert used == [3, 1]
 
 
 def test_anisotropic_fold_matches_the_moments():

@@ -36,6 +36,7 @@ from gscompress.datasets.tum import TUM_ENTRIES, read_file_list, write_tum_seque
 from gscompress.errors import DatasetError, InputError, OptionError, OutputError
 from gscompress.io.files import check_only_entries, some_names
 from gscompress.seeds import check_seed
+from gscompress.threads import cpu_threads
 
 FPS = 30.0
 LOOP_SECONDS = 20.0
@@ -535,11 +536,8 @@ def synthetic_sequence(
 
 
 def writer_threads(limit: int = 4) -> int:
-    """Frame-writing threads: OMP_NUM_THREADS when set (as `gsc --threads N` sets it), else the
-    cores, at most `limit`."""
-    value = os.environ.get("OMP_NUM_THREADS", "")
-    n = int(value) if value.isdigit() and int(value) > 0 else (os.cpu_count() or 1)
-    return min(limit, n)
+    """Frame-writing threads: `cpu_threads`, at most `limit`."""
+    return cpu_threads(limit)
 
 
 def _check_replaceable(out: Path) -> None:

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from gscompress.camera import rotmat_to_quat
 from gscompress.gaussians import GaussianMap
+from gscompress.threads import cpu_threads
 
 FOLD_REACH = 4.0
 """A dropped Gaussian folds into its nearest kept one when their centres lie within this many
@@ -57,7 +58,7 @@ def fold_groups(gaussians: GaussianMap, kept: np.ndarray, reach: float = FOLD_RE
         return group
     means = gaussians.means.astype(np.float64)
     scale = mean_scales(gaussians)
-    distance, nearest = cKDTree(means[kept]).query(means[dropped], workers=-1)
+    distance, nearest = cKDTree(means[kept]).query(means[dropped], workers=cpu_threads())
     near = distance <= reach * (scale[kept][nearest] + scale[dropped])
     group[dropped[near]] = nearest[near]
     return group

@@ -33,6 +33,7 @@ from gscompress.errors import GscError
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
 from gscompress.ops.merge import EXACT, MergeOptions
 from gscompress.pipeline.experiment.protocol import FOR_B, ExperimentSettings, RunHandle
+from gscompress.threads import use_threads
 
 log = logging.getLogger(__name__)
 
@@ -214,11 +215,9 @@ def _init_worker(threads: int, pids: SimpleQueue[int]) -> None:
     a runner killed outright (SIGKILL) cannot stop its workers, which would otherwise wait for
     work forever. Only its warnings reach the console (lines of another process cannot be
     written above the runner's progress bar, so `gsc -v` speaks for --jobs 1 alone)."""
-    import torch
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     pids.put(os.getpid())
-    torch.set_num_threads(threads)
+    use_threads(threads)
     threading.Thread(target=_end_with_parent, name="end-with-parent", daemon=True).start()
 
 

@@ -24,6 +24,7 @@ from typing import Any
 from gscompress.errors import MissingDependencyError, OptionError
 from gscompress.pipeline.experiment.execution import Record, RunFailed, Runner, run_job
 from gscompress.pipeline.experiment.protocol import ExperimentSettings
+from gscompress.threads import use_threads
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +52,8 @@ def _task(
     give the same numbers); its result, and the host and Ray node it ran on. `after`: the
     results of the tasks it reads (Ray starts it once they exist)."""
     import ray
-    import torch
 
-    torch.set_num_threads(threads)
+    use_threads(threads)
     result = run_job(job, path)
     where = {"host": socket.gethostname(), "node": ray.get_runtime_context().get_node_id()}
     return result, where
