@@ -40,6 +40,16 @@ from .options import INPUT_FILE, seed_option, seq_option
     show_default=True,
     help="Folder the write button puts prunes and shares in (never over an existing file).",
 )
+@click.option(
+    "--render",
+    type=click.Choice(["browser", "server"]),
+    default="browser",
+    show_default=True,
+    help="Where the splats are drawn. browser: WebGL in the page (fluid with a GPU in the "
+    "browser's machine). server: gsc's own rasterizer on this machine (CUDA when torch has "
+    "it), each frame sent to the page as an image, smaller while the camera moves; for a "
+    "browser without a GPU, where WebGL draws splats in software.",
+)
 @seed_option("Seed of the random strategy.")
 def view(
     src: Path,
@@ -48,6 +58,7 @@ def view(
     seq: Path | None,
     compare: Path | None,
     out_dir: Path,
+    render: str,
     seed: int,
 ) -> None:
     """Serve the map of SRC (a gscompress log, or a PLY or SPZ map file) as a web page.
@@ -64,11 +75,12 @@ def view(
       gsc view run.mcap
       gsc view run.mcap --compare agent_b.mcap --port 8081
       gsc view map.ply
+      gsc view run.mcap --render server     # a browser without a GPU
     """
     from gscompress.view import MapViewer, ViewOptions
 
     options = ViewOptions(host=host, port=port, seq=seq, compare=compare, out_dir=out_dir,
-                          seed=seed)  # fmt: skip
+                          seed=seed, render=render)  # fmt: skip
     viewer = MapViewer(src, options)
     click.echo(f"gsc view: http://{host}:{viewer.port} (Ctrl-C to stop)", err=True)
     try:

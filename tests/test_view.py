@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
+from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat, rotmat_to_quat
 from gscompress.gaussians import SH_C0, GaussianMap, random_map
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.io.ply import write_ply
@@ -348,15 +349,22 @@ VISER_SPLAT_WARNING = "THREE.BufferGeometry.computeBoundingSphere(): Computed ra
 components; three.js reads a third), with any splats at all, this map's or not."""
 
 
-@pytest.mark.browser
-def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: Path) -> None:
+def need_browser() -> Any:
+    """gscompress.view.browser, or a skip saying why the page cannot be opened (a failure
+    where GSC_REQUIRE_BROWSER is set: CI installs Chromium and viser)."""
     from gscompress.view import browser
 
     why = browser.missing()
     if why is not None:
-        if os.environ.get("GSC_REQUIRE_BROWSER"):  # (CI installs both: a skip there is a failure)
+        if os.environ.get("GSC_REQUIRE_BROWSER"):
             pytest.fail(f"GSC_REQUIRE_BROWSER is set, but {why}")
         pytest.skip(f"no browser test: {why}")
+    return browser
+
+
+@pytest.mark.browser
+def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: Path) -> None:
+    browser = need_browser()
     from gscompress.view import MapViewer, ViewOptions
 
     viewer = MapViewer(tiny_log, ViewOptions(port=0, out_dir=tmp_path))
@@ -380,6 +388,108 @@ def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: 
             screenshot = os.environ.get("GSC_VIEW_SCREENSHOT")  # (`make screenshot`)
             png = page.screenshot(path=screenshot)
             assert browser.canvas_spread(png)[0] > 1000
+            own = [e for e in errors if VISER_SPLAT_WARNING not in e]
+            assert own == [], f"console errors: {own}"
+    finally:
+        viewer.close()
+
+
+class FakeServer:
+    """What `ServerRenderer` asks of a viser server, without one."""
+
+    def on_client_connect(self, callback: Callable[..., Any]) -> None:
+        pass
+
+    def on_client_disconnect(self, callback: Callable[..., Any]) -> None:
+        pass
+
+
+def test_the_server_draws_what_gsc_renders_at_the_page_camera() -> None:
+    """The page's camera (OpenCV frame, vertical field of view) gives the renderer's own
+    picture of the visible layers, in their colours, hidden Gaussians left out."""
+    from gscompress.ops.evaluate import render_view
+    from gscompress.ops.score import activated_tensors
+    from gscompress.view.server_render import Layer, ServerRenderer, page_intrinsics, page_pose
+
+    g = room_corner()
+    T = camera_path()[2]
+    wxyz = rotmat_to_quat(T[:3, :3][None])[0]
+    camera = (tuple(wxyz), tuple(T[:3, 3]), 0.9, 96, 64)
+    K = page_intrinsics(0.9, 96, 64)
+    np.testing.assert_allclose(page_pose(wxyz, T[:3, 3]), T, atol=1e-12)
+    assert (K.width, K.height, K.cx, K.cy) == (96, 64, 48.0, 32.0)
+    assert K.fy == pytest.approx(32 / np.tan(0.45))  # half the height over tan(fov / 2)
+
+    renderer = ServerRenderer(FakeServer(), device="cpu")
+    assert renderer.draw(camera, 1.0).max() == 0  # nothing to draw yet: black
+    renderer.set_layer("a", Layer(g, g.colors(), g.opacities()[:, None]))
+    picture = renderer.draw(camera, 1.0)
+    expected, _ = render_view(activated_tensors(g), T, K)
+    assert picture is not None and picture.shape == (64, 96, 3)
+    np.testing.assert_array_equal(picture, np.round(expected * 255).astype(np.uint8))
+    assert renderer.draw(camera, 0.5).shape == (32, 48, 3)  # while the camera moves
+
+    hidden = np.arange(len(g)) % 2 == 0
+    opacities = np.where(hidden, 0.0, g.opacities())[:, None]
+    red = np.tile([1.0, 0.0, 0.0], (len(g), 1))
+    renderer.set_layer("a", Layer(g, red, opacities))
+    params = activated_tensors(g.select(np.flatnonzero(~hidden)))
+    params["colors"] = params["colors"].new_tensor(red[~hidden])
+    kept, _ = render_view(params, T, K)
+    shown = renderer.draw(camera, 1.0)
+    assert shown[..., 1:].max() == 0 and shown[..., 0].max() > 100  # red only
+    np.testing.assert_array_equal(shown, np.round(kept * 255).astype(np.uint8))  # the kept only
+    renderer.show("a", False)
+    assert renderer.draw(camera, 1.0).max() == 0
+
+
+@pytest.mark.browser
+def test_page_shows_the_server_s_frames_and_follows_the_keep_slider(
+    tiny_log: Path, tmp_path: Path
+) -> None:
+    """`gsc view --render server`: the page shows the server's pictures, taken at its own
+    camera, and a slider's change is drawn again."""
+    browser = need_browser()
+    from gscompress.view import MapViewer, ViewOptions
+    from gscompress.view.server_render import page_intrinsics, page_pose
+
+    viewer = MapViewer(tiny_log, ViewOptions(port=0, out_dir=tmp_path, render="server"))
+    renderer = viewer.renderer
+    assert renderer is not None and viewer.splats is None  # no splats sent to the page
+
+    def full_frame_sent(after: int, timeout_s: float = 60.0) -> None:
+        camera = next(iter(viewer.server.get_clients().values())).camera
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if renderer.frames_sent > after and renderer.last_frame[:2] == (
+                camera.image_width,
+                camera.image_height,
+            ):
+                return
+            time.sleep(0.05)
+        raise AssertionError(
+            f"no full-size frame: {renderer.frames_sent} sent, last {renderer.last_frame}"
+        )
+
+    try:
+        url = f"http://127.0.0.1:{viewer.port}"
+        with browser.open_page(url, 1024, 600) as (page, errors):
+            browser.wait_for_text(page, "Kept 300 of 300 Gaussians")
+            full_frame_sent(0)
+            page.wait_for_timeout(500)  # (the image decoded and shown)
+            colours, spread = browser.canvas_spread(page.screenshot())
+            assert colours > 1000 and spread > 10.0, "the page is blank"
+            camera = next(iter(viewer.server.get_clients().values())).camera
+            K = page_intrinsics(camera.fov, camera.image_width, camera.image_height)
+            target = np.linalg.inv(page_pose(camera.wxyz, camera.position)) @ [*camera.look_at, 1]
+            pixel = K.fx * target[0] / target[2] + K.cx, K.fy * target[1] / target[2] + K.cy
+            assert target[2] > 0 and np.allclose(pixel, (K.cx, K.cy), atol=1.0)  # looked at
+            sent = renderer.frames_sent
+            browser.set_slider(page, "Keep ratio", 0.5)
+            browser.wait_for_text(page, "Kept 150 of 300 Gaussians")
+            full_frame_sent(sent)
+            inputs = renderer._render_inputs()
+            assert inputs is not None and int((inputs["opacities"] > 0).sum()) <= 150
             own = [e for e in errors if VISER_SPLAT_WARNING not in e]
             assert own == [], f"console errors: {own}"
     finally:
@@ -428,6 +538,40 @@ def test_viewer_follows_its_controls(tiny_log: Path, tmp_path: Path) -> None:
         written = tmp_path / "tiny_share5kB_compact.mcap"
         assert "wrote" in viewer.status.content and written.exists()
         assert written.stat().st_size == share.file_bytes
+    finally:
+        viewer.close()
+
+
+def test_server_layers_follow_the_compare_modes(tiny_log: Path, tmp_path: Path) -> None:
+    pytest.importorskip("viser")
+    from gscompress.view import MapViewer, ViewOptions
+    from gscompress.view.app import COMPARE_MODES, SELECTIONS
+
+    other = tmp_path / "b.mcap"
+    write_tiny_log(other, n=120, seed=9)
+    viewer = MapViewer(tiny_log, ViewOptions(port=0, compare=other, render="server"))
+    try:
+        assert viewer.renderer is not None
+        layers = viewer.renderer._layers
+
+        def shown() -> dict[str, int]:
+            return {k: len(v.gaussians) for k, v in layers.items() if v.visible}
+
+        assert shown() == {"map_a": 300}
+        viewer.compare.value = COMPARE_MODES[2]
+        viewer._redraw()
+        assert shown() == {"map_a": 300, "map_b": 120} and layers["map_b"].offset[0] > 0
+        viewer.selection.value = SELECTIONS[1]
+        viewer.budget.value = 5
+        viewer.compare.value = COMPARE_MODES[3]
+        viewer._redraw()
+        share = viewer._share
+        assert share is not None
+        assert shown() == {"map_b": 120, "share_on_b": share.count}
+        assert layers["map_b"].offset == (0.0, 0.0, 0.0)
+        viewer.compare.value = COMPARE_MODES[1]
+        viewer._redraw()
+        assert shown() == {"map_b": 120}
     finally:
         viewer.close()
 

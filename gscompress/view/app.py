@@ -23,6 +23,7 @@ from gscompress.ops.budget import Budget
 from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC, ShareCut, smallest_share_bytes
 from gscompress.selection import STRATEGIES
 from gscompress.view import cuts, scene
+from gscompress.view.server_render import Layer, ServerRenderer
 from gscompress.view.source import MapSource
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,8 @@ class ViewOptions:
         compare: a second log or map file, shown beside the first or on its own.
         out_dir: where the write buttons put files.
         seed: seed of the random strategy.
+        render: where the splats are drawn: "browser" (WebGL in the page) or "server" (the
+            project's rasterizer, sent to the page as images; `gscompress.view.server_render`).
     """
 
     host: str = "127.0.0.1"
@@ -64,6 +67,7 @@ class ViewOptions:
     compare: Path | None = None
     out_dir: Path = Path(".")
     seed: int = 0
+    render: str = "browser"
 
 
 class MapViewer:
@@ -96,6 +100,8 @@ class MapViewer:
         # (no share button: a map stays on this machine unless a file is sent on purpose)
         self.server.gui.configure_theme(control_width="large", show_share_button=False)
         self.server.scene.set_up_direction("-y")  # (camera frames: +y down, +z forward)
+        self.renderer = ServerRenderer(self.server) if options.render == "server" else None
+        self.splats: Any = None  # (A's splats in the browser; none when the server draws)
         self._build_gui()
         self._load_map()
         self._draw_trajectories()
@@ -114,6 +120,8 @@ class MapViewer:
     def close(self) -> None:
         """Stop the server and the worker."""
         self._closed = True
+        if self.renderer is not None:
+            self.renderer.close()
         self._wanted.set()
         self._worker.join(timeout=5)
         self.server.stop()
@@ -239,13 +247,27 @@ class MapViewer:
         self._share_key = None
         self._budget_range()
         if self.other is not None and "b" not in self._drawn:
-            b = self.other.snapshot()
-            self.splats_b = self.server.scene.add_gaussian_splats(
-                "/map_b", centers=b.means, covariances=b.covariances().astype(np.float32),
-                rgbs=b.colors(),
-                opacities=b.opacities()[:, None], visible=False,
-            )  # fmt: skip
+            self.splats_b = self._add_splats("map_b", self.other.snapshot(), visible=False)
             self._drawn["b"] = True
+
+    def _add_splats(self, name: str, g: GaussianMap, visible: bool = True) -> Any:
+        """Draw the map `g` in its own colours as the scene node `name` (in the browser), or as
+        the server's layer `name`; the node, or None on the server."""
+        rgbs, opacities = g.colors(), g.opacities()[:, None]
+        if self.renderer is not None:
+            self.renderer.set_layer(name, Layer(g, rgbs, opacities, visible))
+            return None
+        return self.server.scene.add_gaussian_splats(
+            f"/{name}", centers=g.means, covariances=g.covariances().astype(np.float32),
+            rgbs=rgbs, opacities=opacities, visible=visible,
+        )  # fmt: skip
+
+    def _show(self, node: Any, name: str, visible: bool, offset: float = 0.0) -> None:
+        """Show or hide a map drawn by `_add_splats` (moved by `offset` along x)."""
+        if self.renderer is not None:
+            self.renderer.show(name, visible, (offset, 0.0, 0.0))
+        elif node is not None:
+            node.visible, node.position = visible, (offset, 0.0, 0.0)
 
     def _current_selection(self) -> np.ndarray:
         """[N] bool: what the chosen preview keeps (and its counts and sizes shown)."""
@@ -295,7 +317,9 @@ class MapViewer:
             if self._drawn.get("a") != key:
                 rgbs = scene.splat_colours(self.gaussians, mode, kept, self.scores, self.scale)
                 opacities = scene.splat_opacities(self.gaussians, kept, self.hide_dropped.value)
-                if "a" not in self._drawn:  # a new map: its geometry with its colours
+                if self.renderer is not None:
+                    self.renderer.set_layer("map_a", Layer(self.gaussians, rgbs, opacities))
+                elif "a" not in self._drawn:  # a new map: its geometry with its colours
                     self.splats = self.server.scene.add_gaussian_splats(
                         "/map_a", *self._geometry, rgbs=rgbs, opacities=opacities
                     )
@@ -312,17 +336,16 @@ class MapViewer:
         if self.other is None:
             return
         mode = self.compare.value
-        self.splats.visible = mode in (COMPARE_MODES[0], COMPARE_MODES[2])
-        self.splats_b.visible = mode != COMPARE_MODES[0]
         offset = 0.0
         if mode == COMPARE_MODES[2]:
             a, b = self.gaussians.means, self.other.snapshot().means
             offset = float(a[:, 0].max() - b[:, 0].min()) * 1.1 if len(a) and len(b) else 0.0
-        self.splats_b.position = (offset, 0.0, 0.0)
+        self._show(self.splats, "map_a", mode in (COMPARE_MODES[0], COMPARE_MODES[2]))
+        self._show(self.splats_b, "map_b", mode != COMPARE_MODES[0], offset)
         share_node = self._drawn.get("share_node")
         if mode != COMPARE_MODES[3]:
-            if share_node is not None:
-                share_node.visible = False
+            if "share_key" in self._drawn:
+                self._show(share_node, "share_on_b", False)
             return
         share = self._share
         if share is None or self.selection.value != SELECTIONS[1]:
@@ -330,13 +353,9 @@ class MapViewer:
             return
         received = decoded_map(share.shared, share.codec, sums=share.sums)
         if self._drawn.get("share_key") != self._share_key:
-            self._drawn["share_node"] = self.server.scene.add_gaussian_splats(
-                "/share_on_b", centers=received.means,
-                covariances=received.covariances().astype(np.float32),
-                rgbs=received.colors(), opacities=received.opacities()[:, None],
-            )  # fmt: skip
+            self._drawn["share_node"] = self._add_splats("share_on_b", received)
             self._drawn["share_key"] = self._share_key
-        self._drawn["share_node"].visible = True
+        self._show(self._drawn["share_node"], "share_on_b", True)
 
     # ------------------------------------------------------------------ trajectories
 

@@ -1,0 +1,224 @@
+"""The map drawn on the server (`gsc view --render server`): every browser gets the project's
+own rasterizer's picture of the splats as its scene's background image, JPEG over the page's
+websocket, and draws only the rest (trajectories, cameras, controls) itself.
+
+A browser without a GPU draws splats in software WebGL, a cost per splat that no resolution
+saves (0.5 fps for 100k splats on a 2-core machine; docs/viewer.md). The server's renderer
+(C++ kernels on the CPU, gsplat on CUDA) draws the same splats in a fraction of that, so the
+page follows the camera. While the camera moves, frames are drawn at `MOTION_SCALE` of the
+page's size; once it has stood still for `SETTLE_S`, one frame at full size follows. Every
+Gaussian is drawn in both.
+
+The browser's camera is OpenCV's (+z forward, +y down; viser's `wxyz` and `position` are its
+camera-to-world pose), as is the renderer's, so no axis is flipped on the way.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gscompress.camera import Intrinsics, quat_to_rotmat
+from gscompress.gaussians import GaussianMap
+
+MOTION_SCALE = 0.5
+"""Image size, as a fraction of the page's, while the camera moves."""
+
+SETTLE_S = 0.25
+"""Seconds without a camera update after which the camera counts as still (a full-size
+frame follows)."""
+
+JPEG_QUALITY = 85
+"""Quality of the JPEG frames sent to the page."""
+
+
+def page_intrinsics(fov: float, width: int, height: int, scale: float = 1.0) -> Intrinsics:
+    """Pinhole intrinsics of the page's camera: vertical field of view `fov` (radians), the
+    canvas `width` x `height`, drawn at `scale` of that size (at least 16 x 16 pixels)."""
+    w, h = max(16, round(width * scale)), max(16, round(height * scale))
+    f = 0.5 * h / math.tan(0.5 * fov)
+    return Intrinsics(fx=f, fy=f, cx=0.5 * w, cy=0.5 * h, width=w, height=h)
+
+
+def page_pose(wxyz: Any, position: Any) -> np.ndarray:
+    """[4, 4] camera-to-world pose of the page's camera (its `wxyz` rotation and `position`)."""
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(np.asarray(wxyz, np.float64)[None])[0]
+    T[:3, 3] = np.asarray(position, np.float64)
+    return T
+
+
+Offset = tuple[float, float, float]
+
+
+@dataclass
+class Layer:
+    """One map as the page shows it: its Gaussians, the colours and opacities drawn (a
+    colouring, hidden dropped Gaussians), whether it is shown, and where (an offset)."""
+
+    gaussians: GaussianMap
+    rgbs: np.ndarray
+    opacities: np.ndarray
+    visible: bool = True
+    offset: Offset = (0.0, 0.0, 0.0)
+
+
+@dataclass
+class _Client:
+    """What the renderer knows of one page."""
+
+    wake: threading.Event
+    moved_at: float = 0.0
+    drawn: tuple[Any, ...] | None = None
+
+
+class ServerRenderer:
+    """Draws the visible layers for each connected page, on a thread of its own per page.
+
+    Attributes:
+        frames_sent: frames sent to all pages so far.
+        last_frame: (width, height, seconds to draw and encode) of the last frame sent.
+    """
+
+    def __init__(self, server: Any, device: str = "auto"):
+        self._server = server
+        self._device = device
+        self._layers: dict[str, Layer] = {}
+        self._version = 0
+        self._inputs: tuple[int, dict[str, Any] | None] = (-1, None)
+        self._lock = threading.Lock()
+        self._closed = False
+        self._clients: dict[int, _Client] = {}
+        self.frames_sent = 0
+        self.last_frame: tuple[int, int, float] = (0, 0, 0.0)
+        server.on_client_connect(self._connect)
+        server.on_client_disconnect(self._disconnect)
+
+    @property
+    def version(self) -> int:
+        """How many times the layers have changed (each change is drawn again)."""
+        return self._version
+
+    def close(self) -> None:
+        """Stop drawing (the page threads end at their next wake-up)."""
+        self._closed = True
+        for state in list(self._clients.values()):
+            state.wake.set()
+
+    def set_layer(self, name: str, layer: Layer) -> None:
+        """Show `layer` as `name` (replacing the one of that name)."""
+        with self._lock:
+            self._layers[name] = layer
+            self._changed()
+
+    def show(self, name: str, visible: bool, offset: Offset = (0.0, 0.0, 0.0)) -> None:
+        """Show or hide the layer `name` (if there is one), at `offset`."""
+        with self._lock:
+            layer = self._layers.get(name)
+            if layer is None or (layer.visible, layer.offset) == (visible, offset):
+                return
+            layer.visible, layer.offset = visible, offset
+            self._changed()
+
+    def _changed(self) -> None:
+        self._version += 1
+        for state in self._clients.values():
+            state.wake.set()
+
+    # ------------------------------------------------------------------ pages
+
+    def _connect(self, client: Any) -> None:
+        state = _Client(threading.Event())
+        self._clients[client.client_id] = state
+
+        def moved(_camera: Any) -> None:
+            state.moved_at = time.perf_counter()
+            state.wake.set()
+
+        client.camera.on_update(moved)
+        state.wake.set()
+        threading.Thread(target=self._serve, args=(client, state), name="gsc-view-render",
+                         daemon=True).start()  # fmt: skip
+
+    def _disconnect(self, client: Any) -> None:
+        state = self._clients.pop(client.client_id, None)
+        if state is not None:
+            state.wake.set()
+
+    def _serve(self, client: Any, state: _Client) -> None:
+        """Draw for one page until it goes: at `MOTION_SCALE` while its camera moves, at full
+        size once it stands still, and again whenever the layers change."""
+        while not self._closed and client.client_id in self._clients:
+            state.wake.wait(timeout=SETTLE_S)
+            state.wake.clear()
+            camera = client.camera
+            try:
+                key = (tuple(camera.wxyz), tuple(camera.position), camera.fov,
+                       camera.image_width, camera.image_height)  # fmt: skip
+            except (AttributeError, TypeError):  # (no camera message from the page yet)
+                continue
+            moving = time.perf_counter() - state.moved_at < SETTLE_S
+            scale = MOTION_SCALE if moving else 1.0
+            wanted = (self._version, key, scale)
+            if wanted == state.drawn or (moving and state.drawn == (self._version, key, 1.0)):
+                continue
+            started = time.perf_counter()
+            image = self.draw(key, scale)
+            if image is None:
+                continue
+            client.scene.set_background_image(image, format="jpeg", jpeg_quality=JPEG_QUALITY)
+            state.drawn = wanted
+            self.frames_sent += 1
+            self.last_frame = (image.shape[1], image.shape[0], time.perf_counter() - started)
+
+    # ------------------------------------------------------------------ drawing
+
+    def draw(self, camera: tuple[Any, ...], scale: float) -> np.ndarray | None:
+        """[H, W, 3] uint8 picture of the visible layers from `camera` (wxyz, position, fov,
+        width, height) at `scale` of its size; None before the page has a size."""
+        from gscompress.ops.score import render_at
+
+        wxyz, position, fov, width, height = camera
+        if not width or not height:
+            return None
+        params = self._render_inputs()
+        intrinsics = page_intrinsics(float(fov), int(width), int(height), scale)
+        if params is None:
+            return np.zeros((intrinsics.height, intrinsics.width, 3), np.uint8)
+        out = render_at(params, page_pose(wxyz, position), intrinsics)
+        color = out.color.clamp(0.0, 1.0).mul(255.0).round().byte().cpu().numpy()
+        return np.ascontiguousarray(color)
+
+    def _render_inputs(self) -> dict[str, Any] | None:
+        """The renderer's inputs for the visible layers, made once per change of them."""
+        from gscompress.ops.score import activated_tensors
+        from gscompress.render import resolve_device
+
+        with self._lock:
+            version, layers = self._version, [v for v in self._layers.values() if v.visible]
+            if self._inputs[0] == version:
+                return self._inputs[1]
+            parts = []
+            device = resolve_device(self._device)
+            for layer in layers:
+                if len(layer.gaussians) == 0:
+                    continue
+                params = activated_tensors(layer.gaussians, device)
+                params["means"] = params["means"] + params["means"].new_tensor(layer.offset)
+                params["colors"] = params["colors"].new_tensor(layer.rgbs[:, :3])
+                params["opacities"] = params["opacities"].new_tensor(
+                    np.asarray(layer.opacities, np.float32).reshape(-1)
+                )
+                parts.append(params)
+            inputs = None
+            if parts:
+                import torch
+
+                inputs = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+            self._inputs = (version, inputs)
+            return inputs
