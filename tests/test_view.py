@@ -443,6 +443,30 @@ def test_the_server_draws_what_gsc_renders_at_the_page_camera() -> None:
     assert renderer.draw(camera, 1.0).max() == 0
 
 
+def test_the_server_draws_no_more_than_its_pixel_cap_and_refuses_no_camera() -> None:
+    """A page's camera messages are input: a huge canvas is drawn at `MAX_PIXELS`, and a
+    message that is no camera (NaN, a zero rotation, no size, wrong lengths) draws nothing."""
+    from gscompress.view import server_render as sr
+
+    K = sr.page_intrinsics(0.9, 100_000, 50_000)
+    assert K.width * K.height <= sr.MAX_PIXELS and K.width / K.height == pytest.approx(2, 1e-3)
+    assert sr.page_intrinsics(0.0, 64, 48).fy == pytest.approx(24 / np.tan(sr.FOV_RANGE[0] / 2))
+    g = room_corner()
+    renderer = sr.ServerRenderer(FakeServer(), device="cpu")
+    renderer.set_layer("a", sr.Layer(g, g.colors(), g.opacities()[:, None]))
+    identity, origin = (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, -3.0)
+    assert renderer.draw((identity, origin, 0.9, 64, 48), 1.0) is not None
+    for camera in (
+        ((float("nan"), 0.0, 0.0, 0.0), origin, 0.9, 64, 48),
+        ((0.0, 0.0, 0.0, 0.0), origin, 0.9, 64, 48),
+        (identity, (0.0, float("inf"), 0.0), 0.9, 64, 48),
+        (identity, origin, 0.9, 0, 48),
+        (identity[:3], origin, 0.9, 64, 48),
+        (identity, origin, None, 64, 48),
+    ):
+        assert renderer.draw(camera, 1.0) is None, camera
+
+
 @pytest.mark.browser
 def test_page_shows_the_server_s_frames_and_follows_the_keep_slider(
     tiny_log: Path, tmp_path: Path

@@ -15,6 +15,7 @@ camera-to-world pose), as is the renderer's, so no axis is flipped on the way.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -26,6 +27,8 @@ import numpy as np
 from gscompress.camera import Intrinsics, quat_to_rotmat
 from gscompress.gaussians import GaussianMap
 
+log = logging.getLogger(__name__)
+
 MOTION_SCALE = 0.5
 """Image size, as a fraction of the page's, while the camera moves."""
 
@@ -36,13 +39,38 @@ frame follows)."""
 JPEG_QUALITY = 85
 """Quality of the JPEG frames sent to the page."""
 
+MAX_PIXELS = 3840 * 2160
+"""The most pixels a frame is drawn with, whatever size a page reports (a larger page gets its
+frames scaled down to this)."""
+
+FOV_RANGE = (math.radians(1.0), math.radians(170.0))
+"""Vertical fields of view drawn; a page's outside them is clamped."""
+
 
 def page_intrinsics(fov: float, width: int, height: int, scale: float = 1.0) -> Intrinsics:
-    """Pinhole intrinsics of the page's camera: vertical field of view `fov` (radians), the
-    canvas `width` x `height`, drawn at `scale` of that size (at least 16 x 16 pixels)."""
+    """Pinhole intrinsics of the page's camera: vertical field of view `fov` (radians, within
+    `FOV_RANGE`), the canvas `width` x `height`, drawn at `scale` of that size (at least 16 x 16
+    pixels, at most `MAX_PIXELS`)."""
+    width, height = max(1, width), max(1, height)
+    scale = min(scale, math.sqrt(MAX_PIXELS / (width * height)))
     w, h = max(16, round(width * scale)), max(16, round(height * scale))
-    f = 0.5 * h / math.tan(0.5 * fov)
+    f = 0.5 * h / math.tan(0.5 * min(max(fov, FOV_RANGE[0]), FOV_RANGE[1]))
     return Intrinsics(fx=f, fy=f, cx=0.5 * w, cy=0.5 * h, width=w, height=h)
+
+
+def is_camera(camera: tuple[Any, ...]) -> bool:
+    """Whether a page's (wxyz, position, fov, width, height) describes a camera to draw from:
+    finite numbers, a non-zero rotation, a size of at least one pixel. (A page's messages are
+    input like any other: `--host 0.0.0.0` serves any machine that reaches this one.)"""
+    try:
+        wxyz, position, fov, width, height = camera
+        numbers = np.array([*wxyz, *position, fov, width, height], np.float64)
+    except (TypeError, ValueError):
+        return False
+    return (
+        len(wxyz) == 4 and len(position) == 3 and bool(np.all(np.isfinite(numbers)))
+        and bool(np.any(numbers[:4])) and width >= 1 and height >= 1
+    )  # fmt: skip
 
 
 def page_pose(wxyz: Any, position: Any) -> np.ndarray:
@@ -168,11 +196,17 @@ class ServerRenderer:
             if wanted == state.drawn or (moving and state.drawn == (self._version, key, 1.0)):
                 continue
             started = time.perf_counter()
-            image = self.draw(key, scale)
+            try:
+                image = self.draw(key, scale)
+                if image is not None:
+                    client.scene.set_background_image(image, format="jpeg",
+                                                      jpeg_quality=JPEG_QUALITY)  # fmt: skip
+            except Exception as exc:  # (one frame that fails must not end the page's drawing)
+                log.warning("gsc view: a frame was not drawn: %s", exc)
+                image = None
+            state.drawn = wanted
             if image is None:
                 continue
-            client.scene.set_background_image(image, format="jpeg", jpeg_quality=JPEG_QUALITY)
-            state.drawn = wanted
             self.frames_sent += 1
             self.last_frame = (image.shape[1], image.shape[0], time.perf_counter() - started)
 
@@ -184,8 +218,8 @@ class ServerRenderer:
         from gscompress.ops.score import render_at
 
         wxyz, position, fov, width, height = camera
-        if not width or not height:
-            return None
+        if not is_camera(camera):
+            return None  # (no size yet, or a message that describes no camera)
         params = self._render_inputs()
         intrinsics = page_intrinsics(float(fov), int(width), int(height), scale)
         if params is None:
