@@ -33,6 +33,7 @@ def rows_of(folder: Path) -> list[dict]:
     return [{k: v for k, v in row.items() if k not in TIMING} for row in rows]
 
 
+@pytest.mark.filterwarnings("error:No artists with labels")  # (a plot with no run to show)
 def test_two_node_ray_cluster_gives_the_local_executors_rows(
     tiny_sequence: Path, tmp_path: Path, threads_restored: None
 ) -> None:

@@ -717,7 +717,11 @@ def _plot_rate_distortion(
         ax.set_xlabel("share size (bytes, log scale)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize="small")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize="small")
+        else:  # (every run this panel reads failed: results.md lists them)
+            ax.text(0.5, 0.5, "no points: see results.md", ha="center", va="center",
+                    transform=ax.transAxes)  # fmt: skip
     seeds = f"mean over seed(s) 0-{s.sweep_seeds - 1}" if s.sweep_seeds > 1 else "seed 0"
     fig.suptitle(_plot_title(seq, s, "Rate-distortion: agent B with A's share", seeds),
                  fontsize="medium")  # fmt: skip
