@@ -141,12 +141,6 @@ def draw_figures(
     from gscompress.io.mcap_log import LogReader, read_map
     from gscompress.view.server_render import MOTION_SCALE, Layer, ServerRenderer
 
-    class NoServer:
-        def on_client_connect(self, callback: Any) -> None:
-            pass
-
-        on_client_disconnect = on_client_connect
-
     g = read_map(log)
     with LogReader(log) as reader:
         _, poses = reader.read_poses()
@@ -156,7 +150,7 @@ def draw_figures(
     if "cuda" in devices:
         out["gpu"] = torch.cuda.get_device_name()
     for device in devices:
-        renderer = ServerRenderer(NoServer(), device=device)
+        renderer = ServerRenderer(None, device=device)
         renderer.set_layer("map", Layer(g, g.colors(), g.opacities()[:, None]))
         for scale in (1.0, MOTION_SCALE):
             renderer.draw(camera, scale)  # warm-up (and the layer's tensors made)
@@ -229,11 +223,12 @@ def browser_figures(
                 sent, began = server.frames_sent, time.perf_counter()
                 draws: list[float] = []
                 sizes: set[tuple[int, int]] = set()
-                watch = {"on": True}
+                orbiting = threading.Event()
+                orbiting.set()
 
                 def watch_frames() -> None:
                     seen = server.frames_sent
-                    while watch["on"]:
+                    while orbiting.is_set():
                         if server.frames_sent != seen:
                             seen = server.frames_sent
                             width, height, s = server.last_frame
@@ -244,7 +239,7 @@ def browser_figures(
                 watcher = threading.Thread(target=watch_frames)
                 watcher.start()
                 browser_fps = frames_while_orbiting(page, seconds)
-                watch["on"] = False
+                orbiting.clear()
                 watcher.join()
                 out["fps_orbit"] = (server.frames_sent - sent) / (time.perf_counter() - began)
                 out["orbit_frame_sizes"] = sorted(sizes)

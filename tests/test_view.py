@@ -394,16 +394,6 @@ def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: 
         viewer.close()
 
 
-class FakeServer:
-    """What `ServerRenderer` asks of a viser server, without one."""
-
-    def on_client_connect(self, callback: Callable[..., Any]) -> None:
-        pass
-
-    def on_client_disconnect(self, callback: Callable[..., Any]) -> None:
-        pass
-
-
 def test_the_server_draws_what_gsc_renders_at_the_page_camera() -> None:
     """The page's camera (OpenCV frame, vertical field of view) gives the renderer's own
     picture of the visible layers, in their colours, hidden Gaussians left out."""
@@ -420,7 +410,7 @@ def test_the_server_draws_what_gsc_renders_at_the_page_camera() -> None:
     assert (K.width, K.height, K.cx, K.cy) == (96, 64, 48.0, 32.0)
     assert K.fy == pytest.approx(32 / np.tan(0.45))  # half the height over tan(fov / 2)
 
-    renderer = ServerRenderer(FakeServer(), device="cpu")
+    renderer = ServerRenderer(None, device="cpu")
     assert renderer.draw(camera, 1.0).max() == 0  # nothing to draw yet: black
     renderer.set_layer("a", Layer(g, g.colors(), g.opacities()[:, None]))
     picture = renderer.draw(camera, 1.0)
@@ -452,7 +442,7 @@ def test_the_server_draws_no_more_than_its_pixel_cap_and_refuses_no_camera() -> 
     assert K.width * K.height <= sr.MAX_PIXELS and K.width / K.height == pytest.approx(2, 1e-3)
     assert sr.page_intrinsics(0.0, 64, 48).fy == pytest.approx(24 / np.tan(sr.FOV_RANGE[0] / 2))
     g = room_corner()
-    renderer = sr.ServerRenderer(FakeServer(), device="cpu")
+    renderer = sr.ServerRenderer(None, device="cpu")
     renderer.set_layer("a", sr.Layer(g, g.colors(), g.opacities()[:, None]))
     identity, origin = (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, -3.0)
     assert renderer.draw((identity, origin, 0.9, 64, 48), 1.0) is not None

@@ -242,7 +242,8 @@ class MapViewer:
             f"Snapshot {self.snapshot + 1} of {len(times)}{when}: {len(g):,} Gaussians, "
             f"{'scored' if g.has_importance else 'no PWAS scores'}"
         )
-        self._geometry = (g.means, g.covariances().astype(np.float32))
+        if self.renderer is None:  # (the browser's splats: their geometry, sent once)
+            self._geometry = (g.means, g.covariances().astype(np.float32))
         self._drawn.pop("a", None)
         self._share_key = None
         self._budget_range()

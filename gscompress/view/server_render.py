@@ -26,6 +26,7 @@ import numpy as np
 
 from gscompress.camera import Intrinsics, quat_to_rotmat
 from gscompress.gaussians import GaussianMap
+from gscompress.pipeline.images import to_uint8
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +114,8 @@ class ServerRenderer:
         last_frame: (width, height, seconds to draw and encode) of the last frame sent.
     """
 
-    def __init__(self, server: Any, device: str = "auto"):
-        self._server = server
+    def __init__(self, server: Any | None, device: str = "auto"):
+        """Draw for the pages of the viser `server` (None: only when `draw` is called)."""
         self._device = device
         self._layers: dict[str, Layer] = {}
         self._version = 0
@@ -124,8 +125,9 @@ class ServerRenderer:
         self._clients: dict[int, _Client] = {}
         self.frames_sent = 0
         self.last_frame: tuple[int, int, float] = (0, 0, 0.0)
-        server.on_client_connect(self._connect)
-        server.on_client_disconnect(self._disconnect)
+        if server is not None:
+            server.on_client_connect(self._connect)
+            server.on_client_disconnect(self._disconnect)
 
     @property
     def version(self) -> int:
@@ -215,18 +217,17 @@ class ServerRenderer:
     def draw(self, camera: tuple[Any, ...], scale: float) -> np.ndarray | None:
         """[H, W, 3] uint8 picture of the visible layers from `camera` (wxyz, position, fov,
         width, height) at `scale` of its size; None before the page has a size."""
-        from gscompress.ops.score import render_at
+        from gscompress.ops.evaluate import render_view
 
-        wxyz, position, fov, width, height = camera
         if not is_camera(camera):
             return None  # (no size yet, or a message that describes no camera)
+        wxyz, position, fov, width, height = camera
         params = self._render_inputs()
         intrinsics = page_intrinsics(float(fov), int(width), int(height), scale)
         if params is None:
             return np.zeros((intrinsics.height, intrinsics.width, 3), np.uint8)
-        out = render_at(params, page_pose(wxyz, position), intrinsics)
-        color = out.color.clamp(0.0, 1.0).mul(255.0).round().byte().cpu().numpy()
-        return np.ascontiguousarray(color)
+        color, _ = render_view(params, page_pose(wxyz, position), intrinsics)
+        return to_uint8(color)
 
     def _render_inputs(self) -> dict[str, Any] | None:
         """The renderer's inputs for the visible layers, made once per change of them."""
