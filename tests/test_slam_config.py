@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -127,6 +128,21 @@ def test_example_configs_equal_their_presets(name):
     assert yaml.safe_load(path.read_text()) == yaml.safe_load(
         yaml.safe_dump(preset(name).to_dict())
     ), f"regenerate {path} with save_config"
+
+
+def test_the_own_anchor_example_is_the_cpu_preset_tracking_longer():
+    from pathlib import Path
+
+    path = Path(__file__).parents[1] / "examples" / "configs" / "own-anchor.yaml"
+    config, cpu = load_config(path, "tiny"), preset("cpu")
+    assert config.tracking.iters > cpu.tracking.iters
+    assert not config.init_from_ground_truth
+    as_cpu = replace(
+        config,
+        init_from_ground_truth=cpu.init_from_ground_truth,
+        tracking=replace(config.tracking, iters=cpu.tracking.iters),
+    )
+    assert as_cpu == cpu  # nothing else differs from the preset
 
 
 @pytest.mark.parametrize(
