@@ -604,6 +604,17 @@ def test_the_config_file_sets_preset_and_keep_unless_options_do(tmp_path: Path) 
     assert (s.preset, s.keep) == ("cpu", 0.3)
 
 
+def test_a_config_of_own_anchored_agents_needs_anchor_own(tmp_path: Path) -> None:
+    """Agents that start at their own first frames share no frame: merged as if anchored at the
+    ground truth, every cross-agent figure would be wrong."""
+    cfg = tmp_path / "own.yaml"
+    cfg.write_text("init_from_ground_truth: false\n")
+    with pytest.raises(OptionError, match="use --anchor own"):
+        resolve_settings(ExperimentSettings(config_path=str(cfg)))
+    _, base = resolve_settings(ExperimentSettings(config_path=str(cfg), anchor="own"))
+    assert not base.init_from_ground_truth
+
+
 def test_a_rerun_removes_what_killed_workers_left_half_written(tmp_path: Path) -> None:
     from gscompress.io.files import AtomicFile
     from gscompress.pipeline.experiment.execution import LocalRunner

@@ -274,12 +274,23 @@ def plan_size(settings: ExperimentSettings) -> int:
 
 def resolve_settings(settings: ExperimentSettings) -> tuple[ExperimentSettings, SlamConfig]:
     """The SLAM config every run starts from (preset, then the config file, then --size and
-    --keep), and the settings with the preset and keep ratio it resolved to (for the reports)."""
+    --keep), and the settings with the preset and keep ratio it resolved to (for the reports).
+
+    Raises:
+        OptionError: the config starts each agent at its own first frame while --anchor gt
+            places both in the ground truth's (the agents' maps would not share the frame the
+            experiment merges them in).
+    """
     from gscompress.slam.config import resolve_config
 
     base = resolve_config(
         settings.preset, settings.config_path, size=settings.size, keep=settings.keep
     )
+    if settings.anchor == "gt" and not base.init_from_ground_truth:
+        raise OptionError(
+            "the config starts each agent at its own first frame (init_from_ground_truth: "
+            "false), but --anchor gt merges them in the ground truth's frame: use --anchor own"
+        )
     return replace(settings, preset=base.preset, keep=base.prune.keep), base
 
 
