@@ -7,7 +7,8 @@ Then, with every splat drawn (no subsampling):
 - start-up: `gsc view LOG` run as a process, until it prints its address (the map read,
   its covariances computed, the scene ready), against `gsc info LOG` (the same log read and
   summarised) as the baseline; the median of --runs;
-- first scene: a headless Chromium (WebGL in SwiftShader, on the CPU) opening the page, until
+- first scene: a headless Chromium (WebGL in software on the CPU: SwiftShader, or Mesa's
+  llvmpipe with `--gl llvmpipe`) opening the page, until
   the count shows and the first frame with the splats is rendered;
 - slider latency: the keep-ratio and byte-budget sliders moved in the page (typed into their
   boxes), until the page shows the new count (the recoloured splats travel in the same flush);
@@ -17,11 +18,13 @@ Then, with every splat drawn (no subsampling):
 With `--render server` (`gsc view --render server`) the splats are drawn by the server's
 rasterizer and sent to the page as images: the first scene and the sliders wait for the
 server's next full-size frame, and the frame rate counts the frames the server sends per
-second while the camera orbits (drawn at `MOTION_SCALE` of the page's size), with their size
-and the median time to draw and encode one.
+second while the camera orbits (drawn smaller than the page, at the scale that keeps a frame
+near `MOTION_FRAME_S`; `--motion-scale` fixes it instead), with their size and the median time
+to draw and encode one.
 
 `--draw-only` times the server's drawing alone, without a browser: `ServerRenderer.draw` at
-the log's middle pose, at the page's size and at `MOTION_SCALE` of it, on each `--devices`
+the log's middle pose, at the page's size and at each bound of `MOTION_SCALE_RANGE`, on each
+`--devices`
 (the first is the baseline of the ratios), median of --runs after one warm-up.
 
 Usage:
@@ -139,7 +142,7 @@ def draw_figures(
 
     from gscompress.camera import rotmat_to_quat
     from gscompress.io.mcap_log import LogReader, read_map
-    from gscompress.view.server_render import MOTION_SCALE, Layer, ServerRenderer
+    from gscompress.view.server_render import MOTION_SCALE_RANGE, Layer, ServerRenderer
 
     g = read_map(log)
     with LogReader(log) as reader:
@@ -152,7 +155,7 @@ def draw_figures(
     for device in devices:
         renderer = ServerRenderer(None, device=device)
         renderer.set_layer("map", Layer(g, g.colors(), g.opacities()[:, None]))
-        for scale in (1.0, MOTION_SCALE):
+        for scale in sorted({1.0, *MOTION_SCALE_RANGE}, reverse=True):
             renderer.draw(camera, scale)  # warm-up (and the layer's tensors made)
             times = []
             for _ in range(runs):
@@ -172,9 +175,14 @@ def draw_figures(
 
 
 def browser_figures(
-    log: Path, count: int, seconds: float, viewport: tuple[int, int], render: str = "browser"
+    log: Path,
+    count: int,
+    seconds: float,
+    viewport: tuple[int, int],
+    render: str = "browser",
+    gl: str = "swiftshader",
 ) -> dict[str, Any]:
-    """First scene, slider latencies and frame rate in headless Chromium."""
+    """First scene, slider latencies and frame rate in headless Chromium (WebGL by `gl`)."""
     from gscompress.view import MapViewer, ViewOptions, browser
     from gscompress.view.app import SELECTIONS
 
@@ -191,7 +199,7 @@ def browser_figures(
     try:
         started = time.perf_counter()
         url = f"http://127.0.0.1:{viewer.port}"
-        with browser.open_page(url, *viewport) as (page, errors):
+        with browser.open_page(url, *viewport, gl=gl) as (page, errors):
             browser.wait_for_text(page, f"Kept {count:,} of {count:,}", 120)
             out["page_count_shown_s"] = time.perf_counter() - started
             if server is None:
@@ -291,6 +299,11 @@ def main() -> None:
     parser.add_argument("--draw-only", action="store_true",
                         help="time the server's drawing alone (no browser)")  # fmt: skip
     parser.add_argument("--devices", default="cpu", help="with --draw-only: e.g. cpu,cuda")
+    parser.add_argument("--gl", choices=("swiftshader", "llvmpipe"), default="swiftshader",
+                        help="the page's software WebGL (browser.GL_FLAGS)")  # fmt: skip
+    parser.add_argument("--motion-scale", type=float, default=None,
+                        help="with --render server: draw moving frames at this fixed scale "
+                        "(default: adaptive, next_motion_scale)")  # fmt: skip
     parser.add_argument("--render", choices=("browser", "server"), default="browser",
                         help="where the splats are drawn (gsc view --render)")  # fmt: skip
     parser.add_argument("--out", type=Path, default=ROOT / "bench_out" / "view")
@@ -323,7 +336,15 @@ def main() -> None:
         figures["render"] = args.render
         if not args.skip_startup:
             figures.update(startup_s(log, args.runs, args.render))
-        figures.update(browser_figures(log, args.count, args.seconds, viewport, args.render))
+        figures["gl"] = args.gl
+        if args.motion_scale is not None:
+            from gscompress.view import server_render
+
+            server_render.MOTION_SCALE_RANGE = (args.motion_scale, args.motion_scale)
+            figures["motion_scale"] = args.motion_scale
+        figures.update(
+            browser_figures(log, args.count, args.seconds, viewport, args.render, args.gl)
+        )
     figures["load_average_1min"] = os.getloadavg()[0]  # (the cores are shared: what else ran)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(figures, indent=2) + "\n")

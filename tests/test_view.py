@@ -433,6 +433,28 @@ def test_the_server_draws_what_gsc_renders_at_the_page_camera() -> None:
     assert renderer.draw(camera, 1.0).max() == 0
 
 
+def test_moving_frames_shrink_when_slow_and_grow_when_fast_within_their_range() -> None:
+    """While the camera moves, each frame's time sets the next one's size: a frame that took
+    four times `MOTION_FRAME_S` halves the side, a quick one doubles it, within the range (a
+    time that is no time keeps the scale)."""
+    from gscompress.view import server_render as sr
+
+    low, high = sr.MOTION_SCALE_RANGE
+    target = sr.MOTION_FRAME_S
+    assert sr.next_motion_scale(0.8, 4 * target) == pytest.approx(0.4)
+    assert sr.next_motion_scale(0.4, target / 4) == pytest.approx(0.8)
+    assert sr.next_motion_scale(0.5, target) == pytest.approx(0.5)
+    assert sr.next_motion_scale(0.5, 100 * target) == low
+    assert sr.next_motion_scale(0.9, target / 100) == high
+    assert sr.next_motion_scale(0.5, 0.0) == sr.next_motion_scale(0.5, float("nan")) == 0.5
+    # settles: a frame's time taken as proportional to its pixels, the scale reaches the one
+    # whose frames take MOTION_FRAME_S
+    scale, seconds_at_full = sr.MOTION_SCALE, 9 * target  # full size takes 9 frames' time
+    for _ in range(5):
+        scale = sr.next_motion_scale(scale, seconds_at_full * scale**2)
+    assert scale == pytest.approx(1 / 3, rel=1e-3)
+
+
 def test_the_server_draws_no_more_than_its_pixel_cap_and_refuses_no_camera() -> None:
     """A page's camera messages are input: a huge canvas is drawn at `MAX_PIXELS`, and a
     message that is no camera (NaN, a zero rotation, no size, wrong lengths) draws nothing."""

@@ -13,13 +13,16 @@ from typing import Any
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome")
 """Executables tried for the browser (Debian's package installs `chromium`)."""
 
-CHROMIUM_FLAGS = (
-    "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader",
-    "--ignore-gpu-blocklist",
-    "--no-sandbox",
-)
-"""WebGL without a GPU (SwiftShader), and no sandbox (CI containers run as root)."""
+CHROMIUM_FLAGS = ("--ignore-gpu-blocklist", "--no-sandbox")
+"""WebGL on a machine without a GPU, and no sandbox (CI containers run as root)."""
+
+GL_FLAGS = {
+    "swiftshader": ("--use-angle=swiftshader", "--enable-unsafe-swiftshader"),
+    "llvmpipe": ("--use-angle=gl-egl",),
+}
+"""Software WebGL for the page: Chromium's own SwiftShader (always there; the tests use it), or
+Mesa's llvmpipe through EGL (Debian `libegl-mesa0`; Chromium falls back to no WebGL without
+it). On a 2-core machine llvmpipe draws viser's page about twice as fast (docs/viewer.md)."""
 
 
 def find_chromium() -> str | None:
@@ -44,8 +47,11 @@ def missing() -> str | None:
 
 
 @contextmanager
-def open_page(url: str, width: int = 1280, height: int = 720) -> Iterator[tuple[Any, list[str]]]:
-    """A headless Chromium page at `url` and the console errors it logs (page errors too)."""
+def open_page(
+    url: str, width: int = 1280, height: int = 720, gl: str = "swiftshader"
+) -> Iterator[tuple[Any, list[str]]]:
+    """A headless Chromium page at `url`, its WebGL drawn by `gl` (a `GL_FLAGS` key), and the
+    console errors it logs (page errors too)."""
     from playwright.sync_api import sync_playwright
 
     executable = find_chromium()
@@ -53,7 +59,8 @@ def open_page(url: str, width: int = 1280, height: int = 720) -> Iterator[tuple[
         raise RuntimeError(missing() or "no Chromium")
     errors: list[str] = []
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=executable, args=list(CHROMIUM_FLAGS))
+        flags = [*CHROMIUM_FLAGS, *GL_FLAGS[gl]]
+        browser = p.chromium.launch(executable_path=executable, args=flags)
         try:
             page = browser.new_page(viewport={"width": width, "height": height})
             page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)

@@ -5,9 +5,10 @@ websocket, and draws only the rest (trajectories, cameras, controls) itself.
 A browser without a GPU draws splats in software WebGL, a cost per splat that no resolution
 saves (0.5 fps for 100k splats on a 2-core machine; docs/viewer.md). The server's renderer
 (C++ kernels on the CPU, gsplat on CUDA) draws the same splats in a fraction of that, so the
-page follows the camera. While the camera moves, frames are drawn at `MOTION_SCALE` of the
-page's size; once it has stood still for `SETTLE_S`, one frame at full size follows. Every
-Gaussian is drawn in both.
+page follows the camera. While the camera moves, frames are drawn smaller than the page: at the
+scale that keeps one frame (drawn and encoded) near `MOTION_FRAME_S`, between the bounds of
+`MOTION_SCALE_RANGE` (`next_motion_scale`); once the camera has stood still for `SETTLE_S`, one
+frame at full size follows. Every Gaussian is drawn in both.
 
 The browser's camera is OpenCV's (+z forward, +y down; viser's `wxyz` and `position` are its
 camera-to-world pose), as is the renderer's, so no axis is flipped on the way.
@@ -31,7 +32,14 @@ from gscompress.pipeline.images import to_uint8
 log = logging.getLogger(__name__)
 
 MOTION_SCALE = 0.5
-"""Image size, as a fraction of the page's, while the camera moves."""
+"""Image size, as a fraction of the page's, of a page's first frames while its camera moves
+(later ones follow `next_motion_scale`)."""
+
+MOTION_SCALE_RANGE = (0.25, 1.0)
+"""Smallest and largest image size, as a fraction of the page's, while the camera moves."""
+
+MOTION_FRAME_S = 1 / 15
+"""Seconds one frame may take to draw and encode while the camera moves (15 frames a second)."""
 
 SETTLE_S = 0.25
 """Seconds without a camera update after which the camera counts as still (a full-size
@@ -57,6 +65,17 @@ def page_intrinsics(fov: float, width: int, height: int, scale: float = 1.0) -> 
     w, h = max(16, round(width * scale)), max(16, round(height * scale))
     f = 0.5 * h / math.tan(0.5 * min(max(fov, FOV_RANGE[0]), FOV_RANGE[1]))
     return Intrinsics(fx=f, fy=f, cx=0.5 * w, cy=0.5 * h, width=w, height=h)
+
+
+def next_motion_scale(scale: float, seconds: float) -> float:
+    """The image scale for the next frame while the camera moves, after one at `scale` took
+    `seconds`: the pixels scaled by `MOTION_FRAME_S / seconds` (a frame's time taken as
+    proportional to its pixels, so its side to the square root), within `MOTION_SCALE_RANGE`.
+    A server that draws fast (a GPU, a small map) moves at full size; a slow one at a quarter."""
+    low, high = MOTION_SCALE_RANGE
+    if not (math.isfinite(seconds) and seconds > 0):
+        return min(max(scale, low), high)
+    return min(max(scale * math.sqrt(MOTION_FRAME_S / seconds), low), high)
 
 
 def is_camera(camera: tuple[Any, ...]) -> bool:
@@ -104,6 +123,7 @@ class _Client:
     wake: threading.Event
     moved_at: float = 0.0
     drawn: tuple[Any, ...] | None = None
+    motion_scale: float = MOTION_SCALE
 
 
 class ServerRenderer:
@@ -181,8 +201,9 @@ class ServerRenderer:
             state.wake.set()
 
     def _serve(self, client: Any, state: _Client) -> None:
-        """Draw for one page until it goes: at `MOTION_SCALE` while its camera moves, at full
-        size once it stands still, and again whenever the layers change."""
+        """Draw for one page until it goes: at its motion scale while its camera moves (each
+        moving frame's time sets the next one's scale), at full size once it stands still, and
+        again whenever the layers change."""
         while not self._closed and client.client_id in self._clients:
             state.wake.wait(timeout=SETTLE_S)
             state.wake.clear()
@@ -193,9 +214,10 @@ class ServerRenderer:
             except (AttributeError, TypeError):  # (no camera message from the page yet)
                 continue
             moving = time.perf_counter() - state.moved_at < SETTLE_S
-            scale = MOTION_SCALE if moving else 1.0
+            scale = state.motion_scale if moving else 1.0
             wanted = (self._version, key, scale)
-            if wanted == state.drawn or (moving and state.drawn == (self._version, key, 1.0)):
+            # (while moving, a view already drawn, at any scale, is not drawn again)
+            if wanted == state.drawn or (moving and (state.drawn or ())[:2] == wanted[:2]):
                 continue
             started = time.perf_counter()
             try:
@@ -209,8 +231,11 @@ class ServerRenderer:
             state.drawn = wanted
             if image is None:
                 continue
+            seconds = time.perf_counter() - started
+            if moving:
+                state.motion_scale = next_motion_scale(scale, seconds)
             self.frames_sent += 1
-            self.last_frame = (image.shape[1], image.shape[0], time.perf_counter() - started)
+            self.last_frame = (image.shape[1], image.shape[0], seconds)
 
     # ------------------------------------------------------------------ drawing
 
