@@ -24,8 +24,7 @@ to draw and encode one.
 
 `--draw-only` times the server's drawing alone, without a browser: `ServerRenderer.draw` at
 the log's middle pose, at the page's size and at each bound of `MOTION_SCALE_RANGE`, on each
-`--devices`
-(the first is the baseline of the ratios), median of --runs after one warm-up.
+`--devices` (the first is the baseline of the ratios), median of --runs after one warm-up.
 
 Usage:
     python bench/view.py [--source LOG] [--count 100000] [--render browser|server]

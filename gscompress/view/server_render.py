@@ -73,9 +73,8 @@ def next_motion_scale(scale: float, seconds: float) -> float:
     proportional to its pixels, so its side to the square root), within `MOTION_SCALE_RANGE`.
     A server that draws fast (a GPU, a small map) moves at full size; a slow one at a quarter."""
     low, high = MOTION_SCALE_RANGE
-    if not (math.isfinite(seconds) and seconds > 0):
-        return min(max(scale, low), high)
-    return min(max(scale * math.sqrt(MOTION_FRAME_S / seconds), low), high)
+    timed = math.isfinite(seconds) and seconds > 0
+    return min(max(scale * math.sqrt(MOTION_FRAME_S / seconds) if timed else scale, low), high)
 
 
 def is_camera(camera: tuple[Any, ...]) -> bool:
