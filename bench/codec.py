@@ -4,8 +4,9 @@ For each map (the synthetic demo map, the final map of every sequence in ../shar
 with the cpu preset, and an anisotropic map of the synthetic sequence), every format:
 
 - fp32 / fp16: our `/gaussians` foxglove.PointCloud message;
-- compact: our own message, with ids and PWAS sums (a share's default), with ids and the 16-bit
-  score (`--no-sums`), and bare (geometry and colour only, what a viewer needs);
+- compact: our own message as a share sends it by default (PWAS sums, no ids), with the ids too
+  (`gsc share --ids`; a log's own maps), with the score alone (`--no-sums`), and bare (geometry
+  and colour only, what a viewer needs);
 - spz, spz-v3: our SPZ file, version 4 (zstd streams) and 3 (gzip);
 - st-spz, st-sog, st-cply: `@playcanvas/splat-transform`'s SPZ, SOG and compressed PLY of our
   PLY (where node and tests/js/node_modules are present; `make js-deps`), read back by
@@ -47,7 +48,7 @@ import zstandard
 
 from gscompress.gaussians import GaussianMap
 from gscompress.io import spz
-from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions
+from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_IDS, CompactOptions
 from gscompress.io.mcap_log import LogReader, decode_map_message, encode_map
 from gscompress.io.ply import read_ply, write_ply
 from gscompress.io.sog import splat_transform
@@ -64,8 +65,9 @@ SEQUENCES = {
 """Map name -> (folder in ../shared/data, frame subset)."""
 
 COMPACT_VARIANTS = {
-    "compact": CompactOptions(),
-    "compact-score": CompactOptions(sums=False),
+    "compact": CompactOptions(ids=SHARE_IDS),
+    "compact-ids": CompactOptions(ids=True),
+    "compact-score": CompactOptions(ids=SHARE_IDS, sums=False),
     "compact-bare": CompactOptions(ids=False, sums=False, score=False),
 }
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import click
 
 from gscompress.errors import InputError, clipped
-from gscompress.io.codec import CODECS
+from gscompress.io.codec import CODECS, SHARE_IDS
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
 from gscompress.selection import is_fraction
@@ -91,30 +91,30 @@ def codec_option(default: str | None, more: str = "") -> Callable[[F], F]:
 
 
 def sums_option(f: F) -> F:
-    """`--no-sums`: a compact map without the PWAS sums (the score in 16 bits instead)."""
+    """`--no-sums`: a compact map without the PWAS sums (the score alone instead)."""
     return click.option(
         "--sums/--no-sums",
         default=True,
         show_default=True,
         help="Send the PWAS sums, so that the receiver can keep accumulating importance and a "
-        "merge can weigh each agent's evidence (compact: the score in 16 bits, the two sums in 8 "
-        "bits each, about 1.7 B per Gaussian more); with --no-sums a compact map carries only "
-        "the score: about 15% more Gaussians in a byte budget, but no evidence for a merge (fp32 "
+        "merge can weigh each agent's evidence (compact: the two sums as 8-bit log codes beside "
+        "the score's, about 1.7 B per Gaussian more); with --no-sums a compact map carries only "
+        "the score: about 20% more Gaussians in a byte budget, but no evidence for a merge (fp32 "
         "and fp16 always carry the sums, exactly).",
     )(f)
 
 
 def ids_option(f: F) -> F:
-    """`--no-ids`: a compact share without the Gaussians' ids."""
+    """`--ids`: a compact share with the Gaussians' ids (not by default: `SHARE_IDS`)."""
     return click.option(
         "--ids/--no-ids",
-        default=True,
+        default=SHARE_IDS,
         show_default=True,
         help="Send each Gaussian's id, which names the sender's Gaussian it came from. A merge "
         "gives the share's Gaussians new ids past the receiver's either way, so the receiver "
-        "needs them only to trace a Gaussian back; with --no-ids a compact share is about 1.9 B "
-        "per Gaussian smaller (about 15% more Gaussians in a byte budget) and the receiver "
-        "numbers them 0..N-1 (fp32 and fp16 always carry the ids).",
+        "needs them only to trace a Gaussian back; without them (the default) a compact share "
+        "is about 2 B per Gaussian smaller (about 20% more Gaussians in a byte budget) and the "
+        "receiver numbers them 0..N-1 (fp32 and fp16 always carry the ids).",
     )(f)
 
 

@@ -156,13 +156,13 @@ def share(
 ) -> None:
     """Write the top BUDGET share of the map in SRC to DST or -o (a small gscompress log).
 
-    The share holds the selected Gaussians with their ids (unless --no-ids) and PWAS sums
-    (or, with --no-sums, the score alone), and records its source, strategy, budget, codec,
-    bytes and the selected / total counts. Each Gaussian left out is folded into the nearest
-    one sent (--no-fold: left out). It is stored compact by default (quantised, compressed
-    columns: about 13 bytes per Gaussian with ids and PWAS sums, 11-12 with --no-sums, about 2
-    fewer with --no-ids, against 76 at fp32); --codec fp32 or fp16 sends a foxglove.PointCloud
-    that Foxglove draws.
+    The share holds the selected Gaussians with their PWAS score and sums (or, with --no-sums,
+    the score alone) and, with --ids, their ids, and records its source, strategy, budget,
+    codec, bytes and the selected / total counts. Each Gaussian left out is folded into the
+    nearest one sent (--no-fold: left out). It is stored compact by default (quantised,
+    compressed columns: about 10 bytes per Gaussian with the PWAS score and sums, 8-9 with
+    --no-sums, about 2 more with --ids, against 76 at fp32); --codec fp32 or fp16 sends a
+    foxglove.PointCloud that Foxglove draws.
 
     A fraction budget sends round(fraction x N) Gaussians. A byte budget sends the most
     Gaussians whose share file fits in it (the whole file as written: framing, schema,
@@ -184,7 +184,7 @@ def share(
       gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
       gsc share --budget 50kB agent_a.mcap share.mcap
       gsc share --budget 5%bytes --no-sums agent_a.mcap share.mcap
-      gsc share --budget 72kB --no-ids agent_a.mcap share.mcap
+      gsc share --budget 72kB --ids agent_a.mcap share.mcap
       gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
       gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
       gsc share agent_a.mcap share.mcap --align-to agent_b.mcap

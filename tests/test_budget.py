@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from gscompress.errors import BudgetError, InputError, LogFormatError, MapError
 from gscompress.gaussians import random_map
-from gscompress.io.codec import CODECS
+from gscompress.io.codec import CODECS, SHARE_IDS
 from gscompress.io.columns import map_from_columns
 from gscompress.io.mcap_log import (
     LogMetadata,
@@ -137,9 +137,9 @@ def test_fp16_records_are_smaller():
 # ---------------------------------------------------------------- never over budget
 
 
-def share_bytes(src, budget_text, count, codec):
+def share_bytes(src, budget_text, count, codec, ids=SHARE_IDS):
     """Bytes of the share file of the `count` best Gaussians under `budget_text`."""
-    return ShareCut(src, Budget.parse(budget_text), codec=codec).size(count)
+    return ShareCut(src, Budget.parse(budget_text), codec=codec, ids=ids).size(count)
 
 
 @st.composite
@@ -156,33 +156,37 @@ def byte_budget_cases(draw):
         "tiny": (1, 1500),  # below the framing, below one Gaussian, or just one
     }[draw(st.sampled_from(["any", "few", "tiny"]))]
     budget_bytes = draw(st.integers(low, high))
-    return full, codec, budget_bytes
+    return full, codec, budget_bytes, draw(st.booleans())
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(case=byte_budget_cases())
 def test_byte_budget_bounds_the_whole_file_and_holds_the_most_that_fit(case):
     """In every codec, the share file as written (framing, schema, metadata, map) never exceeds
-    the budget, holds the K best Gaussians, and K + 1 of them would not fit."""
-    full, codec, budget_bytes = case
+    the budget, holds the K best Gaussians, and K + 1 of them would not fit (with the ids sent
+    or not: without them the K are checked by count, their choice does not depend on it)."""
+    full, codec, budget_bytes, ids = case
     with tempfile.TemporaryDirectory() as tmp:
         src = write_log(Path(tmp) / "a.mcap", full)
         dst = Path(tmp) / "s.mcap"
         try:
-            result = share_log(src, dst, f"{budget_bytes}B", codec=codec)
+            result = share_log(src, dst, f"{budget_bytes}B", codec=codec, ids=ids)
         except BudgetError as exc:
             event("below one Gaussian")
             assert "raise the budget" in str(exc) and not dst.exists()
-            assert share_bytes(src, f"{budget_bytes}B", 1, codec) > budget_bytes  # one won't fit
+            assert share_bytes(src, f"{budget_bytes}B", 1, codec, ids) > budget_bytes  # one won't
             return
         k = result["selected"]
         event("all fit" if k == len(full) else "some fit")
         assert dst.stat().st_size == result["file_bytes"] <= budget_bytes  # what is sent fits
         assert result["budget_bytes"] == budget_bytes and result["codec"] == codec
         index = top_k(strategy_scores(full, "pwas"), full.ids, k)
-        assert sorted(read_map(dst).ids.tolist()) == sorted(full.ids[index].tolist())  # K best
+        sent = read_map(dst)
+        if ids or codec != "compact":
+            assert sorted(sent.ids.tolist()) == sorted(full.ids[index].tolist())  # K best
+        assert len(sent) == k
         if k < len(full):  # one more would not fit: checked on a file really written
-            assert share_bytes(src, f"{budget_bytes}B", k + 1, codec) > budget_bytes
+            assert share_bytes(src, f"{budget_bytes}B", k + 1, codec, ids) > budget_bytes
 
 
 @pytest.mark.parametrize("codec", CODECS)
@@ -205,7 +209,9 @@ def test_budget_below_one_gaussian_is_a_budget_error(tmp_path, codec):
 def test_smaller_codecs_fit_more_of_the_same_ranking(tmp_path):
     full = random_map(5_000, seed=4)
     src = write_log(tmp_path / "a.mcap", full)
-    results = {c: share_log(src, tmp_path / f"{c}.mcap", "100kB", codec=c) for c in CODECS}
+    results = {
+        c: share_log(src, tmp_path / f"{c}.mcap", "100kB", codec=c, ids=True) for c in CODECS
+    }
     selected = {c: r["selected"] for c, r in results.items()}
     # 76 vs 54 bytes per Gaussian in the message; the file's zstd chunk shrinks float32 more
     assert selected["fp16"] > 1.2 * selected["fp32"]

@@ -124,6 +124,7 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
             "budget": 0.2,
             "codec": "compact",  # the default
             "sums": True,
+            "ids": False,  # the default
             "fold": True,  # the default
             "bytes": log_info(out)["map"]["bytes"],
             "selected": 200,
@@ -523,8 +524,9 @@ def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
 
 
 def test_a_share_without_ids_holds_more_of_the_map_in_a_byte_budget(log_path, tmp_path):
-    """--no-ids sends the same Gaussians, numbered 0..N-1 by the reader, in fewer bytes; so a
-    byte budget holds more of them, and the budget still holds. fp32 keeps its ids."""
+    """Without ids (the default) a share sends the same Gaussians as --ids, numbered 0..N-1 by
+    the reader, in fewer bytes; so a byte budget holds more of them, and the budget still
+    holds. fp32 keeps its ids."""
 
     def share(*args: object) -> tuple[dict, GaussianMap]:
         out = tmp_path / f"s{len(list(tmp_path.iterdir()))}.mcap"
@@ -532,18 +534,17 @@ def test_a_share_without_ids_holds_more_of_the_map_in_a_byte_budget(log_path, tm
         assert r.exit_code == 0, r.output
         return {**json.loads(r.output), "dst": out.name}, read_map(out)
 
-    (with_ids, a), (without, b) = share("--budget", "0.5"), share("--budget", "0.5", "--no-ids")
+    (with_ids, a), (without, b) = share("--budget", "0.5", "--ids"), share("--budget", "0.5")
     assert without["selected"] == with_ids["selected"] == len(b)
     assert without["file_bytes"] < with_ids["file_bytes"] - len(b)  # over a byte a Gaussian
-    assert "ids" not in with_ids and without["ids"] is False
+    assert with_ids["ids"] is True and without["ids"] is False
     assert np.array_equal(b.ids, np.arange(len(b))) and not np.array_equal(a.ids, b.ids)
     assert np.array_equal(a.means, b.means) and np.array_equal(a.importance, b.importance)
     budget = with_ids["file_bytes"]
-    (fits, _), (more, _) = share("--budget", f"{budget}B"), share("--budget", f"{budget}B",
-                                                                  "--no-ids")  # fmt: skip
+    (fits, _), (more, _) = share("--budget", f"{budget}B", "--ids"), share("--budget", f"{budget}B")
     assert more["selected"] > fits["selected"] and more["file_bytes"] <= budget
-    wide, shared = share("--budget", "0.5", "--no-ids", "--codec", "fp32")
-    assert "ids" not in wide and np.array_equal(np.sort(shared.ids), np.sort(a.ids))
+    wide, shared = share("--budget", "0.5", "--codec", "fp32")
+    assert wide["ids"] is True and np.array_equal(np.sort(shared.ids), np.sort(a.ids))
     with LogReader(tmp_path / without["dst"]) as log:
         assert log.metadata.provenance[-1]["operation"]["ids"] is False
 

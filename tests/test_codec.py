@@ -90,19 +90,31 @@ def test_round_trip_within_the_stated_bounds(g, ids, sums):
         assert back.ids.tolist() == list(range(len(g)))
         back.ids[:] = g.ids[np.argsort(morton_codes_of(g, message), kind="stable")]
     check_bounds(g, back, message)
-    if len(g):  # the score in 16 bits on a log scale: relative error below 1e-3
-        a, b = by_id(g).importance, by_id(back).importance
-        assert np.all(np.abs(b - a) <= 1e-3 * a + 1e-30)
+    if len(g):  # the score within half an 8-bit log step: a receiver ranks by it
+        check_log_sums(g, back, message, ("importance",))
     if sums:  # the sums within half an 8-bit log step: accumulation and evidence carry on
         check_log_sums(g, back, message)
 
 
-def check_log_sums(g, back, message):
-    """The weight and alpha x T sums of `back` within half a log code step of `g`'s, zero
-    exactly where `g`'s are (the score is checked on its own)."""
+def test_a_score_written_in_16_bits_still_decodes_to_its_finer_step(monkeypatch):
+    """Messages from before the score had 8 bits hold 16-bit score codes; the reader follows
+    each column's recorded bits."""
+    g = random_map(500, seed=5)
+    monkeypatch.setitem(codec.BITS, "importance", 16)
+    back, message, _ = round_trip(g)
+    (score,) = [c for c in message.columns if c.name == "importance"]
+    assert score.bits == 16
+    a, b = by_id(g).importance, by_id(back).importance
+    assert np.all(np.abs(b - a) <= 1e-3 * a + 1e-30)  # half a 16-bit step: far below 8 bits'
+    check_log_sums(g, back, message)
+
+
+def check_log_sums(g, back, message, names=codec.SUMS):
+    """The log-coded columns `names` (default: the weight and alpha x T sums) of `back` within
+    half a log code step of `g`'s, zero exactly where `g`'s are."""
     cols = {c.name: c for c in message.columns}
     a, b = by_id(g), by_id(back)
-    for name in codec.SUMS:
+    for name in names:
         c, want, got = cols[name], getattr(a, name), getattr(b, name)
         assert c.transform == "log-linear" and c.bits == codec.BITS[name]
         half = (c.high[0] - c.low[0]) / ((1 << c.bits) - 2) / 2

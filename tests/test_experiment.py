@@ -742,12 +742,12 @@ def test_folded_spread_shares_and_the_default_merge_rerun_only_what_they_change(
     assert "folds what it leaves out" in (copy / "results.md").read_text()
 
 
-def test_shares_without_sums_or_ids_are_smaller_and_rerun_only_the_shares_and_what_reads_them(
+def test_shares_without_sums_or_with_ids_change_size_and_rerun_only_the_shares_and_their_readers(
     experiment: tuple[Path, Path, dict], tmp_path: Path
 ) -> None:
     seq, copy = experiment[0], _copy(experiment, tmp_path)
     before = {r["name"]: r for r in json.loads((copy / "results.json").read_text())}
-    again = _run(seq, copy, "--strategies", "random,pwas", "--no-sums", "--no-ids")
+    again = _run(seq, copy, "--strategies", "random,pwas", "--no-sums")
     # the shares of 2 strategies x 2 budgets and the whole map, each merged and scored
     assert again["steps"] - again["reused"] == 3 * 5
     after = {r["name"]: r for r in json.loads((copy / "results.json").read_text())}
@@ -758,7 +758,13 @@ def test_shares_without_sums_or_ids_are_smaller_and_rerun_only_the_shares_and_wh
     assert record["spec"]["sums"] is False and record["result"]["sums"] is False
     assert record["spec"]["ids"] is False and record["result"]["ids"] is False
     assert "carry no PWAS sums (`--no-sums`)" in (copy / "results.md").read_text()
-    assert "carry no ids (`--no-ids`)" in (copy / "results.md").read_text()
+    assert "carry the Gaussians' ids" not in (copy / "results.md").read_text()
+    again = _run(seq, copy, "--strategies", "random,pwas", "--no-sums", "--ids")
+    assert again["steps"] - again["reused"] == 3 * 5  # the ids are in each share's spec
+    with_ids = {r["name"]: r for r in json.loads((copy / "results.json").read_text())}
+    for name in ("B + pwas 0.2", "B + random 0.5", "B + A's full map"):
+        assert with_ids[name]["share_bytes"] > after[name]["share_bytes"], name
+    assert "carry the Gaussians' ids (`--ids`)" in (copy / "results.md").read_text()
 
 
 def test_shares_cut_for_b_sit_beside_the_blind_ones(

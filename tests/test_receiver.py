@@ -84,9 +84,11 @@ def test_the_wall_behind_the_receiver_is_unseen(agents):
 
 
 def test_a_share_for_the_receiver_sends_what_it_has_not_seen(agents):
-    plain = share_log(agents["a"], agents["root"] / "plain.mcap", 0.5, fold_dropped=False)
+    plain = share_log(
+        agents["a"], agents["root"] / "plain.mcap", 0.5, fold_dropped=False, ids=True
+    )  # fmt: skip  (the ids say which were sent)
     aware = share_log(agents["a"], agents["root"] / "for_b.mcap", 0.5, fold_dropped=False,
-                      receiver=agents["b"])  # fmt: skip
+                      receiver=agents["b"], ids=True)  # fmt: skip
     assert sorted(read_map(plain["output"]).ids.tolist()) == list(range(16))
     assert sorted(read_map(aware["output"]).ids.tolist()) == list(range(16, 32))
     assert aware["unseen"] == 16 and aware["views"] == 2 and aware["for"] == "b.mcap"
@@ -125,7 +127,7 @@ def test_a_receiver_in_another_frame_is_refused_without_alignment(agents):
 def test_share_cli_for_a_receiver(agents):
     out = agents["root"] / "cli.mcap"
     args = ["share", str(agents["a"]), str(out), "--budget", "0.25", "--for", str(agents["b"])]
-    r = CliRunner().invoke(cli, [*args, "--no-fold"])
+    r = CliRunner().invoke(cli, [*args, "--no-fold", "--ids"])
     assert r.exit_code == 0, r.output
     assert "unseen by b.mcap first (16 of them" in r.output
     assert set(read_map(out).ids.tolist()) <= set(range(16, 32))

@@ -209,7 +209,8 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
 ) -> None:
     """Refined values may compress worse than the cut's (here: every rotation turned at
     random, as an anisotropic refinement turns them). A probe refinement learns that first, so
-    the full refinement runs on the count that then fits, and nothing refined is left out."""
+    the full refinement runs on the count that then fits, and at most a few refined are left
+    out."""
     from dataclasses import replace
 
     from gscompress.pipeline.offline import PROBE_ITERS
@@ -228,10 +229,12 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
             teacher: GaussianMap | None = None, iters: int | None = None,
         ) -> tuple[GaussianMap, dict[str, object]]:  # fmt: skip
             self.calls.append((len(gaussians), iters))
-            rng = np.random.default_rng(len(gaussians))
-            quats = rng.normal(size=(len(gaussians), 4)).astype(np.float32)
+            # each Gaussian turned by its id alone: the probe and the full refinement give the
+            # Gaussians they share the same values
+            turns = np.sin(gaussians.ids[:, None] * np.arange(1.1, 8.0, 1.0)[None, :7] * 7.3)
+            quats = turns[:, :4].astype(np.float32) + np.float32(1e-3)
             quats /= np.linalg.norm(quats, axis=1, keepdims=True)
-            scales = gaussians.log_scales + rng.normal(0, 0.3, gaussians.log_scales.shape)
+            scales = gaussians.log_scales + 0.3 * turns[:, 4:7]
             return replace(gaussians, quats=quats, log_scales=scales.astype(np.float32)), {}
 
     refine = Turning()
@@ -240,7 +243,10 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
     (probed, probe_iters), (refined_count, full_iters) = refine.calls
     assert probe_iters == PROBE_ITERS and full_iters is None
     assert probed > refined_count  # the turned values take more bytes a Gaussian
-    assert result["selected"] == refined_count and result["file_bytes"] <= 12_000
+    # (the probe's values were folded from more Gaussians, so they compress a little
+    # differently: at most the last few refined are left out, as `ShareCut.refined` says)
+    assert refined_count - 0.01 * refined_count <= result["selected"] <= refined_count
+    assert result["file_bytes"] <= 12_000
     assert plain["selected"] >= probed
 
 

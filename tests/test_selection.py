@@ -174,8 +174,10 @@ def test_a_spread_share_records_it_and_sends_the_places_a_plain_one_leaves(tmp_p
     assert g.importance[:150].min() > g.importance[150:].max()
     src = tmp_path / "src.ply"
     write_ply(g, src)
-    plain = share_log(src, tmp_path / "plain.mcap", 0.2, source=(g, LogMetadata()))
-    spread = share_log(src, tmp_path / "spread.mcap", 0.2, source=(g, LogMetadata()), spread=True)
+    plain = share_log(src, tmp_path / "plain.mcap", 0.2, source=(g, LogMetadata()), ids=True)
+    spread = share_log(
+        src, tmp_path / "spread.mcap", 0.2, source=(g, LogMetadata()), spread=True, ids=True
+    )  # fmt: skip  (the ids say which were sent)
     assert spread["spread"] is True and "spread" not in plain
     sent = {}
     for name in ("plain", "spread"):

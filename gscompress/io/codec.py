@@ -19,12 +19,12 @@ positions:
 - `rotation` (anisotropic only): `smallest-three` in SPZ's layout, 2 bits for the largest
   component's index and a sign and 9 bits of magnitude for each of the other three, 32 in all.
 - `id` (optional): `delta`, the difference from the previous id modulo 2^32.
-- the PWAS state (optional): the score `importance` as `log-linear` 16-bit codes (code 0 is a
-  zero score), and with the sums also the proximity weight sum `importance_weight` and the
-  alpha x T sum `alpha_t_sum` as `log-linear` 8-bit codes: a receiver keeps accumulating from
-  importance_sum = score x (weight + eps), and a merge weighs each Gaussian's evidence by its
-  alpha x T sum, at 1.7 bytes per Gaussian instead of the 10 that three float32 sums took. Messages
-  that hold the three sums as float32 (`raw`) still decode, exactly.
+- the PWAS state (optional): the score `importance` as `log-linear` codes (code 0 is a zero
+  score), and with the sums also the proximity weight sum `importance_weight` and the alpha x T
+  sum `alpha_t_sum`, each in 8 bits: a receiver keeps accumulating from importance_sum = score x
+  (weight + eps), and a merge weighs each Gaussian's evidence by its alpha x T sum. The bits are
+  recorded per column, so messages whose score has 16 bits (written before the score had 8) and
+  those that hold the three sums as float32 (`raw`) still decode, exactly.
 
 Every multi-byte column is stored as its byte planes (all first bytes, then all second bytes...),
 which zstd compresses far better than interleaved integers. Decoding checks each count, size and
@@ -65,10 +65,11 @@ Gaussian's own scale (positions set most of a compact map's error: docs/codecs.m
 MAX_POSITION_BITS = 21
 """Largest grid size per axis, in bits (three axes interleave into a 63-bit Morton code)."""
 
-BITS = {"log_scale": 7, "opacity": 6, "f_dc": 8, "f_rest": 8, "importance": 16,
+BITS = {"log_scale": 7, "opacity": 6, "f_dc": 8, "f_rest": 8, "importance": 8,
         "importance_weight": 8, "alpha_t_sum": 8}  # fmt: skip
 """Default quantisation bits of each linear and log-linear column (chosen by bench/codec.py:
-an 8-bit log code keeps a sum within 3% over the 1e-3..1e4 span of real maps)."""
+an 8-bit log code keeps a score or a sum within 3% over the 1e-3..1e4 span of real maps, and a
+30% prune of the decoded scores keeps 98% of the Gaussians the exact ones keep)."""
 
 SUMS = ("importance_weight", "alpha_t_sum")
 """The PWAS sums a compact message codes beside the score (importance_sum = score x (W + eps))."""
@@ -109,7 +110,7 @@ class CompactOptions:
 
     Attributes:
         ids: the Gaussians' ids (without them, the receiver numbers them 0..N-1).
-        sums: the PWAS state (the score in 16 bits, the weight and alpha x T sums in 8), for a
+        sums: the PWAS state (the score, the weight and alpha x T sums, 8 bits each), for a
             receiver that continues accumulating and a merge that weighs evidence.
         score: without the sums, the PWAS score alone (ignored when `sums`).
         step: position grid step in metres (None: `POSITION_STEP_FRACTION` of the median scale).
@@ -123,6 +124,11 @@ class CompactOptions:
 
 COMPACT_DEFAULTS = CompactOptions()
 """What a compact map carries unless asked otherwise: ids and PWAS sums."""
+
+SHARE_IDS = False
+"""Whether a compact share carries the Gaussians' ids unless asked (`gsc share --ids`). A merge
+numbers the share's Gaussians anew past the receiver's ids, so they would only trace a Gaussian
+back to the sender's, at about 2 bytes a Gaussian (docs/codecs.md)."""
 
 
 def check_codec(codec: str) -> str:

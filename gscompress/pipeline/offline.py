@@ -15,7 +15,7 @@ import numpy as np
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions, check_codec
+from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_IDS, CompactOptions, check_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
 from gscompress.io.keyframes import CarriedFrame, write_carried
 from gscompress.io.map_files import map_suffix, read_map_file, write_map_file
@@ -325,7 +325,7 @@ class ShareCut:
         strategy: str = "pwas",
         codec: str = DEFAULT_SHARE_CODEC,
         sums: bool = True,
-        ids: bool = True,
+        ids: bool = SHARE_IDS,
         seed: int = 0,
         fold_dropped: bool = True,
         refine: MapRefiner | None = None,
@@ -350,9 +350,7 @@ class ShareCut:
         fp32_bytes = pointcloud_bytes(self.full, "fp32")(len(self.full))
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
-        operation.update(codec=codec, sums=sums, fold=fold_dropped)
-        if not self.ids:
-            operation["ids"] = False
+        operation.update(codec=codec, sums=sums, ids=self.ids, fold=fold_dropped)
         if spread:
             operation["spread"] = True
         self.first_ids: np.ndarray | None = None  # what the receiver has not seen (sent first)
@@ -444,7 +442,7 @@ class ShareCut:
                 **self.budget.record(),
                 "codec": self.codec,
                 "sums": self.sums,
-                **({} if self.ids else {"ids": False}),
+                "ids": self.ids,
                 "fold": self.fold,
                 **({"spread": True} if self.spread else {}),
                 "selected": len(shared),
@@ -478,7 +476,7 @@ def share_log(
     strategy: str = "pwas",
     codec: str = DEFAULT_SHARE_CODEC,
     sums: bool = True,
-    ids: bool = True,
+    ids: bool = SHARE_IDS,
     seed: int = 0,
     fold_dropped: bool = True,
     ply: str | Path | None = None,
@@ -497,7 +495,7 @@ def share_log(
 
     The share is a small log: the metadata record (source, strategy, budget, counts, provenance;
     not the sender's config, which the receiver does not use) and one `/gaussians` snapshot
-    holding the selected Gaussians with their ids and PWAS state.
+    holding the selected Gaussians with their PWAS state (and ids if asked).
 
     Args:
         src: the log whose map (last snapshot) is shared.
@@ -510,10 +508,10 @@ def share_log(
         codec: how the map is stored (`gscompress.io.codec.CODECS`): compact (the default, about
             10-20 bytes per Gaussian), fp16 or fp32 (a foxglove.PointCloud Foxglove draws).
         sums: send the PWAS sums (a receiver that keeps accumulating needs them); without them
-            a compact share sends the score in 16 bits (fp32 and fp16 always send the sums).
-        ids: send each Gaussian's id; without them a compact share is about 1.9 bytes a
-            Gaussian smaller and the receiver numbers them 0..N-1 (fp32 and fp16 always send
-            them).
+            a compact share sends the score alone (fp32 and fp16 always send the sums).
+        ids: send each Gaussian's id (`SHARE_IDS`: not unless asked); without them a compact
+            share is about 2 bytes a Gaussian smaller and the receiver numbers them 0..N-1 (fp32
+            and fp16 always send them).
         seed: seed of the random strategy.
         fold_dropped: fold what the share leaves out into the Gaussians it sends (`cut_map`).
         ply: also write the share as a float32 3DGS PLY (the decoded values).

@@ -20,6 +20,7 @@ import numpy as np
 
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
+from gscompress.io.codec import SHARE_IDS
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, decoded_map
 from gscompress.ops.budget import Budget
@@ -66,7 +67,7 @@ def solve_share(
     views: int = SOLVE_VIEWS,
     device: str = "auto",
     spread: bool = False,
-    ids: bool = True,
+    ids: bool = SHARE_IDS,
 ) -> tuple[Candidate, list[Candidate], dict[str, Any]]:
     """Weigh the candidate shares of `src`'s map under `budget` and pick the best picture.
 
@@ -182,7 +183,7 @@ def share_solved(
     command: str = "",
     force: bool = False,
     spread: bool = False,
-    ids: bool = True,
+    ids: bool = SHARE_IDS,
 ) -> dict[str, Any]:
     """`share_log` with the codec and PWAS state the solver chose (`solve_share`), the solver's
     record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and

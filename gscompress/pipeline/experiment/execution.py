@@ -30,6 +30,7 @@ from typing import Any, NoReturn
 
 from gscompress import __version__
 from gscompress.errors import GscError
+from gscompress.io.codec import BITS, SHARE_IDS
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
 from gscompress.ops.merge import EXACT, MergeOptions
 from gscompress.pipeline.experiment.protocol import FOR_B, ExperimentSettings, RunHandle
@@ -180,7 +181,7 @@ def _share_job(
     device: str = "auto",
     spread: bool = False,
     sums: bool = True,
-    ids: bool = True,
+    ids: bool = SHARE_IDS,
 ) -> dict[str, Any]:
     from gscompress.pipeline.offline import share_log
 
@@ -454,8 +455,8 @@ class Runner:
             spec["spread"] = True
         if not self.settings.sums:
             spec["sums"] = False
-        if not self.settings.ids:
-            spec["ids"] = False
+        spec["ids"] = self.settings.ids
+        spec["score_bits"] = BITS["importance"]  # (the score had 16 bits before: reran)
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(

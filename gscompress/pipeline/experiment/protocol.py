@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from gscompress.errors import InputError, OptionError
+from gscompress.io.codec import SHARE_IDS
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import REFERENCE_FORMATS, smallest_share_bytes
@@ -95,8 +96,8 @@ class ExperimentSettings:
         sums: the compact shares carry the PWAS sums (`gsc share`'s default); without them each
             Gaussian carries its score alone, so a byte budget holds more Gaussians and the
             merge has no evidence for them (`gsc share --no-sums`).
-        ids: the compact shares carry the Gaussians' ids (`gsc share`'s default); without
-            them a byte budget holds about 15% more Gaussians (`gsc share --no-ids`).
+        ids: the compact shares carry the Gaussians' ids (`gsc share --ids`; not by default:
+            without them a byte budget holds about 20% more Gaussians).
         anchor: "gt": both agents start at the ground-truth pose of their first frame, so their
             maps share a frame; "own": each starts at the identity at its own first frame, A's
             map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives
@@ -136,7 +137,7 @@ class ExperimentSettings:
     fold: bool = False
     spread: bool = False
     sums: bool = True
-    ids: bool = True
+    ids: bool = SHARE_IDS
     anchor: str = "gt"
     refine_poses: int = 100
     references: tuple[str, ...] = REFERENCE_FORMATS

@@ -362,7 +362,7 @@ def _receive_text(s: ExperimentSettings) -> str:
         )
         + ("Every strategy's order is spread over space (`--spread`). " if s.spread else "")
         + ("The shares carry no PWAS sums (`--no-sums`). " if not s.sums else "")
-        + ("The shares carry no ids (`--no-ids`). " if not s.ids else "")
+        + ("The shares carry the Gaussians' ids (`--ids`). " if s.ids else "")
     )
     if s.mode == "inject":
         return shares + "B's run starts with the share injected. "
