@@ -48,7 +48,7 @@ import zstandard
 
 from gscompress.gaussians import GaussianMap
 from gscompress.io import spz
-from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_IDS, CompactOptions
+from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_DEFAULTS, SHARE_IDS, CompactOptions
 from gscompress.io.mcap_log import LogReader, decode_map_message, encode_map
 from gscompress.io.ply import read_ply, write_ply
 from gscompress.io.sog import splat_transform
@@ -65,7 +65,7 @@ SEQUENCES = {
 """Map name -> (folder in ../shared/data, frame subset)."""
 
 COMPACT_VARIANTS = {
-    "compact": CompactOptions(ids=SHARE_IDS),
+    "compact": SHARE_DEFAULTS,
     "compact-ids": CompactOptions(ids=True),
     "compact-score": CompactOptions(ids=SHARE_IDS, sums=False),
     "compact-bare": CompactOptions(ids=False, sums=False, score=False),

@@ -20,14 +20,12 @@ import tempfile
 from pathlib import Path
 
 from gscompress.errors import GscError
-from gscompress.io.codec import CODECS, SHARE_IDS, CompactOptions
+from gscompress.io.codec import CODECS
+from gscompress.io.codec import SHARE_DEFAULTS as SHARE
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, encoded_size
 from gscompress.pipeline import evaluate_log, prune_log
 from gscompress.selection import STRATEGIES
-
-AS_SENT = CompactOptions(ids=SHARE_IDS)
-"""What a compact share carries (`gsc share`'s defaults)."""
 
 
 def main() -> None:
@@ -80,7 +78,7 @@ def sweep(opts: argparse.Namespace, budgets: list[float], strategies: list[str])
                         "budget": budget,
                         "strategy": strategy,
                         "gaussians": len(gaussians),
-                        **{f"bytes_{c}": encoded_size(gaussians, c, AS_SENT) for c in CODECS},
+                        **{f"bytes_{c}": encoded_size(gaussians, c, SHARE) for c in CODECS},
                         "psnr": scores["psnr"],
                         "ssim": scores["ssim"],
                     }

@@ -130,6 +130,9 @@ SHARE_IDS = False
 numbers the share's Gaussians anew past the receiver's ids, so they would only trace a Gaussian
 back to the sender's, at about 2 bytes a Gaussian (docs/codecs.md)."""
 
+SHARE_DEFAULTS = CompactOptions(ids=SHARE_IDS)
+"""What a compact share carries unless asked otherwise: the PWAS sums, no ids."""
+
 
 def check_codec(codec: str) -> str:
     """Return `codec` if it is one of CODECS, else raise InputError."""

@@ -456,7 +456,8 @@ class Runner:
         if not self.settings.sums:
             spec["sums"] = False
         spec["ids"] = self.settings.ids
-        spec["score_bits"] = BITS["importance"]  # (the score had 16 bits before: reran)
+        spec["score_bits"] = BITS["importance"]  # (a share's bytes follow it: one cut with
+        # 16-bit scores is not reused)
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(
