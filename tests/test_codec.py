@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gscompress.errors import InputError, LogFormatError, MapError
-from gscompress.gaussians import MAX_ABS_LOG_SCALE, random_map
+from gscompress.gaussians import MAX_ABS_LOG_SCALE, SH_C0, random_map
 from gscompress.io import codec
 from gscompress.io.codec import (
     COMPACT_DEFAULTS,
@@ -55,7 +55,7 @@ def check_bounds(g, back, message):
     assert np.all(np.abs(back.means - g.means) <= tolerance)
     for name, got, want in (
         ("log_scale", back.log_scales, g.log_scales),
-        ("f_dc", back.sh_dc, g.sh_dc),
+        ("f_dc", np.arcsinh(back.sh_dc.astype(np.float64)), np.arcsinh(g.sh_dc.astype(np.float64))),
         ("opacity", back.opacities(), sigmoid(g.opacity_logits)),
     ):
         c = cols[name]
@@ -107,6 +107,41 @@ def test_a_score_written_in_16_bits_still_decodes_to_its_finer_step(monkeypatch)
     a, b = by_id(g).importance, by_id(back).importance
     assert np.all(np.abs(b - a) <= 1e-3 * a + 1e-30)  # half a 16-bit step: far below 8 bits'
     check_log_sums(g, back, message)
+
+
+def test_colours_written_as_linear_codes_still_decode(monkeypatch):
+    """Messages from before the asinh colour code hold `linear` f_dc codes; the reader follows
+    each column's recorded transform."""
+    g = random_map(500, seed=6)
+    monkeypatch.setattr(codec, "COLOUR_TRANSFORM", "linear")
+    monkeypatch.setitem(codec.BITS, "f_dc", 8)
+    back, message, _ = round_trip(g)
+    (c,) = [c for c in message.columns if c.name == "f_dc"]
+    assert c.transform == "linear" and c.bits == 8
+    half = (np.array(c.high) - np.array(c.low)) / 255 / 2
+    assert np.all(np.abs(by_id(back).sh_dc - by_id(g).sh_dc) <= half * (1 + 1e-5) + 1e-6)
+
+
+def test_asinh_colours_keep_the_visible_range_fine_despite_outliers(monkeypatch):
+    """A few colours far outside [0, 1] (optimisation leaves f_dc up to 20) stretch a linear
+    code over every colour; 7-bit asinh codes keep the visible ones finer than 8-bit linear."""
+    g = random_map(2000, seed=7)
+    rng = np.random.default_rng(7)
+    g.sh_dc[:] = rng.uniform(-0.5 / SH_C0, 0.5 / SH_C0, g.sh_dc.shape)  # colours in [0, 1]
+    g.sh_dc[:20] = rng.uniform(-4.0, 21.0, (20, 3))
+    want = by_id(g).sh_dc
+    visible = np.all(np.abs(want) <= 0.5 / SH_C0, axis=1)
+
+    def colour_error() -> float:
+        back, message, _ = round_trip(g)
+        (c,) = [c for c in message.columns if c.name == "f_dc"]
+        assert c.bits == codec.BITS["f_dc"] and c.transform == codec.COLOUR_TRANSFORM
+        return float(np.abs(by_id(back).sh_dc - want)[visible].mean())
+
+    asinh = colour_error()
+    monkeypatch.setattr(codec, "COLOUR_TRANSFORM", "linear")
+    monkeypatch.setitem(codec.BITS, "f_dc", 8)
+    assert asinh < 0.75 * colour_error()
 
 
 def check_log_sums(g, back, message, names=codec.SUMS):
@@ -262,7 +297,8 @@ def _column(message, name):
         (lambda m: setattr(_column(m, "opacity"), "dtype", "<f8"), "'opacity' is"),
         (lambda m: setattr(_column(m, "log_scale"), "components", 1), "has 1 components"),
         (lambda m: _column(m, "f_dc").low.__setitem__(0, float("nan")), "range beyond"),
-        (lambda m: _column(m, "f_dc").low.__setitem__(0, -1e300), r"range beyond \+-3.40282e\+38"),
+        (lambda m: _column(m, "opacity").low.__setitem__(0, -1e300), r"beyond \+-3.40282e\+38"),
+        (lambda m: _column(m, "f_dc").high.__setitem__(0, 90.0), r"range beyond \+-89.4"),
         (lambda m: m.origin.__setitem__(0, 1e39), "beyond the float32 range"),
         (lambda m: setattr(_column(m, "f_dc"), "bits", 9), "9 bits in u1"),
         (lambda m: setattr(_column(m, "f_dc"), "data", b"garbage!"), "not a zstd frame"),

@@ -14,8 +14,9 @@ positions:
   each stored as its difference from the previous one. The step is `POSITION_STEP_FRACTION` of
   the map's median Gaussian scale unless given, and grows only when the map spans more than
   2^21 steps along an axis.
-- `log_scale` (1 component isotropic, 3 anisotropic), `opacity` (in sigmoid space), `f_dc`,
-  `f_rest`: `linear` codes of `bits` bits between each component's recorded low and high.
+- `log_scale` (1 component isotropic, 3 anisotropic), `opacity` (in sigmoid space), `f_dc`
+  (in asinh space: `asinh-linear`), `f_rest`: `linear` codes of `bits` bits between each
+  component's recorded low and high.
 - `rotation` (anisotropic only): `smallest-three` in SPZ's layout, 2 bits for the largest
   component's index and a sign and 9 bits of magnitude for each of the other three, 32 in all.
 - `id` (optional): `delta`, the difference from the previous id modulo 2^32.
@@ -65,11 +66,22 @@ Gaussian's own scale (positions set most of a compact map's error: docs/codecs.m
 MAX_POSITION_BITS = 21
 """Largest grid size per axis, in bits (three axes interleave into a 63-bit Morton code)."""
 
-BITS = {"log_scale": 7, "opacity": 6, "f_dc": 8, "f_rest": 8, "importance": 8,
+BITS = {"log_scale": 8, "opacity": 6, "f_dc": 7, "f_rest": 8, "importance": 8,
         "importance_weight": 8, "alpha_t_sum": 8}  # fmt: skip
-"""Default quantisation bits of each linear and log-linear column (chosen by bench/codec.py:
-an 8-bit log code keeps a score or a sum within 3% over the 1e-3..1e4 span of real maps, and a
-30% prune of the decoded scores keeps 98% of the Gaussians the exact ones keep)."""
+"""Default quantisation bits of each linear and log-linear column (chosen by bench/codec.py and
+the probes in docs/codecs.md): an 8-bit log code keeps a score or a sum within 3% over the
+1e-3..1e4 span of real maps, and a 30% prune of the decoded scores keeps 98% of the Gaussians
+the exact ones keep. 7-bit asinh colours and 8-bit log scales cost the picture 0.013 dB on the
+room's agent A map and 0.027 on office frag1's, where 8-bit linear colours and 7-bit scales
+cost 0.042 and 0.055, for 0.2-0.4 more bytes a Gaussian."""
+
+COLOUR_TRANSFORM = "asinh-linear"
+"""How `f_dc` is coded: linear in asinh(f_dc), fine near the colours of [0, 1] (|f_dc| < 1.8)
+and coarse in the long tails optimisation leaves (f_dc up to 20 on real maps), which would
+otherwise stretch a linear code's range and coarsen every colour."""
+
+_MAX_ASINH = float(np.arcsinh(np.float64(np.finfo(np.float32).max)))
+"""Largest |asinh(value)| an `asinh-linear` column may code (sinh of it is float32's largest)."""
 
 SUMS = ("importance_weight", "alpha_t_sum")
 """The PWAS sums a compact message codes beside the score (importance_sum = score x (W + eps))."""
@@ -132,6 +144,14 @@ back to the sender's, at about 2 bytes a Gaussian (docs/codecs.md)."""
 
 SHARE_DEFAULTS = CompactOptions(ids=SHARE_IDS)
 """What a compact share carries unless asked otherwise: the PWAS sums, no ids."""
+
+
+def layout() -> dict[str, Any]:
+    """What sets a compact message's bytes besides the map and its `CompactOptions`: each
+    column's bits, the colour transform, the rotation bits and the position step (the
+    experiment keys its shares by it, so that a share cut by another layout is cut again)."""
+    return {"bits": dict(BITS), "colour": COLOUR_TRANSFORM, "rotation_bits": ROTATION_BITS,
+            "position_step": POSITION_STEP_FRACTION}  # fmt: skip
 
 
 def check_codec(codec: str) -> str:
@@ -473,7 +493,10 @@ def encode_compact(
             _column("rotation", "smallest-three", rotations, bits=ROTATION_BITS, compressor=zstd)
         )
     linear("opacity", sigmoid(ordered("opacity_logits")), "sigmoid-linear")
-    linear("f_dc", ordered("sh_dc"))
+    colour = ordered("sh_dc")
+    if COLOUR_TRANSFORM == "asinh-linear":
+        colour = np.arcsinh(colour.astype(np.float64))
+    linear("f_dc", colour, COLOUR_TRANSFORM)
     if gaussians.sh_degree:
         linear("f_rest", ordered("sh_rest"))
     if options.ids:
@@ -511,7 +534,7 @@ _SHAPES: dict[str, tuple[tuple[str, ...], Callable[[Message], int]]] = {
     "log_scale": (("linear",), lambda m: 1 if m.isotropic else 3),
     "rotation": (("smallest-three",), lambda m: 1),
     "opacity": (("sigmoid-linear",), lambda m: 1),
-    "f_dc": (("linear",), lambda m: 3),
+    "f_dc": (("asinh-linear", "linear"), lambda m: 3),
     "f_rest": (("linear",), lambda m: 3 * SH_REST_COUNTS.get(m.sh_degree, 0)),
     "id": (("delta",), lambda m: 1),
     "importance_sum": (("raw",), lambda m: 1),
@@ -525,6 +548,7 @@ _DTYPES = {
     "morton-delta": ("<u8",),
     "linear": ("u1", "<u2"),
     "sigmoid-linear": ("u1", "<u2"),
+    "asinh-linear": ("u1", "<u2"),
     "log-linear": ("<u2",),
     "smallest-three": ("<u4",),
     "delta": ("<u4",),
@@ -602,12 +626,14 @@ def decode_compact(
         if column.raw_bytes != expected:
             raise fail(f"column {name!r} declares {column.raw_bytes} bytes; {n} Gaussians take "
                        f"{expected}")  # fmt: skip
-        if transform in ("linear", "sigmoid-linear", "log-linear"):
+        if transform in ("linear", "sigmoid-linear", "asinh-linear", "log-linear"):
             low, high = np.array(column.low), np.array(column.high)
             wanted = 1 if transform == "log-linear" else components
             if low.shape != (wanted,) or high.shape != (wanted,):
                 raise fail(f"column {name!r} lacks its low and high values")
-            bound = _MAX_LOG_SCORE if transform == "log-linear" else _FLOAT32_MAX
+            bound = {"log-linear": _MAX_LOG_SCORE, "asinh-linear": _MAX_ASINH}.get(
+                transform, _FLOAT32_MAX
+            )
             if not (
                 np.all(np.abs(low) <= bound)
                 and np.all(np.abs(high) <= bound)
@@ -660,6 +686,12 @@ def decode_compact(
         values, c = codes(name)
         return dequantise_linear(values, np.array(c.low), np.array(c.high), c.bits)
 
+    def colour() -> np.ndarray:
+        values = linear("f_dc")
+        if params["f_dc"].transform == "linear":  # (messages written before asinh-linear)
+            return values
+        return np.clip(np.sinh(values.astype(np.float64)), -_FLOAT32_MAX, _FLOAT32_MAX)
+
     rotation = columns.get("rotation")
     k = SH_REST_COUNTS[message.sh_degree]
 
@@ -688,7 +720,7 @@ def decode_compact(
             else decode_smallest_three(rotation[:, 0])
         ),
         opacity_logits=logit(linear("opacity")[:, 0]).astype(np.float32),
-        sh_dc=linear("f_dc"),
+        sh_dc=colour(),
         sh_rest=linear("f_rest").reshape(n, k, 3) if k else None,
         **extra,
     )

@@ -30,7 +30,7 @@ from typing import Any, NoReturn
 
 from gscompress import __version__
 from gscompress.errors import GscError
-from gscompress.io.codec import BITS, SHARE_IDS
+from gscompress.io.codec import SHARE_IDS, layout
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
 from gscompress.ops.merge import EXACT, MergeOptions
 from gscompress.pipeline.experiment.protocol import FOR_B, ExperimentSettings, RunHandle
@@ -456,8 +456,7 @@ class Runner:
         if not self.settings.sums:
             spec["sums"] = False
         spec["ids"] = self.settings.ids
-        spec["score_bits"] = BITS["importance"]  # (a share's bytes follow it: one cut with
-        # 16-bit scores is not reused)
+        spec["codec"] = layout()  # (a share's bytes follow it: one cut by another is not reused)
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(
