@@ -404,6 +404,20 @@ def position_step(
     return origin, float(step), min(bits, MAX_POSITION_BITS)
 
 
+def grid_codes(
+    gaussians: GaussianMap, step: float | None = None
+) -> tuple[np.ndarray, float, int, np.ndarray]:
+    """The position grid of a map (`position_step`: origin, step, bits per axis) and each
+    Gaussian's Morton code on it; a compact message stores the Gaussians in that code's order.
+
+    Raises:
+        InputError: a bad `step`.
+    """
+    origin, step, bits = position_step(gaussians, step)
+    grid = np.rint((gaussians.means.astype(np.float64) - origin) / step).astype(np.int64)
+    return origin, step, bits, morton_codes(np.clip(grid, 0, (1 << bits) - 1))
+
+
 # ---------------------------------------------------------------------- columns
 
 
@@ -463,10 +477,7 @@ def encode_compact(
         InputError: a bad `options.step`.
     """
     n = len(gaussians)
-    origin, step, bits = position_step(gaussians, options.step)
-    grid = np.rint((gaussians.means.astype(np.float64) - origin) / step).astype(np.int64)
-    grid = np.clip(grid, 0, (1 << bits) - 1)
-    codes = morton_codes(grid)
+    origin, step, bits, codes = grid_codes(gaussians, options.step)
     order = np.argsort(codes, kind="stable")
     codes = codes[order]
 
