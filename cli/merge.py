@@ -95,6 +95,15 @@ from .options import (
     "the alignment matches.",
 )
 @click.option(
+    "--margin",
+    type=click.FloatRange(1.0),
+    default=MergeOptions.margin,
+    show_default=True,
+    help="With --resolve evidence, the share keeps a cell only where its evidence there is more "
+    "than this many times the receiver's (the refinement sees the receiver's views, so a near "
+    "tie goes to the receiver).",
+)
+@click.option(
     "--share-rate",
     type=click.FloatRange(0.0, 1.0),
     default=MergeOptions.share_rate,
@@ -136,6 +145,7 @@ def merge(
     align: bool,
     resolve: str,
     voxel: float,
+    margin: float,
     share_rate: float,
     by_view: bool,
     keyframes: bool,
@@ -159,7 +169,8 @@ def merge(
                   apart; the identity when they hardly overlap);
     --resolve     keeps, in each --voxel cell with Gaussians of both maps, only
                   one map's: the one whose agent saw them more (evidence: their
-                  alpha*T sums), the receiver's, or the share's (stack: both);
+                  alpha*T sums, the share's only above --margin times the
+                  receiver's), the receiver's, or the share's (stack: both);
     refinement    on the receiver's own frames (--views) at its estimated poses
                   and on the sender's keyframes the share carries, if any,
                   a fresh optimizer, each view once per shuffled pass, the rates
@@ -192,8 +203,8 @@ def merge(
       gsc merge b.mcap a_views.mcap --seq data/room -o b_merged.mcap
     """
     context = click.get_current_context()
-    given = {"align": align, "resolve": resolve, "voxel": voxel, "share_rate": share_rate,
-             "by_view": by_view}  # fmt: skip
+    given = {"align": align, "resolve": resolve, "voxel": voxel, "margin": margin,
+             "share_rate": share_rate, "by_view": by_view}  # fmt: skip
     # (the rest as the merge chooses: WITH_SENDER_VIEWS for a share that carries keyframes)
     told = {k: v for k, v in given.items()
             if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip

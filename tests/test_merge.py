@@ -164,7 +164,14 @@ def test_gsc_merge_command(agents: dict[str, Path]) -> None:
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["refine_backend"] == "torch"
     with LogReader(out) as log:
-        assert log.metadata.provenance[-1]["operation"]["backend"] == "torch"
+        operation = log.metadata.provenance[-1]["operation"]
+    assert operation["backend"] == "torch" and operation["margin"] == 2.0  # the default
+    r = CliRunner().invoke(cli, [str(a) for a in args] + ["--force", "--margin", "3.5"])
+    assert r.exit_code == 0, r.output
+    with LogReader(out) as log:
+        assert log.metadata.provenance[-1]["operation"]["margin"] == 3.5
+    r = CliRunner().invoke(cli, [str(a) for a in args] + ["--force", "--margin", "0.5"])
+    assert r.exit_code == 2 and "--margin" in r.output
 
 
 def test_transform_map_moves_means_and_orientations_rigidly() -> None:

@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from gscompress.camera import Intrinsics, invert_transform
+from gscompress.errors import OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.merge import (
     EXACT,
@@ -144,6 +145,22 @@ def test_overlap_goes_to_the_map_with_more_evidence() -> None:
         scene, twin, np.where(left, 3.0, 1.0), np.full(len(scene), 2.0)
     )
     assert np.array_equal(keep_r, left) and np.array_equal(keep_s, ~left)
+
+
+def test_a_margin_gives_near_ties_to_the_receiver() -> None:
+    scene = wall()
+    twin = replace(scene, ids=scene.ids + np.uint32(10_000))
+    left = scene.means[:, 0] < 0
+    share_evidence = np.where(left, 3.0, 1.5)  # 3x the receiver's on the left, 1.5x elsewhere
+    keep_r, keep_s, stats = resolve_overlap(
+        scene, twin, np.ones(len(scene)), share_evidence, margin=2.0
+    )
+    assert np.array_equal(keep_s, left) and np.array_equal(keep_r, ~left)
+    assert stats["share_dropped"] == int((~left).sum())
+    keep_r, keep_s, _ = resolve_overlap(scene, twin, np.ones(len(scene)), share_evidence)
+    assert keep_s.all() and not keep_r.any()  # without a margin the share wins both sides
+    with pytest.raises(OptionError, match="--margin"):
+        MergeOptions(margin=0.5).check()
 
 
 def test_refinement_keeps_the_share_still_where_its_rate_is_zero(agents: dict) -> None:
