@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -27,29 +26,24 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log
 from gscompress.pipeline.offline import rewrite_map
 
-Transform = tuple[Callable[[np.ndarray], np.ndarray], Callable[[np.ndarray], np.ndarray]]
-IDENTITY: Transform = (lambda x: x, lambda y: y)
-ASINH: Transform = (np.arcsinh, np.sinh)
-SIGMOID: Transform = (codec.sigmoid, codec.logit)
-
-VARIANTS: dict[str, tuple[str, int, Transform]] = {
-    "colour, linear 8 bits": ("sh_dc", 8, IDENTITY),
-    "colour, linear 7 bits": ("sh_dc", 7, IDENTITY),
-    "colour, asinh 7 bits": ("sh_dc", 7, ASINH),
-    "colour, asinh 6 bits": ("sh_dc", 6, ASINH),
-    "log scale, 6 bits": ("log_scales", 6, IDENTITY),
-    "log scale, 7 bits": ("log_scales", 7, IDENTITY),
-    "log scale, 8 bits": ("log_scales", 8, IDENTITY),
-    "opacity, 6 bits": ("opacity_logits", 6, SIGMOID),
-    "opacity, 7 bits": ("opacity_logits", 7, SIGMOID),
+VARIANTS: dict[str, tuple[str, int, str]] = {
+    "colour, linear 8 bits": ("sh_dc", 8, "linear"),
+    "colour, linear 7 bits": ("sh_dc", 7, "linear"),
+    "colour, asinh 7 bits": ("sh_dc", 7, "asinh-linear"),
+    "colour, asinh 6 bits": ("sh_dc", 6, "asinh-linear"),
+    "log scale, 6 bits": ("log_scales", 6, "linear"),
+    "log scale, 7 bits": ("log_scales", 7, "linear"),
+    "log scale, 8 bits": ("log_scales", 8, "linear"),
+    "opacity, 6 bits": ("opacity_logits", 6, "sigmoid-linear"),
+    "opacity, 7 bits": ("opacity_logits", 7, "sigmoid-linear"),
 }
-"""Variant -> (the map attribute it codes, bits, (forward, inverse) transform)."""
+"""Variant -> (the map attribute it codes, bits, its transform: `codec.LINEAR_TRANSFORMS`)."""
 
 
-def coded(values: np.ndarray, bits: int, transform: Transform) -> tuple[np.ndarray, int]:
+def coded(values: np.ndarray, bits: int, transform: str) -> tuple[np.ndarray, int]:
     """`values` through a linear code of `bits` bits in the transform's space, and the code's
     zstd bytes (byte planes, level `codec.ZSTD_LEVEL`, as a compact column stores it)."""
-    forward, inverse = transform
+    forward, inverse = codec.LINEAR_TRANSFORMS[transform]
     flat = forward(values.reshape(len(values), -1).astype(np.float64))
     codes, low, high = codec.quantise_linear(flat, bits)
     size = len(zstandard.ZstdCompressor(level=codec.ZSTD_LEVEL).compress(codec._shuffle(codes)))

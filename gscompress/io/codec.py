@@ -261,6 +261,24 @@ def logit(p: np.ndarray) -> np.ndarray:
     return np.log(p / (1 - p))
 
 
+def _asinh(values: np.ndarray) -> np.ndarray:
+    return np.arcsinh(np.asarray(values, dtype=np.float64))
+
+
+def _sinh(values: np.ndarray) -> np.ndarray:
+    """sinh, within float32's range (an `asinh-linear` column's range is bounded by it)."""
+    return np.clip(np.sinh(np.asarray(values, dtype=np.float64)), -_FLOAT32_MAX, _FLOAT32_MAX)
+
+
+LINEAR_TRANSFORMS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], ...]] = {
+    "linear": (np.asarray, np.asarray),
+    "sigmoid-linear": (sigmoid, logit),
+    "asinh-linear": (_asinh, _sinh),
+}
+"""A linear column's transform -> (forward: a value into the space its codes are linear in,
+inverse: back). The encoder, the decoder and bench/codec_columns.py take them from here."""
+
+
 def quantise_log(scores: np.ndarray, bits: int) -> tuple[np.ndarray, float, float]:
     """Codes of nonnegative scores on a log scale: 0 for a zero score, 1..2^bits-1 linear in log
     score between the smallest and largest positive score.
@@ -490,6 +508,7 @@ def encode_compact(
     ]
 
     def linear(name: str, values: np.ndarray, transform: str = "linear") -> None:
+        values = LINEAR_TRANSFORMS[transform][0](values)
         q, low, high = quantise_linear(
             values.reshape(n, int(np.prod(values.shape[1:]))), BITS[name]
         )
@@ -503,11 +522,8 @@ def encode_compact(
         columns.append(
             _column("rotation", "smallest-three", rotations, bits=ROTATION_BITS, compressor=zstd)
         )
-    linear("opacity", sigmoid(ordered("opacity_logits")), "sigmoid-linear")
-    colour = ordered("sh_dc")
-    if COLOUR_TRANSFORM == "asinh-linear":
-        colour = np.arcsinh(colour.astype(np.float64))
-    linear("f_dc", colour, COLOUR_TRANSFORM)
+    linear("opacity", ordered("opacity_logits"), "sigmoid-linear")
+    linear("f_dc", ordered("sh_dc"), COLOUR_TRANSFORM)
     if gaussians.sh_degree:
         linear("f_rest", ordered("sh_rest"))
     if options.ids:
@@ -695,13 +711,8 @@ def decode_compact(
 
     def linear(name: str) -> np.ndarray:
         values, c = codes(name)
-        return dequantise_linear(values, np.array(c.low), np.array(c.high), c.bits)
-
-    def colour() -> np.ndarray:
-        values = linear("f_dc")
-        if params["f_dc"].transform == "linear":  # (messages written before asinh-linear)
-            return values
-        return np.clip(np.sinh(values.astype(np.float64)), -_FLOAT32_MAX, _FLOAT32_MAX)
+        inverse = LINEAR_TRANSFORMS[c.transform][1]  # (f_dc: "linear" in older messages)
+        return inverse(dequantise_linear(values, np.array(c.low), np.array(c.high), c.bits))
 
     rotation = columns.get("rotation")
     k = SH_REST_COUNTS[message.sh_degree]
@@ -730,8 +741,8 @@ def decode_compact(
             if rotation is None
             else decode_smallest_three(rotation[:, 0])
         ),
-        opacity_logits=logit(linear("opacity")[:, 0]).astype(np.float32),
-        sh_dc=colour(),
+        opacity_logits=linear("opacity")[:, 0].astype(np.float32),
+        sh_dc=linear("f_dc"),
         sh_rest=linear("f_rest").reshape(n, k, 3) if k else None,
         **extra,
     )
