@@ -99,9 +99,12 @@ def _formats(value: str) -> tuple[str, ...]:
     "`make js-deps`). none: no such points.",
 )  # fmt: skip
 @click.option(
-    "--strategies", default="random,opacity,alpha-t,pwas", show_default=True,
-    help="Comma-separated share strategies to compare (random and pwas required); NAME-for-b "
-    "cuts that strategy's shares for B (`gsc share --for`: what B has not seen first).",
+    "--strategies", default="random,opacity,alpha-t,pwas,pwas-inf", show_default=True,
+    help="Comma-separated share strategies to compare (random and pwas required). pwas-inf: "
+    "PWAS without its proximity weight, A's finished map scored again from A's frames (`gsc "
+    "score --sigma-d inf`); pwas-final: the same with the scene's sigma_d, which separates "
+    "what scoring again changes from what the weight does. NAME-for-b cuts that strategy's "
+    "shares for B (`gsc share --for`: what B has not seen first).",
 )  # fmt: skip
 @size_option(help="Working size WxH of every run [default: the preset's].")
 @click.option(

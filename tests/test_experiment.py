@@ -74,9 +74,9 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert all(set(REQUIRED) <= set(row) for row in rows)
     tables = [row["table"] for row in rows]
     assert tables.count("table3") == 2
-    # A, B, B refined without a share, four strategies, the full map
-    assert tables.count("table4") == 2 + 1 + 4 + 1
-    assert tables.count("sweep") == 4  # four strategies at 0.5 (0.2 is Table 4's)
+    # A, B, B refined without a share, five strategies, the full map
+    assert tables.count("table4") == 2 + 1 + 5 + 1
+    assert tables.count("sweep") == 5  # five strategies at 0.5 (0.2 is Table 4's)
     for row in rows:
         with LogReader(out / row["log"]) as log:
             assert log.read_map().__len__() == row["gaussians"]
@@ -123,7 +123,8 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert first["pairs"] == 1 and first["psnr_difference_se"] is None
     assert first["psnr_difference"] == pytest.approx(pwas - random)
     cells = result["verdicts"]["cells"]  # 1 seed x 2 budgets, PWAS against three others
-    assert cells["cells"] == 2 and set(cells["against"]) == {"random", "opacity", "alpha-t"}
+    against_all = {"random", "opacity", "alpha-t", "pwas-inf"}  # (and its ablation, paired)
+    assert cells["cells"] == 2 and set(cells["against"]) == against_all
     against = cells["against"]["random"]
     assert against["above"] + against["ties"] + against["below"] == against["pairs"] == 2
 
@@ -135,11 +136,42 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
         for b, t in (("0.2", "table4"), ("0.5", "sweep"))
     ]
     assert cells["at_or_above"] == sum(m >= -0.005 for m in margins)
-    assert f"PWAS is at or above every other strategy in {cells['at_or_above']} of 2" in md
+    assert f"weight) in {cells['at_or_above']} of 2 cells" in md
     assert "PWAS minus random, paired by seed" in md and "ATE RMSE (cm) | PWAS lower" not in md
     assert "| A's whole map as | Gaussians | Bytes |" in md
     for fmt in formats:
         assert f"| {fmt} | {a['gaussians']} | {whole[fmt]['share_bytes']} |" in md
+
+
+def test_pwas_without_proximity_ranks_a_scored_again_from_its_own_frames(
+    experiment: tuple[Path, Path, dict],
+) -> None:
+    """The ablation pwas-inf: A's finished map scored again from A's frames at A's poses with no
+    proximity weight (every visible frame weighs 1, so W counts the frames and S is the alpha*T
+    sum), and its shares cut by that PWAS; pwas-final (the scene's sigma_d) runs when asked."""
+    _seq, out, _result = experiment
+    runs = out / "runs"
+    with LogReader(runs / "s0_agent_a.mcap") as log:
+        online = log.read_map()
+    with LogReader(runs / "s0_agent_a_pwas-inf.mcap") as log:
+        scored, meta = log.read_map(), log.metadata
+    assert meta.results["sigma_d"] == "inf" and meta.results["views"] == 2  # A's odd frames of 4
+    np.testing.assert_array_equal(scored.means, online.means)
+    np.testing.assert_allclose(scored.importance_sum, scored.alpha_t_sum, rtol=1e-6)
+    assert set(np.unique(scored.importance_weight)) <= {0.0, 1.0, 2.0}
+    assert not np.allclose(scored.importance, online.importance)  # (the weight did something)
+    with LogReader(runs / "s0_pwas-inf_0p2_share.mcap") as log:
+        share = log.metadata.results
+    assert (share["source"], share["strategy"]) == ("s0_agent_a_pwas-inf.mcap", "pwas")
+    assert share["selected"] == round(0.2 * len(online))
+    rows = json.loads((out / "results.json").read_text())
+    assert {r["name"] for r in rows if r["strategy"] == "pwas-inf"} == {
+        "B + pwas-inf 0.2", "B + pwas-inf 0.5"
+    }  # fmt: skip
+    settings = ExperimentSettings(strategies=("random", "pwas", "pwas-final"))
+    settings.check()
+    with pytest.raises(OptionError, match="unknown strategies"):
+        ExperimentSettings(strategies=("random", "pwas", "pwas-zero")).check()
 
 
 def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Path, dict]) -> None:
@@ -154,7 +186,7 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     scored = [r for r in rows if r["refine_iters"] is not None]
     assert [r["name"] for r in rows if r not in scored] == ["full, no pruning"]
     references = len(reference_formats(ExperimentSettings()))  # (B with A's whole map in each)
-    assert len(scored) == 13 + references and all(r["refine_iters"] == 3 for r in scored)
+    assert len(scored) == 15 + references and all(r["refine_iters"] == 3 for r in scored)
     for row in scored:
         for name in ("a", "b", "all"):
             assert math.isfinite(row[f"refined_psnr_{name}"]), row
@@ -183,7 +215,7 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     table = md.split(title)[1].split("\n## ")[0]
     assert "| centralised (full, PWAS pruning) |" in table and "| B + A's full map |" in table
     references = len(reference_formats(ExperimentSettings()))
-    assert table.count(" cm) |\n") == 13 + references and "n/a" not in table
+    assert table.count(" cm) |\n") == 15 + references and "n/a" not in table
 
 
 def test_refine_poses_0_leaves_the_own_frame_scores_alone(
@@ -198,7 +230,7 @@ def test_refine_poses_0_leaves_the_own_frame_scores_alone(
     result = _run(seq, copy, refine=("--refine-poses", "0"))
     settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), refine_poses=0)
     references = len(reference_formats(settings))  # (a share and B's run with it, each)
-    assert result["steps"] == result["reused"] == plan_size(settings) == 23 + 2 * references
+    assert result["steps"] == result["reused"] == plan_size(settings) == 28 + 2 * references
     rows = json.loads((copy / "results.json").read_text())
     cross = {k for k in ROW_KEYS if k.endswith(("_a", "_b", "_all")) or k == "refine_iters"}
     assert len(cross) == 13
@@ -251,11 +283,12 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
     for refine, key in ((100, "refined_psnr_all"), (0, "psnr")):
         curves = rate_distortion_curves(rows, replace(settings, refine_poses=refine))
         formats = reference_formats(settings)
-        assert set(curves) == {"random", "opacity", "alpha-t", "pwas", "full", *formats}
+        strategies = ("random", "opacity", "alpha-t", "pwas", "pwas-inf")
+        assert set(curves) == {*strategies, "full", *formats}
         for fmt in formats:
             whole = next(r for r in rows if r["table"] == "reference" and r["strategy"] == fmt)
             assert curves[fmt] == [(whole["share_bytes"], whole[key], whole["ate_rmse_cm"])]
-        for strategy in ("random", "opacity", "alpha-t", "pwas"):
+        for strategy in strategies:
             (x0, psnr0, ate0), *shared = curves[strategy]
             assert (x0, psnr0, ate0) == (0.0, alone[key], alone["ate_rmse_cm"])
             sweep = [r for r in rows if r["strategy"] == strategy]
@@ -324,21 +357,21 @@ def test_rerun_reuses_finished_runs_and_redoes_only_what_changed(
     seq, out, first = experiment
     scoring = sorted((out / "runs").glob("*_xeval.json"))
     references = len(reference_formats(ExperimentSettings()))
-    assert len(scoring) == 13 + references  # all the rows but Table 3's unpruned run
+    assert len(scoring) == 15 + references  # all the rows but Table 3's unpruned run
     before = {p.name: p.read_bytes() for p in scoring}
     again = _run(seq, out)
     assert again["reused"] == again["steps"] == first["steps"]  # the scoring steps too
     assert {p.name: p.read_bytes() for p in scoring} == before
-    # a new sweep budget: only its shares, B runs and their scoring are new (4 strategies x 3)
+    # a new sweep budget: only its shares, B runs and their scoring are new (5 strategies x 3)
     third = _run(seq, out, "--sweep", "0.2,0.5,0.3")  # (the last --sweep counts)
-    assert third["steps"] - third["reused"] == 12
+    assert third["steps"] - third["reused"] == 15
     # another merge learning-rate decay: every merge again, nothing else (in a copy: the
     # folder is shared with the other tests of this module)
     copy = _copy(experiment, tmp_path)
     fourth = _run(seq, copy, "--sweep", "0.2,0.5,0.3", "--merge-lr-final", "0.5")
     merges = list((copy / "runs").glob("s0_*_agent_b.json"))  # not B's own run, s0_agent_b
-    # 4 strategies x 3 + 2 + A's whole map in each reference format, each scored again
-    assert len(merges) == 14 + references
+    # 5 strategies x 3 + 2 + A's whole map in each reference format, each scored again
+    assert len(merges) == 17 + references
     assert fourth["steps"] - fourth["reused"] == 2 * len(merges)
     assert all(json.loads(p.read_text())["spec"]["lr_final"] == 0.5 for p in merges)
 

@@ -191,6 +191,14 @@ def _share_job(
                      ids=ids, force=True)  # fmt: skip
 
 
+def _rescore_job(
+    path: Path, source: Path, seq: Path, sigma_d: float | None, device: str = "auto"
+) -> dict[str, Any]:
+    from gscompress.pipeline.scoring import score_file
+
+    return score_file(source, path, seq, sigma_d=sigma_d, device=device, force=True)
+
+
 def _reference_job(path: Path, source: Path, fmt: str) -> dict[str, Any]:
     from gscompress.pipeline.offline import format_share
 
@@ -466,6 +474,16 @@ class Runner:
             sums=self.settings.sums, ids=self.settings.ids,
         )  # fmt: skip
         return self._step(name, spec, job, after=[source] + ([receiver] if receiver else []))
+
+    def rescore(self, name: str, source: RunHandle, sigma_d: float | None) -> Record:
+        """`source`'s map PWAS-scored again from its own frames at its own poses (`gsc score`,
+        with `sigma_d`: None for the scene's, inf for no proximity weight)."""
+        from gscompress.importance import sigma_d_value
+
+        spec = {"kind": "rescore", "source": source.key, "sigma_d": sigma_d_value(sigma_d)}
+        job = functools.partial(_rescore_job, source=source.path, seq=self.seq, sigma_d=sigma_d,
+                                device=self.settings.device)  # fmt: skip
+        return self._step(name, spec, job, after=[source])
 
     def reference(self, name: str, source: RunHandle, fmt: str) -> Record:
         """`source`'s whole map sent in the format `fmt` (`format_share`): a point of the

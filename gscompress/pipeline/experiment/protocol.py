@@ -68,8 +68,10 @@ class ExperimentSettings:
         seeds: seeds of the two-agent protocol (SLAM seed and random selection seed).
         sweep: budgets of the rate-distortion sweep.
         sweep_seeds: how many of the seeds the sweep runs on.
-        strategies: share strategies compared; a name ending in `FOR_B` (e.g. "pwas-for-b") is
-            that strategy cut for B (`gsc share --for`: what B's views do not draw first).
+        strategies: share strategies compared: those of `gscompress.selection.STRATEGIES` and
+            the PWAS ablations of `RESCORED` (by default "pwas-inf", PWAS without its proximity
+            weight); a name ending in `FOR_B` (e.g. "pwas-for-b") is that strategy cut for B
+            (`gsc share --for`: what B's views do not draw first).
         size: working size (W, H), or None for the config's.
         every: evaluate every N-th frame.
         lpips: compute LPIPS.
@@ -121,7 +123,7 @@ class ExperimentSettings:
     seeds: int = 3
     sweep: tuple[str, ...] = ("0.05", "0.1", "0.2", "0.4")
     sweep_seeds: int = 1
-    strategies: tuple[str, ...] = ("random", "opacity", "alpha-t", "pwas")
+    strategies: tuple[str, ...] = ("random", "opacity", "alpha-t", "pwas", "pwas-inf")
     size: tuple[int, int] | None = None
     every: int = 1
     lpips: bool = True
@@ -217,10 +219,11 @@ class ExperimentSettings:
                 f"--sweep-seeds {self.sweep_seeds} is more than --seeds {self.seeds}: the sweep "
                 "runs on the first seeds"
             )
-        unknown = sorted({x.removesuffix(FOR_B) for x in self.strategies} - set(STRATEGIES))
+        known = (*STRATEGIES, *RESCORED)
+        unknown = sorted({x.removesuffix(FOR_B) for x in self.strategies} - set(known))
         if unknown or not self.strategies:
             raise InputError(
-                f"unknown strategies {unknown}; choose from {', '.join(STRATEGIES)}, each also "
+                f"unknown strategies {unknown}; choose from {', '.join(known)}, each also "
                 f"as NAME{FOR_B} (cut for B: what B has not seen first)"
             )
         if self.anchor == "own" and any(x.endswith(FOR_B) for x in self.strategies):
@@ -233,6 +236,22 @@ class ExperimentSettings:
 
 FOR_B = "-for-b"
 """Suffix of a strategy whose shares are cut for B (`gscompress.pipeline.receiver`)."""
+
+
+RESCORED: dict[str, float | None] = {"pwas-inf": math.inf, "pwas-final": None}
+"""The PWAS ablations: strategies that rank by PWAS scored again on A's finished map from A's
+own frames at A's own poses (`gsc score A.mcap --sigma-d ...`), with this sigma_d. "pwas-inf"
+turns the proximity weight off; "pwas-final" keeps the scene's sigma_d (None: `auto`, as the
+run's), so that it separates what scoring the finished map changes from what the weight does.
+A's online sums hold the weighted sums only, so PWAS without the weight must be scored again.
+Their shares carry the sums scored again (the merge weighs A's evidence by them)."""
+
+
+def ranked_by(strategy: str) -> str:
+    """What a share of the experiment's `strategy` is cut by: a `RESCORED` ablation by PWAS (of
+    its own scored log), any other by itself."""
+    base = strategy.removesuffix(FOR_B)
+    return "pwas" + strategy.removeprefix(base) if base in RESCORED else strategy
 
 
 def halves(n: int, overlap: float) -> tuple[range, range]:
@@ -261,7 +280,7 @@ def plan_size(settings: ExperimentSettings) -> int:
     main = 2 + len(s.strategies) + 1  # A, B, B+share per strategy, B+full
     main += s.mode == "merge"  # B refined without a share (the control)
     main += 2 * (s.anchor == "own")  # the alignment, B with the share at the true transform
-    shares = len(s.strategies) + 1
+    shares = len(s.strategies) + 1 + len(_rescored(s))  # (and each ablation's scored log)
     extra_budgets = [b for b in s.sweep if not same_budget(b, s.budget)]
     sweep = s.sweep_seeds * (len(extra_budgets) * len(s.strategies) + len(reference_formats(s)))
     sweep *= 2  # (a share and a run of B with it)
@@ -271,6 +290,11 @@ def plan_size(settings: ExperimentSettings) -> int:
         sweep += sweep // 2  # (one per B run of the sweep, none per share)
         table3 += 1
     return table3 + s.seeds * (main + shares) + sweep
+
+
+def _rescored(s: ExperimentSettings) -> list[str]:
+    """The `RESCORED` ablations among the strategies, each once."""
+    return [x for x in dict.fromkeys(y.removesuffix(FOR_B) for y in s.strategies) if x in RESCORED]
 
 
 def resolve_settings(settings: ExperimentSettings) -> tuple[ExperimentSettings, SlamConfig]:
@@ -345,6 +369,8 @@ class Executor(Protocol):
 
     def reference(self, name: str, source: RunHandle, fmt: str) -> RunHandle: ...
 
+    def rescore(self, name: str, source: RunHandle, sigma_d: float | None) -> RunHandle: ...
+
     def score(
         self,
         run: RunHandle,
@@ -396,11 +422,13 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
             alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
             rows.append({"name": B_NO_SHARE, "table": "table4", "run": alone, "seed": seed,
                          "strategy": "none", **score(alone, "b", a, align)})  # fmt: skip
+        scored = {x: runner.rescore(f"s{seed}_agent_a_{x}", a, RESCORED[x]) for x in _rescored(s)}
         for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
-                share = runner.share(f"{tag}_share", a, budget, strategy, seed,
+                source = scored.get(strategy.removesuffix(FOR_B), a)
+                share = runner.share(f"{tag}_share", source, budget, ranked_by(strategy), seed,
                                      b if strategy.endswith(FOR_B) else None)  # fmt: skip
                 got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed, align)
                 rows.append({"name": f"B + {strategy} {budget}", "table": table, "run": got,

@@ -19,7 +19,9 @@ from gscompress.pipeline.experiment.cross_agent import FRAME_SETS
 from gscompress.pipeline.experiment.protocol import (
     AGENT_ROWS,
     B_NO_SHARE,
+    FOR_B,
     REFERENCE_TABLE,
+    RESCORED,
     TRUE_TRANSFORM_ROW,
     ExperimentSettings,
     RunHandle,
@@ -228,13 +230,15 @@ def pwas_cells(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, A
     """PWAS against every other compared strategy, cell by cell: each (seed, budget) of the
     sweep (the sweep seeds, every sweep budget) where all of them were scored, by
     `quality_key`. A cell counts as `at_or_above` when PWAS is above or tied with each other
-    strategy, `above` when above every one by more than `TIE_DB`."""
+    strategy but its own ablations (`RESCORED`), `above` when above every one by more than
+    `TIE_DB`; `against` pairs PWAS with every other strategy, ablations too."""
     key = quality_key(s)
     others = [name for name in s.strategies if name != "pwas"]
+    baselines = [o for o in others if o.removesuffix(FOR_B) not in RESCORED]
     group = [r for b in s.sweep for r in _sweep_rows(rows, s, b)]
     cells = cell_values(group, key).values()
-    full = [c for c in cells if "pwas" in c and all(o in c for o in others)]
-    margins = [min(c["pwas"] - c[o] for o in others) for c in full] if others else []
+    full = [c for c in cells if "pwas" in c and all(o in c for o in baselines)]
+    margins = [min(c["pwas"] - c[o] for o in baselines) for c in full] if baselines else []
     return {
         "key": key,
         "cells": len(full),
@@ -576,7 +580,8 @@ def _cell_lines(cells: dict[str, Any], s: ExperimentSettings) -> list[str]:
         "## PWAS against each strategy, cell by cell",
         "",
         f"Each (seed, budget) of the sweep where every strategy was scored ({n} cells; PSNR: "
-        f"{_psnr_text(s)}). PWAS is at or above every other strategy in "
+        f"{_psnr_text(s)}). PWAS is at or above every other strategy (its ablations aside: "
+        "PWAS scored again, e.g. without the proximity weight) in "
         f"{cells['at_or_above']} of {n} cells ({100 * cells['at_or_above'] / n:.0f}%), above "
         f"every one by more than {TIE_DB:g} dB in {cells['above']}. Against each, PWAS minus "
         "the strategy (mean ± standard error over the cells):",
