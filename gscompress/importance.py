@@ -51,9 +51,16 @@ class PwasConfig:
             distance of the run's first frame with valid depth (`median_range`; module
             docstring); `math.inf` (`inf` in YAML and on the command line): no proximity
             weighting (every visible frame weighs 1). The paper used 20.
+        final_scores: when a run has mapped all its frames, its finished map is scored again
+            from every pose of the run (`gscompress.ops.score.score_map`, the run's sigma_d),
+            and the final map is logged with those sums instead of the ones accumulated while
+            the map grew (the pruning stages still rank by those). A run that received a share
+            (`gsc slam --inject`) keeps its accumulated sums: they hold the sender's views.
+            docs/pwas.md, "The finished map's sums".
     """
 
     sigma_d: float | None = None
+    final_scores: bool = True
 
 
 def median_range(depth: np.ndarray, intrinsics: Intrinsics) -> float | None:

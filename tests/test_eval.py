@@ -532,6 +532,31 @@ def test_a_slam_log_records_the_sigma_d_derived_from_its_first_frame(gt_log, seq
     assert 0.3 < meta.results["sigma_d"] < 10  # a room's scale, not the paper's 20 m
 
 
+def test_a_finished_run_logs_its_map_scored_from_every_pose_of_the_run(gt_log, seq_dir, tmp_path):
+    """pwas.final_scores: the final map's sums are those `gsc score` gives the log (the finished
+    map drawn at every pose of the run, the run's sigma_d); without it, the sums accumulated
+    while the map grew, which differ."""
+    from gscompress.io.mcap_log import read_map
+    from gscompress.pipeline.scoring import score_file
+
+    rescored = tmp_path / "rescored.mcap"
+    score_file(gt_log, rescored, seq_dir)
+    logged, scored = read_map(gt_log), read_map(rescored)
+    for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
+        np.testing.assert_allclose(getattr(logged, name), getattr(scored, name), rtol=1e-5,
+                                   atol=1e-6, err_msg=name)  # fmt: skip
+    config = tmp_path / "online.yaml"
+    config.write_text("preset: tiny\ntracking:\n  use_ground_truth: true\npwas:\n"
+                      "  final_scores: false\n")  # fmt: skip
+    online = tmp_path / "online.mcap"
+    slam_file(seq_dir, online, preset="tiny", config_path=config)
+    grown = read_map(online)
+    np.testing.assert_array_equal(grown.means, logged.means)  # the same run, other sums
+    assert not np.allclose(grown.alpha_t_sum, logged.alpha_t_sum, rtol=1e-3)
+    with LogReader(online) as reader:
+        assert reader.metadata.config["pwas"]["final_scores"] is False
+
+
 def test_a_score_of_a_foreign_ply_is_posed_at_the_ground_truth_and_has_no_ate(
     gt_log, seq_dir, tmp_path
 ):

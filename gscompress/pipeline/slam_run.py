@@ -535,6 +535,22 @@ def _stop_between_frames(refining: Callable[[], bool]) -> Iterator[Callable[[], 
             signal.signal(number, handler)
 
 
+def _finished_scores(system: Any, gaussians: Any, backend: str) -> Any:
+    """The finished map with its PWAS sums scored again from every pose of the run
+    (`PwasConfig.final_scores`): what each Gaussian of the map as it ends draws in the run's
+    views, not what it drew while the map was still growing. A run that received a share keeps
+    its accumulated sums (they hold the sender's views), as does a run without valid depth
+    (no sigma_d)."""
+    from gscompress.ops.score import score_map
+
+    received = system.own_ids_from > 0
+    if not system.config.pwas.final_scores or received or system.sigma_d is None:
+        return gaussians
+    log.info("scoring the finished map from the run's %d views", len(system.poses))
+    return score_map(gaussians, system.poses, system.intrinsics, sigma_d=system.sigma_d,
+                     backend=backend, device=system.device)  # fmt: skip
+
+
 def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:
     """Process the frames from `run.start` on, writing the log as they are done."""
     from gscompress.importance import sigma_d_value
@@ -581,6 +597,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         seconds = time.perf_counter() - start
         if whole:  # else the last snapshot stands (see _stop_between_frames)
             gaussians = system.gaussian_map()
+            if failure is None and done == total:
+                gaussians = _finished_scores(system, gaussians, backend)
             out.write_gaussians(gaussians, run.t_ns, run.codec)
             meta.results["gaussians"] = len(gaussians)
             run.map_frames = done
