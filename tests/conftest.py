@@ -84,14 +84,19 @@ def rewrite_log(src: Path, dst: Path, profile: str = "", **writer_options: Any) 
 @pytest.fixture(scope="session")
 def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A tiny SLAM log of the synthetic room (6 frames at 48x36, the tiny preset: a keyframe
-    every 2), its sequence, and a folder for outputs (refinement and solver tests)."""
+    every 2), its sequence, and a folder for outputs (refinement and solver tests). It keeps the
+    sums accumulated while its map grew (`pwas.final_scores: false`): the refinement tests
+    shape the Gaussians a PWAS prune keeps, and on so small a map the finished-map sums keep
+    mostly Gaussians that absorb no others (tests/test_eval.py checks those sums)."""
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.pipeline import slam_file
 
     root = tmp_path_factory.mktemp("tiny-run")
     seq = write_synthetic_sequence(root / "room", 6, (48, 36))
     log = root / "run.mcap"
-    slam_file(seq, log, preset="tiny")
+    config = root / "accumulated.yaml"
+    config.write_text("preset: tiny\npwas:\n  final_scores: false\n")
+    slam_file(seq, log, preset="tiny", config_path=config)
     return {"seq": seq, "log": log, "root": root}
 
 
