@@ -594,11 +594,11 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         finally:
             system.stop_requested = None
         done = len(system.poses)
+        gaussians = system.gaussian_map() if whole else None
+        if gaussians is not None and failure is None and done == total:
+            gaussians = _finished_scores(system, gaussians, backend)  # (timed with the run)
         seconds = time.perf_counter() - start
-        if whole:  # else the last snapshot stands (see _stop_between_frames)
-            gaussians = system.gaussian_map()
-            if failure is None and done == total:
-                gaussians = _finished_scores(system, gaussians, backend)
+        if gaussians is not None:  # else the last snapshot stands (see _stop_between_frames)
             out.write_gaussians(gaussians, run.t_ns, run.codec)
             meta.results["gaussians"] = len(gaussians)
             run.map_frames = done
