@@ -119,6 +119,14 @@ from .options import (
     "that the receiver's views give it (what they see of it against what the sender's did).",
 )
 @click.option(
+    "--footprint/--no-footprint",
+    default=MergeOptions.footprint,
+    show_default=True,
+    help="With --resolve evidence, count a Gaussian's evidence in its cell only for the part "
+    "of its footprint (its 2-sigma ellipse) the cell holds, so that one large Gaussian, such as "
+    "a fold of many, does not outweigh the receiver's many small ones.",
+)
+@click.option(
     "--keyframes/--no-keyframes",
     default=True,
     show_default=True,
@@ -148,6 +156,7 @@ def merge(
     margin: float,
     share_rate: float,
     by_view: bool,
+    footprint: bool,
     keyframes: bool,
     device: str,
     backend: str | None,
@@ -169,7 +178,8 @@ def merge(
                   apart; the identity when they hardly overlap);
     --resolve     keeps, in each --voxel cell with Gaussians of both maps, only
                   one map's: the one whose agent saw them more (evidence: their
-                  alpha*T sums, the share's only above --margin times the
+                  alpha*T sums, each counted for the part of its footprint the
+                  cell holds, the share's only above --margin times the
                   receiver's), the receiver's, or the share's (stack: both);
     refinement    on the receiver's own frames (--views) at its estimated poses
                   and on the sender's keyframes the share carries, if any,
@@ -204,7 +214,7 @@ def merge(
     """
     context = click.get_current_context()
     given = {"align": align, "resolve": resolve, "voxel": voxel, "margin": margin,
-             "share_rate": share_rate, "by_view": by_view}  # fmt: skip
+             "share_rate": share_rate, "by_view": by_view, "footprint": footprint}  # fmt: skip
     # (the rest as the merge chooses: WITH_SENDER_VIEWS for a share that carries keyframes)
     told = {k: v for k, v in given.items()
             if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip

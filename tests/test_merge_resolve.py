@@ -24,6 +24,7 @@ from gscompress.ops.merge import (
     resolve_overlap,
     share_rates,
     transform_map,
+    voxel_evidence,
 )
 from gscompress.render import render
 from gscompress.slam.config import preset
@@ -161,6 +162,28 @@ def test_a_margin_gives_near_ties_to_the_receiver() -> None:
     assert keep_s.all() and not keep_r.any()  # without a margin the share wins both sides
     with pytest.raises(OptionError, match="--margin"):
         MergeOptions(margin=0.5).check()
+
+
+def test_a_fold_of_many_does_not_take_a_cell_from_the_receivers_small_gaussians() -> None:
+    # B holds a patch of four small Gaussians (5 mm) in one 4 cm cell, each seen with evidence 1;
+    # the share sends one fold of 25 Gaussians there (10 cm across, its group's evidence 25).
+    small = GaussianMap.new(
+        means=np.array([[x, y, 2.0] for x in (0.01, 0.03) for y in (0.01, 0.03)]),
+        log_scales=np.full((4, 1), np.log(0.005)), quats=np.tile([1.0, 0, 0, 0], (4, 1)),
+        opacity_logits=np.full(4, 4.0), sh_dc=np.zeros((4, 3)), alpha_t_sum=np.ones(4),
+    )  # fmt: skip
+    fold = GaussianMap.new(
+        means=np.array([[0.02, 0.02, 2.0]]), log_scales=np.full((1, 1), np.log(0.05)),
+        quats=np.array([[1.0, 0, 0, 0]]), opacity_logits=np.full(1, 4.0), sh_dc=np.zeros((1, 3)),
+        alpha_t_sum=np.array([25.0]), ids=np.array([100], np.uint32),
+    )  # fmt: skip
+    assert np.allclose(voxel_evidence(small, 0.04), 1.0)  # (each fits in a cell face)
+    assert np.isclose(voxel_evidence(fold, 0.04)[0], 25.0 * 0.04**2 / (4 * np.pi * 0.05**2))
+    options = MergeOptions(align=False)
+    merged, from_share, _, stats = combine(small, fold, options)
+    assert len(merged) == 4 and not from_share.any() and stats["receiver_dropped"] == 0
+    merged, from_share, _, stats = combine(small, fold, replace(options, footprint=False))
+    assert len(merged) == 1 and from_share.all() and stats["receiver_dropped"] == 4
 
 
 def test_refinement_keeps_the_share_still_where_its_rate_is_zero(agents: dict) -> None:

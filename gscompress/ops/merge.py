@@ -130,6 +130,11 @@ class MergeOptions:
             With `by_view`, the fraction is scaled by how much the receiver's views see each.
         by_view: scale `share_rate` per Gaussian by the receiver's view contribution relative
             to the sender's evidence (`share_rates`).
+        footprint: with "evidence", count a Gaussian's evidence in its voxel only for the part
+            of its footprint the voxel holds (`voxel_evidence`). Without it, a folded Gaussian
+            (its group's sums on one centre) outweighs the receiver's Gaussians wherever its
+            centre lands: a 40-Gaussian PWAS share at 1% of A's fp32 bytes took 257 of B's
+            3,721 Gaussians on tabletop, and B's own frames fell 1.3 dB (docs/merge.md).
     """
 
     align: bool = True
@@ -138,6 +143,7 @@ class MergeOptions:
     margin: float = 2.0
     share_rate: float = 0.0
     by_view: bool = True
+    footprint: bool = True
 
     def check(self) -> None:
         """Raise OptionError for a setting out of range."""
@@ -241,6 +247,21 @@ def voxel_keys(means: np.ndarray, voxel: float) -> np.ndarray:
     return (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
 
 
+def voxel_evidence(gaussians: GaussianMap, voxel: float | None) -> np.ndarray:
+    """[N] float64 evidence of each Gaussian (its `alpha_t_sum`) counted in the voxel of edge
+    `voxel` (m) that holds its centre: e * min(1, voxel^2 / (4 pi s1 s2)), with s1 >= s2 its
+    two largest standard deviations, so 4 pi s1 s2 is the area of its 2-sigma ellipse. A
+    Gaussian whose footprint fits in a voxel face counts whole; a larger one, such as a fold of
+    many (whose sums are its group's), counts for the part a voxel holds. None: every Gaussian
+    counts whole."""
+    evidence = np.asarray(gaussians.alpha_t_sum, np.float64)
+    if voxel is None or not len(gaussians):
+        return evidence
+    s = np.sort(gaussians.scales().astype(np.float64), axis=1)
+    area = 4.0 * np.pi * s[:, -1] * s[:, -2]
+    return evidence * np.minimum(1.0, voxel * voxel / np.maximum(area, np.finfo(np.float64).tiny))
+
+
 def resolve_overlap(
     receiver: GaussianMap,
     share: GaussianMap,
@@ -295,7 +316,8 @@ def combine(
 
     The share is aligned to the receiver (`align_share`), the surfaces both hold are resolved
     (`resolve_overlap`, by each Gaussian's `alpha_t_sum`: how much its own agent's frames saw
-    of it), and what is kept is concatenated (`merge_maps`).
+    of it, counted for its footprint with `options.footprint`, `voxel_evidence`), and what is
+    kept is concatenated (`merge_maps`).
 
     Returns:
         The merged map, a boolean mask of its rows that came from the share, the id offset
@@ -314,9 +336,11 @@ def combine(
     keep_r = np.ones(len(receiver), bool)
     keep_s = np.ones(len(share), bool)
     if options.resolve == "evidence":
+        voxel = options.voxel if options.footprint else None
         keep_r, keep_s, dropped = resolve_overlap(
-            receiver, share, receiver.alpha_t_sum, share.alpha_t_sum, options.voxel, options.margin
-        )
+            receiver, share, voxel_evidence(receiver, voxel), voxel_evidence(share, voxel),
+            options.voxel, options.margin,
+        )  # fmt: skip
         stats.update(dropped)
     elif options.resolve != "stack":
         ones_r = np.ones(len(receiver), np.float64)
