@@ -74,8 +74,9 @@ from .options import (
     "--align/--no-align",
     default=MergeOptions.align,
     show_default=True,
-    help="Move the share onto the receiver's map where their surfaces overlap (a local rigid "
-    "refinement, ICP on the opaque Gaussians' centres) before merging.",
+    help="Move the share onto the receiver's map where their surfaces overlap before merging: "
+    "`gsc align`'s local step (Open3D's coloured ICP on the opaque Gaussians' centres and "
+    "colours, from where the share is; needs the [align] extra).",
 )
 @click.option(
     "--resolve",

@@ -7,6 +7,7 @@ as two SLAM agents anchored at one ground truth do.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -14,7 +15,7 @@ import pytest
 import torch
 
 from gscompress.camera import Intrinsics, invert_transform
-from gscompress.errors import OptionError
+from gscompress.errors import MissingDependencyError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.ops.merge import (
     EXACT,
@@ -117,6 +118,19 @@ def test_align_share_recovers_the_offset_between_two_agents(agents: dict) -> Non
     far = transform_map(agents["a"], shift(np.array([5.0, 0.0, 0.0])))
     T, stats = align_share(agents["b"], far, max_distance=SPACING)
     assert np.array_equal(T, np.eye(4)) and stats["align_pairs"] == 0  # no overlap: unmoved
+
+
+def test_without_open3d_the_merge_names_the_extra_and_merges_unaligned_when_told(
+    agents: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "open3d", None)  # (an import of it now fails)
+    with pytest.raises(MissingDependencyError, match=r"gscompress\[align\].*--no-align"):
+        combine(agents["b"], agents["a"], RESOLVED)
+    merged, from_share, _, stats = combine(agents["b"], agents["a"], replace(RESOLVED, align=False))
+    assert "align_pairs" not in stats
+    shared = merged.select(np.flatnonzero(from_share))
+    kept = np.isin(agents["a"].means, shared.means).all(axis=1)
+    assert kept.sum() == len(shared)  # the share's Gaussians where they were sent
 
 
 def test_merge_of_two_halves_renders_each_half_as_well_as_its_source(agents: dict) -> None:

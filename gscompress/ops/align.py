@@ -189,9 +189,12 @@ def _o3d() -> Any:
     try:
         import open3d
     except ImportError as exc:
-        raise MissingDependencyError(
-            f"aligning maps needs Open3D ({exc}); install it with {INSTALL_HINT}"
-        ) from None
+        fix = (
+            "Open3D's Linux build loads libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0)"
+            if "libusb" in str(exc)
+            else f"install it with {INSTALL_HINT}"
+        )
+        raise MissingDependencyError(f"aligning maps needs Open3D ({exc}); {fix}") from None
     open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)  # (no stdout chatter)
     return open3d
 

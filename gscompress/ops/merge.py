@@ -23,13 +23,12 @@ from typing import Any
 import numpy as np
 
 from gscompress.camera import (
-    make_transform,
     quat_to_rotmat,
     rotation_angle_deg,
     rotmat_to_quat,
     transform_points,
 )
-from gscompress.errors import MapError, OptionError
+from gscompress.errors import MapError, MissingDependencyError, OptionError
 from gscompress.gaussians import GaussianMap
 
 MAX_ID = np.iinfo(np.uint32).max
@@ -181,62 +180,61 @@ def align_share(
     receiver: GaussianMap,
     share: GaussianMap,
     max_distance: float = 0.05,
-    iters: int = 30,
     min_pairs: int = 50,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """A local rigid refinement of the share onto the receiver where their surfaces overlap.
 
     Two agents anchored in one world frame still sit centimetres apart (each map agrees with
-    its own trajectory). Point-to-point ICP on the opaque Gaussians' centres: each of the share's
-    centres is paired with the receiver's nearest within `max_distance`, the pairs are fitted by
-    a rigid transform, and again from there, `iters` times or until it stops moving. With fewer
-    than `min_pairs` pairs (maps that hardly overlap) the identity is returned.
+    its own trajectory). The step is `gsc align`'s local one, `gscompress.ops.align.
+    refine_alignment` (Open3D's coloured ICP from the identity, on the opaque Gaussians'
+    centres and colours, correspondences within `max_distance` and then half of it): one piece
+    of code serves both. With fewer than `min_pairs` of the share's opaque centres within
+    `max_distance` of the receiver's (maps that hardly overlap), the identity is returned.
 
     Returns:
         T_receiver_share [4, 4] and {"align_pairs", "align_rmse_before_cm",
-        "align_rmse_after_cm", "align_shift_cm", "align_angle_deg"}.
+        "align_rmse_after_cm", "align_shift_cm", "align_angle_deg"}: the pairs and their RMS
+        distance are the share's opaque centres within `max_distance` of the receiver's
+        nearest one, before and after.
+
+    Raises:
+        MissingDependencyError: Open3D is not installed (`pip install 'gscompress[align]'`).
     """
     from scipy.spatial import cKDTree
 
-    from gscompress.metrics import umeyama_alignment
+    from gscompress.ops.align import AlignOptions, map_cloud, refine_alignment
 
-    src = share.means[share.opacities() >= OPAQUE].astype(np.float64)
-    dst = receiver.means[receiver.opacities() >= OPAQUE].astype(np.float64)
-    T = np.eye(4)
+    def cloud(g: GaussianMap) -> Any:
+        return map_cloud(g.means, g.colors(), g.opacities(), min_opacity=OPAQUE)
+
+    src, dst = cloud(share), cloud(receiver)
     stats: dict[str, Any] = {"align_pairs": 0}
-    if len(src) < min_pairs or len(dst) < min_pairs:
-        return T, stats
-    tree = cKDTree(dst)
-    rmse_before: float | None = None
-    pairs = 0
-    for _ in range(iters):
-        moved = transform_points(T, src)
-        dist, nearest = tree.query(moved, distance_upper_bound=max_distance)
-        close = np.isfinite(dist)
-        pairs = int(close.sum())
-        if pairs < min_pairs:
-            break
-        if rmse_before is None:
-            rmse_before = float(np.sqrt(np.mean(dist[close] ** 2)))
-        R, t, _ = umeyama_alignment(moved[close], dst[nearest[close]], with_scale=False)
-        step = make_transform(R, t)
-        T = step @ T
-        if np.linalg.norm(step[:3, 3]) < 1e-5 and np.allclose(step[:3, :3], np.eye(3), atol=1e-7):
-            break
-    if rmse_before is None:
+    if len(src.points) < min_pairs or len(dst.points) < min_pairs:
         return np.eye(4), stats
-    moved = transform_points(T, src)
-    dist, _ = tree.query(moved, distance_upper_bound=max_distance)
-    close = np.isfinite(dist)
-    angle = rotation_angle_deg(T[:3, :3])
+    tree = cKDTree(dst.points)
+
+    def pairs(T: np.ndarray) -> np.ndarray:
+        dist, _ = tree.query(transform_points(T, src.points), distance_upper_bound=max_distance)
+        return dist[np.isfinite(dist)]
+
+    before = pairs(np.eye(4))
+    if len(before) < min_pairs:
+        return np.eye(4), stats
+    T = refine_alignment(src, dst, np.eye(4), AlignOptions(voxel=max_distance)).T_target_source
+    after = pairs(T)
     stats.update(
-        align_pairs=int(close.sum()),
-        align_rmse_before_cm=round(100.0 * rmse_before, 3),
-        align_rmse_after_cm=round(100.0 * float(np.sqrt(np.mean(dist[close] ** 2))), 3),
+        align_pairs=len(after),
+        align_rmse_before_cm=rms_cm(before),
+        align_rmse_after_cm=rms_cm(after),
         align_shift_cm=round(100.0 * float(np.linalg.norm(T[:3, 3])), 3),
-        align_angle_deg=round(float(angle), 4),
+        align_angle_deg=round(float(rotation_angle_deg(T[:3, :3])), 4),
     )
     return T, stats
+
+
+def rms_cm(distances: np.ndarray) -> float | None:
+    """RMS of `distances` (m) in cm, to 0.001 (None for none)."""
+    return round(100.0 * float(np.sqrt(np.mean(distances**2))), 3) if len(distances) else None
 
 
 def voxel_keys(means: np.ndarray, voxel: float) -> np.ndarray:
@@ -328,7 +326,10 @@ def combine(
     options.check()
     stats: dict[str, Any] = {}
     if options.align and len(receiver) and len(share) and share.sh_degree == 0:
-        T, found = align_share(receiver, share, max_distance=options.voxel)
+        try:
+            T, found = align_share(receiver, share, max_distance=options.voxel)
+        except MissingDependencyError as exc:
+            raise MissingDependencyError(f"{exc}; or merge without aligning (--no-align)") from None
         stats.update(found)
         if found["align_pairs"]:
             share = transform_map(share, T)
