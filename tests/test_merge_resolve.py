@@ -13,6 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.errors import MissingDependencyError, OptionError
@@ -118,6 +119,24 @@ def test_align_share_recovers_the_offset_between_two_agents(agents: dict) -> Non
     far = transform_map(agents["a"], shift(np.array([5.0, 0.0, 0.0])))
     T, stats = align_share(agents["b"], far, max_distance=SPACING)
     assert np.array_equal(T, np.eye(4)) and stats["align_pairs"] == 0  # no overlap: unmoved
+
+
+def test_an_alignment_that_takes_the_share_off_the_receiver_is_not_kept(
+    agents: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import gscompress.ops.align as align
+
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_euler("z", 5.0, degrees=True).as_matrix()
+    found = align.refine_alignment  # (the library's step, replaced by one that turns 5 degrees)
+    monkeypatch.setattr(
+        align,
+        "refine_alignment",
+        lambda s, t, T, o: replace(found(s, t, T, o), T_target_source=turned),
+    )
+    T, stats = align_share(agents["b"], agents["a"], max_distance=SPACING)
+    assert np.array_equal(T, np.eye(4)) and stats["align_kept"] is False
+    assert stats["align_rmse_after_cm"] == stats["align_rmse_before_cm"] > 1.0
 
 
 def test_without_open3d_the_merge_names_the_extra_and_merges_unaligned_when_told(

@@ -192,10 +192,11 @@ def align_share(
     `max_distance` of the receiver's (maps that hardly overlap), the identity is returned.
 
     Returns:
-        T_receiver_share [4, 4] and {"align_pairs", "align_rmse_before_cm",
+        T_receiver_share [4, 4] and {"align_kept", "align_pairs", "align_rmse_before_cm",
         "align_rmse_after_cm", "align_shift_cm", "align_angle_deg"}: the pairs and their RMS
         distance are the share's opaque centres within `max_distance` of the receiver's
-        nearest one, before and after.
+        nearest one, before and after. The step is kept only where it brings the share's
+        centres closer to the receiver's (`fit_cost`); else the identity, `align_kept` False.
 
     Raises:
         MissingDependencyError: Open3D is not installed (`pip install 'gscompress[align]'`).
@@ -222,7 +223,12 @@ def align_share(
         return np.eye(4), stats
     T = refine_alignment(src, dst, np.eye(4), AlignOptions(voxel=max_distance)).T_target_source
     after = pairs(T)
+    n = len(src.points)
+    kept = fit_cost(after, n, max_distance) < fit_cost(before, n, max_distance)
+    if not kept:  # (the step slid or turned the share off the receiver: left where it was)
+        T, after = np.eye(4), before
     stats.update(
+        align_kept=kept,
         align_pairs=len(after),
         align_rmse_before_cm=rms_cm(before),
         align_rmse_after_cm=rms_cm(after),
@@ -230,6 +236,15 @@ def align_share(
         align_angle_deg=round(float(rotation_angle_deg(T[:3, :3])), 4),
     )
     return T, stats
+
+
+def fit_cost(distances: np.ndarray, points: int, max_distance: float) -> float:
+    """Mean over `points` share centres of the squared distance to the receiver's nearest, each
+    capped at `max_distance` (`distances` holds those within it): what an alignment must lower
+    to be kept. Coloured ICP on a flat scene can slide or turn the share in the plane (tabletop:
+    3.5-9.7 degrees, its centres farther from the receiver's than before)."""
+    far = points - len(distances)
+    return float((np.sum(distances**2) + far * max_distance**2) / max(points, 1))
 
 
 def rms_cm(distances: np.ndarray) -> float | None:
