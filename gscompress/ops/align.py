@@ -297,8 +297,11 @@ def _local(
     return T
 
 
-def _fit(src_pts: np.ndarray, tgt_tree: Any, T: np.ndarray, dist: float) -> tuple[float, float]:
-    """Fraction of the source points within `dist` of the target once moved, and their RMS."""
+def points_fit(
+    src_pts: np.ndarray, tgt_tree: Any, T: np.ndarray, dist: float
+) -> tuple[float, float]:
+    """Fraction of the source points within `dist` of the target (a cKDTree of its points) once
+    moved by `T`, and their RMS distance (0 where none is)."""
     d, _ = tgt_tree.query(transform_points(T, src_pts), distance_upper_bound=dist)
     near = np.isfinite(d)
     return float(near.mean()), float(np.sqrt(np.mean(d[near] ** 2))) if near.any() else 0.0
@@ -312,7 +315,7 @@ def surface_fit(
     from scipy.spatial import cKDTree
 
     tree = cKDTree(target.points)
-    return [_fit(source.points, tree, T, distance)[0] for T in transforms]
+    return [points_fit(source.points, tree, T, distance)[0] for T in transforms]
 
 
 def _agreement(
@@ -476,9 +479,9 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
         err = np.linalg.norm(moved - np.asarray(tgt_down.points)[pairs[:, 1]], axis=1)
         inliers = int(np.sum(err < 1.5 * voxel))
         inlier_ratio = inliers / len(pairs)
-    fit, _ = _fit(src_pts, tgt_tree, T, voxel)
-    _, rms = _fit(source.points, cKDTree(target.points), T, voxel)  # (every Gaussian)
-    tgt_fit, _ = _fit(tgt_pts, src_tree, np.linalg.inv(T), voxel)
+    fit, _ = points_fit(src_pts, tgt_tree, T, voxel)
+    _, rms = points_fit(source.points, cKDTree(target.points), T, voxel)  # (every Gaussian)
+    tgt_fit, _ = points_fit(tgt_pts, src_tree, np.linalg.inv(T), voxel)
     overlap = max(fit, tgt_fit)
     conditioning = _conditioning(src_pts, tgt_pts, tgt_normals, tgt_tree, T, voxel)
     alignment = Alignment(

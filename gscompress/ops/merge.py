@@ -26,7 +26,6 @@ from gscompress.camera import (
     quat_to_rotmat,
     rotation_angle_deg,
     rotmat_to_quat,
-    transform_points,
 )
 from gscompress.errors import MapError, MissingDependencyError, OptionError
 from gscompress.gaussians import GaussianMap
@@ -203,7 +202,7 @@ def align_share(
     """
     from scipy.spatial import cKDTree
 
-    from gscompress.ops.align import AlignOptions, map_cloud, refine_alignment
+    from gscompress.ops.align import AlignOptions, map_cloud, points_fit, refine_alignment
 
     def cloud(g: GaussianMap) -> Any:
         return map_cloud(g.means, g.colors(), g.opacities(), min_opacity=OPAQUE)
@@ -213,43 +212,33 @@ def align_share(
     if len(src.points) < min_pairs or len(dst.points) < min_pairs:
         return np.eye(4), stats
     tree = cKDTree(dst.points)
-
-    def pairs(T: np.ndarray) -> np.ndarray:
-        dist, _ = tree.query(transform_points(T, src.points), distance_upper_bound=max_distance)
-        return dist[np.isfinite(dist)]
-
-    before = pairs(np.eye(4))
-    if len(before) < min_pairs:
+    n = len(src.points)
+    before = points_fit(src.points, tree, np.eye(4), max_distance)
+    if round(before[0] * n) < min_pairs:
         return np.eye(4), stats
     T = refine_alignment(src, dst, np.eye(4), AlignOptions(voxel=max_distance)).T_target_source
-    after = pairs(T)
-    n = len(src.points)
-    kept = fit_cost(after, n, max_distance) < fit_cost(before, n, max_distance)
+    after = points_fit(src.points, tree, T, max_distance)
+    kept = fit_cost(*after, max_distance) < fit_cost(*before, max_distance)
     if not kept:  # (the step slid or turned the share off the receiver: left where it was)
         T, after = np.eye(4), before
     stats.update(
         align_kept=kept,
-        align_pairs=len(after),
-        align_rmse_before_cm=rms_cm(before),
-        align_rmse_after_cm=rms_cm(after),
+        align_pairs=round(after[0] * n),
+        align_rmse_before_cm=round(100.0 * before[1], 3),
+        align_rmse_after_cm=round(100.0 * after[1], 3),
         align_shift_cm=round(100.0 * float(np.linalg.norm(T[:3, 3])), 3),
         align_angle_deg=round(float(rotation_angle_deg(T[:3, :3])), 4),
     )
     return T, stats
 
 
-def fit_cost(distances: np.ndarray, points: int, max_distance: float) -> float:
-    """Mean over `points` share centres of the squared distance to the receiver's nearest, each
-    capped at `max_distance` (`distances` holds those within it): what an alignment must lower
-    to be kept. Coloured ICP on a flat scene can slide or turn the share in the plane (tabletop:
-    3.5-9.7 degrees, its centres farther from the receiver's than before)."""
-    far = points - len(distances)
-    return float((np.sum(distances**2) + far * max_distance**2) / max(points, 1))
-
-
-def rms_cm(distances: np.ndarray) -> float | None:
-    """RMS of `distances` (m) in cm, to 0.001 (None for none)."""
-    return round(100.0 * float(np.sqrt(np.mean(distances**2))), 3) if len(distances) else None
+def fit_cost(fraction: float, rms: float, max_distance: float) -> float:
+    """Mean over the share's centres of the squared distance to the receiver's nearest, each
+    capped at `max_distance`, from `points_fit`'s figures (the `fraction` within it, at `rms`):
+    what an alignment must lower to be kept. Coloured ICP on a flat scene can slide or turn the
+    share in the plane (tabletop: 3.5-9.7 degrees, its centres farther from the receiver's than
+    before)."""
+    return fraction * rms**2 + (1.0 - fraction) * max_distance**2
 
 
 def voxel_keys(means: np.ndarray, voxel: float) -> np.ndarray:
