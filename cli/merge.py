@@ -123,9 +123,9 @@ from .options import (
     "--footprint/--no-footprint",
     default=MergeOptions.footprint,
     show_default=True,
-    help="With --resolve evidence, count a Gaussian's evidence in its cell only for the part "
-    "of its footprint (its 2-sigma ellipse) the cell holds, so that one large Gaussian, such as "
-    "a fold of many, does not outweigh the receiver's many small ones.",
+    help="With --resolve evidence, count a Gaussian's evidence in its cell only when its "
+    "footprint (its 2-sigma ellipse) fits a cell face, so that a Gaussian larger than a cell, "
+    "such as a fold of many, takes no cell from the other map's finer ones.",
 )
 @click.option(
     "--keyframes/--no-keyframes",
@@ -179,9 +179,9 @@ def merge(
                   apart; the identity when they hardly overlap);
     --resolve     keeps, in each --voxel cell with Gaussians of both maps, only
                   one map's: the one whose agent saw them more (evidence: their
-                  alpha*T sums, each counted for the part of its footprint the
-                  cell holds, the share's only above --margin times the
-                  receiver's), the receiver's, or the share's (stack: both);
+                  alpha*T sums, of those whose footprint fits a cell face;
+                  the share's only above --margin times the receiver's), the
+                  receiver's, or the share's (stack: both);
     refinement    on the receiver's own frames (--views) at its estimated poses
                   and on the sender's keyframes the share carries, if any,
                   a fresh optimizer, each view once per shuffled pass, the rates

@@ -211,9 +211,15 @@ def test_a_fold_of_many_does_not_take_a_cell_from_the_receivers_small_gaussians(
         alpha_t_sum=np.array([25.0]), ids=np.array([100], np.uint32),
     )  # fmt: skip
     assert np.allclose(voxel_evidence(small, 0.04), 1.0)  # (each fits in a cell face)
-    assert np.isclose(voxel_evidence(fold, 0.04)[0], 25.0 * 0.04**2 / (4 * np.pi * 0.05**2))
+    assert voxel_evidence(fold, 0.04)[0] == 0.0  # (its 2-sigma ellipse is 20 times a face)
+    assert voxel_evidence(fold, None)[0] == 25.0
     options = MergeOptions(align=False)
     merged, from_share, _, stats = combine(small, fold, options)
+    assert len(merged) == 4 and not from_share.any() and stats["receiver_dropped"] == 0
+    # However much its group was seen: counted for the part of its footprint a cell face holds
+    # (1/20 of it), sums 400 times the receiver's would still have taken the cell.
+    seen = replace(fold, alpha_t_sum=np.array([1600.0], np.float32))
+    merged, from_share, _, stats = combine(small, seen, options)
     assert len(merged) == 4 and not from_share.any() and stats["receiver_dropped"] == 0
     merged, from_share, _, stats = combine(small, fold, replace(options, footprint=False))
     assert len(merged) == 1 and from_share.all() and stats["receiver_dropped"] == 4

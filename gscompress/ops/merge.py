@@ -97,6 +97,10 @@ def merge_maps(receiver: GaussianMap, share: GaussianMap) -> tuple[GaussianMap, 
     return GaussianMap.concat([receiver, share]), offset
 
 
+FOOTPRINT_RULE = "fits-a-cell-face"
+"""How `voxel_evidence` counts a Gaussian for its footprint: whole when its 2-sigma ellipse fits
+a cell face, not at all when it does not. (Before, it counted for the part a face holds.)"""
+
 RESOLVE = ("evidence", "receiver", "share", "stack")
 """How a merge treats a surface both maps hold (`MergeOptions.resolve`)."""
 
@@ -128,11 +132,13 @@ class MergeOptions:
             With `by_view`, the fraction is scaled by how much the receiver's views see each.
         by_view: scale `share_rate` per Gaussian by the receiver's view contribution relative
             to the sender's evidence (`share_rates`).
-        footprint: with "evidence", count a Gaussian's evidence in its voxel only for the part
-            of its footprint the voxel holds (`voxel_evidence`). Without it, a folded Gaussian
+        footprint: with "evidence", count a Gaussian's evidence in its voxel only when its
+            footprint fits a voxel face (`voxel_evidence`). Without it, a folded Gaussian
             (its group's sums on one centre) outweighs the receiver's Gaussians wherever its
             centre lands: a 40-Gaussian PWAS share at 1% of A's fp32 bytes took 257 of B's
-            3,721 Gaussians on tabletop, and B's own frames fell 1.3 dB (docs/merge.md).
+            3,721 Gaussians on tabletop, and B's own frames fell 1.3 dB; counted for the part
+            of its footprint a voxel holds, it still took 91 of B's 3,838 there and B's frames
+            fell 0.34 dB (docs/merge.md).
     """
 
     align: bool = True
@@ -155,8 +161,12 @@ class MergeOptions:
             raise OptionError(f"--share-rate must be in [0, 1], got {self.share_rate}")
 
     def record(self) -> dict[str, Any]:
-        """What a provenance step keeps of these options."""
-        return asdict(self)
+        """What a provenance step keeps of these options (with `footprint`, the rule it names,
+        `FOOTPRINT_RULE`, so that a record made under another rule is not taken for this one)."""
+        out = asdict(self)
+        if self.footprint:
+            out["footprint_rule"] = FOOTPRINT_RULE
+        return out
 
 
 EXACT = MergeOptions(align=False, resolve="stack", share_rate=1.0, by_view=False)
@@ -250,18 +260,19 @@ def voxel_keys(means: np.ndarray, voxel: float) -> np.ndarray:
 
 
 def voxel_evidence(gaussians: GaussianMap, voxel: float | None) -> np.ndarray:
-    """[N] float64 evidence of each Gaussian (its `alpha_t_sum`) counted in the voxel of edge
-    `voxel` (m) that holds its centre: e * min(1, voxel^2 / (4 pi s1 s2)), with s1 >= s2 its
-    two largest standard deviations, so 4 pi s1 s2 is the area of its 2-sigma ellipse. A
-    Gaussian whose footprint fits in a voxel face counts whole; a larger one, such as a fold of
-    many (whose sums are its group's), counts for the part a voxel holds. None: every Gaussian
-    counts whole."""
+    """[N] float64 evidence of each Gaussian (its `alpha_t_sum`) for the voxel of edge `voxel`
+    (m) that holds its centre: all of it when its footprint fits a voxel face, 4 pi s1 s2 <=
+    voxel^2 (s1 >= s2 its two largest standard deviations, so 4 pi s1 s2 is the area of its
+    2-sigma ellipse), none when it does not. A Gaussian larger than a voxel, such as a fold of
+    many (whose sums are its group's), is coarser than the surfaces the voxels tell apart: it
+    claims no voxel from Gaussians that draw it finely, and keeps its place where the other
+    map has nothing. None: every Gaussian counts whole."""
     evidence = np.asarray(gaussians.alpha_t_sum, np.float64)
     if voxel is None or not len(gaussians):
         return evidence
     s = np.sort(gaussians.scales().astype(np.float64), axis=1)
     area = 4.0 * np.pi * s[:, -1] * s[:, -2]
-    return evidence * np.minimum(1.0, voxel * voxel / np.maximum(area, np.finfo(np.float64).tiny))
+    return np.where(area <= voxel * voxel, evidence, 0.0)
 
 
 def resolve_overlap(
@@ -318,8 +329,8 @@ def combine(
 
     The share is aligned to the receiver (`align_share`), the surfaces both hold are resolved
     (`resolve_overlap`, by each Gaussian's `alpha_t_sum`: how much its own agent's frames saw
-    of it, counted for its footprint with `options.footprint`, `voxel_evidence`), and what is
-    kept is concatenated (`merge_maps`).
+    of it, counted only where its footprint fits a voxel with `options.footprint`,
+    `voxel_evidence`), and what is kept is concatenated (`merge_maps`).
 
     Returns:
         The merged map, a boolean mask of its rows that came from the share, the id offset
