@@ -6,7 +6,8 @@ and optionally `groundtruth.txt` (`timestamp tx ty tz qx qy qz qw`, camera-to-wo
 Association follows TUM's `associate.py`: every colour/depth pair whose timestamps differ by less
 than `max_dt` (default 0.02 s, associate.py's default) is a candidate; candidates are taken
 greedily by increasing time difference, each image used at most once, and the pairs are ordered
-by colour timestamp, which becomes the frame timestamp. Ground truth (often 100 Hz, or sparser
+by colour timestamp, which becomes the frame timestamp (`gscompress.datasets.stamps.associate`,
+which recordings use too). Ground truth (often 100 Hz, or sparser
 than the images) is associated separately: each frame takes the pose whose timestamp is nearest
 to its colour timestamp, if that is within `max_dt_gt` (default 0.02 s); other frames have no
 pose. When `rgb.txt`/`depth.txt` are absent but an `associations.txt`
@@ -41,6 +42,7 @@ from gscompress.datasets.base import (
     RGBDSequence,
     read_intrinsics_file,
 )
+from gscompress.datasets.stamps import associate
 from gscompress.errors import DatasetError, InputError, OutputError
 from gscompress.io.files import read_text
 from gscompress.io.trajectory import format_tum_trajectory, nearest_times, read_tum_trajectory
@@ -88,36 +90,6 @@ def read_file_list(path: Path) -> list[tuple[float, str]]:
             raise DatasetError(f"{path}:{lineno}: bad timestamp {fields[0]!r}")
         rows.append((stamp, fields[1]))
     return rows
-
-
-def associate(a: np.ndarray, b: np.ndarray, max_dt: float) -> list[tuple[int, int]]:
-    """One-to-one association of timestamps `a` [N] and `b` [M] (TUM associate.py rule).
-
-    Returns:
-        (i, j) index pairs with |a[i] - b[j]| < max_dt, greedy by smallest difference, each index
-        used once, sorted by a[i].
-    """
-    order = np.argsort(b, kind="stable")
-    b_sorted = b[order]
-    lo = np.searchsorted(b_sorted, a - max_dt, side="left")
-    hi = np.searchsorted(b_sorted, a + max_dt, side="right")
-    candidates: list[tuple[float, int, int]] = []
-    for i in range(len(a)):
-        for k in range(lo[i], hi[i]):
-            dt = abs(float(a[i]) - float(b_sorted[k]))
-            if dt < max_dt:
-                candidates.append((dt, i, int(order[k])))
-    candidates.sort()
-    used_a: set[int] = set()
-    used_b: set[int] = set()
-    pairs: list[tuple[int, int]] = []
-    for _, i, j in candidates:
-        if i not in used_a and j not in used_b:
-            used_a.add(i)
-            used_b.add(j)
-            pairs.append((i, j))
-    pairs.sort(key=lambda p: (a[p[0]], p[0]))
-    return pairs
 
 
 def _resolve(root: Path, rel: str, listed_in: Path) -> Path:
