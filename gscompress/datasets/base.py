@@ -195,7 +195,12 @@ def load_color(path: Path) -> np.ndarray:
         if img.mode != "RGB":
             raise DatasetError(f"colour image {path} has unsupported mode {img.mode}")
         arr = np.asarray(img, dtype=np.uint8)
-    return arr.astype(np.float32) / np.float32(255.0)
+    return color_from_uint8(arr)
+
+
+def color_from_uint8(rgb8: np.ndarray) -> np.ndarray:
+    """[H, W, 3] float32 in [0, 1] from 8-bit RGB [H, W, 3] (every reader's one conversion)."""
+    return rgb8.astype(np.float32) / np.float32(255.0)
 
 
 DEFAULT_INVALID_DEPTH = (65535,)
@@ -242,6 +247,17 @@ def load_depth(
         raw = np.asarray(img)
     if raw.dtype.kind == "i" and (raw.min(initial=0) < 0 or raw.max(initial=0) > 65535):
         raise DatasetError(f"depth image {path} has values outside 0..65535")
+    return depth_from_units(raw, depth_scale, invalid, max_depth)
+
+
+def depth_from_units(
+    raw: np.ndarray,
+    depth_scale: float,
+    invalid: Sequence[int] = DEFAULT_INVALID_DEPTH,
+    max_depth: float | None = None,
+) -> np.ndarray:
+    """[H, W] float32 metres from integer depth [H, W] of `depth_scale` units per metre (every
+    reader's one conversion); `invalid` raw values and depths beyond `max_depth` read as 0."""
     depth = raw.astype(np.float64) / depth_scale
     dropped = np.isin(raw, invalid)
     if max_depth is not None:

@@ -852,6 +852,29 @@ class LogReader:
                         key = (sign * record.log_time, 1, position, next(arrival))
                         heapq.heappush(queue, (*key, self._resolve(record)))
 
+    @property
+    def profile(self) -> str:
+        """The MCAP header's profile ("ros2" for a ROS 2 bag, "" for ours and Foxglove's)."""
+        with self._guard():
+            return str(self._reader.get_header().profile)
+
+    @property
+    def chunk_offsets(self) -> list[int]:
+        """File offsets of the chunks the summary indexes, in the summary's order."""
+        return [index.chunk_start_offset for index in self._summary.chunk_indexes]
+
+    def chunk_messages(
+        self, offset: int, topics: Sequence[str]
+    ) -> list[tuple[Schema | None, Channel, McapMessage]]:
+        """The (schema, channel, message) records of `topics` in the chunk at file offset
+        `offset` (one of `chunk_offsets`), in the chunk's order, decompressed within the
+        bounds `read_chunk_header` checks."""
+        wanted = set(topics)
+        channels = {cid for cid, c in self._summary.channels.items() if c.topic in wanted}
+        with self._guard():
+            records = self._chunk_records(offset, channels)
+        return [self._resolve(r) for r in records if isinstance(r, McapMessage)]
+
     def _chunk_records(self, offset: int, channels: set[int] | None) -> list[Any]:
         """The records of the chunk at file offset `offset` (messages of `channels` only)."""
         header = read_chunk_header(self._bounded, offset)
