@@ -18,6 +18,7 @@ from .options import (
     emit,
     json_option,
     progress_bar,
+    recording_options,
     seq_option,
     view_options,
 )
@@ -25,7 +26,8 @@ from .options import (
 
 @click.command("eval", short_help="Score a log's map and poses: ATE, PSNR, SSIM, LPIPS.")
 @click.argument("src", metavar="LOG.mcap", type=INPUT_FILE)
-@seq_option(help="The RGB-D sequence the log was made from (TUM or Replica layout).")
+@seq_option(help="The RGB-D sequence the log was made from (a folder or a recording).")
+@recording_options
 @view_options
 @click.option(
     "--refine-poses",
@@ -59,6 +61,7 @@ from .options import (
 def eval_command(
     src: Path,
     seq: Path,
+    recording: Any,
     frames: object,
     every: int,
     size: tuple[int, int] | None,
@@ -109,6 +112,7 @@ def eval_command(
             save_images=save_images,
             leave_out=leave_out,
             progress=partial(advance, bar),
+            recording=recording,
         )
     emit(result, as_json, format_eval(result))
 

@@ -20,7 +20,7 @@ from gscompress.pipeline.refine import DEFAULT_LR_FINAL
 from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (
-    INPUT_FOLDER,
+    INPUT_SEQUENCE,
     BudgetParam,
     Ratio,
     advance,
@@ -62,7 +62,7 @@ def _formats(value: str) -> tuple[str, ...]:
 
 
 @click.command("experiment", short_help="Run the paper's two-agent protocol: tables and plots.")
-@click.argument("seq", type=INPUT_FOLDER)
+@click.argument("seq", type=INPUT_SEQUENCE)
 @click.option(
     "-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
     help="Experiment folder: runs/, results.md/.csv/.json and plots/ (a rerun reuses runs).",

@@ -1,4 +1,4 @@
-"""`gsc info`: what a gscompress log holds."""
+"""`gsc info`: what a gscompress log or a recording holds."""
 
 from __future__ import annotations
 
@@ -9,29 +9,77 @@ import click
 
 from gscompress.pipeline import log_info
 
-from .options import INPUT_FILE, emit, json_option
+from .options import INPUT_SEQUENCE, emit, json_option, recording_options
 
 
-@click.command("info", short_help="Show what a log holds: map, scores, bytes, provenance.")
-@click.argument("src", type=INPUT_FILE)
+@click.command("info", short_help="Show what a log or a recording holds.")
+@click.argument("src", type=INPUT_SEQUENCE)
+@recording_options
 @json_option
-def info(src: Path, as_json: bool) -> None:
-    """Show the channels, snapshots, map, importance scores, bytes and provenance of SRC.
+def info(src: Path, recording: Any, as_json: bool) -> None:
+    """Show what SRC holds, and say what it is: a gscompress log, a ROS 2 bag, a ROS 1 bag or
+    a Foxglove recording.
+
+    A log: its channels, snapshots, map, importance scores, bytes and provenance. A recording
+    (a ROS 2 bag folder, .mcap or .db3, a ROS 1 .bag, a Foxglove MCAP): its topics with message
+    counts, image sizes, encodings and rates, and the colour, depth and camera-info topics that
+    `gsc slam` would read (or why it would read none; the recording options choose them as
+    they do for `gsc slam`). A recording's image topics are read once.
 
     \b
     Examples:
       gsc info run.mcap
       gsc info run.mcap --json | jq .map.gaussians
+      gsc info robot_bag
+      gsc info robot.bag --rgb /camera/rgb/image_color --depth /camera/depth/image
     """
-    result = log_info(src)
-    emit(result, as_json, format_info(result))
+    from gscompress.pipeline.recordings import GSC_LOG, is_log, recording_info
+
+    if is_log(src):
+        result = log_info(src)
+        result["kind"] = GSC_LOG
+        emit(result, as_json, format_info(result))
+        return
+    result = recording_info(src, recording)
+    emit(result, as_json, format_recording(result))
+
+
+def format_recording(info: dict[str, Any]) -> str:
+    """Human-readable text of a `recording_info` result."""
+    lines = [f"{info['path']}  ({info['kind']})", "topics"]
+    for t in info["topics"]:
+        size = t.get("size")
+        detail = " ".join(
+            part
+            for part in (
+                t.get("encoding") or "",
+                f"{size[0]}x{size[1]}" if size else "",
+                f"{t['rate_hz']:.1f} Hz" if t.get("rate_hz") else "",
+                f"frame {t['frame_id']}" if t.get("frame_id") else "",
+            )
+            if part
+        )
+        lines.append(f"  {t['topic']:<44} {t['messages']:>7}  {t['type']}  {detail}".rstrip())
+    chosen = info["slam_would_read"]
+    if chosen is None:
+        lines.append(f"slam      reads nothing: {info['why_not']}")
+    else:
+        skipped = chosen["skipped"]
+        lines.append(
+            f"slam      colour {chosen['rgb']}, depth {chosen['depth']}, camera info "
+            f"{chosen['camera_info']} ({chosen['chosen_by']}): {chosen['frames']} frames of "
+            f"{chosen['size'][0]}x{chosen['size'][1]} paired within {chosen['max_dt']:g} s, "
+            f"{skipped['rgb']} colour and {skipped['depth']} depth messages without a partner"
+        )
+    return "\n".join(lines)
 
 
 def format_info(info: dict[str, Any]) -> str:
     """Human-readable text of a `log_info` result."""
     lines = [
-        f"{info['path']}  ({_size(info['file_bytes'])}, profile {info['profile_version'] or '?'}, "
-        f"written by gscompress {info['tool_version'] or '?'})",
+        f"{info['path']}  ({info.get('kind', 'gscompress log')}, {_size(info['file_bytes'])}, "
+        f"profile {info['profile_version'] or '?'}, written by gscompress "
+        f"{info['tool_version'] or '?'})",
     ]
     if info["sequence"]:
         lines.append(f"sequence  {info['sequence']}  frames {info['frames'] or 'all'}")

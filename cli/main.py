@@ -33,6 +33,7 @@ COMMANDS: dict[str, str] = {
     "export-traj": "export_traj:export_traj",
     "score": "score:score",
     "synth": "synth:synth",
+    "convert": "convert:convert",
     "slam": "slam:slam",
     "eval": "eval:eval_command",
     "render": "render:render",
@@ -180,6 +181,7 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
     \b
     Typical flow:
       gsc synth SEQ --frames 60           a synthetic RGB-D sequence to try it on
+      gsc info REC                        a robot's recording (ROS 1/2 bag, MCAP): its topics
       gsc slam SEQ -o a.mcap              map a sequence, score every Gaussian (PWAS)
       gsc eval a.mcap --seq SEQ           ATE, PSNR, SSIM, LPIPS of the map
       gsc prune a.mcap --keep 0.3 -o p.mcap   keep the most important 30%

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -28,7 +29,11 @@ F = TypeVar("F", bound=Callable[..., Any])
 INPUT_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
 """An input file: a missing one is a usage error (exit 2), the same for every command."""
 INPUT_FOLDER = click.Path(exists=True, file_okay=False, path_type=Path)
-"""An input folder (a sequence), checked like INPUT_FILE."""
+"""An input folder, checked like INPUT_FILE."""
+INPUT_SEQUENCE = click.Path(exists=True, path_type=Path)
+"""A sequence: a dataset folder or a recording (a ROS 2 bag folder, a .bag, .mcap or .db3
+file), checked like INPUT_FILE."""
+SEQUENCE_HELP = "RGB-D sequence: a folder (TUM or Replica) or a recording (ROS 1/2 bag, MCAP)."
 
 
 class OutputFile(click.Path):
@@ -328,12 +333,12 @@ def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
     return click.option("-o", "--output", "dst", required=True, type=OUTPUT_FILE, help=help)
 
 
-def seq_option(required: bool = True, help: str = "RGB-D sequence folder (TUM or Replica).") -> Any:
-    """`--seq FOLDER`: the sequence a command renders or refines against."""
+def seq_option(required: bool = True, help: str = SEQUENCE_HELP) -> Any:
+    """`--seq PATH`: the sequence (folder or recording) a command renders or refines against."""
     # no explicit default when required: click skips the required check of an option with one
     return click.option(
         "--seq",
-        type=INPUT_FOLDER,
+        type=INPUT_SEQUENCE,
         required=required,
         help=help,
     )
@@ -509,3 +514,46 @@ def view_options(f: F) -> F:
     for option in reversed(options):
         f = option(f)
     return f
+
+
+MAX_DT = 0.02
+"""`gscompress.datasets.recording.DEFAULT_MAX_DT`, named here so that --help loads no reader."""
+
+
+def recording_options(f: F) -> F:
+    """--rgb, --depth, --camera-info, --max-dt, --gt and --gt-frames: how a recording becomes a
+    sequence, passed to the command as one `RecordingOptions` named `recording`."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from gscompress.datasets.recording import RecordingOptions
+        from gscompress.errors import OptionError
+
+        names = ("rgb", "depth", "camera_info", "max_dt", "gt", "gt_frames")
+        values = {name: kwargs.pop(name) for name in names}
+        try:
+            kwargs["recording"] = RecordingOptions(**values)
+        except OptionError as exc:
+            raise click.UsageError(str(exc)) from None
+        return f(*args, **kwargs)
+
+    options = [
+        click.option("--rgb", metavar="TOPIC", default=None,
+                     help="A recording's colour topic [default: chosen when unambiguous]."),
+        click.option("--depth", metavar="TOPIC", default=None,
+                     help="A recording's depth topic, registered to colour [default: chosen]."),
+        click.option("--camera-info", metavar="TOPIC", default=None,
+                     help="A recording's CameraInfo / CameraCalibration topic [default: the "
+                     "colour camera's]."),
+        click.option("--max-dt", type=PositiveFloat(), default=MAX_DT,
+                     show_default=True,
+                     help="A recording's colour/depth pairing tolerance in seconds."),
+        click.option("--gt", type=INPUT_FILE, default=None,
+                     help="A recording's ground truth: a TUM trajectory (camera-to-world)."),
+        click.option("--gt-frames", nargs=2, metavar="WORLD CAMERA", default=None,
+                     help="A recording's ground truth from /tf: the pose of frame CAMERA in "
+                     "frame WORLD, interpolated to the colour stamps."),
+    ]  # fmt: skip
+    for option in reversed(options):
+        wrapper = option(wrapper)
+    return wrapper  # type: ignore[return-value]

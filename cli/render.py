@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -18,6 +19,7 @@ from .options import (
     emit,
     json_option,
     progress_bar,
+    recording_options,
     seq_option,
     view_options,
 )
@@ -26,6 +28,7 @@ from .options import (
 @click.command("render", short_help="Write PNGs of a map at its poses (rgb, importance, depth).")
 @click.argument("src", metavar="LOG.mcap", type=INPUT_FILE)
 @seq_option(help="The RGB-D sequence whose frames (and camera) to render at.")
+@recording_options
 @click.option(
     "-o",
     "--output",
@@ -56,6 +59,7 @@ from .options import (
 def render(
     src: Path,
     seq: Path,
+    recording: Any,
     out_dir: Path,
     frames: object,
     every: int,
@@ -102,6 +106,7 @@ def render(
             colorings=colorings,
             side_by_side=side_by_side,
             progress=partial(advance, bar),
+            recording=recording,
         )
     summary = {k: result[k] for k in ("log", "sequence", "frames", "poses", "psnr", "images")}
     psnr = "unavailable" if result["psnr"] is None else f"{result['psnr']:.2f} dB"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -22,6 +23,7 @@ from .options import (
     json_option,
     output_option,
     progress_bar,
+    recording_options,
     seq_option,
     size_option,
 )
@@ -30,6 +32,7 @@ from .options import (
 @click.command("score", short_help="PWAS-score a map made by any tool from a sequence.")
 @click.argument("src", type=INPUT_FILE)
 @seq_option()
+@recording_options
 @click.option(
     "--poses",
     type=INPUT_FILE,
@@ -62,6 +65,7 @@ from .options import (
 def score(
     src: Path,
     seq: Path,
+    recording: Any,
     poses: Path | None,
     frames: object,
     size: tuple[int, int] | None,
@@ -98,6 +102,7 @@ def score(
             command=command_line(),
             force=force,
             progress=partial(advance, bar),
+            recording=recording,
         )
     emit(
         result,

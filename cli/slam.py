@@ -11,7 +11,7 @@ from click.core import ParameterSource
 
 from .options import (
     INPUT_FILE,
-    INPUT_FOLDER,
+    INPUT_SEQUENCE,
     OUTPUT_FILE,
     Ratio,
     advance,
@@ -24,6 +24,7 @@ from .options import (
     frames_option,
     json_option,
     progress_bar,
+    recording_options,
     share_transform_option,
     size_option,
     slam_config_options,
@@ -74,7 +75,7 @@ def _modified_ns(path: Path) -> int | None:
 
 
 @click.command("slam", short_help="Map a sequence with 3DGS SLAM into an MCAP log.")
-@click.argument("seq", type=INPUT_FOLDER)
+@click.argument("seq", type=INPUT_SEQUENCE)
 @click.option(
     "-o",
     "--output",
@@ -92,6 +93,7 @@ def _modified_ns(path: Path) -> int | None:
     "run has passed its checks and mapped its first frame.",
 )
 @frames_option
+@recording_options
 @size_option(help="Working image size WxH (default: the config's; the cpu preset uses 160x120).")
 @device_option
 @backend_option("the config's `backend:`, auto")
@@ -133,6 +135,7 @@ def slam(
     config_path: Path | None,
     save_config: Path | None,
     frames: object,
+    recording: Any,
     size: tuple[int, int] | None,
     device: str,
     backend: str | None,
@@ -145,7 +148,11 @@ def slam(
     force: bool,
     as_json: bool,
 ) -> None:
-    """Run 3DGS RGB-D SLAM over the sequence in SEQ and write an MCAP log.
+    """Run 3DGS RGB-D SLAM over the sequence SEQ and write an MCAP log.
+
+    SEQ is a dataset folder (TUM, Replica) or a robot's recording: a ROS 2 bag (folder, .mcap
+    or .db3), a ROS 1 .bag or a Foxglove MCAP, its topics chosen when unambiguous (else
+    --rgb/--depth/--camera-info; `gsc info REC` shows the candidates).
 
     Per frame: track the camera, add Gaussians where the map misses the frame, optimise the
     map over a window of keyframes, and accumulate each Gaussian's PWAS importance; at 1/3 and
@@ -161,6 +168,7 @@ def slam(
       gsc slam demo_seq --save-config my.yaml         # edit, then --config my.yaml
       gsc slam demo_seq -o demo.mcap --resume         # after Ctrl-C or a kill
       gsc slam demo_seq --frames even --inject a_share.mcap -o b.mcap
+      gsc slam robot_bag -o robot.mcap --gt-frames map camera_color_optical_frame
 
     Ctrl-C (or SIGTERM) stops after closing a valid log of the frames done so far; a
     checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
@@ -233,6 +241,7 @@ def slam(
                 inject=inject,
                 share_transform=share_transform,
                 resume=resume,
+                recording=recording,
                 codec=codec,
                 command=command_line(),
                 force=force,

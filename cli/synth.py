@@ -8,11 +8,12 @@ import click
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 
+from .convert import FORMATS, format_options
 from .options import force_option, progress_bar, seed_option, size_option
 
 
 @click.command("synth", short_help="Make a synthetic RGB-D room sequence with ground truth.")
-@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(path_type=Path))
 @click.option(
     "--frames", type=click.IntRange(1, 100_000), default=60, show_default=True, help="Frame count."
 )
@@ -25,22 +26,53 @@ from .options import force_option, progress_bar, seed_option, size_option
     show_default=True,
     help="Colour samples per pixel along each axis (2 = 2x2 anti-aliasing, about 2x slower).",
 )
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(("tum", *FORMATS)),
+    default="tum",
+    show_default=True,
+    help="tum: a TUM folder; ros2, ros2-sqlite, ros1, foxglove: a recording (as `gsc convert` "
+    "writes), its depth exact.",
+)
+@format_options
 @force_option()
 def synth(
-    out_dir: Path, frames: int, size: tuple[int, int], seed: int, supersample: int, force: bool
+    out_dir: Path,
+    frames: int,
+    size: tuple[int, int],
+    seed: int,
+    supersample: int,
+    fmt: str,
+    color_encoding: str,
+    depth_encoding: str,
+    force: bool,
 ) -> None:
     """Render a textured synthetic room with exact depth and ground-truth poses to OUT_DIR.
 
     Writes rgb/, depth/ (uint16, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt and
     intrinsics.json; `gsc slam OUT_DIR` and any TUM reader open it. Same seed, same bytes.
-    --force replaces an earlier sequence, never a folder that holds other files.
+    --force replaces an earlier sequence, never a folder that holds other files. With --format
+    ros2|ros2-sqlite|ros1|foxglove, OUT_DIR is a recording instead (see `gsc convert`), its
+    depth the exact rendered depth (32FC1).
 
     \b
     Examples:
       gsc synth room                                # 60 frames, 320x240
       gsc synth room_small --frames 40 --size 160x120 --supersample 2
       gsc slam room -o room.mcap                    # then map it
+      gsc synth room_bag --format ros2              # the same room as a ROS 2 bag
     """
+    if fmt != "tum":
+        from gscompress.datasets.recording_writer import write_recording
+        from gscompress.datasets.synthetic import synthetic_sequence
+
+        sequence = synthetic_sequence(frames, size, seed, supersample)
+        with progress_bar("synth", "frame", total=frames) as bar:
+            write_recording(sequence, out_dir, fmt, color_encoding, depth_encoding, force,
+                            bar.update)  # fmt: skip
+        click.echo(f"wrote {frames} frames ({size[0]}x{size[1]}, {fmt}) to {out_dir}")
+        return
     with progress_bar("synth", "frame", total=frames) as bar:
         out = write_synthetic_sequence(
             out_dir,

@@ -57,8 +57,13 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from gscompress.camera import Intrinsics, interpolate_pose, invert_transform, make_transform
-from gscompress.camera import quat_to_rotmat
+from gscompress.camera import (
+    Intrinsics,
+    interpolate_pose,
+    invert_transform,
+    make_transform,
+    quat_to_rotmat,
+)
 from gscompress.datasets.base import (
     DEFAULT_INVALID_DEPTH,
     MAX_SIDE,
@@ -174,7 +179,7 @@ class RecordingOptions:
         """The options as JSON values (what a log records of its run)."""
         return {
             "rgb": self.rgb, "depth": self.depth, "camera_info": self.camera_info,
-            "max_dt": self.max_dt, "gt": None if self.gt is None else str(self.gt),
+            "max_dt": self.max_dt, "gt": None if self.gt is None else str(self.gt.resolve()),
             "gt_frames": None if self.gt_frames is None else list(self.gt_frames),
         }  # fmt: skip
 
@@ -550,7 +555,7 @@ def _bag_errors(path: Path) -> Iterator[None]:
         raise
     except MemoryError:
         raise DatasetError(f"{path}: a record asks for more memory than there is") from None
-    except (Exception,) as exc:  # noqa: BLE001 - rosbags, apsw, struct, lz4, bz2, yaml alike
+    except Exception as exc:
         if isinstance(exc, KeyboardInterrupt):  # pragma: no cover
             raise
         text = " ".join(str(a) for a in exc.args) or type(exc).__name__
@@ -562,6 +567,8 @@ def _open_container(path: Path) -> _Container:
     docstring): an MCAP file is opened with the bounded reader first, and stays with it when
     it is not a ROS 2 bag."""
     if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise DatasetError(f"{path} is not a ROS 2 bag folder: it has no metadata.yaml")
         _check_bag_folder(path)
         for part in sorted(path.glob("*.mcap")):
             _checked_mcap(part).close()
@@ -598,7 +605,9 @@ def _checked_mcap(path: Path) -> Any:
     try:
         return LogReader(path)
     except GscError as exc:
-        raise DatasetError(str(exc).replace("not a readable MCAP log", "not a readable MCAP"))
+        raise DatasetError(
+            str(exc).replace("not a readable MCAP log", "not a readable MCAP")
+        ) from None
 
 
 def _is_gsc_log(reader: Any) -> bool:
@@ -895,7 +904,9 @@ def image_topics(topics: Sequence[TopicInfo]) -> dict[str, str]:
     return chosen
 
 
-def choose_topics(topics: Sequence[TopicInfo], options: RecordingOptions, source: str) -> TopicChoice:
+def choose_topics(
+    topics: Sequence[TopicInfo], options: RecordingOptions, source: str
+) -> TopicChoice:
     """The colour, depth and camera-info topics (see the module docstring).
 
     Raises:

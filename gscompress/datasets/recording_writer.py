@@ -190,7 +190,9 @@ class _RosWriter:
         try:
             from rosbags.typesys import Stores, get_types_from_msg, get_typestore
         except ImportError:  # pragma: no cover - a dependency of the package
-            raise MissingDependencyError("writing ROS bags needs rosbags: pip install rosbags")
+            raise MissingDependencyError(
+                "writing ROS bags needs rosbags: pip install rosbags"
+            ) from None
         self.ros1 = spec.name == "ros1"
         self.store = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
         if self.ros1:  # (noetic's store has tf's message under tf2_msgs only in ROS 2)

@@ -107,23 +107,32 @@ def open_log_sequence(
     meta: LogMetadata,
     frames: str | None = None,
     size: tuple[int, int] | None = None,
+    recording: Any = None,
 ) -> Any:
-    """The sequence a log was made from, opened as its run had it: the log's frame subset and
-    working size unless given. Warns when the sequence is not the one the log names (its poses
-    would then be compared with frames they do not belong to), and when the working size
-    enlarges its frames.
+    """The sequence a log was made from, opened as its run had it: the log's frame subset,
+    working size and (a recording) topics unless given. Warns when the sequence is not the one
+    the log names (its poses would then be compared with frames they do not belong to), and
+    when the working size enlarges its frames.
 
     Raises:
         InputError: opened as the log's run had it, the sequence's first frame is not the one
             the log recorded (another scene under the same name).
     """
-    from gscompress.datasets import open_sequence
+    from gscompress.datasets import RecordingOptions, open_sequence
     from gscompress.datasets.base import enlargement_note
+    from gscompress.datasets.recording import is_recording
 
     recorded_size = working_size(meta)
     size = size or recorded_size
     subset = frames or meta.frames or "all"
-    sequence = open_sequence(seq, size=size, frames=subset)
+    if (recording is None or recording.is_default) and is_recording(Path(seq)):
+        recorded = RecordingOptions.from_record(meta.results.get("recording"))
+        if recorded is not None and recorded.gt is not None and not recorded.gt.is_file():
+            log.warning("%s: the run's ground truth %s is gone; using the log's", log_path,
+                        recorded.gt)  # fmt: skip
+            recorded = replace(recorded, gt=None)
+        recording = recorded or recording
+    sequence = open_sequence(seq, size=size, frames=subset, recording=recording)
     if meta.sequence and meta.sequence != sequence.name:
         log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
                     sequence.name)  # fmt: skip
@@ -245,13 +254,14 @@ def evaluate_log(
     side_by_side: bool = True,
     leave_out: Sequence[str | Path] = (),
     progress: Callable[[int, int], object] | None = None,
+    recording: Any = None,
 ) -> dict[str, Any]:
     """Score a log's final map and estimated trajectory against the sequence it was made from.
 
     Args:
         log_path: a gscompress log with `/gaussians` (and `/camera/pose` unless `poses` or
             `poses_from` gives the poses).
-        seq: the sequence folder.
+        seq: the sequence folder or recording.
         frames: frame subset; None: the one recorded in the log's metadata (else all).
         every: render every `every`-th frame that has a pose (ATE uses all of them).
         size: working size (W, H); None: the one in the log's config, else (a share) the one
@@ -271,6 +281,7 @@ def evaluate_log(
             (`carried_times`): score maps that were not refined on them on the same frames
             as one that was.
         progress: called with (steps done, steps in total) after each view rendered or refined.
+        recording: a recording's `RecordingOptions` (None: those the log's run recorded).
 
     The frames a share carried into this map, which its merge refined on, are never scored
     (`frames_carried_left_out` counts them with those of `leave_out`).
@@ -320,7 +331,7 @@ def evaluate_log(
     if size is None and working_size(meta) is None and poses_from is not None:
         with LogReader(poses_from) as other:  # (a share scored at its sender's poses)
             size = working_size(other.metadata)
-    sequence = open_log_sequence(seq, log_path, meta, frames, size)
+    sequence = open_log_sequence(seq, log_path, meta, frames, size, recording)
     positions, pose_index = frames_with_poses(sequence, est_ns, source, tolerance_ns)
     T_est = est_poses[pose_index]
 

@@ -41,6 +41,7 @@ def score_file(
     command: str = "",
     force: bool = False,
     progress: Callable[[int, int], object] | None = None,
+    recording: Any = None,
 ) -> dict[str, Any]:
     """PWAS-score the map in `src` (a log or a 3DGS PLY) from the views of sequence `seq`.
 
@@ -55,6 +56,7 @@ def score_file(
     `sigma_d` (metres; inf: no proximity weighting) None derives it from the scene as `gsc slam`
     does (`gscompress.importance.resolve_sigma_d`): the median camera-to-surface distance of the
     first selected frame with valid depth. The value used is in the results (`sigma_d`).
+    `recording`: a recording's `RecordingOptions` (None: a log's recorded ones, else chosen).
 
     Raises:
         InputError: a log without poses whose world frame is its first camera (the ground
@@ -76,10 +78,10 @@ def score_file(
             meta = reader.metadata
             log_ns, log_poses = reader.read_poses(TOPIC_POSE)
         frames = frames or meta.frames or "all"
-        sequence = open_log_sequence(seq, src, meta, frames, size)
+        sequence = open_log_sequence(seq, src, meta, frames, size, recording)
     else:
         frames = frames or "all"
-        sequence = open_sequence(seq, size=size, frames=frames)
+        sequence = open_sequence(seq, size=size, frames=frames, recording=recording)
     if poses is None and is_log and len(log_ns):
         positions, index = frames_with_poses(sequence, log_ns, src)
         stamps, T_world_cams = np.asarray(sequence.timestamps)[positions], log_poses[index]

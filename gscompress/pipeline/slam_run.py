@@ -109,6 +109,7 @@ def slam_file(
     progress: Progress | None = None,
     sequence: Any = None,
     codec: str = "fp32",
+    recording: Any = None,
 ) -> dict[str, Any]:
     """Run SLAM over a sequence and write the log.
 
@@ -152,6 +153,9 @@ def slam_file(
             of `seq`; `frames` and `size` are then not applied to it.
         codec: how the map snapshots are stored (`gscompress.io.codec.CODECS`); fp32, the
             default, is a foxglove.PointCloud that Foxglove draws.
+        recording: a recording's `RecordingOptions` (topics, pairing, ground truth; None:
+            chosen). The topics read are recorded in the log's results (`recording`), where
+            `--resume` and the commands that reopen the log's sequence take them from.
 
     Returns:
         Output path, frame and Gaussian counts, seconds per frame, ATE (cm) when the sequence
@@ -168,6 +172,7 @@ def slam_file(
                  "--share-transform": share_transform}  # fmt: skip
         clashing = [name for name, value in given.items() if value is not None]
         clashing += ["--no-prune"] if no_prune else []
+        clashing += ["--rgb/--depth/--camera-info/--max-dt/--gt"] if _given(recording) else []
         if clashing:
             dropped = ", ".join(clashing)
             raise OptionError(f"--resume continues with the log's own settings; drop {dropped}")
@@ -185,7 +190,7 @@ def slam_file(
             raise OptionError("a share transform needs --inject")
         run = _fresh_run(
             seq, dst, config, frames or "all", device, inject, share_transform, force, sequence,
-            config_path,
+            config_path, recording,
         )  # fmt: skip
     run.meta.command = command
     run.codec = codec
@@ -202,7 +207,14 @@ def check_working_size(intrinsics: Any) -> None:
         )
 
 
-def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> Any:
+def _given(recording: Any) -> bool:
+    """Whether recording options other than the defaults were given."""
+    return recording is not None and not recording.is_default
+
+
+def _open(
+    seq: str | Path | None, sequence: Any, config: Any, frames: str, recording: Any = None
+) -> Any:
     """The sequence to run on, refusing an empty selection and a working size too small to map
     (below `MIN_SIDE`, pixels are so large that the map empties); warning when the working size
     enlarges the frames (the cpu preset's 160x120 on smaller images)."""
@@ -210,7 +222,7 @@ def _open(seq: str | Path | None, sequence: Any, config: Any, frames: str) -> An
 
     if sequence is None:
         assert seq is not None
-        sequence = open_sequence(seq, size=config.size, frames=frames)
+        sequence = open_sequence(seq, size=config.size, frames=frames, recording=recording)
     name = getattr(sequence, "name", seq)
     if len(sequence) == 0:
         raise InputError(f"{name}: no frames selected ({frames})")
@@ -232,6 +244,7 @@ def _fresh_run(
     force: bool,
     sequence: Any,
     config_path: str | Path | None,
+    recording: Any = None,
 ) -> _Run:
     """A run from the first frame, optionally starting with another agent's share; no file
     it reads (sequence, config, share, transform) is written over. The unfinished file of a
@@ -248,7 +261,7 @@ def _fresh_run(
             f"an unfinished run of {dst} is there ({unfinished[0].name}): continue it with "
             "--resume, or pass --force to start afresh (which removes it)"
         )
-    sequence = _open(seq, sequence, config, frames)
+    sequence = _open(seq, sequence, config, frames, recording)
     system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
     meta = LogMetadata(
         config=config.to_dict(),
@@ -261,6 +274,12 @@ def _fresh_run(
             "poses": POSES_GROUND_TRUTH if config.tracking.use_ground_truth else POSES_ESTIMATED,
         },
     )
+    if getattr(sequence, "choice", None) is not None:  # a recording: the topics it was read from
+        from gscompress.datasets.recording import RecordingOptions, with_topics
+
+        meta.results["recording"] = with_topics(
+            recording or RecordingOptions(), sequence.choice
+        ).record()
     if inject is not None:
         from gscompress.pipeline.merge import check_same_camera, read_share
         from gscompress.slam.keyframes import carried_views
@@ -319,7 +338,10 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
             f"{dst} is a finished run of {meta.results['frames']} frames; nothing to resume"
         )
     config = SlamConfig.from_dict(meta.config)
-    sequence = _open(seq, sequence, config, meta.frames or "all")
+    from gscompress.datasets.recording import RecordingOptions
+
+    recorded = RecordingOptions.from_record(meta.results.get("recording"))
+    sequence = _open(seq, sequence, config, meta.frames or "all", recorded)
     if meta.sequence and sequence.name != meta.sequence:
         raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
     found = check_first_frame(dst, meta.results.get("first_frame"), sequence)
