@@ -47,6 +47,7 @@ import logging
 import math
 import struct
 import threading
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -605,6 +606,11 @@ def _checked_mcap(path: Path) -> Any:
     try:
         return LogReader(path)
     except GscError as exc:
+        if "truncated" in str(exc):
+            raise DatasetError(
+                f"{path}: MCAP file is truncated (no footer: cut short or still being "
+                "written); `mcap recover` writes a readable copy"
+            ) from None
         raise DatasetError(
             str(exc).replace("not a readable MCAP log", "not a readable MCAP")
         ) from None
@@ -1105,6 +1111,8 @@ class RecordingSequence:
         self._poses = list(poses)
         self._native = native
         self._lock = threading.Lock()  # (frames may be read from several threads)
+        # the files close with the sequence, which the commands drop rather than close
+        self._finalizer = weakref.finalize(self, container.close)
         self._indices = selection.apply(len(self._pairs))
         if len(self._indices) == 0:
             raise DatasetError(
@@ -1173,7 +1181,7 @@ class RecordingSequence:
 
     def close(self) -> None:
         """Close the recording's files."""
-        self._container.close()
+        self._finalizer()
 
 
 def open_recording(
