@@ -28,8 +28,6 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 INPUT_FILE = click.Path(exists=True, dir_okay=False, path_type=Path)
 """An input file: a missing one is a usage error (exit 2), the same for every command."""
-INPUT_FOLDER = click.Path(exists=True, file_okay=False, path_type=Path)
-"""An input folder, checked like INPUT_FILE."""
 INPUT_SEQUENCE = click.Path(exists=True, path_type=Path)
 """A sequence: a dataset folder or a recording (a ROS 2 bag folder, a .bag, .mcap or .db3
 file), checked like INPUT_FILE."""

@@ -79,8 +79,9 @@ def open_sequence(
     size = check_size(size)
     if is_recording(root):
         if root.exists():
-            known = intrinsics if isinstance(intrinsics, Intrinsics | None) else None
-            if intrinsics is not None and known is None:
+            if isinstance(intrinsics, Intrinsics) or intrinsics is None:
+                known = intrinsics
+            else:
                 known = read_intrinsics_file(Path(intrinsics))[0]
             return open_recording(root, selection, size, known, recording)
     elif recording is not None and not recording.is_default:

@@ -128,7 +128,11 @@ _KINDS = {
 COLOR_ENCODINGS = {"rgb8": (3, (0, 1, 2)), "bgr8": (3, (2, 1, 0)), "rgba8": (4, (0, 1, 2)),
                    "bgra8": (4, (2, 1, 0)), "mono8": (1, (0, 0, 0))}  # fmt: skip
 """Raw colour encodings: channels per pixel and which give R, G, B."""
-DEPTH_ENCODINGS = {"16UC1": np.dtype("u2"), "mono16": np.dtype("u2"), "32FC1": np.dtype("f4")}
+DEPTH_ENCODINGS: dict[str, np.dtype[Any]] = {
+    "16UC1": np.dtype("u2"),
+    "mono16": np.dtype("u2"),
+    "32FC1": np.dtype("f4"),
+}
 """Raw depth encodings: 16UC1 / mono16 in millimetres, 32FC1 in metres."""
 UNDISTORTED_MODELS = ("", "none", "plumb_bob", "rational_polynomial", "equidistant",
                       "kannala_brandt")  # fmt: skip
@@ -650,11 +654,12 @@ def _bound_ros1_chunks(reader: Any) -> None:
     from rosbags.rosbag1.reader import Reader as Reader1
 
     for sub in reader.readers:
-        if not isinstance(sub, Reader1):
+        bio = sub.bio if isinstance(sub, Reader1) else None
+        if bio is None:
             continue
         for info in sub.chunk_infos:
-            sub.bio.seek(info.pos)
-            header = Header.read(sub.bio, RecordType.CHUNK)
+            bio.seek(info.pos)
+            header = Header.read(bio, RecordType.CHUNK)
             size, compression = header.get_uint32("size"), header.get_string("compression")
             chunk = sub.chunks[info.pos]
             check_chunk_size(size, chunk.datasize, compression, str(sub.path))
@@ -723,9 +728,9 @@ def _raw_pixels(msg: ImageMessage, dtype: np.dtype, channels: int, what: str) ->
         )
     buf = np.frombuffer(data, dtype=np.uint8, count=msg.step * (h - 1) + row)
     rows = np.lib.stride_tricks.as_strided(buf, (h, row), (msg.step, 1))
-    order = ">" if msg.big_endian else "<"
-    pixels = np.ascontiguousarray(rows).view(dtype.newbyteorder(order) if dtype.itemsize > 1
-                                             else dtype)  # fmt: skip
+    if dtype.itemsize > 1:
+        dtype = dtype.newbyteorder(">" if msg.big_endian else "<")
+    pixels = np.ascontiguousarray(rows).view(dtype)
     return pixels.reshape(h, w, channels)
 
 
@@ -1007,10 +1012,10 @@ class _Link:
         """T_parent_child at `stamp`, interpolated; None outside its samples."""
         if self.static:
             return self.poses[-1]
-        if self._order is None:
-            self._order = np.argsort(np.asarray(self.stamps, dtype=np.int64), kind="stable")
-            self._sorted = np.asarray(self.stamps, dtype=np.int64)[self._order]
         order, stamps = self._order, self._sorted
+        if order is None or stamps is None:
+            order = self._order = np.argsort(np.asarray(self.stamps, dtype=np.int64), kind="stable")
+            stamps = self._sorted = np.asarray(self.stamps, dtype=np.int64)[order]
         k = int(np.searchsorted(stamps, stamp, side="left"))
         if k < len(stamps) and stamps[k] == stamp:
             return self.poses[int(order[k])]
@@ -1038,14 +1043,13 @@ def tf_poses(
     chain = _chain(links, world.lstrip("/"), camera.lstrip("/"))
     out: list[np.ndarray | None] = []
     for stamp in stamps_ns:
+        steps = [(links[link].at(stamp), forward) for link, forward in chain]
         T = np.eye(4)
-        for (parent, child), forward in chain:
-            step = links[(parent, child)].at(stamp)
+        for step, forward in steps:
             if step is None:
-                T = None
                 break
             T = T @ (step if forward else invert_transform(step))
-        out.append(T)
+        out.append(None if any(step is None for step, _ in steps) else T)
     return out
 
 
@@ -1338,11 +1342,11 @@ def describe_recording(path: Path, options: RecordingOptions | None = None) -> d
         for t in container.topics:
             row: dict[str, Any] = {"topic": t.name, "type": t.msgtype, "kind": t.kind or "other",
                                    "messages": t.count}  # fmt: skip
-            entry = seen.get(t.name)
-            if entry is not None:
-                row.update(_sample_fields(entry["sample"]))
-                span = (entry["last_ns"] - entry["first_ns"]) / 1e9
-                row["rate_hz"] = round((entry["n"] - 1) / span, 3) if span > 0 else None
+            found = seen.get(t.name)
+            if found is not None:
+                row.update(_sample_fields(found["sample"]))
+                span = (found["last_ns"] - found["first_ns"]) / 1e9
+                row["rate_hz"] = round((found["n"] - 1) / span, 3) if span > 0 else None
             topics.append(row)
         result: dict[str, Any] = {"path": str(path), "kind": container.kind, "topics": topics}
         try:
