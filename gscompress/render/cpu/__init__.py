@@ -5,8 +5,11 @@ The extension is compiled on first use with `torch.utils.cpp_extension.load` int
 directory keyed on the sources and their location, the flags, torch, Python and (for the
 -march=native build on x86-64) the CPU model and feature flags (`$GSCOMPRESS_CACHE_DIR` or
 `$XDG_CACHE_HOME/gscompress`, default `~/.cache/gscompress`); later processes import the finished
-build directly. Each new build removes the builds no process has loaded for 30 days. Without a
-C++ compiler `load_extension()` returns None and the caller falls back to the pure-torch backend.
+build directly. A build holds an OS lock on its directory for its whole life: processes that
+want the same build wait for it and load it, and each new build removes the builds no process
+has used for 30 days, skipping any directory another process holds. Without a C++ compiler, or
+when the build fails, `load_extension()` warns once and returns None, and the caller falls back
+to the pure-torch backend.
 
 `$GSCOMPRESS_MARCH` picks another target than the build machine's: `generic` for portable
 flags, or a compiler target such as `x86-64-v3` (AVX2 with FMA) to build, test or time another
@@ -26,12 +29,13 @@ import platform
 import re
 import shutil
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import IO, Any
 
 import torch
 
@@ -41,6 +45,11 @@ from gscompress.metrics import gaussian_window, ssim_constants
 from gscompress.render.projection import Projection, TileBins, tile_grid
 
 logger = logging.getLogger(__name__)
+
+try:
+    import fcntl
+except ImportError:  # (Windows)
+    fcntl = None  # type: ignore[assignment]
 
 _SOURCES = tuple(Path(__file__).with_name(n) for n in ("composite.cpp", "project.cpp", "ssim.cpp"))
 # -ffp-contract=off keeps the forward, the backward and the torch oracle rounding alike.
@@ -92,26 +101,100 @@ def _build_flags() -> tuple[list[str], str]:
     return [*_CFLAGS, "-march=native"], cpu
 
 
+_LOCK = "gsc.lock"
+
+
 @contextlib.contextmanager
 def _build_lock(build_dir: Path) -> Iterator[None]:
-    """Hold an OS lock on a build directory and clear the `lock` file a killed build left.
+    """Make the build directory and hold an OS lock on it, clearing the `lock` a killed build left.
 
-    torch's build waits forever on a `lock` file, which a build killed midway (Ctrl-C on the
-    first run) leaves behind. Our builds take `gsc.lock` with flock first, which the OS releases
-    when a process dies, so a `lock` found while holding it is stale and is removed.
+    The lock (flock on `gsc.lock`, which the OS releases when a process dies) is held for the
+    build's whole life: other builders of the same directory wait for it, and `_prune_cache`
+    leaves a locked directory alone. The pruner may still lock and remove a directory made here
+    before this process locked it; the lock then held is on a removed file, so the directory is
+    made again and locked once more. torch's build waits forever on a `lock` file, which a build
+    killed midway (Ctrl-C on the first run) leaves behind; found while holding ours, it is stale.
+
+    Raises:
+        OSError: the directory cannot be made, or was removed under this process twice.
     """
-    try:
-        import fcntl
-    except ImportError:  # not POSIX: torch's own lock only
+    if fcntl is None:  # not POSIX: torch's own lock only
+        build_dir.mkdir(parents=True, exist_ok=True)
         yield
         return
-    with open(build_dir / "gsc.lock", "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+    for _ in range(2):
+        build_dir.mkdir(parents=True, exist_ok=True)
         try:
-            (build_dir / "lock").unlink(missing_ok=True)
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+            handle = open(build_dir / _LOCK, "a")
+        except FileNotFoundError:  # removed between mkdir and open
+            continue
+        with handle:
+            _wait_for_lock(handle, build_dir)
+            if _is_linked(handle, build_dir / _LOCK):
+                (build_dir / "lock").unlink(missing_ok=True)
+                yield
+                return
+    raise OSError(f"{build_dir} was removed twice while this process waited to build in it")
+
+
+def _wait_for_lock(handle: IO[str], build_dir: Path) -> None:
+    """Take the exclusive lock of `handle`, saying so when another process's build holds it."""
+    assert fcntl is not None
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        logger.info("waiting for another process building the C++ render kernels in %s", build_dir)
+        with _heartbeat("still waiting for the C++ render kernels' build in %s", build_dir):
+            fcntl.flock(handle, fcntl.LOCK_EX)
+
+
+def _is_linked(handle: IO[str], path: Path) -> bool:
+    """Whether the open file `handle` is still the file at `path`."""
+    try:
+        here = os.stat(path)
+    except FileNotFoundError:
+        return False
+    held = os.fstat(handle.fileno())
+    return (held.st_dev, held.st_ino) == (here.st_dev, here.st_ino)
+
+
+@contextlib.contextmanager
+def _try_lock(build_dir: Path) -> Iterator[bool]:
+    """Hold the build lock of `build_dir` if no process holds it (True), else yield False."""
+    assert fcntl is not None
+    with open(build_dir / _LOCK, "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        yield True
+
+
+_HEARTBEAT_S = 10.0
+"""Seconds between the lines that say a build is still running."""
+
+
+@contextlib.contextmanager
+def _heartbeat(message: str, *args: object) -> Iterator[None]:
+    """Log `message % args` with the seconds elapsed every `_HEARTBEAT_S` while the body runs.
+
+    A first build takes a minute on an idle machine and several on a loaded one; without these
+    lines it looks hung.
+    """
+    done, start = threading.Event(), time.monotonic()
+
+    def beat() -> None:
+        while not done.wait(_HEARTBEAT_S):
+            logger.info(message + " (%.0f s)", *args, time.monotonic() - start)
+
+    thread = threading.Thread(target=beat, name="gsc-build-heartbeat", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
 
 
 def _cache_root() -> Path:
@@ -154,6 +237,16 @@ def _load_built(build_dir: Path, name: str) -> ModuleType | None:
     path = build_dir / f"{name}.so"
     if not (build_dir / _BUILT).exists() or not path.exists():
         return None
+    module = _import_library(path, name)
+    if module is None:
+        return None
+    with contextlib.suppress(OSError):  # the time of last use, for `_prune_cache`
+        os.utime(build_dir / _BUILT)
+    return module
+
+
+def _import_library(path: Path, name: str) -> ModuleType | None:
+    """The extension module in the library at `path`; None when it cannot be imported."""
     try:
         spec = importlib.util.spec_from_file_location(name, path)
         if spec is None or spec.loader is None:
@@ -162,43 +255,54 @@ def _load_built(build_dir: Path, name: str) -> ModuleType | None:
         spec.loader.exec_module(module)
     except ImportError:  # e.g. a library it links against has moved: torch's loader decides
         return None
-    with contextlib.suppress(OSError):  # the time of last use, for `_prune_cache`
-        os.utime(build_dir / _BUILT)
     return module
 
 
+def _last_use(build_dir: Path) -> float:
+    """When a build was last used: its marker's time (touched at each direct load), else its
+    library's; 0 for a build that has written neither (in progress, or failed)."""
+    stamps = [build_dir / _BUILT, *build_dir.glob("*.so")]
+    return max((p.stat().st_mtime for p in stamps if p.exists()), default=0.0)
+
+
 def _prune_cache(root: Path, keep: Path, unused_days: float = 30.0) -> None:
-    """Remove the builds in `root` other than `keep` that no process has loaded for this long.
+    """Remove the builds in `root` other than `keep` that no process has used for this long.
 
     Every change of the sources, flags, torch or CPU makes a new build of about 2 MB, and a
     checkout whose sources are edited makes one per edit. Runs only when torch's loader was used
-    (a new build, or a build made before the marker existed), so rarely.
-    A build's last use is its marker's time (touched at each direct load), else its library's.
+    (a new build, or a build made before the marker existed), so rarely. A directory whose
+    build lock another process holds is in use (a build in progress, or one waiting for it)
+    and is skipped; the others are locked, checked again and removed under the lock, so that a
+    build cannot start in a directory being removed (see `_build_lock`). Without flock (not
+    POSIX) a build in progress cannot be told from an abandoned one, and nothing is removed.
     """
+    if fcntl is None:
+        return
     limit = time.time() - unused_days * 86400
     for old in root.glob("ext-*"):
         if old == keep or not re.fullmatch(r"ext-[0-9a-f]{16}", old.name) or not old.is_dir():
             continue
         with contextlib.suppress(OSError):  # e.g. removed meanwhile by another process
-            stamps = [old / _BUILT, *old.glob("*.so")]
-            times = [p.stat().st_mtime for p in stamps if p.exists()]
-            if max(times, default=0.0) < limit:
-                shutil.rmtree(old, ignore_errors=True)
+            if _last_use(old) >= limit:
+                continue
+            with _try_lock(old) as locked:
+                if locked and _last_use(old) < limit:
+                    shutil.rmtree(old, ignore_errors=True)
 
 
 @functools.cache
 def load_extension() -> ModuleType | None:
     """The compiled kernels, building them on first use; None when no compiler is available.
 
-    A missing compiler or a failed build is reported once with a warning.
+    Processes that ask for the same build at once wait for the one that compiles it, then load
+    what it built. A missing compiler or a failed build is reported once with a warning that
+    says what falling back to pure torch costs and how to fix it.
     """
     compiler = os.environ.get("CXX", "c++")
     if shutil.which(compiler) is None:
-        warnings.warn(
-            f"no C++ compiler ({compiler!r}) found: the cpu render backend falls back to pure "
-            "torch (slower); install g++ to enable it",
-            RuntimeWarning,
-            stacklevel=3,
+        _warn_fallback(
+            f"no C++ compiler ({compiler!r}) found",
+            "install g++ (e.g. apt-get install g++) or set CXX to a C++ compiler",
         )
         return None
     cflags, cpu = _build_flags()
@@ -208,14 +312,35 @@ def load_extension() -> ModuleType | None:
     built = _load_built(build_dir, name)
     if built is not None:
         return built
-    if not (build_dir / f"{name}.so").exists():
-        logger.info("building the C++ render kernels in %s (first use, under a minute)", build_dir)
     try:
-        from torch.utils import cpp_extension
+        module = _build(build_dir, name, cflags)
+    except Exception as exc:  # a build failure must not take rendering down
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        target = f" for {MARCH_ENV}={os.environ[MARCH_ENV]}" if os.environ.get(MARCH_ENV) else ""
+        _warn_fallback(
+            f"building the C++ render kernels{target} failed ({first_line})",
+            _build_fix(exc, build_dir),
+        )
+        return None
+    _prune_cache(build_dir.parent, keep=build_dir)
+    return module
 
-        build_dir.mkdir(parents=True, exist_ok=True)
-        with _build_lock(build_dir):
-            (build_dir / _BUILT).unlink(missing_ok=True)  # until this build has loaded
+
+def _build(build_dir: Path, name: str, cflags: list[str]) -> ModuleType:
+    """Compile the extension in `build_dir` under its lock and load it; if another process
+    built it while this one waited for the lock, load that build instead."""
+    from torch.utils import cpp_extension
+
+    with _build_lock(build_dir):
+        built = _load_built(build_dir, name)
+        if built is not None:
+            return built
+        if not (build_dir / f"{name}.so").exists():
+            logger.info(
+                "building the C++ render kernels in %s (first use: a minute or more)", build_dir
+            )
+        (build_dir / _BUILT).unlink(missing_ok=True)  # until this build has loaded
+        with _heartbeat("still compiling the C++ render kernels in %s", build_dir):
             module = cpp_extension.load(
                 name=name,
                 sources=[str(source) for source in _SOURCES],
@@ -224,19 +349,34 @@ def load_extension() -> ModuleType | None:
                 build_directory=str(build_dir),
                 verbose=False,
             )
-            (build_dir / _BUILT).write_text(f"{name}.so\n")
-        _prune_cache(build_dir.parent, keep=build_dir)
-        return module
-    except Exception as exc:  # a build failure must not take rendering down
-        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        target = f" for {MARCH_ENV}={os.environ[MARCH_ENV]}" if os.environ.get(MARCH_ENV) else ""
-        warnings.warn(
-            f"building the C++ render kernels{target} failed ({first_line}): the cpu render "
-            "backend falls back to pure torch",
-            RuntimeWarning,
-            stacklevel=3,
+        (build_dir / _BUILT).write_text(f"{name}.so\n")
+    return module
+
+
+# Forward and backward of one render, C++ against pure torch (docs/performance.md, Renderer).
+_PURE_TORCH_SLOWER = "53-60x"
+
+
+def _build_fix(exc: Exception, build_dir: Path) -> str:
+    """What to do about a failed build: a cache that cannot be written wants another place;
+    a compiler error, a fresh build (after an update of the compiler or torch)."""
+    if isinstance(exc, OSError):
+        return (
+            f"make {build_dir.parent} writable (with free space), or set GSCOMPRESS_CACHE_DIR "
+            "to a folder that is"
         )
-        return None
+    hint = f"unset {MARCH_ENV} or " if os.environ.get(MARCH_ENV) else ""
+    return f"{hint}remove {build_dir} to build afresh, or install g++ if the compiler is broken"
+
+
+def _warn_fallback(what: str, fix: str) -> None:
+    """The one warning of a process whose cpu render backend falls back to pure torch."""
+    warnings.warn(
+        f"{what}: the cpu render backend falls back to pure torch, which renders "
+        f"{_PURE_TORCH_SLOWER} slower (docs/performance.md); to fix it, {fix}",
+        RuntimeWarning,
+        stacklevel=4,
+    )
 
 
 class _Composite(torch.autograd.Function):
