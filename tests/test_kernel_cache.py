@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from gscompress.render import cpu as cpu_backend
+from gscompress.render.cpu import build as cpu_build
 
 _FAKE = b"not a library"
 
@@ -55,13 +55,13 @@ def worker() -> None:
 
     journal, start, seconds = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
     torch.utils.cpp_extension.load = _fake_compiler(journal, seconds)
-    cpu_backend._import_library = _fake_import  # type: ignore[attr-defined]
+    cpu_build._import_library = _fake_import
     (start.parent / f"ready-{os.getpid()}").touch()
     while not start.exists():
         time.sleep(0.01)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        ext = cpu_backend.load_extension()
+        ext = cpu_build.load_extension()
     messages = [str(w.message) for w in caught]
     print(json.dumps({"name": getattr(ext, "__name__", None), "warnings": messages}))
 
@@ -80,7 +80,7 @@ def _first_uses(tmp_path: Path, marches: list[str], seconds: list[float]) -> tup
             subprocess.Popen(
                 [*cmd, str(journal), str(start), str(s)],
                 cwd=Path(__file__).parent,
-                env={**env, cpu_backend.MARCH_ENV: march},
+                env={**env, cpu_build.MARCH_ENV: march},
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 text=True,
@@ -112,7 +112,7 @@ def test_builds_of_different_digests_at_once_all_finish(tmp_path):
     for name in names:
         folder = tmp_path / "cache" / f"ext-{name.rsplit('_', 1)[1]}"
         assert (folder / f"{name}.so").read_bytes() == _FAKE
-        assert (folder / cpu_backend._BUILT).exists()
+        assert (folder / cpu_build._BUILT).exists()
 
 
 def test_first_uses_of_one_digest_share_one_build(tmp_path):
@@ -135,9 +135,9 @@ def fake_build(monkeypatch, tmp_path):
     journal.touch()
     monkeypatch.setenv("GSCOMPRESS_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setenv("CXX", sys.executable)
-    monkeypatch.setenv(cpu_backend.MARCH_ENV, "fake-a")
-    monkeypatch.setattr(cpu_backend, "_import_library", _fake_import)
-    monkeypatch.setattr(cpu_backend, "_HEARTBEAT_S", 0.05)
+    monkeypatch.setenv(cpu_build.MARCH_ENV, "fake-a")
+    monkeypatch.setattr(cpu_build, "_import_library", _fake_import)
+    monkeypatch.setattr(cpu_build, "_HEARTBEAT_S", 0.05)
 
     def run(seconds: float = 0.4, fails: bool = False) -> types.ModuleType | None:
         load = _fake_compiler(journal, seconds)
@@ -147,11 +147,11 @@ def fake_build(monkeypatch, tmp_path):
             raise RuntimeError("Error building extension 'gsc_composite': g++ said no")
 
         monkeypatch.setattr(torch.utils.cpp_extension, "load", failing if fails else load)
-        cpu_backend.load_extension.cache_clear()
+        cpu_build.load_extension.cache_clear()
         try:
-            return cpu_backend.load_extension()
+            return cpu_build.load_extension()
         finally:
-            cpu_backend.load_extension.cache_clear()
+            cpu_build.load_extension.cache_clear()
 
     return run, journal
 
@@ -209,13 +209,13 @@ def test_a_cache_that_cannot_be_written_names_the_variable_to_set(
 
 def test_a_missing_compiler_warns_once_with_the_cost_and_the_fix(monkeypatch):
     monkeypatch.setenv("CXX", "no-such-compiler-gsc")
-    cpu_backend.load_extension.cache_clear()
+    cpu_build.load_extension.cache_clear()
     try:
         with pytest.warns(RuntimeWarning) as caught:
-            assert cpu_backend.load_extension() is None
-            assert cpu_backend.load_extension() is None  # asked again: no second warning
+            assert cpu_build.load_extension() is None
+            assert cpu_build.load_extension() is None  # asked again: no second warning
     finally:
-        cpu_backend.load_extension.cache_clear()
+        cpu_build.load_extension.cache_clear()
     assert len(caught) == 1
     message = str(caught[0].message)
     assert "no C++ compiler" in message and "53-60x slower" in message and "g++" in message
@@ -228,7 +228,7 @@ def _folder(root: Path, name: str, days_unused: float, built: bool = True) -> Pa
     folder.mkdir()
     stamp = time.time() - days_unused * 86400
     if built:
-        for f in (folder / "x.so", folder / cpu_backend._BUILT):
+        for f in (folder / "x.so", folder / cpu_build._BUILT):
             f.write_text("")
             os.utime(f, (stamp, stamp))
     os.utime(folder, (stamp, stamp))
@@ -243,9 +243,9 @@ def test_the_pruner_skips_a_folder_whose_build_holds_its_lock(tmp_path):
     current = _folder(tmp_path, "ext-00000000000000cc", 0)
     with open(busy / "gsc.lock", "a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)
-        cpu_backend._prune_cache(tmp_path, keep=current)
+        cpu_build._prune_cache(tmp_path, keep=current)
         assert busy.exists() and not old.exists() and current.exists()
-    cpu_backend._prune_cache(tmp_path, keep=current)  # released: an abandoned build
+    cpu_build._prune_cache(tmp_path, keep=current)  # released: an abandoned build
     assert not busy.exists()
 
 
@@ -260,7 +260,7 @@ def test_a_build_whose_folder_was_removed_before_it_locked_it_starts_again(tmp_p
         fcntl.flock(pruner, fcntl.LOCK_EX)
 
         def build() -> None:
-            with cpu_backend._build_lock(folder):
+            with cpu_build._build_lock(folder):
                 assert (folder / "gsc.lock").exists()
                 (folder / "built-here").touch()
                 entered.set()
