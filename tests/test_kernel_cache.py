@@ -272,3 +272,28 @@ def test_a_build_whose_folder_was_removed_before_it_locked_it_starts_again(tmp_p
         shutil.rmtree(folder)
     builder.join(timeout=10)
     assert entered.is_set() and (folder / "built-here").exists()
+
+
+def test_a_build_waiting_for_another_says_so(monkeypatch, tmp_path, caplog):
+    """A process that finds the build locked by another says it waits, and keeps saying so
+    with the time so far until it holds the lock."""
+    monkeypatch.setattr(cpu_build, "_HEARTBEAT_S", 0.05)
+    caplog.set_level(logging.INFO, logger="gscompress")
+    folder = tmp_path / "ext-00000000000000aa"
+    folder.mkdir()
+    entered = threading.Event()
+
+    def build() -> None:
+        with cpu_build._build_lock(folder):
+            entered.set()
+
+    with open(folder / "gsc.lock", "a") as other:
+        fcntl.flock(other, fcntl.LOCK_EX)
+        waiter = threading.Thread(target=build)
+        waiter.start()
+        time.sleep(0.4)
+        assert not entered.is_set()
+    waiter.join(timeout=10)
+    messages = [r.getMessage() for r in caplog.records]
+    assert entered.is_set() and messages[0].startswith("waiting for another process")
+    assert len([m for m in messages if m.startswith("still waiting")]) >= 3
