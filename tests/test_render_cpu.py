@@ -27,6 +27,7 @@ from gscompress.camera import Intrinsics
 from gscompress.errors import InputError
 from gscompress.render import RenderOutput, render, resolve_backend
 from gscompress.render import cpu as cpu_backend
+from gscompress.render.cpu import build as cpu_build
 from gscompress.slam.config import preset
 from gscompress.slam.losses import depth_edges, mapping_loss
 
@@ -123,9 +124,9 @@ def test_portable_build_equals_torch(monkeypatch, tmp_path):
     16-byte vectors: 4 float lanes, so a Gaussian spans up to 4 segments of a tile row (8 for
     double), and no FMA. Built afresh into a temporary cache, it renders as the torch oracle
     does, and its SSIM equals torch's."""
-    monkeypatch.setattr(cpu_backend, "_cpu_signature", lambda: None)
+    monkeypatch.setattr(cpu_build, "_cpu_signature", lambda: None)
     monkeypatch.setenv("GSCOMPRESS_CACHE_DIR", str(tmp_path))
-    assert cpu_backend._build_flags() == (list(cpu_backend._CFLAGS), "generic")
+    assert cpu_build._build_flags() == (list(cpu_build._CFLAGS), "generic")
     cpu_backend.load_extension.cache_clear()
     try:
         assert cpu_backend.load_extension() is not None
@@ -142,24 +143,24 @@ def test_march_override_picks_the_build_target(monkeypatch):
     """$GSCOMPRESS_MARCH: `generic` gives the portable flags, a named target its own -march and
     a key that does not depend on the CPU, `native` (or unset) the usual build; anything that
     is not a plain target name is refused before it reaches the compiler's command line."""
-    monkeypatch.setattr(cpu_backend, "_cpu_signature", lambda: "model name: X\nflags: avx2")
-    monkeypatch.setattr(cpu_backend.platform, "machine", lambda: "x86_64")
-    native = ([*cpu_backend._CFLAGS, "-march=native"], "model name: X\nflags: avx2")
+    monkeypatch.setattr(cpu_build, "_cpu_signature", lambda: "model name: X\nflags: avx2")
+    monkeypatch.setattr(cpu_build.platform, "machine", lambda: "x86_64")
+    native = ([*cpu_build._CFLAGS, "-march=native"], "model name: X\nflags: avx2")
     monkeypatch.delenv(cpu_backend.MARCH_ENV, raising=False)
-    assert cpu_backend._build_flags() == native
+    assert cpu_build._build_flags() == native
     for value, expected in [
         ("native", native),
         (" native ", native),
         ("", native),
-        ("generic", (list(cpu_backend._CFLAGS), "generic")),
-        ("x86-64-v3", ([*cpu_backend._CFLAGS, "-march=x86-64-v3"], "march=x86-64-v3")),
+        ("generic", (list(cpu_build._CFLAGS), "generic")),
+        ("x86-64-v3", ([*cpu_build._CFLAGS, "-march=x86-64-v3"], "march=x86-64-v3")),
     ]:
         monkeypatch.setenv(cpu_backend.MARCH_ENV, value)
-        assert cpu_backend._build_flags() == expected, value
+        assert cpu_build._build_flags() == expected, value
     for bad in ("x86-64 -O0", "-v3", "a;b", "$(x)"):
         monkeypatch.setenv(cpu_backend.MARCH_ENV, bad)
         with pytest.raises(InputError, match="GSCOMPRESS_MARCH"):
-            cpu_backend._build_flags()
+            cpu_build._build_flags()
 
 
 def test_checkouts_of_the_same_sources_build_apart(tmp_path):
@@ -168,10 +169,10 @@ def test_checkouts_of_the_same_sources_build_apart(tmp_path):
     copies = []
     for name in ("a", "b"):
         (tmp_path / name).mkdir()
-        copies.append(tuple(Path(shutil.copy(s, tmp_path / name)) for s in cpu_backend._SOURCES))
+        copies.append(tuple(Path(shutil.copy(s, tmp_path / name)) for s in cpu_build._SOURCES))
 
     def key(sources: tuple[Path, ...]) -> str:
-        return cpu_backend._cache_key(sources, ["-O3"], "generic", "c++")
+        return cpu_build._cache_key(sources, ["-O3"], "generic", "c++")
 
     assert key(copies[0]) == key(copies[0]) != key(copies[1])
     before = key(copies[1])
@@ -327,7 +328,7 @@ def test_a_lock_left_by_a_killed_build_is_cleared(tmp_path):
 
     stale = tmp_path / "lock"
     stale.write_text("")  # what torch leaves when a build is killed midway
-    with cpu_backend._build_lock(tmp_path):
+    with cpu_build._build_lock(tmp_path):
         assert not stale.exists()
         # another process cannot enter while this one builds
         probe = (
@@ -437,7 +438,7 @@ def test_a_finished_build_is_imported_directly(extension, monkeypatch, tmp_path)
     midway leaves a truncated file, and loading one kills the process (SIGBUS)."""
     so = Path(extension.__file__)
     name = so.stem.split(".")[0]
-    assert (so.parent / cpu_backend._BUILT).exists()  # marked by the build this run loaded
+    assert (so.parent / cpu_build._BUILT).exists()  # marked by the build this run loaded
     monkeypatch.setattr("torch.utils.cpp_extension.load", _no_torch_loader)
     cpu_backend.load_extension.cache_clear()
     try:
@@ -446,11 +447,11 @@ def test_a_finished_build_is_imported_directly(extension, monkeypatch, tmp_path)
     finally:
         cpu_backend.load_extension.cache_clear()
     shutil.copy(so, tmp_path / so.name)
-    assert cpu_backend._load_built(tmp_path, name) is None  # not marked finished
-    (tmp_path / cpu_backend._BUILT).write_text("")
-    os.utime(tmp_path / cpu_backend._BUILT, (0, 0))
-    assert cpu_backend._load_built(tmp_path, name) is not None
-    assert (tmp_path / cpu_backend._BUILT).stat().st_mtime > 0  # its last use, for pruning
+    assert cpu_build._load_built(tmp_path, name) is None  # not marked finished
+    (tmp_path / cpu_build._BUILT).write_text("")
+    os.utime(tmp_path / cpu_build._BUILT, (0, 0))
+    assert cpu_build._load_built(tmp_path, name) is not None
+    assert (tmp_path / cpu_build._BUILT).stat().st_mtime > 0  # its last use, for pruning
 
 
 def _no_torch_loader(**_: object) -> None:
@@ -463,7 +464,7 @@ def test_builds_unused_for_30_days_are_removed(tmp_path):
     def build(name: str, mtime: float, marked: bool = True) -> Path:
         folder = tmp_path / name
         folder.mkdir()
-        files = [folder / "x.so", *([folder / cpu_backend._BUILT] if marked else [])]
+        files = [folder / "x.so", *([folder / cpu_build._BUILT] if marked else [])]
         for f in files:
             f.write_text("")
             os.utime(f, (mtime, mtime))
@@ -473,9 +474,9 @@ def test_builds_unused_for_30_days_are_removed(tmp_path):
     stale_unmarked = build("ext-00000000000000bb", old_day, marked=False)
     recent = build("ext-00000000000000cc", time.time() - 2 * 86400)
     used = build("ext-00000000000000dd", old_day)
-    os.utime(used / cpu_backend._BUILT)  # loaded today
+    os.utime(used / cpu_build._BUILT)  # loaded today
     current = build("ext-00000000000000ee", old_day)
     other = build("ext-not-a-build", old_day)
-    cpu_backend._prune_cache(tmp_path, keep=current)
+    cpu_build._prune_cache(tmp_path, keep=current)
     assert not stale.exists() and not stale_unmarked.exists()
     assert recent.exists() and used.exists() and current.exists() and other.exists()
