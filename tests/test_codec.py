@@ -14,19 +14,21 @@ from gscompress.gaussians import MAX_ABS_LOG_SCALE, SH_C0, random_map
 from gscompress.io import codec
 from gscompress.io.codec import (
     COMPACT_DEFAULTS,
-    MAX_POSITION_BITS,
     ROTATION_BITS,
     CompactColumn,
     CompactGaussians,
     CompactOptions,
     decode_compact_bytes,
     encode_compact,
+)
+from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
+from gscompress.io.quantise import (
+    MAX_POSITION_BITS,
     morton_codes,
     morton_grid,
     position_step,
     sigmoid,
 )
-from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.pipeline import log_info, prune_log
 
 

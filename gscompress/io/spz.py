@@ -47,15 +47,15 @@ import zstandard
 
 from gscompress.errors import MapError, SpzFormatError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
-from gscompress.io.codec import (
+from gscompress.io.codec import inflate_zstd
+from gscompress.io.columns import map_from_columns
+from gscompress.io.files import check_output, write_bytes_atomic
+from gscompress.io.quantise import (
     MAX_POSITION_BITS,
     decode_smallest_three,
     encode_smallest_three,
-    inflate_zstd,
     morton_codes,
 )
-from gscompress.io.columns import map_from_columns
-from gscompress.io.files import check_output, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -224,7 +224,7 @@ def _fixed(means: np.ndarray, bits: int) -> np.ndarray:
 
 def _morton_order(fixed: np.ndarray) -> np.ndarray:
     """Indices sorting fixed-point positions along a Morton curve (of their top 21 bits per
-    axis: `gscompress.io.codec.morton_codes`)."""
+    axis: `gscompress.io.quantise.morton_codes`)."""
     fixed = fixed.astype(np.int64)
     cells = fixed - fixed.min(axis=0) if len(fixed) else fixed
     top = int(cells.max()).bit_length() if len(cells) else 0
