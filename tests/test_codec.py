@@ -256,8 +256,15 @@ def test_position_step_rule():
 
 def test_schema_file_matches_the_descriptor():
     text = (Path(codec.__file__).parents[2] / "schemas" / "compact_gaussians.v1.proto").read_text()
-    kinds = {1: "double", 4: "uint64", 8: "bool", 9: "string", 11: "CompactColumn", 12: "bytes",
-             13: "uint32"}  # fmt: skip
+    kinds = {
+        1: "double",
+        4: "uint64",
+        8: "bool",
+        9: "string",
+        11: "CompactColumn",
+        12: "bytes",
+        13: "uint32",
+    }
     for message in (CompactGaussians, CompactColumn):
         body = re.search(rf"message {message.DESCRIPTOR.name} {{(.*?)\n}}", text, re.S).group(1)
         in_file = re.findall(r"^\s*(repeated )?(\w+) (\w+) = (\d+);", body, re.M)

@@ -37,7 +37,6 @@ numpy + zstandard + protobuf only (no torch).
 
 from __future__ import annotations
 
-import io
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -47,8 +46,9 @@ import zstandard
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError, Message
 
-from gscompress.errors import GscError, InputError, MapError
+from gscompress.errors import InputError, MapError
 from gscompress.gaussians import PWAS_EPS, SH_REST_COUNTS, GaussianMap
+from gscompress.io.decode_budget import DecodeBudget, inflate_zstd
 from gscompress.io.quantise import (
     FLOAT32_MAX,
     LINEAR_TRANSFORMS,
@@ -107,10 +107,6 @@ ZSTD_LEVEL = 3
 
 MAX_GAUSSIANS = 1 << 28
 """Most Gaussians a compact message may declare."""
-
-MIN_BYTES_PER_GAUSSIAN = 1 / 16
-"""A compact message must hold at least this many bytes per Gaussian it declares (half a bit;
-real maps take 5-20 bytes): a small message cannot make the reader allocate a huge map."""
 
 ROTATION_BITS = 10
 """Bits of each of the three smallest quaternion components in a `smallest-three` code (a sign
@@ -238,7 +234,9 @@ def _shuffle(codes: np.ndarray) -> bytes:
     return np.ascontiguousarray(raw.transpose(2, 0, 1)).tobytes()
 
 
-def _unshuffle(planes: bytes, count: int, components: int, dtype: np.dtype) -> np.ndarray:
+def _unshuffle(
+    planes: bytes | bytearray, count: int, components: int, dtype: np.dtype
+) -> np.ndarray:
     """The inverse of `_shuffle`: codes [count, components] of `dtype`."""
     raw = np.frombuffer(planes, np.uint8).reshape(dtype.itemsize, count, components)
     return np.ascontiguousarray(raw.transpose(1, 2, 0)).view(dtype).reshape(count, components)
@@ -449,17 +447,20 @@ class _Column:
 
 
 def _check_header(message: Message, message_bytes: int, source: str) -> _Grid:
-    """The version, the count (against `MAX_GAUSSIANS` and the message's bytes), the SH degree
-    and the position grid of a message."""
+    """The version, the SH degree, the count (against `MAX_GAUSSIANS` and what the message's
+    bytes may decode to: `gscompress.io.decode_budget`) and the position grid of a message."""
     if message.version != COMPACT_VERSION:
         raise _failure(
             source, f"has version {message.version}; this gscompress reads {COMPACT_VERSION}"
         )
     n = int(message.count)
-    if n > MAX_GAUSSIANS or n > message_bytes / MIN_BYTES_PER_GAUSSIAN:
-        raise _failure(source, f"declares {n} Gaussians in {message_bytes} bytes")
     if message.sh_degree not in SH_REST_COUNTS:
         raise _failure(source, f"has SH degree {message.sh_degree}")
+    if n > MAX_GAUSSIANS:
+        raise _failure(source, f"declares {n} Gaussians, more than the {MAX_GAUSSIANS} read here")
+    DecodeBudget("compact", message_bytes, f"{source}: compact map", MapError).check_map(
+        n, message.sh_degree
+    )
     origin = np.array(message.origin, dtype=np.float64)
     step = float(message.step)
     if origin.shape != (3,) or not np.all(np.isfinite(origin)):
@@ -482,7 +483,7 @@ def _inflate_columns(message: Message, n: int, source: str) -> dict[str, _Column
             raise _failure(source, f"has column {name!r} twice")
         components, dtype = _check_column(column, message, n, source)
         planes = inflate_zstd(
-            column.data, column.raw_bytes, f"{source}: compact map column {name!r}"
+            column.data, column.raw_bytes, f"{source}: compact map column {name!r}", MapError
         )
         columns[name] = _Column(_unshuffle(planes, n, components, dtype), column)
     return columns
@@ -649,28 +650,3 @@ def _decode_ids(column: _Column | None) -> dict[str, np.ndarray]:
     if column is None:
         return {}
     return {"ids": np.cumsum(column.codes[:, 0], dtype=np.uint32)}
-
-
-def inflate_zstd(
-    data: bytes | memoryview, size: int, where: str, error: type[GscError] = MapError
-) -> bytes:
-    """A zstd frame inflated to exactly `size` bytes, never more: refused (`error`, led by
-    `where`) when it is not zstd, declares another size, is corrupt, or holds more or less."""
-    if size == 0 and not len(data):
-        return b""
-    try:
-        declared = zstandard.frame_content_size(data)
-    except zstandard.ZstdError:
-        raise error(f"{where} is not a zstd frame") from None
-    if declared not in (-1, size):
-        raise error(f"{where} declares {declared} bytes, not {size}")
-    try:
-        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
-            out = reader.read(size + 1)
-            while len(out) <= size and (more := reader.read(size + 1 - len(out))):
-                out += more
-    except zstandard.ZstdError as exc:
-        raise error(f"{where} is corrupt ({' '.join(str(exc).split())[:80]})") from None
-    if len(out) != size:
-        raise error(f"{where} decompresses to {len(out)} bytes, not {size}")
-    return out

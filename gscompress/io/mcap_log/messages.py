@@ -22,7 +22,7 @@ from mcap.records import Schema
 
 from gscompress.camera import is_zero_quaternion, make_transform, quat_to_rotmat, rotmat_to_quat
 from gscompress.errors import LogFormatError, MapError, led_by
-from gscompress.gaussians import GaussianMap
+from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 from gscompress.io.codec import (
     COMPACT_DEFAULTS,
     COMPACT_SCHEMA,
@@ -41,6 +41,7 @@ from gscompress.io.columns import (
     map_to_columns,
     pack_records,
 )
+from gscompress.io.decode_budget import DecodeBudget
 from gscompress.io.mcap_log.metadata import TOPIC_GAUSSIANS, WORLD_FRAME
 
 # foxglove.PackedElementField.NumericType values and their numpy equivalents
@@ -150,17 +151,30 @@ def decoded_map(gaussians: GaussianMap, codec: str = "fp32", *, sums: bool = Tru
     return decode_map_message(message.SerializeToString(), codec == "compact")[0]
 
 
-def decode_map_message(data: bytes, compact: bool, source: str = "map") -> tuple[GaussianMap, str]:
+def decode_map_message(
+    data: bytes, compact: bool, source: str = "map", budget: DecodeBudget | None = None
+) -> tuple[GaussianMap, str]:
     """The validated map of a serialized `/gaussians` message (a CompactGaussians if `compact`,
     else a PointCloud) and the codec it was stored in.
 
+    Args:
+        budget: what the file holding the message may decode to (None: the message's own
+            bounds only); the map its header declares is checked against it before decoding.
+
     Raises:
         DecodeError: not such a protobuf message.
-        MapError: a malformed map.
+        MapError: a malformed map, or one over `budget`.
     """
     if compact:
-        return decode_compact(CompactGaussians.FromString(data), len(data), source), "compact"
+        message = CompactGaussians.FromString(data)
+        if budget is not None:
+            budget.check_map(int(message.count), int(message.sh_degree))
+        return decode_compact(message, len(data), source), "compact"
     cloud = PointCloud.FromString(data)
+    if budget is not None and cloud.point_stride > 0:
+        rest = sum(f.name.startswith("f_rest_") for f in cloud.fields) // 3
+        degree = next((d for d, k in SH_REST_COUNTS.items() if k >= rest), 3)
+        budget.check_map(len(cloud.data) // cloud.point_stride, degree)
     return pointcloud_to_gaussians(cloud, source), columns_precision(f.name for f in cloud.fields)
 
 
@@ -174,12 +188,18 @@ def encoded_size(
 _MAP_SCHEMAS = {"foxglove.PointCloud", COMPACT_SCHEMA}
 
 
-def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "log") -> Snapshot:
-    """Decode one `/gaussians` message (a record of any reader) into a validated map.
+def decode_snapshot(
+    schema: Schema | None,
+    message: McapMessage,
+    source: str = "log",
+    budget: DecodeBudget | None = None,
+) -> Snapshot:
+    """Decode one `/gaussians` message (a record of any reader) into a validated map, within
+    `budget` (what the file holding it may decode to; see `decode_map_message`).
 
     Raises:
         LogFormatError: not a protobuf foxglove.PointCloud or gscompress.CompactGaussians,
-            corrupt, or a malformed map.
+            corrupt, a malformed map, or one over budget.
     """
     if schema is None or schema.name not in _MAP_SCHEMAS or schema.encoding != "protobuf":
         name = schema.name if schema else "no schema"
@@ -187,7 +207,8 @@ def decode_snapshot(schema: Schema | None, message: McapMessage, source: str = "
             f"{source}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud or {COMPACT_SCHEMA}"
         )
     try:
-        gaussians, codec = decode_map_message(message.data, schema.name == COMPACT_SCHEMA, source)
+        compact = schema.name == COMPACT_SCHEMA
+        gaussians, codec = decode_map_message(message.data, compact, source, budget)
     except DecodeError:
         raise LogFormatError(f"{source}: a corrupt {TOPIC_GAUSSIANS} message") from None
     except MapError as exc:

@@ -11,7 +11,7 @@ from typing import Any
 
 from gscompress import __version__
 from gscompress.errors import LogFormatError
-from gscompress.io.files import sha256
+from gscompress.io.files import safe_text, safe_value, sha256
 from gscompress_schemas import PROFILE_VERSION
 
 TOPIC_GAUSSIANS = "/gaussians"
@@ -70,9 +70,13 @@ class LogMetadata:
     _JSON_FIELDS = ("config", "provenance", "results")
 
     def to_record(self) -> dict[str, str]:
-        """The MCAP metadata map (string -> string; structured values as JSON)."""
+        """The MCAP metadata map (string -> string; structured values as JSON), its text valid
+        UTF-8 whatever the names it records (`safe_text`: a file name that is not UTF-8 is
+        written with `\\xNN` escapes)."""
         return {
-            key: json.dumps(value, sort_keys=True) if key in self._JSON_FIELDS else str(value)
+            key: json.dumps(safe_value(value), sort_keys=True)
+            if key in self._JSON_FIELDS
+            else safe_text(str(value))
             for key, value in asdict(self).items()
         }
 

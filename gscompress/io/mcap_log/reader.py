@@ -25,6 +25,7 @@ from zstandard import ZstdError
 from gscompress.camera import Intrinsics
 from gscompress.errors import GscError, LogFormatError
 from gscompress.gaussians import GaussianMap
+from gscompress.io.decode_budget import DecodeBudget
 from gscompress.io.files import check_input
 from gscompress.io.mcap_bounds import (
     BoundedStream,
@@ -97,7 +98,8 @@ class LogReader:
     """Reads a gscompress log; use as a context manager.
 
     Opening reads the summary, each chunk record's header (see `_check_chunks`) and the
-    metadata record; maps are decoded on demand. Files from other MCAP writers are read too:
+    metadata record; maps are decoded on demand, each within `budget` (what the file's bytes may
+    decode to: `gscompress.io.decode_budget`). Files from other MCAP writers are read too:
     without statistics, chunk indexes (read forwards) or chunking.
 
     Raises:
@@ -142,6 +144,7 @@ class LogReader:
         self._stream.seek(0)
         self._bounded = BoundedStream(self._stream, str(self.path))
         size = self._bounded.size
+        self.budget = DecodeBudget("log", size, str(self.path), LogFormatError)
         self._reader = SeekingReader(
             self._bounded,  # type: ignore[arg-type]
             validate_crcs=True,
@@ -389,7 +392,7 @@ class LogReader:
 
     def decode_snapshot(self, schema: Schema | None, message: McapMessage) -> Snapshot:
         """Decode one `/gaussians` message into a validated map and how it was stored."""
-        return decode_snapshot(schema, message, str(self.path))
+        return decode_snapshot(schema, message, str(self.path), self.budget)
 
 
 class _ReadGuard:

@@ -23,7 +23,7 @@ from gscompress import __version__
 from gscompress.camera import Intrinsics, rotmat_to_quat
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions
-from gscompress.io.files import AtomicFile, MemoryFile, check_output
+from gscompress.io.files import AtomicFile, MemoryFile, check_output, safe_value
 from gscompress.io.mcap_log.messages import encode_map, pose_message, set_pose
 from gscompress.io.mcap_log.metadata import (
     CAMERA_FRAME,
@@ -127,7 +127,7 @@ class LogWriter:
             schema_file.split(".")[0], "jsonschema", schema_bytes(schema_file)
         )
         channel_id = self._channel_id(topic, "json", schema_id)
-        data = json.dumps(value, sort_keys=True, allow_nan=False).encode()
+        data = json.dumps(safe_value(value), sort_keys=True, allow_nan=False).encode()
         self._mcap.add_message(channel_id, log_time_ns, data, log_time_ns)
 
     def copy_message(self, schema: Schema | None, channel: Channel, message: McapMessage) -> None:
