@@ -7,8 +7,10 @@ bomb before refusing it breaks the bound even when its message is right.
 `run_bounded` starts `python tests/bounded.py`, which imports what the command needs, measures
 its address space and resident size, limits the address space (RLIMIT_AS) to what it has plus
 the bound, runs the command in the same process and writes its peak RSS above the base to a
-JSON file. Allocations past the limit fail (MemoryError, which the CLI reports as "out of
-memory"), so a bomb makes the command fail instead of taking the machine's memory.
+JSON file; `run_python_bounded` does the same for a few lines of Python (a reader that no
+command runs alone, such as the viewer's renderer). Allocations past the limit fail
+(MemoryError, which the CLI reports as "out of memory"), so a bomb makes the command fail
+instead of taking the machine's memory.
 
     python tests/bounded.py --bound 300000000 --report r.json -- import-ply x.spz -o x.mcap
 """
@@ -133,16 +135,35 @@ def run_bounded(
     return Bounded(done.returncode, stderr, int(measured.get("peak_above_base", -1)), bound)
 
 
+def run_python_bounded(setup: str, code: str, bound: int, *, cwd: Path) -> Bounded:
+    """Run Python `setup` (imports, a warm-up), then `code` under the same limit as
+    `run_bounded` (`bound` bytes above the address space after `setup`), in a child process;
+    numpy's RuntimeWarnings are errors there."""
+    report = cwd / ".bounded.json"
+    report.unlink(missing_ok=True)
+    command = [sys.executable, "-W", "error::RuntimeWarning", __file__, "--bound", str(bound)]
+    command += ["--report", str(report), "--setup", setup, "--code", code]
+    env = dict(os.environ, MALLOC_ARENA_MAX="2", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, timeout=300)
+    measured = json.loads(report.read_text()) if report.is_file() else {}
+    stderr = done.stderr.decode("utf-8", "backslashreplace")
+    return Bounded(done.returncode, stderr, int(measured.get("peak_above_base", -1)), bound)
+
+
 def main() -> int:
-    """The child: imports, the limit, the command, the report."""
+    """The child: imports (or `--setup`), the limit, the command (or `--code`), the report."""
     parser = argparse.ArgumentParser()
     parser.add_argument("--bound", type=int, required=True)
     parser.add_argument("--report", type=Path, required=True)
     parser.add_argument("--preload", action="append", default=[])
+    parser.add_argument("--setup", default="")
+    parser.add_argument("--code")
     parser.add_argument("args", nargs=argparse.REMAINDER)
     options = parser.parse_args()
+    names: dict[str, object] = {}
     for name in (*PRELOADED, *options.preload):
         importlib.import_module(name)
+    exec(options.setup, names)
     from gscompress_cli.main import cli
 
     base = rss_bytes()
@@ -151,7 +172,10 @@ def main() -> int:
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     args = options.args[1:] if options.args[:1] == ["--"] else options.args
     try:
-        cli.main([os.fsdecode(a) for a in args], prog_name="gsc")
+        if options.code is not None:
+            exec(options.code, names)
+        else:
+            cli.main([os.fsdecode(a) for a in args], prog_name="gsc")
         code = 0
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else 1
