@@ -74,7 +74,7 @@ FORMATS: dict[str, Format] = {
 
 def map_bytes(count: int, sh_degree: int) -> int:
     """Bytes of a decoded map of `count` Gaussians at `sh_degree` (anisotropic, with ids and the
-    PWAS sums: 72 + 36 x K per Gaussian, K the SH rest coefficients per channel)."""
+    PWAS sums: 72 + 12 x K bytes per Gaussian, K the SH rest coefficients per channel)."""
     return count * (72 + 12 * SH_REST_COUNTS.get(sh_degree, 15))
 
 
