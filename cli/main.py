@@ -13,6 +13,7 @@ import importlib
 import logging
 import os
 import re
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ import click
 from gscompress import __version__
 from gscompress.errors import GscError, OptionError
 from gscompress.interrupts import interrupted, sigterm_interrupts
+from gscompress.io.files import safe_text
 from gscompress.threads import use_threads
 
 # command name -> "module:function" inside this package
@@ -126,7 +128,7 @@ class GscGroup(click.Group):
             command = f"{ctx.command_path} {ctx.invoked_subcommand}"
             raise OneLineUsageError(" ".join(str(exc).split()), ctx, command) from None
         except GscError as exc:
-            message = " ".join(str(exc).split())
+            message = safe_text(" ".join(str(exc).split()))
             raise click.ClickException(message) from None
         except click.UsageError as exc:
             raise one_line(exc) from None
@@ -147,12 +149,13 @@ OUT_OF_MEMORY = "out of memory (smaller images, fewer frames or a smaller map ne
 
 def os_error_message(exc: OSError) -> str:
     """One line for an error of the file system, naming the file the user asked for rather
-    than the temporary one it was being written under (`.NAME.PID.tmp`, `.NAME.XXXX.tmp`)."""
+    than the temporary one it was being written under (`.NAME.PID.tmp`, `.NAME.PID.XXXXXXXX.tmp`,
+    `.NAME.XXXX.tmp`)."""
     reason = " ".join((exc.strerror or str(exc)).split())
     if exc.filename is None:
         return reason
     path = Path(os.fsdecode(exc.filename))
-    temporary = re.fullmatch(r"\.(.+)\.\w+\.tmp", path.name)
+    temporary = re.fullmatch(r"\.(.+?)\.(?:\d+(?:\.[0-9a-f]{8})?|\w+)\.tmp", path.name)
     return f"{path.with_name(temporary[1]) if temporary else path}: {reason}"
 
 
@@ -194,6 +197,8 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
     """
     if threads is not None:
         use_threads(threads)
+    if getattr(sys.stdout, "errors", None) == "strict" and hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(errors="backslashreplace")  # (a file name that is not UTF-8)
     # gscompress says what it is doing at INFO (-q: only warnings; -v: each frame's stats too);
     # the libraries it uses speak from -vv on
     logging.basicConfig(

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import io
+import json
 import os
 import signal
 import subprocess
 import time
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
+from gscompress.gaussians import GaussianMap
 from gscompress.threads import THREAD_VARIABLES
 
 
@@ -81,6 +86,69 @@ def rewrite_log(src: Path, dst: Path, profile: str = "", **writer_options: Any) 
         writer.finish()
 
 
+def webp_image(pixels: np.ndarray, width: int) -> bytes:
+    """A lossless WebP of [N, 4] uint8 pixels in rows of `width` (zero-padded)."""
+    from PIL import Image
+
+    rows = -(-len(pixels) // width)
+    full = np.zeros((rows * width, 4), np.uint8)
+    full[: len(pixels)] = pixels
+    out = io.BytesIO()
+    Image.fromarray(full.reshape(rows, width, 4), "RGBA").save(
+        out, "WEBP", lossless=True, exact=True
+    )
+    return out.getvalue()
+
+
+def _nearest_codes(values: np.ndarray, codebook: np.ndarray) -> np.ndarray:
+    """The nearest codebook entry of each value."""
+    return np.abs(values[..., None] - codebook).argmin(axis=-1).astype(np.uint8)
+
+
+def sog_bundle(
+    g: GaussianMap, meta_edit: Callable[[dict[str, Any]], object] | None = None
+) -> bytes:
+    """A SOG bundle of `g` with evenly spaced codebooks (a test encoder written from the
+    layout; splat-transform clusters instead). Higher SH is not written."""
+    n, width = len(g), 32
+    logged = np.sign(g.means) * np.log1p(np.abs(g.means.astype(np.float64)))
+    mins, maxs = logged.min(axis=0), logged.max(axis=0)
+    t = np.round((logged - mins) / np.where(maxs > mins, maxs - mins, 1) * 65535).astype(np.int64)
+    alpha = np.full((n, 1), 255, np.uint8)
+    low = np.concatenate([(t & 255).astype(np.uint8), alpha], axis=1)
+    high = np.concatenate([(t >> 8).astype(np.uint8), alpha], axis=1)
+    q = g.quats / np.linalg.norm(g.quats, axis=1, keepdims=True)
+    largest = np.abs(q).argmax(axis=1)
+    q *= np.where(q[np.arange(n), largest] < 0, -1, 1)[:, None]
+    others = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
+    stored = np.take_along_axis(q, others, axis=1)
+    quats = np.concatenate(
+        [np.round(255 * (stored * np.sqrt(2) * 0.5 + 0.5)), 252 + largest[:, None]], axis=1
+    ).astype(np.uint8)
+    log3 = np.broadcast_to(g.log_scales, (n, 3))
+    scale_book = np.linspace(log3.min(), log3.max(), 256)
+    colour_book = np.linspace(g.sh_dc.min(), g.sh_dc.max(), 256)
+    opacity = np.round(255 * g.opacities()).astype(np.uint8)[:, None]
+    sh0 = np.concatenate([_nearest_codes(g.sh_dc, colour_book), opacity], axis=1)
+    scales = np.concatenate([_nearest_codes(log3, scale_book), alpha], axis=1)
+    meta = {
+        "version": 2,
+        "count": n,
+        "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": ["l.webp", "u.webp"]},
+        "scales": {"codebook": scale_book.tolist(), "files": ["s.webp"]},
+        "quats": {"files": ["q.webp"]},
+        "sh0": {"codebook": colour_book.tolist(), "files": ["c.webp"]},
+    }
+    if meta_edit:
+        meta_edit(meta)
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as bundle:
+        bundle.writestr("meta.json", json.dumps(meta))
+        for name, pixels in (("l", low), ("u", high), ("q", quats), ("s", scales), ("c", sh0)):
+            bundle.writestr(f"{name}.webp", webp_image(pixels, width))
+    return out.getvalue()
+
+
 @pytest.fixture(scope="session")
 def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A tiny SLAM log of the synthetic room (6 frames at 48x36, the tiny preset: a keyframe
@@ -100,9 +168,24 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {"seq": seq, "log": log, "root": root}
 
 
-TINY_STUDY = ("--preset", "tiny", "--seeds", "1", "--sweep", "0.2", "--strategies",
-              "random,pwas", "--merge-iters", "5", "--refine-poses", "2", "--no-lpips",
-              "--references", "none", "--json")  # fmt: skip
+TINY_STUDY = (
+    "--preset",
+    "tiny",
+    "--seeds",
+    "1",
+    "--sweep",
+    "0.2",
+    "--strategies",
+    "random,pwas",
+    "--merge-iters",
+    "5",
+    "--refine-poses",
+    "2",
+    "--no-lpips",
+    "--references",
+    "none",
+    "--json",
+)
 """`gsc experiment` options of a study of a few seconds: one seed, two strategies, one budget,
 short merges, short pose refinement of the cross-agent scoring, no whole map in the field's
 formats (11 runs and 7 scoring steps)."""

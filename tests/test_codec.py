@@ -14,19 +14,21 @@ from gscompress.gaussians import MAX_ABS_LOG_SCALE, SH_C0, random_map
 from gscompress.io import codec
 from gscompress.io.codec import (
     COMPACT_DEFAULTS,
-    MAX_POSITION_BITS,
     ROTATION_BITS,
     CompactColumn,
     CompactGaussians,
     CompactOptions,
     decode_compact_bytes,
     encode_compact,
+)
+from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
+from gscompress.io.quantise import (
+    MAX_POSITION_BITS,
     morton_codes,
     morton_grid,
     position_step,
     sigmoid,
 )
-from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.pipeline import log_info, prune_log
 
 
@@ -254,8 +256,15 @@ def test_position_step_rule():
 
 def test_schema_file_matches_the_descriptor():
     text = (Path(codec.__file__).parents[2] / "schemas" / "compact_gaussians.v1.proto").read_text()
-    kinds = {1: "double", 4: "uint64", 8: "bool", 9: "string", 11: "CompactColumn", 12: "bytes",
-             13: "uint32"}  # fmt: skip
+    kinds = {
+        1: "double",
+        4: "uint64",
+        8: "bool",
+        9: "string",
+        11: "CompactColumn",
+        12: "bytes",
+        13: "uint32",
+    }
     for message in (CompactGaussians, CompactColumn):
         body = re.search(rf"message {message.DESCRIPTOR.name} {{(.*?)\n}}", text, re.S).group(1)
         in_file = re.findall(r"^\s*(repeated )?(\w+) (\w+) = (\d+);", body, re.M)

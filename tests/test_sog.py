@@ -2,78 +2,18 @@
 splat-transform's SOG of our PLY cross-checked (skipped without node)."""
 
 import io
-import json
 import shutil
 import zipfile
 
 import numpy as np
 import pytest
-from PIL import Image
+from conftest import sog_bundle
 from scipy.spatial import cKDTree
 
 from gscompress.errors import MissingDependencyError, OutputError, SogFormatError
 from gscompress.gaussians import GaussianMap, random_map
 from gscompress.io.map_files import read_map_file
 from gscompress.io.sog import SPLAT_TRANSFORM_ENV, read_sog, splat_transform, write_sog
-
-
-def _webp(pixels: np.ndarray, width: int) -> bytes:
-    """A lossless WebP of [N, 4] uint8 pixels in rows of `width` (zero-padded)."""
-    rows = -(-len(pixels) // width)
-    full = np.zeros((rows * width, 4), np.uint8)
-    full[: len(pixels)] = pixels
-    out = io.BytesIO()
-    Image.fromarray(full.reshape(rows, width, 4), "RGBA").save(
-        out, "WEBP", lossless=True, exact=True
-    )
-    return out.getvalue()
-
-
-def _codes(values: np.ndarray, codebook: np.ndarray) -> np.ndarray:
-    """The nearest codebook entry of each value."""
-    return np.abs(values[..., None] - codebook).argmin(axis=-1).astype(np.uint8)
-
-
-def _sog(g: GaussianMap, meta_edit=None) -> bytes:
-    """A SOG bundle of `g` with evenly spaced codebooks (a test encoder written from the
-    layout; splat-transform clusters instead). Higher SH is not written."""
-    n, width = len(g), 32
-    logged = np.sign(g.means) * np.log1p(np.abs(g.means.astype(np.float64)))
-    mins, maxs = logged.min(axis=0), logged.max(axis=0)
-    t = np.round((logged - mins) / np.where(maxs > mins, maxs - mins, 1) * 65535).astype(np.int64)
-    alpha = np.full((n, 1), 255, np.uint8)
-    low = np.concatenate([(t & 255).astype(np.uint8), alpha], axis=1)
-    high = np.concatenate([(t >> 8).astype(np.uint8), alpha], axis=1)
-    q = g.quats / np.linalg.norm(g.quats, axis=1, keepdims=True)
-    largest = np.abs(q).argmax(axis=1)
-    q *= np.where(q[np.arange(n), largest] < 0, -1, 1)[:, None]
-    others = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
-    stored = np.take_along_axis(q, others, axis=1)
-    quats = np.concatenate(
-        [np.round(255 * (stored * np.sqrt(2) * 0.5 + 0.5)), 252 + largest[:, None]], axis=1
-    ).astype(np.uint8)
-    log3 = np.broadcast_to(g.log_scales, (n, 3))
-    scale_book = np.linspace(log3.min(), log3.max(), 256)
-    colour_book = np.linspace(g.sh_dc.min(), g.sh_dc.max(), 256)
-    opacity = np.round(255 * g.opacities()).astype(np.uint8)[:, None]
-    sh0 = np.concatenate([_codes(g.sh_dc, colour_book), opacity], axis=1)
-    scales = np.concatenate([_codes(log3, scale_book), alpha], axis=1)
-    meta = {
-        "version": 2,
-        "count": n,
-        "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": ["l.webp", "u.webp"]},
-        "scales": {"codebook": scale_book.tolist(), "files": ["s.webp"]},
-        "quats": {"files": ["q.webp"]},
-        "sh0": {"codebook": colour_book.tolist(), "files": ["c.webp"]},
-    }
-    if meta_edit:
-        meta_edit(meta)
-    out = io.BytesIO()
-    with zipfile.ZipFile(out, "w") as bundle:
-        bundle.writestr("meta.json", json.dumps(meta))
-        for name, pixels in (("l", low), ("u", high), ("q", quats), ("s", scales), ("c", sh0)):
-            bundle.writestr(f"{name}.webp", _webp(pixels, width))
-    return out.getvalue()
 
 
 def _unit(q: np.ndarray) -> np.ndarray:
@@ -96,7 +36,7 @@ def assert_sog_close(h: GaussianMap, g: GaussianMap, codebook_error: float) -> N
 
 def test_a_sog_bundle_reads_within_its_quantisation(tmp_path):
     g = random_map(900, seed=2, isotropic=False)
-    (tmp_path / "m.sog").write_bytes(_sog(g))
+    (tmp_path / "m.sog").write_bytes(sog_bundle(g))
     h = read_map_file(tmp_path / "m.sog")
     colour_step = (g.sh_dc.max() - g.sh_dc.min()) / 255
     assert_sog_close(h, g, codebook_error=colour_step / 2 + 1e-5)
@@ -105,7 +45,7 @@ def test_a_sog_bundle_reads_within_its_quantisation(tmp_path):
 
 def test_an_unbundled_sog_reads_from_its_meta_json(tmp_path):
     g = random_map(100, seed=3)
-    with zipfile.ZipFile(io.BytesIO(_sog(g))) as bundle:
+    with zipfile.ZipFile(io.BytesIO(sog_bundle(g))) as bundle:
         bundle.extractall(tmp_path)
     h = read_map_file(tmp_path / "meta.json")
     assert len(h) == 100 and h.isotropic
@@ -126,7 +66,7 @@ def test_an_unbundled_sog_reads_from_its_meta_json(tmp_path):
 )
 def test_hostile_sog_bundles_are_refused_with_one_line(tmp_path, edit, match):
     path = tmp_path / "m.sog"
-    path.write_bytes(_sog(random_map(900, seed=1), edit))
+    path.write_bytes(sog_bundle(random_map(900, seed=1), edit))
     with pytest.raises(SogFormatError, match=match) as info:
         read_map_file(path)
     assert "\n" not in str(info.value) and str(info.value).startswith(str(path))
@@ -134,7 +74,7 @@ def test_hostile_sog_bundles_are_refused_with_one_line(tmp_path, edit, match):
 
 def test_a_broken_zip_is_refused(tmp_path):
     path = tmp_path / "m.sog"
-    path.write_bytes(_sog(random_map(50))[:-40])
+    path.write_bytes(sog_bundle(random_map(50))[:-40])
     with pytest.raises(SogFormatError, match=r"m\.sog: not a SOG bundle \(not a readable zip"):
         read_sog(path)
 

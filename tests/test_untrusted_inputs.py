@@ -399,7 +399,7 @@ def test_13_bad_depth_declarations_are_refused(tmp_path, extra):
 def test_a_chunk_indexed_twice_is_read_twice_in_either_order(tmp_path):
     """Ties of a hostile index (two entries for one chunk) are broken without comparing
     records (which raised a TypeError)."""
-    from fuzzing import mcap_records, serialize_log
+    from fuzz_mcap import mcap_records, serialize_log
     from mcap.records import ChunkIndex
 
     source = _log(tmp_path, snapshots=2)
@@ -416,7 +416,7 @@ def test_a_chunk_indexed_twice_is_read_twice_in_either_order(tmp_path):
 
 def test_a_metadata_index_pointing_at_a_chunk_is_refused(tmp_path):
     """mcap would open the chunk as if it were the metadata record, without bounds."""
-    from fuzzing import mcap_records, serialize_as_is, serialize_log
+    from fuzz_mcap import mcap_records, serialize_as_is, serialize_log
     from mcap.records import ChunkIndex, MetadataIndex
 
     records = mcap_records(_log(tmp_path).read_bytes())

@@ -8,6 +8,7 @@ when the dataset has it, a ground-truth camera-to-world pose per frame. `open_se
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -19,6 +20,7 @@ from PIL import Image
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import DatasetError, InputError, OptionError, clipped
+from gscompress.io.decode_budget import DecodeBudget, check_image
 from gscompress.io.files import read_json
 
 
@@ -186,9 +188,10 @@ def parse_frames(spec: str | FrameSelection) -> FrameSelection:
 # Image loading and resizing
 
 
-def load_color(path: Path) -> np.ndarray:
-    """[H, W, 3] float32 in [0, 1] from an 8-bit colour (or grey) image file."""
-    img = _open_image(path, "colour")
+def load_color(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """[H, W, 3] float32 in [0, 1] from an 8-bit colour (or grey) image file, refused before its
+    pixels are decoded unless its header says `size` (W, H)."""
+    img = _open_image(path, "colour", size)
     with img:
         if img.mode in ("RGBA", "P", "L", "LA", "CMYK", "YCbCr"):
             img = img.convert("RGB")
@@ -232,11 +235,12 @@ def load_depth(
     depth_scale: float,
     invalid: Sequence[int] = DEFAULT_INVALID_DEPTH,
     max_depth: float | None = None,
+    size: tuple[int, int] | None = None,
 ) -> np.ndarray:
     """[H, W] float32 metres from a 16-bit depth PNG holding `depth_scale` units per metre;
     pixels of an `invalid` raw value or beyond `max_depth` metres read as 0 (no depth), as 0
-    itself does."""
-    img = _open_image(path, "depth")
+    itself does. Refused before its pixels are decoded unless its header says `size` (W, H)."""
+    img = _open_image(path, "depth", size)
     with img:
         if img.mode in ("L", "P", "RGB", "RGBA", "LA", "1"):
             raise DatasetError(
@@ -266,14 +270,27 @@ def depth_from_units(
     return depth.astype(np.float32)
 
 
-def _open_image(path: Path, what: str) -> Image.Image:
-    """Open an image lazily, turning every failure into a DatasetError naming the file."""
+def _open_image(path: Path, what: str, size: tuple[int, int] | None) -> Image.Image:
+    """Open an image, its header checked before its pixels are decoded: the size `size` (W, H)
+    when given, and what the file's bytes may decode to (`gscompress.io.decode_budget`); every
+    failure a DatasetError naming the file."""
     if not path.is_file():
         raise DatasetError(f"{what} image not found: {path}")
     try:
-        img = Image.open(path)
-        img.load()
-    except (OSError, ValueError, Image.DecompressionBombError) as exc:
+        img = Image.open(path)  # (the header only)
+        try:
+            if size is not None and img.size != tuple(size):
+                raise DatasetError(
+                    f"{what} image {path} is {img.size[0]}x{img.size[1]} but the intrinsics "
+                    f"are for {size[0]}x{size[1]}"
+                )
+            budget = DecodeBudget("image", path.stat().st_size, str(path), DatasetError)
+            check_image(img, budget, f"{what} image")
+            img.load()
+        except BaseException:
+            img.close()
+            raise
+    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as exc:
         raise DatasetError(f"cannot read {what} image {path}: {exc}") from None
     return img
 
@@ -323,8 +340,9 @@ class FrameRecord:
 class FileSequence:
     """An `RGBDSequence` over image files listed by a layout reader (TUM, Replica).
 
-    Frames are loaded on demand; `frame(i)` checks that colour, depth and intrinsics agree on
-    the image size and resizes to the working size when one was asked for.
+    Frames are loaded on demand; `frame(i)` checks from each image's header, before its pixels
+    are decoded, that colour and depth have the intrinsics' size, and resizes to the working
+    size when one was asked for.
     """
 
     def __init__(
@@ -336,9 +354,10 @@ class FileSequence:
         selection: FrameSelection,
         size: tuple[int, int] | None = None,
     ) -> None:
+        check_camera(native_intrinsics, depth, f"{name}: intrinsics")
         depth_scale = depth.scale
-        if depth_scale is None or depth_scale <= 0 or not np.isfinite(depth_scale):
-            raise DatasetError(f"{name}: depth scale must be positive, got {depth_scale}")
+        if depth_scale is None:
+            raise DatasetError(f"{name}: the depth scale is not known")
         self._depth = depth
         self._name = name
         self._all = list(records)
@@ -404,20 +423,11 @@ class FileSequence:
             raise IndexError(f"frame {i} out of range for {len(self)} frames")
         index = int(self._indices[i])
         rec = self._all[index]
-        color = load_color(rec.color_path)
+        native = (self._native.width, self._native.height)
+        color = load_color(rec.color_path, native)
         depth = load_depth(
-            rec.depth_path, self._depth_scale, self._depth.invalid, self._depth.max_depth
+            rec.depth_path, self._depth_scale, self._depth.invalid, self._depth.max_depth, native
         )
-        if color.shape[:2] != depth.shape:
-            raise DatasetError(
-                f"size mismatch: colour {rec.color_path} is {color.shape[1]}x{color.shape[0]}, "
-                f"depth {rec.depth_path} is {depth.shape[1]}x{depth.shape[0]}"
-            )
-        if color.shape[:2] != (self._native.height, self._native.width):
-            raise DatasetError(
-                f"colour {rec.color_path} is {color.shape[1]}x{color.shape[0]} but the "
-                f"intrinsics are for {self._native.width}x{self._native.height}"
-            )
         k = self._intrinsics
         return Frame(
             index=index,
@@ -430,6 +440,52 @@ class FileSequence:
 
 MAX_SIDE = 8192
 """Largest image width or height accepted: beyond it one frame's buffers no longer fit in memory."""
+
+MAX_FOCAL_PER_SIDE = 100
+"""A focal length may be at most this many times the image's longer side (a field of view of
+about 0.6 degrees: a telescope, not an RGB-D camera)."""
+
+DEPTH_SCALES = (1.0, 1e5)
+"""The plausible depth scales, units per metre: from metres (1) to 10 micrometre steps; real
+sensors write millimetres (1000), TUM 5000, Replica 6553.5."""
+
+MAX_DEPTH_M = 1e4
+"""The largest plausible `max_depth` in metres."""
+
+
+def check_camera(intrinsics: Intrinsics, depth: DepthCoding, where: str) -> None:
+    """Refuse a camera no RGB-D sensor has, naming the field: focal lengths that are not finite
+    or outside 1 pixel .. `MAX_FOCAL_PER_SIDE` times the longer side, a principal point that is
+    not finite or more than half the image outside it, a size that is not positive or over
+    `MAX_SIDE`, a depth scale outside `DEPTH_SCALES` or a `max_depth` that is not positive or
+    over `MAX_DEPTH_M` (so that a bad value fails when the sequence is opened, not as a
+    diverged optimisation minutes later).
+
+    Raises:
+        DatasetError: "`where`: `field` `value` ..." on one line.
+    """
+    k = intrinsics
+    width, height = k.width, k.height
+    for field, side in (("width", width), ("height", height)):
+        if not 0 < side <= MAX_SIDE:
+            raise DatasetError(f"{where}: {field} {side} is outside 1..{MAX_SIDE} pixels")
+    longest = max(width, height) * MAX_FOCAL_PER_SIDE
+    checks = [
+        ("fx", k.fx, 1.0, longest, "pixels"),
+        ("fy", k.fy, 1.0, longest, "pixels"),
+        ("cx", k.cx, -width / 2, 1.5 * width, "pixels"),
+        ("cy", k.cy, -height / 2, 1.5 * height, "pixels"),
+    ]
+    if depth.scale is not None:
+        checks.append(("depth_scale", depth.scale, *DEPTH_SCALES, "units per metre"))
+    if depth.max_depth is not None:
+        checks.append(("max_depth", depth.max_depth, 0.0, MAX_DEPTH_M, "metres"))
+    for field, value, low, high, unit in checks:
+        if not (math.isfinite(value) and low <= value <= high and (field != "max_depth" or value)):
+            raise DatasetError(
+                f"{where}: {field} {float(value)!r} is not plausible for a {width}x{height} camera "
+                f"(from {low:g} to {high:g} {unit})"
+            )
 
 
 def parse_size(text: str) -> tuple[int, int] | None:
@@ -523,4 +579,6 @@ def read_intrinsics_file(path: Path) -> tuple[Intrinsics, DepthCoding]:
             f"0..65535, got {clipped(invalid)}"
         )
     coding = DepthCoding(depth_scale, tuple(invalid), max_depth)
-    return Intrinsics(fx, fy, cx, cy, width, height), coding
+    intrinsics = Intrinsics(fx, fy, cx, cy, width, height)
+    check_camera(intrinsics, coding, f"intrinsics file {path}")
+    return intrinsics, coding

@@ -486,12 +486,7 @@ class _FoxgloveContainer(_Container):
                 f"{path}: a Foxglove MCAP without chunk indexes cannot be read frame by frame; "
                 "`mcap recover` writes an indexed copy"
             )
-        summary = reader._summary
-        self._schemas = {
-            c.topic: (summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "",
-                      c.message_encoding)
-            for c in summary.channels.values()
-        }  # fmt: skip
+        self._schemas = {c.topic: (c.schema, c.encoding) for c in reader.channels}
         self.topics = [
             TopicInfo(c.topic, c.schema, _KINDS.get(c.schema, ""), c.messages)
             for c in reader.channels
@@ -669,18 +664,20 @@ def _bound_ros1_chunks(reader: Any) -> None:
 
 
 def check_chunk_size(size: int, compressed: int, compression: str, source: str) -> None:
-    """Refuse a chunk that declares more than the decode bound allows (the MCAP reader's
-    `MAX_CHUNK_RATIO` times its compressed size, `MAX_CHUNK_BYTES` in all). Kept small and on
-    its own so that it can call the shared decode budget once there is one."""
-    from gscompress.io.mcap_bounds import _RATIO_FLOOR, MAX_CHUNK_BYTES, MAX_CHUNK_RATIO
+    """Refuse a ROS 1 chunk that declares more than the decode budget of an MCAP chunk allows
+    (`gscompress.io.decode_budget`, format `mcap-chunk`), before it is inflated."""
+    from gscompress.io.decode_budget import DecodeBudget
+    from gscompress.io.mcap_bounds import MAX_CHUNK_BYTES
 
     if compression == "none" and size != compressed:
         raise DatasetError(f"{source}: a chunk of {compressed} bytes claims {size} uncompressed")
-    if size > MAX_CHUNK_BYTES or size > max(_RATIO_FLOOR, MAX_CHUNK_RATIO * compressed):
+    if size > MAX_CHUNK_BYTES:
         raise DatasetError(
-            f"{source}: a chunk of {compressed} bytes claims {size} bytes uncompressed (at most "
-            f"{MAX_CHUNK_RATIO} times its compressed size)"
+            f"{source}: a chunk of {compressed} bytes claims {size} bytes uncompressed, more "
+            f"than the {MAX_CHUNK_BYTES >> 30} GiB a chunk may hold"
         )
+    budget = DecodeBudget("mcap-chunk", compressed, source, DatasetError)
+    budget.check(size, f"a chunk of {compressed} bytes claims {size} bytes uncompressed")
 
 
 def _bounded_inflate(compression: str, size: int, source: str) -> Callable[[bytes], bytes]:
@@ -696,13 +693,9 @@ def _bounded_inflate(compression: str, size: int, source: str) -> Callable[[byte
             except (OSError, ValueError) as exc:
                 raise DatasetError(f"{source}: a chunk's bz2 data is corrupt ({exc})") from None
         elif compression == "lz4":
-            from gscompress.errors import LogFormatError
-            from gscompress.io.mcap_bounds import _lz4_bounded
+            from gscompress.io.decode_budget import inflate_lz4
 
-            try:
-                out = _lz4_bounded(data, size, source)
-            except LogFormatError as exc:
-                raise DatasetError(str(exc)) from None
+            out = inflate_lz4(data, size, f"{source}: a chunk's lz4 data", DatasetError)
         else:
             raise DatasetError(f"{source}: a chunk is compressed with unknown {compression!r}")
         if len(out) != size:

@@ -44,7 +44,7 @@ from gscompress.datasets.base import (
 )
 from gscompress.datasets.stamps import associate
 from gscompress.errors import DatasetError, InputError, OutputError
-from gscompress.io.files import read_text
+from gscompress.io.files import read_text, write_atomic, write_text_atomic
 from gscompress.io.trajectory import format_tum_trajectory, nearest_times, read_tum_trajectory
 
 TUM_DEPTH_SCALE = 5000.0
@@ -114,10 +114,9 @@ def _tum_records(root: Path, max_dt: float, max_dt_gt: float) -> tuple[list[Fram
             max_dt,
         )
         frames = [
-            (rgb[i][0], _resolve(root, rgb[i][1], rgb_txt),
-             _resolve(root, depth[j][1], depth_txt))
+            (rgb[i][0], _resolve(root, rgb[i][1], rgb_txt), _resolve(root, depth[j][1], depth_txt))
             for i, j in pairs
-        ]  # fmt: skip
+        ]
     else:
         frames = _read_associations(root / "associations.txt", root)
     if not frames:
@@ -249,8 +248,9 @@ def write_tum_sequence(
         if float(np.max(f.depth, initial=0.0)) > max_depth:
             raise OutputError(f"depth beyond {max_depth:.2f} m cannot be stored at this scale")
         d16 = np.rint(np.where(f.depth > 0, f.depth, 0.0) * depth_scale).astype(np.uint16)
-        Image.fromarray(rgb8, mode="RGB").save(out_dir / "rgb" / name)
-        Image.fromarray(d16).save(out_dir / "depth" / name)
+        colour, depth = Image.fromarray(rgb8, mode="RGB"), Image.fromarray(d16)
+        write_atomic(out_dir / "rgb" / name, lambda file: colour.save(file, format="PNG"))
+        write_atomic(out_dir / "depth" / name, lambda file: depth.save(file, format="PNG"))
         return f"{f.timestamp:.6f}", name, f.T_world_cam
 
     rgb_lines = ["# color images", "# timestamp filename"]
@@ -267,17 +267,22 @@ def write_tum_sequence(
                 gt_poses.append(pose)
             if progress is not None:
                 progress(1)
-    (out_dir / "rgb.txt").write_text("\n".join(rgb_lines) + "\n", encoding="utf-8")
-    (out_dir / "depth.txt").write_text("\n".join(depth_lines) + "\n", encoding="utf-8")
+    write_text_atomic(out_dir / "rgb.txt", "\n".join(rgb_lines) + "\n")
+    write_text_atomic(out_dir / "depth.txt", "\n".join(depth_lines) + "\n")
     if gt_poses:
         text = format_tum_trajectory(
             np.array(gt_stamps), np.array(gt_poses), ["ground truth trajectory (camera-to-world)"]
         )
-        (out_dir / "groundtruth.txt").write_text(text, encoding="utf-8")
+        write_text_atomic(out_dir / "groundtruth.txt", text)
     k = sequence.intrinsics
     meta: dict[str, object] = {
-        "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "width": k.width, "height": k.height,
+        "fx": k.fx,
+        "fy": k.fy,
+        "cx": k.cx,
+        "cy": k.cy,
+        "width": k.width,
+        "height": k.height,
         "depth_scale": depth_scale,
-    }  # fmt: skip
+    }
     meta.update(extra or {})
-    (out_dir / "intrinsics.json").write_text(json.dumps(meta, indent=2) + "\n", encoding="utf-8")
+    write_text_atomic(out_dir / "intrinsics.json", json.dumps(meta, indent=2) + "\n")

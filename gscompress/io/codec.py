@@ -4,8 +4,9 @@
   Foxglove draws as it is.
 - `compact`: our own protobuf message `gscompress.CompactGaussians`
   (schemas/compact_gaussians.v1.proto), column by column, each attribute quantised and
-  zstd-compressed on its own. This module encodes and decodes it; docs/codecs.md gives the rules
-  and the measurements behind the bit widths.
+  zstd-compressed on its own. This module encodes and decodes it (the quantisation rules, one per
+  transform, are in `gscompress.io.quantise`); docs/codecs.md gives the rules and the
+  measurements behind the bit widths.
 
 Compact columns, in the order of the Gaussians along a Morton (Z-order) curve of their grid
 positions:
@@ -36,7 +37,6 @@ numpy + zstandard + protobuf only (no torch).
 
 from __future__ import annotations
 
-import io
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -46,8 +46,25 @@ import zstandard
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError, Message
 
-from gscompress.errors import GscError, InputError, MapError
+from gscompress.errors import InputError, MapError
 from gscompress.gaussians import PWAS_EPS, SH_REST_COUNTS, GaussianMap
+from gscompress.io.decode_budget import DecodeBudget, inflate_zstd
+from gscompress.io.quantise import (
+    FLOAT32_MAX,
+    LINEAR_TRANSFORMS,
+    MAX_ASINH,
+    MAX_LOG_SCORE,
+    MAX_POSITION_BITS,
+    POSITION_STEP_FRACTION,
+    decode_smallest_three,
+    dequantise_linear,
+    dequantise_log,
+    encode_smallest_three,
+    grid_codes,
+    morton_grid,
+    quantise_linear,
+    quantise_log,
+)
 
 CODECS = ("fp32", "fp16", "compact")
 """Map codecs, from the largest to the smallest."""
@@ -58,16 +75,15 @@ COMPACT_SCHEMA = "gscompress.CompactGaussians"
 COMPACT_VERSION = 1
 """Version of the compact message this module writes and reads."""
 
-POSITION_STEP_FRACTION = 1 / 128
-"""Default position grid step as a fraction of the map's median Gaussian scale (the standard
-deviation exp(log_scale)): the position error is at most half a step per axis, 1/256 of a typical
-Gaussian's own scale (positions set most of a compact map's error: docs/codecs.md)."""
-
-MAX_POSITION_BITS = 21
-"""Largest grid size per axis, in bits (three axes interleave into a 63-bit Morton code)."""
-
-BITS = {"log_scale": 8, "opacity": 6, "f_dc": 7, "f_rest": 8, "importance": 8,
-        "importance_weight": 8, "alpha_t_sum": 8}  # fmt: skip
+BITS = {
+    "log_scale": 8,
+    "opacity": 6,
+    "f_dc": 7,
+    "f_rest": 8,
+    "importance": 8,
+    "importance_weight": 8,
+    "alpha_t_sum": 8,
+}
 """Default quantisation bits of each linear and log-linear column (chosen by bench/codec.py and
 the probes in docs/codecs.md): an 8-bit log code keeps a score or a sum within 3% over the
 1e-3..1e4 span of real maps, and a 30% prune of the decoded scores keeps 98% of the Gaussians
@@ -79,9 +95,6 @@ COLOUR_TRANSFORM = "asinh-linear"
 """How `f_dc` is coded: linear in asinh(f_dc), fine near the colours of [0, 1] (|f_dc| < 1.8)
 and coarse in the long tails optimisation leaves (f_dc up to 20 on real maps), which would
 otherwise stretch a linear code's range and coarsen every colour."""
-
-_MAX_ASINH = float(np.arcsinh(np.float64(np.finfo(np.float32).max)))
-"""Largest |asinh(value)| an `asinh-linear` column may code (sinh of it is float32's largest)."""
 
 SUMS = ("importance_weight", "alpha_t_sum")
 """The PWAS sums a compact message codes beside the score (importance_sum = score x (W + eps))."""
@@ -95,25 +108,9 @@ ZSTD_LEVEL = 3
 MAX_GAUSSIANS = 1 << 28
 """Most Gaussians a compact message may declare."""
 
-MIN_BYTES_PER_GAUSSIAN = 1 / 16
-"""A compact message must hold at least this many bytes per Gaussian it declares (half a bit;
-real maps take 5-20 bytes): a small message cannot make the reader allocate a huge map."""
-
 ROTATION_BITS = 10
 """Bits of each of the three smallest quaternion components in a `smallest-three` code (a sign
 and 9 bits of magnitude)."""
-
-_SQRT1_2 = np.float32(np.sqrt(0.5))
-"""The largest the three smallest components of a unit quaternion can be."""
-
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
-"""Largest value a decoded attribute may take (a map holds float32)."""
-
-_MAX_LOG_SCORE = 88.0
-"""Largest log score a `log-linear` column may code (exp of it is a finite float32)."""
-
-_SIGMOID_EPS = 1e-7
-"""Opacities are coded in [eps, 1 - eps], so that every code has a finite logit."""
 
 
 @dataclass(frozen=True)
@@ -150,8 +147,12 @@ def layout() -> dict[str, Any]:
     """What sets a compact message's bytes besides the map and its `CompactOptions`: each
     column's bits, the colour transform, the rotation bits and the position step (the
     experiment keys its shares by it, so that a share cut by another layout is cut again)."""
-    return {"bits": dict(BITS), "colour": COLOUR_TRANSFORM, "rotation_bits": ROTATION_BITS,
-            "position_step": POSITION_STEP_FRACTION}  # fmt: skip
+    return {
+        "bits": dict(BITS),
+        "colour": COLOUR_TRANSFORM,
+        "rotation_bits": ROTATION_BITS,
+        "position_step": POSITION_STEP_FRACTION,
+    }
 
 
 def check_codec(codec: str) -> str:
@@ -222,220 +223,6 @@ def compact_schema_bytes() -> bytes:
     return fds.SerializeToString()
 
 
-# ---------------------------------------------------------------------- one rule per transform
-
-
-def quantise_linear(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear codes of `bits` bits for each column of `values` [N, C] between its min and max.
-
-    Returns:
-        (codes [N, C] uint8 or uint16, low [C], high [C]); decoding is `dequantise_linear`.
-    """
-    values = np.asarray(values, dtype=np.float64)
-    levels = (1 << bits) - 1
-    if len(values):
-        low, high = values.min(axis=0), values.max(axis=0)
-    else:
-        low = high = np.zeros(values.shape[1])
-    span = np.where(high > low, high - low, 1.0)
-    codes = np.rint((values - low) / span * levels)
-    return codes.astype(np.uint8 if bits <= 8 else np.uint16), low, high
-
-
-def dequantise_linear(
-    codes: np.ndarray, low: np.ndarray, high: np.ndarray, bits: int
-) -> np.ndarray:
-    """Values of linear codes: low + code * (high - low) / (2^bits - 1), as float32."""
-    levels = (1 << bits) - 1
-    return (low + codes.astype(np.float64) * ((high - low) / levels)).astype(np.float32)
-
-
-def sigmoid(logits: np.ndarray) -> np.ndarray:
-    """Opacity in (0, 1) of opacity logits (float64; no overflow warning at large |logit|)."""
-    return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(logits, dtype=np.float64)))
-
-
-def logit(p: np.ndarray) -> np.ndarray:
-    """Opacity logits of opacities, clamped to [eps, 1 - eps] so that each is finite."""
-    p = np.clip(np.asarray(p, dtype=np.float64), _SIGMOID_EPS, 1 - _SIGMOID_EPS)
-    return np.log(p / (1 - p))
-
-
-def _asinh(values: np.ndarray) -> np.ndarray:
-    return np.arcsinh(np.asarray(values, dtype=np.float64))
-
-
-def _sinh(values: np.ndarray) -> np.ndarray:
-    """sinh, within float32's range (an `asinh-linear` column's range is bounded by it)."""
-    return np.clip(np.sinh(np.asarray(values, dtype=np.float64)), -_FLOAT32_MAX, _FLOAT32_MAX)
-
-
-LINEAR_TRANSFORMS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], ...]] = {
-    "linear": (np.asarray, np.asarray),
-    "sigmoid-linear": (sigmoid, logit),
-    "asinh-linear": (_asinh, _sinh),
-}
-"""A linear column's transform -> (forward: a value into the space its codes are linear in,
-inverse: back). The encoder, the decoder and bench/codec_columns.py take them from here."""
-
-
-def quantise_log(scores: np.ndarray, bits: int) -> tuple[np.ndarray, float, float]:
-    """Codes of nonnegative scores on a log scale: 0 for a zero score, 1..2^bits-1 linear in log
-    score between the smallest and largest positive score.
-
-    Returns:
-        (codes [N] uint16, low, high: log of the smallest and largest positive score).
-    """
-    scores = np.asarray(scores, dtype=np.float64)
-    positive = scores > 0
-    codes = np.zeros(len(scores), np.uint16)
-    if not positive.any():
-        return codes, 0.0, 0.0
-    logs = np.log(scores[positive])
-    logs = np.clip(logs, -_MAX_LOG_SCORE, _MAX_LOG_SCORE)  # (subnormal float32 goes below -88)
-    low, high = float(logs.min()), float(logs.max())
-    steps = (1 << bits) - 2
-    span = high - low if high > low else 1.0
-    codes[positive] = 1 + np.rint((logs - low) / span * steps).astype(np.uint16)
-    return codes, low, high
-
-
-def dequantise_log(codes: np.ndarray, low: float, high: float, bits: int) -> np.ndarray:
-    """Scores of log codes (see `quantise_log`), as float32: a table of every code's value,
-    indexed (codes must be below 2^bits)."""
-    steps = (1 << bits) - 2
-    table = np.exp(low + (np.arange(1 << bits) - 1.0) * ((high - low) / steps))
-    table[0] = 0.0
-    return table.astype(np.float32)[codes]
-
-
-def encode_smallest_three(quats_wxyz: np.ndarray) -> np.ndarray:
-    """[N] uint32 smallest-three codes of rotations (w x y z, any nonzero norm), in SPZ's
-    layout: the index of the largest |component| (in x y z w order) in the top 2 bits, then
-    the other three, each as a sign bit and 9 bits of magnitude in [0, 1/sqrt2], signed so
-    that the largest is positive (one layout for SPZ files and compact maps)."""
-    norms = np.linalg.norm(np.asarray(quats_wxyz, dtype=np.float64), axis=1, keepdims=True)
-    quats_wxyz = np.asarray(quats_wxyz, dtype=np.float64) / np.where(norms > 0, norms, 1.0)
-    q = [quats_wxyz[:, i] for i in (1, 2, 3, 0)]  # x y z w
-    size = np.abs(quats_wxyz)[:, [1, 2, 3, 0]]
-    largest = np.argmax(size, axis=1)  # the first of equal magnitudes, as the reference
-    flip = np.choose(largest, q) < 0
-    code = largest.astype(np.uint32) << np.uint32(30)
-    for i in range(4):
-        magnitude = np.minimum(np.floor(size[:, i] * (511 / np.sqrt(0.5)) + 0.5), 511)
-        negative = ((q[i] < 0) ^ flip) & (q[i] != 0)
-        field = magnitude.astype(np.uint32) | negative.astype(np.uint32) << np.uint32(9)
-        slot = i - (largest < i)  # its place among the three stored, first in the high bits
-        shift = (10 * (2 - slot)).clip(0).astype(np.uint32)
-        code |= np.where(largest != i, field << shift, np.uint32(0)).astype(np.uint32)
-    return code
-
-
-def decode_smallest_three(code: np.ndarray) -> np.ndarray:
-    """[N, 4] float32 unit quaternions (w x y z) of `encode_smallest_three` codes."""
-    n = len(code)
-    largest = (code >> 30).astype(np.intp)
-    q = np.zeros((n, 4), np.float32)  # x y z w
-    rows = np.arange(n)
-    rest = code.astype(np.uint32)
-    squares = np.zeros(n, np.float32)
-    for i in range(3, -1, -1):
-        here = largest != i
-        value = (rest & 511).astype(np.float32) * (_SQRT1_2 / np.float32(511))
-        value = np.where((rest >> 9) & 1, -value, value)
-        q[:, i] = np.where(here, value, 0)
-        squares += np.where(here, value * value, 0)
-        rest = np.where(here, rest >> 10, rest)
-    q[rows, largest] = np.sqrt(np.maximum(0, 1 - squares))
-    return q[:, [3, 0, 1, 2]]
-
-
-def _spread_bits(v: np.ndarray) -> np.ndarray:
-    """Each bit i of 21-bit integers moved to bit 3i (uint64)."""
-    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in (
-        (32, 0x1F00000000FFFF),
-        (16, 0x1F0000FF0000FF),
-        (8, 0x100F00F00F00F00F),
-        (4, 0x10C30C30C30C30C3),
-        (2, 0x1249249249249249),
-    ):
-        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-    return v
-
-
-def _compact_bits(v: np.ndarray) -> np.ndarray:
-    """The inverse of `_spread_bits`: bits 3i back to bit i."""
-    v = v.astype(np.uint64) & np.uint64(0x1249249249249249)
-    for shift, mask in (
-        (2, 0x10C30C30C30C30C3),
-        (4, 0x100F00F00F00F00F),
-        (8, 0x1F0000FF0000FF),
-        (16, 0x1F00000000FFFF),
-        (32, 0x1FFFFF),
-    ):
-        v = (v | (v >> np.uint64(shift))) & np.uint64(mask)
-    return v
-
-
-def morton_codes(grid: np.ndarray) -> np.ndarray:
-    """Morton codes (uint64) of grid coordinates [N, 3] below 2^21: x in bit 0, y 1, z 2."""
-    grid = np.asarray(grid)
-    return (
-        _spread_bits(grid[:, 0])
-        | (_spread_bits(grid[:, 1]) << np.uint64(1))
-        | (_spread_bits(grid[:, 2]) << np.uint64(2))
-    )
-
-
-def morton_grid(codes: np.ndarray) -> np.ndarray:
-    """Grid coordinates [N, 3] (int64) of Morton codes (the inverse of `morton_codes`)."""
-    codes = np.asarray(codes, dtype=np.uint64)
-    return np.stack([_compact_bits(codes >> np.uint64(axis)) for axis in range(3)], axis=1).astype(
-        np.int64
-    )
-
-
-def position_step(
-    gaussians: GaussianMap, step: float | None = None
-) -> tuple[np.ndarray, float, int]:
-    """The position grid of a map: origin [3] (float64), step and bits per axis.
-
-    The step is `step`, else `POSITION_STEP_FRACTION` of the median scale; it grows where the
-    map would span more than 2^MAX_POSITION_BITS steps along an axis.
-
-    Raises:
-        InputError: a given step that is not a positive finite number.
-    """
-    if step is not None and not (np.isfinite(step) and step > 0):
-        raise InputError(f"position step must be a positive number of metres, got {step}")
-    means = gaussians.means.astype(np.float64)
-    if not len(means):
-        return np.zeros(3), float(step or 1.0), 1
-    origin = means.min(axis=0)
-    extent = float((means.max(axis=0) - origin).max())
-    if step is None:
-        median_scale = float(np.median(np.exp(gaussians.log_scales.astype(np.float64))))
-        step = POSITION_STEP_FRACTION * median_scale if median_scale > 0 else 1e-3
-    step = max(step, extent / ((1 << MAX_POSITION_BITS) - 1) * (1 + 1e-9), np.finfo(float).tiny)
-    bits = max(1, int(np.ceil(np.log2(extent / step + 1.5))))
-    return origin, float(step), min(bits, MAX_POSITION_BITS)
-
-
-def grid_codes(
-    gaussians: GaussianMap, step: float | None = None
-) -> tuple[np.ndarray, float, int, np.ndarray]:
-    """The position grid of a map (`position_step`: origin, step, bits per axis) and each
-    Gaussian's Morton code on it; a compact message stores the Gaussians in that code's order.
-
-    Raises:
-        InputError: a bad `step`.
-    """
-    origin, step, bits = position_step(gaussians, step)
-    grid = np.rint((gaussians.means.astype(np.float64) - origin) / step).astype(np.int64)
-    return origin, step, bits, morton_codes(np.clip(grid, 0, (1 << bits) - 1))
-
-
 # ---------------------------------------------------------------------- columns
 
 
@@ -447,7 +234,9 @@ def _shuffle(codes: np.ndarray) -> bytes:
     return np.ascontiguousarray(raw.transpose(2, 0, 1)).tobytes()
 
 
-def _unshuffle(planes: bytes, count: int, components: int, dtype: np.dtype) -> np.ndarray:
+def _unshuffle(
+    planes: bytes | bytearray, count: int, components: int, dtype: np.dtype
+) -> np.ndarray:
     """The inverse of `_shuffle`: codes [count, components] of `dtype`."""
     raw = np.frombuffer(planes, np.uint8).reshape(dtype.itemsize, count, components)
     return np.ascontiguousarray(raw.transpose(1, 2, 0)).view(dtype).reshape(count, components)
@@ -532,8 +321,9 @@ def encode_compact(
 
     def log_linear(name: str, values: np.ndarray) -> None:
         q, low, high = quantise_log(values, BITS[name])
-        columns.append(_column(name, "log-linear", q, bits=BITS[name], low=low, high=high,
-                               compressor=zstd))  # fmt: skip
+        columns.append(
+            _column(name, "log-linear", q, bits=BITS[name], low=low, high=high, compressor=zstd)
+        )
 
     if options.sums or (options.score and gaussians.has_importance):
         log_linear("importance", ordered("importance"))
@@ -614,164 +404,249 @@ def decode_compact(
             match the count, a bad grid (non-finite origin, step zero or non-finite), codes
             outside their range, or a decoded map that is not valid.
     """
+    grid = _check_header(message, message_bytes, source)
+    columns = _inflate_columns(message, grid.count, source)
+    raw, coded = _check_column_set(message, columns, source)
+    gaussians = GaussianMap.new(
+        means=_decode_positions(columns["position"].codes, grid, source),
+        log_scales=_linear(columns["log_scale"], source),
+        quats=_decode_rotations(columns.get("rotation"), grid.count),
+        opacity_logits=_linear(columns["opacity"], source)[:, 0].astype(np.float32),
+        sh_dc=_linear(columns["f_dc"], source),
+        sh_rest=_decode_sh_rest(columns.get("f_rest"), message.sh_degree, source),
+        **_decode_pwas(columns, raw, coded, grid.count, source),
+        **_decode_ids(columns.get("id")),
+    )
+    try:
+        return gaussians.validate()
+    except MapError as exc:
+        raise _failure(source, str(exc)) from None
 
-    def fail(what: str) -> MapError:
-        return MapError(f"{source}: compact map {what}")
 
+def _failure(source: str, what: str) -> MapError:
+    """The error of a compact map that is not readable."""
+    return MapError(f"{source}: compact map {what}")
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """A compact message's count and position grid, checked."""
+
+    count: int
+    origin: np.ndarray
+    step: float
+    bits: int
+
+
+@dataclass(frozen=True)
+class _Column:
+    """A column's codes [count, components] and the message column they came from."""
+
+    codes: np.ndarray
+    spec: Message
+
+
+def _check_header(message: Message, message_bytes: int, source: str) -> _Grid:
+    """The version, the SH degree, the count (against `MAX_GAUSSIANS` and what the message's
+    bytes may decode to: `gscompress.io.decode_budget`) and the position grid of a message."""
     if message.version != COMPACT_VERSION:
-        raise fail(f"has version {message.version}; this gscompress reads {COMPACT_VERSION}")
+        raise _failure(
+            source, f"has version {message.version}; this gscompress reads {COMPACT_VERSION}"
+        )
     n = int(message.count)
-    if n > MAX_GAUSSIANS or n > message_bytes / MIN_BYTES_PER_GAUSSIAN:
-        raise fail(f"declares {n} Gaussians in {message_bytes} bytes")
     if message.sh_degree not in SH_REST_COUNTS:
-        raise fail(f"has SH degree {message.sh_degree}")
+        raise _failure(source, f"has SH degree {message.sh_degree}")
+    if n > MAX_GAUSSIANS:
+        raise _failure(source, f"declares {n} Gaussians, more than the {MAX_GAUSSIANS} read here")
+    DecodeBudget("compact", message_bytes, f"{source}: compact map", MapError).check_map(
+        n, message.sh_degree
+    )
     origin = np.array(message.origin, dtype=np.float64)
     step = float(message.step)
     if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-        raise fail("has no finite grid origin of three numbers")
+        raise _failure(source, "has no finite grid origin of three numbers")
     if not (np.isfinite(step) and step > 0):
-        raise fail(f"has grid step {step}: not a positive number")
+        raise _failure(source, f"has grid step {step}: not a positive number")
     bits = int(message.position_bits)
     if not 1 <= bits <= MAX_POSITION_BITS:
-        raise fail(f"has {bits} position bits (1..{MAX_POSITION_BITS})")
+        raise _failure(source, f"has {bits} position bits (1..{MAX_POSITION_BITS})")
+    return _Grid(n, origin, step, bits)
 
-    columns: dict[str, np.ndarray] = {}
-    params: dict[str, Message] = {}
+
+def _inflate_columns(message: Message, n: int, source: str) -> dict[str, _Column]:
+    """Every column of a message by name, each checked (`_check_column`) before it is
+    inflated to exactly the bytes its count and type take."""
+    columns: dict[str, _Column] = {}
     for column in message.columns:
         name = column.name
-        if name not in _SHAPES:
-            raise fail(f"has an unknown column {name[:40]!r}")
         if name in columns:
-            raise fail(f"has column {name!r} twice")
-        transform, components = column.transform, _SHAPES[name][1](message)
-        if transform not in _SHAPES[name][0] or column.dtype not in _DTYPES[transform]:
-            raise fail(f"column {name!r} is {column.transform[:40]!r} {column.dtype[:8]!r}")
-        if column.components != components:
-            raise fail(f"column {name!r} has {column.components} components, not {components}")
-        dtype = np.dtype(column.dtype)
-        expected = n * components * dtype.itemsize
-        if column.raw_bytes != expected:
-            raise fail(f"column {name!r} declares {column.raw_bytes} bytes; {n} Gaussians take "
-                       f"{expected}")  # fmt: skip
-        if transform in ("linear", "sigmoid-linear", "asinh-linear", "log-linear"):
-            low, high = np.array(column.low), np.array(column.high)
-            wanted = 1 if transform == "log-linear" else components
-            if low.shape != (wanted,) or high.shape != (wanted,):
-                raise fail(f"column {name!r} lacks its low and high values")
-            bound = {"log-linear": _MAX_LOG_SCORE, "asinh-linear": _MAX_ASINH}.get(
-                transform, _FLOAT32_MAX
-            )
-            if not (
-                np.all(np.abs(low) <= bound)
-                and np.all(np.abs(high) <= bound)
-                and np.all(high >= low)
-            ):  # fmt: skip  (also: not NaN)
-                worst = float(np.max(np.abs(np.concatenate([low, high]))))
-                raise fail(f"column {name!r} has a range beyond +-{bound:g} or inverted "
-                           f"(largest |value| {worst:g})")  # fmt: skip
-            if not 1 <= column.bits <= dtype.itemsize * 8 or (
-                transform == "log-linear" and column.bits < 2
-            ):
-                raise fail(f"column {name!r} has {column.bits} bits in {column.dtype}")
-        planes = inflate_zstd(column.data, expected, f"{source}: compact map column {name!r}")
-        columns[name] = _unshuffle(planes, n, components, dtype)
-        params[name] = column
+            raise _failure(source, f"has column {name!r} twice")
+        components, dtype = _check_column(column, message, n, source)
+        planes = inflate_zstd(
+            column.data, column.raw_bytes, f"{source}: compact map column {name!r}", MapError
+        )
+        columns[name] = _Column(_unshuffle(planes, n, components, dtype), column)
+    return columns
 
+
+def _check_column(column: Message, message: Message, n: int, source: str) -> tuple[int, np.dtype]:
+    """A column's components and code dtype, refused unless its name, transform, dtype,
+    components, size and range are what its kind takes."""
+    name = column.name
+    if name not in _SHAPES:
+        raise _failure(source, f"has an unknown column {name[:40]!r}")
+    transform, components = column.transform, _SHAPES[name][1](message)
+    if transform not in _SHAPES[name][0] or column.dtype not in _DTYPES[transform]:
+        raise _failure(source, f"column {name!r} is {transform[:40]!r} {column.dtype[:8]!r}")
+    if column.components != components:
+        raise _failure(
+            source, f"column {name!r} has {column.components} components, not {components}"
+        )
+    dtype = np.dtype(column.dtype)
+    expected = n * components * dtype.itemsize
+    if column.raw_bytes != expected:
+        raise _failure(
+            source,
+            f"column {name!r} declares {column.raw_bytes} bytes; {n} Gaussians take {expected}",
+        )
+    if transform in _RANGES:
+        _check_range(column, components, dtype, source)
+    return components, dtype
+
+
+_RANGES = {
+    "linear": FLOAT32_MAX,
+    "sigmoid-linear": FLOAT32_MAX,
+    "asinh-linear": MAX_ASINH,
+    "log-linear": MAX_LOG_SCORE,
+}
+"""Quantised transform -> the largest |low| or |high| its column may record."""
+
+
+def _check_range(column: Message, components: int, dtype: np.dtype, source: str) -> None:
+    """A quantised column's low and high values (one per component, one for a log-linear
+    column; finite, within the transform's bound, not inverted) and its bits."""
+    name, transform = column.name, column.transform
+    low, high = np.array(column.low), np.array(column.high)
+    wanted = 1 if transform == "log-linear" else components
+    if low.shape != (wanted,) or high.shape != (wanted,):
+        raise _failure(source, f"column {name!r} lacks its low and high values")
+    bound = _RANGES[transform]
+    inside = np.all(np.abs(low) <= bound) and np.all(np.abs(high) <= bound)
+    if not (inside and np.all(high >= low)):  # (also: not NaN)
+        worst = float(np.max(np.abs(np.concatenate([low, high]))))
+        raise _failure(
+            source,
+            f"column {name!r} has a range beyond +-{bound:g} or inverted "
+            f"(largest |value| {worst:g})",
+        )
+    if not 1 <= column.bits <= dtype.itemsize * 8 or (
+        transform == "log-linear" and column.bits < 2
+    ):
+        raise _failure(source, f"column {name!r} has {column.bits} bits in {column.dtype}")
+
+
+def _check_column_set(
+    message: Message, columns: dict[str, _Column], source: str
+) -> tuple[set[str], set[str]]:
+    """Refuse a message without the columns its kind requires, or with part of the PWAS state.
+
+    Returns:
+        (the PWAS sums stored as float32, the PWAS sums stored as codes).
+    """
     required = ["position", "log_scale", "opacity", "f_dc"]
     required += [] if message.isotropic else ["rotation"]
     required += ["f_rest"] if message.sh_degree else []
     missing = [name for name in required if name not in columns]
     if missing:
-        raise fail(f"lacks column(s) {', '.join(missing)}")
-    raw = {name for name in RAW_SUMS if name in columns and params[name].transform == "raw"}
+        raise _failure(source, f"lacks column(s) {', '.join(missing)}")
+    raw = {name for name in RAW_SUMS if name in columns and columns[name].spec.transform == "raw"}
     coded = {name for name in SUMS if name in columns} - raw
     if (raw and len(raw) != len(RAW_SUMS)) or (coded and len(coded) != len(SUMS)):
-        raise fail("has some of the PWAS sums but not all of them")
+        raise _failure(source, "has some of the PWAS sums but not all of them")
     if coded and "importance" not in columns:
-        raise fail("has the PWAS sums but not the score")
+        raise _failure(source, "has the PWAS sums but not the score")
     if message.isotropic and "rotation" in columns:
-        raise fail("is isotropic but has rotations")
+        raise _failure(source, "is isotropic but has rotations")
+    return raw, coded
 
-    deltas = columns["position"][:, 0]
+
+def _decode_positions(codes: np.ndarray, grid: _Grid, source: str) -> np.ndarray:
+    """[N, 3] float32 means of the Morton-delta column, refused off the grid or beyond float32."""
+    deltas = codes[:, 0]
     total = np.cumsum(deltas, dtype=np.uint64)
-    limit = np.uint64(1) << np.uint64(3 * bits)
-    if n and (np.any(deltas >= limit) or np.any(total[1:] < total[:-1]) or total[-1] >= limit):
-        raise fail(f"has positions outside its {bits}-bit grid")
-    positions = origin + morton_grid(total) * step
-    if n and not np.all(np.abs(positions) <= _FLOAT32_MAX):
-        raise fail("has positions beyond the float32 range (its grid's origin or step)")
-    means = positions.astype(np.float32)
-
-    def codes(name: str) -> tuple[np.ndarray, Message]:
-        """A quantised column's codes, checked to fit its bits, and its parameters."""
-        c = params[name]
-        if np.any(columns[name] > (1 << c.bits) - 1):
-            raise fail(f"column {name!r} has codes beyond {c.bits} bits")
-        return columns[name], c
-
-    def linear(name: str) -> np.ndarray:
-        values, c = codes(name)
-        inverse = LINEAR_TRANSFORMS[c.transform][1]  # (f_dc: "linear" in older messages)
-        return inverse(dequantise_linear(values, np.array(c.low), np.array(c.high), c.bits))
-
-    rotation = columns.get("rotation")
-    k = SH_REST_COUNTS[message.sh_degree]
-
-    def log_linear(name: str) -> np.ndarray:
-        values, c = codes(name)
-        return dequantise_log(values[:, 0], c.low[0], c.high[0], c.bits)
-
-    extra: dict[str, Any] = {name: columns[name][:, 0] for name in raw}
-    if "importance" in columns and not raw:
-        score = log_linear("importance")
-        if coded:
-            weight = log_linear("importance_weight")
-            extra = {"importance_sum": score * (weight + np.float32(PWAS_EPS)),
-                     "importance_weight": weight,
-                     "alpha_t_sum": log_linear("alpha_t_sum")}  # fmt: skip
-        else:
-            extra = {"importance_sum": score, "importance_weight": np.ones(n, np.float32)}
-    if "id" in columns:
-        extra["ids"] = np.cumsum(columns["id"][:, 0], dtype=np.uint32)
-    gaussians = GaussianMap.new(
-        means=means,
-        log_scales=linear("log_scale"),
-        quats=(
-            np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
-            if rotation is None
-            else decode_smallest_three(rotation[:, 0])
-        ),
-        opacity_logits=linear("opacity")[:, 0].astype(np.float32),
-        sh_dc=linear("f_dc"),
-        sh_rest=linear("f_rest").reshape(n, k, 3) if k else None,
-        **extra,
-    )
-    try:
-        return gaussians.validate()
-    except MapError as exc:
-        raise fail(str(exc)) from None
+    limit = np.uint64(1) << np.uint64(3 * grid.bits)
+    if grid.count and (
+        np.any(deltas >= limit) or np.any(total[1:] < total[:-1]) or total[-1] >= limit
+    ):
+        raise _failure(source, f"has positions outside its {grid.bits}-bit grid")
+    positions = grid.origin + morton_grid(total) * grid.step
+    if grid.count and not np.all(np.abs(positions) <= FLOAT32_MAX):
+        raise _failure(source, "has positions beyond the float32 range (its grid's origin or step)")
+    return positions.astype(np.float32)
 
 
-def inflate_zstd(
-    data: bytes | memoryview, size: int, where: str, error: type[GscError] = MapError
-) -> bytes:
-    """A zstd frame inflated to exactly `size` bytes, never more: refused (`error`, led by
-    `where`) when it is not zstd, declares another size, is corrupt, or holds more or less."""
-    if size == 0 and not len(data):
-        return b""
-    try:
-        declared = zstandard.frame_content_size(data)
-    except zstandard.ZstdError:
-        raise error(f"{where} is not a zstd frame") from None
-    if declared not in (-1, size):
-        raise error(f"{where} declares {declared} bytes, not {size}")
-    try:
-        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as reader:
-            out = reader.read(size + 1)
-            while len(out) <= size and (more := reader.read(size + 1 - len(out))):
-                out += more
-    except zstandard.ZstdError as exc:
-        raise error(f"{where} is corrupt ({' '.join(str(exc).split())[:80]})") from None
-    if len(out) != size:
-        raise error(f"{where} decompresses to {len(out)} bytes, not {size}")
-    return out
+def _codes(column: _Column, source: str) -> np.ndarray:
+    """A quantised column's codes, checked to fit its bits."""
+    if np.any(column.codes > (1 << column.spec.bits) - 1):
+        raise _failure(
+            source, f"column {column.spec.name!r} has codes beyond {column.spec.bits} bits"
+        )
+    return column.codes
+
+
+def _linear(column: _Column, source: str) -> np.ndarray:
+    """The values of a linear column, through its transform's inverse."""
+    c = column.spec
+    inverse = LINEAR_TRANSFORMS[c.transform][1]  # (f_dc: "linear" in older messages)
+    codes = _codes(column, source)
+    return inverse(dequantise_linear(codes, np.array(c.low), np.array(c.high), c.bits))
+
+
+def _log_linear(column: _Column, source: str) -> np.ndarray:
+    """The values [N] of a log-linear column."""
+    c = column.spec
+    return dequantise_log(_codes(column, source)[:, 0], c.low[0], c.high[0], c.bits)
+
+
+def _decode_rotations(column: _Column | None, n: int) -> np.ndarray:
+    """[N, 4] quaternions of the smallest-three column; the identity for an isotropic map."""
+    if column is None:
+        return np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
+    return decode_smallest_three(column.codes[:, 0])
+
+
+def _decode_sh_rest(column: _Column | None, degree: int, source: str) -> np.ndarray | None:
+    """[N, K, 3] SH rest coefficients of the f_rest column (None at degree 0)."""
+    k = SH_REST_COUNTS[degree]
+    if column is None or not k:
+        return None
+    values = _linear(column, source)
+    return values.reshape(len(values), k, 3)
+
+
+def _decode_pwas(
+    columns: dict[str, _Column], raw: set[str], coded: set[str], n: int, source: str
+) -> dict[str, np.ndarray]:
+    """The PWAS state a message carries: its float32 sums as they are, or its coded score with
+    the coded sums (importance_sum = score x (weight + eps)), or its score alone."""
+    if raw:
+        return {name: columns[name].codes[:, 0] for name in raw}
+    if "importance" not in columns:
+        return {}
+    score = _log_linear(columns["importance"], source)
+    if not coded:
+        return {"importance_sum": score, "importance_weight": np.ones(n, np.float32)}
+    weight = _log_linear(columns["importance_weight"], source)
+    return {
+        "importance_sum": score * (weight + np.float32(PWAS_EPS)),
+        "importance_weight": weight,
+        "alpha_t_sum": _log_linear(columns["alpha_t_sum"], source),
+    }
+
+
+def _decode_ids(column: _Column | None) -> dict[str, np.ndarray]:
+    """The ids of the delta-coded id column (none: the map numbers its Gaussians itself)."""
+    if column is None:
+        return {}
+    return {"ids": np.cumsum(column.codes[:, 0], dtype=np.uint32)}

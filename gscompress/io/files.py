@@ -13,8 +13,9 @@ import json
 import math
 import os
 import re
+import secrets
 import stat
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -26,8 +27,34 @@ except ImportError:  # (Windows)
     fcntl = None  # type: ignore[assignment]
 
 
+def safe_text(text: str) -> str:
+    """`text` as Unicode that any UTF-8 writer takes: the bytes of a file name that are not UTF-8
+    (which Python holds as surrogate escapes, as `os.fsdecode` makes them) written as `\\xNN`,
+    any other lone surrogate as `\\uXXXX`; so that recording or printing a path never raises."""
+    if text.isascii():
+        return text
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:  # a surrogate that is not an escaped byte
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def safe_value(value: Any) -> Any:
+    """`value` with every string in it (keys too, and paths, made strings) `safe_text`."""
+    if isinstance(value, str):
+        return safe_text(value)
+    if isinstance(value, os.PathLike):
+        return safe_text(os.fsdecode(value))
+    if isinstance(value, dict):
+        return {safe_value(k): safe_value(x) for k, x in value.items()}
+    if isinstance(value, list | tuple):
+        return [safe_value(x) for x in value]
+    return value
+
+
 def json_text(value: Any, **options: Any) -> str:
-    """Standard JSON of `value`: non-finite floats (a PSNR of identical images) become null.
+    """Standard JSON of `value`: non-finite floats (a PSNR of identical images) become null, and
+    text that is not UTF-8 (a file's name) is escaped (`safe_text`).
 
     `json.dumps` would write them as `Infinity`/`NaN`, which strict readers (jq, browsers,
     pandas' default engine) reject. `options` go to `json.dumps` (`default=str` is set).
@@ -42,7 +69,9 @@ def json_text(value: Any, **options: Any) -> str:
             return [clean(x) for x in v]
         return v
 
-    return json.dumps(clean(value), allow_nan=False, default=str, **options)
+    return json.dumps(
+        clean(safe_value(value)), allow_nan=False, default=lambda v: safe_text(str(v)), **options
+    )
 
 
 def sha256(path: str | Path) -> str:
@@ -193,14 +222,15 @@ def check_output(
 class AtomicFile:
     """A binary file written under a temporary name and renamed into place on `commit`.
 
-    The writer holds an exclusive lock on the temporary file (where the system has `flock`),
-    so that `is_being_written` tells a live writer's file from one a killed writer left.
+    The temporary file is created exclusively beside the output (`create_temporary`): never
+    through a link or over a file already there. The writer holds an exclusive lock on it
+    (where the system has `flock`), so that `is_being_written` tells a live writer's file from
+    one a killed writer left.
     """
 
     def __init__(self, path: Path):
         self.path = path
-        self.tmp_path = temporary_path(path, os.getpid())
-        self.file: IO[bytes] = open(self.tmp_path, "wb")
+        self.tmp_path, self.file = create_temporary(path)
         if fcntl is not None:
             with contextlib.suppress(OSError):  # a file system without locks: write unlocked
                 fcntl.flock(self.file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -220,6 +250,36 @@ class AtomicFile:
         self.tmp_path.unlink(missing_ok=True)
 
 
+_EXCLUSIVE = (
+    os.O_WRONLY
+    | os.O_CREAT
+    | os.O_EXCL
+    | getattr(os, "O_NOFOLLOW", 0)
+    | getattr(os, "O_CLOEXEC", 0)
+    | getattr(os, "O_BINARY", 0)
+)
+"""How a temporary output is opened: created here and now, never an existing file or a link."""
+
+
+def create_temporary(path: Path) -> tuple[Path, IO[bytes]]:
+    """A new, empty file beside `path` to write it under, and its name: `.NAME.PID.tmp`, or when
+    something is in the way there (a killed writer's leftover, or a planted file or link),
+    `.NAME.PID.XXXXXXXX.tmp` with random hex digits.
+
+    Raises:
+        OutputError: no such name could be created (after 100 tries).
+    """
+    pid = os.getpid()
+    for attempt in range(100):
+        tmp_path = temporary_path(path, pid, secrets.token_hex(4) if attempt else "")
+        try:
+            fd = os.open(tmp_path, _EXCLUSIVE, 0o666)
+        except FileExistsError:
+            continue
+        return tmp_path, os.fdopen(fd, "wb")
+    raise OutputError(f"{path}: cannot create a temporary file beside it (every name is taken)")
+
+
 class MemoryFile:
     """An `AtomicFile` stand-in that keeps the bytes in memory (a file sized before it is written,
     such as a share that must fit a byte budget)."""
@@ -237,11 +297,12 @@ class MemoryFile:
         self.file = io.BytesIO()
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
-    """Write a binary file under a temporary name and rename it into place."""
+def write_atomic(path: str | Path, write: Callable[[IO[bytes]], object]) -> Path:
+    """Write a binary file by `write(file)` under a temporary name (`AtomicFile`), renamed
+    into place only when `write` returns; on an error nothing appears under `path`."""
     out = AtomicFile(Path(path))
     try:
-        out.file.write(data)
+        write(out.file)
         out.commit()
     except BaseException:
         out.discard()
@@ -249,20 +310,33 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     return out.path
 
 
-def temporary_path(path: Path, pid: int) -> Path:
-    """Where process `pid` writes `path` until it is complete: `.NAME.PID.tmp` beside it."""
-    return path.with_name(f".{path.name}.{pid}.tmp")
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write a binary file under a temporary name and rename it into place."""
+    return write_atomic(path, lambda file: file.write(data))
+
+
+def temporary_path(path: Path, pid: int, tag: str = "") -> Path:
+    """Where process `pid` writes `path` until it is complete: `.NAME.PID.tmp` beside it (with
+    a `tag`, `.NAME.PID.TAG.tmp`)."""
+    return path.with_name(f".{path.name}.{pid}{'.' + tag if tag else ''}.tmp")
 
 
 def abandoned_files(folder: Path, name: str | None = None) -> list[Path]:
     """Temporary files (`temporary_path`'s) that writers killed before they committed left in
-    `folder`, of output `name` (None: of any output), newest first; none a live writer holds."""
-    pattern = re.compile(rf"\.{re.escape(name) if name is not None else '.+'}\.\d+\.tmp")
+    `folder`, of output `name` (None: of any output), newest first; none a live writer holds,
+    and none that is not a regular file (a link or a folder of that name is not a writer's)."""
+    stem = re.escape(name) if name is not None else ".+"
+    pattern = re.compile(rf"\.{stem}\.\d+(\.[0-9a-f]{{8}})?\.tmp")
     found = []
     for entry in folder.iterdir() if folder.is_dir() else ():
-        if pattern.fullmatch(entry.name) and not is_being_written(entry):
-            with contextlib.suppress(FileNotFoundError):  # removed meanwhile
-                found.append((entry.stat().st_mtime, entry))
+        if not pattern.fullmatch(entry.name):
+            continue
+        try:
+            info = entry.lstat()
+        except FileNotFoundError:  # removed meanwhile
+            continue
+        if stat.S_ISREG(info.st_mode) and not is_being_written(entry):
+            found.append((info.st_mtime, entry))
     return [entry for _, entry in sorted(found, reverse=True)]
 
 
@@ -302,5 +376,6 @@ def some_names(names: Sequence[str], shown: int = 3) -> str:
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
-    """Write a UTF-8 text file under a temporary name and rename it into place."""
-    return write_bytes_atomic(path, text.encode("utf-8"))
+    """Write a UTF-8 text file under a temporary name and rename it into place (what is not
+    UTF-8 in `text`, such as a file's name, escaped: `safe_text`)."""
+    return write_bytes_atomic(path, safe_text(text).encode("utf-8"))

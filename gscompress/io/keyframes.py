@@ -12,7 +12,8 @@ shows as they are:
 The share's `/camera/calibration` is the camera of those images (the sender's working size).
 Every image is checked before it is decoded: its format, and a size equal to the calibration's
 (so a file cannot make the reader allocate more than the camera it declares, itself at most
-`MAX_PIXELS`), and at most `MAX_CARRIED` frames are read.
+`MAX_PIXELS`), at most `MAX_CARRIED` frames are read, and all of them together no more than the
+log's bytes may decode to (`LogReader.budget`).
 """
 
 from __future__ import annotations
@@ -53,6 +54,11 @@ MAX_CARRIED = 64
 MAX_PIXELS = 4096 * 4096
 """The largest carried image read (pixels): a camera declaring more is refused before any
 image is decoded (16-bit depth at this size is 32 MiB)."""
+
+
+_BYTES_PER_PIXEL = 3 + 2 + 12 + 4
+"""What a carried frame takes a pixel once decoded: its JPEG and PNG pixels, then colour and depth
+as float32."""
 
 
 @dataclass(frozen=True)
@@ -139,8 +145,14 @@ def decode_image(data: bytes, fmt: str, size: tuple[int, int], where: str) -> np
             raise LogFormatError(f"{where} has pixel mode {image.mode}, not {' or '.join(modes)}")
         image.load()
         return np.asarray(image)
-    except (UnidentifiedImageError, Image.DecompressionBombError, OSError, ValueError,
-            SyntaxError, EOFError) as exc:  # fmt: skip
+    except (
+        UnidentifiedImageError,
+        Image.DecompressionBombError,
+        OSError,
+        ValueError,
+        SyntaxError,
+        EOFError,
+    ) as exc:
         raise LogFormatError(f"{where} is not a readable {fmt} image ({exc})") from None
 
 
@@ -153,8 +165,11 @@ def read_carried(reader: LogReader) -> tuple[list[CarriedFrame], Intrinsics | No
             message that is not what its topic says, or images without a camera.
     """
     parts: dict[int, dict[str, object]] = {}
-    names = {TOPIC_KEYFRAME_COLOR: "color", TOPIC_KEYFRAME_DEPTH: "depth",
-             TOPIC_KEYFRAME_POSE: "pose"}  # fmt: skip
+    names = {
+        TOPIC_KEYFRAME_COLOR: "color",
+        TOPIC_KEYFRAME_DEPTH: "depth",
+        TOPIC_KEYFRAME_POSE: "pose",
+    }
     for schema, channel, message in reader.iter_messages(list(KEYFRAME_TOPICS)):
         t = int(message.log_time)
         part = names[channel.topic]
@@ -184,6 +199,10 @@ def read_carried(reader: LogReader) -> tuple[list[CarriedFrame], Intrinsics | No
             f"{reader.path} carries keyframes of {size[0]}x{size[1]} pixels, more than the "
             f"{MAX_PIXELS} a share's keyframe may have"
         )
+    reader.budget.check(
+        len(parts) * camera.width * camera.height * _BYTES_PER_PIXEL,
+        f"carries {len(parts)} keyframes of {size[0]}x{size[1]}",
+    )
     frames = []
     for t in sorted(parts):
         entry = parts[t]
@@ -197,8 +216,12 @@ def read_carried(reader: LogReader) -> tuple[list[CarriedFrame], Intrinsics | No
         depth = decode_image(depth_msg.data, "png", size, f"{where}, depth,")
         pose = entry["pose"]
         assert isinstance(pose, np.ndarray)
-        frames.append(CarriedFrame(
-            t, (color.astype(np.float32) / 255.0),
-            depth.astype(np.float32) * np.float32(DEPTH_UNIT_M), pose,
-        ))  # fmt: skip
+        frames.append(
+            CarriedFrame(
+                t,
+                (color.astype(np.float32) / 255.0),
+                depth.astype(np.float32) * np.float32(DEPTH_UNIT_M),
+                pose,
+            )
+        )
     return frames, camera

@@ -7,9 +7,10 @@ anything is read or allocated, and every chunk is decompressed with a hard bound
 - `BoundedStream`: a file (or buffer) whose reads may not run past its end; the `mcap` readers
   are given one, so that each record field they read is checked first.
 - `read_chunk_header` / `chunk_records`: a chunk record's fields checked against the record and
-  the file, its records decompressed within `MAX_CHUNK_BYTES` and `MAX_CHUNK_RATIO` times their
-  compressed size, then split with every length checked. A chunk holds Schema, Channel and
-  Message records only (the MCAP specification), so padding of other records is refused.
+  the file, its records decompressed within `MAX_CHUNK_BYTES` and the decode budget's ratio of
+  their compressed size (`gscompress.io.decode_budget`, "mcap-chunk"), then split with every
+  length checked. A chunk holds Schema, Channel and Message records only (the MCAP
+  specification), so padding of other records is refused.
 """
 
 from __future__ import annotations
@@ -29,16 +30,11 @@ from mcap.stream_reader import StreamReader
 from zstandard import ZstdError, frame_content_size
 
 from gscompress.errors import LogFormatError
-from gscompress.io.codec import inflate_zstd
+from gscompress.io.decode_budget import DecodeBudget, inflate_lz4, inflate_zstd
 
 MAX_CHUNK_BYTES = 2 * 2**30
 """Largest decompressed chunk a reader accepts (a snapshot of some 25 million Gaussians): a
 guard against hostile size fields."""
-MAX_CHUNK_RATIO = 100
-"""A chunk may decompress to at most this many times its compressed size, at any size (a map
-compresses 1.1-1.5 times, JSON records 5-20 times; zeros a thousand times and more)."""
-_RATIO_FLOOR = 4096
-"""Below this many bytes uncompressed the ratio is not applied (a few records' headers)."""
 LZ4_MAGIC = b"\x04\x22\x4d\x18"
 _CHUNK_FIXED = 8 + 8 + 8 + 4 + 4  # start and end times, size, crc, codec-name length
 _MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log and publish times
@@ -153,19 +149,23 @@ def check_chunk(header: ChunkHeader, head: bytes, source: str) -> None:
         source: the file, for messages.
     """
     size, compressed, compression = (
-        header.uncompressed_size, header.data_length, header.compression,
-    )  # fmt: skip
+        header.uncompressed_size,
+        header.data_length,
+        header.compression,
+    )
     if compression not in ("", "zstd", "lz4"):
         raise LogFormatError(f"{source}: a chunk is compressed with unknown codec {compression!r}")
     if compression == "" and size != compressed:
         raise LogFormatError(
             f"{source}: an uncompressed chunk of {compressed} bytes claims {size} bytes"
         )
-    if size > MAX_CHUNK_BYTES or size > max(_RATIO_FLOOR, MAX_CHUNK_RATIO * compressed):
+    if size > MAX_CHUNK_BYTES:
         raise LogFormatError(
-            f"{source}: a chunk of {compressed} bytes claims {size} bytes uncompressed (at most "
-            f"{MAX_CHUNK_RATIO} times its compressed size, {MAX_CHUNK_BYTES >> 30} GiB in all)"
+            f"{source}: a chunk of {compressed} bytes claims {size} bytes uncompressed, more "
+            f"than the {MAX_CHUNK_BYTES >> 30} GiB a chunk may hold"
         )
+    budget = DecodeBudget("mcap-chunk", compressed, source, LogFormatError)
+    budget.check(size, f"a chunk of {compressed} bytes claims {size} bytes uncompressed")
     declared = -1  # what the codec's frame header says it will allocate (-1: unsaid)
     if compression == "zstd":
         try:
@@ -180,7 +180,7 @@ def check_chunk(header: ChunkHeader, head: bytes, source: str) -> None:
         )
 
 
-def decompress_chunk(header: ChunkHeader, data: bytes, source: str) -> bytes:
+def decompress_chunk(header: ChunkHeader, data: bytes, source: str) -> bytes | bytearray:
     """The chunk's records, decompressed to exactly their declared size (checked by
     `check_chunk` first) and their CRC checked.
 
@@ -191,7 +191,7 @@ def decompress_chunk(header: ChunkHeader, data: bytes, source: str) -> bytes:
     if header.compression == "zstd":
         out = inflate_zstd(data, size, f"{source}: a chunk's zstd data", LogFormatError)
     elif header.compression == "lz4":
-        out = _lz4_bounded(data, size, source)
+        out = inflate_lz4(data, size, f"{source}: a chunk's lz4 data", LogFormatError)
     else:
         out = data
     if len(out) != size:
@@ -203,31 +203,8 @@ def decompress_chunk(header: ChunkHeader, data: bytes, source: str) -> bytes:
     return out
 
 
-def _lz4_bounded(data: bytes, size: int, source: str) -> bytes:
-    """Decompress lz4 frames (one or more in a row) to at most `size` + 1 bytes."""
-    import lz4.frame  # (a dependency of mcap; only lz4 chunks of other writers need it)
-
-    parts: list[bytes] = []
-    produced = 0
-    rest = data
-    while rest:
-        decompressor = lz4.frame.LZ4FrameDecompressor()
-        try:  # (lz4 reports corrupt data as a RuntimeError)
-            part = decompressor.decompress(rest, max_length=size + 1 - produced)
-        except RuntimeError as exc:
-            raise LogFormatError(f"{source}: a chunk's lz4 data is corrupt ({exc})") from None
-        parts.append(part)
-        produced += len(part)
-        if produced > size or (not decompressor.needs_input and not decompressor.eof):
-            raise LogFormatError(f"{source}: a chunk's lz4 data inflates beyond {size} bytes")
-        if not decompressor.eof:
-            raise LogFormatError(f"{source}: a chunk's lz4 frame is cut short")
-        rest = decompressor.unused_data or b""
-    return b"".join(parts)
-
-
 def chunk_records(
-    data: bytes, source: str, channels: set[int] | None = None
+    data: bytes | bytearray, source: str, channels: set[int] | None = None
 ) -> list[Schema | Channel | Message]:
     """Split a chunk's decompressed records, every length checked against what remains.
 
@@ -319,12 +296,16 @@ def file_records(stream: BoundedStream, open_chunks: bool = True) -> Iterator[Mc
             yield record
             continue
         header = ChunkHeader(
-            record.uncompressed_size, record.uncompressed_crc, record.compression, -1,
+            record.uncompressed_size,
+            record.uncompressed_crc,
+            record.compression,
+            -1,
             len(record.data),
-        )  # fmt: skip
+        )
         check_chunk(header, record.data[:18], stream.source)
         if open_chunks:
-            yield from chunk_records(decompress_chunk(header, record.data, stream.source),
-                                     stream.source)  # fmt: skip
+            yield from chunk_records(
+                decompress_chunk(header, record.data, stream.source), stream.source
+            )
         else:
             yield record

@@ -21,7 +21,7 @@ import numpy as np
 
 from gscompress import __version__
 from gscompress.errors import MapError, OutputError, PlyFormatError, led_by
-from gscompress.gaussians import GaussianMap
+from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 from gscompress.io.columns import (
     APPEARANCE,
     GEOMETRY,
@@ -31,14 +31,27 @@ from gscompress.io.columns import (
     map_to_columns,
     pack_records,
 )
+from gscompress.io.decode_budget import DecodeBudget
 from gscompress.io.files import AtomicFile, check_input, check_output
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
 _TYPE_NAMES = {"<f4": "float", "<u4": "uint"}
 _MAX_HEADER_BYTES = 1 << 16
 
@@ -124,8 +137,10 @@ def read_ply(path: str | Path) -> GaussianMap:
         raise PlyFormatError(f"{path}: header is not ASCII") from None
     endian, elements = _parse_header(text.splitlines(), path)
     file_size = path.stat().st_size
-    layout = [(name, count, props, np.dtype([(p, endian + t) for p, t in props]))
-              for name, count, props in elements]  # fmt: skip
+    layout = [
+        (name, count, props, np.dtype([(p, endian + t) for p, t in props]))
+        for name, count, props in elements
+    ]
     offset = header_end
     vertices: tuple[int, int, list[tuple[str, str]], np.dtype] | None = None
     for name, count, props, dtype in layout:  # every element checked before any is read
@@ -147,6 +162,7 @@ def read_ply(path: str | Path) -> GaussianMap:
             f"{path}: {extra} byte{'s' if extra != 1 else ''} after the elements the header "
             "declares (a wrong vertex count?)"
         )
+    _check_budget(elements, file_size, path)
     if is_compressed_ply(elements):
         arrays, offset = {}, header_end
         for name, count, _props, dtype in layout:
@@ -165,6 +181,21 @@ def read_ply(path: str | Path) -> GaussianMap:
         return map_from_columns(cols, str(path), infinite_opacity=True).validate()
     except MapError as exc:
         raise PlyFormatError(led_by(str(path), str(exc))) from None
+
+
+def _check_budget(
+    elements: list[tuple[str, int, list[tuple[str, str]]]], file_size: int, path: Path
+) -> None:
+    """Refuse a vertex count whose map is more than the file's bytes may decode to (a plain
+    PLY's rows cannot make it so; a compressed one's are 16 bytes a Gaussian)."""
+    for name, count, props in elements:
+        if name == "vertex":
+            rest = sum(prop.startswith("f_rest_") for prop, _ in props)
+            sh = next((len(p) for n, _c, p in elements if n == "sh"), 0)
+            degree = next((d for d, k in SH_REST_COUNTS.items() if 3 * k >= max(rest, sh)), 3)
+            kind = "compressed-ply" if is_compressed_ply(elements) else "ply"
+            DecodeBudget(kind, file_size, str(path), PlyFormatError).check_map(count, degree)
+            return
 
 
 COMPRESSED_MARK = "packed_position"

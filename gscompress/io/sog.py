@@ -28,7 +28,6 @@ import shutil
 import subprocess
 import tempfile
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +36,10 @@ import numpy as np
 from gscompress.errors import MapError, MissingDependencyError, OutputError, SogFormatError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 from gscompress.io.columns import f_rest_names, map_from_columns
+from gscompress.io.decode_budget import DecodeBudget
+from gscompress.io.files import check_input, write_atomic
 from gscompress.io.ply import write_ply
+from gscompress.io.quantise import FLOAT32_MAX
 from gscompress.io.spz import opacity_logits
 
 MAX_SOG_GAUSSIANS = 1 << 26
@@ -86,73 +88,125 @@ def write_sog(gaussians: GaussianMap, path: str | Path) -> int:
         out = Path(tmp) / "map.sog"
         done = subprocess.run(
             [command, "-w", "-g", "cpu", str(ply), str(out)],
-            capture_output=True, text=True, timeout=SPLAT_TRANSFORM_TIMEOUT_S,
-        )  # fmt: skip
+            capture_output=True,
+            text=True,
+            timeout=SPLAT_TRANSFORM_TIMEOUT_S,
+        )
         if done.returncode != 0 or not out.is_file():
             last = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
             raise OutputError(f"{path}: splat-transform failed: {last[0]}")
-        shutil.move(out, path)
+        with open(out, "rb") as made:
+            write_atomic(path, lambda file: shutil.copyfileobj(made, file))
     return path.stat().st_size
 
 
 _QUAT_SLOTS = {0: (1, 2, 3), 1: (0, 2, 3), 2: (0, 1, 3), 3: (0, 1, 2)}
+
+_IMAGES = ("means", "quats", "scales", "sh0", "shN")
+"""The meta.json entries that name images."""
+
+MAX_LOG_POSITION = math.log(float(np.finfo(np.float32).max))
+"""Largest |s(x)| of `means.mins` / `means.maxs` (s(x) = sign(x) ln(1 + |x|)): beyond it a
+position is not a finite float32."""
 """Where the three stored components go (w x y z indices) for each largest component."""
 
 
 def read_sog(path: str | Path) -> GaussianMap:
     """Read a SOG map (a `.sog` zip, or the `meta.json` of an unbundled one), validated.
 
-    Ids are 0..N-1 and the map is unscored (SOG stores neither).
+    Ids are 0..N-1 and the map is unscored (SOG stores neither). The declared count is checked
+    against what the bundle's bytes (or those of meta.json and the images it names) may decode
+    to (`gscompress.io.decode_budget`) before any image is read.
 
     Raises:
         SogFormatError: naming the file: not a SOG bundle, version 1 or unknown, a count over
-            the ceiling, a missing or oversized member, an image smaller than the count.
+            the ceiling or the input's budget, a missing or oversized member, an image smaller
+            than the count.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise SogFormatError(f"{path}: no such file")
+    path = check_input(path, SogFormatError)
     if zipfile.is_zipfile(path):
         try:
             with zipfile.ZipFile(path) as bundle:
-                members = {info.filename: info for info in bundle.infolist()}
-
-                def load(name: str, limit: int) -> bytes:
-                    info = members.get(name)
-                    if info is None:
-                        raise SogFormatError(f"{path}: the bundle has no {name}")
-                    if info.file_size > limit:
-                        raise SogFormatError(f"{path}: {name} is over {limit} bytes")
-                    with bundle.open(info) as member:
-                        return member.read(limit + 1)[: limit + 1]
-
-                return _decode(load, str(path))
+                return _decode(_Bundle(bundle, str(path)), path.stat().st_size, str(path))
         except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError) as exc:
             raise SogFormatError(f"{path}: corrupt SOG bundle ({exc})") from None
     if path.name != "meta.json":
         raise SogFormatError(
             f"{path}: not a SOG bundle (not a readable zip archive; truncated?) nor a meta.json"
         )
-    folder = path.parent
+    return _decode(_Folder(path), None, str(path))
 
-    def load_file(name: str, limit: int) -> bytes:
-        member = folder / name
+
+class _Bundle:
+    """The members of a `.sog` zip, each read with a bound."""
+
+    def __init__(self, bundle: zipfile.ZipFile, source: str):
+        self.bundle, self.source = bundle, source
+        self.members = {info.filename: info for info in bundle.infolist()}
+
+    def size(self, name: str) -> int:
+        """The bytes a member declares it inflates to."""
+        return self._info(name).file_size
+
+    def load(self, name: str, limit: int) -> bytes:
+        """A member's bytes, refused over `limit` (inflated no further than `limit` + 1)."""
+        info = self._info(name)
+        if info.file_size > limit:
+            raise SogFormatError(f"{self.source}: {name} is over {limit} bytes")
+        with self.bundle.open(info) as member:
+            data = member.read(limit + 1)
+        if len(data) > limit:
+            raise SogFormatError(f"{self.source}: {name} is over {limit} bytes")
+        return data
+
+    def _info(self, name: str) -> zipfile.ZipInfo:
+        info = self.members.get(name)
+        if info is None:
+            raise SogFormatError(f"{self.source}: the bundle has no {name}")
+        return info
+
+
+class _Folder:
+    """The files beside an unbundled SOG's meta.json."""
+
+    def __init__(self, meta: Path):
+        self.meta, self.folder = meta, meta.parent
+
+    def _file(self, name: str) -> Path:
+        member = self.folder / name
         if Path(name).name != name or not member.is_file():
-            raise SogFormatError(f"{path}: no file {name!r} beside it")
-        if member.stat().st_size > limit:
+            raise SogFormatError(f"{self.meta}: no file {name!r} beside it")
+        return member
+
+    def size(self, name: str) -> int:
+        """A file's bytes."""
+        return self._file(name).stat().st_size
+
+    def load(self, name: str, limit: int) -> bytes:
+        """A file's bytes, refused over `limit` (no more than `limit` + 1 of them read)."""
+        member = self._file(name)
+        with open(member, "rb") as f:
+            data = f.read(limit + 1)
+        if len(data) > limit:
             raise SogFormatError(f"{member}: over {limit} bytes")
-        return member.read_bytes()
-
-    return _decode(load_file, str(path))
+        return data
 
 
-def _decode(load: Callable[[str, int], bytes], source: str) -> GaussianMap:
-    """The map of a SOG whose members `load(name, byte limit)` returns."""
-    meta = _meta(load("meta.json", MAX_META_BYTES), source)
+def _decode(members: _Bundle | _Folder, input_bytes: int | None, source: str) -> GaussianMap:
+    """The map of a SOG's members; `input_bytes`: the bundle's size (None: the sum of meta.json
+    and the files it names)."""
+    meta = _meta(members.load("meta.json", MAX_META_BYTES), source)
     count = meta["count"]
+    shn = meta.get("shN")
+    degree = shn["bands"] if shn is not None else 0
+    if input_bytes is None:
+        names = ["meta.json", *(name for key in _IMAGES for name in _images(meta, key))]
+        input_bytes = sum(members.size(name) for name in dict.fromkeys(names))
+    DecodeBudget("sog", input_bytes, source, SogFormatError).check_map(count, degree)
     image_limit = 64 * count + (1 << 20)  # lossless WebP of 4-byte pixels: far below this
 
     def image(name: str, at_least: int, width: int | None = None) -> np.ndarray:
-        return _rgba(load(name, image_limit), at_least, width, f"{source}: {name}")
+        return _rgba(members.load(name, image_limit), at_least, width, f"{source}: {name}")
 
     files = {key: meta[key]["files"] for key in ("means", "quats", "scales", "sh0")}
     low = image(files["means"][0], count)[:count].astype(np.int64)
@@ -171,24 +225,33 @@ def _decode(load: Callable[[str, int], bytes], source: str) -> GaussianMap:
     cols.update({f"rot_{i}": quats[:, i] for i in range(4)})
     cols.update({f"f_dc_{i}": sh_dc[:, i] for i in range(3)})
     cols["opacity"] = opacity_logits(sh0[:, 3].astype(np.float32) / 255)
-    shn = meta.get("shN")
-    if shn is not None and SH_REST_COUNTS[shn["bands"]]:
-        k = SH_REST_COUNTS[shn["bands"]]
+    if shn is not None and SH_REST_COUNTS[degree]:
+        k = SH_REST_COUNTS[degree]
         labels = image(shn["files"][1], count)[:count].astype(np.int64)
-        label = labels[:, 0] | labels[:, 1] << 8
         centroids = image(shn["files"][0], 0, width=64 * k)
-        codebook = np.asarray(shn["codebook"], np.float32)
-        palette = centroids.reshape(-1, k, 4)[:, :, :3]  # [sets, K, rgb]
-        usable = min(shn["count"], len(palette))
-        known = label < usable
-        rest = np.zeros((count, k, 3), np.float32)
-        rest[known] = codebook[palette[label[known]]]
+        rest = _sh_rest(labels[:, 0] | labels[:, 1] << 8, centroids, shn, k)
         by_channel = rest.transpose(0, 2, 1).reshape(count, 3 * k)
         cols.update({name: by_channel[:, i] for i, name in enumerate(f_rest_names(k))})
     try:
         return map_from_columns(cols, source).validate()
     except MapError as exc:
         raise SogFormatError(f"{source}: {exc}") from None
+
+
+def _sh_rest(label: np.ndarray, centroids: np.ndarray, shn: dict[str, Any], k: int) -> np.ndarray:
+    """[N, K, 3] SH rest coefficients of palette labels [N]: a label past the palette is zero."""
+    codebook = np.asarray(shn["codebook"], np.float32)
+    palette = centroids.reshape(-1, k, 4)[:, :, :3]  # [sets, K, rgb]
+    known = label < min(shn["count"], len(palette))
+    rest = np.zeros((len(label), k, 3), np.float32)
+    rest[known] = codebook[palette[label[known]]]
+    return rest
+
+
+def _images(meta: dict[str, Any], key: str) -> list[str]:
+    """The image files meta.json names for `key` (none for an absent `shN`)."""
+    entry = meta.get(key)
+    return list(entry["files"][: 2 if key in ("means", "shN") else 1]) if entry else []
 
 
 def _meta(text: bytes, source: str) -> dict[str, Any]:
@@ -212,7 +275,7 @@ def _meta(text: bytes, source: str) -> dict[str, Any]:
     for key, files in (("means", 2), ("quats", 1), ("scales", 1), ("sh0", 1)):
         _files(meta, key, files, source)
     for key in ("mins", "maxs"):
-        _numbers(meta["means"].get(key), 3, f"means.{key}", source)
+        _numbers(meta["means"].get(key), 3, f"means.{key}", source, MAX_LOG_POSITION)
     for key in ("scales", "sh0"):
         _numbers(meta[key].get("codebook"), 256, f"{key}.codebook", source)
     shn = meta.get("shN")
@@ -236,12 +299,16 @@ def _files(meta: dict[str, Any], key: str, count: int, source: str) -> None:
         raise SogFormatError(f"{source}: {key}.files must be file names")
 
 
-def _numbers(values: Any, count: int, what: str, source: str) -> None:
+def _numbers(values: Any, count: int, what: str, source: str, bound: float = FLOAT32_MAX) -> None:
+    """Refuse anything but `count` numbers within +-`bound` (float32's range by default: a
+    codebook holds float32 values)."""
     ok = isinstance(values, list) and len(values) == count
     if not ok or not all(
-        isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in values
+        isinstance(v, int | float) and not isinstance(v, bool) and abs(v) <= bound for v in values
     ):
-        raise SogFormatError(f"{source}: {what} must be {count} finite numbers")
+        raise SogFormatError(
+            f"{source}: {what} must be {count} finite numbers within +-{bound:.6g}"
+        )
 
 
 def _rgba(data: bytes, at_least: int, width: int | None, what: str) -> np.ndarray:

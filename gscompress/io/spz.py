@@ -36,26 +36,35 @@ header's count implies.
 from __future__ import annotations
 
 import gzip
+import io
 import logging
 import struct
-import zlib
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 import zstandard
 
 from gscompress.errors import MapError, SpzFormatError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
-from gscompress.io.codec import (
+from gscompress.io.columns import map_from_columns
+from gscompress.io.decode_budget import (
+    DecodeBudget,
+    FileSlice,
+    GzipReader,
+    file_size,
+    inflate_zstd,
+    read_slice,
+)
+from gscompress.io.files import check_input, check_output, write_bytes_atomic
+from gscompress.io.quantise import (
     MAX_POSITION_BITS,
     decode_smallest_three,
     encode_smallest_three,
-    inflate_zstd,
     morton_codes,
 )
-from gscompress.io.columns import map_from_columns
-from gscompress.io.files import check_output, write_bytes_atomic
 
 log = logging.getLogger(__name__)
 
@@ -67,10 +76,6 @@ VERSIONS_WRITTEN = (3, 4)
 
 MAX_SPZ_GAUSSIANS = 1 << 26
 """Largest Gaussian count read or written (67M: about 1 GB of packed streams, 4 GB decoded)."""
-
-MAX_COMPRESSION_RATIO = 1024
-"""Largest decompressed / compressed size accepted: deflate cannot exceed ~1032, and the
-reference reader bounds the point count of a zstd file by the same ratio."""
 
 COLOR_SCALE = 0.15
 """Colour code = 255 (COLOR_SCALE f_dc + 0.5)."""
@@ -89,7 +94,7 @@ _FLAG_ANTIALIASED, _FLAG_EXTENSIONS = 0x1, 0x2
 _LEGACY_HEADER = struct.Struct("<IIIBBBB")  # magic version count degree fraction flags reserved
 _HEADER = struct.Struct("<IIIBBBBI12x")  # ... degree fraction flags streams toc_offset reserved
 _TOC_ENTRY = struct.Struct("<QQ")
-_MIN_BYTES_PER_GAUSSIAN = 9  # the positions stream alone
+_CODE_REACH = np.float32(1e30)
 
 
 # ------------------------------------------------------------------ public API
@@ -152,11 +157,7 @@ def decode_bytes(data: bytes, source: str = "SPZ data") -> GaussianMap:
         SpzFormatError: naming `source` and what is wrong (not SPZ, an unsupported version or
             SH degree, a count beyond the limits or the input, truncated or corrupt streams).
     """
-    streams, bits = _unpack_streams(memoryview(data), source)
-    try:
-        return _decode(streams, bits, source).validate()
-    except MapError as exc:
-        raise SpzFormatError(f"{source}: {exc}") from None
+    return _read(io.BytesIO(data), source)
 
 
 def write_spz(
@@ -182,18 +183,12 @@ def read_spz(path: str | Path) -> GaussianMap:
     Raises:
         SpzFormatError: missing, unreadable, or not a valid SPZ map.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise SpzFormatError(f"{path}: no such file")
-    size = path.stat().st_size
-    limit = MAX_SPZ_GAUSSIANS * 120  # more than any valid file's bytes (degree 3, no compression)
-    if size > limit:
-        raise SpzFormatError(f"{path}: {size} bytes is more than an SPZ map here may have")
+    path = check_input(path, SpzFormatError)
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as f:
+            return _read(f, str(path))
     except OSError as exc:
         raise SpzFormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    return decode_bytes(data, str(path))
 
 
 def opacity_logits(alphas: np.ndarray) -> np.ndarray:
@@ -224,7 +219,7 @@ def _fixed(means: np.ndarray, bits: int) -> np.ndarray:
 
 def _morton_order(fixed: np.ndarray) -> np.ndarray:
     """Indices sorting fixed-point positions along a Morton curve (of their top 21 bits per
-    axis: `gscompress.io.codec.morton_codes`)."""
+    axis: `gscompress.io.quantise.morton_codes`)."""
     fixed = fixed.astype(np.int64)
     cells = fixed - fixed.min(axis=0) if len(fixed) else fixed
     top = int(cells.max()).bit_length() if len(cells) else 0
@@ -254,8 +249,11 @@ def _fraction_bits(means: np.ndarray, requested: int | None) -> int:
 
 def _codes(values: np.ndarray, scale: float, offset: float) -> np.ndarray:
     """uint8 codes round(values * scale + offset), clipped to 0..255 (halves round up, as the
-    reference writer's rounding does for these non-negative codes)."""
-    return np.clip(np.floor(values * np.float32(scale) + np.float32(offset + 0.5)), 0, 255).astype(
+    reference writer's rounding does for these non-negative codes). Values are first held
+    within +-1e30, where every code is already 0 or 255, so that a float32 product cannot
+    overflow (a colour of 3.4e38 is a valid map's)."""
+    held = np.clip(values, -_CODE_REACH, _CODE_REACH)
+    return np.clip(np.floor(held * np.float32(scale) + np.float32(offset + 0.5)), 0, 255).astype(
         np.uint8
     )
 
@@ -319,7 +317,8 @@ class _Streams:
 
 
 def _check_header(source: str, version: int, count: int, degree: int, input_bytes: int) -> None:
-    """Refuse versions, degrees and counts this reader does not take."""
+    """Refuse versions, degrees and counts this reader does not take, and a count whose map is
+    more than the input's bytes may decode to (`gscompress.io.decode_budget`)."""
     if version not in VERSIONS_READ:
         raise SpzFormatError(
             f"{source}: SPZ version {version} is not supported (versions 2, 3 and 4 are)"
@@ -332,84 +331,114 @@ def _check_header(source: str, version: int, count: int, degree: int, input_byte
         raise SpzFormatError(
             f"{source}: declares {count} Gaussians, more than the {MAX_SPZ_GAUSSIANS} read here"
         )
-    if count * _MIN_BYTES_PER_GAUSSIAN > input_bytes * MAX_COMPRESSION_RATIO:
-        raise SpzFormatError(
-            f"{source}: declares {count} Gaussians, far more than its {input_bytes} bytes can "
-            "hold (truncated or corrupt)"
-        )
+    DecodeBudget("spz", input_bytes, source, SpzFormatError).check_map(count, degree)
 
 
-def _unpack_streams(data: memoryview, source: str) -> tuple[_Streams, int]:
+def _read(stream: IO[bytes], source: str) -> GaussianMap:
+    """The validated map of an SPZ file open in `stream` (read by checked slices, a stream at a
+    time, never whole)."""
+    streams, bits = _unpack_streams(stream, source)
+    try:
+        return _decode(streams, bits, source).validate()
+    except MapError as exc:
+        raise SpzFormatError(f"{source}: {exc}") from None
+
+
+def _unpack_streams(stream: IO[bytes], source: str) -> tuple[_Streams, int]:
     """The streams of a file and its fraction bits."""
-    if len(data) >= 2 and data[:2] == b"\x1f\x8b":
-        return _unpack_gzip(data, source)
-    if len(data) < 4 or data[:4] != struct.pack("<I", MAGIC):
+    size = file_size(stream)
+    stream.seek(0)
+    head = stream.read(_HEADER.size)
+    if head[:2] == b"\x1f\x8b":
+        stream.seek(0)
+        return _unpack_gzip(stream, size, source)
+    if len(head) < 4 or head[:4] != struct.pack("<I", MAGIC):
         raise SpzFormatError(f"{source}: not an SPZ file (neither gzip nor an NGSP header)")
-    if len(data) < _HEADER.size:
-        raise SpzFormatError(f"{source}: truncated: {len(data)} bytes, the header needs 32")
-    _magic, version, count, degree, bits, flags, n_streams, toc = _HEADER.unpack_from(data)
+    if len(head) < _HEADER.size:
+        raise SpzFormatError(f"{source}: truncated: {size} bytes, the header needs 32")
+    _magic, version, count, degree, bits, flags, n_streams, toc = _HEADER.unpack(head)
     if version < 4:
         raise SpzFormatError(f"{source}: an ungzipped SPZ header says version {version}; needs 4")
-    _check_header(source, version, count, degree, len(data))
+    _check_header(source, version, count, degree, size)
     streams = _Streams(version, count, degree, bool(flags & _FLAG_ANTIALIASED))
-    sizes = [s for s in streams.sizes() if s]
-    if n_streams != len(sizes):
-        raise SpzFormatError(f"{source}: {n_streams} streams, expected {len(sizes)}")
-    if toc < _HEADER.size or toc + n_streams * _TOC_ENTRY.size > len(data):
-        raise SpzFormatError(f"{source}: truncated or corrupt: the stream table lies outside")
-    if toc > _HEADER.size and not flags & _FLAG_EXTENSIONS:
-        raise SpzFormatError(f"{source}: {toc - _HEADER.size} unexplained bytes before the table")
-    offset = toc + n_streams * _TOC_ENTRY.size
-    entries = [_TOC_ENTRY.unpack_from(data, toc + i * _TOC_ENTRY.size) for i in range(n_streams)]
-    blocks: list[tuple[memoryview, int, str]] = []
-    for i, ((packed, unpacked), expected) in enumerate(zip(entries, sizes, strict=True)):
-        if unpacked != expected:
-            raise SpzFormatError(
-                f"{source}: stream {i} holds {unpacked} bytes, {count} Gaussians need {expected}"
-            )
-        if packed > len(data) - offset:
-            raise SpzFormatError(f"{source}: truncated: stream {i} runs past the end of the file")
-        blocks.append((data[offset : offset + packed], expected, f"{source}: stream {i}"))
-        offset += packed
-    if offset != len(data):
-        raise SpzFormatError(f"{source}: {len(data) - offset} bytes after the last stream")
+    blocks = _stream_table(stream, size, streams, n_streams, toc, flags, source)
     with ThreadPoolExecutor(len(blocks)) as pool:  # (zstd releases the GIL)
         inflated = iter(pool.map(lambda block: _stream(*block), blocks))
     streams.data = [next(inflated) if size else np.zeros(0, np.uint8) for size in streams.sizes()]
     return streams, bits
 
 
-def _stream(block: memoryview, expected: int, what: str) -> np.ndarray:
-    """One zstd stream of exactly `expected` bytes."""
+def _stream_table(
+    stream: IO[bytes],
+    size: int,
+    streams: _Streams,
+    n_streams: int,
+    toc: int,
+    flags: int,
+    source: str,
+) -> list[tuple[IO[bytes], int, str]]:
+    """The compressed streams of a version-4 file (each a slice of the file), with the bytes each
+    must inflate to and its name, once the table of contents agrees with the header and
+    accounts for every byte of the file."""
+    sizes = [s for s in streams.sizes() if s]
+    if n_streams != len(sizes):
+        raise SpzFormatError(f"{source}: {n_streams} streams, expected {len(sizes)}")
+    if toc < _HEADER.size or toc + n_streams * _TOC_ENTRY.size > size:
+        raise SpzFormatError(f"{source}: truncated or corrupt: the stream table lies outside")
+    if toc > _HEADER.size and not flags & _FLAG_EXTENSIONS:
+        raise SpzFormatError(f"{source}: {toc - _HEADER.size} unexplained bytes before the table")
+    table = read_slice(stream, toc, n_streams * _TOC_ENTRY.size, source, SpzFormatError)
+    entries = [_TOC_ENTRY.unpack_from(table, i * _TOC_ENTRY.size) for i in range(n_streams)]
+    offset = toc + len(table)
+    spans = []
+    for i, ((packed, unpacked), expected) in enumerate(zip(entries, sizes, strict=True)):
+        if unpacked != expected:
+            raise SpzFormatError(
+                f"{source}: stream {i} holds {unpacked} bytes, {streams.count} Gaussians need "
+                f"{expected}"
+            )
+        if packed > size - offset:
+            raise SpzFormatError(f"{source}: truncated: stream {i} runs past the end of the file")
+        spans.append((offset, packed, expected))
+        offset += packed
+    if offset != size:
+        raise SpzFormatError(f"{source}: {size - offset} bytes after the last stream")
+    lock = threading.Lock()
+    return [
+        (
+            io.BufferedReader(FileSlice(stream, start, packed, lock)),
+            expected,
+            f"{source}: stream {i}",
+        )
+        for i, (start, packed, expected) in enumerate(spans)
+    ]
+
+
+def _stream(block: IO[bytes], expected: int, what: str) -> np.ndarray:
+    """One zstd stream of exactly `expected` bytes (read from the file as it inflates)."""
     return np.frombuffer(inflate_zstd(block, expected, what, SpzFormatError), np.uint8)
 
 
-def _unpack_gzip(data: memoryview, source: str) -> tuple[_Streams, int]:
-    """The streams of a version 2-3 file (one gzip member)."""
-    inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
-    try:
-        head = inflater.decompress(data, _LEGACY_HEADER.size)
-        if len(head) < _LEGACY_HEADER.size:
-            raise SpzFormatError(f"{source}: truncated: the gzip stream ends inside the header")
-        magic, version, count, degree, bits, flags, _ = _LEGACY_HEADER.unpack(head)
-        if magic != MAGIC:
-            raise SpzFormatError(f"{source}: not an SPZ file (gzip without an NGSP header)")
-        _check_header(source, version, count, degree, len(data))
-        streams = _Streams(version, count, degree, bool(flags & _FLAG_ANTIALIASED))
-        total = sum(streams.sizes())
-        body = inflater.decompress(inflater.unconsumed_tail, total)
-        while len(body) < total and inflater.unconsumed_tail:
-            body += inflater.decompress(inflater.unconsumed_tail, total - len(body))
-        if len(body) < total:
-            raise SpzFormatError(
-                f"{source}: truncated: {len(body)} bytes of attributes, {count} Gaussians need "
-                f"{total}"
-            )
-        extra = inflater.decompress(inflater.unconsumed_tail, 1)
-        if not extra and not inflater.eof:
-            raise SpzFormatError(f"{source}: truncated: the gzip stream does not end")
-    except zlib.error as exc:
-        raise SpzFormatError(f"{source}: corrupt gzip stream ({exc})") from None
+def _unpack_gzip(stream: IO[bytes], size: int, source: str) -> tuple[_Streams, int]:
+    """The streams of a version 2-3 file (one gzip member, inflated as it is read)."""
+    reader = GzipReader(stream, source, SpzFormatError)
+    head = reader.read(_LEGACY_HEADER.size)
+    if len(head) < _LEGACY_HEADER.size:
+        raise SpzFormatError(f"{source}: truncated: the gzip stream ends inside the header")
+    magic, version, count, degree, bits, flags, _ = _LEGACY_HEADER.unpack(head)
+    if magic != MAGIC:
+        raise SpzFormatError(f"{source}: not an SPZ file (gzip without an NGSP header)")
+    _check_header(source, version, count, degree, size)
+    streams = _Streams(version, count, degree, bool(flags & _FLAG_ANTIALIASED))
+    total = sum(streams.sizes())
+    body = reader.read(total)
+    if len(body) < total:
+        raise SpzFormatError(
+            f"{source}: truncated: {len(body)} bytes of attributes, {count} Gaussians need {total}"
+        )
+    extra = reader.read(1)
+    if not extra and not reader.eof:
+        raise SpzFormatError(f"{source}: truncated: the gzip stream does not end")
     if extra and not flags & _FLAG_EXTENSIONS:
         raise SpzFormatError(f"{source}: data after the {count} Gaussians the header declares")
     array = np.frombuffer(body, np.uint8)

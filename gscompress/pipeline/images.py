@@ -26,6 +26,7 @@ import numpy as np
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, MapError
 from gscompress.gaussians import GaussianMap
+from gscompress.io.files import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +124,8 @@ def write_png(path: Path, image: np.ndarray) -> Path:
     from PIL import Image
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(to_uint8(image)).save(path)
-    return path
+    picture = Image.fromarray(to_uint8(image))
+    return write_atomic(path, lambda file: picture.save(file, format="PNG"))
 
 
 @dataclass
@@ -257,15 +258,19 @@ class ImageSaver:
             if scale is not None:
                 cmap, low, high, what = scale
                 bar = fig.colorbar(
-                    ScalarMappable(Normalize(low, high), cmap), ax=ax, orientation="horizontal",
-                    fraction=0.05, pad=0.04,
-                )  # fmt: skip
+                    ScalarMappable(Normalize(low, high), cmap),
+                    ax=ax,
+                    orientation="horizontal",
+                    fraction=0.05,
+                    pad=0.04,
+                )
                 bar.set_label(what, fontsize="x-small")
                 bar.ax.tick_params(labelsize="x-small")
         if self.title:
             fig.suptitle(f"{self.title}, frame {view.index}", fontsize="medium")
         fig.tight_layout()
         path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=FIGURE_DPI)
+        fmt = path.suffix[1:].lower() or "png"
+        write_atomic(path, lambda file: fig.savefig(file, format=fmt, dpi=FIGURE_DPI))
         plt.close(fig)
         return path

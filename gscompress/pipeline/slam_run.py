@@ -29,6 +29,7 @@ from gscompress.errors import (
     OutputError,
 )
 from gscompress.io.codec import check_codec
+from gscompress.io.decode_budget import DecodeBudget
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     POSES_ESTIMATED,
@@ -167,9 +168,16 @@ def slam_file(
     if keep is not None:
         check_ratio(keep, "--keep")
     if resume:
-        given = {"--preset": preset, "--config": config_path or config, "--frames": frames,
-                 "--size": size, "--backend": backend, "--keep": keep, "--inject": inject,
-                 "--share-transform": share_transform}  # fmt: skip
+        given = {
+            "--preset": preset,
+            "--config": config_path or config,
+            "--frames": frames,
+            "--size": size,
+            "--backend": backend,
+            "--keep": keep,
+            "--inject": inject,
+            "--share-transform": share_transform,
+        }
         clashing = [name for name, value in given.items() if value is not None]
         clashing += ["--no-prune"] if no_prune else []
         clashing += ["--rgb/--depth/--camera-info/--max-dt/--gt"] if _given(recording) else []
@@ -189,9 +197,18 @@ def slam_file(
         if share_transform is not None and inject is None:
             raise OptionError("a share transform needs --inject")
         run = _fresh_run(
-            seq, dst, config, frames or "all", device, inject, share_transform, force, sequence,
-            config_path, recording,
-        )  # fmt: skip
+            seq,
+            dst,
+            config,
+            frames or "all",
+            device,
+            inject,
+            share_transform,
+            force,
+            sequence,
+            config_path,
+            recording,
+        )
     run.meta.command = command
     run.codec = codec
     return _loop(run, dst, progress)
@@ -288,9 +305,12 @@ def _fresh_run(
         record = received.record
         if received.carried:
             check_same_camera(
-                received.camera, sequence.intrinsics, str(inject), "this run maps",
+                received.camera,
+                sequence.intrinsics,
+                str(inject),
+                "this run maps",
                 "run at the sender's --size, or inject a share cut without --keyframes",
-            )  # fmt: skip
+            )
         views = carried_views(received.carried, system.device)
         injected = system.receive(received.gaussians, views)
         operation = {
@@ -383,7 +403,8 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
         return run
     assert last is not None
-    gaussians = decode_snapshot(last[0], last[2], str(source)).gaussians
+    budget = DecodeBudget("log", source.stat().st_size, str(source), LogFormatError)
+    gaussians = decode_snapshot(last[0], last[2], str(source), budget).gaussians
     pose_records = by_topic[TOPIC_POSE][:done]
     stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
     poses = [decode_pose(r[0], r[2], str(source)) for r in pose_records]
@@ -569,8 +590,14 @@ def _finished_scores(system: Any, gaussians: Any, backend: str) -> Any:
     if not system.config.pwas.final_scores or received or system.sigma_d is None:
         return gaussians
     log.info("scoring the finished map from the run's %d views", len(system.poses))
-    return score_map(gaussians, system.poses, system.intrinsics, sigma_d=system.sigma_d,
-                     backend=backend, device=system.device)  # fmt: skip
+    return score_map(
+        gaussians,
+        system.poses,
+        system.intrinsics,
+        sigma_d=system.sigma_d,
+        backend=backend,
+        device=system.device,
+    )
 
 
 def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:

@@ -8,6 +8,7 @@ so a dragged slider never queues stale work behind it.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -16,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import GscError, OptionError
+from gscompress.errors import GscError, OptionError, clipped
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import decoded_map
 from gscompress.ops.budget import Budget
@@ -152,8 +153,9 @@ class MapViewer:
     def _build_gui(self) -> None:
         gui = self.server.gui
         src = self.source
-        gui.add_markdown(f"**{src.path.name}**" + (f" vs **{self.other.path.name}**"
-                                                    if self.other else ""))  # fmt: skip
+        gui.add_markdown(
+            f"**{src.path.name}**" + (f" vs **{self.other.path.name}**" if self.other else "")
+        )
         self.map_info = gui.add_markdown("")
         with gui.add_folder("Colour"):
             self.colour = gui.add_dropdown("Colour by", scene.COLOUR_MODES, initial_value="rgb")
@@ -167,9 +169,11 @@ class MapViewer:
                 "Rank by", STRATEGIES, initial_value="pwas" if scored else "opacity"
             )
             self.keep = gui.add_slider("Keep ratio", 0.01, 1.0, 0.01, 1.0)
+            self._guard(self.keep)
             self.codec = gui.add_dropdown("Codec", CODECS, initial_value=DEFAULT_SHARE_CODEC)
             self.sums = gui.add_checkbox("PWAS sums", True)
             self.budget = gui.add_slider("Budget (kB)", 1, 2, 1, 2)
+            self._guard(self.budget, whole=True)
             self.counts = gui.add_markdown("")
             self.sizes = gui.add_markdown("")
             self.solve = gui.add_button("Solve codec for this budget", visible=src.is_log)
@@ -177,8 +181,9 @@ class MapViewer:
             self.status = gui.add_markdown("")
         if src.snapshot_count > 1:
             with gui.add_folder("Snapshots"):
-                self.snapshot_slider = gui.add_slider("Snapshot", 0, src.snapshot_count - 1, 1,
-                                                      src.snapshot_count - 1)  # fmt: skip
+                last = src.snapshot_count - 1
+                self.snapshot_slider = gui.add_slider("Snapshot", 0, last, 1, last)
+                self._guard(self.snapshot_slider, whole=True)
                 self.snapshot_slider.on_update(self._on_snapshot)
         if len(src.poses) or len(src.poses_gt):
             with gui.add_folder("Trajectory"):
@@ -187,23 +192,62 @@ class MapViewer:
                 self.show_frustums = gui.add_checkbox("Keyframe cameras", True)
                 for box in (self.show_estimate, self.show_truth, self.show_frustums):
                     box.on_update(self._on_trajectory_visibility)
-        self.compare = gui.add_dropdown("Show", COMPARE_MODES, initial_value=COMPARE_MODES[0],
-                                        visible=self.other is not None)  # fmt: skip
-        for control in (self.colour, self.hide_dropped, self.selection, self.strategy, self.keep,
-                        self.codec, self.sums, self.budget, self.compare):  # fmt: skip
+        self.compare = gui.add_dropdown(
+            "Show", COMPARE_MODES, initial_value=COMPARE_MODES[0], visible=self.other is not None
+        )
+        for control in (
+            self.colour,
+            self.hide_dropped,
+            self.selection,
+            self.strategy,
+            self.keep,
+            self.codec,
+            self.sums,
+            self.budget,
+            self.compare,
+        ):
             control.on_update(self._request)
         self.codec.on_update(self._on_codec)
         self.sums.on_update(self._on_codec)
         self.solve.on_click(self._on_solve)
         self.write.on_click(self._on_write)
 
+    def _guard(self, slider: Any, whole: bool = False) -> None:
+        """Refuse a value a page sends that is not finite, outside `slider`'s range or (`whole`)
+        not a whole number: the slider is put back to its last good value, and the refusal said
+        in the page and the log. This runs before the slider's other callbacks. (A page is
+        input: `--host 0.0.0.0` serves any machine that reaches this one, and an integer beyond
+        64 bits would break the state every page that connects later is sent.)"""
+        good = [slider.value]
+
+        def check(_event: Any) -> None:
+            value = slider.value
+            try:
+                fine = bool(
+                    math.isfinite(value)
+                    and slider.min <= value <= slider.max
+                    and (not whole or float(value).is_integer())
+                )
+            except (TypeError, OverflowError):  # (not a number, or an int beyond any float)
+                fine = False
+            if fine:
+                good[0] = value
+                return
+            shown, span = clipped(value), f"{slider.min:g} to {slider.max:g}"
+            log.warning("gsc view: a page's %s of %s was refused (%s)", slider.label, shown, span)
+            self._say(f"**{slider.label} {shown} refused: it takes {span}**")
+            slider.value = good[0]
+
+        slider.on_update(check)
+
     def _budget_range(self) -> None:
         """Fit the budget slider to the map: from the smallest share file to the whole map's,
         in the chosen codec."""
         codec, sums = self.codec.value, self.sums.value
         smallest = smallest_share_bytes(codec)
-        whole = ShareCut(self.source.path, Budget(ratio=1.0), codec=codec, sums=sums,
-                         source=self._source_pair()).size(len(self.gaussians))  # fmt: skip
+        whole = ShareCut(
+            self.source.path, Budget(ratio=1.0), codec=codec, sums=sums, source=self._source_pair()
+        ).size(len(self.gaussians))
         low, high = int(np.ceil(smallest / 1000)) + 1, max(int(np.ceil(whole / 1000)), 3)
         self.budget.min, self.budget.max = low, high
         if not low <= self.budget.value <= high:
@@ -259,9 +303,13 @@ class MapViewer:
             self.renderer.set_layer(name, Layer(g, rgbs, opacities, visible))
             return None
         return self.server.scene.add_gaussian_splats(
-            f"/{name}", centers=g.means, covariances=g.covariances().astype(np.float32),
-            rgbs=rgbs, opacities=opacities, visible=visible,
-        )  # fmt: skip
+            f"/{name}",
+            centers=g.means,
+            covariances=g.covariances().astype(np.float32),
+            rgbs=rgbs,
+            opacities=opacities,
+            visible=visible,
+        )
 
     def _show(self, node: Any, name: str, visible: bool, offset: float = 0.0) -> None:
         """Show or hide a map drawn by `_add_splats` (moved by `offset` along x)."""
@@ -286,9 +334,14 @@ class MapViewer:
         key = (self.snapshot, str(budget), strategy, self.codec.value, self.sums.value)
         if key != self._share_key or self._share is None:
             self._share = cuts.preview_share(
-                self.source.path, self._source_pair(), budget, strategy=strategy,
-                codec=self.codec.value, sums=self.sums.value, seed=seed,
-            )  # fmt: skip
+                self.source.path,
+                self._source_pair(),
+                budget,
+                strategy=strategy,
+                codec=self.codec.value,
+                sums=self.sums.value,
+                seed=seed,
+            )
             self._share_key = key
         share = self._share
         self.counts.content = (
@@ -363,15 +416,23 @@ class MapViewer:
     def _draw_trajectories(self) -> None:
         src = self.source
         self._trajectory_nodes: dict[str, list[Any]] = {
-            "est": [], "gt": [], "frustums": [], "gt_frustums": []
-        }  # fmt: skip
-        for kind, poses, colour in (("est", src.poses, ESTIMATE_RGB),
-                                    ("gt", src.poses_gt, TRUTH_RGB)):  # fmt: skip
+            "est": [],
+            "gt": [],
+            "frustums": [],
+            "gt_frustums": [],
+        }
+        for kind, poses, colour in (
+            ("est", src.poses, ESTIMATE_RGB),
+            ("gt", src.poses_gt, TRUTH_RGB),
+        ):
             if len(poses) > 1:
                 node = self.server.scene.add_line_segments(
-                    f"/trajectory/{kind}", scene.trajectory_segments(poses), colors=colour,
-                    thickness=2.0, thickness_units="screen",
-                )  # fmt: skip
+                    f"/trajectory/{kind}",
+                    scene.trajectory_segments(poses),
+                    colors=colour,
+                    thickness=2.0,
+                    thickness_units="screen",
+                )
                 self._trajectory_nodes[kind].append(node)
         if len(src.poses):  # (keyframes may need the SLAM config: seconds, after start-up)
             self.frustums_drawn = threading.Thread(
@@ -387,23 +448,34 @@ class MapViewer:
         aspect = camera.width / camera.height if camera else 4 / 3
         extent = np.ptp(src.poses[:, :3, 3], axis=0).max() if len(src.poses) > 1 else 1.0
         truth = src.keyframe_truth(keyframes)
-        for kind, poses, colour in (("frustums", src.poses[keyframes], ESTIMATE_RGB),
-                                    ("gt_frustums", truth, TRUTH_RGB)):  # fmt: skip
+        for kind, poses, colour in (
+            ("frustums", src.poses[keyframes], ESTIMATE_RGB),
+            ("gt_frustums", truth, TRUTH_RGB),
+        ):
             wxyz, positions = scene.frustum_poses(poses)
             for i, (q, p) in enumerate(zip(wxyz, positions, strict=True)):
                 node = self.server.scene.add_camera_frustum(
-                    f"/trajectory/{kind}/{i}", fov=float(fov), aspect=float(aspect),
-                    scale=float(max(extent, 0.1) * 0.04), thickness=1.5,
-                    thickness_units="screen", color=colour, wxyz=q, position=p,
-                )  # fmt: skip
+                    f"/trajectory/{kind}/{i}",
+                    fov=float(fov),
+                    aspect=float(aspect),
+                    scale=float(max(extent, 0.1) * 0.04),
+                    thickness=1.5,
+                    thickness_units="screen",
+                    color=colour,
+                    wxyz=q,
+                    position=p,
+                )
                 self._trajectory_nodes[kind].append(node)
         self._on_trajectory_visibility()
 
     def _on_trajectory_visibility(self, *_args: Any) -> None:
         frustums = self.show_frustums.value
-        shown = {"est": self.show_estimate.value, "gt": self.show_truth.value,
-                 "frustums": frustums and self.show_estimate.value,
-                 "gt_frustums": frustums and self.show_truth.value}  # fmt: skip
+        shown = {
+            "est": self.show_estimate.value,
+            "gt": self.show_truth.value,
+            "frustums": frustums and self.show_estimate.value,
+            "gt_frustums": frustums and self.show_truth.value,
+        }
         for kind, nodes in self._trajectory_nodes.items():
             for node in nodes:
                 node.visible = shown[kind]
@@ -466,15 +538,23 @@ class MapViewer:
                 keep = float(self.keep.value)
                 suffix = ".mcap" if self.source.is_log else ".ply"
                 dst = out / f"{src.stem}_keep{keep:g}_{strategy}{suffix}"
-                result = cuts.write_prune(src, self._source_pair(), self.source.is_log, dst,
-                                          keep, strategy, seed)  # fmt: skip
+                result = cuts.write_prune(
+                    src, self._source_pair(), self.source.is_log, dst, keep, strategy, seed
+                )
             else:
                 budget = Budget.parse(f"{int(self.budget.value)}kB")
                 codec, sums = self.codec.value, self.sums.value
                 dst = out / f"{src.stem}_share{budget}_{codec}{'' if sums else '_nosums'}.mcap"
-                result = cuts.write_share(src, self._source_pair(), dst, budget,
-                                          strategy=strategy, codec=codec, sums=sums,
-                                          seed=seed)  # fmt: skip
+                result = cuts.write_share(
+                    src,
+                    self._source_pair(),
+                    dst,
+                    budget,
+                    strategy=strategy,
+                    codec=codec,
+                    sums=sums,
+                    seed=seed,
+                )
         except (GscError, OSError) as exc:
             self._say(f"**not written: {exc}**")
             return

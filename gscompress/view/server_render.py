@@ -56,13 +56,22 @@ FOV_RANGE = (math.radians(1.0), math.radians(170.0))
 """Vertical fields of view drawn; a page's outside them is clamped."""
 
 
+MAX_ASPECT = 16.0
+"""The most a page's canvas may be wider than tall or taller than wide: a camera message beyond
+it describes no window, and is refused."""
+
+MIN_SIDE = 16
+"""The fewest pixels a frame is drawn with along a side."""
+
+
 def page_intrinsics(fov: float, width: int, height: int, scale: float = 1.0) -> Intrinsics:
     """Pinhole intrinsics of the page's camera: vertical field of view `fov` (radians, within
-    `FOV_RANGE`), the canvas `width` x `height`, drawn at `scale` of that size (at least 16 x 16
-    pixels, at most `MAX_PIXELS`)."""
+    `FOV_RANGE`), the canvas `width` x `height`, drawn at `scale` of that size (at least
+    `MIN_SIDE` pixels a side, at most `MAX_PIXELS` in all, the minimum included)."""
     width, height = max(1, width), max(1, height)
     scale = min(scale, math.sqrt(MAX_PIXELS / (width * height)))
-    w, h = max(16, round(width * scale)), max(16, round(height * scale))
+    w, h = max(MIN_SIDE, round(width * scale)), max(MIN_SIDE, round(height * scale))
+    w, h = min(w, MAX_PIXELS // h), min(h, MAX_PIXELS // w)
     f = 0.5 * h / math.tan(0.5 * min(max(fov, FOV_RANGE[0]), FOV_RANGE[1]))
     return Intrinsics(fx=f, fy=f, cx=0.5 * w, cy=0.5 * h, width=w, height=h)
 
@@ -79,17 +88,35 @@ def next_motion_scale(scale: float, seconds: float) -> float:
 
 def is_camera(camera: tuple[Any, ...]) -> bool:
     """Whether a page's (wxyz, position, fov, width, height) describes a camera to draw from:
-    finite numbers, a non-zero rotation, a size of at least one pixel. (A page's messages are
-    input like any other: `--host 0.0.0.0` serves any machine that reaches this one.)"""
+    finite numbers, a non-zero rotation, a size of at least one pixel, an aspect within
+    `MAX_ASPECT`. (A page's messages are input like any other: `--host 0.0.0.0` serves any
+    machine that reaches this one.)"""
+    return camera_refusal(camera) is None and _has_size(camera)
+
+
+def camera_refusal(camera: tuple[Any, ...]) -> str | None:
+    """Why a page's camera message is refused, or None when it is drawn or has no size yet (a
+    page before its layout)."""
     try:
         wxyz, position, fov, width, height = camera
         numbers = np.array([*wxyz, *position, fov, width, height], np.float64)
-    except (TypeError, ValueError):
-        return False
-    return (
-        len(wxyz) == 4 and len(position) == 3 and bool(np.all(np.isfinite(numbers)))
-        and bool(np.any(numbers[:4])) and width >= 1 and height >= 1
-    )  # fmt: skip
+    except (TypeError, ValueError, OverflowError):
+        return "not a camera (wxyz, position, fov, width, height)"
+    if len(wxyz) != 4 or len(position) != 3 or not np.all(np.isfinite(numbers)):
+        return "a camera of numbers that are not finite"
+    if not np.any(numbers[:4]):
+        return "a camera of a zero rotation"
+    if _has_size(camera) and max(width / height, height / width) > MAX_ASPECT:
+        return (
+            f"a canvas of {int(width)}x{int(height)} pixels: wider than tall, or taller than "
+            f"wide, by more than {MAX_ASPECT:g} times"
+        )
+    return None
+
+
+def _has_size(camera: tuple[Any, ...]) -> bool:
+    """Whether a finite camera message has a canvas of at least one pixel a side."""
+    return bool(camera[3] >= 1 and camera[4] >= 1)
 
 
 def page_pose(wxyz: Any, position: Any) -> np.ndarray:
@@ -123,6 +150,7 @@ class _Client:
     moved_at: float = 0.0
     drawn: tuple[Any, ...] | None = None
     motion_scale: float = MOTION_SCALE
+    refused: tuple[Any, ...] | None = None
 
 
 class ServerRenderer:
@@ -191,8 +219,9 @@ class ServerRenderer:
 
         client.camera.on_update(moved)
         state.wake.set()
-        threading.Thread(target=self._serve, args=(client, state), name="gsc-view-render",
-                         daemon=True).start()  # fmt: skip
+        threading.Thread(
+            target=self._serve, args=(client, state), name="gsc-view-render", daemon=True
+        ).start()
 
     def _disconnect(self, client: Any) -> None:
         state = self._clients.pop(client.client_id, None)
@@ -208,8 +237,13 @@ class ServerRenderer:
             state.wake.clear()
             camera = client.camera
             try:
-                key = (tuple(camera.wxyz), tuple(camera.position), camera.fov,
-                       camera.image_width, camera.image_height)  # fmt: skip
+                key = (
+                    tuple(camera.wxyz),
+                    tuple(camera.position),
+                    camera.fov,
+                    camera.image_width,
+                    camera.image_height,
+                )
             except (AttributeError, TypeError):  # (no camera message from the page yet)
                 continue
             moving = time.perf_counter() - state.moved_at < SETTLE_S
@@ -222,13 +256,15 @@ class ServerRenderer:
             try:
                 image = self.draw(key, scale)
                 if image is not None:
-                    client.scene.set_background_image(image, format="jpeg",
-                                                      jpeg_quality=JPEG_QUALITY)  # fmt: skip
+                    client.scene.set_background_image(
+                        image, format="jpeg", jpeg_quality=JPEG_QUALITY
+                    )
             except Exception as exc:  # (one frame that fails must not end the page's drawing)
                 log.warning("gsc view: a frame was not drawn: %s", exc)
                 image = None
             state.drawn = wanted
             if image is None:
+                self._refuse(client, state, key)
                 continue
             seconds = time.perf_counter() - started
             if moving:
@@ -236,11 +272,22 @@ class ServerRenderer:
             self.frames_sent += 1
             self.last_frame = (image.shape[1], image.shape[0], seconds)
 
+    def _refuse(self, client: Any, state: _Client, camera: tuple[Any, ...]) -> None:
+        """Say in the log and on the page (once for each refused camera) why a page's camera
+        message draws nothing."""
+        why = camera_refusal(camera)
+        if why is None or state.refused == camera:
+            return
+        state.refused = camera
+        log.warning("gsc view: a page's camera was refused: %s", why)
+        client.add_notification("Camera refused", f"Nothing is drawn for {why}.")
+
     # ------------------------------------------------------------------ drawing
 
     def draw(self, camera: tuple[Any, ...], scale: float) -> np.ndarray | None:
         """[H, W, 3] uint8 picture of the visible layers from `camera` (wxyz, position, fov,
-        width, height) at `scale` of its size; None before the page has a size."""
+        width, height) at `scale` of its size; None before the page has a size, and for a
+        message that describes no camera (`camera_refusal`)."""
         from gscompress.ops.evaluate import render_view
 
         if not is_camera(camera):

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from gscompress import __version__
-from gscompress.io.files import json_text, write_text_atomic
+from gscompress.io.files import json_text, write_atomic, write_text_atomic
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline.experiment.cross_agent import FRAME_SETS
 from gscompress.pipeline.experiment.protocol import (
@@ -811,7 +811,7 @@ def _save(fig: Any, path: Path) -> Path:
     """Write `fig` as a PNG at `PLOT_DPI` and as an SVG beside it; returns the PNG's path."""
     import matplotlib.pyplot as plt
 
-    fig.savefig(path, dpi=PLOT_DPI)
-    fig.savefig(path.with_suffix(".svg"))
+    write_atomic(path, lambda file: fig.savefig(file, format="png", dpi=PLOT_DPI))
+    write_atomic(path.with_suffix(".svg"), lambda file: fig.savefig(file, format="svg"))
     plt.close(fig)
     return path
