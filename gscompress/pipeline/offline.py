@@ -34,15 +34,15 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import write_ply
 from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
-from gscompress.ops.fold import fold
+from gscompress.ops.fold import Folding
 from gscompress.ops.merge import transform_map
 from gscompress.pipeline.receiver import Request, budget_less_request, read_request, unseen_ids
 from gscompress.selection import (
     check_ratio,
     keep_count,
-    select_by,
     selection_scores,
     strategy_scores,
+    top_index,
 )
 
 log = logging.getLogger(__name__)
@@ -209,14 +209,19 @@ def cut_map(
     scores: np.ndarray,
     fold_dropped: bool,
     first: np.ndarray | None = None,
+    folding: Folding | None = None,
 ) -> GaussianMap:
     """The `count` Gaussians of `full` with the highest `scores` (a strategy's, from
     `selection.selection_scores`: spread over space there if asked), each with the dropped ones
     near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians, ids and
     order either way). What `gsc prune` keeps and `gsc share` sends. `first` ([N] bool) ranks
-    the Gaussians it marks above all the others (a receiver-aware share)."""
-    kept, index = select_by(full, count, scores, first)
-    return fold(full, index) if fold_dropped else kept
+    the Gaussians it marks above all the others (a receiver-aware share). `folding`, the
+    `Folding` of `full`, folds it when given: a caller that cuts many counts of one map passes
+    the same one each time."""
+    index = top_index(full, count, scores, first)
+    if not fold_dropped:
+        return full.select(index)
+    return (folding or Folding(full)).fold(index)
 
 
 def refined(
@@ -400,9 +405,10 @@ class ShareCut:
         self.pool = pool
         self._scores = selection_scores(pool, self.strategy, self.seed, self.spread)
         self._first = None if self.first_ids is None else np.isin(pool.ids, self.first_ids)
+        self._folding = Folding(pool) if self.fold else None  # (one for every count tried)
 
     def _cut(self, count: int) -> GaussianMap:
-        return cut_map(self.pool, count, self._scores, self.fold, self._first)
+        return cut_map(self.pool, count, self._scores, self.fold, self._first, self._folding)
 
     def refined(self, count: int, refine: MapRefiner) -> int:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
