@@ -120,6 +120,8 @@ def main() -> None:
         work.mkdir(parents=True, exist_ok=True)
         logs: list[tuple[Path, str | None]] = []
         for n, budget in ((opts.gaussians, None), (opts.small, opts.budget_bytes)):
+            if n == 0:  # (--gaussians 0 / --small 0: not this one)
+                continue
             path = work / f"random_{n}.mcap"
             if not path.exists():
                 make_log(path, n)

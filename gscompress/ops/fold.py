@@ -71,6 +71,15 @@ class _Nearest:
     distance: np.ndarray  # [N] float64 distance to it (inf for the kept ones)
 
 
+@dataclass(frozen=True)
+class _Folded:
+    """A fold's Gaussians, and whom each Gaussian of the map joined."""
+
+    owner: np.ndarray  # [N] int64 position of the kept Gaussian each joined (-1: none)
+    row: np.ndarray  # [N] int64 row of each kept Gaussian in `gaussians` (-1: not kept)
+    gaussians: GaussianMap
+
+
 class Folding:
     """The folds of one map (`fold`), one kept set after another: what `gsc prune` folds once
     and a byte budget's search (`gscompress.ops.budget.largest_count_within`) about 15 times.
@@ -100,6 +109,7 @@ class Folding:
         self._sigma = np.exp(gaussians.log_scales).astype(np.float64)
         self._scale = np.broadcast_to(self._sigma, (len(gaussians), 3)).mean(axis=1)
         self._done: list[_Nearest] = []  # (the last fold and the nearest sets on each side)
+        self._folded: _Folded | None = None  # (the last fold that moment-matched)
 
     def groups(self, kept: np.ndarray) -> np.ndarray:
         """`fold_groups` of the map for `kept`."""
@@ -118,23 +128,56 @@ class Folding:
     def fold(self, kept: np.ndarray) -> GaussianMap:
         """`fold` of the map into `kept`."""
         kept = np.asarray(kept, dtype=np.int64)
-        k = len(kept)
         group = self.groups(kept)
         members = np.flatnonzero(group >= 0)
         base = self.gaussians.select(kept)
-        if len(members) == k:  # (nothing folds: the kept Gaussians as they are)
+        if len(members) == len(kept):  # (nothing folds: the kept Gaussians as they are)
             return base
-        g = group[members]
+        owner = np.full(len(group), -1)
+        owner[members] = kept[group[members]]
+        redo = self._changed(owner, kept)
+        slot = np.cumsum(redo) - 1
+        again = members[redo[group[members]]]
+        fields = self._moments(again, slot[group[again]], base.quats[redo])
+        if not redo.all():  # (the other groups as the last fold left them)
+            last = self._folded
+            assert last is not None
+            rows = last.row[kept[~redo]]
+            for name, values in fields.items():
+                whole = np.empty((len(kept), *values.shape[1:]), values.dtype)
+                whole[redo], whole[~redo] = values, getattr(last.gaussians, name)[rows]
+                fields[name] = whole
+        folded = replace(base, **fields).validate()
+        row = np.full(len(group), -1)
+        row[kept] = np.arange(len(kept))
+        self._folded = _Folded(owner, row, folded)
+        return folded
+
+    def _changed(self, owner: np.ndarray, kept: np.ndarray) -> np.ndarray:
+        """[K] whether each kept Gaussian's group differs from its group in the last fold (or
+        it was not kept then): the groups a fold computes, the others it copies."""
+        last = self._folded
+        if last is None:
+            return np.ones(len(kept), dtype=bool)
+        moved = np.flatnonzero(owner != last.owner)
+        touched = np.zeros(len(owner), dtype=bool)
+        for who in (owner[moved], last.owner[moved]):
+            touched[who[who >= 0]] = True
+        return touched[kept] | (last.row[kept] < 0)
+
+    def _moments(self, members: np.ndarray, g: np.ndarray, quats: np.ndarray) -> dict:
+        """The folded parameters of the groups `g` [M] (0..k-1) of the Gaussians `members` [M]
+        (ascending), as float32 fields of a `GaussianMap`; `quats` [k] the kept ones' own."""
+        k = len(quats)
         weights = self._weights[members]
         means = np.take(self._columns, members, axis=1).T  # [M, 3], each column contiguous
         mean, cov = moment_match(weights, means, self._spreads[members], g, k)
         opacity = np.zeros(k)
         np.maximum.at(opacity, g, self._opacities[members])
         opacity = np.clip(opacity, LOGIT_BOUND, 1.0 - LOGIT_BOUND)
-        if base.isotropic:  # (the trace, summed in np.trace's order)
+        if self.gaussians.isotropic:  # (the trace, summed in np.trace's order)
             trace = cov[:, 0] + cov[:, 1] + cov[:, 2]
             log_scales = 0.5 * np.log(trace / 3.0)[:, None]
-            quats = base.quats
         else:
             variances, axes = np.linalg.eigh(cov)
             axes[np.linalg.det(axes) < 0, :, 2] *= -1.0  # (a rotation, not a reflection)
@@ -145,19 +188,19 @@ class Folding:
             return np.bincount(g, values[members].astype(np.float64), k)
 
         def averaged(values: np.ndarray) -> np.ndarray:
-            return group_mean(np.take(values, members, axis=0), weights, g, k).astype(np.float32)
+            return group_mean(np.take(values, members, axis=0), weights, g, k)
 
-        return replace(
-            base,
-            means=mean.astype(np.float32),
-            log_scales=log_scales.astype(np.float32),
-            quats=np.asarray(quats, dtype=np.float32),
-            opacity_logits=np.log(opacity / (1.0 - opacity)).astype(np.float32),
-            sh_dc=averaged(self.gaussians.sh_dc),
-            sh_rest=averaged(self.gaussians.sh_rest),
-            importance_sum=summed(self.gaussians.importance_sum),
-            alpha_t_sum=summed(self.gaussians.alpha_t_sum),
-        ).validate()
+        fields = {
+            "means": mean,
+            "log_scales": log_scales,
+            "quats": quats,
+            "opacity_logits": np.log(opacity / (1.0 - opacity)),
+            "sh_dc": averaged(self.gaussians.sh_dc),
+            "sh_rest": averaged(self.gaussians.sh_rest),
+            "importance_sum": summed(self.gaussians.importance_sum),
+            "alpha_t_sum": summed(self.gaussians.alpha_t_sum),
+        }
+        return {name: np.asarray(v, dtype=np.float32) for name, v in fields.items()}
 
     @cached_property
     def _columns(self) -> np.ndarray:
@@ -337,13 +380,14 @@ def moment_match(
 def group_sums(values: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
     """[k, ...] float64 sums of `values` [N, ...] over each of `k` groups (one bincount per
     component: many times faster than np.add.at)."""
-    columns = np.asarray(values, dtype=np.float64).reshape(len(values), -1).T
+    width = int(np.prod(values.shape[1:]))
+    columns = np.asarray(values, dtype=np.float64).reshape(len(values), width).T
     sums = [np.bincount(group, np.ascontiguousarray(c), k) for c in columns]
     return np.stack(sums, 1).reshape((k, *values.shape[1:])) if sums else np.zeros((k, 0))
 
 
 def group_mean(values: np.ndarray, weights: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
     """[k, ...] weighted mean of `values` [N, ...] over each of `k` groups."""
-    flat = values.reshape(len(values), -1).astype(np.float64)
+    flat = values.reshape(len(values), int(np.prod(values.shape[1:]))).astype(np.float64)
     sums = group_sums(weights[:, None] * flat, group, k)
     return (sums / np.bincount(group, weights, k)[:, None]).reshape((k, *values.shape[1:]))
