@@ -238,7 +238,7 @@ class Folding:
 
     @cached_property
     def _everything(self) -> cKDTree:
-        return cKDTree(self._means)
+        return cKDTree(self._means, balanced_tree=False, compact_nodes=False)  # (for balls)
 
     def _nearest(self, kept: np.ndarray, is_kept: np.ndarray) -> _Nearest:
         """The nearest kept Gaussian of every dropped one, from the earlier kept set nearest to
@@ -274,7 +274,7 @@ class Folding:
         if below is not None and len(adds) <= ADDED_SHARE * len(dropped):
             queried, found, gap = self._around(adds, dropped, distance, is_kept)
         else:
-            gap, i = self._query(adds, dropped)
+            gap, i = self._query(adds, dropped, first=below is None)
             queried, found = dropped, adds[i]
         closer = gap < distance[queried]
         index[queried[closer]] = found[closer]
@@ -327,11 +327,14 @@ class Folding:
         first = first[np.r_[True, queried[first][1:] != queried[first][:-1]]]
         return queried[first], found[first], gap[first]
 
-    def _query(self, kept: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _query(
+        self, kept: np.ndarray, points: np.ndarray, first: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The nearest of the Gaussians `kept` to each of `points`: ([P] distances, [P] their
-        positions in `kept`), by a k-d tree of `kept` (in its order, as the fold was first
-        written: the same tree, the same choice among equal distances)."""
-        tree = cKDTree(np.take(self._means, kept, axis=0))
+        positions in `kept`), by a k-d tree of `kept`. A fold from no earlier one (`first`)
+        builds the tree the fold was first written with (scipy's default: the same choice
+        among equal distances); the others a tree that builds 2x faster (sliding midpoint)."""
+        tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
         distance, i = tree.query(np.take(self._means, points, axis=0), workers=cpu_threads())
         return distance, i
 
