@@ -104,7 +104,7 @@ class Folding:
 
     def __init__(self, gaussians: GaussianMap, reach: float = FOLD_REACH):
         self.gaussians, self.reach = gaussians, reach
-        self._means = gaussians.means.astype(np.float64)
+        self._means = gaussians.means  # (float32: trees and sums widen them to float64, exactly)
         # standard deviations as GaussianMap.scales() rounds them, and their mean
         self._sigma = np.exp(gaussians.log_scales).astype(np.float64)
         self._scale = np.broadcast_to(self._sigma, (len(gaussians), 3)).mean(axis=1)
@@ -170,7 +170,7 @@ class Folding:
         (ascending), as float32 fields of a `GaussianMap`; `quats` [k] the kept ones' own."""
         k = len(quats)
         weights = self._weights[members]
-        means = np.take(self._columns, members, axis=1).T  # [M, 3], each column contiguous
+        means = np.take(self._means, members, axis=0)
         mean, cov = moment_match(weights, means, self._spreads[members], g, k)
         opacity = np.zeros(k)
         np.maximum.at(opacity, g, self._opacities[members])
@@ -203,11 +203,6 @@ class Folding:
         return {name: np.asarray(v, dtype=np.float32) for name, v in fields.items()}
 
     @cached_property
-    def _columns(self) -> np.ndarray:
-        """[3, N] the centres, axis by axis (`moment_match` reads them a column at a time)."""
-        return np.ascontiguousarray(self._means.T)
-
-    @cached_property
     def _opacities(self) -> np.ndarray:
         return self.gaussians.opacities().astype(np.float64)
 
@@ -230,7 +225,7 @@ class Folding:
         """[N] the Gaussians cell by cell along a Morton curve of 2^(3 x `SPATIAL_BITS`) cells:
         queries in this order walk the k-d tree through memory they have just visited (3x
         faster on the 1M-Gaussian map of bench/offline.py, measured on two busy cores)."""
-        low = self._means.min(axis=0)
+        low = self._means.min(axis=0).astype(np.float64)
         extent = max(float((self._means.max(axis=0) - low).max()), np.finfo(np.float64).tiny)
         top = (1 << SPATIAL_BITS) - 1
         cells = np.minimum((self._means - low) * (top / extent), top).astype(np.int64)
@@ -276,6 +271,9 @@ class Folding:
         else:
             gap, i = self._query(adds, dropped, first=below is None)
             queried, found = dropped, adds[i]
+        if below is None:
+            index[queried], distance[queried] = found, gap
+            return index, distance
         closer = gap < distance[queried]
         index[queried[closer]] = found[closer]
         distance[queried[closer]] = gap[closer]
@@ -340,9 +338,9 @@ class Folding:
 
 
 def point_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """[N] float64 distances between the rows of `a` and `b` ([N, 3] float64), rounded as
+    """[N] float64 distances between the rows of `a` and `b` ([N, 3], as float64), rounded as
     scipy's k-d tree rounds them (x, y, z summed in order), so the two compare exactly."""
-    d = a - b
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
     return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
 
 
@@ -366,31 +364,39 @@ def moment_match(
         ([k, 3] means, [k, 3, 3] covariances or [k, 3] their diagonals), float64.
     """
     total = np.bincount(group, weights, k)
-    moment = np.stack([np.bincount(group, weights * means[:, c], k) for c in range(3)], 1)
-    mean: np.ndarray = moment / total[:, None]
+    mean: np.ndarray = weighted_sums(means, weights, group, k) / total[:, None]
     if covariances.ndim == 1:  # (isotropic: the diagonal alone, an axis at a time)
-        diagonal = []
+        diagonal = np.empty((k, 3))
+        spread = np.empty(len(group))  # (one buffer: w (s^2 + (mu_i - mu_g)^2) for each axis)
         for c in range(3):
-            offset = means[:, c] - mean[group, c]
-            diagonal.append(np.bincount(group, weights * (covariances + offset * offset), k))
-        return mean, np.stack(diagonal, 1) / total[:, None]
+            np.take(mean[:, c], group, out=spread)
+            np.subtract(means[:, c], spread, out=spread)
+            np.multiply(spread, spread, out=spread)
+            spread += covariances
+            spread *= weights
+            diagonal[:, c] = np.bincount(group, spread, k)
+        return mean, diagonal / total[:, None]
     offset = means - mean[group]
-    spread = covariances + offset[:, :, None] * offset[:, None, :]
-    cov = group_sums(weights[:, None, None] * spread, group, k)
+    outer = covariances + offset[:, :, None] * offset[:, None, :]
+    cov = weighted_sums(outer, weights, group, k).reshape(k, 3, 3)
     return mean, cov / total[:, None, None]
 
 
-def group_sums(values: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
-    """[k, ...] float64 sums of `values` [N, ...] over each of `k` groups (one bincount per
-    component: many times faster than np.add.at)."""
-    width = int(np.prod(values.shape[1:]))
-    columns = np.asarray(values, dtype=np.float64).reshape(len(values), width).T
-    sums = [np.bincount(group, np.ascontiguousarray(c), k) for c in columns]
-    return np.stack(sums, 1).reshape((k, *values.shape[1:])) if sums else np.zeros((k, 0))
+def weighted_sums(values: np.ndarray, weights: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
+    """[k, C] float64 sums of `weights` x `values` ([N, ...], C components) over each of `k`
+    groups: a bincount per component (many times faster than np.add.at), through one buffer."""
+    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
+    sums = np.empty((k, flat.shape[1]))
+    product = np.empty(len(values))
+    for j in range(flat.shape[1]):
+        np.multiply(weights, flat[:, j], out=product)
+        sums[:, j] = np.bincount(group, product, k)
+    return sums
 
 
 def group_mean(values: np.ndarray, weights: np.ndarray, group: np.ndarray, k: int) -> np.ndarray:
     """[k, ...] weighted mean of `values` [N, ...] over each of `k` groups."""
-    flat = values.reshape(len(values), int(np.prod(values.shape[1:]))).astype(np.float64)
-    sums = group_sums(weights[:, None] * flat, group, k)
-    return (sums / np.bincount(group, weights, k)[:, None]).reshape((k, *values.shape[1:]))
+    total = np.bincount(group, weights, k)
+    return (weighted_sums(values, weights, group, k) / total[:, None]).reshape(
+        (k, *values.shape[1:])
+    )
