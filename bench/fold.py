@@ -30,6 +30,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from offline import make_log  # (bench/offline.py's log: the same map)
 
@@ -131,7 +132,8 @@ def main() -> None:
         cwds = {name: tmp / name for name in trees}
         for cwd in cwds.values():
             cwd.mkdir()
-        info = {"load_start": load(), **{f"{k}_commit": commit(t) for k, t in trees.items()}}
+        info: dict[str, Any] = {"load_start": load()}
+        info.update({f"{k}_commit": commit(t) for k, t in trees.items()})
         runs: dict[tuple[str, str, str], list[dict[str, float]]] = {}
         same: dict[tuple[str, str], bool] = {}
         for round_ in range(opts.repeat):
@@ -147,14 +149,14 @@ def main() -> None:
                             written[0] == written[1]
                         )
         info["load_end"] = load()
-    rows = []
+    rows: list[dict[str, Any]] = []
     for (log_name, name, tree), results in runs.items():
-        row = {"log": log_name, "command": name, "tree": tree, "commit": info[f"{tree}_commit"]}
+        line = {"log": log_name, "command": name, "tree": tree, "commit": info[f"{tree}_commit"]}
         for key in ("wall_s", "run_s", "cpu_s"):
-            row[key] = round(statistics.median(r[key] for r in results), 3)
-            row[f"{key}_all"] = [round(r[key], 3) for r in results]
-        rows.append(row)
-        print(json.dumps(row), flush=True)
+            line[key] = round(statistics.median(r[key] for r in results), 3)
+            line[f"{key}_all"] = [round(r[key], 3) for r in results]
+        rows.append(line)
+        print(json.dumps(line), flush=True)
 
     def median(log_name: str, name: str, tree: str, key: str = "wall_s") -> float:
         return next(r[key] for r in rows if (r["log"], r["command"], r["tree"]) == (

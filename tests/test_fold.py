@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
-
 from dataclasses import replace
 
+import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat, rotmat_to_quat

@@ -5,12 +5,12 @@ same kept Gaussians (same count, ids and order) but lets each stand for the drop
 it: every dropped Gaussian joins its nearest kept one (by centre) when their centres lie within
 `FOLD_REACH` times the sum of their mean scales, and each kept Gaussian becomes the moment-matched
 Gaussian of its group (`moment_match`): the weighted mean of the centres, the weighted
-covariance of the group about it, the weighted colour, with weights `fold_weights` (opacity
-times mean scale squared: how much of a view a Gaussian covers), and the group's largest
-opacity. A dropped Gaussian farther than that from every kept one is dropped as before. The
-folded Gaussian draws what its group drew, so its PWAS numerator and alpha*T sum are the group's
-sums, over the kept Gaussian's own visibility weight: its score (Eq. 8) is at least what it was,
-and a prune or share still keeps the highest scores.
+covariance of the group about it, the weighted colour, with weights of opacity times mean
+scale squared (how much of a view a Gaussian covers), and the group's largest opacity. A
+dropped Gaussian farther than that from every kept one is dropped as before. The folded
+Gaussian draws what its group drew, so its PWAS numerator and alpha*T sum are the group's sums,
+over the kept Gaussian's own visibility weight: its score (Eq. 8) is at least what it was, and
+a prune or share still keeps the highest scores.
 
 Measured on tabletop's unpruned map (11052 Gaussians, `--keep 0.3`, PSNR off the keyframes):
 dropping gives 15.75 dB, folding 19.54; reach 1 gave 16.96, 3 19.29, 4 19.54, none (every
@@ -94,8 +94,9 @@ class Folding:
       against them or, when they are few, among the dropped Gaussians around them;
     - holding it: the nearest in the larger set stands wherever the smaller set keeps it; the
       Gaussians whose nearest was removed (and those removed) are queried again.
-    The folds do not depend on which folds came before (ties in distance, which float data
-    almost never has, may go either way).
+    Likewise only the groups whose members changed since the last fold are moment-matched
+    again, the others copied. A fold gives the same bits whichever folds came before it (ties
+    in distance, which float data almost never has, may go to either Gaussian).
 
     Attributes:
         gaussians: the map folded from.
@@ -105,7 +106,8 @@ class Folding:
     def __init__(self, gaussians: GaussianMap, reach: float = FOLD_REACH):
         self.gaussians, self.reach = gaussians, reach
         self._means = gaussians.means  # (float32: trees and sums widen them to float64, exactly)
-        # standard deviations as GaussianMap.scales() rounds them, and their mean
+        # standard deviations as GaussianMap.scales() rounds them, and their mean (of three
+        # equal ones for an isotropic map, rounded as a mean of three)
         self._sigma = np.exp(gaussians.log_scales).astype(np.float64)
         self._scale = np.broadcast_to(self._sigma, (len(gaussians), 3)).mean(axis=1)
         self._done: list[_Nearest] = []  # (the last fold and the nearest sets on each side)
@@ -165,7 +167,9 @@ class Folding:
             touched[who[who >= 0]] = True
         return touched[kept] | (last.row[kept] < 0)
 
-    def _moments(self, members: np.ndarray, g: np.ndarray, quats: np.ndarray) -> dict:
+    def _moments(
+        self, members: np.ndarray, g: np.ndarray, quats: np.ndarray
+    ) -> dict[str, np.ndarray]:
         """The folded parameters of the groups `g` [M] (0..k-1) of the Gaussians `members` [M]
         (ascending), as float32 fields of a `GaussianMap`; `quats` [k] the kept ones' own."""
         k = len(quats)

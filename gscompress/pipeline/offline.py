@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -17,7 +18,7 @@ from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_IDS, CompactOptions, check_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
-from gscompress.io.keyframes import CarriedFrame, write_carried
+from gscompress.io.keyframes import CarriedFrame, carried_messages, write_carried
 from gscompress.io.map_files import map_suffix, read_map_file, write_map_file
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -460,14 +461,28 @@ class ShareCut:
                 options = CompactOptions(sums=self.sums, ids=self.ids)
                 meta.results["bytes"] = out.write_gaussians(shared, 0, self.codec, options)
                 if self.carry is not None:
-                    frames, camera = self.carry
-                    if self.T_target_source is not None:
-                        frames = [f.moved(self.T_target_source) for f in frames]
+                    frames, camera = self._carried
                     meta.results["keyframes"] = len(frames)
-                    meta.results["keyframe_bytes"] = write_carried(out, frames, camera)
+                    meta.results["keyframe_bytes"] = write_carried(
+                        out, frames, camera, self._carried_messages
+                    )
             self._last = (count, (out.data, shared, dict(meta.results)))
             self._sizes[count] = len(out.data)
         return self._last[1]
+
+    @cached_property
+    def _carried(self) -> tuple[list[CarriedFrame], Intrinsics]:
+        """The keyframes carried (in the share's frame) and their camera."""
+        assert self.carry is not None
+        frames, camera = self.carry
+        if self.T_target_source is not None:
+            frames = [f.moved(self.T_target_source) for f in frames]
+        return frames, camera
+
+    @cached_property
+    def _carried_messages(self) -> list[tuple[str, Any, int]]:
+        """Their messages, encoded once for every count tried."""
+        return carried_messages(self._carried[0])
 
     def size(self, count: int) -> int:
         """Bytes of the share file of the `count` best Gaussians."""
