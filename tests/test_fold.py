@@ -234,6 +234,26 @@ def test_the_fold_equals_the_plain_reference(seed: int) -> None:
     assert outcomes == {-1, 0, 1}  # (some dropped beyond the reach, some folded)
 
 
+def test_a_large_fold_bounds_its_query_and_equals_the_reference(monkeypatch) -> None:
+    """80,000 dropped Gaussians are queried within a bound first (`BOUNDED_QUERIES`), the few
+    beyond it again: the same groups and Gaussians as the plain query."""
+    g = varied_map(11, 100_000)
+    kept = top_k(selection_scores(g, "pwas"), g.ids, 20_000)
+    bounds = []
+
+    class Tree(fold_module.cKDTree):  # type: ignore[misc]
+        def query(self, x, *args, **kwargs):  # type: ignore[no-untyped-def]
+            bounds.append(kwargs.get("distance_upper_bound", np.inf))
+            return super().query(x, *args, **kwargs)
+
+    monkeypatch.setattr(fold_module, "cKDTree", Tree)
+    group, expected = reference_fold(g, kept)
+    folding = Folding(g)
+    np.testing.assert_array_equal(folding.groups(kept), group)
+    assert folding.fold(kept).equals(expected)
+    assert np.isfinite(bounds[1]) and len(bounds) <= 3  # (a sample, bounded, the rest)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_one_folding_of_many_kept_sets_equals_the_reference_for_each(seed: int) -> None:
     """A `Folding` asked for the K best at counts that grow and shrink, as a byte budget's

@@ -43,6 +43,9 @@ ADDED_SHARE = 1 / 32
 Gaussians it adds around those Gaussians (`Folding`) when they are at most this share of the
 dropped ones, else by a query of every dropped one."""
 
+BOUNDED_QUERIES = 65536
+"""A k-d tree query of at least this many points first bounds their distance (`Folding`)."""
+
 SPATIAL_BITS = 5
 """Bits per axis of the Morton codes the nearest-kept queries are ordered by (3 x 5 bits fit
 the 16-bit keys numpy sorts in linear time)."""
@@ -335,9 +338,21 @@ class Folding:
         """The nearest of the Gaussians `kept` to each of `points`: ([P] distances, [P] their
         positions in `kept`), by a k-d tree of `kept`. A fold from no earlier one (`first`)
         builds the tree the fold was first written with (scipy's default: the same choice
-        among equal distances); the others a tree that builds 2x faster (sliding midpoint)."""
+        among equal distances); the others a tree that builds 2x faster (sliding midpoint).
+
+        Many points are queried within a bound that holds all but about 0.1% of their nearest
+        (from a sample of them), which prunes each search (20% faster on the 1M map), and the
+        few beyond it again without one."""
         tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
-        distance, i = tree.query(np.take(self._means, points, axis=0), workers=cpu_threads())
+        where = np.take(self._means, points, axis=0)
+        workers = cpu_threads()
+        if len(points) < BOUNDED_QUERIES:
+            return tree.query(where, workers=workers)
+        bound = np.quantile(tree.query(where[::64], workers=workers)[0], 0.999)
+        distance, i = tree.query(where, distance_upper_bound=bound, workers=workers)
+        beyond = np.flatnonzero(i == len(kept))
+        if len(beyond):
+            distance[beyond], i[beyond] = tree.query(where[beyond], workers=workers)
         return distance, i
 
 
