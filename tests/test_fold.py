@@ -81,12 +81,14 @@ def test_the_nearest_kept_query_uses_the_threads_gsc_is_given(monkeypatch, threa
             return super().query(x, *args, **kwargs)
 
     monkeypatch.setattr(fold_module, "cKDTree", Tree)
-    gaussians = row_map(10, spacing=0.01, scale=0.01)
+    n = 2 * fold_module.PARALLEL_QUERIES  # (fewer queries run on one thread)
+    gaussians = row_map(n, spacing=0.01, scale=0.01)
     use_threads(3)  # what `gsc --threads 3` and an experiment worker's share do
-    fold_groups(gaussians, np.arange(0, 10, 2))
+    fold_groups(gaussians, np.arange(0, n, 2))
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    fold_groups(gaussians, np.arange(0, n, 2))
     fold_groups(gaussians, np.arange(0, 10, 2))
-    assert used == [3, 1]
+    assert used == [3, 1, 1]
 
 
 def test_anisotropic_fold_matches_the_moments():

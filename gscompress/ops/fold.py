@@ -43,6 +43,10 @@ ADDED_SHARE = 1 / 32
 Gaussians it adds around those Gaussians (`Folding`) when they are at most this share of the
 dropped ones, else by a query of every dropped one."""
 
+PARALLEL_QUERIES = 16384
+"""A k-d tree query of fewer points runs on one thread (more cost more to start than they
+save, and wait for each other on a busy machine); larger ones on `cpu_threads()`."""
+
 BOUNDED_QUERIES = 65536
 """A k-d tree query of at least this many points first bounds their distance (`Folding`)."""
 
@@ -347,7 +351,7 @@ class Folding:
         few beyond it again without one."""
         tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
         where = np.take(self._means, points, axis=0)
-        workers = cpu_threads()
+        workers = cpu_threads() if len(points) >= PARALLEL_QUERIES else 1
         if len(points) < BOUNDED_QUERIES:
             return tree.query(where, workers=workers)
         bound = np.quantile(tree.query(where[::64], workers=workers)[0], 0.999)
