@@ -44,8 +44,9 @@ Gaussians it adds around those Gaussians (`Folding`) when they are at most this 
 dropped ones, else by a query of every dropped one."""
 
 PARALLEL_QUERIES = 16384
-"""A k-d tree query of fewer points runs on one thread (more cost more to start than they
-save, and wait for each other on a busy machine); larger ones on `cpu_threads()`."""
+"""A k-d tree query of fewer points runs on one thread (for so few, more threads cost more to
+start than they save, and wait for each other on a busy machine); larger ones on
+`cpu_threads()`."""
 
 BOUNDED_QUERIES = 65536
 """A k-d tree query of at least this many points first bounds their distance (`Folding`)."""
@@ -334,9 +335,10 @@ class Folding:
             np.take(self._means, near, axis=0), np.take(self._means, source, axis=0)
         )
         gap = np.concatenate([pairs, gap_far])
-        first = np.lexsort((gap, queried))  # (the nearest of each, first)
-        first = first[np.r_[True, queried[first][1:] != queried[first][:-1]]]
-        return queried[first], found[first], gap[first]
+        order = np.lexsort((gap, queried))  # (the nearest of each, first)
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = queried[order][1:] != queried[order][:-1]
+        return queried[order[first]], found[order[first]], gap[order[first]]
 
     def _query(
         self, kept: np.ndarray, points: np.ndarray, first: bool = False
