@@ -225,11 +225,17 @@ def select_by(
 ) -> tuple[GaussianMap, np.ndarray]:
     """The `k` Gaussians with the highest `scores` (`selection_scores`), those `first` marks
     ranked above the rest (`top_k_first`): the kept map and their [k] indices."""
-    if first is None:
-        index = top_k(scores, gaussians.ids, k)
-    else:
-        index = top_k_first(scores, gaussians.ids, k, np.asarray(first, dtype=bool))
+    index = top_index(gaussians, k, scores, first)
     return gaussians.select(index), index
+
+
+def top_index(
+    gaussians: GaussianMap, k: int, scores: np.ndarray, first: np.ndarray | None = None
+) -> np.ndarray:
+    """[k] int64 ascending indices of the Gaussians `select_by` keeps (without copying them)."""
+    if first is None:
+        return top_k(scores, gaussians.ids, k)
+    return top_k_first(scores, gaussians.ids, k, np.asarray(first, dtype=bool))
 
 
 def top_k_first(scores: np.ndarray, ids: np.ndarray, k: int, first: np.ndarray) -> np.ndarray:

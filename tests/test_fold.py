@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
+from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat, rotmat_to_quat
 from gscompress.gaussians import GaussianMap, random_map
+from gscompress.io.mcap_log import LogMetadata, LogWriter
 from gscompress.ops import fold as fold_module
-from gscompress.ops.fold import FOLD_REACH, fold, fold_groups, moment_match
-from gscompress.selection import select_count
+from gscompress.ops.budget import Budget, largest_count_within
+from gscompress.ops.fold import FOLD_REACH, Folding, fold, fold_groups, moment_match
+from gscompress.pipeline.offline import ShareCut
+from gscompress.selection import select_by, select_count, selection_scores, top_k
 from gscompress.threads import use_threads
 
 
@@ -75,12 +81,14 @@ def test_the_nearest_kept_query_uses_the_threads_gsc_is_given(monkeypatch, threa
             return super().query(x, *args, **kwargs)
 
     monkeypatch.setattr(fold_module, "cKDTree", Tree)
-    gaussians = row_map(10, spacing=0.01, scale=0.01)
+    n = 2 * fold_module.PARALLEL_QUERIES  # (fewer queries run on one thread)
+    gaussians = row_map(n, spacing=0.01, scale=0.01)
     use_threads(3)  # what `gsc --threads 3` and an experiment worker's share do
-    fold_groups(gaussians, np.arange(0, 10, 2))
+    fold_groups(gaussians, np.arange(0, n, 2))
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    fold_groups(gaussians, np.arange(0, n, 2))
     fold_groups(gaussians, np.arange(0, 10, 2))
-    assert used == [3, 1]
+    assert used == [3, 1, 1]
 
 
 def test_anisotropic_fold_matches_the_moments():
@@ -133,3 +141,224 @@ def test_interpolate_pose_follows_the_shorter_arc_and_the_segment():
     T_c = about_z(-170, 0.0)  # 90 degrees on from T_b through 180 (270 the other way)
     mid = interpolate_pose(T_b, T_c, 0.5)
     assert rotation_angle_deg(mid[:3, :3] @ about_z(145, 0)[:3, :3].T) < 1e-5
+
+
+# ---------------------------------------------------------------- against a plain reference
+
+
+def reference_fold(gaussians: GaussianMap, kept: np.ndarray) -> tuple[np.ndarray, GaussianMap]:
+    """The fold written out plainly: one k-d tree query of every dropped Gaussian against the
+    kept ones, the moments of each group over its full 3x3 covariances. Its groups and map."""
+    kept = np.asarray(kept, dtype=np.int64)
+    k, n = len(kept), len(gaussians)
+    group = np.full(n, -1, dtype=np.int64)
+    group[kept] = np.arange(k)
+    dropped = np.flatnonzero(group < 0)
+    means = gaussians.means.astype(np.float64)
+    scale = gaussians.scales().astype(np.float64).mean(axis=1)
+    if len(dropped) and k:
+        distance, nearest = cKDTree(means[kept]).query(means[dropped])
+        near = distance <= FOLD_REACH * (scale[kept][nearest] + scale[dropped])
+        group[dropped[near]] = nearest[near]
+    members = np.flatnonzero(group >= 0)
+    if len(members) == k:
+        return group, gaussians.select(kept)
+    g, src = group[members], gaussians.select(members)
+    opacity = src.opacities().astype(np.float64)
+    weights = np.maximum(opacity * np.square(scale[members]), np.finfo(np.float64).tiny)
+    total = np.bincount(g, weights, k)
+    mean = np.stack([np.bincount(g, weights * means[members, c], k) for c in range(3)], 1)
+    mean = mean / total[:, None]
+    offset = means[members] - mean[g]
+    spread = src.covariances() + offset[:, :, None] * offset[:, None, :]
+    cov = np.zeros((k, 3, 3))
+    for a in range(3):
+        for b in range(3):
+            cov[:, a, b] = np.bincount(g, weights * spread[:, a, b], k) / total
+    top = np.zeros(k)
+    np.maximum.at(top, g, opacity)
+    top = np.clip(top, 1e-6, 1.0 - 1e-6)
+    if gaussians.isotropic:
+        log_scales = 0.5 * np.log(np.trace(cov, axis1=1, axis2=2) / 3.0)[:, None]
+        quats = gaussians.quats[kept]
+    else:
+        variances, axes = np.linalg.eigh(cov)
+        axes[np.linalg.det(axes) < 0, :, 2] *= -1.0
+        log_scales = 0.5 * np.log(np.maximum(variances, np.finfo(np.float32).tiny))
+        quats = rotmat_to_quat(axes)
+
+    def mean_of(values: np.ndarray) -> np.ndarray:
+        flat = values.reshape(len(values), -1).astype(np.float64)
+        columns = [np.bincount(g, weights * flat[:, j], k) / total for j in range(flat.shape[1])]
+        out = np.stack(columns, 1) if columns else np.zeros((k, 0))
+        return out.reshape((k, *values.shape[1:]))
+
+    folded = replace(
+        gaussians.select(kept),
+        means=mean.astype(np.float32),
+        log_scales=log_scales.astype(np.float32),
+        quats=np.asarray(quats, dtype=np.float32),
+        opacity_logits=np.log(top / (1.0 - top)).astype(np.float32),
+        sh_dc=mean_of(src.sh_dc).astype(np.float32),
+        sh_rest=mean_of(src.sh_rest).astype(np.float32),
+        importance_sum=np.bincount(g, src.importance_sum.astype(np.float64), k),
+        alpha_t_sum=np.bincount(g, src.alpha_t_sum.astype(np.float64), k),
+    )
+    return group, folded
+
+
+def varied_map(seed: int, n: int, isotropic: bool = True, sh_degree: int = 0) -> GaussianMap:
+    """A random map whose density varies over space: dense clusters, where most dropped
+    Gaussians fold, and a sparse field, where many lie beyond the reach."""
+    rng = np.random.default_rng(seed)
+    g = random_map(n, seed, isotropic, sh_degree, extent=3.0)
+    clustered = rng.random(n) < 0.6
+    centres = rng.uniform(-3.0, 3.0, (5, 3))
+    g.means[clustered] = (centres[rng.integers(0, 5, clustered.sum())]
+                          + rng.normal(0.0, 0.1, (clustered.sum(), 3)))  # fmt: skip
+    return g.validate()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_fold_equals_the_plain_reference(seed: int) -> None:
+    """Groups and every folded parameter, bit for bit, on maps of each layout and SH degree,
+    kept sets of every size (none folded, some, nearly all)."""
+    rng = np.random.default_rng(seed)
+    g = varied_map(seed, int(rng.integers(50, 3000)), bool(seed % 2), int(seed % 4))
+    scores = selection_scores(g, "pwas")
+    outcomes = set()
+    for k in (1, 2, max(1, len(g) // 10), len(g) // 2, len(g) - 1, len(g)):
+        kept = top_k(scores, g.ids, k)
+        group, expected = reference_fold(g, kept)
+        np.testing.assert_array_equal(fold_groups(g, kept), group)
+        assert fold(g, kept).equals(expected), (seed, k)
+        outcomes.update(np.sign(np.delete(group, kept)).tolist())
+    assert outcomes == {-1, 0, 1}  # (some dropped beyond the reach, some folded)
+
+
+def test_a_large_fold_bounds_its_query_and_equals_the_reference(monkeypatch) -> None:
+    """80,000 dropped Gaussians are queried within a bound first (`BOUNDED_QUERIES`), the few
+    beyond it again: the same groups and Gaussians as the plain query."""
+    g = varied_map(11, 100_000)
+    kept = top_k(selection_scores(g, "pwas"), g.ids, 20_000)
+    bounds = []
+
+    class Tree(fold_module.cKDTree):  # type: ignore[misc]
+        def query(self, x, *args, **kwargs):  # type: ignore[no-untyped-def]
+            bounds.append(kwargs.get("distance_upper_bound", np.inf))
+            return super().query(x, *args, **kwargs)
+
+    monkeypatch.setattr(fold_module, "cKDTree", Tree)
+    group, expected = reference_fold(g, kept)
+    folding = Folding(g)
+    np.testing.assert_array_equal(folding.groups(kept), group)
+    assert folding.fold(kept).equals(expected)
+    assert np.isfinite(bounds[1]) and len(bounds) <= 3  # (a sample, bounded, the rest)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_one_folding_of_many_kept_sets_equals_the_reference_for_each(seed: int) -> None:
+    """A `Folding` asked for the K best at counts that grow and shrink, as a byte budget's
+    search asks (the nearest kept taken from an earlier kept set inside the new one), folds
+    each exactly as a fresh reference fold; the few added Gaussians are looked up around them."""
+    rng = np.random.default_rng(seed)
+    g = varied_map(100 + seed, 6000, isotropic=seed != 3)
+    scores = selection_scores(g, "pwas")
+    folding = Folding(g)
+    around = []
+    original = Folding._around
+
+    def spy(self, adds, *args):  # type: ignore[no-untyped-def]
+        around.append(len(adds))
+        return original(self, adds, *args)
+
+    counts = [1, 900, 3000, 1000, 950, 960, 958, int(rng.integers(10, 6000)), 5999, 2]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Folding, "_around", spy)
+        for k in counts:
+            kept = top_k(scores, g.ids, k)
+            group, expected = reference_fold(g, kept)
+            np.testing.assert_array_equal(folding.groups(kept), group)
+            assert folding.fold(kept).equals(expected), (seed, k)
+    assert around and max(around) <= 100  # (960 from 950, 958 from 950, ...)
+
+
+def test_equal_distances_go_to_one_of_the_nearest_kept():
+    """On a lattice every dropped Gaussian has several kept ones at the same distance; whichever
+    it joins (the tie may go either way) is one of the nearest."""
+    side = np.arange(12, dtype=np.float64) * 0.02
+    means = np.stack(np.meshgrid(side, side, side, indexing="ij"), -1).reshape(-1, 3)
+    n = len(means)
+    g = GaussianMap.new(means=means, log_scales=np.full((n, 1), np.log(0.01)),
+                        quats=np.tile([1.0, 0, 0, 0], (n, 1)), opacity_logits=np.zeros(n),
+                        sh_dc=np.zeros((n, 3)), importance_sum=np.random.default_rng(0).random(n),
+                        importance_weight=np.ones(n))  # fmt: skip
+    scores = selection_scores(g, "pwas")
+    folding = Folding(g)
+    for k in (300, 800, 840, 836, 838):
+        kept = top_k(scores, g.ids, k)
+        group = folding.groups(kept)
+        dropped = np.flatnonzero(~np.isin(np.arange(n), kept))
+        nearest = cKDTree(means[kept]).query(means[dropped])[0]
+        joined = np.linalg.norm(means[dropped] - means[kept[group[dropped]]], axis=1)
+        assert np.all(group[dropped] >= 0)  # (all within reach on this lattice)
+        np.testing.assert_allclose(joined, nearest, rtol=1e-12)
+
+
+class PlainCut(ShareCut):
+    """The share files of `ShareCut`, each cut by the plain reference fold."""
+
+    def _cut(self, count: int) -> GaussianMap:
+        _, index = select_by(self.pool, count, self._scores, self._first)
+        return reference_fold(self.pool, index)[1]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_byte_budget_search_chooses_the_count_and_bytes_of_the_plain_reference(
+    tmp_path, seed: int
+) -> None:
+    """The search over folded shares (one `Folding` for every count it tries) chooses the same
+    count as with a plain fold at every step, the same file bytes, within the budget."""
+    rng = np.random.default_rng(seed)
+    g = varied_map(200 + seed, int(rng.integers(2000, 8000)))
+    src = tmp_path / "a.mcap"
+    with LogWriter(src, LogMetadata(command="test")) as log:
+        log.write_gaussians(g, 0)
+    for codec in ("compact", "fp16"):
+        whole = ShareCut(src, Budget.parse("1"), codec=codec).size(len(g))
+        budget = Budget(budget_bytes=int(whole * rng.uniform(0.05, 0.6)))
+        cut, plain = ShareCut(src, budget, codec=codec), PlainCut(src, budget, codec=codec)
+        count = largest_count_within(budget.budget_bytes, len(g), cut.size)
+        assert count == largest_count_within(budget.budget_bytes, len(g), plain.size)
+        data = cut.file(count)[0]
+        assert data == plain.file(count)[0] and len(data) <= budget.budget_bytes
+        assert 0 < count < len(g)
+
+
+def test_a_byte_budget_search_reuses_the_nearest_kept_of_its_earlier_steps(tmp_path, monkeypatch):
+    """The steps of a search start from the nearest kept Gaussians of earlier ones: its k-d tree
+    queries look up fewer than half the points that a query of every dropped Gaussian at every
+    step would (on this map 57k against 143k)."""
+    g = varied_map(7, 20_000)
+    src = tmp_path / "a.mcap"
+    with LogWriter(src, LogMetadata(command="test")) as log:
+        log.write_gaussians(g, 0)
+    queried = []
+
+    class Tree(fold_module.cKDTree):  # type: ignore[misc]
+        def query(self, x, *args, **kwargs):  # type: ignore[no-untyped-def]
+            queried.append(len(x))
+            return super().query(x, *args, **kwargs)
+
+    monkeypatch.setattr(fold_module, "cKDTree", Tree)
+    cut = ShareCut(src, Budget.parse("30kB"))
+    steps = []
+
+    def size(count: int) -> int:
+        steps.append(count)
+        return cut.size(count)
+
+    count = largest_count_within(30_000, len(g), size)
+    every_step = sum(len(g) - k for k in set(steps) if k < len(g))
+    assert len(set(steps)) >= 8 and 0 < count < len(g)
+    assert sum(queried) < 0.5 * every_step, (queried, steps)

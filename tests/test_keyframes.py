@@ -48,6 +48,25 @@ def written(path: Path, frames: list[CarriedFrame], extra: list[tuple[str, objec
     return path
 
 
+def test_a_byte_budget_share_encodes_its_keyframes_once(tmp_path: Path, monkeypatch) -> None:
+    """The search tries many counts, each a share file with the keyframes in it: their images
+    are encoded once, not once a count (the bytes are the same either way)."""
+    from gscompress.io import keyframes
+
+    src = tmp_path / "a.mcap"
+    with LogWriter(src, LogMetadata()) as out:
+        out.write_gaussians(random_map(3000, seed=2), 0)
+    frames = [smooth_frame(1_000_000_000 * (k + 1), k) for k in range(2)]
+    encoded = []
+    encode_depth = keyframes.encode_depth
+    monkeypatch.setattr(keyframes, "encode_depth", lambda d: encoded.append(1) or encode_depth(d))
+    result = share_log(src, tmp_path / "s.mcap", "20kB", carry=(frames, CAMERA))
+    assert 0 < result["selected"] < 3000 and result["file_bytes"] <= 20_000
+    assert len(encoded) == len(frames) and result["keyframes"] == len(frames)
+    with LogWriter(None, LogMetadata()) as alone:
+        assert result["keyframe_bytes"] == write_carried(alone, frames, CAMERA)
+
+
 def test_carried_frames_read_back_as_written(tmp_path: Path) -> None:
     frames = [smooth_frame(1_000_000_000 * (k + 1), k) for k in range(3)]
     with LogReader(written(tmp_path / "s.mcap", frames)) as reader:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from google.protobuf.message import DecodeError
+from google.protobuf.message import DecodeError, Message
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import LogFormatError
@@ -105,15 +105,13 @@ def encode_depth(depth: np.ndarray) -> bytes:
     return out.getvalue()
 
 
-def write_carried(writer: LogWriter, frames: Sequence[CarriedFrame], intrinsics: Intrinsics) -> int:
-    """Write the carried keyframes and their camera into a share; returns their bytes (the
-    messages' payloads)."""
+def carried_messages(frames: Sequence[CarriedFrame]) -> list[tuple[str, Message, int]]:
+    """The messages of carried keyframes, (topic, message, log time): each frame's colour
+    JPEG, depth PNG and pose. Encoded once, they go into every share file a byte budget's
+    search tries (`write_carried`)."""
     if len(frames) > MAX_CARRIED:
         raise ValueError(f"a share carries at most {MAX_CARRIED} keyframes, got {len(frames)}")
-    if not frames:
-        return 0
-    total = 0
-    writer.write_calibration(intrinsics, frames[0].time_ns)
+    messages: list[tuple[str, Message, int]] = []
     for frame in frames:
         for topic, fmt, data in (
             (TOPIC_KEYFRAME_COLOR, "jpeg", encode_color(frame.color)),
@@ -121,10 +119,28 @@ def write_carried(writer: LogWriter, frames: Sequence[CarriedFrame], intrinsics:
         ):
             image = CompressedImage(frame_id=CAMERA_FRAME, data=data, format=fmt)
             image.timestamp.FromNanoseconds(frame.time_ns)
-            total += writer.write_protobuf(topic, image, frame.time_ns)
-        pose = pose_message(frame.T_world_cam, frame.time_ns)
-        total += writer.write_protobuf(TOPIC_KEYFRAME_POSE, pose, frame.time_ns)
-    return total
+            messages.append((topic, image, frame.time_ns))
+        messages.append((TOPIC_KEYFRAME_POSE, pose_message(frame.T_world_cam, frame.time_ns),
+                         frame.time_ns))  # fmt: skip
+    return messages
+
+
+def write_carried(
+    writer: LogWriter,
+    frames: Sequence[CarriedFrame],
+    intrinsics: Intrinsics,
+    messages: Sequence[tuple[str, Message, int]] | None = None,
+) -> int:
+    """Write the carried keyframes and their camera into a share; returns their bytes (the
+    messages' payloads). `messages`: theirs from `carried_messages`, when already encoded."""
+    if messages is None:
+        messages = carried_messages(frames)
+    if not frames:
+        return 0
+    writer.write_calibration(intrinsics, frames[0].time_ns)
+    return sum(
+        writer.write_protobuf(topic, message, time_ns) for topic, message, time_ns in messages
+    )
 
 
 def decode_image(data: bytes, fmt: str, size: tuple[int, int], where: str) -> np.ndarray:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -17,7 +18,7 @@ from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_IDS, CompactOptions, check_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
-from gscompress.io.keyframes import CarriedFrame, write_carried
+from gscompress.io.keyframes import CarriedFrame, carried_messages, write_carried
 from gscompress.io.map_files import map_suffix, read_map_file, write_map_file
 from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
@@ -34,15 +35,15 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import write_ply
 from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
-from gscompress.ops.fold import fold
+from gscompress.ops.fold import Folding
 from gscompress.ops.merge import transform_map
 from gscompress.pipeline.receiver import Request, budget_less_request, read_request, unseen_ids
 from gscompress.selection import (
     check_ratio,
     keep_count,
-    select_by,
     selection_scores,
     strategy_scores,
+    top_index,
 )
 
 log = logging.getLogger(__name__)
@@ -209,14 +210,19 @@ def cut_map(
     scores: np.ndarray,
     fold_dropped: bool,
     first: np.ndarray | None = None,
+    folding: Folding | None = None,
 ) -> GaussianMap:
     """The `count` Gaussians of `full` with the highest `scores` (a strategy's, from
     `selection.selection_scores`: spread over space there if asked), each with the dropped ones
     near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians, ids and
     order either way). What `gsc prune` keeps and `gsc share` sends. `first` ([N] bool) ranks
-    the Gaussians it marks above all the others (a receiver-aware share)."""
-    kept, index = select_by(full, count, scores, first)
-    return fold(full, index) if fold_dropped else kept
+    the Gaussians it marks above all the others (a receiver-aware share). `folding`, the
+    `Folding` of `full`, folds it when given: a caller that cuts many counts of one map passes
+    the same one each time."""
+    index = top_index(full, count, scores, first)
+    if not fold_dropped:
+        return full.select(index)
+    return (folding or Folding(full)).fold(index)
 
 
 def refined(
@@ -400,9 +406,10 @@ class ShareCut:
         self.pool = pool
         self._scores = selection_scores(pool, self.strategy, self.seed, self.spread)
         self._first = None if self.first_ids is None else np.isin(pool.ids, self.first_ids)
+        self._folding = Folding(pool) if self.fold else None  # (one for every count tried)
 
     def _cut(self, count: int) -> GaussianMap:
-        return cut_map(self.pool, count, self._scores, self.fold, self._first)
+        return cut_map(self.pool, count, self._scores, self.fold, self._first, self._folding)
 
     def refined(self, count: int, refine: MapRefiner) -> int:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
@@ -454,14 +461,28 @@ class ShareCut:
                 options = CompactOptions(sums=self.sums, ids=self.ids)
                 meta.results["bytes"] = out.write_gaussians(shared, 0, self.codec, options)
                 if self.carry is not None:
-                    frames, camera = self.carry
-                    if self.T_target_source is not None:
-                        frames = [f.moved(self.T_target_source) for f in frames]
+                    frames, camera = self._carried
                     meta.results["keyframes"] = len(frames)
-                    meta.results["keyframe_bytes"] = write_carried(out, frames, camera)
+                    meta.results["keyframe_bytes"] = write_carried(
+                        out, frames, camera, self._carried_messages
+                    )
             self._last = (count, (out.data, shared, dict(meta.results)))
             self._sizes[count] = len(out.data)
         return self._last[1]
+
+    @cached_property
+    def _carried(self) -> tuple[list[CarriedFrame], Intrinsics]:
+        """The keyframes carried (in the share's frame) and their camera."""
+        assert self.carry is not None
+        frames, camera = self.carry
+        if self.T_target_source is not None:
+            frames = [f.moved(self.T_target_source) for f in frames]
+        return frames, camera
+
+    @cached_property
+    def _carried_messages(self) -> list[tuple[str, Any, int]]:
+        """Their messages, encoded once for every count tried."""
+        return carried_messages(self._carried[0])
 
     def size(self, count: int) -> int:
         """Bytes of the share file of the `count` best Gaussians."""
