@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from gscompress.camera import rotmat_to_quat
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import morton_codes
+from gscompress.io.quantise import morton_codes
 from gscompress.threads import cpu_threads
 
 FOLD_REACH = 4.0
