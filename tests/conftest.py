@@ -15,9 +15,16 @@ from typing import Any
 
 import numpy as np
 import pytest
+from click.testing import CliRunner, Result
 
 from gscompress.gaussians import GaussianMap
 from gscompress.threads import THREAD_VARIABLES
+from gscompress_cli.main import cli
+
+
+def gsc(*args: object) -> Result:
+    """`gsc ARGS...` run in this process through click's CliRunner (each argument as text)."""
+    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 @pytest.fixture

@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import gsc as run
 from conftest import rewrite_log
 from mcap.writer import CompressionType
 
@@ -23,10 +24,6 @@ from gscompress.io.ply import read_ply, write_ply
 from gscompress.pipeline import log_info
 from gscompress_cli.main import cli
 from gscompress_schemas import PROFILE
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 @pytest.fixture()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from conftest import gsc as run
 
 from gscompress.camera import Intrinsics, make_transform
 from gscompress.datasets import open_sequence
@@ -30,13 +30,8 @@ from gscompress.metrics import ate_rmse_cm, ate_splatam_cm, psnr
 from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline import evaluate_log, share_log, slam_file
-from gscompress_cli.main import cli
 
 LAYOUT = Path(__file__).resolve().parent.parent / "examples" / "foxglove_layout.json"
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import jsonschema
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
+from conftest import gsc as run
 
 from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_sequence
 from gscompress.errors import DatasetError
@@ -22,12 +22,7 @@ from gscompress.pipeline import slam_file
 from gscompress.render import resolve_backend
 from gscompress.selection import keep_count
 from gscompress.slam.config import load_config, preset
-from gscompress_cli.main import cli
 from gscompress_schemas import load_schema
-
-
-def run(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")
