@@ -12,8 +12,8 @@ on each tree and new / old for each command, and says whether both trees wrote t
 
 Logs: bench/offline.py's log of N Gaussians (default 1,000,000; fraction budgets only: there
 a byte budget's search of the old tree folds a million Gaussians some 15 times, about a
-minute), one of 100,000 (all four commands) and any --log (a real map; all four). Times depend on the load: the load average is recorded at the start
-and the end.
+minute), one of 100,000 (all four commands) and any --log (a real map; all four). Times depend
+on the load: the load average is recorded at the start and the end.
 
 Usage: python bench/fold.py --old DIR [--new DIR] [--gaussians 1000000] [--small 100000]
        [--budget-bytes 200kB] [--log REAL.mcap ...] [--repeat 3] [--work DIR] [--out FILE]
