@@ -1,7 +1,8 @@
 """How far each agent's own trajectory drifts from the ground truth, from its first frame on.
 
 For each log (made with its ground-truth poses recorded, e.g. `gsc slam` on a sequence with
-them), the estimated poses are paired with the true ones by time, and the estimated motion from
+them), the estimated poses (the refined trajectory where the log has one, else the tracked poses;
+`--tracked` for those) are paired with the true ones by time, and the estimated motion from
 the first paired pose to the k-th (k counts the log's poses, not the sequence's frames: with
 `--frames 0:30:2`, k = 10 is frame 20) is compared with the true one: the error of that
 relative pose (translation cm, rotation degrees, `ops.align.transform_error`) and the ratio of
@@ -43,10 +44,14 @@ def ratio(value: float, truth: float, least: float) -> float | None:
     return value / truth if truth >= least else None
 
 
-def drift(path: str, at: list[int]) -> dict[str, object]:
+def drift(path: str, at: list[int], tracked: bool = False) -> dict[str, object]:
     with LogReader(path) as log:
-        t_est, est = log.read_poses(TOPIC_POSE)
+        trajectory = log.read_trajectory()
+        t_est, est = (
+            log.read_poses(TOPIC_POSE) if tracked else (trajectory.times_ns, trajectory.T_world_cam)
+        )
         t_gt, gt = log.read_poses(TOPIC_POSE_GT)
+    poses = "tracked" if tracked else trajectory.source
     pair = nearest_times(t_est, t_gt, POSE_MATCH_TOLERANCE_NS)
     est, gt = est[pair >= 0], gt[pair[pair >= 0]]
     if len(est) < 2:
@@ -62,7 +67,7 @@ def drift(path: str, at: list[int]) -> dict[str, object]:
             "turn_ratio": ratio(turned, true_turn, MIN_TURN_DEG),
             "move_ratio": ratio(moved, true_move, MIN_MOVE_M),
         })  # fmt: skip
-    return {"log": path, "poses": len(est), "at": rows,
+    return {"log": path, "trajectory": poses, "poses": len(est), "at": rows,
             "path_ratio": ratio(path_length(est), path_length(gt), MIN_MOVE_M)}  # fmt: skip
 
 
@@ -77,10 +82,13 @@ def main() -> None:
         help="the k-th poses of each log to compare at (those past its end are left out; "
         "none left: its last)",
     )
+    parser.add_argument(
+        "--tracked", action="store_true", help="the poses as tracked, not the refined trajectory"
+    )
     args = parser.parse_args()
     at = [int(x) for x in args.at.split(",") if x.strip()]
     for path in args.logs:
-        print(json.dumps(drift(path, at)))
+        print(json.dumps(drift(path, at, args.tracked)))
 
 
 if __name__ == "__main__":

@@ -43,7 +43,8 @@ from gscompress.render import render
 from gscompress.render.projection import rotation_rows
 from gscompress.slam.config import preset
 from gscompress.slam.params import RenderInputs
-from gscompress.slam.tracker import PoseAdam, pose_gradient, pose_increment, track
+from gscompress.slam.poses import PoseAdam, pose_gradient, pose_increment
+from gscompress.slam.tracker import track
 
 
 def _pose_numpy(g_T: np.ndarray, T0: np.ndarray) -> Callable[[], None]:

@@ -203,8 +203,8 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     assert {v["start"] for v in centralised["cross"].values()} == {"own"}
     # on all frames: B's own poses on the even frames, A's on the odd ones
     start = read_tum_trajectory(out / "runs" / "s0_pwas_0p2_agent_b_xeval_start_all.txt")
-    _, poses_a, _ = pose_source(out / "runs" / "s0_agent_a.mcap")
-    _, poses_b, _ = pose_source(out / "runs" / "s0_pwas_0p2_agent_b.mcap")
+    poses_a = pose_source(out / "runs" / "s0_agent_a.mcap").T_world_cam
+    poses_b = pose_source(out / "runs" / "s0_pwas_0p2_agent_b.mcap").T_world_cam
     np.testing.assert_allclose(start.T_world_cam[0::2], poses_b, atol=1e-12)
     np.testing.assert_allclose(start.T_world_cam[1::2], poses_a, atol=1e-12)
     with open(out / "results.csv", newline="") as f:
@@ -747,7 +747,7 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
     from gscompress.pipeline.evaluate import pose_source
 
     start = read_tum_trajectory(out / "runs" / "s0_pwas_0p2_agent_b_xeval_start_a.txt")
-    _, poses_a, _ = pose_source(out / rows["agent A (first part)"]["log"])
+    poses_a = pose_source(out / rows["agent A (first part)"]["log"]).T_world_cam
     np.testing.assert_allclose(start.T_world_cam, T_est @ poses_a, atol=1e-9)
     assert all(math.isfinite(rows["B + pwas 0.2"][key]) for key in CROSS)
 

@@ -308,7 +308,7 @@ def test_refinement_learning_rates_decay_to_the_fraction_and_are_restored(
 
     calls: list[tuple[Mapper, list[float]]] = []
 
-    def failing_step(self: Mapper, view: Any, stats: Any) -> None:
+    def failing_step(self: Mapper, view: Any, stats: Any, pose_rate: Any = None) -> None:
         calls.append((self, [group["lr"] for group in self.optimizer.param_groups]))
         if len(calls) == 2:
             raise RuntimeError("step failed")

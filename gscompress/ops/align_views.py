@@ -11,10 +11,10 @@ centre c of the source's Gaussians:
 
     T' = K(c) Delta(x) K(c)^-1 T,    T_cam_source_i = P_i^-1 T',
 
-with Delta(x) the tracker's increment (`slam.tracker.pose_increment`, x = (qx, qy, qz, tau)),
+with Delta(x) the tracker's increment (`slam.poses.pose_increment`, x = (qx, qy, qz, tau)),
 K(c) the translation by c (so that turning does not swing the map about the target's origin)
 and P_i view i's camera-to-world pose in the target's frame. The loss is summed over the views
-and x follows Adam's steps (`slam.tracker.PoseAdam`) with the gradient
+and x follows Adam's steps (`slam.poses.PoseAdam`) with the gradient
 
     dL/dDelta = sum_i (P_i^-1 K)^T (dL/dT_cam_i) (K^-1 T)^T.
 """
@@ -37,7 +37,7 @@ from gscompress.slam.config import TrackingConfig
 from gscompress.slam.keyframes import frame_tensors
 from gscompress.slam.losses import LossTerms, tracking_loss
 from gscompress.slam.params import RenderInputs, decay_per_step
-from gscompress.slam.tracker import PoseAdam, orthonormalize, pose_gradient, pose_increment
+from gscompress.slam.poses import PoseAdam, orthonormalize, pose_gradient, pose_increment
 
 VIEW_ALIGN = TrackingConfig(
     iters=300, lr_rotation=2e-3, lr_translation=4e-3, lr_final_fraction=0.05, silhouette_min=0.9

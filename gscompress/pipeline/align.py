@@ -27,6 +27,7 @@ from gscompress.ops.align import (
     refusal,
     surface_fit,
 )
+from gscompress.pipeline.logs import trajectory
 
 
 def log_cloud(path: str | Path) -> tuple[Cloud, str]:
@@ -37,7 +38,7 @@ def log_cloud(path: str | Path) -> tuple[Cloud, str]:
     with LogReader(path) as log:
         gaussians = log.read_map()
         world = log.metadata.world_frame
-        _, poses = log.read_poses()
+        poses = trajectory(log).T_world_cam
     rotations = None if gaussians.isotropic else quat_to_rotmat(gaussians.rotations())
     cloud = map_cloud(
         gaussians.means,

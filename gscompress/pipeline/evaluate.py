@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -51,6 +51,7 @@ from gscompress.io.mcap_log import (
     seconds_to_ns,
 )
 from gscompress.io.trajectory import nearest_times, read_tum_trajectory
+from gscompress.pipeline import logs
 
 log = logging.getLogger(__name__)
 
@@ -68,11 +69,26 @@ TUM_MATCH_TOLERANCE_NS = 20_000_000
 frame (0.02 s, the default of TUM's association tool)."""
 
 
-def pose_source(path: str | Path) -> tuple[np.ndarray, np.ndarray, int]:
-    """The poses a file gives: a log's estimated poses (`/camera/pose`), or a TUM trajectory's.
+class Poses(NamedTuple):
+    """The poses a file gives (`pose_source`).
 
-    Returns:
-        (times [N] int64 ns, camera-to-world poses [N, 4, 4], the matching tolerance in ns).
+    Attributes:
+        times_ns: [N] int64 times.
+        T_world_cam: [N, 4, 4] camera-to-world poses.
+        tolerance_ns: how far a time may be from a frame's timestamp and still be its pose.
+        trajectory: "refined" / "tracked" / "refined, then tracked" for a log's, "file" for a
+            TUM trajectory's.
+    """
+
+    times_ns: np.ndarray
+    T_world_cam: np.ndarray
+    tolerance_ns: int
+    trajectory: str
+
+
+def pose_source(path: str | Path) -> Poses:
+    """The poses a file gives: a log's trajectory (refined where it has one: `logs.trajectory`),
+    or a TUM trajectory's.
 
     Raises:
         LogFormatError: a log without `/camera/pose`, or unreadable.
@@ -80,18 +96,18 @@ def pose_source(path: str | Path) -> tuple[np.ndarray, np.ndarray, int]:
     """
     if Path(path).suffix.lower() == ".mcap":
         with LogReader(path) as reader:
-            times_ns, poses = reader.read_poses(TOPIC_POSE)
-        if len(times_ns) == 0:
+            found = logs.trajectory(reader)
+        if len(found.times_ns) == 0:
             raise LogFormatError(
                 f"{path} has no {TOPIC_POSE} messages (not a SLAM log): no poses to render at; "
                 "give them with --poses TRAJ.txt or --poses-from OTHER.mcap"
             )
-        return times_ns, poses, POSE_MATCH_TOLERANCE_NS
+        return Poses(found.times_ns, found.T_world_cam, POSE_MATCH_TOLERANCE_NS, found.source)
     trajectory = read_tum_trajectory(path)
     if len(trajectory) == 0:
         raise InputError(f"{path} holds no poses")
     times_ns = np.array([seconds_to_ns(t) for t in trajectory.timestamps], dtype=np.int64)
-    return times_ns, trajectory.T_world_cam, TUM_MATCH_TOLERANCE_NS
+    return Poses(times_ns, trajectory.T_world_cam, TUM_MATCH_TOLERANCE_NS, "file")
 
 
 def working_size(meta: LogMetadata) -> tuple[int, int] | None:
@@ -326,7 +342,7 @@ def evaluate_log(
         gt_log_ns, gt_log_poses = reader.read_poses(TOPIC_POSE_GT)
         meta = reader.metadata
     source = poses if poses is not None else poses_from if poses_from is not None else log_path
-    est_ns, est_poses, tolerance_ns = pose_source(source)
+    est_ns, est_poses, tolerance_ns, used = pose_source(source)
     frames = frames or meta.frames or "all"
     if size is None and working_size(meta) is None and poses_from is not None:
         with LogReader(poses_from) as other:  # (a share scored at its sender's poses)
@@ -433,6 +449,7 @@ def evaluate_log(
         "every": every,
         "poses": meta.pose_origin() if own else str(source),
         "own_poses": own,
+        "trajectory": used,
         "frames_selected": len(sequence),
         "frames_with_pose": len(positions),
         "frames_without_pose": len(sequence) - len(positions),

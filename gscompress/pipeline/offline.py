@@ -37,6 +37,7 @@ from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.fold import Folding
 from gscompress.ops.merge import transform_map
+from gscompress.pipeline.logs import trajectory
 from gscompress.pipeline.receiver import Request, budget_less_request, read_request, unseen_ids
 from gscompress.selection import (
     check_ratio,
@@ -631,13 +632,19 @@ def export_trajectory(
     topic = TOPIC_POSE_GT if ground_truth else TOPIC_POSE
     check_output(dst, [src], force, ".txt")
     with LogReader(src) as log_in:
-        stamps_ns, poses = log_in.read_poses(topic)
+        if ground_truth:
+            stamps_ns, poses = log_in.read_poses(topic)
+            source = "ground truth"
+        else:
+            found = trajectory(log_in)
+            stamps_ns, poses, source = found.times_ns, found.T_world_cam, found.source
     if len(poses) == 0:
         what = "ground-truth poses" if ground_truth else "estimated poses (not a SLAM log?)"
         raise LogFormatError(f"{src} has no {topic} messages: no {what}")
-    name = "ground truth" if ground_truth else "estimated trajectory"
+    refined = "" if source in ("tracked", "ground truth") else f" ({source})"
+    name = "ground truth" if ground_truth else f"estimated trajectory{refined}"
     write_tum_trajectory(dst, stamps_ns / 1e9, poses, [f"{name} of {Path(src).name}"])
-    return {"output": str(dst), "poses": len(poses), "topic": topic}
+    return {"output": str(dst), "poses": len(poses), "topic": topic, "trajectory": source}
 
 
 def log_info(path: str | Path, *, histogram_bins: int = 10) -> dict[str, Any]:

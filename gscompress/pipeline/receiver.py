@@ -26,6 +26,7 @@ from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 from gscompress.ops.budget import Budget
+from gscompress.pipeline.logs import trajectory
 
 MAX_REQUEST_VIEWS = 64
 """The most of the receiver's poses a request holds (spread evenly over its run)."""
@@ -68,7 +69,7 @@ def read_request(path: str | Path) -> Request:
         InputError: the log has no estimated poses or no calibration.
     """
     with LogReader(path) as log:
-        _, poses = log.read_poses(TOPIC_POSE)
+        poses = trajectory(log).T_world_cam
         intrinsics = log.read_intrinsics()
         world_frame = log.metadata.world_frame
     if not len(poses):

@@ -24,6 +24,7 @@ import numpy as np
 from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader
+from gscompress.pipeline.logs import trajectory
 from gscompress.selection import is_fraction
 from gscompress.slam.views import REFINE_VIEWS
 
@@ -147,7 +148,8 @@ class LogRefiner:
         self.options, self.progress, self.instead = options, progress, instead
         with LogReader(log_path) as reader:
             meta = reader.metadata
-            pose_ns, poses = reader.read_poses(TOPIC_POSE)
+            found = trajectory(reader)
+            pose_ns, poses = found.times_ns, found.T_world_cam
             keyframe_ns = recorded_keyframes(reader)
         config = SlamConfig.from_dict(meta.config) if meta.config else preset(DEFAULT_PRESET)
         if options.backend is not None:
@@ -360,7 +362,8 @@ def spread_keyframes(
 
     with LogReader(src) as reader:
         meta = reader.metadata
-        pose_ns, poses = reader.read_poses(TOPIC_POSE)
+        found = trajectory(reader)
+        pose_ns, poses = found.times_ns, found.T_world_cam
         keyframe_ns = recorded_keyframes(reader)
         intrinsics = reader.read_intrinsics()
     if len(pose_ns) == 0:

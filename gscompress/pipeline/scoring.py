@@ -15,13 +15,13 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
     POSES_GROUND_TRUTH,
-    TOPIC_POSE,
     LogMetadata,
     LogReader,
     LogWriter,
     seconds_to_ns,
 )
 from gscompress.io.ply import read_ply
+from gscompress.pipeline.logs import trajectory
 from gscompress.pipeline.offline import rewrite_map
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,8 @@ def score_file(
         with LogReader(src) as reader:
             reader.require_snapshots()
             meta = reader.metadata
-            log_ns, log_poses = reader.read_poses(TOPIC_POSE)
+            found = trajectory(reader)
+            log_ns, log_poses = found.times_ns, found.T_world_cam
         frames = frames or meta.frames or "all"
         sequence = open_log_sequence(seq, src, meta, frames, size, recording)
     else:
@@ -155,7 +156,7 @@ def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.
             )
         stamps, T = sequence.ground_truth()
         return np.asarray(stamps), np.asarray(T)
-    times_ns, T_world_cams, tolerance_ns = pose_source(poses)
+    times_ns, T_world_cams, tolerance_ns, _ = pose_source(poses)
     positions, index = frames_with_poses(sequence, times_ns, poses, tolerance_ns)
     stamps = np.asarray(sequence.timestamps)
     if len(positions) < len(stamps):

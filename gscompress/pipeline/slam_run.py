@@ -37,11 +37,13 @@ from gscompress.io.mcap_log import (
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
+    TOPIC_POSE_REFINED,
     TOPIC_STATS,
     LogMetadata,
     LogWriter,
     decode_pose,
     decode_snapshot,
+    decode_trajectory,
     seconds_to_ns,
 )
 from gscompress.io.recover import (
@@ -408,9 +410,10 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     pose_records = by_topic[TOPIC_POSE][:done]
     stats = [_json(r) for r in by_topic.get(TOPIC_STATS, []) if r[2].log_time <= cut]
     poses = [decode_pose(r[0], r[2], str(source)) for r in pose_records]
+    placed = _refined_at(by_topic, cut, done, str(source)) or poses
     kept = "frames" if system.keeps_every_view else "keyframes"
     views = [
-        View.from_frame(position, sequence.frame(position), poses[position], system.device)
+        View.from_frame(position, sequence.frame(position), placed[position], system.device)
         for position in range(done)
         if in_views(position, kept, config.keyframes)
     ]
@@ -430,6 +433,18 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
     run.t_ns = cut
     log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
     return run
+
+
+def _refined_at(
+    by_topic: dict[str, list[Record]], cut: int, done: int, source: str
+) -> list[np.ndarray] | None:
+    """The refined trajectory of the first `done` frames as the log recorded it with its map
+    at `cut` (None: the run refined no pose, or the log predates refined trajectories)."""
+    records = [r for r in by_topic.get(TOPIC_POSE_REFINED, []) if r[2].log_time <= cut]
+    if not records:
+        return None
+    trajectory = decode_trajectory(records[-1][0], records[-1][2], source)
+    return list(trajectory) if len(trajectory) == done else None
 
 
 def _furthest(sources: list[Path]) -> tuple[Path, LogContents]:
@@ -507,6 +522,7 @@ def _log_frame(run: _Run, out: LogWriter, frame: Any, result: Any, i: int) -> di
     log.debug("frame %d of %d: %s", i + 1, total, stats)
     if result.event or checkpoint:
         out.write_gaussians(run.system.gaussian_map(), run.t_ns, run.codec)
+        _write_refined(run, out)
         run.map_frames = i + 1
     out.flush()
     return stats
@@ -519,6 +535,13 @@ that cannot be read, a full disk)."""
 RECURRING = (InputError, BudgetError, DivergenceError)
 """Errors partway through a run that come from its settings (a keep ratio too small, learning
 rates too high for the data): a resume, which keeps them, would meet them again."""
+
+
+def _write_refined(run: _Run, out: LogWriter) -> None:
+    """The trajectory as the mapping has refined it so far, beside each map snapshot (where a
+    resume picks it up) and at the end (what the commands read), in runs that refine poses."""
+    if run.config.poses.enabled and run.system.poses:
+        out.write_trajectory(np.array(run.system.refined_poses()), run.t_ns)
 
 
 def map_note(frames: int, map_frames: int) -> str:
@@ -592,7 +615,7 @@ def _finished_scores(system: Any, gaussians: Any, backend: str) -> Any:
     log.info("scoring the finished map from the run's %d views", len(system.poses))
     return score_map(
         gaussians,
-        system.poses,
+        system.refined_poses(),
         system.intrinsics,
         sigma_d=system.sigma_d,
         backend=backend,
@@ -649,6 +672,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         seconds = time.perf_counter() - start
         if gaussians is not None:  # else the last snapshot stands (see _stop_between_frames)
             out.write_gaussians(gaussians, run.t_ns, run.codec)
+            _write_refined(run, out)
             meta.results["gaussians"] = len(gaussians)
             run.map_frames = done
         elif run.restart_map is not None and run.map_frames == run.start:
@@ -673,9 +697,14 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         if failure is not None and not isinstance(failure, KeyboardInterrupt):
             meta.results["error"] = f"{type(failure).__name__}: {failure}"
         if len(run.gt_poses) >= 2:
+            estimated = system.refined_poses() if whole else run.est_poses
             meta.results["ate_rmse_cm"] = ate_rmse_cm(
-                np.array(run.gt_poses), np.array(run.est_poses)
+                np.array(run.gt_poses), np.array(estimated[: len(run.gt_poses)])
             )
+            if run.config.poses.enabled:
+                meta.results["ate_rmse_cm_tracked"] = ate_rmse_cm(
+                    np.array(run.gt_poses), np.array(run.est_poses)
+                )
     for leftover in run.leftovers:
         leftover.unlink(missing_ok=True)
     if failure is not None:

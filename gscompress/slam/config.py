@@ -179,6 +179,36 @@ class DensifyConfig:
     received_color_error: float = 0.0
 
 
+@dataclass(frozen=True)
+class PoseConfig:
+    """Keyframe poses refined together with the map (a photometric and depth bundle adjustment
+    with the mapping loss; MonoGS refines its window's keyframes alike).
+
+    A map made only from views behind the camera pulls the tracked pose back towards them, so
+    each frame is tracked a little short of where it is and the agent turns and moves less than
+    the camera did (docs/drift.md). Refining a keyframe's pose once later views overlap it
+    removes that lag from the map and from the poses. The run's first frame (the anchor), the
+    frame being mapped and another agent's keyframes (`gsc slam --inject`) keep their poses.
+
+    Attributes:
+        window: during mapping, optimise the poses of the window's keyframes with the Gaussians.
+        final: the final refinement (`mapping.final_iters`) optimises the pose of every view it
+            runs on, at rates decaying with the map's (`mapping.final_lr_fraction`).
+        lr_rotation: Adam lr of a pose's rotation increment (quaternion vector part).
+        lr_translation: Adam lr of a pose's translation increment, metres.
+    """
+
+    window: bool = False
+    final: bool = False
+    lr_rotation: float = 5e-4
+    lr_translation: float = 5e-4
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any pose is refined."""
+        return self.window or self.final
+
+
 REFILL = ("off", "current", "keyframes")
 """Values of `PruneConfig.refill`."""
 
@@ -245,7 +275,7 @@ class SlamConfig:
             has one (else identity), so estimated and true trajectories share a frame.
         checkpoint_every: write a `/gaussians` checkpoint snapshot every this many frames
             (0: never), so that a killed run can resume from at most that many frames back.
-        tracking, mapping, keyframes, densify, prune, pwas: see their classes. `pwas.sigma_d`
+        tracking, mapping, keyframes, densify, prune, pwas, poses: see their classes. `pwas.sigma_d`
             (YAML `auto` or null, the default of every preset) is scale-aware: the median
             distance from the camera to the surface points of the run's first frame with valid
             depth, where the first Gaussians go (`gscompress.importance.resolve_sigma_d`); a
@@ -266,6 +296,7 @@ class SlamConfig:
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     prune: PruneConfig = field(default_factory=PruneConfig)
     pwas: PwasConfig = field(default_factory=PwasConfig)
+    poses: PoseConfig = field(default_factory=PoseConfig)
 
     def __post_init__(self) -> None:
         check_config(self)
@@ -439,10 +470,12 @@ def check_config(config: SlamConfig) -> None:
         all(v > 0 for v in (t.lr_rotation, t.lr_translation, t.gamma_color, t.gamma_depth, t.rho)),
         "tracking learning rates, gammas and rho must be positive",
     )
+    pose_rates = (config.poses.lr_rotation, config.poses.lr_translation)
+    need(all(v > 0 for v in pose_rates), "poses.lr_rotation and lr_translation must be positive")
     mapping_rates = (m.lr_means, m.lr_colors, m.lr_quats, m.lr_opacity_logits, m.lr_log_scales)
     need(all(v >= 0 for v in mapping_rates), "mapping learning rates must be >= 0")
     need(
-        max(t.lr_rotation, t.lr_translation, *mapping_rates) <= MAX_LEARNING_RATE,
+        max(t.lr_rotation, t.lr_translation, *mapping_rates, *pose_rates) <= MAX_LEARNING_RATE,
         f"learning rates must be at most {MAX_LEARNING_RATE:g}",
     )
     need(0.0 <= t.silhouette_min < 1.0, "tracking.silhouette_min must be in [0, 1)")

@@ -1,7 +1,8 @@
 """Keyframes and the mapping window (SplaTAM's overlap-based selection).
 
 Every `every`-th frame is kept as a keyframe with its observed colour and depth and the pose
-estimated when it was tracked (poses are not refined later). The mapping window of a frame is
+estimated when it was tracked; with `PoseConfig` on, the mapping refines that pose later
+(`View.pose`). The mapping window of a frame is
 the current frame plus the keyframes that see most of what it sees: pixels of the current
 depth map are back-projected with the current pose estimate and projected into each keyframe;
 the fraction that lands inside the keyframe's image in front of its camera is its overlap (no
@@ -19,6 +20,7 @@ import torch
 from gscompress.camera import Intrinsics, invert_transform, transform_points
 from gscompress.slam.config import KeyframeConfig
 from gscompress.slam.losses import depth_edges
+from gscompress.slam.poses import PoseVariable
 
 
 def frame_tensors(frame: Any, device: Any) -> tuple[torch.Tensor, torch.Tensor]:
@@ -36,7 +38,9 @@ class View:
         index: processing position of the frame (0 = first frame of the run).
         color: [H, W, 3] observed colour (tensor on the map's device).
         depth: [H, W] observed depth, 0 = invalid.
-        T_world_cam: [4, 4] float64 camera-to-world pose estimate.
+        T_world_cam: [4, 4] float64 camera-to-world pose estimate (refined in place of the
+            tracked one when `pose` is set and the mapping steps it).
+        pose: the pose's refinement state, when the mapping may refine it (None: fixed).
     """
 
     index: int
@@ -44,6 +48,7 @@ class View:
     depth: torch.Tensor
     T_world_cam: np.ndarray
     _edges: dict[float, torch.Tensor] = field(default_factory=dict, repr=False, compare=False)
+    pose: PoseVariable | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def from_frame(cls, index: int, frame: Any, T_world_cam: np.ndarray, device: Any) -> View:
@@ -56,6 +61,22 @@ class View:
         if sigma not in self._edges:
             self._edges[sigma] = depth_edges(self.depth, sigma)
         return self._edges[sigma]
+
+    def refinable(self, lr: np.ndarray) -> View:
+        """This view with its pose open to refinement at Adam rates `lr` [6] (kept if open)."""
+        if self.pose is None:
+            self.pose = PoseVariable(self.T_world_cam, lr)
+        return self
+
+    @property
+    def refined(self) -> bool:
+        """Whether the mapping has stepped this view's pose."""
+        return self.pose is not None and self.pose.adam.t > 0
+
+    def step_pose(self, g_T_cam_world: np.ndarray, rate: float = 1.0) -> None:
+        """Move the pose one Adam step along dL/dT_cam_world [4, 4]."""
+        assert self.pose is not None
+        self.T_world_cam = self.pose.step(g_T_cam_world, rate)
 
     def T_cam_world(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """[4, 4] world-to-camera tensor on the view's device."""

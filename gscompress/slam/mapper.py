@@ -7,7 +7,9 @@ optimizer's moments follow their Gaussians (`gscompress.slam.params.resize_adam_
 iteration renders one view: the current frame, or with probability 1 - `current_frame_share` a
 keyframe of the window. Every `opacity_every` mapping iterations (counted over the run)
 Gaussians with opacity below `alpha_min` and huge ones are removed (paper Eq. 9, SplaTAM's
-cleanup).
+cleanup). With `PoseConfig` on, an iteration on a view whose pose is open (`View.pose`) also
+steps that pose along the same loss (`PoseConfig.window` in mapping, never the frame being
+mapped; `PoseConfig.final` in the final refinement).
 """
 
 from __future__ import annotations
@@ -137,7 +139,7 @@ class Mapper:
                 break
             use_current = it == 0 or not window or rng.random() < config.mapping.current_frame_share
             view = current if use_current else window[int(rng.integers(len(window)))]
-            self._step(view, stats)
+            self._step(view, stats, None if use_current or not config.poses.window else 1.0)
             self.iterations += 1
             if every > 0 and self.iterations % every == 0:
                 stats.removed += self.cleanup()
@@ -153,6 +155,7 @@ class Mapper:
         lr_final_fraction: float = 1.0,
         stop: Callable[[], bool] | None = None,
         row_rates: torch.Tensor | None = None,
+        poses: bool = False,
     ) -> MappingStats:
         """Run `iters` mapping iterations over `views`, each view once per shuffled pass.
 
@@ -165,7 +168,8 @@ class Mapper:
         learning rates decay geometrically to `lr_final_fraction` of their mapping values by the
         last iteration (1: constant, as the refinements after pruning stages run; a single
         iteration runs at the full rate) and are restored after. `stop`, polled before each
-        iteration, ends the refinement there when it returns true.
+        iteration, ends the refinement there when it returns true. With `poses`, the views whose
+        pose is open (`View.pose`) have it stepped too, at rates decaying alike.
         """
         stats = MappingStats()
         order: list[int] = []
@@ -182,7 +186,7 @@ class Mapper:
                     order = [int(i) for i in rng.permutation(len(views))]
                 for group, lr in zip(self.optimizer.param_groups, base, strict=True):
                     group["lr"] = lr * gamma**k
-                self._step(views[order.pop()], stats)
+                self._step(views[order.pop()], stats, gamma**k if poses else None)
                 if on_step is not None:
                     on_step(stats.last_loss)
         finally:  # the per-frame mapping goes on at its own rates
@@ -200,12 +204,10 @@ class Mapper:
         with torch.no_grad():
             return sum(float(self._terms(view).total) for view in views) / max(len(views), 1)
 
-    def _terms(self, view: View) -> LossTerms:
-        """The mapping loss terms of the map on one view."""
-        out = render(
-            *self.params.render_inputs(), self.intrinsics, view.T_cam_world(),
-            backend=self.config.backend,
-        )  # fmt: skip
+    def _terms(self, view: View, T_cam_world: torch.Tensor | None = None) -> LossTerms:
+        """The mapping loss terms of the map on one view (at `T_cam_world`, default its pose)."""
+        T = view.T_cam_world() if T_cam_world is None else T_cam_world
+        out = render(*self.params.render_inputs(), self.intrinsics, T, backend=self.config.backend)
         m = self.config.mapping
         edges = view.edges(m.illum_edge_sigma) if m.illum_tau > 0 else None
         return mapping_loss(out, view.color, view.depth, m, edges)
@@ -217,19 +219,27 @@ class Mapper:
         if bad:
             raise DivergenceError("mapping", f"{', '.join(bad)} hold non-finite values", TOO_HIGH)
 
-    def _step(self, view: View, stats: MappingStats) -> None:
-        """One Adam step of the mapping loss on one view; adds its losses to `stats`.
+    def _step(self, view: View, stats: MappingStats, pose_rate: float | None = None) -> None:
+        """One Adam step of the mapping loss on one view; adds its losses to `stats`. With a
+        `pose_rate` and an open pose (`View.pose`), the pose steps too, at that fraction of
+        its learning rates.
 
         Raises:
             DivergenceError: the loss is not finite (the map is not stepped).
         """
-        terms = self._terms(view)
+        T = view.T_cam_world()
+        moves = pose_rate is not None and view.pose is not None
+        T.requires_grad_(moves)
+        terms = self._terms(view, T)
         value = float(terms.total.detach())
         if not math.isfinite(value):
             raise DivergenceError("mapping", f"its loss became {value}", TOO_HIGH)
         self.optimizer.zero_grad()
         terms.total.backward()
         self.optimizer.step()
+        if moves and T.grad is not None:
+            assert pose_rate is not None
+            view.step_pose(T.grad.double().cpu().numpy(), pose_rate)
         stats.first_loss = value if stats.iters == 0 else stats.first_loss
         stats.last_loss = value
         stats.iters += 1

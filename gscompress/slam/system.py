@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from gscompress.camera import Intrinsics
+from gscompress.camera import Intrinsics, invert_transform
 from gscompress.datasets.base import Frame
 from gscompress.errors import BudgetError, InputError, MapError
 from gscompress.gaussians import GaussianMap
@@ -55,6 +55,7 @@ from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, frame_tensors, is_keyframe, select_window
 from gscompress.slam.mapper import Mapper, MappingStats
 from gscompress.slam.params import RenderInputs
+from gscompress.slam.poses import orthonormalize
 from gscompress.slam.tracker import TrackResult, constant_velocity, track
 
 log = logging.getLogger(__name__)
@@ -218,6 +219,50 @@ class SlamSystem:
         return self.mapper.params.to_map()
 
     @property
+    def _pose_rates(self) -> np.ndarray:
+        """[6] Adam rates of a refined pose's increment (`PoseConfig`)."""
+        poses = self.config.poses
+        return np.repeat([poses.lr_rotation, poses.lr_translation], 3)
+
+    def refined_poses(self) -> list[np.ndarray]:
+        """Every processed frame's [4, 4] camera-to-world pose as the mapping left it.
+
+        A keyframe, and a frame whose view the mapping refined, has its view's pose; any other
+        frame keeps its tracked pose relative to the latest keyframe at or before it, which
+        moves as that keyframe's pose was refined. Without pose refinement these are the
+        tracked poses (`poses`).
+        """
+        views = self._own_views()
+        return [self._refined_pose(position, views) for position in range(len(self.poses))]
+
+    def _own_views(self) -> dict[int, View]:
+        """The run's own kept views (keyframes and every-frame views) by position."""
+        return {v.index: v for v in [*self.keyframes, *self.views] if v.index >= 0}
+
+    def _refined_pose(self, position: int, views: dict[int, View]) -> np.ndarray:
+        """`refined_poses` of one frame."""
+        view = views.get(position)
+        if view is not None and (view.refined or is_keyframe(position, self.config.keyframes)):
+            return view.T_world_cam
+        anchor = position - position % self.config.keyframes.every
+        keyframe = views.get(anchor)
+        tracked = self.poses[position] if view is None else view.T_world_cam  # (unrefined)
+        if keyframe is None or not keyframe.refined:  # (nothing moved it)
+            return tracked
+        moved = keyframe.T_world_cam @ invert_transform(self.poses[anchor])
+        return orthonormalize(moved @ tracked)
+
+    def _repose_views(self) -> None:
+        """Put every kept view the mapping has not refined at its `refined_poses` pose (it
+        moves with its keyframe), before a refinement that steps them all."""
+        views = self._own_views()
+        for position, view in views.items():
+            if not view.refined and not is_keyframe(position, self.config.keyframes):
+                view.T_world_cam = self._refined_pose(position, views)
+                view.pose = None
+                view.refinable(self._pose_rates)
+
+    @property
     def keeps_every_view(self) -> bool:
         """Whether the run keeps every frame's view (for a final refinement on every frame; a
         system that does not know its `total_frames` runs no final refinement)."""
@@ -292,9 +337,11 @@ class SlamSystem:
 
         Args:
             gaussians: the map after the last restored frame.
-            poses: (frame index, timestamp, [4, 4] camera-to-world) of each processed frame.
+            poses: (frame index, timestamp, [4, 4] camera-to-world) of each processed frame, as
+                tracked.
             views: the views of those frames that the run keeps, in order: every frame's when
-                `keeps_every_view`, else the keyframes' (extra ones are ignored).
+                `keeps_every_view`, else the keyframes' (extra ones are ignored), at their
+                refined poses when the run refines poses (`refined_poses`).
             mapping_iterations: mapping iterations run so far.
             next_id: the id the next new Gaussian gets.
             first_depth: [H, W] depth of the first frame (sets the scene radius).
@@ -309,6 +356,8 @@ class SlamSystem:
             self.frame_indices.append(int(index))
             self.timestamps.append(float(stamp))
             self.poses.append(np.asarray(T, dtype=np.float64))
+        if self.config.poses.enabled:
+            views = [v.refinable(self._pose_rates) if v.index > 0 else v for v in views]
         self.keyframes = [v for v in views if is_keyframe(v.index, self.config.keyframes)]
         self.views = list(views) if self.keeps_every_view else []
         self.mapper.iterations = int(mapping_iterations)
@@ -342,6 +391,9 @@ class SlamSystem:
         T_world_cam, tracking = self._pose(frame, color, depth, position)
         ms["tracking"] = 1e3 * (time.perf_counter() - clock)
         current = View(position, color, depth, T_world_cam)
+        keyframe = is_keyframe(position, self.config.keyframes)
+        if position > 0 and self.config.poses.enabled and (keyframe or self.keeps_every_view):
+            current.refinable(self._pose_rates)
 
         clock = time.perf_counter()
         added = self._densify(current)
@@ -354,7 +406,6 @@ class SlamSystem:
             self.config.mapping.first_frame_iters if position == 0 else self.config.mapping.iters
         )
         mapping = self.mapper.optimize(current, window, iters, rng)
-        keyframe = is_keyframe(position, self.config.keyframes)
         if keyframe:
             self.keyframes.append(current)
         if self.keeps_every_view:
@@ -545,6 +596,8 @@ class SlamSystem:
             fraction = self.config.mapping.final_lr_fraction
             views = [*self.carried, *self.views] if self.keeps_every_view else keyframes
             stop = self.stop_requested
+            if self.config.poses.final:
+                self._repose_views()
             if iters:
                 log.info("final refinement: %d iterations over %d views", iters, len(views))
         added = 0
@@ -558,7 +611,10 @@ class SlamSystem:
         rng = np.random.default_rng([self.config.seed, position, 1])
         self.in_final_refinement = final
         try:
-            stats = self.mapper.refine(views, iters, rng, lr_final_fraction=fraction, stop=stop)
+            stats = self.mapper.refine(
+                views, iters, rng, lr_final_fraction=fraction, stop=stop,
+                poses=final and self.config.poses.final,
+            )  # fmt: skip
         finally:
             self.in_final_refinement = False
         if stop is not None and stats.iters < iters and len(self.mapper.params):  # (not emptied)

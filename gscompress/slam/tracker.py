@@ -1,17 +1,9 @@
 """Camera tracking: optimise one frame's pose against the fixed map (paper Eq. 4-5).
 
-The pose is parameterised as a small rigid increment on top of the initial guess (usually the
-constant-velocity prediction), applied in the camera frame:
-
-    T_cam_world = Delta(q, tau) @ T_cam_world_guess,   Delta = [R(q) | tau],
-    R(q) = rotation of the unit quaternion normalise(1, qx, qy, qz),
-
-with (qx, qy, qz) and tau starting at zero. Near zero, 2 (qx, qy, qz) is the rotation vector, so
-the Adam learning rates act like SplaTAM's on the world-to-camera quaternion and translation.
-They may decay geometrically over the iterations (`TrackingConfig.lr_final_fraction`).
-The Gaussians are rendered from detached tensors: only the six pose numbers get gradients.
-Those six numbers, their gradient (from dL/dT_cam_world by `pose_gradient`) and Adam's
-update (`PoseAdam`) live in numpy, not in torch's autograd and optimizer.
+The pose is an increment on the initial guess (usually the constant-velocity prediction), as
+`gscompress.slam.poses` describes; the learning rates may decay geometrically over the
+iterations (`TrackingConfig.lr_final_fraction`). The Gaussians are rendered from detached
+tensors: only the six pose numbers get gradients.
 The pose after the last iteration is returned. (SplaTAM returns the pose of lowest loss seen;
 with a mask that changes with the pose, losses of different poses are sums over different
 pixels, and on low-resolution maps the lowest one was measured to be a worse pose than the
@@ -26,12 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from gscompress.camera import Intrinsics, invert_transform, quat_to_rotmat
+from gscompress.camera import Intrinsics, invert_transform
 from gscompress.errors import DivergenceError
 from gscompress.render import render
 from gscompress.slam.config import TrackingConfig
 from gscompress.slam.losses import tracking_loss
 from gscompress.slam.params import RenderInputs, decay_per_step
+from gscompress.slam.poses import PoseAdam, orthonormalize, pose_gradient, pose_increment
 
 TOO_HIGH = "lower its learning rates, tracking.lr_rotation and lr_translation"
 
@@ -53,87 +46,6 @@ class TrackResult:
     first_loss: float
     iters: int
     pixels: int
-
-
-def pose_increment(x: np.ndarray) -> np.ndarray:
-    """[4, 4] rigid transform [R(q) | tau] of the pose vector x = (qx, qy, qz, tau)."""
-    out = np.eye(4)
-    out[:3, :3] = quat_to_rotmat(np.concatenate([[1.0], x[:3]]))
-    out[:3, 3] = x[3:]
-    return out
-
-
-def rotation_jacobian(q_xyz: np.ndarray) -> np.ndarray:
-    """dR/dq_xyz [3 (q), 3, 3] of R = the rotation of the unit quaternion normalise(1, q_xyz).
-
-    The tracker's six pose numbers live in numpy with this closed-form Jacobian: as torch
-    tensors with autograd, the pose and its gradient took about 90 small operations per tracking
-    iteration, 1.6 ms, more than a tenth of the iteration.
-    """
-    u = np.concatenate([[1.0], q_xyz])
-    norm = np.linalg.norm(u)
-    w, x, y, z = unit = u / norm
-    # dR / d(w, x, y, z) of the unit-quaternion formula (camera.quat_to_rotmat), [4, 3, 3]
-    d_wxyz = 2 * np.array(
-        [
-            [[0, -z, y], [z, 0, -x], [-y, x, 0]],
-            [[0, y, z], [y, -2 * x, -w], [z, w, -2 * x]],
-            [[-2 * y, x, w], [x, 0, z], [-w, z, -2 * y]],
-            [[-2 * z, -w, x], [w, -2 * z, y], [x, y, 0]],
-        ]
-    )
-    d_unit = (np.eye(4) - np.outer(unit, unit)) / norm  # d(u / |u|) / du, [4, 4]
-    return np.einsum("kij,kl->lij", d_wxyz, d_unit)[1:]
-
-
-def pose_gradient(x: np.ndarray, T0: np.ndarray, g_T: np.ndarray) -> np.ndarray:
-    """dL/dx [6] from dL/dT [4, 4], where T = pose_increment(x) @ T0."""
-    g_delta = g_T @ T0.T
-    g_q = np.einsum("kij,ij->k", rotation_jacobian(x[:3]), g_delta[:3, :3])
-    return np.concatenate([g_q, g_delta[:3, 3]])
-
-
-class PoseAdam:
-    """torch.optim.Adam's update (default betas and eps) on one vector, in numpy, with the
-    learning rates decaying by `gamma` per step (torch's ExponentialLR)."""
-
-    betas = (0.9, 0.999)
-    eps = 1e-8
-
-    def __init__(self, lr: np.ndarray, gamma: float) -> None:
-        self.lr = np.asarray(lr, dtype=np.float64)
-        self.gamma = gamma
-        self.m = np.zeros_like(self.lr)
-        self.v = np.zeros_like(self.lr)
-        self.t = 0
-
-    def step(self, x: np.ndarray, grad: np.ndarray) -> np.ndarray:
-        """x after one step along `grad`."""
-        b1, b2 = self.betas
-        self.t += 1
-        self.m = b1 * self.m + (1 - b1) * grad
-        self.v = b2 * self.v + (1 - b2) * grad * grad
-        denom = np.sqrt(self.v) / np.sqrt(1 - b2**self.t) + self.eps
-        out = x - (self.lr / (1 - b1**self.t)) * self.m / denom
-        self.lr = self.lr * self.gamma
-        return out
-
-
-def orthonormalize(T: np.ndarray) -> np.ndarray:
-    """The rigid transform nearest to T [4, 4]: its rotation block projected onto SO(3).
-
-    Products of poses gather rounding error, and `invert_transform` (which transposes the
-    rotation) turns a rotation that is slightly off SO(3) into an inverse that is off by as
-    much again; chained over frames by the constant-velocity model the error would grow
-    geometrically. Every pose the tracker makes goes through here.
-    """
-    U, _, Vt = np.linalg.svd(np.asarray(T, dtype=np.float64)[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
-    out = np.array(T, dtype=np.float64)
-    out[:3, :3] = R
-    return out
 
 
 def constant_velocity(T_prev: np.ndarray, T_prev2: np.ndarray | None) -> np.ndarray:

@@ -14,7 +14,6 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.map_files import read_map_file
 from gscompress.io.mcap_log import (
     TOPIC_GAUSSIANS,
-    TOPIC_POSE,
     TOPIC_POSE_GT,
     LogMetadata,
     LogReader,
@@ -73,7 +72,8 @@ class MapSource:
                 [m.log_time for _s, _c, m in reader.iter_messages([TOPIC_GAUSSIANS])], np.int64
             )
             last = reader.read_map()
-            pose_ns, poses = reader.read_poses(TOPIC_POSE)
+            found = reader.read_trajectory()
+            pose_ns, poses = found.times_ns, found.T_world_cam
             gt_ns, poses_gt = reader.read_poses(TOPIC_POSE_GT)
             metadata = reader.metadata
             recorded = recorded_keyframes(reader)

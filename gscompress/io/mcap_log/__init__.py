@@ -6,7 +6,10 @@ One profile serves SLAM logs, pruned logs and shares:
   Packed little-endian fields named as in 3DGS PLY (see `gscompress.io.columns`), plus the PWAS
   score `importance`, its sums and the uint32 `id`; float32, or at precision fp16 (profile 1.1)
   the bounded attributes as uint16 `<name>_f16` fields holding float16 bit patterns.
-- `/camera/pose`, `/camera/pose_gt`: foxglove.PoseInFrame (camera-to-world, frame "world").
+- `/camera/pose`, `/camera/pose_gt`: foxglove.PoseInFrame (camera-to-world, frame "world"):
+  the pose each frame was tracked at, and its ground truth.
+- `/camera/pose_refined`: foxglove.PosesInFrame, the trajectory as the mapping refined it (the
+  first N frames' poses; the last message is the trajectory), in logs of runs that refine poses.
 - `/tf`: foxglove.FrameTransform world -> camera for the estimated pose.
 - `/camera/calibration`: foxglove.CameraCalibration.
 - `/slam/stats`: JSON per frame, schema `schemas/slam_stats.v1.schema.json`.
@@ -27,6 +30,7 @@ from gscompress.io.mcap_log.messages import (
     decode_map_message,
     decode_pose,
     decode_snapshot,
+    decode_trajectory,
     decoded_map,
     encode_map,
     encoded_size,
@@ -35,6 +39,7 @@ from gscompress.io.mcap_log.messages import (
     pointcloud_to_gaussians,
     pose_message,
     record_size,
+    trajectory_message,
 )
 from gscompress.io.mcap_log.metadata import (
     CAMERA_FRAME,
@@ -46,6 +51,7 @@ from gscompress.io.mcap_log.metadata import (
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
     TOPIC_POSE_GT,
+    TOPIC_POSE_REFINED,
     TOPIC_STATS,
     TOPIC_TF,
     WORLD_FRAME,
@@ -56,6 +62,7 @@ from gscompress.io.mcap_log.reader import (
     MAGIC,
     ChannelInfo,
     LogReader,
+    Trajectory,
     closed_properly,
     is_read_error,
     read_map,
@@ -73,6 +80,7 @@ __all__ = [
     "TOPIC_GAUSSIANS",
     "TOPIC_POSE",
     "TOPIC_POSE_GT",
+    "TOPIC_POSE_REFINED",
     "TOPIC_STATS",
     "TOPIC_TF",
     "WORLD_FRAME",
@@ -81,10 +89,12 @@ __all__ = [
     "LogReader",
     "LogWriter",
     "Snapshot",
+    "Trajectory",
     "closed_properly",
     "decode_map_message",
     "decode_pose",
     "decode_snapshot",
+    "decode_trajectory",
     "decoded_map",
     "encode_map",
     "encoded_size",
@@ -96,4 +106,5 @@ __all__ = [
     "read_map",
     "record_size",
     "seconds_to_ns",
+    "trajectory_message",
 ]

@@ -16,6 +16,7 @@ import numpy as np
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from google.protobuf.message import DecodeError, Message
 from mcap.records import Message as McapMessage
 from mcap.records import Schema
@@ -249,6 +250,42 @@ def decode_pose(schema: Schema | None, message: McapMessage, source: str = "log"
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or is_zero_quaternion(q):
         raise LogFormatError(f"{where} has a non-finite or zero-length pose")
     return make_transform(quat_to_rotmat(q), t)
+
+
+def trajectory_message(T_world_cam: np.ndarray, log_time_ns: int) -> PosesInFrame:
+    """Camera-to-world poses [N, 4, 4] as one foxglove.PosesInFrame in the world frame (drawn
+    as a path in Foxglove)."""
+    msg = PosesInFrame(frame_id=WORLD_FRAME)
+    msg.timestamp.FromNanoseconds(log_time_ns)
+    for T in np.asarray(T_world_cam, dtype=np.float64).reshape(-1, 4, 4):
+        pose = msg.poses.add()
+        set_pose(pose.position, pose.orientation, T[:3, 3], rotmat_to_quat(T[:3, :3]))
+    return msg
+
+
+def decode_trajectory(
+    schema: Schema | None, message: McapMessage, source: str = "log"
+) -> np.ndarray:
+    """[N, 4, 4] camera-to-world poses of a foxglove.PosesInFrame message.
+
+    Raises:
+        LogFormatError: not a PosesInFrame, corrupt, or a non-finite or zero-length pose.
+    """
+    where = f"{source}: message at {message.log_time} ns"
+    if schema is None or schema.name != "foxglove.PosesInFrame":
+        raise LogFormatError(f"{where} is {schema.name if schema else 'schemaless'}, not poses")
+    try:
+        poses = PosesInFrame.FromString(message.data).poses
+    except DecodeError:
+        raise LogFormatError(f"{where} is a corrupt PosesInFrame") from None
+    out = np.empty((len(poses), 4, 4))
+    for k, pose in enumerate(poses):
+        p, o = pose.position, pose.orientation
+        q, t = np.array([o.w, o.x, o.y, o.z]), np.array([p.x, p.y, p.z])
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))) or is_zero_quaternion(q):
+            raise LogFormatError(f"{where} has a non-finite or zero-length pose (its {k + 1}.)")
+        out[k] = make_transform(quat_to_rotmat(q), t)
+    return out
 
 
 def set_pose(position: Any, orientation: Any, t: np.ndarray, q_wxyz: np.ndarray) -> None:

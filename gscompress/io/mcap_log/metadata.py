@@ -17,6 +17,7 @@ from gscompress_schemas import PROFILE_VERSION
 TOPIC_GAUSSIANS = "/gaussians"
 TOPIC_POSE = "/camera/pose"
 TOPIC_POSE_GT = "/camera/pose_gt"
+TOPIC_POSE_REFINED = "/camera/pose_refined"
 TOPIC_TF = "/tf"
 TOPIC_CALIBRATION = "/camera/calibration"
 TOPIC_STATS = "/slam/stats"

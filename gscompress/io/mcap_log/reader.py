@@ -35,12 +35,18 @@ from gscompress.io.mcap_bounds import (
     read_chunk_header,
     read_record_at,
 )
-from gscompress.io.mcap_log.messages import Snapshot, decode_pose, decode_snapshot
+from gscompress.io.mcap_log.messages import (
+    Snapshot,
+    decode_pose,
+    decode_snapshot,
+    decode_trajectory,
+)
 from gscompress.io.mcap_log.metadata import (
     METADATA_NAME,
     TOPIC_CALIBRATION,
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
+    TOPIC_POSE_REFINED,
     LogMetadata,
 )
 
@@ -92,6 +98,29 @@ class ChannelInfo:
     schema: str
     encoding: str
     messages: int
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A log's camera poses (`LogReader.read_trajectory`).
+
+    Attributes:
+        times_ns: [N] log times of the frames (those of `/camera/pose`).
+        T_world_cam: [N, 4, 4] camera-to-world poses.
+        refined: how many of the first poses are the mapping's refined ones (the rest as
+            tracked); 0 for a log without `/camera/pose_refined`.
+    """
+
+    times_ns: np.ndarray
+    T_world_cam: np.ndarray
+    refined: int
+
+    @property
+    def source(self) -> str:
+        """ "refined", "tracked" or "refined, then tracked" (for messages and records)."""
+        if self.refined == 0:
+            return "tracked"
+        return "refined" if self.refined == len(self.times_ns) else "refined, then tracked"
 
 
 class LogReader:
@@ -379,6 +408,32 @@ class LogReader:
         stamps = np.array(times, dtype=np.int64)
         order = np.argsort(stamps, kind="stable")
         return stamps[order], np.array(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
+
+    def read_trajectory(self) -> Trajectory:
+        """The camera's trajectory: each frame's pose as the mapping last refined it where the
+        log has a refined trajectory (`/camera/pose_refined`, its last message, covering the
+        first frames of a run that was interrupted), else as tracked (`/camera/pose`).
+
+        Raises:
+            LogFormatError: a message that is not a PoseInFrame / PosesInFrame, a non-finite or
+                zero-length pose, or a refined trajectory longer than the tracked one.
+        """
+        times, poses = self.read_poses(TOPIC_POSE)
+        last = None
+        for record in self.iter_messages([TOPIC_POSE_REFINED], reverse=True):
+            last = record
+            break
+        if last is None:
+            return Trajectory(times, poses, 0)
+        refined = decode_trajectory(last[0], last[2], str(self.path))
+        if len(refined) > len(poses):
+            raise LogFormatError(
+                f"{self.path}: its refined trajectory has {len(refined)} poses, its "
+                f"{TOPIC_POSE} {len(poses)}"
+            )
+        poses = poses.copy()
+        poses[: len(refined)] = refined
+        return Trajectory(times, poses, len(refined))
 
     def read_intrinsics(self) -> Intrinsics | None:
         """The camera of the last `/camera/calibration` message (None when there is none).

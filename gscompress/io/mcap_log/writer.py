@@ -24,7 +24,12 @@ from gscompress.camera import Intrinsics, rotmat_to_quat
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions
 from gscompress.io.files import AtomicFile, MemoryFile, check_output, safe_value
-from gscompress.io.mcap_log.messages import encode_map, pose_message, set_pose
+from gscompress.io.mcap_log.messages import (
+    encode_map,
+    pose_message,
+    set_pose,
+    trajectory_message,
+)
 from gscompress.io.mcap_log.metadata import (
     CAMERA_FRAME,
     METADATA_NAME,
@@ -33,6 +38,7 @@ from gscompress.io.mcap_log.metadata import (
     TOPIC_GAUSSIANS,
     TOPIC_POSE,
     TOPIC_POSE_GT,
+    TOPIC_POSE_REFINED,
     TOPIC_STATS,
     TOPIC_TF,
     WORLD_FRAME,
@@ -173,6 +179,14 @@ class LogWriter:
             tf.timestamp.FromNanoseconds(log_time_ns)
             set_pose(tf.translation, tf.rotation, T[:3, 3], q)
             self.write_protobuf(TOPIC_TF, tf, log_time_ns)
+
+    def write_trajectory(self, T_world_cam: np.ndarray, log_time_ns: int) -> None:
+        """Write the refined trajectory: the camera-to-world poses [N, 4, 4] of the first N
+        frames (those of the first N `/camera/pose` messages), as one foxglove.PosesInFrame on
+        `/camera/pose_refined`; a later message supersedes an earlier one."""
+        self.write_protobuf(
+            TOPIC_POSE_REFINED, trajectory_message(T_world_cam, log_time_ns), log_time_ns
+        )
 
     def write_calibration(self, intrinsics: Intrinsics, log_time_ns: int) -> None:
         """Write the pinhole calibration of the camera frame."""

@@ -62,11 +62,11 @@ def start_poses(
     from gscompress.io.trajectory import nearest_times
     from gscompress.pipeline.evaluate import POSE_MATCH_TOLERANCE_NS, pose_source
 
-    times, poses, _ = pose_source(other_log)
+    times, poses, _, _ = pose_source(other_log)
     if T_own_other is not None:
         poses = T_own_other @ poses
     if own_first:
-        own_times, own_poses, _ = pose_source(own_log)
+        own_times, own_poses, _, _ = pose_source(own_log)
         rest = nearest_times(times, own_times, POSE_MATCH_TOLERANCE_NS) < 0
         times = np.concatenate([own_times, times[rest]])
         poses = np.concatenate([own_poses, poses[rest]])
