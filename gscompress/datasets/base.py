@@ -8,6 +8,7 @@ when the dataset has it, a ground-truth camera-to-world pose per frame. `open_se
 
 from __future__ import annotations
 
+import io
 import math
 import re
 from collections.abc import Iterator, Sequence
@@ -16,7 +17,7 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import DatasetError, InputError, OptionError, clipped
@@ -271,27 +272,70 @@ def depth_from_units(
 
 
 def _open_image(path: Path, what: str, size: tuple[int, int] | None) -> Image.Image:
-    """Open an image, its header checked before its pixels are decoded: the size `size` (W, H)
-    when given, and what the file's bytes may decode to (`gscompress.io.decode_budget`); every
+    """Open and decode an image file, its header checked first (`open_image_header`); every
     failure a DatasetError naming the file."""
     if not path.is_file():
         raise DatasetError(f"{what} image not found: {path}")
+    return load_image(open_image_header(path, str(path), what, size), str(path), what)
+
+
+def open_image_header(
+    source: Path | bytes | bytearray | memoryview,
+    where: str,
+    what: str,
+    size: tuple[int, int] | None,
+    said: str = "the intrinsics are for",
+    formats: tuple[str, ...] | None = None,
+) -> Image.Image:
+    """An image opened from its header alone, a file's or the bytes of a recording's message,
+    refused before any pixel is decoded unless the header says `size` (W, H), when given, and
+    its pixels are within what its bytes may decode to (`gscompress.io.decode_budget`, format
+    "image"). The caller decodes it (`load_image`) and closes it.
+
+    Args:
+        source: the image file, or its bytes.
+        where: the file or the message, for messages ("PATH", "PATH: TOPIC frame 3").
+        what: "colour" or "depth".
+        size: the size the frame must have (the camera's), or None.
+        said: what says `size`, for messages ("the intrinsics are for", "the camera info says").
+        formats: the formats accepted (PIL's names; None: any).
+
+    Raises:
+        DatasetError: not an image (of `formats`), another size, or over the decode budget.
+    """
+    if isinstance(source, Path):
+        stream: Path | io.BytesIO = source
+        input_bytes = source.stat().st_size
+    else:
+        stream, input_bytes = io.BytesIO(source), len(source)
     try:
-        img = Image.open(path)  # (the header only)
-        try:
-            if size is not None and img.size != tuple(size):
-                raise DatasetError(
-                    f"{what} image {path} is {img.size[0]}x{img.size[1]} but the intrinsics "
-                    f"are for {size[0]}x{size[1]}"
-                )
-            budget = DecodeBudget("image", path.stat().st_size, str(path), DatasetError)
-            check_image(img, budget, f"{what} image")
-            img.load()
-        except BaseException:
-            img.close()
-            raise
+        img = Image.open(stream, formats=formats)
+    except UnidentifiedImageError as exc:
+        kind = f"not a {' or '.join(formats)} image" if formats else str(exc)
+        raise DatasetError(f"cannot read {what} image {where}: {kind}") from None
     except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as exc:
-        raise DatasetError(f"cannot read {what} image {path}: {exc}") from None
+        raise DatasetError(f"cannot read {what} image {where}: {exc}") from None
+    try:
+        if size is not None and img.size != tuple(size):
+            raise DatasetError(
+                f"{what} image {where} is {img.size[0]}x{img.size[1]} but {said} "
+                f"{size[0]}x{size[1]}"
+            )
+        check_image(img, DecodeBudget("image", input_bytes, where, DatasetError), f"{what} image")
+    except BaseException:
+        img.close()
+        raise
+    return img
+
+
+def load_image(img: Image.Image, where: str, what: str) -> Image.Image:
+    """`img` (from `open_image_header`) with its pixels decoded; closed and refused in one
+    line when they cannot be."""
+    try:
+        img.load()
+    except (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError) as exc:
+        img.close()
+        raise DatasetError(f"cannot read {what} image {where}: {exc}") from None
     return img
 
 

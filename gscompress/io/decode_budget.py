@@ -9,12 +9,13 @@ its pixels at their declared size (`check_image`, from the header, before the pi
 compressed stream, its inflated bytes. Each ratio sits beside the largest one measured on
 legitimate files in docs/fuzzing.md (`bench/decode_ratios.py` measures them).
 
-Inflating (zstd, gzip, lz4; zip members are read with a bound) runs with a running limit: a
+Inflating (zstd, gzip, lz4, bz2; zip members are read with a bound) runs with a running limit: a
 stream stops the moment it produces more than it declared, whatever its frame says.
 """
 
 from __future__ import annotations
 
+import bz2
 import io
 import os
 import threading
@@ -174,10 +175,14 @@ def inflate_zstd(
     size: int,
     where: str,
     error: type[GscError],
+    several_frames: bool = False,
 ) -> bytes | bytearray:
     """A zstd frame (bytes, or a stream read in blocks) inflated to exactly `size` bytes, never
     more: refused (`error`, led by `where`) when it is not zstd, declares another size, is
-    corrupt, or holds more or less."""
+    corrupt, or holds more or less. Frames that follow the first are inflated too, under the
+    same running limit (a frame that declares the whole size followed by a bomb stops one byte
+    past it); with `several_frames` the first may declare fewer bytes than `size`, the frames
+    after it holding the rest (a stream written a frame at a time)."""
     source = io.BytesIO(data) if isinstance(data, bytes | bytearray | memoryview) else data
     head = source.read(18)  # (a zstd frame header's longest)
     if size == 0 and not head:
@@ -186,7 +191,7 @@ def inflate_zstd(
         declared = zstandard.frame_content_size(head)
     except zstandard.ZstdError:
         raise error(f"{where} is not a zstd frame") from None
-    if declared not in (-1, size):
+    if declared > size or (declared not in (-1, size) and not several_frames):
         raise error(f"{where} declares {declared} bytes, not {size}")
     joined = io.BufferedReader(_Prefixed(head, source))
     try:
@@ -255,6 +260,28 @@ def inflate_lz4(data: bytes | bytearray, size: int, where: str, error: type[GscE
         if not decompressor.eof:
             raise error(f"{where} is cut short")
         rest = decompressor.unused_data or b""
+    return b"".join(parts)
+
+
+def inflate_bz2(data: bytes | bytearray, size: int, where: str, error: type[GscError]) -> bytes:
+    """bz2 streams (one or more in a row) inflated to at most `size` + 1 bytes: refused when they
+    are corrupt, cut short, or produce more than `size`."""
+    parts: list[bytes] = []
+    produced = 0
+    rest = bytes(data)
+    while rest:
+        decompressor = bz2.BZ2Decompressor()
+        try:
+            part = decompressor.decompress(rest, max_length=size + 1 - produced)
+        except (OSError, ValueError) as exc:
+            raise error(f"{where} is corrupt ({exc})") from None
+        parts.append(part)
+        produced += len(part)
+        if produced > size:
+            raise error(f"{where} inflates beyond {size} bytes")
+        if not decompressor.eof:  # (output left at the limit was refused above)
+            raise error(f"{where} is cut short")
+        rest = decompressor.unused_data
     return b"".join(parts)
 
 

@@ -1,14 +1,28 @@
-"""Bounds on what rosbags inflates of a bag: a ROS 1 bag's chunks are checked against the
-decode budget from their headers and inflated by a decompressor that stops at their declared
-size."""
+"""Bounds on what rosbags inflates of a bag, through the decode budget's inflaters
+(`gscompress.io.decode_budget`), whose running limit stops a stream the moment it produces more
+than it declared:
+
+- a ROS 1 bag's chunks are checked against the decode budget from their headers when the bag
+  is opened (`check_chunk_size`), and each is given a decompressor bounded by its declared size
+  (`bound_ros1_chunks`);
+- a ROS 2 bag's MCAP chunks have had their headers checked by the bounded MCAP reader, which
+  sees the declared size of a chunk's first zstd frame only; rosbags inflates every frame of a
+  chunk before it compares the total with the chunk's size, so its MCAP inflaters are replaced
+  by bounded ones that stop at the chunk's declared size over all its frames
+  (`bound_mcap_inflates`).
+"""
 
 from __future__ import annotations
 
-import bz2
 from collections.abc import Callable
 from typing import Any
 
 from gscompress.errors import DatasetError
+
+
+class ChunkRefused(DatasetError):
+    """A chunk that inflates to other than its declared size, refused while rosbags reads it
+    (the container names the file: `gscompress.datasets.recording.containers`)."""
 
 
 def bound_ros1_chunks(reader: Any) -> None:
@@ -29,7 +43,7 @@ def bound_ros1_chunks(reader: Any) -> None:
             chunk = sub.chunks[info.pos]
             check_chunk_size(size, chunk.datasize, compression, str(sub.path))
             sub.chunks[info.pos] = chunk._replace(
-                decompressor=_bounded_inflate(compression, size, str(sub.path))
+                decompressor=_ros1_inflater(compression, size, str(sub.path))
             )
 
 
@@ -50,26 +64,58 @@ def check_chunk_size(size: int, compressed: int, compression: str, source: str) 
     budget.check(size, f"a chunk of {compressed} bytes claims {size} bytes uncompressed")
 
 
-def _bounded_inflate(compression: str, size: int, source: str) -> Callable[[bytes], bytes]:
-    """A decompressor that stops at `size` + 1 bytes and refuses anything but `size`."""
+def _ros1_inflater(compression: str, size: int, source: str) -> Callable[[bytes], bytes]:
+    """A ROS 1 chunk's decompressor that stops at `size` + 1 bytes and refuses anything but
+    `size` (bz2 and lz4 through the decode budget's inflaters)."""
+    from gscompress.io.decode_budget import inflate_bz2, inflate_lz4
+
+    inflaters = {"bz2": inflate_bz2, "lz4": inflate_lz4}
+    if compression not in (*inflaters, "none"):
+        raise DatasetError(f"{source}: a chunk is compressed with unknown {compression!r}")
 
     def inflate(data: bytes) -> bytes:
         if compression == "none":
             out = bytes(data)
-        elif compression == "bz2":
-            d = bz2.BZ2Decompressor()
-            try:
-                out = d.decompress(data, max_length=size + 1)
-            except (OSError, ValueError) as exc:
-                raise DatasetError(f"{source}: a chunk's bz2 data is corrupt ({exc})") from None
-        elif compression == "lz4":
-            from gscompress.io.decode_budget import inflate_lz4
-
-            out = inflate_lz4(data, size, f"{source}: a chunk's lz4 data", DatasetError)
         else:
-            raise DatasetError(f"{source}: a chunk is compressed with unknown {compression!r}")
+            where = f"{source}: a chunk's {compression} data"
+            out = inflaters[compression](data, size, where, DatasetError)
         if len(out) != size:
             raise DatasetError(f"{source}: a chunk inflates to other than its declared {size} B")
         return out
 
     return inflate
+
+
+def _inflate_zstd_chunk(data: bytes, size: int) -> bytes:
+    """rosbags' MCAP zstd inflater, bounded: every frame of the chunk, at most `size` bytes."""
+    from gscompress.io.decode_budget import inflate_zstd
+
+    return bytes(inflate_zstd(data, size, "a chunk's zstd data", ChunkRefused, several_frames=True))
+
+
+def _inflate_lz4_chunk(data: bytes, size: int) -> bytes:
+    """rosbags' MCAP lz4 inflater, bounded: every frame of the chunk, at most `size` bytes."""
+    from gscompress.io.decode_budget import inflate_lz4
+
+    return inflate_lz4(data, size, "a chunk's lz4 data", ChunkRefused)
+
+
+BOUNDED_MCAP_INFLATERS: dict[str, Callable[[bytes, int], bytes]] = {
+    "zstd": _inflate_zstd_chunk,
+    "lz4": _inflate_lz4_chunk,
+}
+"""The inflaters rosbags' MCAP storage is given, by chunk compression (their signature is
+rosbags' own: the compressed bytes and the chunk's declared size)."""
+
+
+def bound_mcap_inflates() -> None:
+    """Make rosbags' MCAP storage inflate chunks with `BOUNDED_MCAP_INFLATERS` (idempotent).
+
+    rosbags looks its inflaters up in one table of its MCAP storage module
+    (`rosbags.rosbag2.storage_mcap.DECOMPRESSORS`, called with the chunk's bytes and declared
+    size) for every chunk it reads; the bounded ones return what rosbags' own return for every
+    chunk that inflates to its declared size, and refuse the others at that size, so the
+    replacement holds for any reader of the process."""
+    from rosbags.rosbag2 import storage_mcap
+
+    storage_mcap.DECOMPRESSORS.update(BOUNDED_MCAP_INFLATERS)

@@ -11,7 +11,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from gscompress.datasets.recording.bounds import bound_ros1_chunks
+from gscompress.datasets.recording.bounds import (
+    ChunkRefused,
+    bound_mcap_inflates,
+    bound_ros1_chunks,
+)
 from gscompress.datasets.recording.messages import (
     KINDS,
     TopicInfo,
@@ -55,6 +59,7 @@ class RosbagsContainer(Container):
             ) from None
         self.path = path
         self.kind = _ros_kind(path)
+        bound_mcap_inflates()
         with _bag_errors(path):
             self._reader = AnyReader([path])
             self._reader.open()
@@ -80,36 +85,67 @@ class RosbagsContainer(Container):
         return from_ros(KINDS[connection.msgtype], msg, log_time, topic == "/tf_static")
 
     def scan(self, topics: Sequence[str]) -> Iterator[tuple[str, int, Locator, Any]]:
+        """Every message of `topics`; a locator is (topic, log time, its place among the
+        topic's messages of that log time, its place among all the topic's messages)."""
         connections = [self._connections[t] for t in topics if t in self._connections]
         if not connections:
             return
         seen: dict[tuple[str, int], int] = {}
+        count: dict[str, int] = {}
         with _bag_errors(self.path):
             for connection, log_time, raw in self._reader.messages(connections=connections):
                 key = (connection.topic, log_time)
                 nth = seen[key] = seen.get(key, -1) + 1
+                position = count[connection.topic] = count.get(connection.topic, -1) + 1
                 yield (
                     connection.topic,
                     log_time,
-                    (connection.topic, log_time, nth),
+                    (connection.topic, log_time, nth, position),
                     self._decode(connection.topic, log_time, raw),
                 )
 
     def fetch(self, locator: Locator) -> Any:
-        topic, log_time, nth = locator
+        topic, log_time, nth, position = locator
+        connection = self._connections[topic]
         with _bag_errors(self.path):
-            found = self._reader.messages(
-                connections=[self._connections[topic]], start=log_time, stop=log_time + 1
-            )
-            for k, (_connection, _time, raw) in enumerate(found):
-                if k == nth:
+            if hasattr(connection.owner, "indexes"):  # a ROS 1 bag
+                raw = _ros1_message(connection, position, log_time)
+                if raw is not None:
                     return self._decode(topic, log_time, raw)
+            else:  # (rosbags finds a ROS 2 message by its time in the storage's own index)
+                found = self._reader.messages(
+                    connections=[connection], start=log_time, stop=log_time + 1
+                )
+                for k, (_connection, _time, raw) in enumerate(found):
+                    if k == nth:
+                        return self._decode(topic, log_time, raw)
         raise DatasetError(f"{self.path}: a {topic} message at {log_time} ns is gone")
 
     def close(self) -> None:
         reader = getattr(self, "_reader", None)
         if reader is not None and reader.stack is not None:
             reader.close()
+
+
+def _ros1_message(connection: Any, position: int, log_time: int) -> bytes | None:
+    """The raw message at `position` among a ROS 1 connection's messages (None when its index
+    has no such message at `log_time`), read through rosbags' own reader.
+
+    rosbags finds a ROS 1 message by time only by walking the connection's index from its start
+    (quadratic over a bag read frame by frame); the index is a list in message order, so the
+    reader is shown a view of it holding that one entry for the one read (the container's
+    reads are serialised by the sequence)."""
+    reader = connection.owner
+    index = reader.indexes[connection.id]
+    if not 0 <= position < len(index) or index[position].time != log_time:
+        return None
+    reader.indexes[connection.id] = index[position : position + 1]
+    try:
+        for _connection, _time, raw in reader.messages(connections=[connection]):
+            return raw
+    finally:
+        reader.indexes[connection.id] = index
+    return None
 
 
 class FoxgloveContainer(Container):
@@ -195,6 +231,8 @@ def _bag_errors(path: Path) -> Iterator[None]:
     DatasetError line naming the file."""
     try:
         yield
+    except ChunkRefused as exc:
+        raise DatasetError(f"{path}: {exc}") from None
     except GscError:
         raise
     except MemoryError:

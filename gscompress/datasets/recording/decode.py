@@ -4,8 +4,6 @@ reader's frames; intrinsics come from a camera info."""
 
 from __future__ import annotations
 
-import io
-import math
 import struct
 from typing import Any
 
@@ -15,18 +13,17 @@ from PIL import Image
 from gscompress.camera import Intrinsics
 from gscompress.datasets.base import (
     DEFAULT_INVALID_DEPTH,
-    MAX_SIDE,
+    DepthCoding,
+    check_camera,
     color_from_uint8,
     depth_from_units,
+    load_image,
+    open_image_header,
 )
 from gscompress.datasets.recording.messages import CameraMessage, ImageMessage
 from gscompress.errors import DatasetError, clipped
 
 MM_PER_METRE = 1000.0
-MAX_COMPRESSED_RATIO = 2.0
-"""A compressed image may hold at most this many times the bytes of its raw pixels (plus
-`_COMPRESSED_SLACK`): PNG of noise is a little larger than raw, JPEG far smaller."""
-_COMPRESSED_SLACK = 1 << 20
 _COMPRESSED_DEPTH_HEADER = 12  # image_transport's ConfigHeader: int32 format, float32[2]
 
 COLOR_ENCODINGS = {
@@ -57,7 +54,6 @@ UNDISTORTED_MODELS = (
 def _raw_pixels(msg: ImageMessage, dtype: np.dtype, channels: int, what: str) -> np.ndarray:
     """[H, W, C] of a raw image, its size, step and byte count checked first."""
     w, h = msg.width, msg.height
-    check_image_size(w, h, what)
     row = w * channels * dtype.itemsize
     data = memoryview(msg.data).cast("B") if not isinstance(msg.data, np.ndarray) else msg.data
     if msg.step < row or len(data) < msg.step * (h - 1) + row:
@@ -72,42 +68,14 @@ def _raw_pixels(msg: ImageMessage, dtype: np.dtype, channels: int, what: str) ->
     return pixels.reshape(h, w, channels)
 
 
-def check_image_size(width: int, height: int, what: str) -> None:
-    """Refuse an image size of zero or beyond `MAX_SIDE` (before its pixels are touched)."""
-    if not (0 < width <= MAX_SIDE and 0 < height <= MAX_SIDE):
-        raise DatasetError(f"{what}: image size {width}x{height} is outside 1..{MAX_SIDE}")
-
-
-def check_compressed_payload(data: Any, width: int, height: int, what: str) -> None:
-    """Refuse a compressed image of more bytes than `MAX_COMPRESSED_RATIO` times its raw
-    pixels at the expected size (a later call into the shared decode budget)."""
-    limit = MAX_COMPRESSED_RATIO * width * height * 4 + _COMPRESSED_SLACK
-    if len(data) > limit:
-        raise DatasetError(f"{what}: a compressed image of {len(data)} bytes for {width}x{height}")
-
-
-def open_image_header(data: Any, expected: tuple[int, int], what: str) -> Image.Image:
-    """A PNG or JPEG opened lazily, its header's size checked against `expected` (W, H)
-    before any pixel is decoded; the caller loads it."""
-    check_compressed_payload(data, *expected, what)
-    try:
-        img = Image.open(io.BytesIO(bytes(data)), formats=["PNG", "JPEG"])
-    except (OSError, ValueError, Image.DecompressionBombError) as exc:
-        raise DatasetError(f"{what}: not a PNG or JPEG image ({clipped(str(exc), 80)})") from None
-    if img.size != expected:
-        raise DatasetError(
-            f"{what}: image is {img.size[0]}x{img.size[1]} but the camera info says "
-            f"{expected[0]}x{expected[1]}"
-        )
-    return img
-
-
-def _load(img: Image.Image, what: str) -> Image.Image:
-    try:
-        img.load()
-    except (OSError, ValueError, Image.DecompressionBombError) as exc:
-        raise DatasetError(f"{what}: cannot decode the image ({clipped(str(exc), 80)})") from None
-    return img
+def open_image(data: Any, expected: tuple[int, int], what: str, kind: str) -> Image.Image:
+    """A compressed `kind` ("colour", "depth") image decoded, its PNG or JPEG header checked
+    first, as a folder's frames are (`gscompress.datasets.base.open_image_header`): its size
+    against `expected` (W, H), its pixels against what its bytes may decode to."""
+    img = open_image_header(
+        memoryview(data).cast("B"), what, kind, expected, "the camera info says", ("PNG", "JPEG")
+    )
+    return load_image(img, what, kind)
 
 
 def decode_color(msg: ImageMessage, expected: tuple[int, int], what: str) -> np.ndarray:
@@ -115,8 +83,7 @@ def decode_color(msg: ImageMessage, expected: tuple[int, int], what: str) -> np.
     if msg.compressed:
         if "compresseddepth" in msg.encoding.lower():
             raise DatasetError(f"{what}: a compressedDepth image on the colour topic")
-        with open_image_header(msg.data, expected, what) as img:
-            _load(img, what)
+        with open_image(msg.data, expected, what, "colour") as img:
             if img.mode != "RGB":
                 if img.mode not in ("L", "P", "RGBA", "LA", "CMYK", "YCbCr"):
                     raise DatasetError(f"{what}: colour image of mode {img.mode}")
@@ -183,10 +150,11 @@ def _decode_compressed_depth(msg: ImageMessage, expected: tuple[int, int], what:
             inverse = (quant_a, quant_b)
     elif "png" not in fmt:
         raise DatasetError(f"{what}: compressed depth of format {clipped(msg.encoding)}: PNG only")
-    with open_image_header(data, expected, what) as img:
-        if img.format != "PNG" or img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+    header = open_image_header(data, what, "depth", expected, "the camera info says", ("PNG",))
+    with header as img:
+        if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
             raise DatasetError(f"{what}: compressed depth must be a 16-bit PNG, got {img.mode}")
-        raw = np.asarray(_load(img, what))
+        raw = np.asarray(load_image(img, what, "depth"))
     if raw.min(initial=0) < 0 or raw.max(initial=0) > 65535:
         raise DatasetError(f"{what}: depth values outside 0..65535")
     raw16 = raw.astype(np.uint16)
@@ -203,16 +171,15 @@ def _decode_compressed_depth(msg: ImageMessage, expected: tuple[int, int], what:
 def intrinsics_of(info: CameraMessage, topic: str) -> Intrinsics:
     """Pinhole intrinsics of a camera info, refusing a distortion this reader does not undo."""
     what = f"camera info {topic}"
-    check_image_size(info.width, info.height, what)
-    if len(info.K) != 9 or not all(math.isfinite(v) for v in info.K):
-        raise DatasetError(f"{what}: K must be 9 finite numbers")
+    if len(info.K) != 9:
+        raise DatasetError(f"{what}: K must be 9 numbers, got {len(info.K)}")
     fx, _, cx, _, fy, cy, *_ = info.K
-    if min(fx, fy) < 1:
-        raise DatasetError(f"{what}: fx and fy must be at least 1 pixel, got {fx}, {fy}")
+    k = Intrinsics(float(fx), float(fy), float(cx), float(cy), info.width, info.height)
+    check_camera(k, DepthCoding(), what)
     model = info.model.strip().lower()
     if any(v != 0 for v in info.D) or model not in UNDISTORTED_MODELS:
         raise DatasetError(
             f"{what}: distortion {clipped(info.model)} with coefficients {clipped(list(info.D))} "
             "is not undone here; record rectified images (zero coefficients are fine)"
         )
-    return Intrinsics(float(fx), float(fy), float(cx), float(cy), info.width, info.height)
+    return k

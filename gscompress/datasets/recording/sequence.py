@@ -47,7 +47,9 @@ class _Pair:
 
 
 class RecordingSequence:
-    """An `RGBDSequence` over a recording; frames are decoded on demand (`gscompress.datasets.recording`). `skipped` counts the colour and depth messages left without a partner."""
+    """An `RGBDSequence` over a recording; frames are decoded on demand (see
+    `gscompress.datasets.recording`). `skipped` counts the colour and depth messages left
+    without a partner."""
 
     def __init__(
         self,

@@ -44,8 +44,8 @@ class _Link:
 def tf_poses(
     transforms: Sequence[TransformMessage], world: str, camera: str, stamps_ns: Sequence[int]
 ) -> list[np.ndarray | None]:
-    """T_world_camera at each stamp from tf samples (see `gscompress.datasets.recording`), None where a
-    link of the chain has no sample on both sides of the stamp.
+    """T_world_camera at each stamp from tf samples (see `gscompress.datasets.recording`), None
+    where a link of the chain has no sample on both sides of the stamp.
 
     Raises:
         DatasetError: no chain of links joins `world` and `camera`.
