@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
 from .options import (
     INPUT_FILE,
     OUTPUT_FILE,
+    check_recording_seq,
     emit,
     force_option,
     json_option,
+    recording_options,
     seed_option,
     seq_option,
 )
@@ -58,6 +61,7 @@ from .options import (
     "alone leaves loose, a flat table top turned by degrees. Needs torch; tens of seconds on "
     "a CPU.",
 )
+@recording_options
 @seed_option("Seed of the global search (RANSAC).")
 @force_option()
 @json_option
@@ -69,6 +73,7 @@ def align(
     voxel: float | None,
     min_overlap: float,
     seq: Path | None,
+    recording: Any,
     seed: int,
     force: bool,
     as_json: bool,
@@ -96,8 +101,10 @@ def align(
     from gscompress.ops.align import AlignOptions
     from gscompress.pipeline.align import align_logs
 
+    check_recording_seq(recording, seq)
     options = AlignOptions(voxel=voxel, min_overlap=min_overlap, seed=seed)
-    result = align_logs(source, target, dst, init=init, options=options, seq=seq, force=force)
+    result = align_logs(source, target, dst, init=init, options=options, seq=seq,
+                        recording=recording, force=force)  # fmt: skip
     T = result["T_target_source"]
     inliers = "" if result["inliers"] is None else (
         f", {result['inliers']} feature inliers ({result['inlier_ratio']:.0%})"

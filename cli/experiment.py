@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -29,6 +30,7 @@ from .options import (
     ids_option,
     json_option,
     progress_bar,
+    recording_options,
     size_option,
     slam_config_options,
     sums_option,
@@ -208,6 +210,7 @@ def _formats(value: str) -> tuple[str, ...]:
     "[default: 1].",
 )  # fmt: skip
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
+@recording_options
 @device_option
 @json_option
 def experiment(
@@ -243,6 +246,7 @@ def experiment(
     address: str | None,
     cpus_per_run: float | None,
     no_lpips: bool,
+    recording: Any,
     device: str,
     as_json: bool,
 ) -> None:
@@ -305,6 +309,7 @@ def experiment(
         ids=ids,
         lpips=not no_lpips,
         device=device,
+        recording=None if recording.is_default else recording,
     )
     with progress_bar("experiment", "run", hidden=as_json) as bar:
 

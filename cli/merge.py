@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import click
 from click.core import ParameterSource
@@ -19,6 +20,7 @@ from .options import (
     FrameSubset,
     advance,
     backend_option,
+    check_recording_seq,
     codec_option,
     command_line,
     device_option,
@@ -27,6 +29,7 @@ from .options import (
     json_option,
     output_option,
     progress_bar,
+    recording_options,
     refined_text,
     seed_option,
     seq_option,
@@ -40,6 +43,7 @@ from .options import (
 @click.argument("share", metavar="SHARE.mcap", type=INPUT_FILE)
 @output_option("Output log (.mcap): the receiver's log with the merged, refined map.")
 @seq_option(False, "The receiver's RGB-D sequence (to refine on; not needed with --iters 0).")
+@recording_options
 @click.option(
     "--frames",
     type=FrameSubset(),
@@ -146,6 +150,7 @@ def merge(
     share: Path,
     dst: Path,
     seq: Path | None,
+    recording: Any,
     frames: object,
     size: tuple[int, int] | None,
     iters: int,
@@ -213,6 +218,7 @@ def merge(
       gsc share a.mcap a_views.mcap --budget 1 --keyframes 6 --seq data/room
       gsc merge b.mcap a_views.mcap --seq data/room -o b_merged.mcap
     """
+    check_recording_seq(recording, seq)
     context = click.get_current_context()
     given = {"align": align, "resolve": resolve, "voxel": voxel, "margin": margin,
              "share_rate": share_rate, "by_view": by_view, "footprint": footprint}  # fmt: skip
@@ -237,6 +243,7 @@ def merge(
             codec=codec,
             merge=told,
             keyframes=keyframes,
+            recording=recording,
             command=command_line(),
             force=force,
             progress=partial(advance, bar),

@@ -402,11 +402,13 @@ def share_transform_option(f: F) -> F:
 
 
 def refine_options(f: F) -> F:
-    """`--refine N`, `--anisotropic/--isotropic`, `--seq FOLDER` and `--device`: refine what a
-    command keeps on the log's keyframes (`log_refiner` turns them into the refiner)."""
+    """`--refine N`, `--anisotropic/--isotropic`, `--seq FOLDER`, the recording options of
+    `recording_options` and `--device`: refine what a command keeps on the log's keyframes
+    (`log_refiner` turns them into the refiner)."""
     from gscompress.pipeline.refine import DEFAULT_LR_FINAL, KEYFRAME_RULE  # (no torch yet)
 
     f = device_option(f)
+    f = recording_options(f)
     f = click.option(
         "--anisotropic/--isotropic",
         default=True,
@@ -441,9 +443,10 @@ def log_refiner(
     bar: Any,
     instead: str,
     anisotropic: bool = False,
+    recording: Any = None,
 ) -> Any:
     """The `gscompress.pipeline.refine.LogRefiner` that `refine_options` ask for (drawing on
-    `bar`), or None for no refinement.
+    `bar`; a recording read with `recording`), or None for no refinement.
 
     Raises:
         click.UsageError: --refine without --seq, or --seq without --refine.
@@ -456,7 +459,9 @@ def log_refiner(
         raise click.UsageError("--refine needs the sequence the log was made from: pass --seq")
     from gscompress.pipeline.refine import LogRefiner, RefineOptions
 
-    options = RefineOptions(iters, device=device, seed=seed, anisotropic=anisotropic)
+    options = RefineOptions(
+        iters, device=device, seed=seed, anisotropic=anisotropic, recording=recording
+    )
     return LogRefiner(src, seq, options, lambda done, total: advance(bar, done, total), instead)
 
 
@@ -512,6 +517,20 @@ def view_options(f: F) -> F:
     for option in reversed(options):
         f = option(f)
     return f
+
+
+def check_recording_seq(recording: Any, seq: Path | None) -> None:
+    """Refuse recording options (`recording_options`) given without the recording they are
+    for (--seq).
+
+    Raises:
+        click.UsageError: options other than the defaults, and no --seq.
+    """
+    if seq is None and recording is not None and not recording.is_default:
+        raise click.UsageError(
+            "--rgb, --depth, --camera-info, --max-dt, --gt and --gt-frames are for a recording "
+            "given by --seq: pass it"
+        )
 
 
 MAX_DT = 0.02

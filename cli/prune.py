@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -13,6 +14,7 @@ from gscompress.selection import STRATEGIES
 from .options import (
     INPUT_FILE,
     Ratio,
+    check_recording_seq,
     codec_option,
     command_line,
     emit,
@@ -66,6 +68,7 @@ def prune(
     refine_iters: int,
     anisotropic: bool,
     seq: Path | None,
+    recording: Any,
     device: str,
     map_only: bool,
     dst: Path,
@@ -96,9 +99,10 @@ def prune(
       gsc prune run.mcap --keep 0.3 --codec compact -o run_30_compact.mcap
       gsc prune run.mcap --keep 0.3 --refine 500 --seq data/room --map-only -o run_30r.mcap
     """
+    check_recording_seq(recording, seq)
     with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
         refine = log_refiner(src, refine_iters, seq, device, seed, bar,
-                             "prune without --refine", anisotropic)  # fmt: skip
+                             "prune without --refine", anisotropic, recording)  # fmt: skip
         result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
                            options=CompactOptions(sums=sums), refine=refine, map_only=map_only,
                            fold_dropped=fold,

@@ -19,6 +19,7 @@ from .options import (
     INPUT_FILE,
     OUTPUT_FILE,
     BudgetParam,
+    check_recording_seq,
     codec_option,
     command_line,
     emit,
@@ -149,6 +150,7 @@ def share(
     refine_iters: int,
     anisotropic: bool,
     seq: Path | None,
+    recording: Any,
     device: str,
     seed: int,
     force: bool,
@@ -200,6 +202,7 @@ def share(
     dst = dst if output is None else output
     if dst is None:
         raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
+    check_recording_seq(recording, seq)
     context = click.get_current_context()
     given = {name: context.get_parameter_source(name) != ParameterSource.DEFAULT
              for name in ("codec", "sums", "fold")}  # fmt: skip
@@ -207,14 +210,14 @@ def share(
         # (--seq also serves --solve and --keyframes)
         refine_seq = seq if refine_iters or not (solve or keyframes) else None
         refine = log_refiner(src, refine_iters, refine_seq, device, seed, bar,
-                             "share without --refine", anisotropic)  # fmt: skip
+                             "share without --refine", anisotropic, recording)  # fmt: skip
         carry = None
         if keyframes:
             if seq is None:
                 raise click.UsageError("--keyframes takes the frames from --seq: pass it")
             from gscompress.pipeline.refine import carried_keyframes
 
-            carry = carried_keyframes(src, keyframes, seq)
+            carry = carried_keyframes(src, keyframes, seq, recording)
         common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
                                       align_to=align_to, carry=carry, receiver=receiver,
                                       device=device, command=command_line(),
@@ -225,7 +228,7 @@ def share(
             result = share_solved(
                 src, dst, budget, codec=codec if given["codec"] else None,
                 sums=sums if given["sums"] else None, fold=fold if given["fold"] else None,
-                seq=seq, **common,
+                seq=seq, recording=recording, **common,
             )  # fmt: skip
             codec = result["codec"]
             click.echo(

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import Any
 
 import click
 
-from .options import INPUT_FILE, seed_option, seq_option
+from .options import INPUT_FILE, check_recording_seq, recording_options, seed_option, seq_option
 
 
 @click.command("view", short_help="See a map, its importance, a prune or a share in the browser.")
@@ -30,6 +31,7 @@ from .options import INPUT_FILE, seed_option, seq_option
     help="The sequence SRC was made from: the solver button scores its candidates against "
     "these frames (else against the whole map's renders).",
 )
+@recording_options
 @click.option("--compare", type=INPUT_FILE, default=None,
               help="A second log or map file (agent B): shown alone, beside SRC, or with the "
               "share of SRC the page previews.")  # fmt: skip
@@ -56,6 +58,7 @@ def view(
     port: int,
     host: str,
     seq: Path | None,
+    recording: Any,
     compare: Path | None,
     out_dir: Path,
     render: str,
@@ -79,8 +82,9 @@ def view(
     """
     from gscompress.view import MapViewer, ViewOptions
 
+    check_recording_seq(recording, seq)
     options = ViewOptions(host=host, port=port, seq=seq, compare=compare, out_dir=out_dir,
-                          seed=seed, render=render)  # fmt: skip
+                          seed=seed, render=render, recording=recording)  # fmt: skip
     viewer = MapViewer(src, options)
     click.echo(f"gsc view: http://{host}:{viewer.port} (Ctrl-C to stop)", err=True)
     try:

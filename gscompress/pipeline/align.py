@@ -72,10 +72,16 @@ kept 0.65."""
 
 
 def refined_on_frames(
-    source: str | Path, target: str | Path, seq: str | Path, T: np.ndarray, views: int = VIEWS
+    source: str | Path,
+    target: str | Path,
+    seq: str | Path,
+    T: np.ndarray,
+    views: int = VIEWS,
+    recording: Any = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """`T` refined on the target's own frames (`gscompress.ops.align_views`): `source`'s map
-    rendered at `views` of `target`'s keyframes (of `seq`, at `target`'s estimated poses).
+    rendered at `views` of `target`'s keyframes (of `seq`, at `target`'s estimated poses; a
+    recording read with `recording`'s topics, None: those the target's run recorded).
     Returns the transform and what to record: the refinement's figures, `loss` and
     `target_loss`, the mean tracking loss over those frames of the source at the refined
     transform and of the target's own map, and the `seconds` it all took. Needs torch."""
@@ -84,7 +90,7 @@ def refined_on_frames(
     from gscompress.pipeline.refine import spread_keyframes
 
     started = time.perf_counter()
-    chosen = spread_keyframes(target, views, seq, "aligning on the target's frames")
+    chosen = spread_keyframes(target, views, seq, "aligning on the target's frames", recording)
     assert chosen.frames is not None  # (with a sequence)
     frames, poses, camera = chosen.frames, chosen.poses, chosen.intrinsics
     source_map = read_map(source)
@@ -119,15 +125,16 @@ def align_logs_transform(
     options: AlignOptions | None = None,
     seq: str | Path | None = None,
     refuse: bool = True,
+    recording: Any = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The transform from `source`'s world frame to `target`'s and what to record of it; with
-    `seq` (the target's sequence), the registration refined on the target's frames
-    (`refined_on_frames`, recorded under `on_frames`). The frames also judge a registration
-    whose only fault is that too few feature matches agree: it is accepted when they bear it
-    out (`frames_verdict`; the overruled reason is recorded as `on_frames.overruled`). A
-    refinement that pulls the source off the target's surfaces (`SURFACE_KEPT`) is not taken:
-    the registration's transform stays (`on_frames.kept_registration`), and cannot be vouched
-    for by the frames.
+    `seq` (the target's sequence, a recording read with `recording`), the registration refined
+    on the target's frames (`refined_on_frames`, recorded under `on_frames`). The frames also
+    judge a registration whose only fault is that too few feature matches agree: it is
+    accepted when they bear it out (`frames_verdict`; the overruled reason is recorded as
+    `on_frames.overruled`). A refinement that pulls the source off the target's surfaces
+    (`SURFACE_KEPT`) is not taken: the registration's transform stays
+    (`on_frames.kept_registration`), and cannot be vouched for by the frames.
 
     With `refuse` False, an alignment that cannot be trusted is returned all the same (refined
     on the frames as any other), `refused` saying why; else it raises.
@@ -167,7 +174,7 @@ def align_logs_transform(
     )
     T = alignment.T_target_source
     if seq is not None:
-        refined, on_frames = refined_on_frames(source, target, seq, T)
+        refined, on_frames = refined_on_frames(source, target, seq, T, recording=recording)
         on_frames["T_registration"] = record["T_target_source"]
         before, after = surface_fit(src_cloud, tgt_cloud, [T, refined], alignment.voxel / 2)
         on_frames["surface_kept"] = after / max(before, 1e-12)
@@ -203,6 +210,7 @@ def align_logs(
     init: str | Path | None = None,
     options: AlignOptions | None = None,
     seq: str | Path | None = None,
+    recording: Any = None,
     force: bool = False,
 ) -> dict[str, Any]:
     """Align `source`'s map to `target`'s and write the transform to `dst`.
@@ -215,6 +223,8 @@ def align_logs(
         init: a transform file with an initial guess (skips the global step).
         options: alignment settings and refusal thresholds.
         seq: the target's sequence: refine the registration on its frames (`refined_on_frames`).
+        recording: a recording's topics, pairing and ground truth when `seq` is one
+            (`gscompress.datasets.RecordingOptions`; None: those the target's run recorded).
         force: overwrite `dst`.
 
     Returns:
@@ -226,7 +236,7 @@ def align_logs(
     """
     inputs = [source, target] + ([init] if init is not None else [])
     check_output(dst, inputs, force, ".txt")
-    T, record = align_logs_transform(source, target, init, options, seq)
+    T, record = align_logs_transform(source, target, init, options, seq, recording=recording)
     write_transform_file(dst, T, record)
     record["output"] = str(dst)
     return record

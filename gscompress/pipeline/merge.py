@@ -132,6 +132,7 @@ def merge_logs(
     codec: str | None = None,
     merge: MergeOptions | dict[str, Any] | None = None,
     keyframes: bool = True,
+    recording: Any = None,
     command: str = "",
     force: bool = False,
     progress: Callable[[int, int], object] | None = None,
@@ -164,6 +165,8 @@ def merge_logs(
         keyframes: also refine on the sender's keyframes the share carries (`gsc share
             --keyframes`), at their poses moved as the share is; their timestamps are in the
             merge's provenance (`carried_ns`), and `gsc eval` leaves those frames out.
+        recording: a recording's topics, pairing and ground truth when `seq` is one
+            (`gscompress.datasets.RecordingOptions`; None: those the receiver's run recorded).
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called with (iterations done, iterations) during refinement.
@@ -174,7 +177,9 @@ def merge_logs(
     """
     from gscompress.ops.merge import combine, share_rates
 
-    options = RefineOptions(iters, views, lr_final, frames, size, device, backend, seed)
+    options = RefineOptions(
+        iters, views, lr_final, frames, size, device, backend, seed, recording=recording
+    )
     options.check("--iters")
     if iters > 0 and seq is None:
         raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")

@@ -52,6 +52,14 @@ log = logging.getLogger(__name__)
 QUANTILES = (0.0, 0.05, 0.25, 0.5, 0.75, 0.95, 1.0)
 
 
+def recorded_topics(parent: LogMetadata) -> dict[str, Any]:
+    """The `recording` entry of a log's results (the topics, pairing tolerance and ground truth
+    its run read a recording with), for the results of a log derived from it, so that
+    reopening their sequence takes the same topics; {} when it has none."""
+    value = parent.results.get("recording")
+    return {} if value is None else {"recording": value}
+
+
 class MapRefiner(Protocol):
     """Refines a map on the frames of the log it came from
     (`gscompress.pipeline.refine.LogRefiner`, which needs torch: prune and share take one only
@@ -150,6 +158,7 @@ def format_share(
         size = file.stat().st_size
         back = read_map_file(file)
     results = {"format": fmt, "selected": len(back), "bytes": size, "file_bytes": size}
+    results |= recorded_topics(parent)
     # (the map is in the sender's world frame, which the log records as a share's does)
     meta = parent.derive({"name": "format-share", "format": fmt}, src, command)
     meta.config = {}  # (as a share's)
@@ -258,7 +267,8 @@ def rewrite_map(
     (no earlier snapshots, poses, stats or transforms: the file is as small as the map). The
     output's provenance gains `operation` and its results are what `transform` returns beside
     the new map. The new map is stored in `codec` (with `options` for compact), or None: in the
-    codec of the one it replaces (an fp16 share stays fp16).
+    codec of the one it replaces (an fp16 share stays fp16). The parent's recorded topics
+    (`recorded_topics`) are carried into the results.
     """
     if codec is not None:
         check_codec(codec)
@@ -266,6 +276,7 @@ def rewrite_map(
     with LogReader(src) as log_in:
         last = log_in.require_snapshots() - 1
         meta = log_in.metadata.derive(operation, src, command)
+        inherited = recorded_topics(log_in.metadata)
         with LogWriter(dst, meta, inputs=[src], force=force) as out:
             snapshot = 0
             for schema, channel, message in log_in.iter_messages():
@@ -275,7 +286,8 @@ def rewrite_map(
                     continue
                 if snapshot == last:
                     stored = log_in.decode_snapshot(schema, message)
-                    new_map, meta.results = transform(stored.gaussians)
+                    new_map, results = transform(stored.gaussians)
+                    meta.results = {**results, **inherited}
                     chosen = codec or stored.codec
                     meta.results["codec"] = chosen
                     out.write_gaussians(new_map, message.log_time, chosen, options)
@@ -354,6 +366,7 @@ class ShareCut:
             with LogReader(src) as log_in:
                 source = log_in.read_map(), log_in.metadata
         self.full, meta = source
+        self._recorded = recorded_topics(meta)
         fp32_bytes = pointcloud_bytes(self.full, "fp32")(len(self.full))
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
@@ -457,6 +470,7 @@ class ShareCut:
                 "total": len(self.full),
                 **self.receiver,
                 **self.extra,
+                **self._recorded,
             }
             with LogWriter(None, meta) as out:
                 options = CompactOptions(sums=self.sums, ids=self.ids)

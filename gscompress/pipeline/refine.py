@@ -80,6 +80,8 @@ class RefineOptions:
             cuts an isotropic map as an anisotropic one (`gscompress.pipeline.offline.cut_pool`),
             so that what it folds keeps its shape, and the refinement stretches each kept
             Gaussian over the surface it now covers (docs/prune-refine.md).
+        recording: a recording's topics, pairing and ground truth
+            (`gscompress.datasets.RecordingOptions`; None: those the log's run recorded).
     """
 
     iters: int
@@ -92,6 +94,7 @@ class RefineOptions:
     seed: int = 0
     pseudo_views: int = PSEUDO_VIEWS
     anisotropic: bool = False
+    recording: Any = None
 
     def check(self, iters_option: str = "--refine") -> None:
         """Raise OptionError for an option out of range (named as the command names it)."""
@@ -158,7 +161,7 @@ class LogRefiner:
         if len(pose_ns) == 0:
             raise LogFormatError(f"{log_path} has no {TOPIC_POSE}: refinement needs its poses")
         sequence = open_log_sequence(
-            seq, log_path, meta, options.frames, options.size or config.size
+            seq, log_path, meta, options.frames, options.size or config.size, options.recording
         )
         positions, pose_index = frames_with_poses(sequence, pose_ns, log_path)
         self.device = resolve_device(options.device, config.backend)
@@ -349,10 +352,11 @@ class SpreadKeyframes:
 
 
 def spread_keyframes(
-    src: str | Path, count: int, seq: str | Path | None, purpose: str
+    src: str | Path, count: int, seq: str | Path | None, purpose: str, recording: Any = None
 ) -> SpreadKeyframes:
     """Up to `count` of a log's keyframes (`KEYFRAME_RULE`) spread evenly from its first to its
-    last, with their frames when `seq` is given (those with a frame in it).
+    last, with their frames when `seq` is given (those with a frame in it; a recording read
+    with `recording`'s topics, None: those the log's run recorded).
 
     Raises:
         InputError: the log has no poses; no keyframe is a frame of `seq`; no calibration
@@ -376,7 +380,7 @@ def spread_keyframes(
             raise InputError(f"{src} has no camera calibration: give --seq to render at its size")
         times = [int(pose_ns[i]) for i in chosen]
         return SpreadKeyframes(times, [poses[i] for i in chosen], None, intrinsics)
-    sequence = open_log_sequence(seq, src, meta)
+    sequence = open_log_sequence(seq, src, meta, recording=recording)
     positions, pose_index = frames_with_poses(sequence, pose_ns, src)
     by_pose = {int(i): int(p) for p, i in zip(positions, pose_index, strict=True)}
     chosen = [i for i in chosen if i in by_pose]
@@ -387,10 +391,13 @@ def spread_keyframes(
     return SpreadKeyframes(times, [poses[i] for i in chosen], frames, sequence.intrinsics)
 
 
-def carried_keyframes(src: str | Path, count: int, seq: str | Path) -> tuple[list[Any], Any]:
-    """`count` of the log's keyframes spread over its run (`spread_keyframes`) as a share
-    carries them (`gscompress.io.keyframes.CarriedFrame`: the frame's timestamp, colour and
-    depth at the log's working size, its estimated pose), and their camera.
+def carried_keyframes(
+    src: str | Path, count: int, seq: str | Path, recording: Any = None
+) -> tuple[list[Any], Any]:
+    """`count` of the log's keyframes spread over its run (`spread_keyframes`, `recording` as
+    there) as a share carries them (`gscompress.io.keyframes.CarriedFrame`: the frame's
+    timestamp, colour and depth at the log's working size, its estimated pose), and their
+    camera.
 
     Raises:
         InputError: `count` outside 1..`MAX_CARRIED`, or as `spread_keyframes`.
@@ -400,7 +407,7 @@ def carried_keyframes(src: str | Path, count: int, seq: str | Path) -> tuple[lis
 
     if not 1 <= count <= MAX_CARRIED:
         raise InputError(f"--keyframes is 1 to {MAX_CARRIED}, got {count}")
-    chosen = spread_keyframes(src, count, seq, "carrying keyframes")
+    chosen = spread_keyframes(src, count, seq, "carrying keyframes", recording)
     assert chosen.frames is not None
     frames = [
         CarriedFrame(seconds_to_ns(f.timestamp), f.color, f.depth, np.asarray(T, np.float64))

@@ -68,6 +68,7 @@ def solve_share(
     device: str = "auto",
     spread: bool = False,
     ids: bool = SHARE_IDS,
+    recording: Any = None,
 ) -> tuple[Candidate, list[Candidate], dict[str, Any]]:
     """Weigh the candidate shares of `src`'s map under `budget` and pick the best picture.
 
@@ -84,6 +85,8 @@ def solve_share(
         device: torch device.
         ids: whether compact candidates send the ids (`share_log`; not weighed: they draw
             nothing).
+        recording: a recording's topics, pairing and ground truth when `seq` is one
+            (`gscompress.datasets.RecordingOptions`; None: those the log's run recorded).
 
     Returns:
         The chosen candidate, every candidate weighed (best first), and a record for the
@@ -100,7 +103,7 @@ def solve_share(
 
     if views < 1:
         raise InputError(f"the solver needs at least one view, got {views}")
-    poses, targets, masks, intrinsics = _views(src, seq, views)
+    poses, targets, masks, intrinsics = _views(src, seq, views, recording)
     torch_device = resolve_device(device, "auto")
     if targets is None:
         with LogReader(src) as reader:
@@ -144,13 +147,13 @@ def solve_share(
 
 
 def _views(
-    src: str | Path, seq: str | Path | None, views: int
+    src: str | Path, seq: str | Path | None, views: int, recording: Any = None
 ) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[np.ndarray], Any]:
     """Poses of `views` keyframes spread over the log, with their images and valid-depth masks
     when `seq` is given (else None and all-pixel masks), and the intrinsics."""
     from gscompress.pipeline.refine import spread_keyframes
 
-    chosen = spread_keyframes(src, views, seq, "the solver")
+    chosen = spread_keyframes(src, views, seq, "the solver", recording)
     if chosen.frames is None:
         shape = (chosen.intrinsics.height, chosen.intrinsics.width)
         return chosen.poses, None, [np.ones(shape, bool)] * len(chosen.poses), chosen.intrinsics
@@ -184,6 +187,7 @@ def share_solved(
     force: bool = False,
     spread: bool = False,
     ids: bool = SHARE_IDS,
+    recording: Any = None,
 ) -> dict[str, Any]:
     """`share_log` with the codec and PWAS state the solver chose (`solve_share`), the solver's
     record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and
@@ -191,12 +195,12 @@ def share_solved(
     Gaussians' bytes are not: the solver compares the codecs without them, and the share then
     holds the most Gaussians that fit beside them. So is a `receiver` (`share_log`): the codecs
     are compared on the sender's views, and the share then sends first what the receiver has
-    not seen."""
+    not seen. `recording`: as `solve_share`'s."""
     budget = Budget.parse(budget)
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
     best, _weighed, record = solve_share(
         src, budget, strategy=strategy, seed=seed, codec=codec, sums=sums, fold=fold, seq=seq,
-        views=views, device=device, spread=spread, ids=ids,
+        views=views, device=device, spread=spread, ids=ids, recording=recording,
     )  # fmt: skip
     record["predicted_psnr"] = best.psnr
     result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,

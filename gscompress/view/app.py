@@ -60,6 +60,8 @@ class ViewOptions:
         seed: seed of the random strategy.
         render: where the splats are drawn: "browser" (WebGL in the page) or "server" (the
             project's rasterizer, sent to the page as images; `gscompress.view.server_render`).
+        recording: when `seq` is a recording, its topics, pairing and ground truth
+            (`gscompress.datasets.RecordingOptions`; None: those the log's run recorded).
     """
 
     host: str = "127.0.0.1"
@@ -69,6 +71,7 @@ class ViewOptions:
     out_dir: Path = Path(".")
     seed: int = 0
     render: str = "browser"
+    recording: Any = None
 
 
 class MapViewer:
@@ -509,7 +512,7 @@ class MapViewer:
         try:
             best, weighed, record = solve_share(
                 self.source.path, budget, strategy=self.strategy.value, seed=self.options.seed,
-                fold=True, seq=self.options.seq,
+                fold=True, seq=self.options.seq, recording=self.options.recording,
             )  # fmt: skip  # (the viewer's shares fold, as gsc share's do by default)
         except GscError as exc:
             self._say(f"**{exc}**")

@@ -135,7 +135,8 @@ def _slam_job(
     from gscompress.pipeline.slam_run import slam_file
 
     run = slam_file(seq, path, config=config, frames=frames, device=s.device, inject=inject,
-                    share_transform=share_transform, force=True)  # fmt: skip
+                    share_transform=share_transform, recording=s.recording,
+                    force=True)  # fmt: skip
     return {"slam": run, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
@@ -386,6 +387,8 @@ class Runner:
         }  # fmt: skip
         if transform is not None and align is not None:
             spec["transform"] = {"align": align.key, "file": transform.name}
+        if s.recording is not None:  # (a run of the recording's default topics keeps its key)
+            spec["recording"] = s.recording.record()
         job = functools.partial(
             _slam_job, seq=self.seq, config=config, frames=frames,
             inject=inject.path if inject else None, s=s, share_transform=transform,

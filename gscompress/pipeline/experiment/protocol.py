@@ -114,6 +114,9 @@ class ExperimentSettings:
             on the sweep seeds (`gscompress.pipeline.offline.format_share`: our fp32 codec,
             SPZ, SOG), each received like a share: the field's points on the rate-distortion
             plot. SOG is left out where splat-transform is missing (`reference_formats`).
+        recording: when the sequence is a recording, its topics, pairing and ground truth
+            (`gscompress.datasets.RecordingOptions`; None: chosen). The SLAM runs read it so
+            and record them; every later step reopens it with the run's recorded ones.
     """
 
     preset: str | None = None
@@ -143,6 +146,7 @@ class ExperimentSettings:
     anchor: str = "gt"
     refine_poses: int = 100
     references: tuple[str, ...] = REFERENCE_FORMATS
+    recording: Any = None
 
     def agent_frames(self, n: int | None = None) -> tuple[str, str]:
         """The frame subsets of agents A and B: the odd and even positions within `frames`, or

@@ -72,7 +72,7 @@ def run_experiment(
     """Run (or continue) the two-agent experiment on a sequence and write its report.
 
     Args:
-        seq: the sequence folder.
+        seq: the sequence folder or recording.
         out_dir: the experiment folder (created; reruns reuse its finished runs).
         settings: what to run.
         progress: called with (step name, steps done, steps in total) as steps start and end.
@@ -110,7 +110,9 @@ def run_experiment(
     # a bad sequence or working size, or frames too few to give agent A (the odd positions)
     # one, fail before out_dir is made
     s, base = resolve_settings(settings)
-    sequence = open_sequence(seq, size=base.size, frames=settings.frames)
+    sequence = open_sequence(
+        seq, size=base.size, frames=settings.frames, recording=settings.recording
+    )
     if len(sequence) < 2:
         raise InputError(
             f"--frames {settings.frames} leaves agent A ({settings.agent_frames(2)[0]}) no frame "
