@@ -7,8 +7,8 @@ else (another exception, a numpy warning, a case over `HANG_SECONDS`) is a defec
 the long run, is a case whose read takes more memory than the policy allows: peak RSS minus the
 RSS after imports, in the same process, at most max(300 MB, 20 x the input's bytes)
 (`bounded.memory_bound`), whatever the read ends with. Add a reader by appending a target to
-`TARGETS`; the targets live in fuzz_mcap.py, fuzz_maps.py and fuzz_sequences.py, their edits
-in fuzz_mutations.py.
+`TARGETS`; the targets live in fuzz_mcap.py, fuzz_maps.py, fuzz_sequences.py and
+fuzz_recordings.py, their edits in fuzz_mutations.py.
 
 Choices come from a `Chooser`: hypothesis' data in tests/test_fuzz.py, a seeded random generator
 here, so that the same mutators serve the fast part of the test suite and the long run.
@@ -50,6 +50,7 @@ from fuzz_maps import (
 )
 from fuzz_mcap import mutate_log, read_log, valid_log
 from fuzz_mutations import Chooser, RandomChooser
+from fuzz_recordings import mutate_recording, read_recording, valid_recording
 from fuzz_sequences import mutate_sequence, read_sequence, valid_sequence
 
 from gscompress.errors import GscError
@@ -86,6 +87,7 @@ TARGETS: list[FuzzTarget] = [
     FuzzTarget("spz", ".spz", valid_spz, mutate_spz, read_spz_map),
     FuzzTarget("sog", ".sog", valid_sog, mutate_sog, read_sog_map),
     FuzzTarget("sequence", ".zip", valid_sequence, mutate_sequence, read_sequence),
+    FuzzTarget("recordings", ".zip", valid_recording, mutate_recording, read_recording),
 ]
 
 

@@ -16,9 +16,18 @@ import numpy as np
 import pytest
 import zstandard
 from bounded import memory_bound, run_bounded
+from fuzz_mcap import _inner_records, mcap_records, serialize_log
+from fuzz_recordings import bz2_zeros, replace_chunk, zstd_zeros
 from PIL import Image
 
 from gscompress.datasets import open_sequence
+from gscompress.datasets.recording import (
+    CameraMessage,
+    ImageMessage,
+    decode_color,
+    decode_depth,
+    intrinsics_of,
+)
 from gscompress.datasets.recording_writer import write_recording
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.errors import DatasetError
@@ -26,21 +35,6 @@ from gscompress.io.decode_budget import inflate_bz2, inflate_zstd
 
 BOMB_BYTES = 1 << 30
 """What each bomb inflates to: far over the 300 MB the reads may take."""
-
-
-def _zstd_zeros(n: int) -> bytes:
-    """One zstd frame of `n` zero bytes (about 32 kB per GiB), compressed a block at a time."""
-    compressor = zstandard.ZstdCompressor(level=1).compressobj()
-    block = bytes(16 << 20)
-    return b"".join([compressor.compress(block) for _ in range(n // len(block))]) + (
-        compressor.flush()
-    )
-
-
-def _bz2_zeros(n: int) -> bytes:
-    """bz2 streams in a row inflating to `n` zero bytes (one stream of 64 MiB, repeated)."""
-    part = 64 << 20
-    return bz2.compress(bytes(part)) * (n // part)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +45,6 @@ def sequence():
 def _bag_with_bomb_chunk(folder: Path, sequence) -> Path:
     """A ROS 2 bag (MCAP) whose first chunk is its records' zstd frame, declaring their size,
     followed by a frame of `BOMB_BYTES` zeros; its size and CRC those of its records."""
-    from fuzz_mcap import _inner_records, mcap_records, serialize_log
     from mcap.records import Chunk
 
     bag = write_recording(sequence, folder / "bag", "ros2")
@@ -61,23 +54,11 @@ def _bag_with_bomb_chunk(folder: Path, sequence) -> Path:
     inner = _inner_records(records[at])
     frame = zstandard.ZstdCompressor().compress(inner)
     assert zstandard.frame_content_size(frame) == len(inner)
-    _replace_chunk(records, at, frame + _zstd_zeros(BOMB_BYTES), zlib.crc32(inner), len(inner))
+    replace_chunk(
+        records, at, frame + zstd_zeros(BOMB_BYTES), "zstd", zlib.crc32(inner), len(inner)
+    )
     mcap.write_bytes(serialize_log(records))
     return bag
-
-
-def _replace_chunk(records: list, at: int, data: bytes, crc: int, size: int) -> None:
-    """The chunk `records[at]` holding zstd `data` (its CRC and size as given), and its chunk
-    index saying so (rosbags reads the codec and length from the index)."""
-    from mcap.records import Chunk, ChunkIndex
-
-    chunks = [i for i, r in enumerate(records) if isinstance(r, Chunk)]
-    indexes = [r for r in records if isinstance(r, ChunkIndex)]
-    records[at] = replace(
-        records[at], compression="zstd", data=data, uncompressed_size=size, uncompressed_crc=crc
-    )
-    index = indexes[chunks.index(at)]
-    index.compression, index.compressed_size, index.uncompressed_size = "zstd", len(data), size
 
 
 def _refused_in_bound(tmp_path: Path, path: Path, match: str) -> None:
@@ -102,7 +83,6 @@ def test_a_ros2_chunk_of_several_zstd_frames_stops_at_its_declared_size(tmp_path
 
 def test_a_ros2_chunk_of_several_honest_zstd_frames_reads(tmp_path, sequence):
     """A chunk written as several frames (each declaring its own part) reads as rosbags read it."""
-    from fuzz_mcap import _inner_records, mcap_records, serialize_log
     from mcap.records import Chunk
 
     bag = write_recording(sequence, tmp_path / "bag", "ros2")
@@ -117,7 +97,7 @@ def test_a_ros2_chunk_of_several_honest_zstd_frames_reads(tmp_path, sequence):
             half = len(inner) // 2
             parts = (inner[:half], inner[half:])
             frames = b"".join(zstandard.ZstdCompressor().compress(p) for p in parts)
-            _replace_chunk(records, at, frames, record.uncompressed_crc, len(inner))
+            replace_chunk(records, at, frames, "zstd", record.uncompressed_crc, len(inner))
     mcap.write_bytes(serialize_log(records))
     read = open_sequence(bag)
     for i, frame in enumerate(expected):
@@ -131,7 +111,7 @@ def test_zstd_frames_stop_at_the_declared_size():
     assert inflate_zstd(b"".join(halves), 1024, "z", DatasetError, several_frames=True) == head
     with pytest.raises(DatasetError, match="declares 512 bytes, not 1024"):
         inflate_zstd(b"".join(halves), 1024, "z", DatasetError)  # (the first frame alone)
-    bomb = zstandard.ZstdCompressor().compress(head) + _zstd_zeros(256 << 20)
+    bomb = zstandard.ZstdCompressor().compress(head) + zstd_zeros(256 << 20)
     with pytest.raises(DatasetError, match="z decompresses to 1025 bytes, not 1024"):
         inflate_zstd(bomb, 1024, "z", DatasetError, several_frames=True)
     with pytest.raises(DatasetError, match="z decompresses to 1025 bytes, not 1024"):
@@ -143,7 +123,7 @@ def test_bz2_streams_stop_at_the_declared_size():
     streams = bz2.compress(head[:100]) + bz2.compress(head[100:])
     assert inflate_bz2(streams, 1024, "b", DatasetError) == head
     with pytest.raises(DatasetError, match="b inflates beyond 1024 bytes"):
-        inflate_bz2(bz2.compress(head) + _bz2_zeros(256 << 20), 1024, "b", DatasetError)
+        inflate_bz2(bz2.compress(head) + bz2_zeros(256 << 20), 1024, "b", DatasetError)
     with pytest.raises(DatasetError, match="b is cut short"):
         inflate_bz2(bz2.compress(head)[:-10], 1024, "b", DatasetError)
     with pytest.raises(DatasetError, match="b is corrupt"):
@@ -154,6 +134,49 @@ def _png(array: np.ndarray) -> bytes:
     out = io.BytesIO()
     Image.fromarray(array).save(out, format="PNG")
     return out.getvalue()
+
+
+def test_a_frame_is_checked_by_the_code_that_checks_a_folders_frames(tmp_path, monkeypatch):
+    """A recording's compressed frame and a folder's frame file are refused by one check, in
+    one message, when their pixels are more than their bytes may decode to (here a budget of
+    half their bytes, so that a flat 16x12 PNG is over it)."""
+    from gscompress.datasets.base import load_color
+    from gscompress.io import decode_budget
+
+    monkeypatch.setattr(decode_budget, "FLOOR_BYTES", 0)
+    tight = decode_budget.Format("image", 0.5, "the pixels")
+    monkeypatch.setitem(decode_budget.FORMATS, "image", tight)
+    flat = _png(np.full((12, 16, 3), 90, np.uint8))
+    message = ImageMessage(1, "cam", "png", True, data=np.frombuffer(flat, np.uint8))
+    with pytest.raises(DatasetError) as from_recording:
+        decode_color(message, (16, 12), "rec: /camera/color frame 0")
+    (tmp_path / "0.png").write_bytes(flat)
+    with pytest.raises(DatasetError) as from_folder:
+        load_color(tmp_path / "0.png", (16, 12))
+    for refused, where in (
+        (from_recording, "rec: /camera/color frame 0"),
+        (from_folder, str(tmp_path / "0.png")),
+    ):
+        assert str(refused.value) == (
+            f"{where}: colour image of 16x12 RGB (576 bytes), more than its {len(flat)} bytes "
+            "may decode to (0.5 times as many, 8 GiB at most)"
+        )
+    depth = ImageMessage(1, "cam", "png", True, data=_png(np.zeros((12, 16), np.uint16)))
+    with pytest.raises(DatasetError, match="depth image of 16x12 I;16"):
+        decode_depth(depth, (16, 12), "rec: /camera/depth frame 0")
+
+
+def test_a_camera_info_is_checked_as_a_folders_intrinsics():
+    """A focal length no RGB-D camera has (a million pixels on a 4x3 image) was read; it is now
+    refused as a folder's intrinsics.json would be."""
+    info = CameraMessage("cam", 4, 3, (1e6, 0, 1.5, 0, 1e6, 1.0, 0, 0, 1), "plumb_bob", (0.0,))
+    with pytest.raises(DatasetError, match=r"camera info /info: fx 1000000.0 is not plausible"):
+        intrinsics_of(info, "/info")
+    wide = replace(info, width=9000)
+    with pytest.raises(DatasetError, match=r"camera info /info: width 9000 is outside 1\.\.8192"):
+        intrinsics_of(wide, "/info")
+    ok = replace(info, K=(50.0, 0, 1.5, 0, 50.0, 1.0, 0, 0, 1))
+    assert intrinsics_of(ok, "/info").fx == 50.0
 
 
 class _CountingIndex(list):
