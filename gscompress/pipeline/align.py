@@ -174,7 +174,7 @@ def align_logs_transform(
     )
     T = alignment.T_target_source
     if seq is not None:
-        refined, on_frames = refined_on_frames(source, target, seq, T, recording=recording)
+        refined, on_frames = refined_on_frames(source, target, seq, T, VIEWS, recording)
         on_frames["T_registration"] = record["T_target_source"]
         before, after = surface_fit(src_cloud, tgt_cloud, [T, refined], alignment.voxel / 2)
         on_frames["surface_kept"] = after / max(before, 1e-12)
