@@ -10,21 +10,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from click.testing import CliRunner
+from conftest import gsc
 
 from gscompress.datasets import open_sequence
 from gscompress.datasets.recording_writer import write_recording
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader
-from gscompress_cli.main import cli
 
 TOPICS = ("--rgb", "/camera/color/image_raw", "--depth", "/camera/aligned_depth_to_color/image_raw")
 """The bag's topics, given as a user would."""
 GT = ("--gt-frames", "world", "camera_color_optical_frame")
-
-
-def gsc(*args: Any) -> Any:
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 def recorded(log: Path) -> Any:
