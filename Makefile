@@ -15,6 +15,8 @@ JS := tests/js
 comma := ,
 
 FUZZ_CASES ?= 10000
+# One reader only, e.g. FUZZ_TARGET=recordings (tests/fuzzing.py's targets).
+FUZZ_TARGET ?=
 
 .PHONY: install demo picture test test-fast lint format bench fuzz js-deps screenshot clean
 
@@ -74,7 +76,7 @@ bench: install
 
 # Structural fuzzing of every reader of untrusted files (the fast part runs in `make test`).
 fuzz: install
-	nice -n 10 $(PY) tests/fuzzing.py --cases $(FUZZ_CASES)
+	nice -n 10 $(PY) tests/fuzzing.py --cases $(FUZZ_CASES) $(if $(FUZZ_TARGET),--target $(FUZZ_TARGET))
 
 # The README's picture of `gsc view`: its browser test (tiny map, headless Chromium), saved.
 screenshot: install
