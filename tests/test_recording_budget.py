@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import zstandard
 from bounded import memory_bound, run_bounded
+from fuzz_containers import bz2_zeros, replace_chunk, zstd_zeros
 from fuzz_mcap import _inner_records, mcap_records, serialize_log
-from fuzz_recordings import bz2_zeros, replace_chunk, zstd_zeros
 from PIL import Image
 
 from gscompress.datasets import open_sequence
