@@ -538,6 +538,21 @@ def test_gsplat_equals_torch_backend_values_and_gradients(seed):
 
 @pytest.mark.gpu
 @gpu
+def test_gsplat_on_cuda_renders_as_the_cpu_backend_on_the_cpu():
+    # a map drawn on a GPU machine and on a CPU-only one: gsplat against the C++ kernels, each
+    # on its own device, float32 on both
+    scene = faint(make_scene(300, seed=7))
+    ours = run({k: v.float() for k, v in scene.items()}, backend="cpu", want_contribution=True)
+    theirs = run(cuda_scene(scene), backend="gsplat", want_contribution=True)
+    assert (ours.backend, theirs.backend) == ("cpu", "gsplat")
+    assert ours.contribution.sum() > 0
+    for key in ("color", "depth", "silhouette", "depth_normalized", "contribution"):
+        got = getattr(theirs, key).detach().cpu()
+        assert_rel_close(got, getattr(ours, key), 1e-4, key)
+
+
+@pytest.mark.gpu
+@gpu
 def test_gsplat_differs_only_where_opacity_exceeds_the_cap():
     # A tenth of this scene has opacity 0.999, capped at 0.99 before gsplat: there alpha is
     # 0.99 G instead of min(0.99, 0.999 G), slightly fainter edges; the rest agrees as above.
