@@ -1,0 +1,175 @@
+"""Is tracking against a Gaussian map biased along the camera's motion? Probes on a sequence
+with exact ground truth (the synthetic room), the map always made at the TRUE poses.
+
+Modes:
+- `loop`: the run maps every frame at its true pose (`tracking.use_ground_truth`); frame t is
+  also tracked (from the constant-velocity guess of the true poses) against the map as it
+  stands before frame t is mapped, after it is mapped, and after frame t+1 is mapped.
+- `single`: a map made from one frame j alone (the first-frame mapping), and frame t tracked
+  against it, for j = t - gap (a view behind) and j = t + gap (a view ahead).
+- `dense`: frame t aligned to frame j = t -/+ gap directly (no map): the pixels of t with their
+  observed depth warped into j, j's colour and depth sampled bilinearly (dense RGB-D
+  odometry), with the tracker's iterations and learning rates.
+
+For each tracked frame the error of the estimate is projected on the true step t-1 -> t
+("along": a fraction of that step; negative = behind the camera) and on the direction to the
+map's view ("towards": a fraction of the t -> j distance). Prints one JSON object.
+
+    python bench/track_bias.py SEQ --mode loop --frames 0:24
+    python bench/track_bias.py SEQ --mode single --gap 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from gscompress.camera import Intrinsics, invert_transform
+from gscompress.datasets import open_sequence
+from gscompress.datasets.base import Frame, iter_frames
+from gscompress.slam.config import SlamConfig, load_config, preset
+from gscompress.slam.keyframes import frame_tensors
+from gscompress.slam.params import decay_per_step
+from gscompress.slam.poses import PoseAdam, orthonormalize, pose_gradient, pose_increment
+from gscompress.slam.system import SlamSystem
+from gscompress.slam.tracker import constant_velocity, track
+
+
+def along(est: np.ndarray, truth: np.ndarray, previous: np.ndarray) -> float:
+    """The error of `est` along the true step previous -> truth, as a fraction of the step."""
+    step = truth[:3, 3] - previous[:3, 3]
+    return float((est[:3, 3] - truth[:3, 3]) @ step / (step @ step))
+
+
+def towards(est: np.ndarray, truth: np.ndarray, reference: np.ndarray) -> float:
+    """The error of `est` towards `reference`'s camera, as a fraction of that distance."""
+    d = reference[:3, 3] - truth[:3, 3]
+    return float((est[:3, 3] - truth[:3, 3]) @ d / (d @ d))
+
+
+def tracked(system: SlamSystem, frame: Frame, guess: np.ndarray) -> np.ndarray:
+    """`frame` tracked against the system's map from `guess`."""
+    color, depth = frame_tensors(frame, system.device)
+    inputs = system.mapper.params.render_inputs()
+    config = system.config
+    return track(inputs, color, depth, system.intrinsics, guess, config.tracking).T_world_cam
+
+
+def summary(values: list[float]) -> dict[str, float]:
+    return {"mean": float(np.mean(values)), "median": float(np.median(values))}
+
+
+def loop(config: SlamConfig, frames: list[Frame], intrinsics: Intrinsics) -> dict[str, Any]:
+    """The `loop` mode."""
+    config = config.with_overrides(**{"tracking.use_ground_truth": True, "prune.stages": ()})
+    system = SlamSystem(config, intrinsics, total_frames=None)
+    truth = [np.asarray(f.T_world_cam) for f in frames]
+    rows: dict[str, list[float]] = {"before": [], "after": [], "after_next": []}
+
+    def error(t: int) -> float:
+        guess = constant_velocity(truth[t - 1], truth[t - 2])
+        return along(tracked(system, frames[t], guess), truth[t], truth[t - 1])
+
+    for t, frame in enumerate(frames):
+        if t >= 2:
+            rows["before"].append(error(t))
+        system.process(frame)
+        if t >= 2:
+            rows["after"].append(error(t))
+        if t >= 3:
+            rows["after_next"].append(error(t - 1))
+    return {k: {**summary(v), "per_frame": [round(x, 4) for x in v]} for k, v in rows.items()}
+
+
+def dense_align(
+    frame: Frame, reference: Frame, intrinsics: Intrinsics, guess: np.ndarray, config: Any
+) -> np.ndarray:
+    """`frame`'s pose from dense RGB-D alignment to `reference` (at its true pose)."""
+    K, (H, W) = intrinsics, frame.depth.shape
+    v, u = torch.meshgrid(torch.arange(H * 1.0), torch.arange(W * 1.0), indexing="ij")
+    depth = torch.as_tensor(frame.depth, dtype=torch.float32)
+    color = torch.as_tensor(frame.color, dtype=torch.float32)
+    points = torch.stack([(u - K.cx) / K.fx * depth, (v - K.cy) / K.fy * depth, depth], -1)
+    ref_color = torch.as_tensor(reference.color, dtype=torch.float32).permute(2, 0, 1)[None]
+    ref_depth = torch.as_tensor(reference.depth, dtype=torch.float32)[None, None]
+    assert reference.T_world_cam is not None
+    T_ref = torch.as_tensor(invert_transform(reference.T_world_cam), dtype=torch.float32)
+    start = invert_transform(guess)
+    x = np.zeros(6)
+    rates = np.repeat([config.lr_rotation, config.lr_translation], 3)
+    adam = PoseAdam(rates, decay_per_step(config.lr_final_fraction, config.iters))
+    for _ in range(config.iters):
+        T = torch.tensor(pose_increment(x) @ start, dtype=torch.float32, requires_grad=True)
+        rel = T_ref @ torch.linalg.inv(T)
+        p = points @ rel[:3, :3].T + rel[:3, 3]
+        z = p[..., 2].clamp_min(1e-3)
+        grid = torch.stack(
+            [
+                2 * (K.fx * p[..., 0] / z + K.cx) / (W - 1) - 1,
+                2 * (K.fy * p[..., 1] / z + K.cy) / (H - 1) - 1,
+            ],
+            -1,
+        )[None]
+        sample: Callable[..., torch.Tensor] = F.grid_sample
+        c = sample(ref_color, grid, align_corners=True)[0].permute(1, 2, 0)
+        d = sample(ref_depth, grid, align_corners=True)[0, 0]
+        dn = sample(ref_depth, grid, align_corners=True, mode="nearest")[0, 0]
+        ok = (depth > 0) & (grid[0].abs() < 1).all(-1) & (dn > 0) & ((z - dn).abs() < 0.05 * dn)
+        n = int(ok.sum())
+        loss = torch.where(ok, (c - color).abs().mean(-1), 0) + torch.where(ok, (z - d).abs(), 0)
+        (loss.sum() / max(n, 1)).backward()
+        assert T.grad is not None
+        x = adam.step(x, pose_gradient(x, start, T.grad.double().numpy()))
+    return orthonormalize(invert_transform(pose_increment(x) @ start))
+
+
+def single(
+    config: SlamConfig, frames: list[Frame], intrinsics: Intrinsics, gap: int, dense: bool
+) -> dict[str, Any]:
+    """The `single` and `dense` modes."""
+    config = config.with_overrides(**{"prune.stages": ()})
+    truth = [np.asarray(f.T_world_cam) for f in frames]
+    rows: dict[str, list[float]] = {"behind": [], "ahead": []}
+    for t in range(max(2, gap), len(frames) - gap, 3):
+        guess = constant_velocity(truth[t - 1], truth[t - 2])
+        for name, j in (("behind", t - gap), ("ahead", t + gap)):
+            if dense:
+                est = dense_align(frames[t], frames[j], intrinsics, guess, config.tracking)
+            else:
+                system = SlamSystem(config, intrinsics, total_frames=None)
+                system.process(frames[j])
+                est = tracked(system, frames[t], guess)
+            rows[name].append(towards(est, truth[t], truth[j]))
+    return {k: {**summary(v), "per_frame": [round(x, 4) for x in v]} for k, v in rows.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("seq")
+    parser.add_argument("--mode", choices=("loop", "single", "dense"), default="loop")
+    parser.add_argument("--frames", default="0:24")
+    parser.add_argument("--gap", type=int, default=5)
+    parser.add_argument("--config", help="YAML on top of the cpu preset")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    config = load_config(args.config) if args.config else preset("cpu")
+    sequence = open_sequence(args.seq, size=config.size, frames=args.frames)
+    frames = list(iter_frames(sequence))
+    if args.mode == "loop":
+        result = loop(config, frames, sequence.intrinsics)
+    else:
+        result = single(config, frames, sequence.intrinsics, args.gap, args.mode == "dense")
+    print(json.dumps({"mode": args.mode, "frames": args.frames, "gap": args.gap, **result}))
+
+
+if __name__ == "__main__":
+    main()
