@@ -7,12 +7,12 @@ TORCH_SPEC ?= torch==2.13.0
 # Extra pip arguments for torch, e.g. TORCH_PIP_ARGS=--index-url=https://download.pytorch.org/whl/cpu
 # where pip's default index would pick the CUDA build (this workplace's pip config finds a CPU one).
 TORCH_PIP_ARGS ?=
-# Optional extras installed beside dev, view and align, e.g. EXTRAS=cluster for Ray (.ci/run does).
+# Optional extras installed beside dev and view, e.g. EXTRAS=align for Open3D (`gsc align`'s global
+# step; on Linux it loads the system's libusb-1.0) or EXTRAS=cluster,align (.ci/run does).
 EXTRAS ?=
-STAMP := $(VENV)/.installed-stamp
-JS := tests/js
-
 comma := ,
+STAMP := $(VENV)/.installed-stamp$(if $(EXTRAS),-$(subst $(comma),-,$(EXTRAS)))
+JS := tests/js
 
 FUZZ_CASES ?= 10000
 # One reader only, e.g. FUZZ_TARGET=recordings (tests/fuzzing.py's targets).
@@ -23,14 +23,10 @@ FUZZ_TARGET ?=
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q $(TORCH_PIP_ARGS) "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e '.[dev,view,align$(if $(EXTRAS),$(comma)$(EXTRAS))]'
-	@# Open3D (the merge's alignment and `gsc align`) loads libusb-1.0 on Linux, which a bare
-	@# Debian lacks: installed here where apt-get can, else named.
-	@$(PY) -c "import open3d" 2>/dev/null || { \
-		if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
-			apt-get update -qq && apt-get install -y -qq --no-install-recommends libusb-1.0-0; \
-		else echo "Open3D cannot load: install libusb-1.0 (Debian/Ubuntu: sudo apt-get install libusb-1.0-0)"; exit 1; fi; }
-	$(PY) -c "import open3d"
+	$(PY) -m pip install -q -e '.[dev,view$(if $(EXTRAS),$(comma)$(EXTRAS))]'
+	@# (asked for, Open3D must load: its Linux build needs libusb-1.0, which a bare Debian lacks)
+	$(if $(filter align,$(subst $(comma), ,$(EXTRAS))),@$(PY) -c "import open3d" 2>/dev/null || { \
+		echo "Open3D cannot load: install libusb-1.0 (Debian/Ubuntu: sudo apt-get install libusb-1.0-0)"; exit 1; })
 	touch $(STAMP)
 
 install: $(STAMP)

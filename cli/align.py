@@ -13,6 +13,7 @@ from .options import (
     check_recording_seq,
     emit,
     force_option,
+    icp_option,
     json_option,
     recording_options,
     seed_option,
@@ -62,6 +63,7 @@ from .options import (
     "a CPU.",
 )
 @recording_options
+@icp_option
 @seed_option("Seed of the global search (RANSAC).")
 @force_option()
 @json_option
@@ -74,6 +76,7 @@ def align(
     min_overlap: float,
     seq: Path | None,
     recording: Any,
+    icp: str,
     seed: int,
     force: bool,
     as_json: bool,
@@ -82,14 +85,15 @@ def align(
 
     For agents that each started at the identity where they were: the two maps (Gaussian
     centres with their colours, and normals) are registered by matching FPFH features under
-    RANSAC, which needs no initial guess, then refined by coloured ICP. The overlap, the RMS
-    residual of the overlapping part and the feature inliers are reported. An alignment that
-    cannot be trusted is refused in one line (exit 1, no file): too little overlap, a
-    symmetric scene where another transform fits nearly as well, or geometry that leaves a
-    direction free (a plane, a cylinder). With --seq the result is then refined on TARGET's
+    RANSAC, which needs no initial guess, then refined by coloured ICP (--icp). The overlap,
+    the RMS residual of the overlapping part and the feature inliers are reported. An
+    alignment that cannot be trusted is refused in one line (exit 1, no file): too little
+    overlap, a symmetric scene where another transform fits nearly as well, or geometry that
+    leaves a direction free (a plane, a cylinder). With --seq the result is then refined on TARGET's
     frames, and the frames also judge it: a registration whose only fault is too few agreeing
     feature matches is accepted when, refined, SOURCE's map draws TARGET's frames at most 2x
-    as badly as TARGET's own map. Needs Open3D: pip install 'gscompress[align]'.
+    as badly as TARGET's own map. The global step needs Open3D (pip install
+    'gscompress[align]'); with --init only the local step runs, which needs no extra.
 
     \b
     Examples:
@@ -102,7 +106,7 @@ def align(
     from gscompress.pipeline.align import align_logs
 
     check_recording_seq(recording, seq)
-    options = AlignOptions(voxel=voxel, min_overlap=min_overlap, seed=seed)
+    options = AlignOptions(voxel=voxel, min_overlap=min_overlap, seed=seed, icp=icp)
     result = align_logs(source, target, dst, init=init, options=options, seq=seq,
                         recording=recording, force=force)  # fmt: skip
     T = result["T_target_source"]

@@ -26,6 +26,7 @@ from .options import (
     device_option,
     emit,
     force_option,
+    icp_option,
     json_option,
     output_option,
     progress_bar,
@@ -79,9 +80,10 @@ from .options import (
     default=MergeOptions.align,
     show_default=True,
     help="Move the share onto the receiver's map where their surfaces overlap before merging: "
-    "`gsc align`'s local step (Open3D's coloured ICP on the opaque Gaussians' centres and "
-    "colours, from where the share is; needs the [align] extra).",
+    "`gsc align`'s local step (coloured ICP on the opaque Gaussians' centres and colours, from "
+    "where the share is; --icp).",
 )
+@icp_option
 @click.option(
     "--resolve",
     type=click.Choice(RESOLVE),
@@ -157,6 +159,7 @@ def merge(
     views: str,
     lr_final: float,
     align: bool,
+    icp: str,
     resolve: str,
     voxel: float,
     margin: float,
@@ -180,8 +183,8 @@ def merge(
 
     \b
     --align       moves the share onto the receiver where their surfaces overlap
-                  (ICP on the opaque Gaussians' centres, pairs at most --voxel
-                  apart; the identity when they hardly overlap);
+                  (coloured ICP on the opaque Gaussians' centres, pairs at most
+                  --voxel apart; the identity when they hardly overlap);
     --resolve     keeps, in each --voxel cell with Gaussians of both maps, only
                   one map's: the one whose agent saw them more (evidence: their
                   alpha*T sums, of those whose footprint fits a cell face;
@@ -220,7 +223,7 @@ def merge(
     """
     check_recording_seq(recording, seq)
     context = click.get_current_context()
-    given = {"align": align, "resolve": resolve, "voxel": voxel, "margin": margin,
+    given = {"align": align, "icp": icp, "resolve": resolve, "voxel": voxel, "margin": margin,
              "share_rate": share_rate, "by_view": by_view, "footprint": footprint}  # fmt: skip
     # (the rest as the merge chooses: WITH_SENDER_VIEWS for a share that carries keyframes)
     told = {k: v for k, v in given.items()

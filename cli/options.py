@@ -19,6 +19,7 @@ from gscompress.errors import InputError, clipped
 from gscompress.io.codec import CODECS, SHARE_IDS
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
+from gscompress.ops.icp import DEFAULT_ICP, ICP
 from gscompress.selection import is_fraction
 
 if TYPE_CHECKING:
@@ -386,6 +387,18 @@ def slam_config_options(f: F) -> F:
         help="Starting configuration: tiny (tests, seconds), cpu (160x120, 0.4-0.9 s/frame on 2 "
         "cores), paper / paper-tum (SplaTAM's Replica / TUM settings, full size, for a GPU). "
         "[default: the --config file's `preset:`, else cpu]",
+    )(f)
+
+
+def icp_option(f: F) -> F:
+    """`--icp builtin|open3d`: the implementation of the alignment's local step."""
+    return click.option(
+        "--icp",
+        type=click.Choice(tuple(ICP)),
+        default=DEFAULT_ICP,
+        show_default=True,
+        help="ICP of the alignment's local step (coloured ICP, Park et al.): builtin (numpy, "
+        "no extra) or open3d (Open3D's, pip install 'gscompress[align]').",
     )(f)
 
 

@@ -20,6 +20,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter
 from gscompress.io.trajectory import read_transform
 from gscompress.ops.align import (
+    FINE_STAGES,
     AlignmentError,
     AlignOptions,
     Cloud,
@@ -29,9 +30,19 @@ from gscompress.ops.align import (
     transform_error,
     transform_points,
 )
+from gscompress.ops.icp import ICP, grid_cloud
 from gscompress_cli.main import cli
 
-pytest.importorskip("open3d", reason="the aligner needs Open3D: pip install 'gscompress[align]'")
+try:
+    import open3d  # noqa: F401
+except ImportError:
+    HAS_OPEN3D = False
+else:
+    HAS_OPEN3D = True
+needs_open3d = pytest.mark.skipif(
+    not HAS_OPEN3D, reason="the global step needs Open3D: pip install 'gscompress[align]'"
+)
+"""The tests of the global step (no initial guess); the local step runs without Open3D."""
 
 SPACING = 0.04
 
@@ -125,6 +136,7 @@ def agents(
 VIEWS = np.array([[1.2, 1.0, 0.8], [1.8, 1.5, 0.9], [0.8, 1.6, 0.9]])
 
 
+@needs_open3d
 @pytest.mark.parametrize(
     ("noise", "outliers", "split"),
     [(0.0, 0.0, 1.0), (0.005, 0.0, 1.0), (0.005, 0.1, 1.0), (0.005, 0.05, 0.6)],
@@ -169,6 +181,7 @@ def test_refinement_from_a_guess_and_refine_alignment() -> None:
     assert transform_error(guess, T)[0] > 0.04  # (the guess was off: refining moved it)
 
 
+@needs_open3d
 def test_too_little_overlap_is_refused() -> None:
     points, colors = room()
     T = random_transform(7)
@@ -207,6 +220,7 @@ def _plane(spacing: float = SPACING) -> tuple[np.ndarray, np.ndarray]:
     return points, np.full_like(points, 0.5)
 
 
+@needs_open3d
 @pytest.mark.parametrize("scene", [_symmetric_room, _plane], ids=["symmetric-room", "plane"])
 def test_symmetric_and_flat_scenes_are_refused(
     scene: Callable[[], tuple[np.ndarray, np.ndarray]],
@@ -230,11 +244,77 @@ def test_bad_inputs_and_options() -> None:
         Cloud(points[:3], colors[:2])
 
 
-def test_missing_library_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_without_open3d_the_global_step_names_the_extra_and_the_local_step_runs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     monkeypatch.setitem(sys.modules, "open3d", None)  # (an import of it now fails)
     points, colors = room()
-    with pytest.raises(MissingDependencyError, match=r"gscompress\[align\]"):
-        align_clouds(Cloud(points, colors), Cloud(points, colors))
+    T = small_transform()
+    everything = np.ones(len(points), bool)
+    source, target = agents(points, colors, T, source_part=everything, target_part=everything,
+                            noise=0.003)  # fmt: skip
+    with pytest.raises(MissingDependencyError, match=r"global step.*gscompress\[align\]"):
+        align_clouds(source, target)
+    for local in (refine_alignment(source, target, np.eye(4)),
+                  align_clouds(source, target, init=np.eye(4))):  # fmt: skip
+        dt, dr = transform_error(local.T_target_source, T)
+        assert dt < 0.002 and dr < 0.1, (dt, dr)
+        assert local.icp == "builtin" and local.refused == ""
+    with pytest.raises(MissingDependencyError, match=r"icp 'open3d'.*gscompress\[align\]"):
+        refine_alignment(source, target, np.eye(4), AlignOptions(icp="open3d"))
+
+
+def small_transform() -> np.ndarray:
+    """2 cm and 1 degree: what separates two agents' maps anchored in one frame."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, -0.8, 0.0])).as_matrix()
+    T[:3, 3] = [0.012, -0.01, 0.012]
+    return T
+
+
+@pytest.mark.parametrize("icp", [p if p != "open3d" else pytest.param(p, marks=needs_open3d)
+                                 for p in ICP])  # fmt: skip
+def test_the_local_step_recovers_a_known_small_transform(icp: str) -> None:
+    points, colors = room()
+    T = small_transform()
+    everything = np.ones(len(points), bool)
+    source, target = agents(points, colors, T, source_part=everything, target_part=everything,
+                            noise=0.003)  # fmt: skip
+    result = refine_alignment(source, target, np.eye(4), AlignOptions(icp=icp))
+    dt, dr = transform_error(result.T_target_source, T)
+    assert dt < 0.002 and dr < 0.1, (dt, dr)  # (from 2 cm and 1 degree off)
+    assert result.icp == icp and result.overlap > 0.9
+
+
+@needs_open3d
+def test_the_builtin_grid_and_icp_are_open3ds() -> None:
+    """`grid_cloud` is Open3D's voxel grid with its normals, and the builtin coloured and
+    point-to-plane ICP land where Open3D's do, from the same grids."""
+    import open3d as o3d
+
+    points, colors = room(0.02)
+    T = small_transform()
+    everything = np.ones(len(points), bool)
+    source, target = agents(points, colors, T, source_part=everything, target_part=everything,
+                            noise=0.003)  # fmt: skip
+    voxel = 0.03
+    grid = grid_cloud(target, voxel)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target.points))
+    pcd.colors = o3d.utility.Vector3dVector(target.colors)
+    theirs = pcd.voxel_down_sample(voxel)
+    theirs.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
+    ours, order = np.lexsort(grid.points.T), np.lexsort(np.asarray(theirs.points).T)
+    np.testing.assert_array_equal(grid.points[ours], np.asarray(theirs.points)[order])
+    np.testing.assert_array_equal(grid.colors[ours], np.asarray(theirs.colors)[order])
+    assert grid.normals is not None
+    cosine = np.einsum("ij,ij->i", grid.normals[ours], np.asarray(theirs.normals)[order])
+    assert np.abs(cosine).min() > 1.0 - 1e-9  # (Open3D's turn them otherwise)
+    src, tgt = grid_cloud(source, voxel), grid
+    for colored in (True, False):
+        ours_T = ICP["builtin"](src, tgt, np.eye(4), 2 * voxel, FINE_STAGES, colored)
+        open3d_T = ICP["open3d"](src, tgt, np.eye(4), 2 * voxel, FINE_STAGES, colored)
+        assert transform_error(ours_T, T)[0] < 0.002
+        np.testing.assert_allclose(ours_T, open3d_T, atol=1e-6)
 
 
 def test_map_cloud_keeps_opaque_gaussians_and_flat_normals() -> None:
@@ -284,6 +364,7 @@ def logs(tmp_path: Path) -> tuple[Path, Path, np.ndarray]:
     return source, target, T
 
 
+@needs_open3d
 def test_gsc_align_writes_what_merge_reads(logs: tuple[Path, Path, np.ndarray],
                                            tmp_path: Path) -> None:  # fmt: skip
     source, target, T = logs
@@ -312,6 +393,26 @@ def test_gsc_align_writes_what_merge_reads(logs: tuple[Path, Path, np.ndarray],
     np.testing.assert_allclose(tail, expected, atol=1e-5)
 
 
+def test_gsc_align_without_open3d_refines_a_guess_and_names_the_extra_for_a_search(
+    logs: tuple[Path, Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "open3d", None)  # (an import of it now fails)
+    source, target, T = logs
+    out, guess = tmp_path / "T.txt", tmp_path / "guess.txt"
+    r = CliRunner().invoke(cli, ["align", str(source), str(target), "-o", str(out)])
+    assert r.exit_code == 1 and not out.exists()
+    assert len(r.output.strip().splitlines()) == 1
+    assert "global step" in r.output and "pip install 'gscompress[align]'" in r.output
+    np.savetxt(guess, small_transform() @ T)
+    r = CliRunner().invoke(cli, ["align", str(source), str(target), "--init", str(guess), "-o",
+                                 str(out), "--json"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["icp"] == "builtin"
+    dt, dr = transform_error(read_transform(out), T)
+    assert dt < 0.002 and dr < 0.1, (dt, dr)
+
+
+@needs_open3d
 def test_gsc_align_refuses_in_one_line_without_output(tmp_path: Path) -> None:
     points, colors = _symmetric_room()
     a, b, out = tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "T.txt"
@@ -323,6 +424,7 @@ def test_gsc_align_refuses_in_one_line_without_output(tmp_path: Path) -> None:
     assert len(r.output.strip().splitlines()) == 1
 
 
+@needs_open3d
 def test_share_align_to_cuts_a_share_in_the_targets_frame(
     logs: tuple[Path, Path, np.ndarray], tmp_path: Path
 ) -> None:
@@ -346,6 +448,7 @@ def test_share_align_to_cuts_a_share_in_the_targets_frame(
     assert r.exit_code == 0, r.output
 
 
+@needs_open3d
 def test_gsc_align_does_not_import_torch(logs: tuple[Path, Path, np.ndarray],
                                          tmp_path: Path) -> None:  # fmt: skip
     source, target, _ = logs
@@ -362,6 +465,7 @@ def test_gsc_align_does_not_import_torch(logs: tuple[Path, Path, np.ndarray],
     assert out.stdout.strip().splitlines()[-1] == "False"
 
 
+@needs_open3d
 def test_align_agents_scores_the_estimate_against_the_first_poses(
     logs: tuple[Path, Path, np.ndarray], tmp_path: Path
 ) -> None:
@@ -383,6 +487,7 @@ def test_align_agents_scores_the_estimate_against_the_first_poses(
     assert est.exists()  # (the untrusted estimate, for what is counted a miss)
 
 
+@needs_open3d
 @pytest.mark.parametrize("loss, accepted", [(1.5, True), (2.5, False), (None, False)])
 def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
     logs: tuple[Path, Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
@@ -422,6 +527,7 @@ def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
     assert found.refused == ""  # (with the default thresholds the registration stands)
 
 
+@needs_open3d
 def test_frames_that_pull_the_source_off_the_surfaces_are_not_taken(
     logs: tuple[Path, Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -300,15 +300,23 @@ def test_merge_takes_every_log_as_receiver_and_every_map_as_share(
         assert len(log.read_poses(TOPIC_POSE)[1]) == pose_count(receiver)
 
 
+ICP_TOLERANCE = 1e-5
+"""How far a transform of the builtin ICP may lie from the earlier gsc's, which refined with
+Open3D's: the same objective, summed in another order; on the corpus's 38-Gaussian share the
+two land 5 micrometres apart."""
+
+
 @pytest.mark.parametrize("case", EXPECTED["align"], ids=lambda c: f"{c['source']}->{c['target']}")
 def test_align_finds_the_earlier_transform(
     case: dict[str, Any], identity: Path, tmp_path: Path
 ) -> None:
+    if not case["init_identity"]:
+        pytest.importorskip("open3d", reason="the global step needs Open3D (the [align] extra)")
     out = tmp_path / "T.txt"
     init = ("--init", identity) if case["init_identity"] else ()
     r = gsc("align", CORPUS / case["source"], CORPUS / case["target"], "-o", out, *init)
     assert r.exit_code == 0, r.output
-    np.testing.assert_allclose(np.loadtxt(out), case["T_target_source"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.loadtxt(out), case["T_target_source"], rtol=0, atol=ICP_TOLERANCE)
 
 
 @pytest.mark.parametrize("share", SHARES)

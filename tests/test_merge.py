@@ -174,6 +174,22 @@ def test_gsc_merge_command(agents: dict[str, Path]) -> None:
     assert r.exit_code == 2 and "--margin" in r.output
 
 
+def test_gsc_merge_aligns_by_default_without_open3d(
+    agents: dict[str, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "open3d", None)  # (an import of it now fails)
+    out = agents["root"] / "no_open3d.mcap"
+    args = ["merge", agents["b"], agents["share"], "-o", out, "--iters", "0", "--json"]
+    r = CliRunner().invoke(cli, [str(a) for a in args])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["align_pairs"] > 0  # (aligned: the maps overlap)
+    with LogReader(out) as log:
+        assert log.metadata.provenance[-1]["operation"]["icp"] == "builtin"
+    r = CliRunner().invoke(cli, [str(a) for a in args] + ["--force", "--icp", "open3d"])
+    assert r.exit_code == 1 and len(r.output.strip().splitlines()) == 1
+    assert "pip install 'gscompress[align]'" in r.output and "--no-align" in r.output
+
+
 def test_transform_map_moves_means_and_orientations_rigidly() -> None:
     from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
     from gscompress.ops.merge import transform_map

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.errors import MissingDependencyError, OptionError
 from gscompress.gaussians import GaussianMap
+from gscompress.ops.icp import ICP
 from gscompress.ops.merge import (
     EXACT,
     MergeOptions,
@@ -111,13 +112,16 @@ def test_merge_of_a_map_with_itself_renders_like_the_map(agents: dict) -> None:
         assert psnr(image(stacked, T), own) < 40.0  # stacking a map on itself changes it
 
 
-def test_align_share_recovers_the_offset_between_two_agents(agents: dict) -> None:
-    T, stats = align_share(agents["b"], agents["a"], max_distance=SPACING)
+@pytest.mark.parametrize("icp", ICP)
+def test_align_share_recovers_the_offset_between_two_agents(agents: dict, icp: str) -> None:
+    if icp == "open3d":
+        pytest.importorskip("open3d", reason="Open3D's ICP: pip install 'gscompress[align]'")
+    T, stats = align_share(agents["b"], agents["a"], max_distance=SPACING, icp=icp)
     np.testing.assert_allclose(T[:3, 3], B_OFFSET, atol=1e-4)
     np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-5)
     assert stats["align_rmse_before_cm"] > 1.0 and stats["align_rmse_after_cm"] < 0.01
     far = transform_map(agents["a"], shift(np.array([5.0, 0.0, 0.0])))
-    T, stats = align_share(agents["b"], far, max_distance=SPACING)
+    T, stats = align_share(agents["b"], far, max_distance=SPACING, icp=icp)
     assert np.array_equal(T, np.eye(4)) and stats["align_pairs"] == 0  # no overlap: unmoved
 
 
@@ -139,12 +143,18 @@ def test_an_alignment_that_takes_the_share_off_the_receiver_is_not_kept(
     assert stats["align_rmse_after_cm"] == stats["align_rmse_before_cm"] > 1.0
 
 
-def test_without_open3d_the_merge_names_the_extra_and_merges_unaligned_when_told(
+def test_without_open3d_the_default_merge_aligns_and_open3ds_icp_names_the_extra(
     agents: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setitem(sys.modules, "open3d", None)  # (an import of it now fails)
+    assert MergeOptions().align and MergeOptions().icp == "builtin"
+    _, _, _, stats = combine(agents["b"], agents["a"], replace(MergeOptions(), by_view=False))
+    T = np.asarray(stats["align_transform"])  # (B's offset, recovered to a tenth of a mm)
+    np.testing.assert_allclose(T[:3, 3], B_OFFSET, atol=1e-4)
+    np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-5)
+    assert stats["align_kept"] and stats["align_rmse_after_cm"] < 0.01
     with pytest.raises(MissingDependencyError, match=r"gscompress\[align\].*--no-align"):
-        combine(agents["b"], agents["a"], RESOLVED)
+        combine(agents["b"], agents["a"], replace(RESOLVED, icp="open3d"))
     merged, from_share, _, stats = combine(agents["b"], agents["a"], replace(RESOLVED, align=False))
     assert "align_pairs" not in stats
     shared = merged.select(np.flatnonzero(from_share))

@@ -17,8 +17,10 @@ that the answer can be trusted before returning it:
 `refine_alignment` is the local step alone, from a given transform (an initial guess, or two
 maps believed to share a frame that still sit centimetres apart).
 
-The registration library is Open3D (`pip install 'gscompress[align]'`), imported at the point
-of use; docs/align.md says why. Inputs and outputs are numpy arrays.
+The global step is Open3D's (`pip install 'gscompress[align]'`), imported at the point of use;
+the local step is `gscompress.ops.icp`'s, coloured ICP in numpy by default (`AlignOptions.icp`),
+so that a local refinement, and the merge's alignment that is one, needs no extra. docs/align.md
+says why. Inputs and outputs are numpy arrays.
 """
 
 from __future__ import annotations
@@ -31,11 +33,20 @@ from typing import Any
 import numpy as np
 
 from gscompress.camera import rotation_angle_deg, transform_points
-from gscompress.errors import GscError, InputError, MissingDependencyError
+from gscompress.errors import GscError, InputError
+from gscompress.ops.icp import (
+    DEFAULT_ICP,
+    ICP,
+    Cloud,
+    Stages,
+    grid_cloud,
+    gridded,
+    local_icp,
+    open3d_module,
+    to_open3d,
+)
 
 log = logging.getLogger(__name__)
-
-INSTALL_HINT = "pip install 'gscompress[align]'"
 
 COLOR_AGREEMENT = 0.12
 """Colours agree when their channels differ by less than this on average (of 1): two agents
@@ -59,38 +70,6 @@ class AlignmentError(GscError):
 
 
 @dataclass(frozen=True)
-class Cloud:
-    """What registration sees of a map.
-
-    Attributes:
-        points: [N, 3] Gaussian centres (m).
-        colors: [N, 3] RGB in [0, 1].
-        normals: [N, 3] unit normals where known (flat Gaussians), rows of zeros elsewhere;
-            None: none known. Missing normals are estimated from the neighbours.
-        viewpoints: [M, 3] camera centres the map was seen from, to orient normals towards
-            (None: towards the points' centroid).
-    """
-
-    points: np.ndarray
-    colors: np.ndarray
-    normals: np.ndarray | None = None
-    viewpoints: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        n = len(self.points)
-        arrays = {"points": self.points, "colors": self.colors, "normals": self.normals}
-        for name, a in arrays.items():
-            if a is not None and (a.ndim != 2 or a.shape != (n, 3)):
-                raise InputError(f"a cloud's {name} must be [{n}, 3], got {a.shape}")
-            if a is not None and not np.all(np.isfinite(a)):
-                raise InputError(f"a cloud's {name} hold non-finite values")
-        if self.viewpoints is not None and (
-            self.viewpoints.ndim != 2 or self.viewpoints.shape[1] != 3
-        ):
-            raise InputError(f"a cloud's viewpoints must be [M, 3], got {self.viewpoints.shape}")
-
-
-@dataclass(frozen=True)
 class AlignOptions:
     """How two maps are aligned and when the result is refused.
 
@@ -110,6 +89,9 @@ class AlignOptions:
         ransac_iterations: iterations of each run.
         seed: seed of RANSAC.
         colored: refine with coloured ICP (geometry and colour); False: point-to-plane ICP.
+        icp: the local step's implementation (`gscompress.ops.icp.ICP`): "builtin" (numpy,
+            no extra) or "open3d" (Open3D's, the `[align]` extra). The global step is
+            Open3D's either way.
         distinct_translation: alternatives are distinct when they place the source's centroid
             this many voxels apart ...
         distinct_rotation_deg: ... or differ by this rotation (degrees).
@@ -124,6 +106,7 @@ class AlignOptions:
     ransac_iterations: int = 30_000
     seed: int = 0
     colored: bool = True
+    icp: str = DEFAULT_ICP
     distinct_translation: float = 3.0
     distinct_rotation_deg: float = 10.0
 
@@ -137,6 +120,8 @@ class AlignOptions:
                 raise InputError(f"{name} must be in [0, 1], got {value}")
         if self.ransac_runs < 1 or self.ransac_iterations < 1 or self.min_inliers < 0:
             raise InputError("ransac_runs and ransac_iterations must be >= 1, min_inliers >= 0")
+        if self.icp not in ICP:
+            raise InputError(f"icp is one of {', '.join(ICP)}, got {self.icp!r}")
 
 
 @dataclass
@@ -158,6 +143,7 @@ class Alignment:
         conditioning: weakest over strongest direction of the point-to-plane information.
         voxel: the global step's grid (m); the refinement works on half of it.
         global_step: "ransac-fpfh", or "init" when an initial guess replaced it.
+        icp: the local step's implementation (`AlignOptions.icp`).
         seconds: wall time of the alignment.
         refused: why the result cannot be trusted ("" when it can).
         hypotheses: the agreement of every hypothesis tried (global step and rivals).
@@ -174,6 +160,7 @@ class Alignment:
     conditioning: float
     voxel: float
     global_step: str
+    icp: str = DEFAULT_ICP
     seconds: float = 0.0
     refused: str = ""
     hypotheses: list[float] = field(default_factory=list)
@@ -183,20 +170,6 @@ class Alignment:
         out = asdict(self)
         out["T_target_source"] = np.asarray(self.T_target_source).tolist()
         return out
-
-
-def _o3d() -> Any:
-    try:
-        import open3d
-    except ImportError as exc:
-        fix = (
-            "Open3D's Linux build loads libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0)"
-            if "libusb" in str(exc)
-            else f"install it with {INSTALL_HINT}"
-        )
-        raise MissingDependencyError(f"aligning maps needs Open3D ({exc}); {fix}") from None
-    open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)  # (no stdout chatter)
-    return open3d
 
 
 def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
@@ -223,78 +196,20 @@ def auto_voxel(*clouds: Cloud, points: int = 4000) -> float:
     return max(min(spacings), 1e-6) * max(1.5, float(np.sqrt(largest / points)))
 
 
-def _to_o3d(cloud: Cloud, voxel: float) -> Any:
-    """An Open3D cloud of `cloud` on a `voxel` grid, with normals oriented to the viewpoints."""
-    o3d = _o3d()
-    pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(cloud.points.astype(np.float64))
-    pcd.colors = o3d.utility.Vector3dVector(cloud.colors.astype(np.float64))
-    known = None
-    if cloud.normals is not None:
-        known = np.linalg.norm(cloud.normals, axis=1) > 0.5
-        pcd.normals = o3d.utility.Vector3dVector(cloud.normals.astype(np.float64))
-    down = pcd.voxel_down_sample(voxel)
-    if known is None or not known.all():
-        estimated = o3d.geometry.PointCloud(down)
-        estimated.estimate_normals(
-            o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30)
-        )
-        normals = np.asarray(estimated.normals)
-        if known is not None and known.any():  # keep the flat Gaussians' own where averaged in
-            own = np.asarray(down.normals)
-            norm = np.linalg.norm(own, axis=1)
-            mask = norm > 0.5
-            normals[mask] = own[mask] / norm[mask, None]
-        down.normals = o3d.utility.Vector3dVector(normals)
-    pts, normals = np.asarray(down.points), np.asarray(down.normals)
-    if cloud.viewpoints is not None and len(cloud.viewpoints):
-        from scipy.spatial import cKDTree
+GLOBAL_STEP = "the global step of an alignment (used without --init)"
 
-        _, i = cKDTree(cloud.viewpoints).query(pts)
-        towards = cloud.viewpoints[i] - pts
-    else:
-        towards = pts.mean(axis=0) - pts
-    flip = np.einsum("ij,ij->i", normals, towards) < 0
-    normals[flip] *= -1.0
-    down.normals = o3d.utility.Vector3dVector(normals)
-    return down
+FINE_STAGES: Stages = ((1.0, 30), (0.5, 30))
+"""The local step's ICP on the half-voxel grid: pairs within one voxel, then within half of one."""
+
+COARSE_STAGES: Stages = ((1.5, 20),)
+"""The point-to-plane ICP that settles each hypothesis of the global step on its grid."""
 
 
 def _fpfh(pcd: Any, voxel: float) -> Any:
-    o3d = _o3d()
+    o3d = open3d_module(GLOBAL_STEP)
     return o3d.pipelines.registration.compute_fpfh_feature(
         pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100)
     )
-
-
-def _local(
-    source: Any, target: Any, T: np.ndarray, voxel: float,
-    stages: tuple[tuple[float, int], ...], colored: bool,
-) -> np.ndarray:  # fmt: skip
-    """ICP from `T`, stage by stage (correspondence distance in voxels, iterations)."""
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
-    for scale, iters in stages:
-        criteria = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
-                                              max_iteration=iters)  # fmt: skip
-        if colored:
-            try:
-                result = reg.registration_colored_icp(
-                    source, target, scale * voxel, T,
-                    reg.TransformationEstimationForColoredICP(lambda_geometric=0.968), criteria,
-                )  # fmt: skip
-            except RuntimeError as exc:  # (Open3D's coloured ICP raises where others return 0)
-                if "No correspondences" not in str(exc):
-                    raise
-                break
-        else:
-            result = reg.registration_icp(
-                source, target, scale * voxel, T,
-                reg.TransformationEstimationPointToPlane(), criteria,
-            )  # fmt: skip
-        if result.fitness > 0:
-            T = np.asarray(result.transformation)
-    return T
 
 
 def points_fit(
@@ -395,7 +310,8 @@ def align_clouds(
     Raises:
         AlignmentError: the result cannot be trusted (`refused` says why, in one line; the
             alignment with its figures is the exception's `alignment`).
-        MissingDependencyError: Open3D is not installed.
+        MissingDependencyError: Open3D is not installed and the global step (no `init`) or
+            `options.icp` "open3d" needs it.
     """
     o = options or AlignOptions()
     o.check()
@@ -409,7 +325,8 @@ def refine_alignment(
     source: Cloud, target: Cloud, T_target_source: np.ndarray, options: AlignOptions | None = None
 ) -> Alignment:
     """The local step alone: `T_target_source` refined by ICP, with its figures (never
-    refused: `refused` says what would be wrong, for the caller to judge)."""
+    refused: `refused` says what would be wrong, for the caller to judge). With the builtin
+    ICP (the default) it needs no optional dependency."""
     o = options or AlignOptions()
     o.check()
     return _align(source, target, o, np.asarray(T_target_source, dtype=np.float64))
@@ -418,8 +335,6 @@ def refine_alignment(
 def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | None) -> Alignment:
     from scipy.spatial import cKDTree
 
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
     started = time.perf_counter()
     for name, cloud in (("source", source), ("target", target)):
         if len(cloud.points) < MIN_POINTS:
@@ -428,83 +343,131 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
                 f"least {MIN_POINTS}"
             )
     voxel = o.voxel or auto_voxel(source, target)
-    fine = voxel / 2.0
-    src_fine, tgt_fine = _to_o3d(source, fine), _to_o3d(target, fine)
-    src_pts, tgt_pts = np.asarray(src_fine.points), np.asarray(tgt_fine.points)
-    src_tree, tgt_tree = cKDTree(src_pts), cKDTree(tgt_pts)
-    tgt_normals = np.asarray(tgt_fine.normals)
-    src_colors, tgt_colors = np.asarray(src_fine.colors), np.asarray(tgt_fine.colors)
-
-    hypotheses: list[tuple[np.ndarray, float]] = []  # (transform, agreement)
-    inliers: int | None = None
-    inlier_ratio: float | None = None
-    if init is None:
-        src_down, tgt_down = _to_o3d(source, voxel), _to_o3d(target, voxel)
-        down_pts = np.asarray(src_down.points)
-
-        def coarse(T: np.ndarray) -> tuple[np.ndarray, float]:
-            T = _local(src_down, tgt_down, T, voxel, ((1.5, 20),), colored=False)
-            return T, _agreement(src_pts, src_colors, tgt_tree, tgt_colors, T, voxel / 2.0)
-
-        f_src, f_tgt = _fpfh(src_down, voxel), _fpfh(tgt_down, voxel)
-        matches = reg.correspondences_from_features(f_src, f_tgt, True)  # (mutual nearest)
-        if len(matches) < 3:
-            raise AlignmentError("no transform found: the maps' features have nothing in common")
-        fgr = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=1.5 * voxel)
-        found = [reg.registration_fgr_based_on_correspondence(src_down, tgt_down, matches, fgr)]
-        checkers = [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-            reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
-        ]
-        for run in range(o.ransac_runs):
-            o3d.utility.random.seed(o.seed + run)
-            found.append(reg.registration_ransac_based_on_correspondence(
-                src_down, tgt_down, matches, 1.5 * voxel,
-                reg.TransformationEstimationPointToPoint(False), 3, checkers,
-                reg.RANSACConvergenceCriteria(o.ransac_iterations, 0.9999),
-            ))  # fmt: skip
-        hypotheses = [coarse(np.asarray(f.transformation)) for f in found]
-        best = max(hypotheses, key=lambda h: h[1])
-        hypotheses += [coarse(best[0] @ P) for P in _probes(down_pts)]
-        best = max(hypotheses, key=lambda h: h[1])
-        rivals = [h[1] for h in hypotheses if _distinct(h[0], best[0], down_pts.mean(0), o, voxel)]
-        ambiguity = max(rivals) / best[1] if rivals and best[1] > 0 else 0.0
-        T = best[0]
-    else:
-        T, ambiguity = np.asarray(init, dtype=np.float64), 0.0
-    T = _local(src_fine, tgt_fine, T, voxel, ((1.0, 30), (0.5, 30)), o.colored)
-    if init is None:  # the feature matches that agree with the result
-        pairs = np.asarray(matches)
-        moved = transform_points(T, down_pts[pairs[:, 0]])
-        err = np.linalg.norm(moved - np.asarray(tgt_down.points)[pairs[:, 1]], axis=1)
-        inliers = int(np.sum(err < 1.5 * voxel))
-        inlier_ratio = inliers / len(pairs)
-    fit, _ = points_fit(src_pts, tgt_tree, T, voxel)
+    src_fine, tgt_fine = grid_cloud(source, voxel / 2.0), grid_cloud(target, voxel / 2.0)
+    tgt_tree = cKDTree(tgt_fine.points)
+    found = None if init is None else _Hypotheses(np.asarray(init, dtype=np.float64))
+    if found is None:
+        found = _global_step(source, target, src_fine, tgt_fine, tgt_tree, voxel, o)
+    T = local_icp(src_fine, tgt_fine, found.T, voxel, FINE_STAGES, o.colored, o.icp)
+    inliers, inlier_ratio = found.inliers(T, voxel)
+    fit, _ = points_fit(src_fine.points, tgt_tree, T, voxel)
     _, rms = points_fit(source.points, cKDTree(target.points), T, voxel)  # (every Gaussian)
-    tgt_fit, _ = points_fit(tgt_pts, src_tree, np.linalg.inv(T), voxel)
-    overlap = max(fit, tgt_fit)
-    conditioning = _conditioning(src_pts, tgt_pts, tgt_normals, tgt_tree, T, voxel)
+    tgt_fit, _ = points_fit(tgt_fine.points, cKDTree(src_fine.points), np.linalg.inv(T), voxel)
+    assert tgt_fine.normals is not None
+    conditioning = _conditioning(src_fine.points, tgt_fine.points, tgt_fine.normals, tgt_tree, T,
+                                 voxel)  # fmt: skip
     alignment = Alignment(
         T_target_source=T,
-        overlap=overlap,
+        overlap=max(fit, tgt_fit),
         source_overlap=fit,
         target_overlap=tgt_fit,
         residual=rms,
         inliers=inliers,
         inlier_ratio=inlier_ratio,
-        ambiguity=ambiguity,
+        ambiguity=found.ambiguity,
         conditioning=conditioning,
         voxel=voxel,
         global_step="ransac-fpfh" if init is None else "init",
-        hypotheses=[h[1] for h in hypotheses],
+        icp=o.icp,
+        hypotheses=found.agreements,
     )
     alignment.refused = refusal(alignment, o)
     alignment.seconds = time.perf_counter() - started
     log.debug(
         "aligned: overlap %.3f, residual %.4f m, inliers %s, ambiguity %.3f, conditioning %.4f, "
-        "%.2f s", overlap, rms, inliers, ambiguity, conditioning, alignment.seconds,
+        "%.2f s", alignment.overlap, rms, inliers, found.ambiguity, conditioning,
+        alignment.seconds,
     )  # fmt: skip
     return alignment
+
+
+@dataclass
+class _Hypotheses:
+    """Where the local step starts: the global step's best transform, how well its distinct
+    rivals fit (`ambiguity`), every hypothesis's agreement, and the feature matches (source
+    and target points, [K, 3] each); an initial guess alone has none of these."""
+
+    T: np.ndarray
+    ambiguity: float = 0.0
+    agreements: list[float] = field(default_factory=list)
+    matches: tuple[np.ndarray, np.ndarray] | None = None
+
+    def inliers(self, T: np.ndarray, voxel: float) -> tuple[int | None, float | None]:
+        """The feature matches that `T` brings within 1.5 voxels, and their fraction."""
+        if self.matches is None:
+            return None, None
+        src, tgt = self.matches
+        err = np.linalg.norm(transform_points(T, src) - tgt, axis=1)
+        inliers = int(np.sum(err < 1.5 * voxel))
+        return inliers, inliers / len(src)
+
+
+def _open3d_grid(cloud: Cloud, voxel: float) -> Cloud:
+    """`cloud` on a `voxel` grid as Open3D draws it (`voxel_down_sample`, `estimate_normals`),
+    normals as `grid_cloud` keeps and turns them. The global step works on this grid rather than
+    `grid_cloud`'s: its FPFH bins and RANSAC's samples follow the last digits of the normals and
+    the order of the cells, and on Open3D's grid it finds what docs/align.md measured."""
+    o3d = open3d_module(GLOBAL_STEP)
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(cloud.points)
+    pcd.colors = o3d.utility.Vector3dVector(cloud.colors)
+    if cloud.normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(cloud.normals)
+    down = pcd.voxel_down_sample(voxel)
+    estimated = o3d.geometry.PointCloud(down)
+    estimated.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
+    known = None if cloud.normals is None else np.asarray(down.normals)
+    return gridded(np.asarray(down.points), np.asarray(down.colors),
+                   np.asarray(estimated.normals), known, cloud.viewpoints)  # fmt: skip
+
+
+def _global_step(
+    source: Cloud, target: Cloud, src_fine: Cloud, tgt_fine: Cloud, tgt_tree: Any, voxel: float,
+    o: AlignOptions,
+) -> _Hypotheses:  # fmt: skip
+    """Hypotheses without an initial guess (FPFH matches under Fast Global Registration and
+    RANSAC, then the best one turned about its principal axes), each settled by point-to-plane
+    ICP on the `voxel` grid and scored by its agreement on the fine grids. Needs Open3D."""
+    o3d = open3d_module(GLOBAL_STEP)
+    reg = o3d.pipelines.registration
+    src_down, tgt_down = _open3d_grid(source, voxel), _open3d_grid(target, voxel)
+    src_o3d, tgt_o3d = to_open3d(src_down), to_open3d(tgt_down)
+
+    def settled(T: np.ndarray) -> tuple[np.ndarray, float]:
+        T = local_icp(src_down, tgt_down, T, voxel, COARSE_STAGES, colored=False, icp=o.icp)
+        return T, _agreement(src_fine.points, src_fine.colors, tgt_tree, tgt_fine.colors, T,
+                             voxel / 2.0)  # fmt: skip
+
+    f_src, f_tgt = _fpfh(src_o3d, voxel), _fpfh(tgt_o3d, voxel)
+    matches = np.asarray(reg.correspondences_from_features(f_src, f_tgt, True))  # (mutual)
+    if len(matches) < 3:
+        raise AlignmentError("no transform found: the maps' features have nothing in common")
+    pairs = o3d.utility.Vector2iVector(matches)
+    fgr = reg.FastGlobalRegistrationOption(maximum_correspondence_distance=1.5 * voxel)
+    found = [reg.registration_fgr_based_on_correspondence(src_o3d, tgt_o3d, pairs, fgr)]
+    checkers = [
+        reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+        reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
+    ]
+    for run in range(o.ransac_runs):
+        o3d.utility.random.seed(o.seed + run)
+        found.append(reg.registration_ransac_based_on_correspondence(
+            src_o3d, tgt_o3d, pairs, 1.5 * voxel,
+            reg.TransformationEstimationPointToPoint(False), 3, checkers,
+            reg.RANSACConvergenceCriteria(o.ransac_iterations, 0.9999),
+        ))  # fmt: skip
+    hypotheses = [settled(np.asarray(f.transformation)) for f in found]
+    best = max(hypotheses, key=lambda h: h[1])
+    hypotheses += [settled(best[0] @ P) for P in _probes(src_down.points)]
+    best = max(hypotheses, key=lambda h: h[1])
+    centroid = src_down.points.mean(axis=0)
+    rivals = [h[1] for h in hypotheses if _distinct(h[0], best[0], centroid, o, voxel)]
+    return _Hypotheses(
+        T=best[0],
+        ambiguity=max(rivals) / best[1] if rivals and best[1] > 0 else 0.0,
+        agreements=[h[1] for h in hypotheses],
+        matches=(src_down.points[matches[:, 0]], tgt_down.points[matches[:, 1]]),
+    )
 
 
 def refusal(a: Alignment, o: AlignOptions) -> str:

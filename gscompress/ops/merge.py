@@ -29,6 +29,7 @@ from gscompress.camera import (
 )
 from gscompress.errors import MapError, MissingDependencyError, OptionError
 from gscompress.gaussians import GaussianMap
+from gscompress.ops.icp import DEFAULT_ICP, ICP
 
 MAX_ID = np.iinfo(np.uint32).max
 
@@ -117,6 +118,8 @@ class MergeOptions:
     Attributes:
         align: move the share by a local rigid refinement onto the receiver where their
             surfaces overlap (`align_share`) before merging.
+        icp: the alignment's ICP (`gscompress.ops.icp.ICP`): "builtin", coloured ICP in numpy
+            that needs no extra, or "open3d", Open3D's (the `[align]` extra).
         resolve: where both maps hold the same surface (a voxel of edge `voxel` with
             Gaussians of both): keep only the Gaussians of the map with more evidence there
             ("evidence", `resolve_overlap`), always the receiver's or always the share's; or
@@ -142,6 +145,7 @@ class MergeOptions:
     """
 
     align: bool = True
+    icp: str = DEFAULT_ICP
     resolve: str = "evidence"
     voxel: float = 0.04
     margin: float = 2.0
@@ -151,6 +155,8 @@ class MergeOptions:
 
     def check(self) -> None:
         """Raise OptionError for a setting out of range."""
+        if self.icp not in ICP:
+            raise OptionError(f"--icp is one of {', '.join(ICP)}, got {self.icp!r}")
         if self.resolve not in RESOLVE:
             raise OptionError(f"--resolve is one of {', '.join(RESOLVE)}, got {self.resolve!r}")
         if not (math.isfinite(self.voxel) and self.voxel > 0):
@@ -190,15 +196,17 @@ def align_share(
     share: GaussianMap,
     max_distance: float = 0.05,
     min_pairs: int = 50,
+    icp: str = DEFAULT_ICP,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """A local rigid refinement of the share onto the receiver where their surfaces overlap.
 
     Two agents anchored in one world frame still sit centimetres apart (each map agrees with
     its own trajectory). The step is `gsc align`'s local one, `gscompress.ops.align.
-    refine_alignment` (Open3D's coloured ICP from the identity, on the opaque Gaussians'
-    centres and colours, correspondences within `max_distance` and then half of it): one piece
-    of code serves both. With fewer than `min_pairs` of the share's opaque centres within
-    `max_distance` of the receiver's (maps that hardly overlap), the identity is returned.
+    refine_alignment` (coloured ICP from the identity, on the opaque Gaussians' centres and
+    colours, correspondences within `max_distance` and then half of it, by the implementation
+    `icp`): one piece of code serves both. With fewer than `min_pairs` of the share's opaque
+    centres within `max_distance` of the receiver's (maps that hardly overlap), the identity is
+    returned.
 
     Returns:
         T_receiver_share [4, 4] and {"align_kept", "align_pairs", "align_rmse_before_cm",
@@ -208,7 +216,8 @@ def align_share(
         centres closer to the receiver's (`fit_cost`); else the identity, `align_kept` False.
 
     Raises:
-        MissingDependencyError: Open3D is not installed (`pip install 'gscompress[align]'`).
+        MissingDependencyError: `icp` "open3d" without Open3D (`pip install
+            'gscompress[align]'`).
     """
     from scipy.spatial import cKDTree
 
@@ -226,7 +235,8 @@ def align_share(
     before = points_fit(src.points, tree, np.eye(4), max_distance)
     if round(before[0] * n) < min_pairs:
         return np.eye(4), stats
-    T = refine_alignment(src, dst, np.eye(4), AlignOptions(voxel=max_distance)).T_target_source
+    options = AlignOptions(voxel=max_distance, icp=icp)
+    T = refine_alignment(src, dst, np.eye(4), options).T_target_source
     after = points_fit(src.points, tree, T, max_distance)
     kept = fit_cost(*after, max_distance) < fit_cost(*before, max_distance)
     if not kept:  # (the step slid or turned the share off the receiver: left where it was)
@@ -342,7 +352,7 @@ def combine(
     stats: dict[str, Any] = {}
     if options.align and len(receiver) and len(share) and share.sh_degree == 0:
         try:
-            T, found = align_share(receiver, share, max_distance=options.voxel)
+            T, found = align_share(receiver, share, max_distance=options.voxel, icp=options.icp)
         except MissingDependencyError as exc:
             raise MissingDependencyError(f"{exc}; or merge without aligning (--no-align)") from None
         stats.update(found)
