@@ -62,6 +62,23 @@ class DivergenceError(GscError):
         self.detail = detail
 
 
+class TrackingLostError(GscError):
+    """A frame whose track was lost and that no re-localisation guess recovered.
+
+    Attributes:
+        frame: the frame's index in the sequence.
+        timestamp: its stamp, seconds.
+        reason: why the track was judged lost.
+    """
+
+    def __init__(self, frame: int, timestamp: float, reason: str, advice: str = "") -> None:
+        super().__init__(
+            f"tracking lost at frame {frame} (stamp {timestamp:.3f} s): {reason}, and no "
+            f"re-localisation guess recovered it{'; ' if advice else ''}{advice}"
+        )
+        self.frame, self.timestamp, self.reason = frame, timestamp, reason
+
+
 class MissingDependencyError(GscError):
     """An optional dependency that the requested feature needs is not installed."""
 

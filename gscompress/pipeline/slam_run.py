@@ -27,6 +27,7 @@ from gscompress.errors import (
     LogFormatError,
     OptionError,
     OutputError,
+    TrackingLostError,
 )
 from gscompress.io.codec import check_codec
 from gscompress.io.decode_budget import DecodeBudget
@@ -281,7 +282,9 @@ def _fresh_run(
             "--resume, or pass --force to start afresh (which removes it)"
         )
     sequence = _open(seq, sequence, config, frames, recording)
-    system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
+    system = SlamSystem(
+        config, sequence.intrinsics, device, total_frames=len(sequence), frames=sequence.frame
+    )
     meta = LogMetadata(
         config=config.to_dict(),
         sequence=sequence.name,
@@ -392,7 +395,9 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         carried = [r for r in carried if r[2] is not last[2]]  # rewritten at the real end
         restart_map = last  # (or put back, if this run ends without a map of its own)
 
-    system = SlamSystem(config, sequence.intrinsics, device, total_frames=len(sequence))
+    system = SlamSystem(
+        config, sequence.intrinsics, device, total_frames=len(sequence), frames=sequence.frame
+    )
     run = _Run(config, sequence, system, meta, [seq] if seq is not None else [], start=done)
     run.carried, run.leftovers = carried, leftovers
     run.map_frames, run.restart_map = done, restart_map
@@ -663,6 +668,7 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
                 raise  # nothing done: no log is better than an empty one
             failure = exc
+            whole = whole or isinstance(exc, TrackingLostError)  # (lost before it changed the map)
         finally:
             system.stop_requested = None
         done = len(system.poses)
@@ -696,6 +702,8 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             meta.results["resumed_at"] = run.start
         if failure is not None and not isinstance(failure, KeyboardInterrupt):
             meta.results["error"] = f"{type(failure).__name__}: {failure}"
+        if isinstance(failure, TrackingLostError):
+            meta.results["lost_at"] = {"frame": failure.frame, "timestamp": failure.timestamp}
         if len(run.gt_poses) >= 2:
             estimated = system.refined_poses() if whole else run.est_poses
             meta.results["ate_rmse_cm"] = ate_rmse_cm(
@@ -708,7 +716,14 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
     for leftover in run.leftovers:
         leftover.unlink(missing_ok=True)
     if failure is not None:
-        if isinstance(failure, RECURRING):
+        if isinstance(failure, TrackingLostError):  # (one line: what the log holds, what next)
+            failure = TrackingLostError(
+                failure.frame, failure.timestamp, failure.reason,
+                f"{dst} holds the {done} frame(s) before it; to go on, map from there as a second "
+                f"agent (gsc slam SEQ --frames {failure.frame}: -o next.mcap) and register the "
+                f"two with gsc align next.mcap {dst}",
+            )  # fmt: skip
+        elif isinstance(failure, RECURRING):
             log.warning(
                 "%s holds the %d frame(s) done before the error; a resume would meet it again: "
                 "run afresh with the settings changed (--force replaces the log)",

@@ -66,6 +66,15 @@ class TrackingConfig:
         rho: target ratio w_depth / w_im of the balance term.
         constant_velocity: start from the constant-velocity guess (else the previous pose).
         use_ground_truth: skip tracking and use ground-truth poses (mapping-only runs).
+        lost_factor: the track is lost when a frame's depth error after tracking exceeds this
+            many times its running level (the median of the last 10 accepted frames'); 0: never
+            on that ground (`gscompress.slam.lost`).
+        lost_coverage: ... or when less than this fraction of the frame's valid depth pixels
+            lies on the map (passes the silhouette mask).
+        max_gap: ... or when the frame's stamp is more than this many seconds after the
+            previous frame's (0: no limit). A lost frame is tracked again from several guesses
+            (the velocity guess extrapolated over the gap, the previous pose, the latest
+            keyframes' poses); the run stops with `TrackingLostError` when none is accepted.
     """
 
     iters: int = 40
@@ -80,6 +89,9 @@ class TrackingConfig:
     rho: float = 1.0
     constant_velocity: bool = True
     use_ground_truth: bool = False
+    lost_factor: float = 3.0
+    lost_coverage: float = 0.02
+    max_gap: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -479,6 +491,10 @@ def check_config(config: SlamConfig) -> None:
         f"learning rates must be at most {MAX_LEARNING_RATE:g}",
     )
     need(0.0 <= t.silhouette_min < 1.0, "tracking.silhouette_min must be in [0, 1)")
+    need(
+        t.lost_factor >= 0 and t.max_gap >= 0 and 0.0 <= t.lost_coverage <= 1.0,
+        "tracking.lost_factor and max_gap must be >= 0, tracking.lost_coverage in [0, 1]",
+    )
     need(0.0 <= m.ssim_weight <= 1.0, "mapping.ssim_weight must be in [0, 1]")
     need(m.illum_tau >= 0 and m.illum_edge_sigma > 0, "illum_tau >= 0 and illum_edge_sigma > 0")
     need(0.0 <= m.current_frame_share <= 1.0, "mapping.current_frame_share must be in [0, 1]")
@@ -542,7 +558,16 @@ PRESETS: dict[str, SlamConfig] = {
     ),
     "tiny": SlamConfig(
         preset="tiny",
-        tracking=TrackingConfig(iters=8, lr_rotation=1e-3, lr_translation=2e-3),
+        # (no lost-track detection: its coarse maps' coverage falls to a few per cent after
+        # a pruning stage, and 8 iterations leave its depth error too noisy to judge by)
+        tracking=TrackingConfig(
+            iters=8,
+            lr_rotation=1e-3,
+            lr_translation=2e-3,
+            lost_factor=0.0,
+            lost_coverage=0.0,
+            max_gap=0.0,
+        ),
         mapping=MappingConfig(iters=6, first_frame_iters=15, lr_means=2e-4),
         keyframes=KeyframeConfig(every=2, window=3, overlap_samples=200),
         densify=DensifyConfig(stride=1),

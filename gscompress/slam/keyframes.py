@@ -11,6 +11,7 @@ occlusion test, as in SplaTAM). The most recent keyframe is always in the window
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -41,6 +42,8 @@ class View:
         T_world_cam: [4, 4] float64 camera-to-world pose estimate (refined in place of the
             tracked one when `pose` is set and the mapping steps it).
         pose: the pose's refinement state, when the mapping may refine it (None: fixed).
+        source: where its colour and depth can be read again (None: they stay in memory);
+            with one, `release` drops them and `load` reads them back.
     """
 
     index: int
@@ -49,6 +52,9 @@ class View:
     T_world_cam: np.ndarray
     _edges: dict[float, torch.Tensor] = field(default_factory=dict, repr=False, compare=False)
     pose: PoseVariable | None = field(default=None, repr=False, compare=False)
+    source: Callable[[], tuple[torch.Tensor, torch.Tensor]] | None = field(
+        default=None, repr=False, compare=False
+    )
 
     @classmethod
     def from_frame(cls, index: int, frame: Any, T_world_cam: np.ndarray, device: Any) -> View:
@@ -61,6 +67,19 @@ class View:
         if sigma not in self._edges:
             self._edges[sigma] = depth_edges(self.depth, sigma)
         return self._edges[sigma]
+
+    def release(self) -> None:
+        """Drop the colour, depth and edges of a view that has a `source` (kept otherwise)."""
+        if self.source is not None:
+            self.color, self.depth = self.color.new_empty(0), self.depth.new_empty(0)
+            self._edges.clear()
+
+    def load(self) -> View:
+        """This view with its colour and depth in memory (read again from `source` when
+        released)."""
+        if self.source is not None and self.color.numel() == 0:
+            self.color, self.depth = self.source()
+        return self
 
     def refinable(self, lr: np.ndarray) -> View:
         """This view with its pose open to refinement at Adam rates `lr` [6] (kept if open)."""

@@ -186,7 +186,9 @@ class Mapper:
                     order = [int(i) for i in rng.permutation(len(views))]
                 for group, lr in zip(self.optimizer.param_groups, base, strict=True):
                     group["lr"] = lr * gamma**k
-                self._step(views[order.pop()], stats, gamma**k if poses else None)
+                view = views[order.pop()].load()
+                self._step(view, stats, gamma**k if poses else None)
+                view.release()
                 if on_step is not None:
                     on_step(stats.last_loss)
         finally:  # the per-frame mapping goes on at its own rates
@@ -202,7 +204,11 @@ class Mapper:
         """The mean mapping loss of the map over `views`, without a step (`gsc merge` reports
         it before and after its refinement, on the same views)."""
         with torch.no_grad():
-            return sum(float(self._terms(view).total) for view in views) / max(len(views), 1)
+            total = 0.0
+            for view in views:
+                total += float(self._terms(view.load()).total)
+                view.release()
+            return total / max(len(views), 1)
 
     def _terms(self, view: View, T_cam_world: torch.Tensor | None = None) -> LossTerms:
         """The mapping loss terms of the map on one view (at `T_cam_world`, default its pose)."""

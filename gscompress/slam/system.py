@@ -45,7 +45,7 @@ import torch
 
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.datasets.base import Frame
-from gscompress.errors import BudgetError, InputError, MapError
+from gscompress.errors import BudgetError, InputError, MapError, TrackingLostError
 from gscompress.gaussians import GaussianMap
 from gscompress.importance import median_range, resolve_sigma_d
 from gscompress.render import render, resolve_device
@@ -53,10 +53,17 @@ from gscompress.selection import keep_count, strategy_scores, top_k
 from gscompress.slam.config import MappingConfig, SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, frame_tensors, is_keyframe, select_window
+from gscompress.slam.lost import (
+    TrackLevel,
+    coverage_reason,
+    gap_reason,
+    lost_reason,
+    relocalisation_guesses,
+)
 from gscompress.slam.mapper import Mapper, MappingStats
 from gscompress.slam.params import RenderInputs
 from gscompress.slam.poses import orthonormalize
-from gscompress.slam.tracker import TrackResult, constant_velocity, track
+from gscompress.slam.tracker import TrackResult, constant_velocity, track, velocity_guess
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +137,9 @@ class FrameResult:
         if self.tracking is not None:
             record["loss_tracking"] = self.tracking.loss
             record["loss_tracking_initial"] = self.tracking.first_loss
+            record["tracking_depth_error"] = self.tracking.depth
+            if self.tracking.relocalised:
+                record["relocalised"] = True
         if np.isfinite(self.psnr):
             record["psnr"] = self.psnr
         if self.event:
@@ -164,6 +174,10 @@ class SlamSystem:
         device: torch device (or "auto").
         total_frames: frames the run will have; needed to place the PWAS pruning stages
             (None: no stage-wise pruning).
+        frames: the run's frame at a processing position (`RGBDSequence.frame`), read again
+            when needed: with it the views kept for the final refinement that are not
+            keyframes hold no images between its visits (`View.source`), so that what the run
+            keeps per frame does not grow with the frames' size (None: they stay in memory).
 
     Example:
         system = SlamSystem(preset("tiny"), sequence.intrinsics, total_frames=len(sequence))
@@ -179,8 +193,10 @@ class SlamSystem:
         device: str | torch.device = "cpu",
         *,
         total_frames: int | None = None,
+        frames: Callable[[int], Frame] | None = None,
     ) -> None:
         self.config = config
+        self.frames = frames
         self.intrinsics = intrinsics
         self.device = resolve_device(device, config.backend)
         self.mapper = Mapper(config, intrinsics, self.device)
@@ -197,6 +213,8 @@ class SlamSystem:
         """Gaussians with ids below this were received from another agent (`receive`)."""
         self.prestage: tuple[RenderInputs, int] | None = None
         """The map before the last stage and how many more frames track against it."""
+        self.track_level = TrackLevel()
+        """The running level of the tracked frames' depth errors (lost-track detection)."""
         self.stages = (
             stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
         )
@@ -261,6 +279,15 @@ class SlamSystem:
                 view.T_world_cam = self._refined_pose(position, views)
                 view.pose = None
                 view.refinable(self._pose_rates)
+
+    def _readable(self, view: View, keyframe: bool) -> View:
+        """`view` with its `source` set when the run can read its frame again and it is not a
+        keyframe (the mapping window needs the keyframes' images at every frame)."""
+        frames, device = self.frames, self.device
+        if frames is not None and not keyframe and view.index >= 0:
+            position = view.index
+            view.source = lambda: frame_tensors(frames(position), device)
+        return view
 
     @property
     def keeps_every_view(self) -> bool:
@@ -359,7 +386,13 @@ class SlamSystem:
         if self.config.poses.enabled:
             views = [v.refinable(self._pose_rates) if v.index > 0 else v for v in views]
         self.keyframes = [v for v in views if is_keyframe(v.index, self.config.keyframes)]
-        self.views = list(views) if self.keeps_every_view else []
+        self.views = []
+        if self.keeps_every_view:
+            for view in views:
+                self.views.append(
+                    self._readable(view, is_keyframe(view.index, self.config.keyframes))
+                )
+                view.release()
         self.mapper.iterations = int(mapping_iterations)
         self.next_id = max(self.next_id, int(next_id))
         self.own_ids_from = int(own_ids_from)
@@ -409,7 +442,7 @@ class SlamSystem:
         if keyframe:
             self.keyframes.append(current)
         if self.keeps_every_view:
-            self.views.append(current)
+            self.views.append(self._readable(current, keyframe))
         ms["mapping"] = 1e3 * (time.perf_counter() - clock)
 
         clock = time.perf_counter()
@@ -437,6 +470,7 @@ class SlamSystem:
             added += refinement.added
         ms["refinement"] = 1e3 * (time.perf_counter() - clock)
         ms["total"] = 1e3 * (time.perf_counter() - start)
+        current.release()  # (a view that is not a keyframe: read again when refined)
 
         self.poses.append(T_world_cam)
         self.frame_indices.append(frame.index)
@@ -511,18 +545,64 @@ class SlamSystem:
                 )
             return np.asarray(gt, dtype=np.float64), None
         guess = self.poses[-1]
-        if self.config.tracking.constant_velocity:
-            guess = constant_velocity(self.poses[-1], self.poses[-2] if position > 1 else None)
+        if self.config.tracking.constant_velocity and position > 1:
+            dt_prev = self.timestamps[-1] - self.timestamps[-2]
+            dt = frame.timestamp - self.timestamps[-1]
+            guess = velocity_guess(self.poses[-1], self.poses[-2], dt_prev, dt)
+        elif self.config.tracking.constant_velocity:
+            guess = constant_velocity(self.poses[-1], None)
         if self.prestage is not None:  # the map as it stood before the last stage
             inputs, left = self.prestage
             self.prestage = (inputs, left - 1) if left > 1 else None
         else:
             inputs = self.mapper.params.render_inputs()
-        result = track(
+        valid = int((depth > 0).sum())
+        reason = gap_reason(frame.timestamp - self.timestamps[-1], self.config.tracking)
+        if reason is None:
+            result = self._track(inputs, color, depth, guess)
+            reason = lost_reason(result, valid, self.track_level.level(), self.config.tracking)
+        if reason is not None:
+            result = self._relocalise(frame, inputs, color, depth, valid, reason)
+        self.track_level.add(result)
+        return result.T_world_cam, result
+
+    def _track(
+        self, inputs: RenderInputs, color: torch.Tensor, depth: torch.Tensor, guess: np.ndarray
+    ) -> TrackResult:
+        return track(
             inputs, color, depth, self.intrinsics, guess, self.config.tracking,
             backend=self.config.backend,
         )  # fmt: skip
-        return result.T_world_cam, result
+
+    def _relocalise(
+        self,
+        frame: Frame,
+        inputs: RenderInputs,
+        color: torch.Tensor,
+        depth: torch.Tensor,
+        valid: int,
+        reason: str,
+    ) -> TrackResult:
+        """The frame tracked again from each re-localisation guess: the best accepted result,
+        else `TrackingLostError` (module `gscompress.slam.lost`)."""
+        config, level = self.config.tracking, self.track_level.level()
+        own = [v.T_world_cam for v in self.keyframes if v.index >= 0]
+        guesses = relocalisation_guesses(self.poses, self.timestamps, frame.timestamp, own)
+        best: tuple[float, str, TrackResult] | None = None
+        for name, guess in guesses:
+            result = self._track(inputs, color, depth, guess)
+            if coverage_reason(result, valid, config) is None and (
+                best is None or result.depth < best[0]
+            ):
+                best = (result.depth, name, result)
+        if best is None or lost_reason(best[2], valid, level, config) is not None:
+            raise TrackingLostError(frame.index, frame.timestamp, reason)
+        log.warning(
+            "frame %d (stamp %.3f s): tracking lost (%s); re-localised against the map from %s",
+            frame.index, frame.timestamp, reason, best[1],
+        )  # fmt: skip
+        best[2].relocalised = True
+        return best[2]
 
     def _init_scene_radius(self, depth: np.ndarray) -> None:
         """Scene radius (for the huge-Gaussian cleanup) and PWAS's sigma_d from the first valid

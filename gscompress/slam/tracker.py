@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.linalg import expm, logm
 
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.errors import DivergenceError
@@ -39,6 +40,10 @@ class TrackResult:
         first_loss: tracking loss at the initial guess.
         iters: iterations run (stops early when no pixel passes the mask).
         pixels: pixels in the tracking mask at the last iteration.
+        color: mean absolute colour error over the mask at the last iteration.
+        depth: mean absolute depth error (metres) over the mask at the last iteration.
+        relocalised: the frame's track was lost and this is its re-localisation
+            (`gscompress.slam.lost`).
     """
 
     T_world_cam: np.ndarray
@@ -46,6 +51,9 @@ class TrackResult:
     first_loss: float
     iters: int
     pixels: int
+    color: float = float("nan")
+    depth: float = float("nan")
+    relocalised: bool = False
 
 
 def constant_velocity(T_prev: np.ndarray, T_prev2: np.ndarray | None) -> np.ndarray:
@@ -54,6 +62,25 @@ def constant_velocity(T_prev: np.ndarray, T_prev2: np.ndarray | None) -> np.ndar
         return orthonormalize(T_prev)
     motion = invert_transform(T_prev2) @ T_prev  # camera t-2 -> camera t-1
     return orthonormalize(np.asarray(T_prev, dtype=np.float64) @ motion)
+
+
+DROPPED = 1.5
+"""Frame intervals that differ by more than this factor (a frame dropped, or the frame after a
+gap) scale the constant-velocity guess by their ratio; closer ones (stamp jitter) do not."""
+
+
+def velocity_guess(
+    T_prev: np.ndarray, T_prev2: np.ndarray, dt_prev: float, dt: float
+) -> np.ndarray:
+    """Camera-to-world guess for a frame `dt` seconds after T_prev, whose predecessor T_prev2 came
+    `dt_prev` seconds before it: the last relative motion repeated, scaled by dt / dt_prev on
+    SE(3) when the two intervals differ by more than `DROPPED` times."""
+    steps = dt / dt_prev if dt_prev > 0 and dt > 0 else 1.0
+    if 1 / DROPPED <= steps <= DROPPED:
+        return constant_velocity(T_prev, T_prev2)
+    motion = invert_transform(T_prev2) @ T_prev
+    scaled = np.real(expm(steps * logm(motion)))
+    return orthonormalize(np.asarray(T_prev, dtype=np.float64) @ scaled)
 
 
 def track(
@@ -85,7 +112,7 @@ def track(
     x = np.zeros(6)  # (qx, qy, qz, tau)
     gamma = decay_per_step(config.lr_final_fraction, config.iters)
     adam = PoseAdam(np.repeat([config.lr_rotation, config.lr_translation], 3), gamma)
-    first_loss = last_loss = float("nan")
+    first_loss = last_loss = color_error = depth_error = float("nan")
     pixels = done = 0
     for _ in range(config.iters):
         T_cam_world = torch.tensor(
@@ -96,6 +123,7 @@ def track(
         if terms.pixels == 0:
             break
         last_loss, pixels = float(terms.total.detach()), terms.pixels
+        color_error, depth_error = terms.color, terms.depth
         if not math.isfinite(last_loss):
             raise DivergenceError("tracking", f"its loss became {last_loss}", TOO_HIGH)
         if done == 0:
@@ -115,4 +143,6 @@ def track(
         first_loss=first_loss,
         iters=done,
         pixels=pixels,
+        color=color_error,
+        depth=depth_error,
     )
