@@ -120,8 +120,9 @@ class MappingConfig:
         final_iters_per_frame: at most this many final iterations per frame of the run, so that
             a short run's refinement stays in proportion to it (0: no limit).
         final_views: what the final refinement runs on: "keyframes" (and the last frame) or
-            "frames" (every frame of the run; the run then keeps every frame's colour and
-            depth on its device until the end, 20 bytes a pixel with the depth edges).
+            "frames" (every frame of the run: a system given its `frames` reads each again when
+            the refinement visits it; otherwise it keeps every frame's colour and depth on its
+            device until the end, 20 bytes a pixel with the depth edges).
         final_lr_fraction: the final refinement's learning rates decay geometrically from the
             mapping ones to this fraction of them by its last iteration (1: constant).
     """
