@@ -8,7 +8,6 @@ import torch
 
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.slam.config import preset
-from gscompress.slam.keyframes import is_keyframe
 from gscompress.slam.system import SlamSystem
 
 
@@ -25,16 +24,29 @@ def run(frames: bool) -> SlamSystem:
 
 def test_views_read_again_give_the_run_kept_in_memory_bit_for_bit():
     kept, read = run(frames=False), run(frames=True)
-    every = kept.config.keyframes
     assert [v.index for v in read.views] == list(range(8))
-    for view in read.views:  # only the keyframes hold their images
-        assert (view.color.numel() > 0) == is_keyframe(view.index, every), view.index
-        assert (view.source is None) == is_keyframe(view.index, every)
+    assert all(v.source is not None for v in read.views)
+    # after the final refinement (which reads each view when it visits it) no image is held
+    assert [v.index for v in read.views if v.color.numel()] == []
     assert all(v.color.numel() > 0 for v in kept.views)
     a, b = kept.gaussian_map(), read.gaussian_map()
     assert np.array_equal(a.means, b.means) and np.array_equal(a.sh_dc, b.sh_dc)
     assert np.array_equal(a.opacity_logits, b.opacity_logits)
     assert all(np.array_equal(p, q) for p, q in zip(kept.poses, read.poses, strict=True))
+
+
+def test_only_the_keyframes_used_last_hold_their_images_while_the_run_goes_on():
+    seq = synthetic_sequence(12, (48, 36))
+    config = preset("cpu").with_overrides(**{"keyframes.every": 2, "keyframes.window": 2})
+    system = SlamSystem(config, seq.intrinsics, total_frames=None, frames=seq.frame)
+    held = []
+    for i in range(len(seq)):
+        system.process(seq.frame(i))
+        held.append([v.index for v in system.keyframes if v.color.numel()])
+    assert all(len(h) <= 3 for h in held), held  # the window's 2 and the newest
+    assert held[-1][-1] == 10 and len(system.keyframes) == 6
+    # the frames that are not keyframes hold nothing after their own frame
+    assert not system.views  # (no final refinement: none kept)
 
 
 def test_a_released_view_loads_what_it_held():

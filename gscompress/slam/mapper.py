@@ -186,9 +186,9 @@ class Mapper:
                     order = [int(i) for i in rng.permutation(len(views))]
                 for group, lr in zip(self.optimizer.param_groups, base, strict=True):
                     group["lr"] = lr * gamma**k
-                view = views[order.pop()].load()
+                view = views[order.pop()]
                 self._step(view, stats, gamma**k if poses else None)
-                view.release()
+                view.release()  # (a view that can be read again: the next visit reads it)
                 if on_step is not None:
                     on_step(stats.last_loss)
         finally:  # the per-frame mapping goes on at its own rates
@@ -206,12 +206,13 @@ class Mapper:
         with torch.no_grad():
             total = 0.0
             for view in views:
-                total += float(self._terms(view.load()).total)
+                total += float(self._terms(view).total)
                 view.release()
             return total / max(len(views), 1)
 
     def _terms(self, view: View, T_cam_world: torch.Tensor | None = None) -> LossTerms:
         """The mapping loss terms of the map on one view (at `T_cam_world`, default its pose)."""
+        view.load()
         T = view.T_cam_world() if T_cam_world is None else T_cam_world
         out = render(*self.params.render_inputs(), self.intrinsics, T, backend=self.config.backend)
         m = self.config.mapping

@@ -214,6 +214,8 @@ class SlamSystem:
         self.prestage: tuple[RenderInputs, int] | None = None
         """The map before the last stage and how many more frames track against it."""
         self.track_level = TrackLevel()
+        self._held: list[View] = []
+        """The keyframes whose images are kept, used last first (`_hold`)."""
         """The running level of the tracked frames' depth errors (lost-track detection)."""
         self.stages = (
             stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
@@ -280,14 +282,23 @@ class SlamSystem:
                 view.pose = None
                 view.refinable(self._pose_rates)
 
-    def _readable(self, view: View, keyframe: bool) -> View:
-        """`view` with its `source` set when the run can read its frame again and it is not a
-        keyframe (the mapping window needs the keyframes' images at every frame)."""
+    def _sourced(self, view: View) -> View:
+        """`view` with its `source` set when the run can read its frame again (`frames`)."""
         frames, device = self.frames, self.device
-        if frames is not None and not keyframe and view.index >= 0:
+        if frames is not None and view.index >= 0:
             position = view.index
             view.source = lambda: frame_tensors(frames(position), device)
         return view
+
+    def _hold(self, used: list[View]) -> None:
+        """Keep the images of the keyframes used last (as many as a mapping window holds, and
+        the newest), releasing those of the others: the window mostly draws on recent
+        keyframes, and one it draws on later is read again (`View.source`)."""
+        for view in used:
+            self._held = [view, *(v for v in self._held if v is not view)]
+        for view in self._held[self.config.keyframes.window + 1 :]:
+            view.release()
+        del self._held[self.config.keyframes.window + 1 :]
 
     @property
     def keeps_every_view(self) -> bool:
@@ -386,13 +397,10 @@ class SlamSystem:
         if self.config.poses.enabled:
             views = [v.refinable(self._pose_rates) if v.index > 0 else v for v in views]
         self.keyframes = [v for v in views if is_keyframe(v.index, self.config.keyframes)]
-        self.views = []
-        if self.keeps_every_view:
-            for view in views:
-                self.views.append(
-                    self._readable(view, is_keyframe(view.index, self.config.keyframes))
-                )
-                view.release()
+        self.views = list(views) if self.keeps_every_view else []
+        for view in views:
+            self._sourced(view).release()
+        self._hold(self.keyframes[-(self.config.keyframes.window + 1) :])
         self.mapper.iterations = int(mapping_iterations)
         self.next_id = max(self.next_id, int(next_id))
         self.own_ids_from = int(own_ids_from)
@@ -423,7 +431,7 @@ class SlamSystem:
         clock = time.perf_counter()
         T_world_cam, tracking = self._pose(frame, color, depth, position)
         ms["tracking"] = 1e3 * (time.perf_counter() - clock)
-        current = View(position, color, depth, T_world_cam)
+        current = self._sourced(View(position, color, depth, T_world_cam))
         keyframe = is_keyframe(position, self.config.keyframes)
         if position > 0 and self.config.poses.enabled and (keyframe or self.keeps_every_view):
             current.refinable(self._pose_rates)
@@ -442,7 +450,7 @@ class SlamSystem:
         if keyframe:
             self.keyframes.append(current)
         if self.keeps_every_view:
-            self.views.append(self._readable(current, keyframe))
+            self.views.append(current)
         ms["mapping"] = 1e3 * (time.perf_counter() - clock)
 
         clock = time.perf_counter()
@@ -470,7 +478,9 @@ class SlamSystem:
             added += refinement.added
         ms["refinement"] = 1e3 * (time.perf_counter() - clock)
         ms["total"] = 1e3 * (time.perf_counter() - start)
-        current.release()  # (a view that is not a keyframe: read again when refined)
+        self._hold([current, *window] if keyframe else window)
+        if not keyframe:
+            current.release()  # (read again if the final refinement visits it)
 
         self.poses.append(T_world_cam)
         self.frame_indices.append(frame.index)
@@ -622,6 +632,7 @@ class SlamSystem:
         least that mean absolute RGB error. A sparse share then does not stop the run from
         mapping, and where a dense one already shows the frame the run adds no second layer.
         """
+        current.load()
         settings = self.config.densify
         depth = current.depth.cpu().numpy()
         mask = depth > 0  # an empty map explains nothing
