@@ -205,3 +205,33 @@ def test_gsc_slam_stops_on_a_lost_track_in_one_line_with_a_log_of_the_frames_bef
             "timestamp": pytest.approx(FIRST / 30, abs=1e-6),
         }
         assert len(reader.read_trajectory().T_world_cam) == FIRST
+
+
+def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_had(
+    tmp_path, monkeypatch
+):
+    from gscompress.pipeline import slam_file
+
+    seq = write_synthetic_sequence(tmp_path / "room", 8, SIZE)
+    levels: dict[str, dict[int, float | None]] = {"whole": {}, "resumed": {}}
+    process, name = SlamSystem.process, ["whole"]
+
+    def recorded(self: SlamSystem, frame: Frame):  # type: ignore[no-untyped-def]
+        levels[name[0]][len(self.poses)] = self.track_level.level()
+        return process(self, frame)
+
+    monkeypatch.setattr(SlamSystem, "process", recorded)
+    run = {"preset": "cpu", "size": SIZE}
+    slam_file(seq, tmp_path / "whole.mcap", **run)
+
+    def stop_after_six(done, total, stats):  # type: ignore[no-untyped-def]
+        if done == 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        slam_file(seq, tmp_path / "cut.mcap", progress=stop_after_six, **run)
+    name[0] = "resumed"
+    slam_file(seq, tmp_path / "cut.mcap", resume=True)
+    first = min(levels["resumed"])
+    assert first == 6 and levels["whole"][6] is not None
+    assert levels["resumed"][6] == levels["whole"][6]

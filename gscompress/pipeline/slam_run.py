@@ -432,6 +432,8 @@ def _resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: 
         first_depth=views[0].depth.cpu().numpy(),  # position 0 is always a keyframe
         own_ids_from=_own_ids_from(meta.provenance),
     )
+    for frame_stats in stats:  # (the lost-track level as the interrupted run had it)
+        system.track_level.add_error(frame_stats.get("tracking_depth_error", float("nan")))
     if sequence.has_ground_truth:
         _, gt = sequence.ground_truth()
         run.gt_poses, run.est_poses = list(gt[:done]), list(poses)

@@ -45,8 +45,12 @@ class TrackLevel:
 
     def add(self, result: TrackResult) -> None:
         """Count an accepted frame's track."""
-        if np.isfinite(result.depth):
-            self.errors.append(result.depth)
+        self.add_error(result.depth)
+
+    def add_error(self, depth_error: float) -> None:
+        """Count an accepted frame's depth error (a resumed run's, from its log's statistics)."""
+        if np.isfinite(depth_error):
+            self.errors.append(float(depth_error))
 
     def level(self) -> float | None:
         """The median depth error of the latest accepted frames (None until enough)."""
