@@ -216,13 +216,6 @@ def _message_types() -> tuple[type[Message], type[Message]]:
 CompactGaussians, CompactColumn = _message_types()
 
 
-def compact_schema_bytes() -> bytes:
-    """The serialized FileDescriptorSet of CompactGaussians (the schema record of a log)."""
-    fds = descriptor_pb2.FileDescriptorSet()
-    CompactGaussians.DESCRIPTOR.file.CopyToProto(fds.file.add())
-    return fds.SerializeToString()
-
-
 # ---------------------------------------------------------------------- columns
 
 
