@@ -31,6 +31,9 @@ from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline import evaluate_log, share_log, slam_file
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 LAYOUT = Path(__file__).resolve().parent.parent / "examples" / "foxglove_layout.json"
 
 

@@ -17,6 +17,9 @@ from gscompress.pipeline.images import IMPORTANCE_CMAP, colormap, importance_col
 from gscompress.selection import strategy_scores
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 def gsc(*args):
     return CliRunner().invoke(cli, [str(a) for a in args])

@@ -26,6 +26,9 @@ from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pose_messa
 from gscompress.pipeline import evaluate_log, merge_logs, share_log, slam_file
 from gscompress.pipeline.refine import carried_keyframes
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 CAMERA = Intrinsics(40.0, 40.0, 16.0, 12.0, 32, 24)
 
 

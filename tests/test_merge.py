@@ -23,6 +23,9 @@ from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
 from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 STACK = EXACT
 
 

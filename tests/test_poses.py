@@ -22,6 +22,9 @@ from gscompress.slam.config import preset
 from gscompress.slam.keyframes import View
 from gscompress.slam.system import SlamSystem
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 SIZE = (64, 48)
 
 

@@ -24,6 +24,9 @@ from gscompress.selection import keep_count
 from gscompress.slam.config import load_config, preset
 from gscompress_schemas import load_schema
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory):

@@ -24,6 +24,9 @@ from gscompress.pipeline import share_log, slam_file
 from gscompress.slam.system import SlamSystem
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 FRAMES = 8
 
 
