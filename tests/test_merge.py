@@ -50,9 +50,8 @@ def test_merge_maps_keeps_every_gaussian_and_its_sums() -> None:
 
 
 @pytest.fixture(scope="module")
-def agents(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("agents")
-    seq = write_synthetic_sequence(root / "room", 8, (64, 48))
+def agents(tmp_path_factory: pytest.TempPathFactory, seq_dir_8: Path) -> dict[str, Path]:
+    root, seq = tmp_path_factory.mktemp("agents"), seq_dir_8
     a, b = root / "a.mcap", root / "b.mcap"
     slam_file(seq, a, preset="tiny", frames="odd")
     slam_file(seq, b, preset="tiny", frames="even")
