@@ -51,9 +51,11 @@ picture: install
 	mkdir -p docs/images
 	$(PY) -c "from PIL import Image; Image.open('demo_out/pictures/side_by_side/000012.png').convert('RGB').save('docs/images/map_importance.png', optimize=True)"
 
+# Every test (the README's and CI's command).
 test: install js-deps
 	$(PY) -m pytest -q
 
+# The tests not marked slow (none runs SLAM or another minutes-long pipeline): a few minutes.
 test-fast: install
 	$(PY) -m pytest -q -x -m "not slow"
 

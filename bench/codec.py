@@ -48,7 +48,8 @@ import zstandard
 
 from gscompress.gaussians import GaussianMap
 from gscompress.io import spz
-from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_DEFAULTS, SHARE_IDS, CompactOptions
+from gscompress.io.codec import SHARE_DEFAULTS, SHARE_IDS, get_codec
+from gscompress.io.compact import COMPACT_DEFAULTS, CompactOptions
 from gscompress.io.mcap_log import LogReader, decode_map_message, encode_map
 from gscompress.io.ply import read_ply, write_ply
 from gscompress.io.sog import splat_transform
@@ -80,7 +81,7 @@ def our_codecs() -> dict[str, Codec]:
     def ours(codec: str, options: CompactOptions = COMPACT_DEFAULTS) -> Codec:
         return (
             lambda g: encode_map(g, codec, 0, options).SerializeToString(),
-            lambda data: decode_map_message(data, codec == "compact")[0],
+            lambda data: decode_map_message(data, get_codec(codec).schema)[0],
         )
 
     codecs = {"fp32": ours("fp32"), "fp16": ours("fp16")}

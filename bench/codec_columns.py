@@ -21,7 +21,7 @@ import numpy as np
 import zstandard
 
 from gscompress.gaussians import GaussianMap
-from gscompress.io import codec
+from gscompress.io import compact as codec
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log
 from gscompress.pipeline.offline import rewrite_map

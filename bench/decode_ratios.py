@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image
 
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
-from gscompress.io.codec import CompactGaussians
+from gscompress.io.compact import CompactGaussians
 from gscompress.io.decode_budget import FORMATS, map_bytes
 from gscompress.io.map_files import read_map_file
 from gscompress.io.mcap_bounds import BoundedStream, file_records

@@ -126,9 +126,9 @@ class GscGroup(click.Group):
             return super().invoke(ctx)
         except OptionError as exc:  # options that do not go together: a usage error, as click's
             command = f"{ctx.command_path} {ctx.invoked_subcommand}"
-            raise OneLineUsageError(" ".join(str(exc).split()), ctx, command) from None
+            raise OneLineUsageError(" ".join(with_flags(exc).split()), ctx, command) from None
         except GscError as exc:
-            message = safe_text(" ".join(str(exc).split()))
+            message = safe_text(" ".join(with_flags(exc).split()))
             raise click.ClickException(message) from None
         except click.UsageError as exc:
             raise one_line(exc) from None
@@ -142,6 +142,15 @@ class GscGroup(click.Group):
             if "can't allocate memory" not in str(exc) and "out of memory" not in str(exc):
                 raise
             raise click.ClickException(OUT_OF_MEMORY) from None
+
+
+def with_flags(exc: GscError) -> str:
+    """The message of `exc` with each parameter it names (`exc.options`, written `name`) as
+    the flag that sets it (--name)."""
+    message = str(exc)
+    for name in exc.options:
+        message = message.replace(f"`{name}`", "--" + name.replace("_", "-"))
+    return message
 
 
 OUT_OF_MEMORY = "out of memory (smaller images, fewer frames or a smaller map need less)"

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from gscompress.io.codec import CompactOptions
+from gscompress.io.compact import CompactOptions
 from gscompress.pipeline import prune_log
 from gscompress.selection import STRATEGIES
 

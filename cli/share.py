@@ -8,11 +8,10 @@ from typing import Any
 import click
 from click.core import ParameterSource
 
-from gscompress.io.columns import PRECISIONS
+from gscompress.io.codec import DEFAULT_SHARE_CODEC, PRECISIONS
 from gscompress.io.keyframes import MAX_CARRIED
 from gscompress.ops.budget import Budget
 from gscompress.pipeline import share_log
-from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC
 from gscompress.selection import STRATEGIES
 
 from .options import (

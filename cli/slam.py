@@ -9,6 +9,8 @@ from typing import Any
 import click
 from click.core import ParameterSource
 
+from gscompress.io.codec import DEFAULT_CODEC
+
 from .options import (
     INPUT_FILE,
     INPUT_SEQUENCE,
@@ -125,7 +127,7 @@ def _modified_ns(path: Path) -> int | None:
     "with the settings recorded in it (so no --preset, --config, --frames, --size, --backend, "
     "--keep, --no-prune or --inject).",
 )
-@codec_option("fp32", " The log's map snapshots; fp32 keeps the map visible in Foxglove.")
+@codec_option(DEFAULT_CODEC, " The log's map snapshots; fp32 keeps the map visible in Foxglove.")
 @force_option(more="; with a fresh run, also the unfinished file a killed run of -o left")
 @json_option
 def slam(

@@ -8,7 +8,17 @@ import reprlib
 
 
 class GscError(Exception):
-    """Base class of every expected gscompress failure."""
+    """Base class of every expected gscompress failure.
+
+    Attributes:
+        options: the parameters the message names, each written as `name` (in backquotes), so
+            that the message speaks of the library's parameters and the CLI can show each as
+            its flag (`--name`).
+    """
+
+    def __init__(self, *args: object, options: tuple[str, ...] = ()) -> None:
+        super().__init__(*args)
+        self.options = options
 
 
 class InputError(GscError):

@@ -157,6 +157,23 @@ def sog_bundle(
 
 
 @pytest.fixture(scope="session")
+def seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The synthetic room: 6 frames at 64x48 (shared by every test that asks: read it only)."""
+    from gscompress.datasets.synthetic import write_synthetic_sequence
+
+    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, (64, 48))
+
+
+@pytest.fixture(scope="session")
+def seq_dir_8(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The synthetic room: 8 frames at 64x48, for two agents or a run stopped and resumed
+    (shared by every test that asks: read it only)."""
+    from gscompress.datasets.synthetic import write_synthetic_sequence
+
+    return write_synthetic_sequence(tmp_path_factory.mktemp("seq8") / "room", 8, (64, 48))
+
+
+@pytest.fixture(scope="session")
 def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A tiny SLAM log of the synthetic room (6 frames at 48x36, the tiny preset: a keyframe
     every 2), its sequence, and a folder for outputs (refinement and solver tests). It keeps the
@@ -200,7 +217,7 @@ formats (11 runs and 7 scoring steps)."""
 
 @pytest.fixture(scope="session")
 def tiny_sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A synthetic sequence of four 32x24 frames (for TINY_STUDY)."""
+    """The synthetic room: 4 frames at 32x24 (for TINY_STUDY; read it only)."""
     from gscompress.datasets.synthetic import write_synthetic_sequence
 
     return write_synthetic_sequence(tmp_path_factory.mktemp("tiny") / "room", 4, (32, 24))

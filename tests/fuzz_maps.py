@@ -142,7 +142,7 @@ def _random_map(c: Chooser, smallest: int = 0) -> Any:
 
 def valid_compact(c: Chooser) -> bytes:
     """A compact map message: isotropic or not, with or without ids, sums or score."""
-    from gscompress.io.codec import CompactOptions, encode_compact
+    from gscompress.io.compact import CompactOptions, encode_compact
 
     options = CompactOptions(ids=bool(c.integer(0, 1)), sums=bool(c.integer(0, 1)))
     return encode_compact(_random_map(c), options).SerializeToString()
@@ -153,7 +153,7 @@ def mutate_compact(data: bytes, c: Chooser) -> bytes:
     dropped or repeated, or raw bytes edited."""
     import zstandard
 
-    from gscompress.io.codec import CompactGaussians
+    from gscompress.io.compact import CompactGaussians
 
     message = CompactGaussians.FromString(data)
     kind = c.integer(0, 6)
@@ -195,7 +195,7 @@ def mutate_compact(data: bytes, c: Chooser) -> bytes:
 
 def read_compact(path: Path) -> None:
     """What a log reader does with a compact `/gaussians` message."""
-    from gscompress.io.codec import decode_compact_bytes
+    from gscompress.io.compact import decode_compact_bytes
 
     decode_compact_bytes(path.read_bytes(), str(path))[0].opacities()
 

@@ -21,6 +21,9 @@ from gscompress.ops.align_views import refine_on_views
 from gscompress.ops.score import activated_tensors, render_at
 from gscompress.slam.densify import gaussians_from_rgbd
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 VIEWS = (11, 12, 13)
 
 

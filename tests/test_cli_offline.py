@@ -8,8 +8,7 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import gsc as run
-from conftest import rewrite_log
+from conftest import gsc, rewrite_log
 from mcap.writer import CompressionType
 
 from gscompress.gaussians import GaussianMap, random_map
@@ -47,7 +46,7 @@ def snapshot_of(path):
 
 def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path):
     out = tmp_path / "p.mcap"
-    r = run("prune", log_path, "--keep", "0.3", "--no-fold", "-o", out)
+    r = gsc("prune", log_path, "--keep", "0.3", "--no-fold", "-o", out)
     assert r.exit_code == 0, r.output
     assert "kept 300 of 1000 Gaussians (by pwas, fp32)" in r.output
     full, pruned = read_map(log_path), read_map(out)
@@ -75,8 +74,8 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
 
 def test_prune_map_only_writes_the_same_map_alone(log_path, tmp_path):
     full, alone = tmp_path / "p.mcap", tmp_path / "m.mcap"
-    assert run("prune", log_path, "--keep", "0.3", "-o", full).exit_code == 0
-    r = run("prune", log_path, "--keep", "0.3", "--map-only", "-o", alone)
+    assert gsc("prune", log_path, "--keep", "0.3", "-o", full).exit_code == 0
+    r = gsc("prune", log_path, "--keep", "0.3", "--map-only", "-o", alone)
     assert r.exit_code == 0, r.output
     with LogReader(full) as a, LogReader(alone) as b:
         assert b.snapshot_count == 1
@@ -97,7 +96,7 @@ def test_prune_map_only_writes_the_same_map_alone(log_path, tmp_path):
 
 def test_prune_by_opacity_and_percent_syntax(log_path, tmp_path):
     out = tmp_path / "p.mcap"
-    r = run("prune", log_path, "--keep", "10%", "--by", "opacity", "--no-fold", "-o", out, "--json")
+    r = gsc("prune", log_path, "--keep", "10%", "--by", "opacity", "--no-fold", "-o", out, "--json")
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["kept"] == 100
     full, pruned = read_map(log_path), read_map(out)
@@ -109,7 +108,7 @@ def test_prune_by_opacity_and_percent_syntax(log_path, tmp_path):
 
 def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
     out, ply = tmp_path / "s.mcap", tmp_path / "s.ply"
-    r = run("share", "--budget", "0.2", log_path, out, "--ply", ply, "--strategy", "pwas")
+    r = gsc("share", "--budget", "0.2", log_path, out, "--ply", ply, "--strategy", "pwas")
     assert r.exit_code == 0, r.output
     shared = read_map(out)
     assert len(shared) == 200
@@ -129,16 +128,16 @@ def test_share_writes_mcap_and_ply_with_its_record(log_path, tmp_path):
         }
         assert [c.topic for c in s.channels] == ["/gaussians"]
     assert log_info(out)["map"]["bytes_per_gaussian"] < 30  # 76 as fp32
-    r = run("share", log_path, "-o", tmp_path / "o.mcap")  # -o as the other commands take it
+    r = gsc("share", log_path, "-o", tmp_path / "o.mcap")  # -o as the other commands take it
     assert r.exit_code == 0 and read_map(tmp_path / "o.mcap").equals(shared)
     for paths, message in (
         ([], "missing the share's path: give DST or -o"),
         ([tmp_path / "x.mcap", "-o", tmp_path / "y.mcap"], "as DST or with -o, not both"),
     ):
-        r = run("share", log_path, *paths)
+        r = gsc("share", log_path, *paths)
         assert r.exit_code == 2 and message in r.output
     same = tmp_path / "q.mcap"
-    r = run("share", log_path, same, "--ply", same)
+    r = gsc("share", log_path, same, "--ply", same)
     assert r.exit_code == 2 and "--ply must differ" in r.output and not same.exists()
 
 
@@ -153,18 +152,18 @@ def test_share_whose_ply_cannot_be_written_leaves_no_mcap(log_path, tmp_path, mo
         raise OSError(errno.EROFS, "Read-only file system", str(tmp_path / "s.ply"))
 
     monkeypatch.setattr(offline, "write_ply", refuse)
-    r = run("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.ply")
+    r = gsc("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.ply")
     assert r.exit_code == 1 and r.output == f"Error: {tmp_path / 's.ply'}: Read-only file system\n"
     assert list(tmp_path.iterdir()) == [log_path]
 
 
 def test_export_ply_last_and_chosen_snapshot(log_path, tmp_path):
-    r = run("export-ply", log_path, "-o", tmp_path / "a.ply")
+    r = gsc("export-ply", log_path, "-o", tmp_path / "a.ply")
     assert r.exit_code == 0, r.output
     assert read_ply(tmp_path / "a.ply").equals(read_map(log_path))
-    r = run("export-ply", log_path, "-o", tmp_path / "b.ply", "--snapshot", "0")
+    r = gsc("export-ply", log_path, "-o", tmp_path / "b.ply", "--snapshot", "0")
     assert r.exit_code == 0 and len(read_ply(tmp_path / "b.ply")) == 400
-    r = run("export-ply", log_path, "-o", tmp_path / "c.ply", "--snapshot", "-1", "--json")
+    r = gsc("export-ply", log_path, "-o", tmp_path / "c.ply", "--snapshot", "-1", "--json")
     with LogReader(log_path) as log:  # the snapshot it wrote, counted from 0
         assert json.loads(r.output)["snapshot"] == log.snapshot_count - 1 > 0
 
@@ -172,28 +171,28 @@ def test_export_ply_last_and_chosen_snapshot(log_path, tmp_path):
 def test_import_ply_then_info(tmp_path):
     g = random_map(50, scored=False, sh_degree=3, isotropic=False)
     write_ply(g, tmp_path / "in.ply", importance=False)
-    r = run("import-ply", tmp_path / "in.ply", "-o", tmp_path / "m.mcap")
+    r = gsc("import-ply", tmp_path / "in.ply", "-o", tmp_path / "m.mcap")
     assert r.exit_code == 0, r.output
     back = read_map(tmp_path / "m.mcap")
     assert back.means.tobytes() == g.means.tobytes() and back.sh_degree == 3
-    r = run("info", tmp_path / "m.mcap")
+    r = gsc("info", tmp_path / "m.mcap")
     assert r.exit_code == 0 and "importance none" in r.output and "import-ply" in r.output
-    r = run("info", tmp_path / "in.ply")  # a PLY where a log belongs: the error says what to do
+    r = gsc("info", tmp_path / "in.ply")  # a PLY where a log belongs: the error says what to do
     assert r.exit_code == 1 and "(it is a PLY file; `gsc import-ply` makes a log of it)" in r.output
-    r = run("prune", tmp_path / "m.mcap", "--keep", "0.5", "-o", tmp_path / "p.mcap")
+    r = gsc("prune", tmp_path / "m.mcap", "--keep", "0.5", "-o", tmp_path / "p.mcap")
     assert r.exit_code == 1 and "gsc score" in r.output
     assert not (tmp_path / "p.mcap").exists()
     # the other score it suggests is an option of both commands that can meet the error
     assert "(--by opacity)" in r.output
     for command, ratio in (("prune", "--keep"), ("share", "--budget")):
         out = tmp_path / f"{command}.mcap"
-        r = run(command, tmp_path / "m.mcap", ratio, "0.5", "--by", "opacity", "-o", out)
+        r = gsc(command, tmp_path / "m.mcap", ratio, "0.5", "--by", "opacity", "-o", out)
         assert r.exit_code == 0 and out.exists(), r.output
 
 
 def test_info_json_describes_the_log(log_path, tmp_path):
-    run("share", log_path, tmp_path / "s.mcap", "--codec", "fp32")
-    r = run("info", tmp_path / "s.mcap", "--json")
+    gsc("share", log_path, tmp_path / "s.mcap", "--codec", "fp32")
+    r = gsc("info", tmp_path / "s.mcap", "--json")
     assert r.exit_code == 0, r.output
     info = json.loads(r.output)
     assert info["map"]["gaussians"] == 200 and info["map"]["has_importance"]
@@ -315,7 +314,7 @@ def test_bad_logs_give_one_line_error_and_no_output(
         "export-ply": ("export-ply", bad, "-o", tmp_path / "out.ply"),
         "info": ("info", bad),
     }[command]
-    r = run(*args)
+    r = gsc(*args)
     if command == "info" and make_input is _no_gaussians:
         assert r.exit_code == 0 and "no /gaussians channel" in r.output
         return
@@ -328,9 +327,9 @@ def test_bad_logs_give_one_line_error_and_no_output(
 
 @pytest.mark.parametrize("value", ["0", "-0.1", "1.5", "abc", "nan"])
 def test_ratio_outside_range(log_path, tmp_path, value):
-    r = run("prune", log_path, "--keep", value, "-o", tmp_path / "o.mcap")
+    r = gsc("prune", log_path, "--keep", value, "-o", tmp_path / "o.mcap")
     assert r.exit_code == 2 and "--keep" in r.output
-    r = run("share", log_path, tmp_path / "o.mcap", "--budget", value)
+    r = gsc("share", log_path, tmp_path / "o.mcap", "--budget", value)
     assert r.exit_code == 2 and "--budget" in r.output
     assert not (tmp_path / "o.mcap").exists()
 
@@ -360,7 +359,7 @@ def test_a_missing_input_is_a_usage_error_naming_it(log_path, tmp_path, command,
     """Every command: exit 2 (as for any bad argument), the path named, nothing written."""
     missing, out = tmp_path / "nosuch", tmp_path / "out"
     values = {"x": missing, "o": out, "log": log_path, "d": tmp_path}
-    r = run(command, *args.format(**values).split())
+    r = gsc(command, *args.format(**values).split())
     assert r.exit_code == 2, r.output
     assert "nosuch" in r.output and "does not exist" in r.output, r.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
@@ -387,33 +386,33 @@ def test_a_usage_error_is_one_line_pointing_to_help(log_path, tmp_path, args, wh
 
 def test_output_equal_to_input_and_existing_output(log_path, tmp_path):
     original = log_path.read_bytes()
-    r = run("prune", log_path, "--keep", "0.3", "-o", log_path, "--force")
+    r = gsc("prune", log_path, "--keep", "0.3", "-o", log_path, "--force")
     assert r.exit_code == 1 and "also an input" in r.output
-    r = run("export-ply", log_path, "-o", log_path, "--force")
+    r = gsc("export-ply", log_path, "-o", log_path, "--force")
     assert r.exit_code == 1 and "also an input" in r.output
     link = tmp_path / "link.mcap"
     link.symlink_to(log_path)
-    r = run("share", log_path, link, "--force")
+    r = gsc("share", log_path, link, "--force")
     assert r.exit_code == 1 and "also an input" in r.output
     assert log_path.read_bytes() == original
     existing = tmp_path / "exists.mcap"
     existing.write_bytes(b"precious")
-    r = run("prune", log_path, "--keep", "0.3", "-o", existing)
+    r = gsc("prune", log_path, "--keep", "0.3", "-o", existing)
     assert r.exit_code == 1 and "--force" in r.output and existing.read_bytes() == b"precious"
-    r = run("prune", log_path, "--keep", "0.3", "-o", existing, "--force")
+    r = gsc("prune", log_path, "--keep", "0.3", "-o", existing, "--force")
     assert r.exit_code == 0 and len(read_map(existing)) == 300
 
 
 def test_an_output_named_for_the_other_format_is_refused(log_path, tmp_path):
-    r = run("prune", log_path, "--keep", "0.3", "-o", tmp_path / "p.ply")
+    r = gsc("prune", log_path, "--keep", "0.3", "-o", tmp_path / "p.ply")
     assert r.exit_code == 1 and "name it p.mcap (gsc export-ply writes PLY)" in r.output
-    r = run("export-ply", log_path, "-o", tmp_path / "m.mcap")
+    r = gsc("export-ply", log_path, "-o", tmp_path / "m.mcap")
     assert r.exit_code == 1 and "writes a PLY file, not an MCAP log" in r.output
-    r = run("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.mcap.mcap")
+    r = gsc("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.mcap.mcap")
     assert r.exit_code == 1 and "name it s.mcap.ply" in r.output
-    r = run("export-traj", log_path, "-o", tmp_path / "t.mcap")
+    r = gsc("export-traj", log_path, "-o", tmp_path / "t.mcap")
     assert r.exit_code == 1 and "writes a text file, not an MCAP log; name it t.txt" in r.output
-    r = run("prune", log_path, "--keep", "0.3", "-o", tmp_path / "p.txt")
+    r = gsc("prune", log_path, "--keep", "0.3", "-o", tmp_path / "p.txt")
     assert r.exit_code == 1 and "writes an MCAP log, not a text file" in r.output
     written = {p.name for p in tmp_path.iterdir()} - {log_path.name}
     assert written == set()  # nothing written, the MCAP share included
@@ -424,7 +423,7 @@ def test_ply_missing_properties(tmp_path):
 
     data = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     PlyData([PlyElement.describe(data, "vertex")]).write(str(tmp_path / "pts.ply"))
-    r = run("import-ply", tmp_path / "pts.ply", "-o", tmp_path / "m.mcap")
+    r = gsc("import-ply", tmp_path / "pts.ply", "-o", tmp_path / "m.mcap")
     assert r.exit_code == 1 and "missing vertex properties" in r.output
     assert not (tmp_path / "m.mcap").exists()
 
@@ -459,11 +458,11 @@ def test_offline_commands_do_not_import_torch(log_path, tmp_path):
 
 
 def test_help_teaches():
-    r = run("--help")
+    r = gsc("--help")
     assert r.exit_code == 0
     for name in ("prune", "share", "export-ply", "info", "import-ply"):
         assert name in r.output
-    r = run("prune", "--help")
+    r = gsc("prune", "--help")
     assert "Example" in r.output and "--keep" in r.output
 
 
@@ -480,43 +479,43 @@ def test_help_teaches():
     ],
 )
 def test_bad_budget_strings_are_usage_errors(log_path, tmp_path, value, message):
-    r = run("share", log_path, tmp_path / "o.mcap", "--budget", value)
+    r = gsc("share", log_path, tmp_path / "o.mcap", "--budget", value)
     assert r.exit_code == 2 and "--budget" in r.output and message in r.output
     assert "Traceback" not in r.output and not (tmp_path / "o.mcap").exists()
 
 
 def test_budget_below_one_gaussian_is_a_one_line_error(log_path, tmp_path):
-    r = run("share", log_path, tmp_path / "o.mcap", "--budget", "400B")
+    r = gsc("share", log_path, tmp_path / "o.mcap", "--budget", "400B")
     assert r.exit_code == 1 and r.output.startswith("Error: ") and r.output.count("\n") == 1
     assert "cannot hold one Gaussian" in r.output and not (tmp_path / "o.mcap").exists()
 
 
 def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
     out, ply = tmp_path / "s.mcap", tmp_path / "s.ply"
-    r = run("share", "--budget", "20kB", "--codec", "fp16", log_path, out, "--ply", ply)
+    r = gsc("share", "--budget", "20kB", "--codec", "fp16", log_path, out, "--ply", ply)
     assert r.exit_code == 0, r.output
     assert "fp16" in r.output
-    r = run("share", "--budget", "20kB", "--codec", "fp16", log_path, out, "--json", "--force")
+    r = gsc("share", "--budget", "20kB", "--codec", "fp16", log_path, out, "--json", "--force")
     result = json.loads(r.output)
     assert result["budget"] == "20kB" and result["budget_bytes"] == 20_000
     assert result["codec"] == "fp16" and out.stat().st_size == result["file_bytes"] <= 20_000
     assert read_ply(ply).equals(read_map(out))
-    r = run("info", out)
+    r = gsc("info", out)
     assert r.exit_code == 0, r.output
     assert f"{result['selected']} Gaussians, isotropic, SH degree 0, codec fp16" in r.output
     per = result["bytes"] / result["selected"]
     assert f"bytes     {result['bytes']} B" in r.output and f"{per:.2f} B per Gaussian" in r.output
-    r = run("share", "--help")
+    r = gsc("share", "--help")
     assert "2MB" in r.output and "1.5MiB" in r.output and "--codec" in r.output
     # a share is compact unless asked otherwise; --precision is an old name of --codec
-    r = run("share", "--budget", "0.5", out, tmp_path / "again.mcap", "--json")
+    r = gsc("share", "--budget", "0.5", out, tmp_path / "again.mcap", "--json")
     assert json.loads(r.output)["codec"] == "compact", r.output
-    r = run("share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap",
+    r = gsc("share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap",
             "--json")  # fmt: skip
     assert json.loads(r.output)["codec"] == "fp32", r.output
-    r = run("share", "--precision", "fp32", "--codec", "fp16", out, tmp_path / "x.mcap")
+    r = gsc("share", "--precision", "fp32", "--codec", "fp16", out, tmp_path / "x.mcap")
     assert r.exit_code == 2 and "--precision is an old name of --codec" in r.output
-    r = run("share", "--budget", "0.5", "--by", "opacity", log_path, tmp_path / "o.mcap", "--json")
+    r = gsc("share", "--budget", "0.5", "--by", "opacity", log_path, tmp_path / "o.mcap", "--json")
     assert json.loads(r.output)["strategy"] == "opacity", r.output
 
 
@@ -527,7 +526,7 @@ def test_a_share_without_ids_holds_more_of_the_map_in_a_byte_budget(log_path, tm
 
     def share(*args: object) -> tuple[dict, GaussianMap]:
         out = tmp_path / f"s{len(list(tmp_path.iterdir()))}.mcap"
-        r = run("share", log_path, out, "--json", "--no-fold", *args)
+        r = gsc("share", log_path, out, "--json", "--no-fold", *args)
         assert r.exit_code == 0, r.output
         return {**json.loads(r.output), "dst": out.name}, read_map(out)
 
@@ -555,19 +554,19 @@ def test_info_histogram_is_log_scaled_so_a_long_tail_does_not_hide_the_shape(tmp
     g.importance_weight[:] = 1.0
     with LogWriter(tmp_path / "m.mcap", LogMetadata()) as log:
         log.write_gaussians(g, 0)
-    info = json.loads(run("info", tmp_path / "m.mcap", "--json").output)["map"]
+    info = json.loads(gsc("info", tmp_path / "m.mcap", "--json").output)["map"]
     linear, log = info["importance_histogram"], info["importance_histogram_log"]
     assert linear["counts"][0] > 750  # the three decades below 10 of the four
     assert log["zeros"] == 1 and sum(log["counts"]) == 1000
     assert max(log["counts"]) - min(log["counts"]) <= 2  # 100 per bin, give or take an edge
     assert np.allclose(np.diff(np.log10(log["edges"])), 0.4)
-    text = run("info", tmp_path / "m.mcap").output
+    text = gsc("info", tmp_path / "m.mcap").output
     line = next(x for x in text.splitlines() if x.startswith("histogram"))
     assert line == "histogram |██████████| log scale, 0.01 to 100; 1 at 0", line
     g.importance_sum[:] = 0.0  # scored, every score 0: no range to make up
     with LogWriter(tmp_path / "z.mcap", LogMetadata()) as log:
         log.write_gaussians(g, 0)
-    assert "histogram every score is 0" in run("info", tmp_path / "z.mcap").output
+    assert "histogram every score is 0" in gsc("info", tmp_path / "z.mcap").output
 
 
 def test_info_text_rounds_floats_also_within_lists() -> None:
@@ -589,7 +588,7 @@ def test_a_group_option_after_the_command_says_where_it_goes(tmp_path):
 
 
 def test_the_command_list_gives_every_command_a_whole_summary():
-    r = run("--help")
+    r = gsc("--help")
     listed = r.output.split("Commands:")[1].strip().splitlines()
     from gscompress_cli.main import COMMANDS
 

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 from gscompress.errors import InputError, LogFormatError, MapError
 from gscompress.gaussians import MAX_ABS_LOG_SCALE, SH_C0, random_map
-from gscompress.io import codec
-from gscompress.io.codec import (
+from gscompress.io import compact as codec
+from gscompress.io.compact import (
     COMPACT_DEFAULTS,
     ROTATION_BITS,
     CompactColumn,

@@ -25,7 +25,7 @@ from bounded import Bounded, memory_bound, run_bounded
 from PIL import Image
 
 from gscompress.gaussians import random_map
-from gscompress.io.codec import COMPACT_VERSION, CompactColumn, CompactGaussians
+from gscompress.io.compact import COMPACT_VERSION, CompactColumn, CompactGaussians
 from gscompress.io.mcap_log import TOPIC_GAUSSIANS, LogMetadata, LogWriter
 from gscompress.io.spz import MAGIC
 

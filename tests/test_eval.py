@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import gsc as run
+from conftest import gsc
 
 from gscompress.camera import Intrinsics, make_transform
 from gscompress.datasets import open_sequence
@@ -31,12 +31,10 @@ from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline import evaluate_log, share_log, slam_file
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 LAYOUT = Path(__file__).resolve().parent.parent / "examples" / "foxglove_layout.json"
-
-
-@pytest.fixture(scope="module")
-def seq_dir(tmp_path_factory):
-    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, (64, 48))
 
 
 @pytest.fixture(scope="module")
@@ -197,7 +195,7 @@ def test_lpips_is_a_number_or_unavailable_with_a_reason(gt_log, seq_dir):
 
 
 def test_cli_json(gt_log, seq_dir):
-    r = run("eval", gt_log, "--seq", seq_dir, "--every", "3", "--no-lpips", "--json")
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--every", "3", "--no-lpips", "--json")
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
     assert result["frames_evaluated"] == 2 and result["ate_rmse_cm"] is None
@@ -218,7 +216,7 @@ def test_cli_json(gt_log, seq_dir):
     ],
 )
 def test_bad_or_missing_options_are_usage_errors(gt_log, args, message):
-    r = run(args[0], gt_log, *args[1:])
+    r = gsc(args[0], gt_log, *args[1:])
     assert r.exit_code == 2 and message in r.output, r.output
 
 
@@ -235,7 +233,7 @@ def test_json_output_is_strict_json_even_for_infinite_psnr():
 
 
 def test_cli_text_table(gt_log, seq_dir):
-    r = run("eval", gt_log, "--seq", seq_dir, "--every", "6", "--no-lpips")
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--every", "6", "--no-lpips")
     assert r.exit_code == 0, r.output
     assert "ATE          unavailable: the log's poses are the sequence's ground truth" in r.output
     assert "ATE RMSE" not in r.output and "PSNR" in r.output
@@ -251,22 +249,22 @@ def one_line_error(r):
 
 def test_cli_errors_are_one_line(gt_log, seq_dir, tmp_path):
     # a missing log or sequence is a usage error (exit 2): tests/test_cli_offline.py
-    assert "not a known RGB-D layout" in one_line_error(run("eval", gt_log, "--seq", tmp_path))
+    assert "not a known RGB-D layout" in one_line_error(gsc("eval", gt_log, "--seq", tmp_path))
     # a log without a map
     nomap = tmp_path / "nomap.mcap"
     with LogWriter(nomap, LogMetadata()) as w:
         w.write_pose(np.eye(4), 0)
-    assert TOPIC_GAUSSIANS in one_line_error(run("eval", nomap, "--seq", seq_dir))
+    assert TOPIC_GAUSSIANS in one_line_error(gsc("eval", nomap, "--seq", seq_dir))
     # a map without poses
     with LogReader(gt_log) as log:
         gaussians = log.read_map()
     noposes = tmp_path / "noposes.mcap"
     with LogWriter(noposes, LogMetadata()) as w:
         w.write_gaussians(gaussians, 0)
-    message = one_line_error(run("eval", noposes, "--seq", seq_dir))
+    message = one_line_error(gsc("eval", noposes, "--seq", seq_dir))
     assert TOPIC_POSE in message and "--poses-from" in message
     # ... which renders at the poses it is given: here those of the log the map came from
-    r = run("eval", noposes, "--seq", seq_dir, "--poses-from", gt_log, "--no-lpips", "--json")
+    r = gsc("eval", noposes, "--seq", seq_dir, "--poses-from", gt_log, "--no-lpips", "--json")
     assert r.exit_code == 0, r.output
     same = evaluate_log(gt_log, seq_dir, lpips=False)
     assert json.loads(r.output)["psnr"] == pytest.approx(same["psnr"], rel=1e-9)
@@ -275,11 +273,11 @@ def test_cli_errors_are_one_line(gt_log, seq_dir, tmp_path):
     with LogWriter(other, LogMetadata()) as w:
         w.write_pose(make_transform(np.eye(3), [0, 0, 1]), 10**15)
         w.write_gaussians(gaussians, 0)
-    assert "is this the sequence" in one_line_error(run("eval", other, "--seq", seq_dir))
+    assert "is this the sequence" in one_line_error(gsc("eval", other, "--seq", seq_dir))
     # not a log at all
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file")
-    one_line_error(run("eval", junk, "--seq", seq_dir))
+    one_line_error(gsc("eval", junk, "--seq", seq_dir))
 
 
 # ------------------------------------------------------------------------- Foxglove layout
@@ -493,25 +491,25 @@ def test_eval_at_another_logs_poses(gt_log, seq_dir):
 
 
 def test_cli_poses_options(gt_log, seq_dir, nudged_trajectory):
-    r = run("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--refine-poses",
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--refine-poses",
             "5", "--every", "6", "--no-lpips")  # fmt: skip
     assert r.exit_code == 0, r.output
     assert "at the poses of" in r.output and "at refined poses (5 iterations" in r.output
     assert "median pose change" in r.output
-    r = run("eval", gt_log, "--seq", seq_dir, "--poses-from", gt_log, "--refine-poses", "5",
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses-from", gt_log, "--refine-poses", "5",
             "--every", "6", "--no-lpips", "--json")  # fmt: skip
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
     assert result["refined"]["iters"] == 5 and result["refined"]["pose_change_cm"] >= 0
-    r = run("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--poses-from",
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--poses-from",
             gt_log)  # fmt: skip
     assert r.exit_code == 2, r.output
     lines = r.output.strip().splitlines()
     assert len(lines) == 1 and "--poses and --poses-from do not go together" in lines[0]
     for bad in ("0", "x"):
-        r = run("eval", gt_log, "--seq", seq_dir, "--refine-poses", bad)
+        r = gsc("eval", gt_log, "--seq", seq_dir, "--refine-poses", bad)
         assert r.exit_code == 2 and "--refine-poses" in r.output, r.output
-    r = run("eval", gt_log, "--seq", seq_dir, "--refine-poses")
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--refine-poses")
     assert r.exit_code == 2 and "requires an argument" in r.output, r.output
 
 
@@ -564,7 +562,7 @@ def test_a_score_of_a_foreign_ply_is_posed_at_the_ground_truth_and_has_no_ate(
     assert score_file(ply, scored, seq_dir)["poses"] == "ground-truth"
     with LogReader(scored) as log:
         assert log.metadata.pose_origin() == "ground-truth"
-    r = run("eval", scored, "--seq", seq_dir, "--every", "6", "--no-lpips")
+    r = gsc("eval", scored, "--seq", seq_dir, "--every", "6", "--no-lpips")
     assert r.exit_code == 0, r.output
     assert "ATE          unavailable: the log's poses are the sequence's ground truth" in r.output
 

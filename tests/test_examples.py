@@ -16,6 +16,9 @@ from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 from gscompress.io.trajectory import read_tum_trajectory
 from gscompress.pipeline import share_log, slam_file
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 

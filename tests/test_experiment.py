@@ -31,6 +31,9 @@ from gscompress.pipeline.experiment.report import curve_at
 from gscompress.pipeline.offline import smallest_share_bytes
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 REQUIRED = ("name", "ate_rmse_cm", "psnr", "ssim", "lpips", "gaussians", "bytes")
 
 REFINE = ("--refine-poses", "3")

@@ -17,6 +17,9 @@ from gscompress.errors import MissingDependencyError, OptionError
 from gscompress.pipeline.experiment import ExperimentSettings, execution, run_experiment
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 TIMING = {"seconds_per_frame"}
 
 NEEDS_A = [

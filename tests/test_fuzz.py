@@ -10,6 +10,14 @@ from fuzzing import TARGETS, FuzzTarget, RandomChooser, run_case
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+SLOW_TARGETS = ("recordings",)
+"""Readers whose cases take seconds each (a bag is written and opened per case)."""
+
+MARKED_TARGETS = [
+    pytest.param(t, marks=pytest.mark.slow, id=t.name) if t.name in SLOW_TARGETS else t
+    for t in TARGETS
+]
+
 
 class HypothesisChooser:
     """A mutator's choices drawn from hypothesis (so that it can shrink a failing case)."""
@@ -24,7 +32,7 @@ class HypothesisChooser:
         return self.data.draw(st.sampled_from(list(options)))
 
 
-@pytest.mark.parametrize("target", TARGETS, ids=lambda t: t.name)
+@pytest.mark.parametrize("target", MARKED_TARGETS, ids=lambda t: t.name)
 @settings(
     max_examples=150,
     deadline=None,
@@ -40,7 +48,7 @@ def test_a_mutated_input_is_read_or_refused_with_a_gsc_error(target: FuzzTarget,
     assert outcome in ("ok", "refused"), detail
 
 
-@pytest.mark.parametrize("target", TARGETS, ids=lambda t: t.name)
+@pytest.mark.parametrize("target", MARKED_TARGETS, ids=lambda t: t.name)
 def test_the_mutations_reach_both_reads_and_refusals(target: FuzzTarget):
     """Mutations that only ever broke the file at its first byte would test little."""
     outcomes = set()

@@ -39,6 +39,7 @@ def bash(args: list[str], env: dict[str, str], timeout: float = 600) -> subproce
     )
 
 
+@pytest.mark.slow
 def test_setup_stops_in_one_line_without_the_wheels_or_cuda(tmp_path):
     env = script_env(tmp_path)
     done = bash([str(GPU_BENCH / "setup.sh")], env)
@@ -98,6 +99,7 @@ def test_table_smoke_writes_the_gpu_json(tmp_path):
     assert "| unpruned | 3/3 |" in log and "| pwas | 3/3 |" in log  # the rows as they came
 
 
+@pytest.mark.slow
 def test_a_run_past_its_deadline_stops_and_is_scored_as_far_as_it_got(tmp_path):
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.slam.config import preset, save_config

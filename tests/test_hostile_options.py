@@ -12,14 +12,14 @@ from click.testing import CliRunner
 
 from gscompress.camera import quat_to_rotmat
 from gscompress.datasets.base import parse_frames, parse_size
-from gscompress.errors import DatasetError, InputError, MapError, OutputError
+from gscompress.errors import DatasetError, InputError, MapError, OptionError, OutputError
 from gscompress.gaussians import random_map
 from gscompress.io import files
 from gscompress.io.files import check_output, read_text
 from gscompress.io.trajectory import read_transform
-from gscompress.ops.merge import transform_map
+from gscompress.ops.merge import MergeOptions, transform_map
 from gscompress.slam.config import load_config
-from gscompress_cli.main import cli
+from gscompress_cli.main import cli, with_flags
 
 
 def test_an_output_that_is_a_fifo_is_refused_even_with_force(tmp_path: Path) -> None:
@@ -264,3 +264,17 @@ def test_an_output_named_as_a_folder_or_empty_is_refused(tmp_path: Path, name: s
         assert r.exit_code == 2, r.output
         assert ("names a folder" if name else "an empty path names no file") in r.output
     assert set(tmp_path.iterdir()) == before
+
+
+def test_a_library_error_names_its_parameters_and_gsc_shows_them_as_flags(tmp_path: Path) -> None:
+    with pytest.raises(OptionError) as caught:
+        MergeOptions(share_rate=2.0).check()
+    assert str(caught.value) == "`share_rate` must be in [0, 1], got 2.0"
+    assert with_flags(caught.value) == "--share-rate must be in [0, 1], got 2.0"
+    log, other = (Path(__file__).parent / "corpus" / name for name in ("slam.mcap", "pruned.mcap"))
+    poses = tmp_path / "poses.txt"
+    poses.write_text("")
+    args = ["eval", log, "--seq", tmp_path, "--poses", poses, "--poses-from", other]
+    r = CliRunner().invoke(cli, [str(a) for a in args])
+    assert r.exit_code == 2
+    assert "Error: --poses and --poses-from do not go together: give one source" in r.output

@@ -5,7 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from conftest import gsc
 from PIL import Image
 
 from gscompress.datasets import open_sequence
@@ -15,11 +15,9 @@ from gscompress.ops.evaluate import render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline.images import IMPORTANCE_CMAP, colormap, importance_colors, to_uint8
 from gscompress.selection import strategy_scores
-from gscompress_cli.main import cli
 
-
-def gsc(*args):
-    return CliRunner().invoke(cli, [str(a) for a in args])
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
 
 
 def test_rgb_pictures_are_the_renders_at_the_logs_poses(run, tmp_path):

@@ -93,21 +93,22 @@ def test_backprojection_lands_on_the_depth():
 
 
 @pytest.fixture(scope="module")
-def tiny_sequence(tmp_path_factory):
+def synth_sequence(tmp_path_factory):
+    """The synthetic room as `gsc synth` writes it: 6 frames at 32x24."""
     out = tmp_path_factory.mktemp("seq") / "synthetic"
     r = CliRunner().invoke(cli, ["synth", str(out), "--frames", "6", "--size", "32x24"])
     assert r.exit_code == 0, r.output
     return out
 
 
-def test_gsc_score_ply_and_mcap(tiny_sequence, tmp_path):
+def test_gsc_score_ply_and_mcap(synth_sequence, tmp_path):
     from gscompress.datasets import open_sequence
 
-    seq = open_sequence(tiny_sequence)
+    seq = open_sequence(synth_sequence)
     f = seq.frame(0)
     g = gaussians_from_rgbd(f.color, f.depth, seq.intrinsics, f.T_world_cam, stride=2)
     write_ply(g, tmp_path / "m.ply", importance=False)
-    r = CliRunner().invoke(cli, ["score", str(tmp_path / "m.ply"), "--seq", str(tiny_sequence),
+    r = CliRunner().invoke(cli, ["score", str(tmp_path / "m.ply"), "--seq", str(synth_sequence),
                                  "-o", str(tmp_path / "s.mcap"), "--json"])  # fmt: skip
     assert r.exit_code == 0, r.output
     scored = read_map(tmp_path / "s.mcap")
@@ -117,7 +118,7 @@ def test_gsc_score_ply_and_mcap(tiny_sequence, tmp_path):
         assert counts["/camera/pose"] == 6 and counts["/camera/calibration"] == 1
         assert log.metadata.provenance[-1]["operation"]["name"] == "score"
     # scoring a log again replaces only its map
-    r = CliRunner().invoke(cli, ["score", str(tmp_path / "s.mcap"), "--seq", str(tiny_sequence),
+    r = CliRunner().invoke(cli, ["score", str(tmp_path / "s.mcap"), "--seq", str(synth_sequence),
                                  "--frames", "0:3", "-o", str(tmp_path / "t.mcap")])  # fmt: skip
     assert r.exit_code == 0, r.output
     again = read_map(tmp_path / "t.mcap")
@@ -125,16 +126,16 @@ def test_gsc_score_ply_and_mcap(tiny_sequence, tmp_path):
     from gscompress.pipeline.scoring import score_file
 
     calls: list[tuple[int, int]] = []  # what the progress bar is given: views done, of how many
-    score_file(tmp_path / "m.ply", tmp_path / "u.mcap", tiny_sequence, frames="1:6:2",
+    score_file(tmp_path / "m.ply", tmp_path / "u.mcap", synth_sequence, frames="1:6:2",
                progress=lambda done, total: calls.append((done, total)))  # fmt: skip
     assert calls == [(1, 3), (2, 3), (3, 3)]
 
 
-def test_gsc_score_without_poses_is_a_clear_error(tiny_sequence, tmp_path):
+def test_gsc_score_without_poses_is_a_clear_error(synth_sequence, tmp_path):
     import shutil
 
     seq = tmp_path / "nogt"
-    shutil.copytree(tiny_sequence, seq)
+    shutil.copytree(synth_sequence, seq)
     (seq / "groundtruth.txt").unlink()
     write_ply(_scene(), tmp_path / "m.ply")
     r = CliRunner().invoke(cli, ["score", str(tmp_path / "m.ply"), "--seq", str(seq),
@@ -143,20 +144,20 @@ def test_gsc_score_without_poses_is_a_clear_error(tiny_sequence, tmp_path):
     assert not (tmp_path / "s.mcap").exists()
 
 
-def test_gsc_score_with_poses_matches_them_to_frames_by_time(tiny_sequence, tmp_path):
+def test_gsc_score_with_poses_matches_them_to_frames_by_time(synth_sequence, tmp_path):
     import shutil
 
     seq = tmp_path / "nogt"
-    shutil.copytree(tiny_sequence, seq)
+    shutil.copytree(synth_sequence, seq)
     (seq / "groundtruth.txt").unlink()
     write_ply(_scene(), tmp_path / "m.ply")
     # the ground truth as another tool's estimate: shuffled rows, times off by 10 ms
-    rows = [r for r in (tiny_sequence / "groundtruth.txt").read_text().splitlines()
+    rows = [r for r in (synth_sequence / "groundtruth.txt").read_text().splitlines()
             if r and not r.startswith("#")][::-1]  # fmt: skip
     shifted = [f"{float(r.split()[0]) + 0.01:.6f} {' '.join(r.split()[1:])}" for r in rows]
     (tmp_path / "est.txt").write_text("\n".join(shifted) + "\n")
     args = ["score", str(tmp_path / "m.ply"), "-o"]
-    r = CliRunner().invoke(cli, [*args, str(tmp_path / "gt.mcap"), "--seq", str(tiny_sequence)])
+    r = CliRunner().invoke(cli, [*args, str(tmp_path / "gt.mcap"), "--seq", str(synth_sequence)])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(cli, [*args, str(tmp_path / "est.mcap"), "--seq", str(seq),
                                  "--poses", str(tmp_path / "est.txt")])  # fmt: skip
@@ -171,7 +172,7 @@ def test_gsc_score_with_poses_matches_them_to_frames_by_time(tiny_sequence, tmp_
     assert not (tmp_path / "s.mcap").exists()
 
 
-def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(tiny_sequence, tmp_path):
+def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(synth_sequence, tmp_path):
     import shutil
 
     from gscompress.io.trajectory import write_tum_trajectory
@@ -179,7 +180,7 @@ def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(tiny_sequence, tmp_p
     from gscompress.pipeline.scoring import score_file
 
     seq = tmp_path / "nogt"  # no ground truth: the run's world frame is its first camera
-    shutil.copytree(tiny_sequence, seq)
+    shutil.copytree(synth_sequence, seq)
     (seq / "groundtruth.txt").unlink()
     slam_file(seq, tmp_path / "a.mcap", preset="tiny", frames="odd", size=(24, 18))
     r = score_file(tmp_path / "a.mcap", tmp_path / "s.mcap", seq)
@@ -247,15 +248,15 @@ def test_sigma_d_rule_is_the_median_camera_to_gaussian_distance_of_the_first_fra
     assert np.exp(3.4 / 1.5) > 5 and np.exp(3.4 / 20) < 1.2
 
 
-def test_gsc_score_derives_sigma_d_from_the_scene_or_takes_it(tiny_sequence, tmp_path):
+def test_gsc_score_derives_sigma_d_from_the_scene_or_takes_it(synth_sequence, tmp_path):
     from gscompress.datasets import open_sequence
     from gscompress.importance import median_range
 
-    seq = open_sequence(tiny_sequence)
+    seq = open_sequence(synth_sequence)
     f = seq.frame(0)
     g = gaussians_from_rgbd(f.color, f.depth, seq.intrinsics, f.T_world_cam, stride=2)
     write_ply(g, tmp_path / "m.ply", importance=False)
-    args = ["score", str(tmp_path / "m.ply"), "--seq", str(tiny_sequence), "--json", "-o"]
+    args = ["score", str(tmp_path / "m.ply"), "--seq", str(synth_sequence), "--json", "-o"]
     used = {}
     for setting in ("auto", "inf", "0.5"):
         out = tmp_path / f"{setting}.mcap"

@@ -100,6 +100,7 @@ def _first_uses(tmp_path: Path, marches: list[str], seconds: list[float]) -> tup
     return answers, journal
 
 
+@pytest.mark.slow
 def test_builds_of_different_digests_at_once_all_finish(tmp_path):
     """Three first uses with three build digests on one cache (three venvs or checkouts sharing
     ~/.cache): the first to finish prunes the cache while the others still compile. Each keeps
@@ -115,6 +116,7 @@ def test_builds_of_different_digests_at_once_all_finish(tmp_path):
         assert (folder / cpu_build._BUILT).exists()
 
 
+@pytest.mark.slow
 def test_first_uses_of_one_digest_share_one_build(tmp_path):
     """Three processes asking for the same build at once: one compiles, the others wait for
     it and load what it built."""

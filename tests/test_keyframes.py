@@ -12,7 +12,6 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from PIL import Image
 
 from gscompress.camera import Intrinsics, make_transform
-from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import BudgetError, InputError, LogFormatError
 from gscompress.gaussians import random_map
 from gscompress.io.keyframes import (
@@ -25,6 +24,9 @@ from gscompress.io.keyframes import (
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pose_message
 from gscompress.pipeline import evaluate_log, merge_logs, share_log, slam_file
 from gscompress.pipeline.refine import carried_keyframes
+
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
 
 CAMERA = Intrinsics(40.0, 40.0, 16.0, 12.0, 32, 24)
 
@@ -140,9 +142,8 @@ def test_a_carried_frame_without_its_depth_is_refused(tmp_path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def agents(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("carry")
-    seq = write_synthetic_sequence(root / "room", 8, (64, 48))
+def agents(tmp_path_factory: pytest.TempPathFactory, seq_dir_8: Path) -> dict[str, Path]:
+    root, seq = tmp_path_factory.mktemp("carry"), seq_dir_8
     a, b = root / "a.mcap", root / "b.mcap"
     slam_file(seq, a, preset="tiny", frames="0:5")
     slam_file(seq, b, preset="tiny", frames="3:8")

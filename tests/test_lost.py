@@ -129,6 +129,7 @@ def motion_error(system: SlamSystem, frames: list[Frame], to: int) -> tuple[floa
     return 100 * float(error), 100 * float(np.linalg.norm(step[:3, 3]))
 
 
+@pytest.mark.slow
 def test_frames_missing_without_a_gap_in_the_stamps_stop_the_run():
     # The frames after FIRST - 1 went missing, and the stamps do not show it (a recording that
     # restamped its frames): the velocity guess is JUMP_TO - FIRST + 1 steps short, tracking
@@ -143,6 +144,7 @@ def test_frames_missing_without_a_gap_in_the_stamps_stop_the_run():
     assert (lost.value.frame, len(system.poses), len(system)) == (JUMP_TO, FIRST, gaussians)
 
 
+@pytest.mark.slow
 def test_missing_frames_that_the_stamps_show_are_tracked_with_the_velocity_over_the_gap():
     system, frames = mapped()
     out = system.process(frames[GAP_TO])
@@ -153,6 +155,7 @@ def test_missing_frames_that_the_stamps_show_are_tracked_with_the_velocity_over_
     assert math.isfinite(out.stats()["tracking_depth_error"])
 
 
+@pytest.mark.slow
 def test_a_gap_over_max_gap_is_re_localised(caplog):
     gap = (GAP_TO - FIRST + 1) / 30  # seconds between frames FIRST - 1 and GAP_TO
     system, frames = mapped({"tracking.max_gap": gap / 2})
@@ -182,6 +185,7 @@ def write_jump(root: Path) -> Path:
     return seq
 
 
+@pytest.mark.slow
 def test_gsc_slam_stops_on_a_lost_track_in_one_line_with_a_log_of_the_frames_before(tmp_path):
     seq = write_jump(tmp_path)
     log = tmp_path / "a.mcap"
@@ -207,6 +211,7 @@ def test_gsc_slam_stops_on_a_lost_track_in_one_line_with_a_log_of_the_frames_bef
         assert len(reader.read_trajectory().T_world_cam) == FIRST
 
 
+@pytest.mark.slow
 def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_had(
     tmp_path, monkeypatch
 ):

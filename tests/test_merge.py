@@ -23,6 +23,9 @@ from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
 from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 STACK = EXACT
 
 
@@ -47,9 +50,8 @@ def test_merge_maps_keeps_every_gaussian_and_its_sums() -> None:
 
 
 @pytest.fixture(scope="module")
-def agents(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("agents")
-    seq = write_synthetic_sequence(root / "room", 8, (64, 48))
+def agents(tmp_path_factory: pytest.TempPathFactory, seq_dir_8: Path) -> dict[str, Path]:
+    root, seq = tmp_path_factory.mktemp("agents"), seq_dir_8
     a, b = root / "a.mcap", root / "b.mcap"
     slam_file(seq, a, preset="tiny", frames="odd")
     slam_file(seq, b, preset="tiny", frames="even")

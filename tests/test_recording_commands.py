@@ -17,6 +17,9 @@ from gscompress.datasets.recording_writer import write_recording
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 TOPICS = ("--rgb", "/camera/color/image_raw", "--depth", "/camera/aligned_depth_to_color/image_raw")
 """The bag's topics, given as a user would."""
 GT = ("--gt-frames", "world", "camera_color_optical_frame")

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from conftest import gsc
 from PIL import Image
 
 from gscompress.camera import Intrinsics, make_transform, quat_to_rotmat
@@ -33,14 +33,9 @@ from gscompress.datasets.recording_writer import RECORDING_FORMATS, write_record
 from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_sequence
 from gscompress.errors import DatasetError, OutputError
 from gscompress.io.mcap_log import LogReader
-from gscompress_cli.main import cli
 
 FORMATS = list(RECORDING_FORMATS)
 OUTPUT = {"ros2": "bag2", "ros2-sqlite": "bag2s", "ros1": "bag1.bag", "foxglove": "fox.mcap"}
-
-
-def gsc(*args: Any) -> Any:
-    return CliRunner().invoke(cli, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")

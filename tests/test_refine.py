@@ -25,6 +25,9 @@ from gscompress.pipeline.refine import (
 from gscompress.selection import select_top
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 def keyframe_indices(log: Path) -> set[int]:
     with LogReader(log) as reader:

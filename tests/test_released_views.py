@@ -4,11 +4,14 @@ can read its frames again (`SlamSystem(frames=...)`, `View.source`), and the run
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.slam.config import preset
 from gscompress.slam.system import SlamSystem
+
+pytestmark = pytest.mark.slow
 
 
 def run(frames: bool) -> SlamSystem:

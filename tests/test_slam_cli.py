@@ -12,9 +12,9 @@ import jsonschema
 import numpy as np
 import pytest
 import torch
-from conftest import gsc as run
+from conftest import gsc
 
-from gscompress.datasets.synthetic import synthetic_sequence, write_synthetic_sequence
+from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.errors import DatasetError
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogReader, read_map
 from gscompress.metrics import ate_rmse_cm
@@ -24,10 +24,8 @@ from gscompress.selection import keep_count
 from gscompress.slam.config import load_config, preset
 from gscompress_schemas import load_schema
 
-
-@pytest.fixture(scope="module")
-def seq_dir(tmp_path_factory):
-    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, (64, 48))
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
 
 
 def poses(log, topic):
@@ -47,7 +45,7 @@ def poses(log, topic):
 @pytest.fixture(scope="module")
 def slam_log(seq_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "run.mcap"
-    r = run("slam", seq_dir, "--preset", "tiny", "-o", out)
+    r = gsc("slam", seq_dir, "--preset", "tiny", "-o", out)
     assert r.exit_code == 0, r.output
     assert "mapped 6 frames" in r.output and "ATE RMSE" in r.output
     return out
@@ -82,56 +80,56 @@ def test_log_has_poses_stats_snapshots_and_metadata(slam_log):
 
 
 def test_offline_commands_accept_the_log(slam_log, tmp_path):
-    r = run("info", slam_log, "--json")
+    r = gsc("info", slam_log, "--json")
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["map"]["has_importance"]
     assert json.loads(r.output)["world_frame"] == "ground-truth:room"
-    assert "world     ground-truth:room" in run("info", slam_log).output
-    r = run("prune", slam_log, "--keep", "0.5", "-o", tmp_path / "p.mcap")
+    assert "world     ground-truth:room" in gsc("info", slam_log).output
+    r = gsc("prune", slam_log, "--keep", "0.5", "-o", tmp_path / "p.mcap")
     assert r.exit_code == 0, r.output
-    r = run("share", "--budget", "0.2", slam_log, tmp_path / "s.mcap")
+    r = gsc("share", "--budget", "0.2", slam_log, tmp_path / "s.mcap")
     assert r.exit_code == 0, r.output
-    r = run("export-ply", slam_log, "-o", tmp_path / "m.ply")
+    r = gsc("export-ply", slam_log, "-o", tmp_path / "m.ply")
     assert r.exit_code == 0, r.output
     assert len(read_map(tmp_path / "p.mcap")) == keep_count(len(read_map(slam_log)), 0.5)
 
 
 def test_config_save_load_and_no_prune(seq_dir, tmp_path):
     cfg = tmp_path / "c.yaml"
-    r = run("slam", seq_dir, "--preset", "tiny", "--no-prune", "--keep", "0.4",
+    r = gsc("slam", seq_dir, "--preset", "tiny", "--no-prune", "--keep", "0.4",
             "--save-config", cfg)  # fmt: skip
     assert r.exit_code == 2 and "--keep does not go with --no-prune" in r.output
     assert not cfg.exists()
-    r = run("slam", seq_dir, "--preset", "tiny", "--no-prune", "--save-config", cfg)
+    r = gsc("slam", seq_dir, "--preset", "tiny", "--no-prune", "--save-config", cfg)
     assert r.exit_code == 0, r.output
     config = load_config(cfg)
     assert config.prune.stages == ()
     assert config.mapping == preset("tiny").mapping
     out = tmp_path / "n.mcap"
-    r = run("slam", seq_dir, "--config", cfg, "--frames", "0:4", "--size", "48x36", "-o", out)
+    r = gsc("slam", seq_dir, "--config", cfg, "--frames", "0:4", "--size", "48x36", "-o", out)
     assert r.exit_code == 0, r.output
     with LogReader(out) as log:
         counts = {c.topic: c.messages for c in log.channels}
         assert counts["/gaussians"] == 1 and counts["/camera/pose"] == 4
         assert log.metadata.config["size"] == [48, 36] and log.metadata.frames == "0:4"
-    r = run("slam", seq_dir, "--preset", "tiny", "-o", out)
+    r = gsc("slam", seq_dir, "--preset", "tiny", "-o", out)
     assert r.exit_code != 0 and "exists" in r.output
 
 
 def test_bad_config_and_missing_output_are_one_line_errors(seq_dir, tmp_path):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("mapping:\n  iterz: 3\n")
-    r = run("slam", seq_dir, "--config", cfg, "-o", tmp_path / "x.mcap")
+    r = gsc("slam", seq_dir, "--config", cfg, "-o", tmp_path / "x.mcap")
     assert r.exit_code == 1 and "unknown key 'mapping.iterz'" in r.output
     assert not (tmp_path / "x.mcap").exists()
-    r = run("slam", seq_dir)
+    r = gsc("slam", seq_dir)
     assert r.exit_code == 2 and "-o OUT.mcap" in r.output
-    r = run("slam", seq_dir, "-o", tmp_path / "none.mcap", "--resume")
+    r = gsc("slam", seq_dir, "-o", tmp_path / "none.mcap", "--resume")
     assert r.exit_code == 2 and "no log" in r.output
     cfg.write_text("preset: tiny\nseed: -1\n")
-    r = run("slam", seq_dir, "--config", cfg, "-o", tmp_path / "x.mcap")
+    r = gsc("slam", seq_dir, "--config", cfg, "-o", tmp_path / "x.mcap")
     assert r.exit_code == 1 and "seed must be >= 0" in r.output
-    r = run("slam", seq_dir, "-o", tmp_path / "x.mcap", "--share-transform", cfg)
+    r = gsc("slam", seq_dir, "-o", tmp_path / "x.mcap", "--share-transform", cfg)
     assert r.exit_code == 2 and "needs --inject (see 'cli slam --help')" in r.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
 
@@ -148,17 +146,17 @@ def test_no_output_lands_in_the_sequence_and_save_config_waits_for_the_run(
         ("score", slam_log, "--seq", seq, "-o", seq / "groundtruth.txt"),
         ("merge", slam_log, slam_log, "--seq", seq, "-o", seq / "rgb" / "x.mcap"),
     ):
-        r = run(*args, "--force")
+        r = gsc(*args, "--force")
         assert r.exit_code == 1 and "inside the input folder" in r.output, (args, r.output)
     assert {p: p.read_bytes() for p in seq.rglob("*") if p.is_file()} == before
     # a config asked for beside a run is written only once the run has passed its checks
     out, cfg = tmp_path / "o.mcap", tmp_path / "c.yaml"
-    r = run("slam", seq, "--preset", "tiny", "--frames", "20:30", "-o", out, "--save-config", cfg)
+    r = gsc("slam", seq, "--preset", "tiny", "--frames", "20:30", "-o", out, "--save-config", cfg)
     assert r.exit_code == 1 and "selects none" in r.output
-    r = run("slam", seq, "--preset", "tiny", "-o", out, "--save-config", out)
+    r = gsc("slam", seq, "--preset", "tiny", "-o", out, "--save-config", out)
     assert r.exit_code == 1 and "also an input" in r.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["room"]
-    r = run("slam", seq, "--preset", "tiny", "--frames", "0:2", "-o", out, "--save-config", cfg)
+    r = gsc("slam", seq, "--preset", "tiny", "--frames", "0:2", "-o", out, "--save-config", cfg)
     assert r.exit_code == 0, r.output
     assert load_config(cfg) == preset("tiny")
 
@@ -260,7 +258,7 @@ def test_progress_bar_counts_only_the_frames_this_run_does(monkeypatch, caplog, 
     monkeypatch.setattr(render, "resolve_backend", slow_resolve)
     monkeypatch.setattr(slam_command, "progress_bar", kept_bar)
     caplog.set_level(logging.INFO)  # the bar shows at gsc's default level, not under -q
-    r = run("slam", seq_dir, "-o", out, "--resume")
+    r = gsc("slam", seq_dir, "-o", out, "--resume")
     assert r.exit_code == 0, r.output
     (bar,) = bars
     assert bar.initial == 2 and bar.n == 6  # 4 frames done by this run, counted from 2
@@ -280,11 +278,11 @@ def test_threads_option_sets_torch_and_openmp_threads(
     import torch
 
     monkeypatch.setenv("OMP_NUM_THREADS", "7")
-    r = run("--threads", "1", "slam", seq_dir, "-o", tmp_path / "t.mcap", "--preset", "tiny",
+    r = gsc("--threads", "1", "slam", seq_dir, "-o", tmp_path / "t.mcap", "--preset", "tiny",
             "--size", "32x24", "--frames", "0:2")  # fmt: skip
     assert r.exit_code == 0, r.output
     assert torch.get_num_threads() == 1 and os.environ["OMP_NUM_THREADS"] == "1"
-    assert run("--threads", "0", "info", tmp_path / "t.mcap").exit_code == 2
+    assert gsc("--threads", "0", "info", tmp_path / "t.mcap").exit_code == 2
 
 
 def test_slam_and_merge_do_not_import_torch_dynamo(seq_dir, tmp_path):
@@ -319,7 +317,7 @@ def test_force_never_writes_over_a_file_the_command_reads(seq_dir, slam_log, tmp
     transform = tmp_path / "T.txt"
     transform.write_text("0 0 0 0 0 0 1\n")
     share = tmp_path / "share.mcap"
-    r = run("share", slam_log, share, "--budget", "0.5")
+    r = gsc("share", slam_log, share, "--budget", "0.5")
     assert r.exit_code == 0, r.output
     kept = {p: p.read_bytes() for p in (config, transform, share, slam_log)}
     inject = ("--inject", share, "--share-transform", transform)
@@ -330,9 +328,9 @@ def test_force_never_writes_over_a_file_the_command_reads(seq_dir, slam_log, tmp
          "--save-config", share),
         ("merge", slam_log, share, "--iters", "0", "--share-transform", transform, "-o", transform),
     ):  # fmt: skip
-        r = run(*args, "--force")
+        r = gsc(*args, "--force")
         assert r.exit_code == 1 and "also an input" in r.output, (args, r.output)
-    r = run("slam", seq_dir, "--save-config", slam_log, "--force")  # a config over a log
+    r = gsc("slam", seq_dir, "--save-config", slam_log, "--force")  # a config over a log
     assert r.exit_code == 1 and "writes a YAML config, not an MCAP log" in r.output
     assert {p: p.read_bytes() for p in kept} == kept
 
@@ -341,13 +339,13 @@ def test_a_file_system_refusal_is_a_one_line_error(seq_dir, slam_log, tmp_path):
     long_name = tmp_path / ("a" * 300 + ".mcap")  # longer than any file system allows
     for args in (("prune", slam_log, "--keep", "0.5", "-o", long_name),
                  ("slam", seq_dir, "--preset", "tiny", "-o", long_name)):  # fmt: skip
-        r = run(*args)
+        r = gsc(*args)
         assert r.exit_code == 1 and isinstance(r.exception, SystemExit), r.exception
         assert r.output.count("\n") == 1 and "File name too long" in r.output, r.output
     if os.geteuid() != 0:  # the superuser writes anywhere
         locked = tmp_path / "locked"
         locked.mkdir(mode=0o555)
-        r = run("prune", slam_log, "--keep", "0.5", "-o", locked / "p.mcap")
+        r = gsc("prune", slam_log, "--keep", "0.5", "-o", locked / "p.mcap")
         assert r.exit_code == 1 and "cannot write in" in r.output, r.output
         assert not list(locked.iterdir())
 
@@ -373,7 +371,7 @@ def test_progress_bar_shows_counts_as_numbers(monkeypatch, seq_dir, tmp_path):
 
     monkeypatch.setattr(slam_command, "progress_bar", kept_bar)
     monkeypatch.setattr(pipeline, "slam_file", fake_slam_file)
-    r = run("slam", seq_dir, "-o", tmp_path / "run.mcap")
+    r = gsc("slam", seq_dir, "-o", tmp_path / "run.mcap")
     assert r.exit_code == 0, r.output
     (bar,) = bars
     assert "frame=10000" in bar.postfix and "gaussians=20000" in bar.postfix, bar.postfix
@@ -383,7 +381,7 @@ def test_a_size_too_small_to_map_is_refused_and_an_enlarging_one_is_warned(
     seq_dir, tmp_path, caplog
 ):
     out = tmp_path / "small.mcap"
-    r = run("slam", seq_dir, "--preset", "tiny", "--size", "15x12", "-o", out)
+    r = gsc("slam", seq_dir, "--preset", "tiny", "--size", "15x12", "-o", out)
     assert r.exit_code == 2 and "working size 15x12 is too small to map" in r.output
     assert not out.exists()
     with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"):
@@ -397,7 +395,7 @@ def test_a_size_too_small_to_map_is_refused_and_an_enlarging_one_is_warned(
 def test_a_settings_error_partway_says_to_run_afresh_not_to_resume(seq_dir, tmp_path, caplog):
     out = tmp_path / "k.mcap"
     with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"):
-        r = run("slam", seq_dir, "--preset", "tiny", "--keep", "0.00001", "-o", out)
+        r = gsc("slam", seq_dir, "--preset", "tiny", "--keep", "0.00001", "-o", out)
     assert r.exit_code == 1 and "rounds to none" in r.output, r.output
     assert "run afresh with the settings changed (--force replaces the log)" in caplog.text
     assert "--resume" not in r.output and "resume starts again" not in caplog.text
@@ -444,15 +442,15 @@ def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, c
     # the command says how to go on (the library does not: an experiment reruns instead)
     assert "--resume" not in caplog.text
     out.unlink()
-    r = run("slam", broken, "--preset", "tiny", "--no-prune", "-o", out)
+    r = gsc("slam", broken, "--preset", "tiny", "--no-prune", "-o", out)
     assert r.exit_code == 1 and "cannot read depth image" in r.output
     assert (
         f"Once the error below is fixed, `gsc slam {broken} -o {out} --resume` continues the run"
     ) in " ".join(r.output.split())
-    r = run("slam", broken, "--preset", "tiny", "-o", out)  # refused: this run wrote nothing
+    r = gsc("slam", broken, "--preset", "tiny", "-o", out)  # refused: this run wrote nothing
     assert r.exit_code == 1 and "exists" in r.output and "--resume" not in r.output
     # an error of the settings: --resume (which takes none) would only repeat it
-    r = run("slam", seq_dir, "--preset", "tiny", "--keep", "0.0001", "-o", tmp_path / "k.mcap")
+    r = gsc("slam", seq_dir, "--preset", "tiny", "--keep", "0.0001", "-o", tmp_path / "k.mcap")
     assert r.exit_code == 1 and "raise the keep ratio (--keep, prune.keep)" in r.output
     assert "--resume" not in r.output
 
@@ -467,14 +465,14 @@ def test_an_interrupt_before_the_first_frame_says_nothing_was_written(seq_dir, s
 
 def test_backend_option_overrides_the_config_and_is_refused_on_resume(seq_dir, tmp_path):
     out = tmp_path / "torch.mcap"
-    r = run("slam", seq_dir, "--preset", "tiny", "--frames", "0:2", "--backend", "torch", "-o", out)
+    r = gsc("slam", seq_dir, "--preset", "tiny", "--frames", "0:2", "--backend", "torch", "-o", out)
     assert r.exit_code == 0, r.output
     with LogReader(out) as log:
         assert log.metadata.config["backend"] == "torch"
         assert log.metadata.results["render_backend"] == "torch"
-    r = run("slam", seq_dir, "-o", out, "--resume", "--backend", "cpu")
+    r = gsc("slam", seq_dir, "-o", out, "--resume", "--backend", "cpu")
     assert r.exit_code == 2 and "drop --backend" in r.output
-    r = run("slam", seq_dir, "--preset", "tiny", "--backend", "cuda", "-o", tmp_path / "x.mcap")
+    r = gsc("slam", seq_dir, "--preset", "tiny", "--backend", "cuda", "-o", tmp_path / "x.mcap")
     assert r.exit_code == 2 and "'cuda' is not one of" in r.output
 
 

@@ -24,12 +24,10 @@ from gscompress.pipeline import share_log, slam_file
 from gscompress.slam.system import SlamSystem
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 FRAMES = 8
-
-
-@pytest.fixture(scope="module")
-def seq_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", FRAMES, (64, 48))
 
 
 @pytest.fixture(scope="module")
@@ -44,10 +42,10 @@ def frames_in(path: Path) -> list[int]:
         return [json.loads(m.data)["frame"] for _, _, m in log.iter_messages([TOPIC_STATS])]
 
 
-def interrupted(seq_dir: Path, out: Path, frames: int = 3, **options: object) -> Path:
-    """`out`: a run of `seq_dir` stopped by Ctrl-C after `frames` frames."""
+def interrupted(seq_dir_8: Path, out: Path, frames: int = 3, **options: object) -> Path:
+    """`out`: a run of `seq_dir_8` stopped by Ctrl-C after `frames` frames."""
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, progress=stop_after(frames), **options)
+        slam_file(seq_dir_8, out, progress=stop_after(frames), **options)
     return out
 
 
@@ -60,16 +58,16 @@ def stop_after(count: int):  # type: ignore[no-untyped-def]
 
 
 def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
-    out = interrupted(seq_dir, tmp_path / "run.mcap", config_path=config_file)
+    out = interrupted(seq_dir_8, tmp_path / "run.mcap", config_path=config_file)
     with LogReader(out) as log:
         assert log.metadata.results["interrupted"] is True
         assert log.metadata.results["frames"] == 3
         interrupted_map = log.read_map()
     assert frames_in(out) == [0, 1, 2]
 
-    result = slam_file(seq_dir, out, resume=True)
+    result = slam_file(seq_dir_8, out, resume=True)
     assert result["frames"] == FRAMES and result["resumed_at"] == 3
     assert result["interrupted"] is False
     assert frames_in(out) == list(range(FRAMES))
@@ -83,25 +81,25 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
     assert fresh and min(s["next_id"] for s in fresh) > int(interrupted_map.ids.max())
 
     with pytest.raises(InputError, match="finished run"):
-        slam_file(seq_dir, out, resume=True)
+        slam_file(seq_dir_8, out, resume=True)
     with pytest.raises(InputError, match="drop --keep"):
-        slam_file(seq_dir, out, resume=True, keep=0.5)
+        slam_file(seq_dir_8, out, resume=True, keep=0.5)
     with pytest.raises(InputError, match="drop --preset, --frames"):
-        slam_file(seq_dir, out, resume=True, preset="tiny", frames="0:4")
+        slam_file(seq_dir_8, out, resume=True, preset="tiny", frames="0:4")
 
 
 def test_a_resumes_summary_gives_the_speed_of_the_frames_it_ran(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
-    out = interrupted(seq_dir, tmp_path / "run.mcap", config_path=config_file)
-    r = CliRunner().invoke(cli, ["slam", str(seq_dir), "-o", str(out), "--resume"])
+    out = interrupted(seq_dir_8, tmp_path / "run.mcap", config_path=config_file)
+    r = CliRunner().invoke(cli, ["slam", str(seq_dir_8), "-o", str(out), "--resume"])
     assert r.exit_code == 0, r.output
     assert f"mapped {FRAMES} frames" in r.output
     assert "(resumed after 3 frames, " in r.output and f" s/frame over {FRAMES - 3}" in r.output
 
 
 def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
-    seq_dir: Path, tmp_path: Path
+    seq_dir_8: Path, tmp_path: Path
 ) -> None:
     from gscompress.pipeline.slam_run import _resume_run
 
@@ -109,8 +107,8 @@ def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
     config.write_text(
         "preset: tiny\ncheckpoint_every: 2\nmapping:\n  final_iters: 3\n  final_views: frames\n"
     )
-    out = interrupted(seq_dir, tmp_path / "run.mcap", config_path=config)
-    run = _resume_run(seq_dir, out, "cpu", None)
+    out = interrupted(seq_dir_8, tmp_path / "run.mcap", config_path=config)
+    run = _resume_run(seq_dir_8, out, "cpu", None)
     assert run.start == 3 and [v.index for v in run.system.views] == [0, 1, 2]
     assert [v.index for v in run.system.keyframes] == [0, 2]
     fresh = SlamSystem(run.config, run.system.intrinsics, total_frames=FRAMES)
@@ -123,18 +121,18 @@ def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
     assert len(fresh) == 0 and fresh.poses == []  # refused before any of it was taken
 
 
-def test_nothing_to_resume_is_a_clear_error(seq_dir: Path, tmp_path: Path) -> None:
+def test_nothing_to_resume_is_a_clear_error(seq_dir_8: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no log"):
-        slam_file(seq_dir, tmp_path / "none.mcap", resume=True)
+        slam_file(seq_dir_8, tmp_path / "none.mcap", resume=True)
 
 
 @pytest.mark.parametrize("cut", [False, True])
 def test_a_share_or_pruned_log_is_not_resumed_even_cut_short(
-    seq_dir: Path, tmp_path: Path, cut: bool
+    seq_dir_8: Path, tmp_path: Path, cut: bool
 ) -> None:
     from gscompress.pipeline import prune_log
 
-    slam_file(seq_dir, tmp_path / "a.mcap", preset="tiny", frames="0:4")
+    slam_file(seq_dir_8, tmp_path / "a.mcap", preset="tiny", frames="0:4")
     share_log(tmp_path / "a.mcap", tmp_path / "s.mcap", 0.2)
     prune_log(tmp_path / "a.mcap", tmp_path / "p.mcap", 0.3)
     for derived in (tmp_path / "s.mcap", tmp_path / "p.mcap"):
@@ -142,7 +140,7 @@ def test_a_share_or_pruned_log_is_not_resumed_even_cut_short(
             derived.write_bytes(derived.read_bytes()[: derived.stat().st_size * 2 // 3])
         before = derived.read_bytes()
         with pytest.raises(InputError, match="not the log of a `gsc slam` run"):
-            slam_file(seq_dir, derived, resume=True)
+            slam_file(seq_dir_8, derived, resume=True)
         assert derived.read_bytes() == before
 
 
@@ -179,10 +177,10 @@ def _checkpoints(path: Path) -> int:
 
 
 def test_killed_run_resumes_to_the_same_number_of_frames(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "killed.mcap"
-    cmd = _gsc_signalled(signal.SIGKILL, 4, "slam", seq_dir, "-o", out, "--config", config_file)
+    cmd = _gsc_signalled(signal.SIGKILL, 4, "slam", seq_dir_8, "-o", out, "--config", config_file)
     proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert not out.exists()  # nothing half-written under the final name
@@ -193,11 +191,11 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
     # what tells this scene from another of its name is in the metadata written at the start
     assert len(read_messages(leftover).metadata.results["first_frame"]) == 4
 
-    fresh = ["slam", str(seq_dir), "-o", str(out), "--config", str(config_file)]
+    fresh = ["slam", str(seq_dir_8), "-o", str(out), "--config", str(config_file)]
     r = CliRunner().invoke(cli, fresh)  # a fresh run would leave the killed one to rot
     assert r.exit_code == 1 and f"an unfinished run of {out} is there" in r.output, r.output
     assert unfinished_files(out) == [leftover] and not out.exists()
-    resume = ["slam", str(seq_dir), "-o", str(out), "--resume", "--json"]
+    resume = ["slam", str(seq_dir_8), "-o", str(out), "--resume", "--json"]
     r = CliRunner().invoke(cli, [*resume, "--frames", "0:4"])  # settings come from the log
     assert r.exit_code == 2 and "drop --frames" in r.output, r.output
     r = CliRunner().invoke(cli, resume)
@@ -209,30 +207,30 @@ def test_killed_run_resumes_to_the_same_number_of_frames(
 
 
 def test_a_resume_killed_in_its_turn_is_resumed_from_where_it_got(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
-    out = interrupted(seq_dir, tmp_path / "twice.mcap", config_path=config_file)
-    cmd = _gsc_signalled(signal.SIGKILL, 4, "slam", seq_dir, "-o", out, "--resume")
+    out = interrupted(seq_dir_8, tmp_path / "twice.mcap", config_path=config_file)
+    cmd = _gsc_signalled(signal.SIGKILL, 4, "slam", seq_dir_8, "-o", out, "--resume")
     proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert len(unfinished_files(out)) == 1  # frames 3-5 done beyond the log's 3, then killed
     assert frames_in(out) == [0, 1, 2]
-    result = slam_file(seq_dir, out, resume=True)
+    result = slam_file(seq_dir_8, out, resume=True)
     assert result["resumed_at"] > 3  # from the killed resume's file, not the older log
     assert frames_in(out) == list(range(FRAMES)) and unfinished_files(out) == []
 
 
 def test_a_resume_takes_up_the_newest_run_not_an_older_one_further_along(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "two.mcap"
-    first = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir, "-o", out, "--config", config_file)
+    first = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir_8, "-o", out, "--config", config_file)
     assert subprocess.run(first, capture_output=True, timeout=300, check=False).returncode < 0
-    again = _gsc_signalled(signal.SIGKILL, 2, "slam", seq_dir, "-o", out, "--config",
+    again = _gsc_signalled(signal.SIGKILL, 2, "slam", seq_dir_8, "-o", out, "--config",
                            config_file, "--size", "48x36", "--force")  # fmt: skip
     assert subprocess.run(again, capture_output=True, timeout=300, check=False).returncode < 0
     assert len(unfinished_files(out)) == 2
-    result = slam_file(seq_dir, out, resume=True)
+    result = slam_file(seq_dir_8, out, resume=True)
     assert result.get("resumed_at", 0) < 4  # the 48x36 run's start, not the older run's 4
     with LogReader(out) as log:
         assert log.metadata.config["size"] == [48, 36]
@@ -240,11 +238,11 @@ def test_a_resume_takes_up_the_newest_run_not_an_older_one_further_along(
 
 
 def test_a_resume_takes_up_the_newest_run_of_another_scene_of_the_same_name(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
-    other = write_synthetic_sequence(tmp_path / "other" / seq_dir.name, FRAMES, (64, 48), seed=7)
+    other = write_synthetic_sequence(tmp_path / "other" / seq_dir_8.name, FRAMES, (64, 48), seed=7)
     out = tmp_path / "r.mcap"
-    older = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir, "-o", out, "--config", config_file)
+    older = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir_8, "-o", out, "--config", config_file)
     newer = _gsc_signalled(signal.SIGKILL, 4, "slam", other, "-o", out, "--config", config_file,
                            "--force")  # fmt: skip
     for cmd in (older, newer):
@@ -280,20 +278,20 @@ def test_a_log_from_before_the_fingerprint_and_its_resumes_file_are_one_run(
 
 
 def test_a_fresh_run_with_force_replaces_an_unfinished_one(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "again.mcap"
     stale = tmp_path / ".again.mcap.99999.tmp"  # as a killed writer leaves it
     stale.write_bytes(b"\x89MCAP0\r\n")
-    r = CliRunner().invoke(cli, ["slam", str(seq_dir), "-o", str(out), "--config",
+    r = CliRunner().invoke(cli, ["slam", str(seq_dir_8), "-o", str(out), "--config",
                                  str(config_file), "--frames", "0:2", "--force"])  # fmt: skip
     assert r.exit_code == 0, r.output
     assert frames_in(out) == [0, 1] and not stale.exists()
 
 
-def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: Path) -> None:
+def test_sigterm_closes_a_valid_log(seq_dir_8: Path, config_file: Path, tmp_path: Path) -> None:
     out = tmp_path / "term.mcap"
-    cmd = _gsc_signalled(signal.SIGTERM, 4, "slam", seq_dir, "-o", out, "--config", config_file)
+    cmd = _gsc_signalled(signal.SIGTERM, 4, "slam", seq_dir_8, "-o", out, "--config", config_file)
     proc = subprocess.run(cmd, capture_output=True, timeout=300, check=False)
     assert proc.returncode == 130, proc.stderr
     assert f"holds 4 of {FRAMES} frames; continue with".encode() in proc.stderr
@@ -306,7 +304,7 @@ def test_sigterm_closes_a_valid_log(seq_dir: Path, config_file: Path, tmp_path: 
 
 
 def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
-    seq_dir: Path,
+    seq_dir_8: Path,
     config_file: Path,
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
@@ -326,7 +324,7 @@ def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
     monkeypatch.setattr(SlamSystem, "process", interrupted_process)
     out = tmp_path / "stopped.mcap"
     with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config_file)
+        slam_file(seq_dir_8, out, config_path=config_file)
     assert frames_in(out) == [0, 1, 2]  # the frame finished, and no later one started
     assert "stopping after this frame (again to stop at once)" in caplog.text
     with LogReader(out) as log:
@@ -335,7 +333,10 @@ def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
 
 
 def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
-    tmp_path: Path, seq_dir: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+    tmp_path: Path,
+    seq_dir_8: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     from gscompress.slam.mapper import Mapper
 
@@ -354,7 +355,7 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
     monkeypatch.setattr(Mapper, "refine", refine_then_signal)
     out = tmp_path / "stopped.mcap"
     with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config)
+        slam_file(seq_dir_8, out, config_path=config)
     assert len(done) == 5  # 5 of the 400 iterations, then the refinement ended
     assert "ending the final refinement at the next iteration" in caplog.text
     assert "stopping after this frame" not in caplog.text
@@ -367,15 +368,15 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
     assert last["refine_iters"] == 5
     from gscompress_cli.slam import _interrupted_text  # what `gsc slam` then says
 
-    said = _interrupted_text(seq_dir, out)
+    said = _interrupted_text(seq_dir_8, out)
     assert f"Interrupted at the end: {out} holds all {FRAMES} frames and the map" in said
 
 
 def test_inject_starts_the_map_with_the_share(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     a = tmp_path / "a.mcap"
-    slam_file(seq_dir, a, config_path=config_file, frames="odd")
+    slam_file(seq_dir_8, a, config_path=config_file, frames="odd")
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     with LogReader(share) as log:
@@ -383,7 +384,7 @@ def test_inject_starts_the_map_with_the_share(
         assert log.metadata.world_frame == "ground-truth:room"
 
     b = tmp_path / "b.mcap"
-    result = slam_file(seq_dir, b, config_path=config_file, frames="even", inject=share)
+    result = slam_file(seq_dir_8, b, config_path=config_file, frames="even", inject=share)
     assert result["injected"] == len(shared)
     with LogReader(b) as log:
         first = log.read_map(0)
@@ -398,7 +399,7 @@ def test_inject_starts_the_map_with_the_share(
 
 
 def test_inject_refuses_a_share_from_another_world_frame(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     other = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=1)
     a = tmp_path / "a.mcap"
@@ -406,15 +407,15 @@ def test_inject_refuses_a_share_from_another_world_frame(
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     with pytest.raises(MapError, match="world frame"):
-        slam_file(seq_dir, tmp_path / "b.mcap", config_path=config_file, inject=share)
+        slam_file(seq_dir_8, tmp_path / "b.mcap", config_path=config_file, inject=share)
     assert not (tmp_path / "b.mcap").exists()
 
 
 def test_unfinished_reader_stops_at_a_truncated_tail(
-    seq_dir: Path, config_file: Path, tmp_path: Path
+    seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "full.mcap"
-    slam_file(seq_dir, out, config_path=config_file)
+    slam_file(seq_dir_8, out, config_path=config_file)
     data = out.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
@@ -461,30 +462,30 @@ def _signalled_twice_in(position: int):  # type: ignore[no-untyped-def]
 
 
 def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resume_redoes(
-    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    seq_dir_8: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from gscompress_cli.slam import _interrupted_text
 
     config = _tiny_config(tmp_path, "checkpoint_every: 3\nprune: {stages: []}\n")
     out = tmp_path / "twice.mcap"
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config, progress=stop_after(4))  # a map after 4
+        slam_file(seq_dir_8, out, config_path=config, progress=stop_after(4))  # a map after 4
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(5))  # the resumed 2nd frame
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, resume=True)
+        slam_file(seq_dir_8, out, resume=True)
     monkeypatch.undo()
     assert frames_in(out) == [0, 1, 2, 3, 4]  # frame 5 was cut, and no map after frame 4
     with LogReader(out) as log:
         assert log.metadata.results["map_frames"] == 4  # the map the resumed run started from
-    said = _interrupted_text(seq_dir, out)
+    said = _interrupted_text(seq_dir_8, out)
     assert f"holds 5 of {FRAMES} frames (its last map covers the first 4: a resume" in said
     # that map was put back (else the checkpoint after 3 frames would be the last)
-    resumed = slam_file(seq_dir, out, resume=True)
+    resumed = slam_file(seq_dir_8, out, resume=True)
     assert resumed["resumed_at"] == 4 and frames_in(out) == list(range(FRAMES))
 
 
 def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
-    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    seq_dir_8: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A run stopped inside a frame ends on a frame's snapshot (here the first pruning stage's),
     not an end map; the resumed run keeps it, so every stage still has its snapshot."""
@@ -492,9 +493,9 @@ def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
     out = tmp_path / "staged.mcap"
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(4))
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=config)
+        slam_file(seq_dir_8, out, config_path=config)
     monkeypatch.undo()
-    slam_file(seq_dir, out, resume=True)
+    slam_file(seq_dir_8, out, resume=True)
     with LogReader(out) as log:
         events = {
             m.log_time: json.loads(m.data).get("event")
@@ -509,24 +510,24 @@ def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
 
 
 def test_resuming_an_injected_run_that_holds_no_map_yet_is_refused(
-    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    seq_dir_8: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     config = _tiny_config(tmp_path, "checkpoint_every: 0\nprune: {stages: []}\n")
     a = tmp_path / "a.mcap"
-    slam_file(seq_dir, a, config_path=config, frames="odd")
+    slam_file(seq_dir_8, a, config_path=config, frames="odd")
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     b = tmp_path / "b.mcap"
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(2))
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, b, config_path=config, frames="even", inject=share)
+        slam_file(seq_dir_8, b, config_path=config, frames="even", inject=share)
     monkeypatch.undo()
     with pytest.raises(InputError, match=r"holds no map yet, so not the share .*\(--inject"):
-        slam_file(seq_dir, b, resume=True)
+        slam_file(seq_dir_8, b, resume=True)
 
 
-def test_a_resume_past_an_error_clears_it(seq_dir: Path, tmp_path: Path) -> None:
-    broken = shutil.copytree(seq_dir, tmp_path / "room")
+def test_a_resume_past_an_error_clears_it(seq_dir_8: Path, tmp_path: Path) -> None:
+    broken = shutil.copytree(seq_dir_8, tmp_path / "room")
     depth = sorted((broken / "depth").glob("*.png"))[3]
     good = depth.read_bytes()
     depth.write_bytes(b"not a png")
@@ -542,7 +543,7 @@ def test_a_resume_past_an_error_clears_it(seq_dir: Path, tmp_path: Path) -> None
 
 
 def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
-    seq_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    seq_dir_8: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     config = _tiny_config(tmp_path, "checkpoint_every: 2\nprune: {stages: []}\n")
     process = SlamSystem.process
@@ -556,7 +557,7 @@ def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
     monkeypatch.setattr(SlamSystem, "process", diverging)
     out = tmp_path / "diverged.mcap"
     with pytest.raises(DivergenceError, match="diverged"):
-        slam_file(seq_dir, out, config_path=config)
+        slam_file(seq_dir_8, out, config_path=config)
     assert frames_in(out) == [0, 1, 2]
     with LogReader(out) as log:
         results = log.metadata.results
@@ -566,12 +567,12 @@ def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
 
 
 def test_a_resume_on_another_scene_of_the_same_name_is_refused(
-    seq_dir: Path, tmp_path: Path
+    seq_dir_8: Path, tmp_path: Path
 ) -> None:
-    out = interrupted(seq_dir, tmp_path / "run.mcap", preset="tiny")
+    out = interrupted(seq_dir_8, tmp_path / "run.mcap", preset="tiny")
     with LogReader(out) as log:
         assert len(log.metadata.results["first_frame"]) == 4
-    other = write_synthetic_sequence(tmp_path / "other" / seq_dir.name, FRAMES, (64, 48), seed=5)
+    other = write_synthetic_sequence(tmp_path / "other" / seq_dir_8.name, FRAMES, (64, 48), seed=5)
     with pytest.raises(InputError, match=r"not recorded on this room: its first frame differs"):
         slam_file(other, out, resume=True)
-    assert slam_file(seq_dir, out, resume=True)["frames"] == FRAMES  # the same scene goes on
+    assert slam_file(seq_dir_8, out, resume=True)["frames"] == FRAMES  # the same scene goes on

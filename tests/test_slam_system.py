@@ -21,6 +21,9 @@ from gscompress.slam.poses import PoseAdam, orthonormalize, pose_gradient, pose_
 from gscompress.slam.system import SlamSystem, final_iterations, stage_positions
 from gscompress.slam.tracker import constant_velocity, track
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 SIZE = (64, 48)
 
 

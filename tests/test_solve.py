@@ -13,6 +13,9 @@ from gscompress.ops.budget import Budget
 from gscompress.pipeline.solve import CANDIDATES, share_solved, solve_share
 from gscompress_cli.main import cli
 
+# runs SLAM (or another minutes-long pipeline): not in `make test-fast`
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.parametrize("budget", ["6kB", "10kB", "16kB"])
 def test_every_candidate_fits_and_the_best_picture_wins(run, budget):

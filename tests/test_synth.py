@@ -166,6 +166,7 @@ def test_synth_writes_with_as_many_threads_as_gsc_threads(tmp_path, monkeypatch,
     assert used == [1]
 
 
+@pytest.mark.slow
 def test_sigterm_ends_synth_with_130_and_leaves_no_temporary_folder(
     tmp_path: Path, terminated: Any
 ) -> None:

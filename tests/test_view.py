@@ -368,6 +368,7 @@ def need_browser() -> Any:
     return browser
 
 
+@pytest.mark.slow
 @pytest.mark.browser
 def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: Path) -> None:
     browser = need_browser()
@@ -485,6 +486,7 @@ def test_the_server_draws_no_more_than_its_pixel_cap_and_refuses_no_camera() -> 
         assert renderer.draw(camera, 1.0) is None, camera
 
 
+@pytest.mark.slow
 @pytest.mark.browser
 def test_page_shows_the_server_s_frames_and_follows_the_keep_slider(
     tiny_log: Path, tmp_path: Path

@@ -434,11 +434,6 @@ class FileSequence:
         return self._depth_scale
 
     @property
-    def depth_coding(self) -> DepthCoding:
-        """How the depth PNGs hold metres (scale, invalid values, maximum depth)."""
-        return self._depth
-
-    @property
     def indices(self) -> np.ndarray:
         return self._indices.copy()
 

@@ -6,11 +6,12 @@ opacity (logit), f_dc_0..2, f_rest_* (channel-major, as the INRIA PLY writer lay
 plus our own importance, importance_sum, importance_weight, alpha_t_sum and id. This module turns
 a map into such columns and back, and packs / unpacks columns as little-endian records.
 
-Precision: columns are float32 (`fp32`), or, at `fp16`, every column whose values are bounded by
-design (log scales, rotations, opacity logit, SH) is stored as IEEE 754 binary16 bit patterns in
-a uint16 column named `<name>_f16`. Positions stay float32 (viewers place the cloud by them) and
-so do the importance score and sums, which grow with image size and frame count and can exceed
-the float16 range (65504). Decoding turns `_f16` columns back into float32 ones of the plain name.
+Precision: columns are float32, or, at half precision (the `fp16` codec), every column whose
+values are bounded by design (log scales, rotations, opacity logit, SH) is stored as IEEE 754
+binary16 bit patterns in a uint16 column named `<name>_f16`. Positions stay float32 (viewers
+place the cloud by them) and so do the importance score and sums, which grow with image size and
+frame count and can exceed the float16 range (65504). Decoding turns `_f16` columns back into
+float32 ones of the plain name.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from gscompress.errors import InputError, MapError
+from gscompress.errors import MapError
 from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
 
 GEOMETRY = ("x", "y", "z", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
@@ -185,9 +186,6 @@ def column_dtypes(cols: Mapping[str, np.ndarray]) -> dict[str, np.dtype]:
     }
 
 
-PRECISIONS = ("fp32", "fp16")
-"""Storage precisions of the float columns."""
-
 HALF_SUFFIX = "_f16"
 """Name suffix of a uint16 column that holds the float16 bit patterns of a float column."""
 
@@ -198,24 +196,16 @@ HALF_MAX = float(np.finfo(np.float16).max)
 """Largest finite float16 (65504)."""
 
 
-def check_precision(precision: str) -> str:
-    """Return `precision` if it is one of PRECISIONS, else raise InputError."""
-    if precision not in PRECISIONS:
-        raise InputError(f"unknown precision {precision!r}; choose one of {', '.join(PRECISIONS)}")
-    return precision
-
-
-def encode_columns(cols: Mapping[str, np.ndarray], precision: str) -> dict[str, np.ndarray]:
-    """Columns as stored at `precision`: unchanged at fp32; at fp16 the bounded ones as halves.
+def encode_columns(cols: Mapping[str, np.ndarray], half: bool) -> dict[str, np.ndarray]:
+    """Columns as stored: unchanged, or with `half` the bounded ones as float16 bit patterns.
 
     Values round to the nearest float16; a finite value that would round to infinity is refused
     (non-finite values pass through, for the reader's checks to refuse).
 
     Raises:
-        InputError: unknown precision.
         MapError: a value outside the float16 range.
     """
-    if check_precision(precision) == "fp32":
+    if not half:
         return dict(cols)
     out: dict[str, np.ndarray] = {}
     for name, values in cols.items():
@@ -224,15 +214,15 @@ def encode_columns(cols: Mapping[str, np.ndarray], precision: str) -> dict[str, 
             continue
         values = np.asarray(values, dtype=np.float32)
         with np.errstate(over="ignore"):  # overflow is reported below, by column
-            half = values.astype(np.float16)
-        overflow = np.isinf(half) & np.isfinite(values)
+            halves = values.astype(np.float16)
+        overflow = np.isinf(halves) & np.isfinite(values)
         if overflow.any():
             worst = float(values[overflow][np.argmax(np.abs(values[overflow]))])
             raise MapError(
                 f"{name} holds {int(overflow.sum())} value(s) beyond the float16 range "
                 f"(|v| > {HALF_MAX:g}, e.g. {worst:g}); use precision fp32"
             )
-        out[name + HALF_SUFFIX] = half.view("<u2")
+        out[name + HALF_SUFFIX] = halves.view("<u2")
     return out
 
 
@@ -257,6 +247,6 @@ def decode_columns(cols: Mapping[str, np.ndarray], source: str = "input") -> dic
     return out
 
 
-def columns_precision(names: Iterable[str]) -> str:
-    """The precision of stored columns: fp16 when some column is a `_f16` one."""
-    return "fp16" if any(name.endswith(HALF_SUFFIX) for name in names) else "fp32"
+def has_half_columns(names: Iterable[str]) -> bool:
+    """Whether stored columns are at half precision: some column is a `_f16` one."""
+    return any(name.endswith(HALF_SUFFIX) for name in names)

@@ -156,15 +156,22 @@ class MergeOptions:
     def check(self) -> None:
         """Raise OptionError for a setting out of range."""
         if self.icp not in ICP:
-            raise OptionError(f"--icp is one of {', '.join(ICP)}, got {self.icp!r}")
+            raise OptionError(
+                f"`icp` is one of {', '.join(ICP)}, got {self.icp!r}", options=("icp",)
+            )
         if self.resolve not in RESOLVE:
-            raise OptionError(f"--resolve is one of {', '.join(RESOLVE)}, got {self.resolve!r}")
+            raise OptionError(
+                f"`resolve` is one of {', '.join(RESOLVE)}, got {self.resolve!r}",
+                options=("resolve",),
+            )
         if not (math.isfinite(self.voxel) and self.voxel > 0):
-            raise OptionError(f"--voxel must be > 0 (m), got {self.voxel}")
+            raise OptionError(f"`voxel` must be > 0 (m), got {self.voxel}", options=("voxel",))
         if not (math.isfinite(self.margin) and self.margin >= 1.0):
             raise OptionError(f"--margin must be >= 1, got {self.margin}")
         if not 0.0 <= self.share_rate <= 1.0:
-            raise OptionError(f"--share-rate must be in [0, 1], got {self.share_rate}")
+            raise OptionError(
+                f"`share_rate` must be in [0, 1], got {self.share_rate}", options=("share_rate",)
+            )
 
     def record(self) -> dict[str, Any]:
         """What a provenance step keeps of these options (with `footprint`, the rule it names,

@@ -329,11 +329,17 @@ def evaluate_log(
     from gscompress.render import resolve_device
 
     if every < 1:
-        raise InputError(f"--every must be a positive integer, got {every}")
+        raise InputError(f"`every` must be a positive integer, got {every}", options=("every",))
     if refine_poses < 0:
-        raise InputError(f"--refine-poses must be 0 or more iterations, got {refine_poses}")
+        raise InputError(
+            f"`refine_poses` must be 0 or more iterations, got {refine_poses}",
+            options=("refine_poses",),
+        )
     if poses is not None and poses_from is not None:
-        raise OptionError("--poses and --poses-from do not go together: give one source of poses")
+        raise OptionError(
+            "`poses` and `poses_from` do not go together: give one source of poses",
+            options=("poses", "poses_from"),
+        )
     start = time.perf_counter()
     log_path = Path(log_path)
     with LogReader(log_path) as reader:

@@ -16,7 +16,15 @@ import numpy as np
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError, LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import COMPACT_DEFAULTS, SHARE_IDS, CompactOptions, check_codec
+from gscompress.io.codec import (
+    DEFAULT_CODEC,
+    DEFAULT_SHARE_CODEC,
+    SHARE_IDS,
+    carries_ids,
+    check_codec,
+    get_codec,
+)
+from gscompress.io.compact import COMPACT_DEFAULTS, CompactOptions
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
 from gscompress.io.keyframes import CarriedFrame, carried_messages, write_carried
 from gscompress.io.map_files import map_suffix, read_map_file, write_map_file
@@ -115,7 +123,7 @@ def _map_log(
     return {"output": str(dst), **meta.results}
 
 
-REFERENCE_FORMATS = ("fp32", "spz", "sog")
+REFERENCE_FORMATS = (DEFAULT_CODEC, "spz", "sog")
 """The formats `format_share` sends a whole map in: the points of the field on a
 rate-distortion plot."""
 
@@ -137,8 +145,8 @@ def format_share(
     """
     if fmt not in REFERENCE_FORMATS:
         raise InputError(f"unknown format {fmt!r}; choose from {', '.join(REFERENCE_FORMATS)}")
-    if fmt == "fp32":
-        got = share_log(src, dst, "1", codec="fp32", fold_dropped=False, command=command,
+    if fmt == DEFAULT_CODEC:
+        got = share_log(src, dst, "1", codec=fmt, fold_dropped=False, command=command,
                         force=force)  # fmt: skip
         return {**got, "format": fmt}
     import tempfile
@@ -297,10 +305,6 @@ def rewrite_map(
     return {"output": str(dst), **meta.results}
 
 
-DEFAULT_SHARE_CODEC = "compact"
-"""The codec a share is sent in unless asked otherwise."""
-
-
 def smallest_share_bytes(codec: str = DEFAULT_SHARE_CODEC) -> int:
     """Bytes of the smallest possible share file in `codec`: one Gaussian and a metadata record
     without provenance (every share of a log is larger, so a smaller budget holds nothing)."""
@@ -361,13 +365,13 @@ class ShareCut:
         self.carry = carry
         self.fold, self.spread = fold_dropped, spread
         self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
-        self.ids = ids or codec != "compact"  # (fp32 and fp16 always carry them)
+        self.ids = carries_ids(codec, ids)
         if source is None:
             with LogReader(src) as log_in:
                 source = log_in.read_map(), log_in.metadata
         self.full, meta = source
         self._recorded = recorded_topics(meta)
-        fp32_bytes = pointcloud_bytes(self.full, "fp32")(len(self.full))
+        fp32_bytes = pointcloud_bytes(self.full, DEFAULT_CODEC)(len(self.full))
         self.budget = budget = budget.resolve(fp32_bytes)
         operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
         operation.update(codec=codec, sums=sums, ids=self.ids, fold=fold_dropped)
@@ -608,7 +612,7 @@ def share_log(
     write_bytes_atomic(dst, data)
     if ply is not None:
         try:  # the receiver's values: what the share decodes to
-            received = shared if codec == "fp32" else read_map(dst)
+            received = shared if get_codec(codec).lossless else read_map(dst)
             write_ply(received, ply, inputs=(src,), force=force)
         except BaseException:  # a share is written whole or not at all
             Path(dst).unlink(missing_ok=True)

@@ -103,7 +103,9 @@ class RefineOptions:
         if self.views not in REFINE_VIEWS:
             raise OptionError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {self.views!r}")
         if not is_fraction(self.lr_final):
-            raise OptionError(f"--lr-final must be in (0, 1], got {self.lr_final}")
+            raise OptionError(
+                f"`lr_final` must be in (0, 1], got {self.lr_final}", options=("lr_final",)
+            )
         if self.pseudo_views < 0:
             raise OptionError(f"pseudo-views must be >= 0, got {self.pseudo_views}")
 

@@ -70,7 +70,7 @@ def score_file(
 
     check_output(dst, [p for p in (src, seq, poses) if p is not None], force, ".mcap")
     if sigma_d is not None and not sigma_d > 0:
-        raise InputError(f"--sigma-d must be above 0 (or inf), got {sigma_d}")
+        raise InputError(f"`sigma_d` must be above 0 (or inf), got {sigma_d}", options=("sigma_d",))
     is_log = Path(src).suffix.lower() != ".ply"
     if is_log:
         with LogReader(src) as reader:

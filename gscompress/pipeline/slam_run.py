@@ -29,7 +29,7 @@ from gscompress.errors import (
     OutputError,
     TrackingLostError,
 )
-from gscompress.io.codec import check_codec
+from gscompress.io.codec import DEFAULT_CODEC, check_codec
 from gscompress.io.decode_budget import DecodeBudget
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import (
@@ -82,7 +82,7 @@ class _Run:
     leftovers: list[Path] = field(default_factory=list)  # unfinished files to delete at the end
     map_frames: int = 0  # the frames the log's latest map snapshot covers (where --resume starts)
     restart_map: Record | None = None  # a resumed finished log's last snapshot, not carried over
-    codec: str = "fp32"  # of the map snapshots this run writes
+    codec: str = DEFAULT_CODEC  # of the map snapshots this run writes
 
 
 def world_frame_of(sequence: Any, config: Any) -> str:
@@ -112,7 +112,7 @@ def slam_file(
     force: bool = False,
     progress: Progress | None = None,
     sequence: Any = None,
-    codec: str = "fp32",
+    codec: str = DEFAULT_CODEC,
     recording: Any = None,
 ) -> dict[str, Any]:
     """Run SLAM over a sequence and write the log.

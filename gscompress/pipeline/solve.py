@@ -20,7 +20,7 @@ import numpy as np
 
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import SHARE_IDS
+from gscompress.io.codec import CODECS, SHARE_IDS, sums_choices
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, decoded_map
 from gscompress.ops.budget import Budget
@@ -30,11 +30,13 @@ log = logging.getLogger(__name__)
 
 CANDIDATES = tuple(
     (codec, sums, folded)
-    for codec, sums in (("compact", False), ("compact", True), ("fp16", True), ("fp32", True))
+    for codec in reversed(CODECS)
+    for sums in sorted(sums_choices(codec))
     for folded in (True, False)
 )
-"""(codec, sums, fold) the solver weighs (fp32 and fp16 always carry the sums; fold: what the
-share leaves out folded into what it sends, `gscompress.ops.fold`)."""
+"""(codec, sums, fold) the solver weighs, the smallest codec first (a codec that always carries
+the sums is weighed with them only; fold: what the share leaves out folded into what it sends,
+`gscompress.ops.fold`)."""
 
 SOLVE_VIEWS = 4
 """Keyframes the candidates are rendered at, spread over the sender's trajectory."""

@@ -176,7 +176,9 @@ def resolve_device(device: str | torch.device, backend: str = "auto") -> torch.d
         return torch.device("cpu")
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda asked for, but torch sees no CUDA device")
+        raise InputError(
+            "`device` cuda asked for, but torch sees no CUDA device", options=("device",)
+        )
     return dev
 
 

@@ -19,9 +19,10 @@ import numpy as np
 
 from gscompress.errors import GscError, OptionError, clipped
 from gscompress.gaussians import GaussianMap
+from gscompress.io.codec import CODECS, DEFAULT_SHARE_CODEC
 from gscompress.io.mcap_log import decoded_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.offline import DEFAULT_SHARE_CODEC, ShareCut, smallest_share_bytes
+from gscompress.pipeline.offline import ShareCut, smallest_share_bytes
 from gscompress.selection import STRATEGIES
 from gscompress.view import cuts, scene
 from gscompress.view.server_render import Layer, ServerRenderer
@@ -31,7 +32,6 @@ log = logging.getLogger(__name__)
 
 SELECTIONS = ("prune (keep ratio)", "share (byte budget)")
 COMPARE_MODES = ("A", "B", "A | B side by side", "B + share of A")
-CODECS = ("compact", "fp16", "fp32")
 ESTIMATE_RGB = (255, 140, 0)
 TRUTH_RGB = (40, 200, 80)
 
@@ -173,7 +173,8 @@ class MapViewer:
             )
             self.keep = gui.add_slider("Keep ratio", 0.01, 1.0, 0.01, 1.0)
             self._guard(self.keep)
-            self.codec = gui.add_dropdown("Codec", CODECS, initial_value=DEFAULT_SHARE_CODEC)
+            # (the smallest codec first)
+            self.codec = gui.add_dropdown("Codec", CODECS[::-1], initial_value=DEFAULT_SHARE_CODEC)
             self.sums = gui.add_checkbox("PWAS sums", True)
             self.budget = gui.add_slider("Budget (kB)", 1, 2, 1, 2)
             self._guard(self.budget, whole=True)

@@ -100,19 +100,6 @@ def set_slider(page: Any, label: str, value: float) -> None:
     box.press("Enter")
 
 
-def frame_rate(page: Any, seconds: float = 3.0) -> float:
-    """Frames per second the page draws (requestAnimationFrame callbacks over `seconds`)."""
-    frames = page.evaluate(
-        """(ms) => new Promise((done) => {
-            let n = 0; const end = performance.now() + ms;
-            const tick = (t) => { n += 1; if (t < end) requestAnimationFrame(tick); else done(n); };
-            requestAnimationFrame(tick);
-        })""",
-        seconds * 1000,
-    )
-    return float(frames) / seconds
-
-
 def canvas_spread(png: bytes) -> tuple[int, float]:
     """Distinct colours and the standard deviation of the pixels of a screenshot (a blank
     page has one colour and no spread)."""

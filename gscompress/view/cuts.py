@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.gaussians import GaussianMap
+from gscompress.io.codec import CODECS, sums_choices
 from gscompress.io.files import check_output
 from gscompress.io.map_files import write_map_file
 from gscompress.io.mcap_log import LogMetadata
@@ -18,7 +19,7 @@ from gscompress.ops.budget import Budget
 from gscompress.pipeline.offline import ShareCut, prune_log, share_log
 from gscompress.selection import select_top
 
-SHARE_CODECS = (("compact", True), ("compact", False), ("fp16", True), ("fp32", True))
+SHARE_CODECS = tuple((codec, sums) for codec in reversed(CODECS) for sums in sums_choices(codec))
 """(codec, sums) pairs a share's size is shown in."""
 
 

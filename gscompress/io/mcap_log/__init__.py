@@ -36,7 +36,6 @@ from gscompress.io.mcap_log.messages import (
     encoded_size,
     gaussians_to_pointcloud,
     pointcloud_bytes,
-    pointcloud_to_gaussians,
     pose_message,
     record_size,
     trajectory_message,
@@ -68,6 +67,7 @@ from gscompress.io.mcap_log.reader import (
     read_map,
 )
 from gscompress.io.mcap_log.writer import LogWriter
+from gscompress.io.pointcloud import pointcloud_to_gaussians
 
 __all__ = [
     "CAMERA_FRAME",

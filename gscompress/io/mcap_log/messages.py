@@ -1,5 +1,6 @@
-"""The profile's messages: a map as a `/gaussians` message (foxglove.PointCloud, or the compact
-message of `gscompress.io.codec`) and back, and poses as foxglove.PoseInFrame and back.
+"""The profile's messages: a map as a `/gaussians` message in a codec of `gscompress.io.codec`
+(a foxglove.PointCloud, or the compact message) and back, and poses as foxglove.PoseInFrame and
+back.
 
 Decoding treats every message as untrusted: layouts, sizes and values are checked before a map
 is built.
@@ -7,13 +8,11 @@ is built.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
@@ -23,140 +22,86 @@ from mcap.records import Schema
 
 from gscompress.camera import is_zero_quaternion, make_transform, quat_to_rotmat, rotmat_to_quat
 from gscompress.errors import LogFormatError, MapError, led_by
-from gscompress.gaussians import SH_REST_COUNTS, GaussianMap
+from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import (
-    COMPACT_DEFAULTS,
-    COMPACT_SCHEMA,
-    CompactGaussians,
-    CompactOptions,
-    check_codec,
-    decode_compact,
-    encode_compact,
+    DEFAULT_CODEC,
+    MAP_SCHEMAS,
+    decoder,
+    get_codec,
+    pointcloud_half,
 )
-from gscompress.io.columns import (
-    column_dtypes,
-    columns_precision,
-    decode_columns,
-    encode_columns,
-    map_from_columns,
-    map_to_columns,
-    pack_records,
-)
+from gscompress.io.compact import COMPACT_DEFAULTS, CompactOptions
 from gscompress.io.decode_budget import DecodeBudget
 from gscompress.io.mcap_log.metadata import TOPIC_GAUSSIANS, WORLD_FRAME
-
-# foxglove.PackedElementField.NumericType values and their numpy equivalents
-_NUMERIC_TYPES: dict[int, np.dtype] = {
-    1: np.dtype("u1"),
-    2: np.dtype("i1"),
-    3: np.dtype("<u2"),
-    4: np.dtype("<i2"),
-    5: np.dtype("<u4"),
-    6: np.dtype("<i4"),
-    7: np.dtype("<f4"),
-    8: np.dtype("<f8"),
-}
-_NUMERIC_CODES = {dtype: code for code, dtype in _NUMERIC_TYPES.items()}
+from gscompress.io.pointcloud import (
+    encode_pointcloud,
+    pointcloud_size,
+    record_bytes,
+)
 
 
 def gaussians_to_pointcloud(
-    gaussians: GaussianMap, timestamp_ns: int = 0, precision: str = "fp32"
+    gaussians: GaussianMap, timestamp_ns: int = 0, precision: str = DEFAULT_CODEC
 ) -> PointCloud:
-    """A foxglove.PointCloud holding every field of a map as packed little-endian records.
-
-    Args:
-        gaussians: the map.
-        timestamp_ns: the cloud's timestamp.
-        precision: "fp32", or "fp16" to store the bounded attributes as float16 (positions,
-            scores and sums stay float32; see `gscompress.io.columns`).
+    """A map as the `/gaussians` foxglove.PointCloud of the codec `precision` (fp32, or fp16 to
+    store the bounded attributes as float16; see `gscompress.io.pointcloud`).
 
     Raises:
+        InputError: not a PointCloud codec.
         MapError: at fp16, a value beyond the float16 range.
     """
-    cols = encode_columns(map_to_columns(gaussians), precision)
-    records = pack_records(cols, column_dtypes(cols))
-    layout: dict[str, Any] = dict(records.dtype.fields or {})
-    fields = [
-        PackedElementField(name=name, offset=spec[1], type=_NUMERIC_CODES[spec[0]])  # type: ignore[arg-type]
-        for name, spec in layout.items()
-    ]
-    msg = PointCloud(
-        frame_id=WORLD_FRAME,
-        point_stride=records.dtype.itemsize,
-        fields=fields,
-        data=records.tobytes(),
-    )
-    msg.timestamp.FromNanoseconds(timestamp_ns)
-    msg.pose.orientation.w = 1.0
-    return msg
+    return encode_pointcloud(gaussians, timestamp_ns, pointcloud_half(precision), WORLD_FRAME)
 
 
-def record_size(gaussians: GaussianMap, precision: str = "fp32") -> int:
+def record_size(gaussians: GaussianMap, precision: str = DEFAULT_CODEC) -> int:
     """Bytes per Gaussian in a `/gaussians` PointCloud of this map (its point_stride)."""
-    cols = encode_columns(map_to_columns(gaussians.select(slice(0, 0))), precision)
-    return sum(dtype.itemsize for dtype in column_dtypes(cols).values())
+    return record_bytes(gaussians, pointcloud_half(precision))
 
 
 def pointcloud_bytes(
-    gaussians: GaussianMap, precision: str = "fp32", timestamp_ns: int = 0
+    gaussians: GaussianMap, precision: str = DEFAULT_CODEC, timestamp_ns: int = 0
 ) -> Callable[[int], int]:
     """Exact serialized size of the `/gaussians` message holding K Gaussians of this map's layout.
-
-    The message is a header that depends only on the layout (fields, stride, frame, pose,
-    timestamp) plus the `data` bytes field: its tag, the varint of its length, and K records.
 
     Returns:
         A function K -> bytes of `gaussians_to_pointcloud(m, timestamp_ns, precision)` for any
         map m of K Gaussians with this layout (SH degree, score columns).
     """
-    header = gaussians_to_pointcloud(gaussians.select(slice(0, 0)), timestamp_ns, precision)
-    header_bytes = header.ByteSize()  # proto3 leaves an empty `data` out
-    stride = header.point_stride
-    tag_bytes = _varint_size(PointCloud.DESCRIPTOR.fields_by_name["data"].number << 3 | 2)
-
-    def size(count: int) -> int:
-        n = count * stride
-        return header_bytes + (tag_bytes + _varint_size(n) + n if n else 0)
-
-    return size
-
-
-def _varint_size(value: int) -> int:
-    return max(1, (value.bit_length() + 6) // 7)
+    return pointcloud_size(gaussians, pointcloud_half(precision), timestamp_ns, WORLD_FRAME)
 
 
 def encode_map(
     gaussians: GaussianMap,
-    codec: str = "fp32",
+    codec: str = DEFAULT_CODEC,
     timestamp_ns: int = 0,
     options: CompactOptions = COMPACT_DEFAULTS,
 ) -> Message:
-    """The `/gaussians` message of a map in `codec`: a foxglove.PointCloud (fp32, fp16) or a
-    gscompress.CompactGaussians (compact, with `options`).
+    """The `/gaussians` message of a map in `codec` (`gscompress.io.codec`; `options` for a
+    codec that does not carry everything, compact).
 
     Raises:
         InputError: an unknown codec.
         MapError: at fp16, a value beyond the float16 range.
     """
-    if check_codec(codec) == "compact":
-        return encode_compact(gaussians, options, timestamp_ns=timestamp_ns, frame_id=WORLD_FRAME)
-    return gaussians_to_pointcloud(gaussians, timestamp_ns, codec)
+    return get_codec(codec).encode(gaussians, timestamp_ns, options, WORLD_FRAME)
 
 
-def decoded_map(gaussians: GaussianMap, codec: str = "fp32", *, sums: bool = True) -> GaussianMap:
+def decoded_map(
+    gaussians: GaussianMap, codec: str = DEFAULT_CODEC, *, sums: bool = True
+) -> GaussianMap:
     """The map a receiver decodes from `gaussians` sent in `codec` (with or without the PWAS
     sums at compact): what a share's picture is judged by."""
-    if codec == "fp32":
+    if get_codec(codec).lossless:
         return gaussians
     message = encode_map(gaussians, codec, 0, CompactOptions(sums=sums))
-    return decode_map_message(message.SerializeToString(), codec == "compact")[0]
+    return decode_map_message(message.SerializeToString(), get_codec(codec).schema)[0]
 
 
 def decode_map_message(
-    data: bytes, compact: bool, source: str = "map", budget: DecodeBudget | None = None
+    data: bytes, schema: str, source: str = "map", budget: DecodeBudget | None = None
 ) -> tuple[GaussianMap, str]:
-    """The validated map of a serialized `/gaussians` message (a CompactGaussians if `compact`,
-    else a PointCloud) and the codec it was stored in.
+    """The validated map of a serialized `/gaussians` message of schema `schema` and the codec
+    it was stored in.
 
     Args:
         budget: what the file holding the message may decode to (None: the message's own
@@ -164,29 +109,16 @@ def decode_map_message(
 
     Raises:
         DecodeError: not such a protobuf message.
-        MapError: a malformed map, or one over `budget`.
+        MapError: a schema no codec writes, a malformed map, or one over `budget`.
     """
-    if compact:
-        message = CompactGaussians.FromString(data)
-        if budget is not None:
-            budget.check_map(int(message.count), int(message.sh_degree))
-        return decode_compact(message, len(data), source), "compact"
-    cloud = PointCloud.FromString(data)
-    if budget is not None and cloud.point_stride > 0:
-        rest = sum(f.name.startswith("f_rest_") for f in cloud.fields) // 3
-        degree = next((d for d, k in SH_REST_COUNTS.items() if k >= rest), 3)
-        budget.check_map(len(cloud.data) // cloud.point_stride, degree)
-    return pointcloud_to_gaussians(cloud, source), columns_precision(f.name for f in cloud.fields)
+    return decoder(schema, source)(data, source, budget)
 
 
 def encoded_size(
-    gaussians: GaussianMap, codec: str = "fp32", options: CompactOptions = COMPACT_DEFAULTS
+    gaussians: GaussianMap, codec: str = DEFAULT_CODEC, options: CompactOptions = COMPACT_DEFAULTS
 ) -> int:
     """Bytes of the `/gaussians` message of a map in `codec` (see `encode_map`)."""
     return encode_map(gaussians, codec, 0, options).ByteSize()
-
-
-_MAP_SCHEMAS = {"foxglove.PointCloud", COMPACT_SCHEMA}
 
 
 def decode_snapshot(
@@ -202,14 +134,13 @@ def decode_snapshot(
         LogFormatError: not a protobuf foxglove.PointCloud or gscompress.CompactGaussians,
             corrupt, a malformed map, or one over budget.
     """
-    if schema is None or schema.name not in _MAP_SCHEMAS or schema.encoding != "protobuf":
+    if schema is None or schema.name not in MAP_SCHEMAS or schema.encoding != "protobuf":
         name = schema.name if schema else "no schema"
         raise LogFormatError(
-            f"{source}: {TOPIC_GAUSSIANS} is {name}, not foxglove.PointCloud or {COMPACT_SCHEMA}"
+            f"{source}: {TOPIC_GAUSSIANS} is {name}, not {' or '.join(MAP_SCHEMAS)}"
         )
     try:
-        compact = schema.name == COMPACT_SCHEMA
-        gaussians, codec = decode_map_message(message.data, compact, source, budget)
+        gaussians, codec = decode_map_message(message.data, schema.name, source, budget)
     except DecodeError:
         raise LogFormatError(f"{source}: a corrupt {TOPIC_GAUSSIANS} message") from None
     except MapError as exc:
@@ -301,7 +232,7 @@ class Snapshot:
         gaussians: the map (float32 whatever the codec).
         log_time_ns: the message's log time.
         message_bytes: bytes of the serialized message.
-        codec: how it was stored: "fp32", "fp16" (some PointCloud fields float16) or "compact".
+        codec: how it was stored (`gscompress.io.codec.CODECS`).
     """
 
     gaussians: GaussianMap
@@ -313,59 +244,3 @@ class Snapshot:
     def bytes_per_gaussian(self) -> float | None:
         """Message bytes per Gaussian (None for an empty map)."""
         return self.message_bytes / len(self.gaussians) if len(self.gaussians) else None
-
-
-def pointcloud_to_gaussians(cloud: PointCloud, source: str = "point cloud") -> GaussianMap:
-    """Decode a PointCloud written by `gaussians_to_pointcloud` (or any compatible writer).
-
-    Checks the stride (the packed fields' span), every field's type and extent, that no two
-    fields overlap, and the data length before reading, and
-    the decoded map's finiteness and id uniqueness. Fields `<name>_f16` (uint16 float16 bit
-    patterns) are returned as float32 `<name>`.
-
-    Raises:
-        MapError: inconsistent layout or invalid values.
-    """
-    stride = cloud.point_stride
-    data = cloud.data
-    if stride <= 0:
-        raise MapError(f"{source}: point_stride is {stride}")
-    if len(data) % stride:
-        raise MapError(
-            f"{source}: data length {len(data)} is not a multiple of point_stride {stride}"
-        )
-    names: list[str] = []
-    formats: list[np.dtype] = []
-    offsets: list[int] = []
-    for f in cloud.fields:
-        dtype = _NUMERIC_TYPES.get(f.type)
-        if dtype is None:
-            raise MapError(f"{source}: field {f.name!r} has unknown numeric type {f.type}")
-        if f.offset < 0 or f.offset + dtype.itemsize > stride:
-            raise MapError(f"{source}: field {f.name!r} lies outside the {stride}-byte stride")
-        if f.name in names:
-            raise MapError(f"{source}: field {f.name!r} appears twice")
-        names.append(f.name)
-        formats.append(dtype)
-        offsets.append(f.offset)
-    spans = sorted(
-        (offset, offset + dtype.itemsize, name)
-        for name, dtype, offset in zip(names, formats, offsets, strict=True)
-    )
-    for (_start, end, name), (start, _end, other) in itertools.pairwise(spans):
-        if start < end:
-            raise MapError(f"{source}: fields {name!r} and {other!r} overlap")
-    span = max((end for _start, end, _name in spans), default=0)
-    if stride != span:
-        raise MapError(
-            f"{source}: point_stride {stride} is not the {span} bytes its fields span "
-            "(the records are packed)"
-        )
-    records = np.frombuffer(
-        data,
-        dtype=np.dtype(
-            {"names": names, "formats": formats, "offsets": offsets, "itemsize": stride}
-        ),
-    )
-    cols = decode_columns({name: records[name] for name in names}, source)
-    return map_from_columns(cols, source).validate()

@@ -22,7 +22,8 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from gscompress import __version__
 from gscompress.camera import Intrinsics, rotmat_to_quat
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import COMPACT_DEFAULTS, CompactOptions
+from gscompress.io.codec import DEFAULT_CODEC
+from gscompress.io.compact import COMPACT_DEFAULTS, CompactOptions
 from gscompress.io.files import AtomicFile, MemoryFile, check_output, safe_value
 from gscompress.io.mcap_log.messages import (
     encode_map,
@@ -78,7 +79,7 @@ class LogWriter:
         self._mcap.start(profile=PROFILE, library=f"gscompress {__version__}")
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._channels: dict[tuple[str, int], int] = {}  # (topic, schema id): a topic may
-        # carry two schemas (a SLAM log's fp32 snapshots and a compact one)
+        # carry two schemas (a SLAM log's PointCloud snapshots and a compact one)
         self._closed = False
 
     def __enter__(self) -> LogWriter:
@@ -154,7 +155,7 @@ class LogWriter:
         self,
         gaussians: GaussianMap,
         log_time_ns: int,
-        codec: str = "fp32",
+        codec: str = DEFAULT_CODEC,
         options: CompactOptions = COMPACT_DEFAULTS,
     ) -> int:
         """Write one map snapshot to `/gaussians` in `codec` (`gscompress.io.codec.CODECS`;
