@@ -104,6 +104,36 @@ class View:
         )
 
 
+class HeldImages:
+    """Which of a run's views hold their images.
+
+    Views of frames the run can read again (`frames`: the frame at a processing position) get
+    a `View.source`; of those, only the keyframes the mapping used last (`capacity`: a
+    window's worth and the newest) keep their images between frames: the window mostly draws on
+    recent keyframes, and any other view is read again when used.
+    """
+
+    def __init__(self, frames: Callable[[int], Any] | None, device: Any, capacity: int) -> None:
+        self.frames, self.device, self.capacity = frames, device, capacity
+        self.held: list[View] = []  # used last first
+
+    def sourced(self, view: View) -> View:
+        """`view` with its `source` set when its frame can be read again."""
+        frames, device = self.frames, self.device
+        if frames is not None and view.index >= 0:
+            position = view.index
+            view.source = lambda: frame_tensors(frames(position), device)
+        return view
+
+    def hold(self, used: list[View]) -> None:
+        """Keep the images of `used` (used last), releasing those beyond `capacity`."""
+        for view in used:
+            self.held = [view, *(v for v in self.held if v is not view)]
+        for view in self.held[self.capacity :]:
+            view.release()
+        del self.held[self.capacity :]
+
+
 def carried_views(frames: list[Any], device: Any, first: int = -1) -> list[View]:
     """Views of another agent's keyframes (`gscompress.io.keyframes.CarriedFrame`s, at their
     poses), numbered down from `first` (negative: no frame position of this run)."""

@@ -19,13 +19,19 @@ otherwise the run stops with `gscompress.errors.TrackingLostError`.
 
 from __future__ import annotations
 
+import logging
 from collections import deque
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
+from gscompress.errors import TrackingLostError
 from gscompress.slam.config import TrackingConfig
 from gscompress.slam.poses import orthonormalize
 from gscompress.slam.tracker import TrackResult, velocity_guess
+
+log = logging.getLogger(__name__)
 
 LEVEL_FRAMES = 10
 """Accepted frames whose depth errors make the running level (their median)."""
@@ -120,3 +126,43 @@ def relocalisation_guesses(
     for k, T in enumerate(reversed(keyframe_poses[-KEYFRAME_GUESSES:])):
         guesses.append((f"keyframe pose {k + 1} back", orthonormalize(T)))
     return guesses
+
+
+class Lost(NamedTuple):
+    """A frame whose track was judged lost: its index and stamp, why, its pixels with a depth
+    measurement and the running level of the depth error (None: not made yet)."""
+
+    frame: int
+    timestamp: float
+    reason: str
+    valid_pixels: int
+    level: float | None
+
+
+def relocalise(
+    track: Callable[[np.ndarray], TrackResult],
+    guesses: list[tuple[str, np.ndarray]],
+    lost: Lost,
+    config: TrackingConfig,
+) -> TrackResult:
+    """The lost frame tracked again from each named guess (`track(T_world_cam)`): the result
+    with the lowest depth error of those that cover enough of the frame, when it passes the
+    lost test, marked `relocalised` and reported in a warning.
+
+    Raises:
+        TrackingLostError: no guess gives a track that passes.
+    """
+    best: tuple[str, TrackResult] | None = None
+    for name, guess in guesses:
+        result = track(guess)
+        covered = coverage_reason(result, lost.valid_pixels, config) is None
+        if covered and (best is None or result.depth < best[1].depth):
+            best = (name, result)
+    if best is None or lost_reason(best[1], lost.valid_pixels, lost.level, config) is not None:
+        raise TrackingLostError(lost.frame, lost.timestamp, lost.reason)
+    log.warning(
+        "frame %d (stamp %.3f s): tracking lost (%s); re-localised against the map from %s",
+        lost.frame, lost.timestamp, lost.reason, best[0],
+    )  # fmt: skip
+    best[1].relocalised = True
+    return best[1]

@@ -45,20 +45,27 @@ import torch
 
 from gscompress.camera import Intrinsics, invert_transform
 from gscompress.datasets.base import Frame
-from gscompress.errors import BudgetError, InputError, MapError, TrackingLostError
+from gscompress.errors import BudgetError, InputError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.importance import median_range, resolve_sigma_d
 from gscompress.render import render, resolve_device
 from gscompress.selection import keep_count, strategy_scores, top_k
 from gscompress.slam.config import MappingConfig, SlamConfig
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
-from gscompress.slam.keyframes import View, frame_tensors, is_keyframe, select_window
+from gscompress.slam.keyframes import (
+    HeldImages,
+    View,
+    frame_tensors,
+    is_keyframe,
+    select_window,
+)
 from gscompress.slam.lost import (
+    Lost,
     TrackLevel,
-    coverage_reason,
     gap_reason,
     lost_reason,
     relocalisation_guesses,
+    relocalise,
 )
 from gscompress.slam.mapper import Mapper, MappingStats
 from gscompress.slam.params import RenderInputs
@@ -196,7 +203,6 @@ class SlamSystem:
         frames: Callable[[int], Frame] | None = None,
     ) -> None:
         self.config = config
-        self.frames = frames
         self.intrinsics = intrinsics
         self.device = resolve_device(device, config.backend)
         self.mapper = Mapper(config, intrinsics, self.device)
@@ -214,8 +220,8 @@ class SlamSystem:
         self.prestage: tuple[RenderInputs, int] | None = None
         """The map before the last stage and how many more frames track against it."""
         self.track_level = TrackLevel()
-        self._held: list[View] = []
-        """The keyframes whose images are kept, used last first (`_hold`)."""
+        self.images = HeldImages(frames, self.device, config.keyframes.window + 1)
+        """Which views hold their images (`gscompress.slam.keyframes.HeldImages`)."""
         """The running level of the tracked frames' depth errors (lost-track detection)."""
         self.stages = (
             stage_positions(total_frames, config.prune.stages) if total_frames is not None else {}
@@ -281,24 +287,6 @@ class SlamSystem:
                 view.T_world_cam = self._refined_pose(position, views)
                 view.pose = None
                 view.refinable(self._pose_rates)
-
-    def _sourced(self, view: View) -> View:
-        """`view` with its `source` set when the run can read its frame again (`frames`)."""
-        frames, device = self.frames, self.device
-        if frames is not None and view.index >= 0:
-            position = view.index
-            view.source = lambda: frame_tensors(frames(position), device)
-        return view
-
-    def _hold(self, used: list[View]) -> None:
-        """Keep the images of the keyframes used last (as many as a mapping window holds, and
-        the newest), releasing those of the others: the window mostly draws on recent
-        keyframes, and one it draws on later is read again (`View.source`)."""
-        for view in used:
-            self._held = [view, *(v for v in self._held if v is not view)]
-        for view in self._held[self.config.keyframes.window + 1 :]:
-            view.release()
-        del self._held[self.config.keyframes.window + 1 :]
 
     @property
     def keeps_every_view(self) -> bool:
@@ -399,8 +387,8 @@ class SlamSystem:
         self.keyframes = [v for v in views if is_keyframe(v.index, self.config.keyframes)]
         self.views = list(views) if self.keeps_every_view else []
         for view in views:
-            self._sourced(view).release()
-        self._hold(self.keyframes[-(self.config.keyframes.window + 1) :])
+            self.images.sourced(view).release()
+        self.images.hold(self.keyframes[-self.images.capacity :])
         self.mapper.iterations = int(mapping_iterations)
         self.next_id = max(self.next_id, int(next_id))
         self.own_ids_from = int(own_ids_from)
@@ -431,7 +419,7 @@ class SlamSystem:
         clock = time.perf_counter()
         T_world_cam, tracking = self._pose(frame, color, depth, position)
         ms["tracking"] = 1e3 * (time.perf_counter() - clock)
-        current = self._sourced(View(position, color, depth, T_world_cam))
+        current = self.images.sourced(View(position, color, depth, T_world_cam))
         keyframe = is_keyframe(position, self.config.keyframes)
         if position > 0 and self.config.poses.enabled and (keyframe or self.keeps_every_view):
             current.refinable(self._pose_rates)
@@ -478,7 +466,7 @@ class SlamSystem:
             added += refinement.added
         ms["refinement"] = 1e3 * (time.perf_counter() - clock)
         ms["total"] = 1e3 * (time.perf_counter() - start)
-        self._hold([current, *window] if keyframe else window)
+        self.images.hold([current, *window] if keyframe else window)
         if not keyframe:
             current.release()  # (read again if the final refinement visits it)
 
@@ -572,7 +560,13 @@ class SlamSystem:
             result = self._track(inputs, color, depth, guess)
             reason = lost_reason(result, valid, self.track_level.level(), self.config.tracking)
         if reason is not None:
-            result = self._relocalise(frame, inputs, color, depth, valid, reason)
+            own = [v.T_world_cam for v in self.keyframes if v.index >= 0]
+            result = relocalise(
+                lambda guess: self._track(inputs, color, depth, guess),
+                relocalisation_guesses(self.poses, self.timestamps, frame.timestamp, own),
+                Lost(frame.index, frame.timestamp, reason, valid, self.track_level.level()),
+                self.config.tracking,
+            )
         self.track_level.add(result)
         return result.T_world_cam, result
 
@@ -583,36 +577,6 @@ class SlamSystem:
             inputs, color, depth, self.intrinsics, guess, self.config.tracking,
             backend=self.config.backend,
         )  # fmt: skip
-
-    def _relocalise(
-        self,
-        frame: Frame,
-        inputs: RenderInputs,
-        color: torch.Tensor,
-        depth: torch.Tensor,
-        valid: int,
-        reason: str,
-    ) -> TrackResult:
-        """The frame tracked again from each re-localisation guess: the best accepted result,
-        else `TrackingLostError` (module `gscompress.slam.lost`)."""
-        config, level = self.config.tracking, self.track_level.level()
-        own = [v.T_world_cam for v in self.keyframes if v.index >= 0]
-        guesses = relocalisation_guesses(self.poses, self.timestamps, frame.timestamp, own)
-        best: tuple[float, str, TrackResult] | None = None
-        for name, guess in guesses:
-            result = self._track(inputs, color, depth, guess)
-            if coverage_reason(result, valid, config) is None and (
-                best is None or result.depth < best[0]
-            ):
-                best = (result.depth, name, result)
-        if best is None or lost_reason(best[2], valid, level, config) is not None:
-            raise TrackingLostError(frame.index, frame.timestamp, reason)
-        log.warning(
-            "frame %d (stamp %.3f s): tracking lost (%s); re-localised against the map from %s",
-            frame.index, frame.timestamp, reason, best[1],
-        )  # fmt: skip
-        best[2].relocalised = True
-        return best[2]
 
     def _init_scene_radius(self, depth: np.ndarray) -> None:
         """Scene radius (for the huge-Gaussian cleanup) and PWAS's sigma_d from the first valid
