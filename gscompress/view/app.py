@@ -141,12 +141,16 @@ class MapViewer:
             if self._closed:
                 return
             self._wanted.clear()
-            started = self._requested_at
-            try:
-                self._redraw()
-            except GscError as exc:
-                self._say(f"**{exc}**")
-            self.last_update_s = time.perf_counter() - started
+            self._work_once()
+
+    def _work_once(self) -> None:
+        """One redraw from the controls' latest values (a GscError said in the page)."""
+        started = self._requested_at
+        try:
+            self._redraw()
+        except GscError as exc:
+            self._say(f"**{exc}**")
+        self.last_update_s = time.perf_counter() - started
 
     def _say(self, text: str) -> None:
         self.status.content = text
