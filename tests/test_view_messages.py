@@ -1,6 +1,8 @@
 """`gsc view`: what a page sends is input. A camera message of an absurd canvas is refused
-before anything is drawn (the renderer run under the fuzz policy's memory bound), and a
-slider value out of range is refused and put back, so that later pages still get a state."""
+before anything is drawn (the renderer run under the fuzz policy's memory bound), a slider
+value out of range is refused and put back, and a page's GUI update that sets anything but a
+value the input takes is refused before viser stores or broadcasts it, so that later pages
+still get a state (the updates sent through viser's own handlers: fuzz_view.Page)."""
 
 from __future__ import annotations
 
