@@ -154,3 +154,43 @@ def test_7_a_page_sets_only_values_in_range_or_among_the_options(
     finally:
         page.close()
         viewer.close()
+
+
+@pytest.mark.parametrize("size", [("-5", 48), (64, "1e30"), ("nan", "16")])
+def test_a_camera_of_a_canvas_in_text_is_refused_and_the_page_still_drawn(
+    size: tuple[object, object],
+) -> None:
+    """A camera message whose canvas size was text of a number ("-5") passed the conversion to
+    numbers, then its size check raised TypeError out of the page's drawing step, which ended
+    that page's frames (the fuzz target `view` found it)."""
+    import threading
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from gscompress.gaussians import random_map
+    from gscompress.view import server_render as sr
+
+    camera = ((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, -3.0), 0.9, *size)
+    assert "not a camera" in str(sr.camera_refusal(camera))
+    g = random_map(50, seed=1)
+    renderer = sr.ServerRenderer(None, device="cpu")
+    renderer.set_layer("a", sr.Layer(g, g.colors(), g.opacities()[:, None]))
+    frames: list[np.ndarray] = []
+    notes: list[str] = []
+    page = SimpleNamespace(
+        wxyz=np.array(camera[0]), position=np.array(camera[1]), fov=0.9,
+        image_width=size[0], image_height=size[1],
+    )  # fmt: skip
+    client = SimpleNamespace(
+        client_id=1,
+        camera=page,
+        scene=SimpleNamespace(set_background_image=lambda image, **_: frames.append(image)),
+        add_notification=lambda title, body: notes.append(body),
+    )
+    state = sr.PageState(threading.Event())
+    renderer.serve_once(client, state)
+    assert not frames and len(notes) == 1 and "not a camera" in notes[0]
+    page.image_width, page.image_height = 64, 48  # (the page's next camera is drawn)
+    renderer.serve_once(client, state)
+    assert len(frames) == 1 and frames[0].shape == (48, 64, 3)

@@ -99,7 +99,10 @@ def camera_refusal(camera: tuple[Any, ...]) -> str | None:
     page before its layout)."""
     try:
         wxyz, position, fov, width, height = camera
-        numbers = np.array([*wxyz, *position, fov, width, height], np.float64)
+        values = [*wxyz, *position, fov, width, height]
+        if not all(isinstance(v, int | float | np.number) for v in values):
+            raise TypeError  # (numpy would read "16" as a number, and the size checks fail)
+        numbers = np.array(values, np.float64)
     except (TypeError, ValueError, OverflowError):
         return "not a camera (wxyz, position, fov, width, height)"
     if len(wxyz) != 4 or len(position) != 3 or not np.all(np.isfinite(numbers)):
