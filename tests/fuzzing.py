@@ -7,8 +7,9 @@ else (another exception, a numpy warning, a case over `HANG_SECONDS`) is a defec
 the long run, is a case whose read takes more memory than the policy allows: peak RSS minus the
 RSS after imports, in the same process, at most max(300 MB, 20 x the input's bytes)
 (`bounded.memory_bound`), whatever the read ends with. Add a reader by appending a target to
-`TARGETS`; the targets live in fuzz_mcap.py, fuzz_maps.py, fuzz_sequences.py and
-fuzz_recordings.py, their edits in fuzz_mutations.py.
+`TARGETS`; the targets live in fuzz_mcap.py, fuzz_maps.py, fuzz_sequences.py,
+fuzz_recordings.py and fuzz_view.py (the viewer's page messages), their edits in
+fuzz_mutations.py.
 
 Choices come from a `Chooser`: hypothesis' data in tests/test_fuzz.py, a seeded random generator
 here, so that the same mutators serve the fast part of the test suite and the long run.
@@ -20,6 +21,7 @@ here, so that the same mutators serve the fast part of the test suite and the lo
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import signal
 import subprocess
@@ -52,6 +54,7 @@ from fuzz_mcap import mutate_log, read_log, valid_log
 from fuzz_mutations import Chooser, RandomChooser
 from fuzz_recordings import mutate_recording, read_recording, valid_recording
 from fuzz_sequences import mutate_sequence, read_sequence, valid_sequence
+from fuzz_view import mutate_messages, read_view, valid_messages
 
 from gscompress.errors import GscError
 
@@ -71,6 +74,8 @@ class FuzzTarget:
         make_valid_input: a valid input from a few choices.
         mutate: a structurally edited input from a valid one.
         read: what a command does with such a file; returns normally or raises GscError.
+        requires: a module the read needs that an install may lack (an optional extra): the
+            target is skipped without it.
     """
 
     name: str
@@ -78,6 +83,13 @@ class FuzzTarget:
     make_valid_input: Callable[[Chooser], bytes]
     mutate: Callable[[bytes, Chooser], bytes]
     read: Callable[[Path], None]
+    requires: str | None = None
+
+    def missing(self) -> str | None:
+        """Why this target cannot run here (its `requires` is not installed), or None."""
+        if self.requires is None or importlib.util.find_spec(self.requires) is not None:
+            return None
+        return f"{self.requires} is not installed (the optional [view] extra)"
 
 
 TARGETS: list[FuzzTarget] = [
@@ -88,6 +100,7 @@ TARGETS: list[FuzzTarget] = [
     FuzzTarget("sog", ".sog", valid_sog, mutate_sog, read_sog_map),
     FuzzTarget("sequence", ".zip", valid_sequence, mutate_sequence, read_sequence),
     FuzzTarget("recordings", ".zip", valid_recording, mutate_recording, read_recording),
+    FuzzTarget("view", ".msgpack", valid_messages, mutate_messages, read_view, requires="viser"),
 ]
 
 
@@ -217,6 +230,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             failed |= run.returncode
         return failed
     target = next(t for t in TARGETS if t.name == args.target)
+    if target.missing():
+        print(f"{target.name}: skipped, {target.missing()}")
+        return 0
     result = fuzz(target, args.cases, args.seed)
     for defect in result["defects"]:
         print(defect, file=sys.stderr)

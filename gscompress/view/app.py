@@ -47,6 +47,31 @@ def import_viser() -> Any:
     return viser
 
 
+def page_value_refusal(handle: Any, value: Any, whole: bool = False) -> str | None:
+    """Why `value` is refused for the viser input `handle`, or None: a checkbox or a button
+    takes true or false, a dropdown one of its options, a slider a finite number within its
+    range (`whole`: a whole number)."""
+    current = handle.value
+    if isinstance(current, bool):
+        return None if isinstance(value, bool) else "it takes true or false"
+    if isinstance(current, str):
+        options = tuple(handle.options)
+        fine = isinstance(value, str) and value in options
+        return None if fine else f"it takes one of {', '.join(options)}"
+    try:
+        fine = (
+            isinstance(value, int | float)
+            and not isinstance(value, bool)
+            and math.isfinite(value)
+            and handle.min <= value <= handle.max
+            and (not whole or float(value).is_integer())
+        )
+    except OverflowError:  # (an int beyond any float)
+        fine = False
+    span = f"{handle.min:g} to {handle.max:g}" + (" in whole numbers" if whole else "")
+    return None if fine else f"it takes {span}"
+
+
 @dataclass(frozen=True)
 class ViewOptions:
     """How the viewer is served.
@@ -106,7 +131,9 @@ class MapViewer:
         self.server.scene.set_up_direction("-y")  # (camera frames: +y down, +z forward)
         self.renderer = ServerRenderer(self.server) if options.render == "server" else None
         self.splats: Any = None  # (A's splats in the browser; none when the server draws)
+        self._inputs: dict[str, tuple[Any, bool]] = {}
         self._build_gui()
+        self._screen_page_updates()
         self._load_map()
         self._draw_trajectories()
         self._place_camera()
@@ -141,12 +168,16 @@ class MapViewer:
             if self._closed:
                 return
             self._wanted.clear()
-            started = self._requested_at
-            try:
-                self._redraw()
-            except GscError as exc:
-                self._say(f"**{exc}**")
-            self.last_update_s = time.perf_counter() - started
+            self._work_once()
+
+    def _work_once(self) -> None:
+        """One redraw from the controls' latest values (a GscError said in the page)."""
+        started = self._requested_at
+        try:
+            self._redraw()
+        except GscError as exc:
+            self._say(f"**{exc}**")
+        self.last_update_s = time.perf_counter() - started
 
     def _say(self, text: str) -> None:
         self.status.content = text
@@ -195,10 +226,14 @@ class MapViewer:
                 self.show_truth = gui.add_checkbox("Ground truth (green)", len(src.poses_gt) > 0)
                 self.show_frustums = gui.add_checkbox("Keyframe cameras", True)
                 for box in (self.show_estimate, self.show_truth, self.show_frustums):
+                    self._guard(box)
                     box.on_update(self._on_trajectory_visibility)
         self.compare = gui.add_dropdown(
             "Show", COMPARE_MODES, initial_value=COMPARE_MODES[0], visible=self.other is not None
         )
+        for handle in (self.colour, self.hide_dropped, self.selection, self.strategy, self.codec,
+                       self.sums, self.compare, self.solve, self.write):  # fmt: skip
+            self._guard(handle)
         for control in (
             self.colour,
             self.hide_dropped,
@@ -216,33 +251,60 @@ class MapViewer:
         self.solve.on_click(self._on_solve)
         self.write.on_click(self._on_write)
 
-    def _guard(self, slider: Any, whole: bool = False) -> None:
-        """Refuse a value a page sends that is not finite, outside `slider`'s range or (`whole`)
-        not a whole number: the slider is put back to its last good value, and the refusal said
-        in the page and the log. This runs before the slider's other callbacks. (A page is
-        input: `--host 0.0.0.0` serves any machine that reaches this one, and an integer beyond
-        64 bits would break the state every page that connects later is sent.)"""
-        good = [slider.value]
+    def _guard(self, handle: Any, whole: bool = False) -> None:
+        """Hold the input `handle` to the values `page_value_refusal` takes: a page's update of
+        anything else is refused before viser stores it (`_screen_page_update`), and any other
+        assignment is put back to the last good value. Either refusal is said in the page and
+        the log. This runs before the input's other callbacks."""
+        self._inputs[handle._impl.uuid] = (handle, whole)
+        if hasattr(handle, "on_click"):
+            return  # (a button: a click leaves no value to put back)
+        good = [handle.value]
 
         def check(_event: Any) -> None:
-            value = slider.value
-            try:
-                fine = bool(
-                    math.isfinite(value)
-                    and slider.min <= value <= slider.max
-                    and (not whole or float(value).is_integer())
-                )
-            except (TypeError, OverflowError):  # (not a number, or an int beyond any float)
-                fine = False
-            if fine:
+            value = handle.value
+            why = page_value_refusal(handle, value, whole)
+            if why is None:
                 good[0] = value
                 return
-            shown, span = clipped(value), f"{slider.min:g} to {slider.max:g}"
-            log.warning("gsc view: a page's %s of %s was refused (%s)", slider.label, shown, span)
-            self._say(f"**{slider.label} {shown} refused: it takes {span}**")
-            slider.value = good[0]
+            self._refuse(handle.label, clipped(value), why)
+            handle.value = good[0]
 
-        slider.on_update(check)
+        handle.on_update(check)
+
+    def _screen_page_updates(self) -> None:
+        """Put `_screen_page_update` ahead of viser's own handler of a page's GUI updates
+        (viser offers no public hook before it: its handler stores the update and sends it to
+        the other pages before any callback of the input runs)."""
+        from viser._messages import GuiUpdateMessage
+
+        handlers = self.server._websock_server._incoming_handlers[GuiUpdateMessage]
+        handlers.insert(0, self._screen_page_update)
+
+    def _screen_page_update(self, _client_id: Any, message: Any) -> None:
+        """Refuse a page's GUI update of an input unless it sets only its value, to one that
+        `page_value_refusal` takes: a refused update is neither stored nor sent to the other
+        pages. (A page is input: `--host 0.0.0.0` serves any machine that reaches this one,
+        and viser's own handler would set any property a page names, a slider's range
+        included, and cast the value to the input's type before any callback runs.)"""
+        found = self._inputs.get(message.uuid)
+        if found is None:
+            return
+        handle, whole = found
+        updates = message.updates
+        if isinstance(updates, dict) and set(updates) == {"value"}:
+            shown = clipped(updates["value"])
+            why = page_value_refusal(handle, updates["value"], whole)
+        else:
+            shown, why = clipped(updates), "a page sets an input's value only"
+        if why is not None:
+            message.uuid, message.updates = "", {}  # (no input has that uuid: viser drops it)
+            self._refuse(handle.label, shown, why)
+
+    def _refuse(self, label: str, shown: str, why: str) -> None:
+        """Say in the page and the log that a page's update of the input `label` was refused."""
+        log.warning("gsc view: a page's %s of %s was refused (%s)", label, shown, why)
+        self._say(f"**{label} {shown} refused: {why}**")
 
     def _budget_range(self) -> None:
         """Fit the budget slider to the map: from the smallest share file to the whole map's,

@@ -99,7 +99,10 @@ def camera_refusal(camera: tuple[Any, ...]) -> str | None:
     page before its layout)."""
     try:
         wxyz, position, fov, width, height = camera
-        numbers = np.array([*wxyz, *position, fov, width, height], np.float64)
+        values = [*wxyz, *position, fov, width, height]
+        if not all(isinstance(v, int | float | np.number) for v in values):
+            raise TypeError  # (numpy would read "16" as a number, and the size checks fail)
+        numbers = np.array(values, np.float64)
     except (TypeError, ValueError, OverflowError):
         return "not a camera (wxyz, position, fov, width, height)"
     if len(wxyz) != 4 or len(position) != 3 or not np.all(np.isfinite(numbers)):
@@ -143,7 +146,7 @@ class Layer:
 
 
 @dataclass
-class _Client:
+class PageState:
     """What the renderer knows of one page."""
 
     wake: threading.Event
@@ -169,7 +172,7 @@ class ServerRenderer:
         self._inputs: tuple[int, dict[str, Any] | None] = (-1, None)
         self._lock = threading.Lock()
         self._closed = False
-        self._clients: dict[int, _Client] = {}
+        self._clients: dict[int, PageState] = {}
         self.frames_sent = 0
         self.last_frame: tuple[int, int, float] = (0, 0, 0.0)
         if server is not None:
@@ -210,7 +213,7 @@ class ServerRenderer:
     # ------------------------------------------------------------------ pages
 
     def _connect(self, client: Any) -> None:
-        state = _Client(threading.Event())
+        state = PageState(threading.Event())
         self._clients[client.client_id] = state
 
         def moved(_camera: Any) -> None:
@@ -228,51 +231,53 @@ class ServerRenderer:
         if state is not None:
             state.wake.set()
 
-    def _serve(self, client: Any, state: _Client) -> None:
-        """Draw for one page until it goes: at its motion scale while its camera moves (each
-        moving frame's time sets the next one's scale), at full size once it stands still, and
-        again whenever the layers change."""
+    def _serve(self, client: Any, state: PageState) -> None:
+        """Draw for one page until it goes (`serve_once` at each wake-up)."""
         while not self._closed and client.client_id in self._clients:
             state.wake.wait(timeout=SETTLE_S)
             state.wake.clear()
-            camera = client.camera
-            try:
-                key = (
-                    tuple(camera.wxyz),
-                    tuple(camera.position),
-                    camera.fov,
-                    camera.image_width,
-                    camera.image_height,
-                )
-            except (AttributeError, TypeError):  # (no camera message from the page yet)
-                continue
-            moving = time.perf_counter() - state.moved_at < SETTLE_S
-            scale = state.motion_scale if moving else 1.0
-            wanted = (self._version, key, scale)
-            # (while moving, a view already drawn, at any scale, is not drawn again)
-            if wanted == state.drawn or (moving and (state.drawn or ())[:2] == wanted[:2]):
-                continue
-            started = time.perf_counter()
-            try:
-                image = self.draw(key, scale)
-                if image is not None:
-                    client.scene.set_background_image(
-                        image, format="jpeg", jpeg_quality=JPEG_QUALITY
-                    )
-            except Exception as exc:  # (one frame that fails must not end the page's drawing)
-                log.warning("gsc view: a frame was not drawn: %s", exc)
-                image = None
-            state.drawn = wanted
-            if image is None:
-                self._refuse(client, state, key)
-                continue
-            seconds = time.perf_counter() - started
-            if moving:
-                state.motion_scale = next_motion_scale(scale, seconds)
-            self.frames_sent += 1
-            self.last_frame = (image.shape[1], image.shape[0], seconds)
+            self.serve_once(client, state)
 
-    def _refuse(self, client: Any, state: _Client, camera: tuple[Any, ...]) -> None:
+    def serve_once(self, client: Any, state: PageState) -> None:
+        """Draw for one page from its camera now, if anything changed: at its motion scale
+        while its camera moves (each moving frame's time sets the next one's scale), at full
+        size once it stands still, and again whenever the layers change."""
+        camera = client.camera
+        try:
+            key = (
+                tuple(camera.wxyz),
+                tuple(camera.position),
+                camera.fov,
+                camera.image_width,
+                camera.image_height,
+            )
+        except (AttributeError, TypeError):  # (no camera message from the page yet)
+            return
+        moving = time.perf_counter() - state.moved_at < SETTLE_S
+        scale = state.motion_scale if moving else 1.0
+        wanted = (self._version, key, scale)
+        # (while moving, a view already drawn, at any scale, is not drawn again)
+        if wanted == state.drawn or (moving and (state.drawn or ())[:2] == wanted[:2]):
+            return
+        started = time.perf_counter()
+        try:
+            image = self.draw(key, scale)
+            if image is not None:
+                client.scene.set_background_image(image, format="jpeg", jpeg_quality=JPEG_QUALITY)
+        except Exception as exc:  # (one frame that fails must not end the page's drawing)
+            log.warning("gsc view: a frame was not drawn: %s", exc)
+            image = None
+        state.drawn = wanted
+        if image is None:
+            self._refuse(client, state, key)
+            return
+        seconds = time.perf_counter() - started
+        if moving:
+            state.motion_scale = next_motion_scale(scale, seconds)
+        self.frames_sent += 1
+        self.last_frame = (image.shape[1], image.shape[0], seconds)
+
+    def _refuse(self, client: Any, state: PageState, camera: tuple[Any, ...]) -> None:
         """Say in the log and on the page (once for each refused camera) why a page's camera
         message draws nothing."""
         why = camera_refusal(camera)
