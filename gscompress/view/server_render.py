@@ -48,9 +48,10 @@ frame follows)."""
 JPEG_QUALITY = 85
 """Quality of the JPEG frames sent to the page."""
 
-MAX_PIXELS = 3840 * 2160
+MAX_PIXELS = 2560 * 1440
 """The most pixels a frame is drawn with, whatever size a page reports (a larger page gets its
-frames scaled down to this)."""
+frames scaled down to this); docs/viewer.md says why this size: what a frame takes to draw on
+the CPU stays within what the fuzz policy allows a page message."""
 
 FOV_RANGE = (math.radians(1.0), math.radians(170.0))
 """Vertical fields of view drawn; a page's outside them is clamped."""
@@ -71,7 +72,10 @@ def page_intrinsics(fov: float, width: int, height: int, scale: float = 1.0) -> 
     width, height = max(1, width), max(1, height)
     scale = min(scale, math.sqrt(MAX_PIXELS / (width * height)))
     w, h = max(MIN_SIDE, round(width * scale)), max(MIN_SIDE, round(height * scale))
-    w, h = min(w, MAX_PIXELS // h), min(h, MAX_PIXELS // w)
+    if w >= h:  # (the minimum side can take the product over: the longer side gives way)
+        w = min(w, MAX_PIXELS // h)
+    else:
+        h = min(h, MAX_PIXELS // w)
     f = 0.5 * h / math.tan(0.5 * min(max(fov, FOV_RANGE[0]), FOV_RANGE[1]))
     return Intrinsics(fx=f, fy=f, cx=0.5 * w, cy=0.5 * h, width=w, height=h)
 
