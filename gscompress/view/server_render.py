@@ -48,7 +48,7 @@ frame follows)."""
 JPEG_QUALITY = 85
 """Quality of the JPEG frames sent to the page."""
 
-MAX_PIXELS = 2560 * 1440
+MAX_PIXELS = 1920 * 1080
 """The most pixels a frame is drawn with, whatever size a page reports (a larger page gets its
 frames scaled down to this); docs/viewer.md says why this size: what a frame takes to draw on
 the CPU stays within what the fuzz policy allows a page message."""
