@@ -115,3 +115,31 @@ def test_a_failing_splat_transform_is_one_line_and_no_file(tmp_path, monkeypatch
     with pytest.raises(OutputError, match=r"map\.sog: splat-transform failed: Error: no GPU"):
         write_sog(random_map(10), tmp_path / "map.sog")
     assert not (tmp_path / "map.sog").exists()
+
+
+def _member_edited(bundle: bytes, name: str, offset: int, value: int) -> bytes:
+    """`bundle` with a 2-byte field of `name`'s central directory entry set to `value`
+    (offset 8: the flag bits, 10: the compression method)."""
+    data = bytearray(bundle)
+    at = data.find(b"PK\x01\x02")
+    while at >= 0:
+        length = int.from_bytes(data[at + 28 : at + 30], "little")
+        if data[at + 46 : at + 46 + length].decode() == name:
+            data[at + offset : at + offset + 2] = value.to_bytes(2, "little")
+            return bytes(data)
+        at = data.find(b"PK\x01\x02", at + 46)
+    raise AssertionError(f"no {name} in the bundle")
+
+
+@pytest.mark.parametrize(
+    ("offset", "value"), [(10, 99), (10, 14), (8, 1)], ids=["method-99", "lzma", "encrypted"]
+)
+def test_a_member_in_a_zip_method_sog_writers_do_not_use_is_refused(tmp_path, offset, value):
+    """Found by `make fuzz` (sog target): an unknown method raised NotImplementedError from
+    zipfile, an encrypted member RuntimeError."""
+    g = random_map(100, seed=3)
+    quats = "q.webp"  # (conftest's sog_bundle names the quaternions' image so)
+    path = tmp_path / "m.sog"
+    path.write_bytes(_member_edited(sog_bundle(g), quats, offset, value))
+    with pytest.raises(SogFormatError, match=f"{quats} is encrypted or compressed by zip method"):
+        read_sog(path)

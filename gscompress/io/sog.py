@@ -137,6 +137,13 @@ def read_sog(path: str | Path) -> GaussianMap:
     return _decode(_Folder(path), None, str(path))
 
 
+ZIP_METHODS = (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED)
+"""The zip compression methods a SOG bundle's files are read with (what SOG writers use)."""
+
+ZIP_ENCRYPTED = 0x1
+"""The zip flag bit of an encrypted member."""
+
+
 class _Bundle:
     """The members of a `.sog` zip, each read with a bound."""
 
@@ -153,6 +160,11 @@ class _Bundle:
         info = self._info(name)
         if info.file_size > limit:
             raise SogFormatError(f"{self.source}: {name} is over {limit} bytes")
+        if info.compress_type not in ZIP_METHODS or info.flag_bits & ZIP_ENCRYPTED:
+            raise SogFormatError(
+                f"{self.source}: {name} is encrypted or compressed by zip method "
+                f"{info.compress_type}; a SOG bundle stores or deflates its files"
+            )
         with self.bundle.open(info) as member:
             data = member.read(limit + 1)
         if len(data) > limit:
