@@ -9,6 +9,8 @@ import math
 import os
 import shlex
 import sys
+import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -280,12 +282,18 @@ def frames_option(f: F) -> F:
     )(f)
 
 
+TICK_SECONDS = 1.0
+"""How often a shown progress bar is drawn again while its count stands still (a long step:
+the first frame of a run, a registration), so that its clock shows the command is alive."""
+
+
 @contextlib.contextmanager
 def progress_bar(
     desc: str, unit: str, total: int | None = None, hidden: bool = False
 ) -> Iterator[Any]:
     """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set. Log
-    lines written to the console while it is shown go above it rather than onto its line."""
+    lines written to the console while it is shown go above it rather than onto its line. Once
+    shown it is drawn again every `TICK_SECONDS` (its elapsed time moves during a long step)."""
     from tqdm import tqdm
 
     quiet = logging.getLogger("gscompress").getEffectiveLevel() > logging.INFO
@@ -298,10 +306,46 @@ def progress_bar(
         root.handlers = [
             _AboveBar(h, bar) if type(h) is logging.StreamHandler else h for h in handlers
         ]
+        stop = threading.Event()
+        if not bar.disable:
+            threading.Thread(target=_tick, args=(bar, stop), name="bar-tick", daemon=True).start()
         try:
             yield bar
         finally:
+            stop.set()
             root.handlers = handlers
+
+
+def _tick(bar: Any, stop: threading.Event) -> None:
+    """Draw `bar` again every `TICK_SECONDS` until `stop` is set (from its delay on)."""
+    while not stop.wait(TICK_SECONDS):
+        if not bar.disable and time.time() >= bar.start_t + bar.delay:
+            bar.refresh()
+
+
+class Phases:
+    """One progress bar for a command's successive phases (the frames of a run, its final
+    refinement, its final scoring...): a pipeline's `phases(name, done, total)` callback.
+
+    The first call with a new `name` starts that phase on the bar (its description, count,
+    clock and unit, `units[name]` or "step"); each call moves the count to `done` of `total`
+    (None: a count without an end, such as the cuts a byte budget tries).
+    """
+
+    def __init__(self, bar: Any, units: dict[str, str] | None = None) -> None:
+        self.bar, self.units, self.name = bar, units or {}, ""
+
+    def __call__(self, name: str, done: int, total: int | None) -> None:
+        bar = self.bar
+        if name != self.name:
+            self.name = name
+            bar.set_postfix_str("", refresh=False)
+            bar.set_description_str(name, refresh=False)
+            bar.unit = self.units.get(name, "step")
+            bar.initial = 0
+            bar.reset(total)
+        bar.total = total
+        bar.update(done - bar.n)
 
 
 class _AboveBar(logging.Handler):
