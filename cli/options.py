@@ -503,7 +503,8 @@ def log_refiner(
     recording: Any = None,
 ) -> Any:
     """The `gscompress.pipeline.refine.LogRefiner` that `refine_options` ask for (drawing on
-    `bar`; a recording read with `recording`), or None for no refinement.
+    `bar`, or on its "refine" phase when it is `Phases`; a recording read with `recording`), or
+    None for no refinement.
 
     Raises:
         click.UsageError: --refine without --seq, or --seq without --refine.
@@ -519,6 +520,8 @@ def log_refiner(
     options = RefineOptions(
         iters, device=device, seed=seed, anisotropic=anisotropic, recording=recording
     )
+    if isinstance(bar, Phases):
+        return LogRefiner(src, seq, options, functools.partial(bar, "refine"), instead)
     return LogRefiner(src, seq, options, lambda done, total: advance(bar, done, total), instead)
 
 
