@@ -68,6 +68,7 @@ def run_experiment(
     executor: str = "local",
     address: str | None = None,
     cpus_per_run: float | None = None,
+    announce: Callable[[dict[str, Any]], object] | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the two-agent experiment on a sequence and write its report.
 
@@ -82,6 +83,9 @@ def run_experiment(
         executor: "local" (this machine, `jobs` at once) or "ray" (Ray tasks: `address`
             names the cluster, None starts Ray here; each task declares `cpus_per_run` CPUs
             (default 1) and as many torch threads, and a GPU where the runs render on CUDA).
+        announce: called once before the first step with what the experiment will do: its
+            `steps` and an estimate of its `seconds` on this machine (`estimate.estimate`, not
+            counting the steps a rerun reuses).
 
     Returns:
         Paths of the outputs, row count, steps run, reused and failed (name: error), and the
@@ -119,6 +123,10 @@ def run_experiment(
             f"of {seq}; an experiment needs at least two frames"
         )
     check_working_size(sequence.intrinsics)
+    if announce is not None:
+        from gscompress.pipeline.experiment.estimate import estimate
+
+        announce(estimate(s, base, sequence, plan_size(s)))
     runner: Runner
     if executor == "ray":
         from gscompress.pipeline.experiment.execution_ray import RayRunner
