@@ -110,6 +110,19 @@ def sums_option(f: F) -> F:
     )(f)
 
 
+def map_sums_option(f: F) -> F:
+    """`--no-sums` of a command that writes a map, not a share (`gsc prune`)."""
+    return click.option(
+        "--sums/--no-sums",
+        default=True,
+        show_default=True,
+        help="Keep the PWAS sums in a compact map, so that scoring can go on from them and a "
+        "later share or merge can weigh each Gaussian's evidence (compact: the two sums as 8-bit "
+        "log codes beside the score's, about 1.7 B per Gaussian more); with --no-sums a compact "
+        "map keeps only the score (fp32 and fp16 always keep the sums, exactly).",
+    )(f)
+
+
 def ids_option(f: F) -> F:
     """`--ids`: a compact share with the Gaussians' ids (not by default: `SHARE_IDS`)."""
     return click.option(
@@ -458,10 +471,29 @@ def share_transform_option(f: F) -> F:
     )(f)
 
 
+ANISOTROPIC_HELP = (
+    "With --refine: refine three scales and a rotation per Gaussian, so that each kept one "
+    "stretches over the surface it now covers (what is folded in keeps its shape); about 5.5 "
+    "bytes more a Gaussian in compact"
+)
+
+
 def refine_options(f: F) -> F:
     """`--refine N`, `--anisotropic/--isotropic`, `--seq FOLDER`, the recording options of
-    `recording_options` and `--device`: refine what a command keeps on the log's keyframes
+    `recording_options` and `--device`: refine what a share keeps on the log's keyframes
     (`log_refiner` turns them into the refiner)."""
+    return _refine_options(
+        f, f"{ANISOTROPIC_HELP}, so a share whose byte budget holds the whole map stays isotropic."
+    )
+
+
+def map_refine_options(f: F) -> F:
+    """`refine_options` of a command that writes a map, not a share (`gsc prune`)."""
+    return _refine_options(f, f"{ANISOTROPIC_HELP}.")
+
+
+def _refine_options(f: F, anisotropic_help: str) -> F:
+    """`refine_options`, with this help of `--anisotropic`."""
     from gscompress.pipeline.refine import DEFAULT_LR_FINAL, KEYFRAME_RULE  # (no torch yet)
 
     f = device_option(f)
@@ -470,11 +502,7 @@ def refine_options(f: F) -> F:
         "--anisotropic/--isotropic",
         default=True,
         show_default=True,
-        help="With --refine: refine three scales and a rotation per Gaussian, so that each "
-        "kept one stretches over the surface it now covers (what is folded in keeps its "
-        "shape); about 5.5 bytes more a Gaussian in compact, so a share whose byte budget "
-        "holds the whole map stays isotropic. --isotropic keeps the map's one scale per "
-        "Gaussian.",
+        help=f"{anisotropic_help} --isotropic keeps the map's one scale per Gaussian.",
     )(f)
     f = seq_option(False, "The sequence the log was made from (needed by --refine).")(f)
     return click.option(

@@ -22,12 +22,12 @@ from .options import (
     force_option,
     json_option,
     log_refiner,
+    map_refine_options,
+    map_sums_option,
     output_option,
     progress_bar,
-    refine_options,
     refined_text,
     seed_option,
-    sums_option,
 )
 
 
@@ -47,7 +47,7 @@ from .options import (
     help="Score to rank by.",
 )
 @fold_option
-@refine_options
+@map_refine_options
 @click.option(
     "--map-only",
     is_flag=True,
@@ -56,7 +56,7 @@ from .options import (
 )
 @output_option()
 @codec_option(None, " [default: the map's own codec]")
-@sums_option
+@map_sums_option
 @seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
 @json_option
