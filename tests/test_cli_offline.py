@@ -2,6 +2,7 @@
 
 import contextlib
 import json
+import logging
 import subprocess
 import sys
 
@@ -456,6 +457,27 @@ def test_offline_commands_do_not_import_torch(log_path, tmp_path):
     )
     assert out.stdout.strip().splitlines()[-1] == "False"
     assert (tmp_path / "e.ply").exists() and (tmp_path / "t.txt").exists()
+
+
+def test_default_verbosity_prints_results_and_warnings_not_module_notes(log_path, tmp_path):
+    """A command's own notes (SPZ keeps no scores) are for -v; a warning says it is one, without
+    the logger's name; -v names the level and logger of every line."""
+
+    def gsc(*args: object) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, "-m", "gscompress_cli", *map(str, args)]
+        return subprocess.run(cmd, capture_output=True, text=True, check=True)
+
+    out = gsc("export-ply", log_path, "-o", tmp_path / "a.spz")
+    assert out.stdout.startswith("wrote ") and out.stderr == ""
+    out = gsc("-v", "export-ply", log_path, "-o", tmp_path / "b.spz")
+    assert "DEBUG gscompress.io.map_files: SPZ stores no importance scores" in out.stderr
+    from gscompress_cli.main import ConsoleFormatter
+
+    record = logging.LogRecord("gscompress.x", logging.WARNING, "", 0, "look out", None, None)
+    assert ConsoleFormatter(named=False).format(record) == "warning: look out"
+    record.levelno, record.levelname = logging.INFO, "INFO"
+    assert ConsoleFormatter(named=False).format(record) == "look out"
+    assert ConsoleFormatter(named=True).format(record) == "INFO gscompress.x: look out"
 
 
 def test_help_teaches():
