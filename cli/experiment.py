@@ -96,8 +96,9 @@ def _formats(value: str) -> tuple[str, ...]:
 @click.option(
     "--full", is_flag=True,
     help="The whole study instead of a first look: 3 seeds, the strategies random, opacity, "
-    "alpha-t, pwas and pwas-inf, and the --sweep with the --references on the first seed "
-    "(--seeds, --strategies and --sweep-seeds, when given, still decide). On a 16-frame "
+    "alpha-t, pwas and pwas-inf, the --sweep with the --references on the first seed, every "
+    "frame scored with 100 tracking iterations (--seeds, --strategies, --sweep-seeds, --every "
+    "and --refine-poses, when given, still decide). On a 16-frame "
     "160x120 sequence with the tiny preset: 128-129 steps instead of 18.",
 )  # fmt: skip
 @click.option(
@@ -148,8 +149,9 @@ def _formats(value: str) -> tuple[str, ...]:
     show_default=True, help="With --split halves, the fraction of the frames both agents get.",
 )  # fmt: skip
 @click.option(
-    "--every", type=click.IntRange(min=1), default=1, show_default=True,
-    help="Evaluate every N-th frame of each run.",
+    "--every", type=click.IntRange(min=1), default=None,
+    help="Evaluate (and score across agents) every N-th frame of each run [default: 2; 1 with "
+    "--full].",
 )  # fmt: skip
 @click.option(
     "--anchor", type=click.Choice(["gt", "own"]), default="gt", show_default=True,
@@ -263,7 +265,7 @@ def experiment(
     frames: str,
     split: str,
     overlap: float,
-    every: int,
+    every: int | None,
     anchor: str,
     refine_poses: int | None,
     mode: str,
@@ -288,9 +290,10 @@ def experiment(
     """Run the paper's protocol on the sequence in SEQ and write its tables and plots.
 
     By default a first look: one seed, random against PWAS at --budget, no rate-distortion
-    sweep, 20 tracking iterations a frame in the cross-agent scoring (18 steps; minutes on a
-    16-frame 160x120 sequence with --preset tiny). --full runs the whole study (3 seeds, five
-    strategies, the sweep and its references, 100 iterations: 128-129 steps). Before it starts
+    sweep, every 2nd frame scored, 20 tracking iterations a frame in the cross-agent scoring
+    (18 steps; minutes on a 16-frame 160x120 sequence with --preset tiny). --full runs the
+    whole study (3 seeds, five strategies, the sweep and its references, every frame, 100
+    iterations: 128-129 steps). Before it starts
     it says how many steps it will run and about how long they take; the bar counts them.
     Each share and merge is what `gsc share` and `gsc merge` make by default (--protocol
     commands); --protocol paper runs the paper's exact protocol (top-K shares, nothing folded;
@@ -344,7 +347,7 @@ def experiment(
         frames=frames,
         split=split,
         overlap=overlap,
-        every=every,
+        every=study["every"] if every is None else every,
         mode=mode,
         anchor=anchor,
         refine_poses=study["refine_poses"] if refine_poses is None else refine_poses,

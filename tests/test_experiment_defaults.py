@@ -110,5 +110,6 @@ def test_a_default_row_is_gsc_share_and_gsc_merge_run_by_hand(tmp_path: Path) ->
     merged = read_map(tmp_path / "merged.mcap")
     assert len(merged) == row["gaussians"]
     assert (merged.means == read_map(out / row["log"]).means).all()
-    scores = gsc("eval", tmp_path / "merged.mcap", "--seq", seq, "--no-lpips")
+    every = ExperimentSettings().every  # (the experiment's evaluation: every N-th frame)
+    scores = gsc("eval", tmp_path / "merged.mcap", "--seq", seq, "--every", every, "--no-lpips")
     assert scores["psnr"] == row["psnr"]

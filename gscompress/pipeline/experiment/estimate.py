@@ -36,11 +36,15 @@ def render_passes(s: ExperimentSettings, base: Any, n: int) -> int:
     n_a, n_b = agent_frame_counts(s, n)
     per_frame = base.tracking.iters + base.mapping.iters
 
-    def slam(frames: int) -> int:
-        return frames * (per_frame + 1) + final_iterations(base.mapping, frames) + frames
+    def scored(frames: int) -> int:  # (every `every`-th frame)
+        return -(-frames // s.every)
 
-    merge = s.merge_iters + n_b if s.mode == "merge" else slam(n_b)
-    scoring = (s.refine_poses + 1) * (n_a + n_b + n) if s.refine_poses else 0
+    def slam(frames: int) -> int:
+        return frames * (per_frame + 1) + final_iterations(base.mapping, frames) + scored(frames)
+
+    merge = s.merge_iters + scored(n_b) if s.mode == "merge" else slam(n_b)
+    scoring = (s.refine_poses + 1) * (scored(n_a) + scored(n_b) + scored(n))
+    scoring *= s.refine_poses > 0
     extra_budgets = [b for b in s.sweep if not same_budget(b, s.budget)]
     received = len(s.strategies) + 1  # each strategy at the main budget, A's whole map
     received += s.mode == "merge"  # B refined without a share
@@ -73,8 +77,9 @@ def seconds_per_pass(sequence: Any, base: Any, device: str = "auto") -> float:
     times = []
     for _ in range(1 + TIMED_PASSES):
         start = time.perf_counter()
-        out = render(**tensors, intrinsics=sequence.intrinsics, T_cam_world=T_cam_world,
-                     backend=backend)  # fmt: skip
+        t = tensors
+        out = render(t["means"], t["quats"], t["scales"], t["opacities"], t["colors"],
+                     sequence.intrinsics, T_cam_world, backend=backend)  # fmt: skip
         out.color.sum().backward()
         times.append(time.perf_counter() - start)
     return min(times[1:])

@@ -48,12 +48,14 @@ FULL_STUDY: dict[str, Any] = {
     "seeds": 3,
     "strategies": ("random", "opacity", "alpha-t", "pwas", "pwas-inf"),
     "sweep_seeds": 1,
+    "every": 1,
     "refine_poses": 100,
 }
 """The whole study (`gsc experiment --full`): three seeds, five strategies, the sweep with its
-references on the first seed, and 100 tracking iterations a frame in the cross-agent scoring.
-The default (`ExperimentSettings`'s) is a first look: one seed, random against PWAS, no sweep,
-20 tracking iterations a frame (the scoring is most of an experiment's render passes)."""
+references on the first seed, every frame evaluated and scored across agents with 100 tracking
+iterations a frame. The default (`ExperimentSettings`'s) is a first look: one seed, random
+against PWAS, no sweep, every 2nd frame, 20 tracking iterations a frame (the cross-agent scoring
+is most of an experiment's render passes)."""
 
 
 def protocol_of(fold: bool, merge_how: str) -> str:
@@ -155,7 +157,7 @@ class ExperimentSettings:
     sweep_seeds: int = 0
     strategies: tuple[str, ...] = ("random", "pwas")
     size: tuple[int, int] | None = None
-    every: int = 1
+    every: int = 2
     lpips: bool = True
     device: str = "auto"
     frames: str = "all"
