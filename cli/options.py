@@ -330,10 +330,24 @@ def progress_bar(
 
 
 def _tick(bar: Any, stop: threading.Event) -> None:
-    """Draw `bar` again every `TICK_SECONDS` until `stop` is set (from its delay on)."""
+    """Draw `bar` again every `TICK_SECONDS` until `stop` is set (from its delay on).
+
+    It takes only tqdm's thread lock, for as long as one drawing, and never waits for it long:
+    tqdm's own `refresh` takes its process lock too and keeps both when the drawing raises (a
+    closed pipe), which on this thread would leave the command's own thread waiting forever.
+    A console that cannot be written ends the ticking."""
+    lock = getattr(bar.get_lock(), "th_lock", None)
     while not stop.wait(TICK_SECONDS):
-        if not bar.disable and time.time() >= bar.start_t + bar.delay:
-            bar.refresh()
+        if lock is None or bar.disable or time.time() < bar.start_t + bar.delay:
+            continue
+        if not lock.acquire(timeout=TICK_SECONDS):
+            continue
+        try:
+            bar.refresh(nolock=True)
+        except (OSError, ValueError):  # (a closed pipe or file)
+            return
+        finally:
+            lock.release()
 
 
 class Phases:
