@@ -370,7 +370,10 @@ class Phases:
             bar.set_description_str(name, refresh=False)
             bar.unit = self.units.get(name, "step")
             bar.initial = 0
-            bar.reset(total)
+            if not bar.disable and time.time() >= bar.start_t + bar.delay:  # (drawn anew)
+                bar.reset(total)
+            else:  # (not drawn before its delay: a command that fails at once shows no bar)
+                bar.n = bar.last_print_n = 0
         bar.total = total
         bar.update(done - bar.n)
 
