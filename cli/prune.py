@@ -13,6 +13,7 @@ from gscompress.selection import STRATEGIES
 
 from .options import (
     INPUT_FILE,
+    Phases,
     Ratio,
     check_recording_seq,
     codec_option,
@@ -100,8 +101,9 @@ def prune(
       gsc prune run.mcap --keep 0.3 --refine 500 --seq data/room --map-only -o run_30r.mcap
     """
     check_recording_seq(recording, seq)
-    with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
-        refine = log_refiner(src, refine_iters, seq, device, seed, bar,
+    with progress_bar("prune", "step", hidden=as_json) as bar:  # (a fold of a large map: seconds)
+        phases = Phases(bar, {"refine": "iter"})
+        refine = log_refiner(src, refine_iters, seq, device, seed, phases,
                              "prune without --refine", anisotropic, recording)  # fmt: skip
         result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
                            options=CompactOptions(sums=sums), refine=refine, map_only=map_only,
