@@ -296,8 +296,13 @@ def frames_option(f: F) -> F:
 
 
 TICK_SECONDS = 1.0
-"""How often a shown progress bar is drawn again while its count stands still (a long step:
-the first frame of a run, a registration), so that its clock shows the command is alive."""
+"""How often a shown progress bar is drawn again on a terminal while its count stands still (a
+long step: the first frame of a run, a registration), so that its clock shows the command is
+alive."""
+
+HEARTBEAT_SECONDS = 10.0
+"""The same when stderr is not a terminal (a file, a pipe, a CI log): a line every 10 s at most,
+not one a second."""
 
 
 @contextlib.contextmanager
@@ -305,8 +310,9 @@ def progress_bar(
     desc: str, unit: str, total: int | None = None, hidden: bool = False
 ) -> Iterator[Any]:
     """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set. Log
-    lines written to the console while it is shown go above it rather than onto its line. Once
-    shown it is drawn again every `TICK_SECONDS` (its elapsed time moves during a long step)."""
+    lines written to the console while it is shown go above it rather than onto its line. It is
+    drawn again every `TICK_SECONDS` on a terminal, every `HEARTBEAT_SECONDS` elsewhere, from
+    its delay on (its elapsed time moves during a long step)."""
     from tqdm import tqdm
 
     quiet = logging.getLogger("gscompress").getEffectiveLevel() > logging.INFO
@@ -321,7 +327,10 @@ def progress_bar(
         ]
         stop = threading.Event()
         if not bar.disable:
-            threading.Thread(target=_tick, args=(bar, stop), name="bar-tick", daemon=True).start()
+            every = TICK_SECONDS if _is_terminal(sys.stderr) else HEARTBEAT_SECONDS
+            threading.Thread(
+                target=_tick, args=(bar, stop, every), name="bar-tick", daemon=True
+            ).start()
         try:
             yield bar
         finally:
@@ -329,25 +338,42 @@ def progress_bar(
             root.handlers = handlers
 
 
-def _tick(bar: Any, stop: threading.Event) -> None:
-    """Draw `bar` again every `TICK_SECONDS` until `stop` is set (from its delay on).
+def _is_terminal(stream: Any) -> bool:
+    """Whether `stream` is a terminal."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
+def _tick(bar: Any, stop: threading.Event, every: float) -> None:
+    """Draw `bar` again `every` seconds until `stop` is set (from its delay on).
 
     It takes only tqdm's thread lock, for as long as one drawing, and never waits for it long:
     tqdm's own `refresh` takes its process lock too and keeps both when the drawing raises (a
     closed pipe), which on this thread would leave the command's own thread waiting forever.
     A console that cannot be written ends the ticking."""
     lock = getattr(bar.get_lock(), "th_lock", None)
-    while not stop.wait(TICK_SECONDS):
+    while not stop.wait(every):
         if lock is None or bar.disable or time.time() < bar.start_t + bar.delay:
             continue
-        if not lock.acquire(timeout=TICK_SECONDS):
+        if not lock.acquire(timeout=every):
             continue
         try:
             bar.refresh(nolock=True)
+            _drawn(bar)
         except (OSError, ValueError):  # (a closed pipe or file)
             return
         finally:
             lock.release()
+
+
+def _drawn(bar: Any) -> None:
+    """Record that `bar` is on the console: tqdm tells a shown bar by the time of its last
+    update's drawing, and a bar drawn otherwise (`refresh`, `reset`) would be left on its line
+    by `close` and by log lines (`_AboveBar`). Its next update then counts its rate from the
+    end of its delay, at most that much later than its start."""
+    bar.last_print_t = max(bar.last_print_t, bar.start_t + bar.delay)
 
 
 class Phases:
@@ -372,6 +398,7 @@ class Phases:
             bar.initial = 0
             if not bar.disable and time.time() >= bar.start_t + bar.delay:  # (drawn anew)
                 bar.reset(total)
+                _drawn(bar)
             else:  # (not drawn before its delay: a command that fails at once shows no bar)
                 bar.n = bar.last_print_n = 0
         bar.total = total

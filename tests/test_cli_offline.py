@@ -689,7 +689,7 @@ def test_a_bar_is_drawn_while_its_count_stands_still_and_a_closed_console_stops_
 
     import gscompress_cli.options as options
 
-    monkeypatch.setattr(options, "TICK_SECONDS", 0.01)
+    monkeypatch.setattr(options, "HEARTBEAT_SECONDS", 0.01)  # (not a terminal)
     drawn, refused = threading.Event(), threading.Event()
 
     class Console(io.StringIO):
