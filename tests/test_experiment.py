@@ -306,7 +306,8 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
                 r[key] for r in sorted(sweep, key=lambda r: r["share_bytes"])
             ]
         assert curves["full"] == [(full["share_bytes"], full[key], full["ate_rmse_cm"])]
-    inject = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), mode="inject")
+    inject = ExperimentSettings(**{**PAPER_FULL, "preset": "tiny", "seeds": 1,
+                                   "sweep": ("0.2", "0.5"), "mode": "inject"})  # fmt: skip
     b = next(r for r in rows if r["name"] == "agent B (even frames)")
     assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["refined_psnr_all"]
     assert rate_distortion_curves(rows, ExperimentSettings(preset="tiny", sweep_seeds=0)) == {}
