@@ -54,14 +54,15 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
 def _plan_text(plan: dict[str, Any], s: ExperimentSettings) -> str:
     """What the experiment will do, said before it starts: its steps and about how long."""
     minutes = plan["seconds"] / 60
-    took = f"about {minutes:.0f} minutes" if minutes >= 1.5 else "about a minute or less"
+    took = f"roughly {minutes:.0f} minutes" if minutes >= 1.5 else "roughly a minute or more"
     study = f"{s.seeds} seed(s), strategies {','.join(s.strategies)}, " + (
         f"sweep on {s.sweep_seeds} seed(s)" if s.sweep_seeds else "no sweep"
     )
     return (
         f"experiment: {plan['steps']} steps ({study}; protocol "
-        f"{protocol_of(s.fold, s.merge_how)}), {took} on this machine as it is now "
-        "(estimated from one render timed now; steps a rerun reuses take none)"
+        f"{protocol_of(s.fold, s.merge_how)}), {took} of rendering on this machine as it is "
+        "now (one render timed now; starting, writing and LPIPS not counted; steps a rerun "
+        "reuses take none)"
     )
 
 
