@@ -25,7 +25,8 @@ from typing import Any
 from gscompress.datasets.synthetic import write_synthetic_sequence
 
 STUDY = ["--preset", "tiny", "--seeds", "1", "--sweep", "0.2", "--strategies", "random,pwas",
-         "--merge-iters", "5", "--no-lpips", "--json"]  # fmt: skip
+         "--merge-iters", "5", "--no-lpips", "--every", "1", "--refine-poses", "100",
+         "--sweep-seeds", "1", "--protocol", "paper", "--json"]  # fmt: skip
 """The tests' tiny study (tests/conftest.py TINY_STUDY): 11 runs."""
 
 EXECUTORS = {

@@ -10,11 +10,13 @@ import click
 from .options import (
     INPUT_FILE,
     OUTPUT_FILE,
+    Phases,
     check_recording_seq,
     emit,
     force_option,
     icp_option,
     json_option,
+    progress_bar,
     recording_options,
     seed_option,
     seq_option,
@@ -103,12 +105,14 @@ def align(
       gsc share a.mcap a_share.mcap --align-to b.mcap   (a share already in B's frame)
     """
     from gscompress.ops.align import AlignOptions
-    from gscompress.pipeline.align import align_logs
+    from gscompress.pipeline.align import ON_FRAMES, align_logs
 
     check_recording_seq(recording, seq)
     options = AlignOptions(voxel=voxel, min_overlap=min_overlap, seed=seed, icp=icp)
-    result = align_logs(source, target, dst, init=init, options=options, seq=seq,
-                        recording=recording, force=force)  # fmt: skip
+    with progress_bar("align", "step", hidden=as_json) as bar:
+        result = align_logs(source, target, dst, init=init, options=options, seq=seq,
+                            recording=recording, force=force,
+                            phases=Phases(bar, {ON_FRAMES: "iter"}))  # fmt: skip
     T = result["T_target_source"]
     inliers = "" if result["inliers"] is None else (
         f", {result['inliers']} feature inliers ({result['inlier_ratio']:.0%})"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -165,8 +166,11 @@ def format_eval(r: dict[str, Any]) -> str:
             f"  {'':<13}{'at given poses':<16}at refined poses ({refined['iters']} iterations; "
             f"{moved})"
         )
+    verbose = logging.getLogger("gscompress").isEnabledFor(logging.DEBUG)
     for label, key, fmt in IMAGE_ROWS:
         cells = [r] if refined is None else [r, refined]
+        if not verbose and all(c[key] is None and _expected(c[key + "_reason"]) for c in cells):
+            continue  # (a metric left out by choice or by the image size: gsc -v says why)
         texts = [
             fmt.format(c[key]) if c[key] is not None else f"unavailable: {c[key + '_reason']}"
             for c in cells
@@ -182,6 +186,12 @@ def format_eval(r: dict[str, Any]) -> str:
     if "images" in r:
         lines.append(f"  {'pictures':<13}{images_text(r['images'])}")
     return "\n".join(lines)
+
+
+def _expected(reason: str) -> bool:
+    """Whether a metric is unavailable as asked (--no-lpips) or as the image size implies (MS-SSIM
+    below 161 pixels a side): a note for `gsc -v eval`, not for every table."""
+    return reason.startswith("not asked for") or " needs images of at least " in reason
 
 
 def images_text(paths: list[str]) -> str:

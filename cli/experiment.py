@@ -15,6 +15,7 @@ from gscompress.pipeline.experiment import (
     ExperimentSettings,
     run_experiment,
 )
+from gscompress.pipeline.experiment.protocol import FULL_STUDY, PROTOCOLS, protocol_of
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.offline import REFERENCE_FORMATS
 from gscompress.pipeline.refine import DEFAULT_LR_FINAL
@@ -50,6 +51,21 @@ def _budget_list(ctx: click.Context, param: click.Parameter, value: str) -> tupl
     return tuple(str(BudgetParam().convert(item, param, ctx)) for item in items)
 
 
+def _plan_text(plan: dict[str, Any], s: ExperimentSettings) -> str:
+    """What the experiment will do, said before it starts: its steps and about how long."""
+    minutes = plan["seconds"] / 60
+    took = f"roughly {minutes:.0f} minutes" if minutes >= 1.5 else "roughly a minute or more"
+    study = f"{s.seeds} seed(s), strategies {','.join(s.strategies)}, " + (
+        f"sweep on {s.sweep_seeds} seed(s)" if s.sweep_seeds else "no sweep"
+    )
+    return (
+        f"experiment: {plan['steps']} steps ({study}; protocol "
+        f"{protocol_of(s.fold, s.merge_how)}), {took} of rendering on this machine as it is "
+        "now (one render timed now; starting, writing and LPIPS not counted; steps a rerun "
+        "reuses take none)"
+    )
+
+
 def _formats(value: str) -> tuple[str, ...]:
     """Comma-separated reference formats, or none."""
     items = _comma_list(value)
@@ -79,17 +95,26 @@ def _formats(value: str) -> tuple[str, ...]:
 )  # fmt: skip
 @slam_config_options
 @click.option(
-    "--seeds", type=click.IntRange(1, 1000), default=3, show_default=True,
+    "--full", is_flag=True,
+    help="The whole study instead of a first look: 3 seeds, the strategies random, opacity, "
+    "alpha-t, pwas and pwas-inf, the --sweep with the --references on the first seed, every "
+    "frame scored with 100 tracking iterations (--seeds, --strategies, --sweep-seeds, --every "
+    "and --refine-poses, when given, still decide). On a 16-frame "
+    "160x120 sequence with the tiny preset: 128-129 steps instead of 18.",
+)  # fmt: skip
+@click.option(
+    "--seeds", type=click.IntRange(1, 1000), default=None,
     help="How many seeds to run: 0 to N-1, each the two-agent runs' SLAM seed and the random "
-    "share's seed.",
+    "share's seed [default: 1; 3 with --full].",
 )  # fmt: skip
 @click.option(
     "--sweep", default="0.05,0.1,0.2,0.4", show_default=True, callback=_budget_list,
     help="Comma-separated budgets of the rate-distortion sweep.",
 )  # fmt: skip
 @click.option(
-    "--sweep-seeds", type=click.IntRange(min=0), default=1, show_default=True,
-    help="How many of the seeds (the first ones) run the sweep, at most --seeds (0: none).",
+    "--sweep-seeds", type=click.IntRange(min=0), default=None,
+    help="How many of the seeds (the first ones) run the sweep, at most --seeds (0: none) "
+    "[default: 0; 1 with --full].",
 )  # fmt: skip
 @click.option(
     "--references", default=",".join(REFERENCE_FORMATS), show_default=True,
@@ -101,8 +126,9 @@ def _formats(value: str) -> tuple[str, ...]:
     "`make js-deps`). none: no such points.",
 )  # fmt: skip
 @click.option(
-    "--strategies", default="random,opacity,alpha-t,pwas,pwas-inf", show_default=True,
-    help="Comma-separated share strategies to compare (random and pwas required). pwas-inf: "
+    "--strategies", default=None,
+    help="Comma-separated share strategies to compare (random and pwas required) [default: "
+    "random,pwas; random,opacity,alpha-t,pwas,pwas-inf with --full]. pwas-inf: "
     "PWAS without its proximity weight, A's finished map scored again from A's frames (`gsc "
     "score --sigma-d inf`); pwas-final: the same with the scene's sigma_d, which separates "
     "what scoring again changes from what the weight does. NAME-for-b cuts that strategy's "
@@ -124,8 +150,9 @@ def _formats(value: str) -> tuple[str, ...]:
     show_default=True, help="With --split halves, the fraction of the frames both agents get.",
 )  # fmt: skip
 @click.option(
-    "--every", type=click.IntRange(min=1), default=1, show_default=True,
-    help="Evaluate every N-th frame of each run.",
+    "--every", type=click.IntRange(min=1), default=None,
+    help="Evaluate (and score across agents) every N-th frame of each run [default: 2; 1 with "
+    "--full].",
 )  # fmt: skip
 @click.option(
     "--anchor", type=click.Choice(["gt", "own"]), default="gt", show_default=True,
@@ -136,14 +163,15 @@ def _formats(value: str) -> tuple[str, ...]:
     "Needs `pip install 'gscompress[align]'`.",
 )  # fmt: skip
 @click.option(
-    "--refine-poses", type=click.IntRange(min=0), default=100, show_default=True,
+    "--refine-poses", type=click.IntRange(min=0), default=None,
     help="Cross-agent scoring: the centralised run, A, B, B refined without a share, B with "
     "each share at each budget and B with A's whole map are scored on A's frames, B's frames "
     "and all frames after refining each frame's pose against the fixed map with this many "
     "tracking iterations (`gsc eval --refine-poses`), starting from the poses of the agent "
     "that made the map on its frames, the other agent's on the other's (moved by the "
     "alignment with --anchor own), and on all frames the map's own where it has them, the "
-    "other agent's on the rest. 0: each run scored on its own frames only.",
+    "other agent's on the rest. 0: each run scored on its own frames only [default: 20; "
+    "100 with --full].",
 )  # fmt: skip
 @click.option(
     "--mode", type=click.Choice(["merge", "inject"]), default="merge", show_default=True,
@@ -151,15 +179,23 @@ def _formats(value: str) -> tuple[str, ...]:
     "protocol; B's poses do not change), or injected before its first frame (a new B run).",
 )  # fmt: skip
 @click.option(
-    "--merge", "merge_how", type=click.Choice(MERGE_HOWS), default="exact", show_default=True,
-    help="How each merge combines the maps: exact (every Gaussian of both, refined as one: the "
-    "paper's merge) or default (`gsc merge`'s: the share aligned, the surfaces both maps hold "
-    "resolved, its Gaussians moving as much as B's views see them).",
+    "--protocol", type=click.Choice(list(PROTOCOLS)), default="commands", show_default=True,
+    help="What each share and merge does: commands, as `gsc share` and `gsc merge` do by "
+    "default (folded shares; merges aligned and resolved); paper, the paper's exact protocol "
+    "(--no-fold --merge exact). --fold/--no-fold and --merge, when given, still decide.",
 )  # fmt: skip
 @click.option(
-    "--fold/--no-fold", default=False, show_default=True,
+    "--merge", "merge_how", type=click.Choice(MERGE_HOWS), default=None,
+    help="How each merge combines the maps: default (`gsc merge`'s: the share aligned, the "
+    "surfaces both maps hold resolved, its Gaussians moving as much as B's views see them) or "
+    "exact (every Gaussian of both, refined as one: the paper's merge) [default: the "
+    "--protocol's].",
+)  # fmt: skip
+@click.option(
+    "--fold/--no-fold", default=None,
     help="Fold what each share leaves out into what it sends (`gsc share`'s default); "
-    "without, the shares are the paper's top K, the strategies differing only in their choice.",
+    "without, the shares are the paper's top K, the strategies differing only in their choice "
+    "[default: the --protocol's].",
 )  # fmt: skip
 @click.option(
     "--spread/--no-spread", default=False, show_default=True,
@@ -220,24 +256,26 @@ def experiment(
     keep: float | None,
     preset: str | None,
     config_path: Path | None,
-    seeds: int,
+    full: bool,
+    seeds: int | None,
     sweep: tuple[str, ...],
-    sweep_seeds: int,
+    sweep_seeds: int | None,
     references: tuple[str, ...],
-    strategies: str,
+    strategies: str | None,
     size: tuple[int, int] | None,
     frames: str,
     split: str,
     overlap: float,
-    every: int,
+    every: int | None,
     anchor: str,
-    refine_poses: int,
+    refine_poses: int | None,
     mode: str,
     merge_iters: int,
     merge_views: str,
     merge_lr_final: float,
-    merge_how: str,
-    fold: bool,
+    protocol: str,
+    merge_how: str | None,
+    fold: bool | None,
     spread: bool,
     sums: bool,
     ids: bool,
@@ -252,20 +290,31 @@ def experiment(
 ) -> None:
     """Run the paper's protocol on the sequence in SEQ and write its tables and plots.
 
+    By default a first look: one seed, random against PWAS at --budget, no rate-distortion
+    sweep, every 2nd frame scored, 20 tracking iterations a frame in the cross-agent scoring
+    (18 steps; minutes on a 16-frame 160x120 sequence with --preset tiny). --full runs the
+    whole study (3 seeds, five strategies, the sweep and its references, every frame, 100
+    iterations: 128-129 steps). Before it starts
+    it says how many steps it will run and about how long they take; the bar counts them.
+    Each share and merge is what `gsc share` and `gsc merge` make by default (--protocol
+    commands); --protocol paper runs the paper's exact protocol (top-K shares, nothing folded;
+    the exact merge), and results.md names the protocol.
+
     \b
     - Table 3: the whole sequence without and with PWAS pruning.
     - Table 4, per seed: agent A maps the odd frames, agent B the even ones (--split
       halves: A the first part, B the last, --overlap of them shared); B receives A's
-      share (random, opacity, alpha-t, PWAS at --budget) and A's whole map (the upper
+      share (each of --strategies at --budget) and A's whole map (the upper
       bound): merged into B's map and refined on B's frames (--mode merge; --merge-views
       keyframes for its keyframes only), or injected before B's first frame so that its
       tracking uses it too (--mode inject).
-    - Rate-distortion: PSNR and ATE of B against the share's bytes, per strategy, with A's
-      whole map as our compact share and as fp32, SPZ and SOG (--references).
+    - Rate-distortion (with --full or --sweep-seeds N): PSNR and ATE of B against the
+      share's bytes, per strategy, with A's whole map as our compact share and as fp32, SPZ
+      and SOG (--references).
     Table 3's PWAS run (one agent on all the frames, the agents' preset) is the centralised
     reference.
-    Every run is scored with `gsc eval` on its own frames; with --refine-poses N (default
-    100) the centralised run, A and every run of B are also scored on A's frames, B's frames
+    Every run is scored with `gsc eval` on its own frames; with --refine-poses N (not 0)
+    the centralised run, A and every run of B are also scored on A's frames, B's frames
     and all frames at poses refined against the fixed map, and the shares are ranked on all
     frames (PWAS against each strategy, cell by cell, in results.md). Outputs: results.md
     (tables like the paper's), results.csv, results.json, plots/*.png; each run's log stays
@@ -275,35 +324,39 @@ def experiment(
 
     \b
     Examples:
-      gsc experiment demo_seq -o exp --preset tiny --seeds 1 --sweep-seeds 0 \\
-          --frames 0:10 --size 80x60 --refine-poses 10         # a smoke test, seconds
-      gsc experiment data/office -o exp_office --seeds 3        # cpu preset
+      gsc experiment demo_seq -o exp --preset tiny               # a first look, minutes
+      gsc experiment demo_seq -o exp --preset tiny --frames 0:10 --size 80x60 \\
+          --refine-poses 10                                      # a smoke test
+      gsc experiment data/office -o exp_office --full            # cpu preset, the whole study
+      gsc experiment data/office -o exp_paper --full --protocol paper
       gsc --threads 8 experiment data/office -o exp_office --jobs 4   # 4 runs at a time
       gsc experiment /shared/office -o /shared/exp --executor ray --address auto
     """
+    study = FULL_STUDY if full else {f: getattr(ExperimentSettings, f) for f in FULL_STUDY}
+    chosen = PROTOCOLS[protocol]
     settings = ExperimentSettings(
         preset=preset,
         config_path=str(config_path) if config_path else None,
         budget=str(budget),
         keep=keep,
-        seeds=seeds,
+        seeds=study["seeds"] if seeds is None else seeds,
         sweep=sweep,
-        sweep_seeds=sweep_seeds,
+        sweep_seeds=study["sweep_seeds"] if sweep_seeds is None else sweep_seeds,
         references=references,
-        strategies=_comma_list(strategies),
+        strategies=study["strategies"] if strategies is None else _comma_list(strategies),
         size=size,
         frames=frames,
         split=split,
         overlap=overlap,
-        every=every,
+        every=study["every"] if every is None else every,
         mode=mode,
         anchor=anchor,
-        refine_poses=refine_poses,
+        refine_poses=study["refine_poses"] if refine_poses is None else refine_poses,
         merge_iters=merge_iters,
         merge_views=merge_views,
         merge_lr_final=merge_lr_final,
-        merge_how=merge_how,
-        fold=fold,
+        merge_how=chosen["merge_how"] if merge_how is None else merge_how,
+        fold=chosen["fold"] if fold is None else fold,
         spread=spread,
         sums=sums,
         ids=ids,
@@ -317,10 +370,15 @@ def experiment(
             bar.set_postfix_str(name, refresh=False)
             advance(bar, done, total)
 
+        def announce(plan: dict[str, Any]) -> None:
+            if not as_json:  # (above the bar, which may be shown already)
+                with bar.external_write_mode():
+                    click.echo(_plan_text(plan, settings), err=True)
+
         try:
             result = run_experiment(
                 seq, out_dir, settings, progress=progress, jobs=jobs, executor=executor,
-                address=address, cpus_per_run=cpus_per_run,
+                address=address, cpus_per_run=cpus_per_run, announce=announce,
             )  # fmt: skip
         except KeyboardInterrupt:
             bar.close()

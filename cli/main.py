@@ -210,9 +210,25 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
         sys.stdout.reconfigure(errors="backslashreplace")  # (a file name that is not UTF-8)
     # gscompress says what it is doing at INFO (-q: only warnings; -v: each frame's stats too);
     # the libraries it uses speak from -vv on
-    logging.basicConfig(
-        level=logging.DEBUG if verbose > 1 else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    logging.basicConfig(level=logging.DEBUG if verbose > 1 else logging.WARNING)
+    for handler in logging.getLogger().handlers:
+        if type(handler) is logging.StreamHandler:  # (the console's, not a test's capture)
+            handler.setFormatter(ConsoleFormatter(named=verbose > 0))
     own = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
     logging.getLogger("gscompress").setLevel(own)
+
+
+class ConsoleFormatter(logging.Formatter):
+    """gsc's log lines on the console: what gscompress says at INFO (progress, a build under way)
+    as it is, a warning or an error after its level; with `named` (gsc -v), every line with its
+    level and logger, as a developer reads them."""
+
+    def __init__(self, named: bool) -> None:
+        super().__init__("%(levelname)s %(name)s: %(message)s" if named else "%(message)s")
+        self.named = named
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        if self.named or record.levelno == logging.INFO:
+            return text
+        return f"{record.levelname.lower()}: {text}"

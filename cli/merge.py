@@ -18,7 +18,7 @@ from gscompress.slam.views import REFINE_VIEWS
 from .options import (
     INPUT_FILE,
     FrameSubset,
-    advance,
+    Phases,
     backend_option,
     check_recording_seq,
     codec_option,
@@ -228,7 +228,9 @@ def merge(
     # (the rest as the merge chooses: WITH_SENDER_VIEWS for a share that carries keyframes)
     told = {k: v for k, v in given.items()
             if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip
-    with progress_bar("refine", "iter", total=iters, hidden=as_json) as bar:
+    with progress_bar("merge", "step", hidden=as_json) as bar:
+        phases = Phases(bar, {"refine": "iter"})
+        phases("merging", 0, None)  # (reading, aligning, resolving: until the refinement)
         result = merge_logs(
             receiver,
             share,
@@ -249,7 +251,7 @@ def merge(
             recording=recording,
             command=command_line(),
             force=force,
-            progress=partial(advance, bar),
+            progress=partial(phases, "refine"),
         )
     text = (
         f"merged {result['share']} shared + {result['receiver']} own -> "

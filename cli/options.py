@@ -9,6 +9,8 @@ import math
 import os
 import shlex
 import sys
+import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -105,6 +107,19 @@ def sums_option(f: F) -> F:
         "the score's, about 1.7 B per Gaussian more); with --no-sums a compact map carries only "
         "the score: about 20% more Gaussians in a byte budget, but no evidence for a merge (fp32 "
         "and fp16 always carry the sums, exactly).",
+    )(f)
+
+
+def map_sums_option(f: F) -> F:
+    """`--no-sums` of a command that writes a map, not a share (`gsc prune`)."""
+    return click.option(
+        "--sums/--no-sums",
+        default=True,
+        show_default=True,
+        help="Keep the PWAS sums in a compact map, so that scoring can go on from them and a "
+        "later share or merge can weigh each Gaussian's evidence (compact: the two sums as 8-bit "
+        "log codes beside the score's, about 1.7 B per Gaussian more); with --no-sums a compact "
+        "map keeps only the score (fp32 and fp16 always keep the sums, exactly).",
     )(f)
 
 
@@ -280,12 +295,24 @@ def frames_option(f: F) -> F:
     )(f)
 
 
+TICK_SECONDS = 1.0
+"""How often a shown progress bar is drawn again on a terminal while its count stands still (a
+long step: the first frame of a run, a registration), so that its clock shows the command is
+alive."""
+
+HEARTBEAT_SECONDS = 10.0
+"""The same when stderr is not a terminal (a file, a pipe, a CI log): a line every 10 s at most,
+not one a second."""
+
+
 @contextlib.contextmanager
 def progress_bar(
     desc: str, unit: str, total: int | None = None, hidden: bool = False
 ) -> Iterator[Any]:
     """A tqdm bar on stderr; hidden with `gsc -q`, with --json, or when `hidden` is set. Log
-    lines written to the console while it is shown go above it rather than onto its line."""
+    lines written to the console while it is shown go above it rather than onto its line. It is
+    drawn again every `TICK_SECONDS` on a terminal, every `HEARTBEAT_SECONDS` elsewhere, from
+    its delay on (its elapsed time moves during a long step)."""
     from tqdm import tqdm
 
     quiet = logging.getLogger("gscompress").getEffectiveLevel() > logging.INFO
@@ -298,10 +325,84 @@ def progress_bar(
         root.handlers = [
             _AboveBar(h, bar) if type(h) is logging.StreamHandler else h for h in handlers
         ]
+        stop = threading.Event()
+        if not bar.disable:
+            every = TICK_SECONDS if _is_terminal(sys.stderr) else HEARTBEAT_SECONDS
+            threading.Thread(
+                target=_tick, args=(bar, stop, every), name="bar-tick", daemon=True
+            ).start()
         try:
             yield bar
         finally:
+            stop.set()
             root.handlers = handlers
+
+
+def _is_terminal(stream: Any) -> bool:
+    """Whether `stream` is a terminal."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
+def _tick(bar: Any, stop: threading.Event, every: float) -> None:
+    """Draw `bar` again `every` seconds until `stop` is set (from its delay on).
+
+    It takes only tqdm's thread lock, for as long as one drawing, and never waits for it long:
+    tqdm's own `refresh` takes its process lock too and keeps both when the drawing raises (a
+    closed pipe), which on this thread would leave the command's own thread waiting forever.
+    A console that cannot be written ends the ticking."""
+    lock = getattr(bar.get_lock(), "th_lock", None)
+    while not stop.wait(every):
+        if lock is None or bar.disable or time.time() < bar.start_t + bar.delay:
+            continue
+        if not lock.acquire(timeout=every):
+            continue
+        try:
+            bar.refresh(nolock=True)
+            _drawn(bar)
+        except (OSError, ValueError):  # (a closed pipe or file)
+            return
+        finally:
+            lock.release()
+
+
+def _drawn(bar: Any) -> None:
+    """Record that `bar` is on the console: tqdm tells a shown bar by the time of its last
+    update's drawing, and a bar drawn otherwise (`refresh`, `reset`) would be left on its line
+    by `close` and by log lines (`_AboveBar`). Its next update then counts its rate from the
+    end of its delay, at most that much later than its start."""
+    bar.last_print_t = max(bar.last_print_t, bar.start_t + bar.delay)
+
+
+class Phases:
+    """One progress bar for a command's successive phases (the frames of a run, its final
+    refinement, its final scoring...): a pipeline's `phases(name, done, total)` callback.
+
+    The first call with a new `name` starts that phase on the bar (its description, count,
+    clock and unit, `units[name]` or "step"); each call moves the count to `done` of `total`
+    (None: a count without an end, such as the cuts a byte budget tries).
+    """
+
+    def __init__(self, bar: Any, units: dict[str, str] | None = None) -> None:
+        self.bar, self.units, self.name = bar, units or {}, ""
+
+    def __call__(self, name: str, done: int, total: int | None) -> None:
+        bar = self.bar
+        if name != self.name:
+            self.name = name
+            bar.set_postfix_str("", refresh=False)
+            bar.set_description_str(name, refresh=False)
+            bar.unit = self.units.get(name, "step")
+            bar.initial = 0
+            if not bar.disable and time.time() >= bar.start_t + bar.delay:  # (drawn anew)
+                bar.reset(total)
+                _drawn(bar)
+            else:  # (not drawn before its delay: a command that fails at once shows no bar)
+                bar.n = bar.last_print_n = 0
+        bar.total = total
+        bar.update(done - bar.n)
 
 
 class _AboveBar(logging.Handler):
@@ -414,10 +515,29 @@ def share_transform_option(f: F) -> F:
     )(f)
 
 
+ANISOTROPIC_HELP = (
+    "With --refine: refine three scales and a rotation per Gaussian, so that each kept one "
+    "stretches over the surface it now covers (what is folded in keeps its shape); about 5.5 "
+    "bytes more a Gaussian in compact"
+)
+
+
 def refine_options(f: F) -> F:
     """`--refine N`, `--anisotropic/--isotropic`, `--seq FOLDER`, the recording options of
-    `recording_options` and `--device`: refine what a command keeps on the log's keyframes
+    `recording_options` and `--device`: refine what a share keeps on the log's keyframes
     (`log_refiner` turns them into the refiner)."""
+    return _refine_options(
+        f, f"{ANISOTROPIC_HELP}, so a share whose byte budget holds the whole map stays isotropic."
+    )
+
+
+def map_refine_options(f: F) -> F:
+    """`refine_options` of a command that writes a map, not a share (`gsc prune`)."""
+    return _refine_options(f, f"{ANISOTROPIC_HELP}.")
+
+
+def _refine_options(f: F, anisotropic_help: str) -> F:
+    """`refine_options`, with this help of `--anisotropic`."""
     from gscompress.pipeline.refine import DEFAULT_LR_FINAL, KEYFRAME_RULE  # (no torch yet)
 
     f = device_option(f)
@@ -426,11 +546,7 @@ def refine_options(f: F) -> F:
         "--anisotropic/--isotropic",
         default=True,
         show_default=True,
-        help="With --refine: refine three scales and a rotation per Gaussian, so that each "
-        "kept one stretches over the surface it now covers (what is folded in keeps its "
-        "shape); about 5.5 bytes more a Gaussian in compact, so a share whose byte budget "
-        "holds the whole map stays isotropic. --isotropic keeps the map's one scale per "
-        "Gaussian.",
+        help=f"{anisotropic_help} --isotropic keeps the map's one scale per Gaussian.",
     )(f)
     f = seq_option(False, "The sequence the log was made from (needed by --refine).")(f)
     return click.option(
@@ -459,7 +575,8 @@ def log_refiner(
     recording: Any = None,
 ) -> Any:
     """The `gscompress.pipeline.refine.LogRefiner` that `refine_options` ask for (drawing on
-    `bar`; a recording read with `recording`), or None for no refinement.
+    `bar`, or on its "refine" phase when it is `Phases`; a recording read with `recording`), or
+    None for no refinement.
 
     Raises:
         click.UsageError: --refine without --seq, or --seq without --refine.
@@ -475,6 +592,8 @@ def log_refiner(
     options = RefineOptions(
         iters, device=device, seed=seed, anisotropic=anisotropic, recording=recording
     )
+    if isinstance(bar, Phases):
+        return LogRefiner(src, seq, options, functools.partial(bar, "refine"), instead)
     return LogRefiner(src, seq, options, lambda done, total: advance(bar, done, total), instead)
 
 

@@ -13,6 +13,7 @@ from gscompress.selection import STRATEGIES
 
 from .options import (
     INPUT_FILE,
+    Phases,
     Ratio,
     check_recording_seq,
     codec_option,
@@ -22,12 +23,12 @@ from .options import (
     force_option,
     json_option,
     log_refiner,
+    map_refine_options,
+    map_sums_option,
     output_option,
     progress_bar,
-    refine_options,
     refined_text,
     seed_option,
-    sums_option,
 )
 
 
@@ -47,7 +48,7 @@ from .options import (
     help="Score to rank by.",
 )
 @fold_option
-@refine_options
+@map_refine_options
 @click.option(
     "--map-only",
     is_flag=True,
@@ -56,7 +57,7 @@ from .options import (
 )
 @output_option()
 @codec_option(None, " [default: the map's own codec]")
-@sums_option
+@map_sums_option
 @seed_option("Seed of the random strategy and of the refinement's view order.")
 @force_option()
 @json_option
@@ -100,8 +101,9 @@ def prune(
       gsc prune run.mcap --keep 0.3 --refine 500 --seq data/room --map-only -o run_30r.mcap
     """
     check_recording_seq(recording, seq)
-    with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
-        refine = log_refiner(src, refine_iters, seq, device, seed, bar,
+    with progress_bar("prune", "step", hidden=as_json) as bar:  # (a fold of a large map: seconds)
+        phases = Phases(bar, {"refine": "iter"})
+        refine = log_refiner(src, refine_iters, seq, device, seed, phases,
                              "prune without --refine", anisotropic, recording)  # fmt: skip
         result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
                            options=CompactOptions(sums=sums), refine=refine, map_only=map_only,

@@ -18,6 +18,7 @@ from .options import (
     INPUT_FILE,
     OUTPUT_FILE,
     BudgetParam,
+    Phases,
     check_recording_seq,
     codec_option,
     command_line,
@@ -205,10 +206,12 @@ def share(
     context = click.get_current_context()
     given = {name: context.get_parameter_source(name) != ParameterSource.DEFAULT
              for name in ("codec", "sums", "fold")}  # fmt: skip
-    with progress_bar("refine", "iter", refine_iters, hidden=as_json or not refine_iters) as bar:
+    with progress_bar("share", "cut", hidden=as_json) as bar:
+        fitting = f"fitting {budget}"  # (a byte budget's search: each cut a fold and an encoding)
+        phases = Phases(bar, {"refine": "iter", fitting: "cut"})
         # (--seq also serves --solve and --keyframes)
         refine_seq = seq if refine_iters or not (solve or keyframes) else None
-        refine = log_refiner(src, refine_iters, refine_seq, device, seed, bar,
+        refine = log_refiner(src, refine_iters, refine_seq, device, seed, phases,
                              "share without --refine", anisotropic, recording)  # fmt: skip
         carry = None
         if keyframes:
@@ -238,6 +241,7 @@ def share(
             )
         else:
             result = share_log(src, dst, budget, codec=codec, sums=sums, fold_dropped=fold,
+                               progress=lambda tried: phases(fitting, tried, None),
                                **common)  # fmt: skip
     extra = f" and {ply}" if ply else ""
     folded = result["fold"] and result["selected"] < result["total"]

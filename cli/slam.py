@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,7 @@ from .options import (
     INPUT_FILE,
     INPUT_SEQUENCE,
     OUTPUT_FILE,
+    Phases,
     Ratio,
     advance,
     backend_option,
@@ -33,15 +35,32 @@ from .options import (
 )
 
 
-def _start_at_loop(bar: Any, frames_before: int, seconds: float) -> None:
-    """Start the tqdm bar's count and clock where the SLAM loop's start, `seconds` ago.
+def _phases(bar: Any) -> Callable[[str, int, int | None], None]:
+    """The run's phases on `bar`: the frames from before the first one, then the final
+    refinement's iterations and the final scoring's views."""
+    from gscompress.pipeline.slam_run import FINAL_REFINEMENT, FINAL_SCORING, FRAMES
+
+    phases = Phases(bar, {FRAMES: "frame", FINAL_REFINEMENT: "iter", FINAL_SCORING: "view"})
+
+    def phase(name: str, done: int, total: int | None) -> None:
+        if name == FRAMES and phases.name != FRAMES:
+            _start_at_loop(bar, done, total)
+            phases.name = name
+        phases(name, done, total)
+
+    return phase
+
+
+def _start_at_loop(bar: Any, frames_before: int, total: int | None) -> None:
+    """Start the tqdm bar's count and clock where the SLAM loop starts, now.
 
     The bar was made before the set-up (sequence, a resumed log's replay, a first-use build of
     the render kernels); left alone, its rate and ETA would count that as the first frame's time
     and the frames a resumed log already holds as done in this run.
     """
+    bar.total = total
     bar.n = bar.last_print_n = bar.initial = frames_before
-    bar.start_t = bar.last_print_t = time.time() - seconds
+    bar.start_t = bar.last_print_t = time.time()
 
 
 def _interrupted_text(seq: Path, dst: Path) -> str:
@@ -218,10 +237,8 @@ def slam(
         def progress(done: int, total: int, stats: dict[str, Any]) -> None:
             nonlocal processed
             processed += 1
-            if processed == 1:
-                _start_at_loop(bar, done - 1, stats["seconds"])
-                if save_config is not None:  # written once the run has passed its checks
-                    write_config(config, save_config)
+            if processed == 1 and save_config is not None:  # once the run passed its checks
+                write_config(config, save_config)
             bar.set_postfix(  # counts as text: tqdm would show 10000 as "1e+4"
                 frame=str(stats["frame"]),
                 gaussians=str(stats["gaussians"]),
@@ -248,6 +265,7 @@ def slam(
                 command=command_line(),
                 force=force,
                 progress=progress,
+                phases=_phases(bar),
                 **settings,
             )
         except KeyboardInterrupt:

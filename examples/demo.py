@@ -23,10 +23,13 @@ from pathlib import Path
 
 
 def gsc(*args: object) -> None:
-    """Run one gsc command, echoing it; stop the demo if it fails."""
+    """Run one gsc command, echoing it; stop the demo with its exit status if it fails (gsc has
+    said why, in one line)."""
     words = ["gsc", *map(str, args)]
     print(f"\n$ {shlex.join(words)}", flush=True)
-    subprocess.run([sys.executable, "-m", "gscompress_cli", *words[1:]], check=True)
+    done = subprocess.run([sys.executable, "-m", "gscompress_cli", *words[1:]], check=False)
+    if done.returncode != 0:
+        raise SystemExit(done.returncode)
 
 
 def main() -> None:

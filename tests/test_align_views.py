@@ -106,3 +106,21 @@ def test_gsc_align_refines_on_the_targets_frames(run: dict[str, Path], tmp_path:
     assert "kept the registration" in out.read_text()
     r = CliRunner().invoke(cli, [*args, "--force"])
     assert r.exit_code == 0 and "kept the registration" in r.output
+
+
+def test_an_alignment_reports_its_registration_and_each_iteration_on_the_frames(
+    run: dict[str, Path], tmp_path: Path
+) -> None:
+    """`gsc align`'s bar: the registration as it starts, then each iteration on the frames."""
+    from gscompress.ops.align_views import VIEW_ALIGN
+    from gscompress.pipeline.align import ON_FRAMES, REGISTRATION, align_logs_transform
+
+    guess = tmp_path / "guess.txt"
+    np.savetxt(guess, np.eye(4))
+    events: list[tuple[str, int, int | None]] = []
+    align_logs_transform(run["log"], run["log"], init=guess, seq=run["seq"], refuse=False,
+                         phases=lambda *event: events.append(event))  # fmt: skip
+    assert events[0] == (REGISTRATION, 0, None)
+    on_frames = [e for e in events if e[0] == ON_FRAMES]
+    assert on_frames[0] == (ON_FRAMES, 0, VIEW_ALIGN.iters) and len(on_frames) > 10
+    assert [e[1] for e in on_frames] == list(range(len(on_frames)))

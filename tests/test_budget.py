@@ -376,3 +376,16 @@ def test_a_percentage_of_bytes_is_of_the_maps_fp32_message(tmp_path):
     r = share_log(src, tmp_path / "s.mcap", "20%bytes")
     assert r["budget_bytes"] == int(0.2 * fp32) and r["file_bytes"] <= r["budget_bytes"]
     assert r["selected"] > 0.2 * len(full)  # compact sends more than a fifth of the Gaussians
+
+
+def test_a_byte_budget_reports_each_cut_it_tries(tmp_path):
+    """A byte budget's search (each try a fold and an encoding of the whole share) reports as it
+    goes, as `gsc share`'s bar shows; a fraction budget tries no cut."""
+    src = write_log(tmp_path / "a.mcap", random_map(2_000, seed=5))
+    tried: list[int] = []
+    result = share_log(src, tmp_path / "s.mcap", "20kB", progress=tried.append)
+    assert 0 < result["selected"] < 2_000
+    assert tried[0] == 0 and len(tried) > 2 and tried == list(range(len(tried)))
+    fraction: list[int] = []
+    share_log(src, tmp_path / "f.mcap", 0.2, progress=fraction.append)
+    assert fraction == []

@@ -2,6 +2,7 @@
 
 import contextlib
 import json
+import logging
 import subprocess
 import sys
 
@@ -457,6 +458,27 @@ def test_offline_commands_do_not_import_torch(log_path, tmp_path):
     assert (tmp_path / "e.ply").exists() and (tmp_path / "t.txt").exists()
 
 
+def test_default_verbosity_prints_results_and_warnings_not_module_notes(log_path, tmp_path):
+    """A command's own notes (SPZ keeps no scores) are for -v; a warning says it is one, without
+    the logger's name; -v names the level and logger of every line."""
+
+    def gsc(*args: object) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, "-m", "gscompress_cli", *map(str, args)]
+        return subprocess.run(cmd, capture_output=True, text=True, check=True)
+
+    out = gsc("export-ply", log_path, "-o", tmp_path / "a.spz")
+    assert out.stdout.startswith("wrote ") and out.stderr == ""
+    out = gsc("-v", "export-ply", log_path, "-o", tmp_path / "b.spz")
+    assert "DEBUG gscompress.io.map_files: SPZ stores no importance scores" in out.stderr
+    from gscompress_cli.main import ConsoleFormatter
+
+    record = logging.LogRecord("gscompress.x", logging.WARNING, "", 0, "look out", None, None)
+    assert ConsoleFormatter(named=False).format(record) == "warning: look out"
+    record.levelno, record.levelname = logging.INFO, "INFO"
+    assert ConsoleFormatter(named=False).format(record) == "look out"
+    assert ConsoleFormatter(named=True).format(record) == "INFO gscompress.x: look out"
+
+
 def test_help_teaches():
     r = gsc("--help")
     assert r.exit_code == 0
@@ -652,3 +674,50 @@ def test_format_shares_send_the_whole_map_in_each_format(log_path, tmp_path):
     with pytest.raises(InputError, match="unknown format 'ply'"):
         format_share(log_path, tmp_path / "x.mcap", "ply")
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_a_bar_is_drawn_while_its_count_stands_still_and_a_closed_console_stops_no_one(
+    monkeypatch,
+):
+    """The bar of a long step is drawn again without an update (its clock moves); a console
+    that cannot be written (a closed pipe) ends that drawing, and leaves no lock held that the
+    command's own updates would wait for (tqdm's `refresh` keeps its locks when its drawing
+    raises)."""
+    import io
+    import threading
+
+    import gscompress_cli.options as options
+
+    monkeypatch.setattr(options, "HEARTBEAT_SECONDS", 0.01)  # (not a terminal)
+    drawn, refused = threading.Event(), threading.Event()
+
+    class Console(io.StringIO):
+        broken = False
+
+        def write(self, text: str) -> int:
+            if self.broken:
+                refused.set()
+                raise BrokenPipeError(32, "Broken pipe")
+            drawn.set()
+            return super().write(text)
+
+    console = Console()
+    monkeypatch.setattr(sys, "stderr", console)
+    monkeypatch.setattr(logging.getLogger("gscompress"), "level", logging.INFO)
+    with options.progress_bar("step", "it", total=3) as bar:
+        assert drawn.wait(30)  # drawn after its delay, though nothing moved it
+        console.broken = True
+        assert refused.wait(30)  # the drawing thread met the closed console
+        free: list[bool] = []
+
+        def probe() -> None:  # (on a thread of its own: the locks are reentrant)
+            for lock in bar.get_lock().locks:
+                free.append(lock.acquire(timeout=10))
+                if free[-1]:
+                    lock.release()
+
+        worker = threading.Thread(target=probe, daemon=True)
+        worker.start()
+        worker.join(60)
+        bar.disable = True  # (the console is gone: no closing line, nor its lock)
+        assert free == [True] * len(bar.get_lock().locks), "a lock stays held"

@@ -39,6 +39,22 @@ def example(name: str, *args: object) -> str:
     return proc.stdout
 
 
+def test_the_demo_stops_at_a_failed_step_with_gscs_one_line(tmp_path: Path) -> None:
+    """A step that fails ends the demo with gsc's own message and exit status, no traceback."""
+    proc = subprocess.run(
+        [sys.executable, str(EXAMPLES / "demo.py"), "--out", tmp_path / "demo", "--frames", "0"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr  # (gsc synth's usage error)
+    assert "Traceback" not in proc.stderr
+    assert (
+        proc.stderr.strip().splitlines()
+        == [line for line in proc.stderr.strip().splitlines() if line.startswith("Error:")]
+        != []
+    )
+    assert "$ gsc synth" in proc.stdout and "$ gsc slam" not in proc.stdout
+
+
 def test_read_log_lists_the_map_and_writes_the_trajectory(
     run: tuple[Path, Path], tmp_path: Path
 ) -> None:

@@ -26,7 +26,7 @@ from gscompress.pipeline.experiment import (
     rate_distortion_curves,
     resolve_settings,
 )
-from gscompress.pipeline.experiment.protocol import reference_formats
+from gscompress.pipeline.experiment.protocol import FULL_STUDY, PROTOCOLS, reference_formats
 from gscompress.pipeline.experiment.report import curve_at
 from gscompress.pipeline.offline import smallest_share_bytes
 from gscompress_cli.main import cli
@@ -41,11 +41,17 @@ REFINE = ("--refine-poses", "3")
 
 CROSS = ("refined_psnr_a", "refined_psnr_b", "refined_psnr_all")
 
+STUDY = ("--full", "--protocol", "paper")
+"""The fixture's study: the whole one (five strategies, the sweep), the paper's protocol."""
+
+PAPER_FULL = {**FULL_STUDY, **PROTOCOLS["paper"]}
+"""`ExperimentSettings` of `STUDY` (but the seeds and scoring iterations the tests give)."""
+
 
 def _run(seq: Path, out: Path, *extra: str, refine: tuple[str, ...] = REFINE) -> dict:
     """The fixture's experiment written to `out`, with `extra` options; its JSON result."""
     args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *refine, *extra]  # fmt: skip
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *STUDY, *refine, *extra]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     return json.loads(r.output)
@@ -69,9 +75,10 @@ def experiment(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, di
 
 def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, dict]) -> None:
     _seq, out, result = experiment
-    settings = ExperimentSettings(
-        preset="tiny", seeds=1, sweep=("0.2", "0.5"), lpips=False, refine_poses=3
-    )
+    settings = ExperimentSettings(**{
+        **PAPER_FULL, "preset": "tiny", "seeds": 1, "sweep": ("0.2", "0.5"), "lpips": False,
+        "refine_poses": 3,
+    })  # fmt: skip
     assert result["steps"] == plan_size(settings) and result["reused"] == 0
     rows = json.loads((out / "results.json").read_text())
     assert all(set(REQUIRED) <= set(row) for row in rows)
@@ -231,7 +238,8 @@ def test_refine_poses_0_leaves_the_own_frame_scores_alone(
     scored = json.loads((copy / "results.json").read_text())
     scored_md = (copy / "results.md").read_text()
     result = _run(seq, copy, refine=("--refine-poses", "0"))
-    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), refine_poses=0)
+    settings = ExperimentSettings(**{**PAPER_FULL, "preset": "tiny", "seeds": 1,
+                                     "sweep": ("0.2", "0.5"), "refine_poses": 0})  # fmt: skip
     references = len(reference_formats(settings))  # (a share and B's run with it, each)
     assert result["steps"] == result["reused"] == plan_size(settings) == 28 + 2 * references
     rows = json.loads((copy / "results.json").read_text())
@@ -260,7 +268,7 @@ def test_parallel_runs_give_the_same_rows(
     threads = 2 * torch.get_num_threads()  # each worker gets what the fixture's runs had
     args = ["--threads", str(threads), "experiment", str(seq), "-o", str(parallel),
             "--preset", "tiny", "--seeds", "1", "--sweep", "0.2,0.5", "--no-lpips", "--json",
-            "--jobs", "2", *REFINE]  # fmt: skip
+            "--jobs", "2", *STUDY, *REFINE]  # fmt: skip
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
@@ -278,7 +286,8 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
     experiment: tuple[Path, Path, dict],
 ) -> None:
     _seq, out, _result = experiment
-    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), lpips=False)
+    settings = ExperimentSettings(**{**PAPER_FULL, "preset": "tiny", "seeds": 1,
+                                     "sweep": ("0.2", "0.5"), "lpips": False})  # fmt: skip
     rows = json.loads((out / "results.json").read_text())
     alone = next(r for r in rows if r["name"] == "B refined, no share")
     full = next(r for r in rows if r["strategy"] == "full")
@@ -300,7 +309,8 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
                 r[key] for r in sorted(sweep, key=lambda r: r["share_bytes"])
             ]
         assert curves["full"] == [(full["share_bytes"], full[key], full["ate_rmse_cm"])]
-    inject = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2", "0.5"), mode="inject")
+    inject = ExperimentSettings(**{**PAPER_FULL, "preset": "tiny", "seeds": 1,
+                                   "sweep": ("0.2", "0.5"), "mode": "inject"})  # fmt: skip
     b = next(r for r in rows if r["name"] == "agent B (even frames)")
     assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["refined_psnr_all"]
     assert rate_distortion_curves(rows, ExperimentSettings(preset="tiny", sweep_seeds=0)) == {}
@@ -509,7 +519,7 @@ def test_both_modes_share_one_folder_without_overwriting_runs(
 ) -> None:
     seq, out, first = experiment
     base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *REFINE]  # fmt: skip
+            "--sweep", "0.2,0.5", "--no-lpips", "--json", *STUDY, *REFINE]  # fmt: skip
     r = CliRunner().invoke(cli, [*base, "--mode", "inject", "--strategies", "random,pwas"])
     assert r.exit_code == 0, r.output
     inject = json.loads(r.output)

@@ -19,6 +19,7 @@ from gscompress.errors import DatasetError
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogReader, read_map
 from gscompress.metrics import ate_rmse_cm
 from gscompress.pipeline import slam_file
+from gscompress.pipeline.slam_run import FRAMES
 from gscompress.render import resolve_backend
 from gscompress.selection import keep_count
 from gscompress.slam.config import load_config, preset
@@ -258,11 +259,51 @@ def test_progress_bar_counts_only_the_frames_this_run_does(monkeypatch, caplog, 
     monkeypatch.setattr(render, "resolve_backend", slow_resolve)
     monkeypatch.setattr(slam_command, "progress_bar", kept_bar)
     caplog.set_level(logging.INFO)  # the bar shows at gsc's default level, not under -q
+    frames_end: list[tuple[int, int, float]] = []  # the bar as the frames end
+    phases = slam_command._phases
+
+    def watched(bar):  # type: ignore[no-untyped-def]
+        phase = phases(bar)
+
+        def watch(name, done, total):  # type: ignore[no-untyped-def]
+            if name != FRAMES and not frames_end:
+                frames_end.append((bar.initial, bar.n, bar.start_t))
+            phase(name, done, total)
+
+        return watch
+
+    monkeypatch.setattr(slam_command, "_phases", watched)
     r = gsc("slam", seq_dir, "-o", out, "--resume")
     assert r.exit_code == 0, r.output
-    (bar,) = bars
-    assert bar.initial == 2 and bar.n == 6  # 4 frames done by this run, counted from 2
-    assert bar.start_t >= ready[-1] - 0.05  # the clock started after the set-up
+    assert len(bars) == 1
+    ((initial, n, start_t),) = frames_end
+    assert initial == 2 and n == 6  # 4 frames done by this run, counted from 2
+    assert start_t >= ready[-1] - 0.05  # the clock started after the set-up
+
+
+def test_every_phase_of_a_run_reports_its_progress(tmp_path):
+    """The frames' phase starts before the first frame (whose mapping may take a while), and
+    the final refinement and the final scoring report each step, not only when they end."""
+    from gscompress.pipeline.slam_run import FINAL_REFINEMENT, FINAL_SCORING
+
+    events: list[tuple[str, int, int | None]] = []
+    frames_done: list[int] = []
+
+    def phases(name, done, total):  # type: ignore[no-untyped-def]
+        events.append((name, done, total))
+
+    def progress(done, total, stats):  # type: ignore[no-untyped-def]
+        frames_done.append(len(events))
+
+    config = preset("tiny").with_overrides(**{"mapping.final_iters": 7})
+    slam_file(None, tmp_path / "run.mcap", config=config, sequence=synthetic_sequence(3, (32, 24)),
+              progress=progress, phases=phases)  # fmt: skip
+    assert events[0] == (FRAMES, 0, 3) and frames_done[0] == 1  # before the first frame
+    refining = [e for e in events if e[0] == FINAL_REFINEMENT]
+    assert refining == [(FINAL_REFINEMENT, k, 7) for k in range(8)]
+    scoring = [e for e in events if e[0] == FINAL_SCORING]
+    assert scoring == [(FINAL_SCORING, k, 3) for k in range(4)]
+    assert events.index(refining[-1]) < events.index(scoring[0])
 
 
 def test_cli_preset_names_are_the_presets() -> None:

@@ -344,8 +344,10 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
     config.write_text("preset: tiny\nmapping: {final_iters: 400}\nprune: {stages: []}\n")
     refine, done = Mapper.refine, []
 
-    def refine_then_signal(self, views, iters, rng, **kwargs):  # type: ignore[no-untyped-def]
-        def step(loss: float) -> None:  # the SLAM passes no on_step of its own
+    def refine_then_signal(self, views, iters, rng, on_step=None, **kwargs):  # type: ignore[no-untyped-def]
+        def step(loss: float) -> None:  # (and the SLAM's own, its progress, if it has one)
+            if on_step is not None:
+                on_step(loss)
             done.append(loss)
             if len(done) == 5:
                 os.kill(os.getpid(), signal.SIGINT)  # lands during the final refinement

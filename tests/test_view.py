@@ -379,6 +379,7 @@ def test_page_loads_draws_and_follows_the_keep_slider(tiny_log: Path, tmp_path: 
         url = f"http://127.0.0.1:{viewer.port}"
         with browser.open_page(url, 1024, 600) as (page, errors):
             browser.wait_for_text(page, "Kept 300 of 300 Gaussians")
+            assert page.title() == f"{tiny_log.name} - gsc view"  # (not viser's "Viser")
             page.wait_for_timeout(1500)  # (the splats sorted and drawn)
             png = page.screenshot()
             colours, spread = browser.canvas_spread(png)

@@ -61,7 +61,7 @@ def write_map_file(
     """
     if map_suffix(path) == ".spz":
         if importance and gaussians.has_importance:
-            log.info("SPZ stores no importance scores or ids: %s leaves them out", path)
+            log.debug("SPZ stores no importance scores or ids: %s leaves them out", path)
         return write_spz(gaussians, path, inputs=inputs, force=force)
     return write_ply(gaussians, path, importance=importance, inputs=inputs, force=force)
 

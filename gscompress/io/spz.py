@@ -468,7 +468,7 @@ def _decode(s: _Streams, bits: int, source: str) -> GaussianMap:
     k = SH_REST_COUNTS[s.degree]
     rest = (s.data[5].reshape(n, k, 3).astype(np.float32) - 128) / 128
     if s.antialiased:
-        log.info("%s was made for antialiased rendering; it is read as an ordinary map", source)
+        log.debug("%s was made for antialiased rendering; it is read as an ordinary map", source)
     cols: dict[str, np.ndarray] = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2]}
     cols.update({f"scale_{i}": log_scales[:, i] for i in range(3)})
     cols.update({f"rot_{i}": quats[:, i] for i in range(4)})

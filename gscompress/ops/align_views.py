@@ -22,6 +22,7 @@ and x follows Adam's steps (`slam.poses.PoseAdam`) with the gradient
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -131,6 +132,7 @@ def refine_on_views(
     *,
     backend: str = "auto",
     device: str | torch.device = "cpu",
+    progress: Callable[[int], object] | None = None,
 ) -> ViewAlignment:
     """Refine the transform from `source`'s world to the target's on the target's frames.
 
@@ -142,6 +144,7 @@ def refine_on_views(
         intrinsics: the frames' camera.
         config: iterations, learning rates, decay and the loss's settings.
         backend, device: how to render.
+        progress: called with 1 after each iteration.
 
     Returns:
         The refined transform (the starting one when no view draws the source).
@@ -176,5 +179,7 @@ def refine_on_views(
         first = total if step == 0 else first
         last = total
         x = adam.step(x, pose_gradient(x, np.eye(4), g_delta))
+        if progress is not None:
+            progress(1)
     refined = T if seen == 0 else orthonormalize(centre @ pose_increment(x) @ after)
     return ViewAlignment(refined, first, last, pixels, seen)

@@ -9,7 +9,9 @@ the target's frame.
 
 from __future__ import annotations
 
+import itertools
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -71,6 +73,13 @@ map, too coarse to draw its own frames well, the frames pulled a self-alignment 
 kept 0.65."""
 
 
+REGISTRATION = "registration"
+"""The phase of an alignment that registers the two maps (`align_logs_transform`'s `phases`)."""
+
+ON_FRAMES = "aligning on frames"
+"""The phase of an alignment that refines it on the target's frames (steps: iterations)."""
+
+
 def refined_on_frames(
     source: str | Path,
     target: str | Path,
@@ -78,13 +87,15 @@ def refined_on_frames(
     T: np.ndarray,
     views: int = VIEWS,
     recording: Any = None,
+    progress: Callable[[int], object] | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """`T` refined on the target's own frames (`gscompress.ops.align_views`): `source`'s map
     rendered at `views` of `target`'s keyframes (of `seq`, at `target`'s estimated poses; a
     recording read with `recording`'s topics, None: those the target's run recorded).
     Returns the transform and what to record: the refinement's figures, `loss` and
     `target_loss`, the mean tracking loss over those frames of the source at the refined
-    transform and of the target's own map, and the `seconds` it all took. Needs torch."""
+    transform and of the target's own map, and the `seconds` it all took. `progress`: called
+    with 1 after each iteration. Needs torch."""
     from gscompress.io.mcap_log import read_map
     from gscompress.ops.align_views import refine_on_views, view_loss
     from gscompress.pipeline.refine import spread_keyframes
@@ -94,7 +105,7 @@ def refined_on_frames(
     assert chosen.frames is not None  # (with a sequence)
     frames, poses, camera = chosen.frames, chosen.poses, chosen.intrinsics
     source_map = read_map(source)
-    result = refine_on_views(source_map, T, frames, poses, camera)
+    result = refine_on_views(source_map, T, frames, poses, camera, progress=progress)
     found = result.T_target_source
     record = {**result.record(T), "seq": str(seq)}
     record["loss"] = view_loss(source_map, found, frames, poses, camera)
@@ -118,6 +129,56 @@ def frames_verdict(record: dict[str, Any], target: str | Path) -> str:
     return ""
 
 
+def _judged_on_frames(
+    logs: tuple[str | Path, str | Path, str | Path, Any],
+    alignment: Any,
+    clouds: tuple[Any, Any],
+    record: dict[str, Any],
+    refusal_so_far: tuple[str, bool],
+    phases: Callable[[str, int, int | None], object] | None,
+) -> tuple[np.ndarray, str]:
+    """`align_logs_transform`'s step on the target's frames: the registration refined on them
+    (kept only when the source stays on the target's surfaces), recorded in `record`; and, for a
+    registration refused only for its feature matches (`refusal_so_far`: the reason, and
+    whether the frames may overrule it), the frames' verdict. Returns the transform and what
+    refuses it ("" when nothing)."""
+    source, target, seq, recording = logs
+    step = None
+    if phases is not None:
+        from gscompress.ops.align_views import VIEW_ALIGN
+
+        iters, done = VIEW_ALIGN.iters, itertools.count(1)
+        phases(ON_FRAMES, 0, iters)
+
+        def step(_: int) -> None:
+            phases(ON_FRAMES, next(done), iters)
+
+    T = alignment.T_target_source
+    refined, on_frames = refined_on_frames(source, target, seq, T, VIEWS, recording, step)
+    on_frames["T_registration"] = record["T_target_source"]
+    before, after = surface_fit(*clouds, [T, refined], alignment.voxel / 2)
+    on_frames["surface_kept"] = after / max(before, 1e-12)
+    if on_frames["surface_kept"] >= SURFACE_KEPT:
+        T = refined
+    else:  # (off the surfaces: the frames are not trusted, the registration stays)
+        on_frames["kept_registration"] = True
+    record["on_frames"] = on_frames
+    record["T_target_source"] = T.tolist()
+    refused, overrulable = refusal_so_far
+    if overrulable:
+        verdict = frames_verdict(on_frames, target)
+        if on_frames.get("kept_registration"):
+            verdict = (
+                f"refined on {Path(target).name}'s frames the source leaves its surfaces "
+                f"({on_frames['surface_kept']:.2f} of the overlap kept)"
+            )
+        if verdict:
+            refused = f"{refused}; {verdict}"
+        else:
+            on_frames["overruled"], refused = refused, ""
+    return T, refused
+
+
 def align_logs_transform(
     source: str | Path,
     target: str | Path,
@@ -126,6 +187,7 @@ def align_logs_transform(
     seq: str | Path | None = None,
     refuse: bool = True,
     recording: Any = None,
+    phases: Callable[[str, int, int | None], object] | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The transform from `source`'s world frame to `target`'s and what to record of it; with
     `seq` (the target's sequence, a recording read with `recording`), the registration refined
@@ -137,7 +199,9 @@ def align_logs_transform(
     (`on_frames.kept_registration`), and cannot be vouched for by the frames.
 
     With `refuse` False, an alignment that cannot be trusted is returned all the same (refined
-    on the frames as any other), `refused` saying why; else it raises.
+    on the frames as any other), `refused` saying why; else it raises. `phases` is called with
+    (phase, steps done, steps in total) as it goes: `REGISTRATION` as it starts, `ON_FRAMES`
+    after each iteration on the frames.
 
     Raises:
         AlignmentError: the alignment cannot be trusted (the message names both logs); or
@@ -149,6 +213,8 @@ def align_logs_transform(
     src_cloud, src_world = log_cloud(source)
     tgt_cloud, tgt_world = log_cloud(target)
     T0 = None if init is None else read_transform(init)
+    if phases is not None:
+        phases(REGISTRATION, 0, None)
     where = f"align {Path(source).name} to {Path(target).name}"
     refused = ""
     try:
@@ -174,27 +240,10 @@ def align_logs_transform(
     )
     T = alignment.T_target_source
     if seq is not None:
-        refined, on_frames = refined_on_frames(source, target, seq, T, VIEWS, recording)
-        on_frames["T_registration"] = record["T_target_source"]
-        before, after = surface_fit(src_cloud, tgt_cloud, [T, refined], alignment.voxel / 2)
-        on_frames["surface_kept"] = after / max(before, 1e-12)
-        if on_frames["surface_kept"] >= SURFACE_KEPT:
-            T = refined
-        else:  # (off the surfaces: the frames are not trusted, the registration stays)
-            on_frames["kept_registration"] = True
-        record["on_frames"] = on_frames
-        record["T_target_source"] = T.tolist()
-        if overrulable:
-            verdict = frames_verdict(on_frames, target)
-            if on_frames.get("kept_registration"):
-                verdict = (
-                    f"refined on {Path(target).name}'s frames the source leaves its surfaces "
-                    f"({on_frames['surface_kept']:.2f} of the overlap kept)"
-                )
-            if verdict:
-                refused = f"{refused}; {verdict}"
-            else:
-                on_frames["overruled"], refused = refused, ""
+        T, refused = _judged_on_frames(
+            (source, target, seq, recording), alignment, (src_cloud, tgt_cloud), record,
+            (refused, overrulable), phases,
+        )  # fmt: skip
     if refused and refuse:
         raise AlignmentError(f"{where}: {refused}", replace(alignment, T_target_source=T,
                                                             refused=refused))  # fmt: skip
@@ -212,6 +261,7 @@ def align_logs(
     seq: str | Path | None = None,
     recording: Any = None,
     force: bool = False,
+    phases: Callable[[str, int, int | None], object] | None = None,
 ) -> dict[str, Any]:
     """Align `source`'s map to `target`'s and write the transform to `dst`.
 
@@ -226,6 +276,7 @@ def align_logs(
         recording: a recording's topics, pairing and ground truth when `seq` is one
             (`gscompress.datasets.RecordingOptions`; None: those the target's run recorded).
         force: overwrite `dst`.
+        phases: its progress (`align_logs_transform`).
 
     Returns:
         The transform (`T_target_source`, nested lists) with overlap, residual, inliers,
@@ -236,7 +287,8 @@ def align_logs(
     """
     inputs = [source, target] + ([init] if init is not None else [])
     check_output(dst, inputs, force, ".txt")
-    T, record = align_logs_transform(source, target, init, options, seq, recording=recording)
+    T, record = align_logs_transform(source, target, init, options, seq, recording=recording,
+                                     phases=phases)  # fmt: skip
     write_transform_file(dst, T, record)
     record["output"] = str(dst)
     return record

@@ -20,5 +20,5 @@ def trajectory(reader: LogReader) -> Trajectory:
     """The log's camera trajectory (refined where it has one), logged as such when refined."""
     found = reader.read_trajectory()
     if found.refined:
-        log.info("%s: the %s trajectory", Path(reader.path).name, found.source)
+        log.debug("%s: the %s trajectory", Path(reader.path).name, found.source)
     return found

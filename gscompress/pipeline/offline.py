@@ -5,6 +5,7 @@ numpy + mcap only: nothing here imports torch or the SLAM code, so these command
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Callable
 from functools import cached_property
@@ -530,6 +531,7 @@ def share_log(
     receiver: str | Path | None = None,
     device: str = "auto",
     spread: bool = False,
+    progress: Callable[[int], object] | None = None,
 ) -> dict[str, Any]:
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
 
@@ -576,6 +578,8 @@ def share_log(
             map's unless `align_to` gives the transform.
         spread: send the best of distinct places first (`selection.spread_ranks`): the
             strategy's order, spread over space.
+        progress: called with how many cuts a byte budget has tried so far (each a fold and
+            an encoding of the whole share), as its search goes (0: it starts).
 
     Raises:
         InputError: bad budget, codec or strategy (OptionError: --ply equal to the MCAP
@@ -601,7 +605,8 @@ def share_log(
                    source=source, align=align, carry=carry,
                    receiver=None if receiver is None else read_request(receiver),
                    device=device, spread=spread)  # fmt: skip
-    count = cut.budget.count(len(cut.full), cut.size)
+    searched = cut.budget.budget_bytes is not None
+    count = cut.budget.count(len(cut.full), _counted(cut.size, progress) if searched else cut.size)
     if refine is not None:
         count = cut.refined(count, refine)
     data, shared, results = cut.file(count)
@@ -618,6 +623,23 @@ def share_log(
             Path(dst).unlink(missing_ok=True)
             raise
     return {"output": str(dst), "ply": None if ply is None else str(ply), **results}
+
+
+def _counted(
+    size: Callable[[int], int], progress: Callable[[int], object] | None
+) -> Callable[[int], int]:
+    """`size`, reporting to `progress` how many times it has been called (a budget's search)."""
+    if progress is None:
+        return size
+    tried = itertools.count(1)
+    progress(0)
+
+    def counted(count: int) -> int:
+        bytes_ = size(count)
+        progress(next(tried))
+        return bytes_
+
+    return counted
 
 
 def export_ply(

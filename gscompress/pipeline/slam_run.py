@@ -7,6 +7,8 @@ run (`resume`); the frame loop and the log it writes are the same in all three c
 from __future__ import annotations
 
 import contextlib
+import functools
+import itertools
 import logging
 import signal
 import threading
@@ -64,6 +66,18 @@ MIN_SIDE = 16
 
 Progress = Callable[[int, int, dict[str, Any]], object]
 
+Phases = Callable[[str, int, "int | None"], object]
+"""A run's progress through its phases: called with (phase, steps done, steps in total)."""
+
+FRAMES = "slam"
+"""The phase of the frames (steps: frames), started before the first frame."""
+
+FINAL_REFINEMENT = "final refinement"
+"""The phase of the refinement after the last frame (steps: iterations)."""
+
+FINAL_SCORING = "final scoring"
+"""The phase of the finished map's PWAS scoring from every pose of the run (steps: views)."""
+
 
 @dataclass
 class _Run:
@@ -114,6 +128,7 @@ def slam_file(
     sequence: Any = None,
     codec: str = DEFAULT_CODEC,
     recording: Any = None,
+    phases: Phases | None = None,
 ) -> dict[str, Any]:
     """Run SLAM over a sequence and write the log.
 
@@ -160,6 +175,10 @@ def slam_file(
         recording: a recording's `RecordingOptions` (topics, pairing, ground truth; None:
             chosen). The topics read are recorded in the log's results (`recording`), where
             `--resume` and the commands that reopen the log's sequence take them from.
+        phases: called as the run goes through its phases, with (phase, steps done, steps
+            in total): `FRAMES` once before the first frame (the frames a resumed log already
+            holds as done), `FINAL_REFINEMENT` after each iteration of the refinement after the
+            last frame, `FINAL_SCORING` after each view of the finished map's scoring.
 
     Returns:
         Output path, frame and Gaussian counts, seconds per frame, ATE (cm) when the sequence
@@ -214,7 +233,7 @@ def slam_file(
         )
     run.meta.command = command
     run.codec = codec
-    return _loop(run, dst, progress)
+    return _loop(run, dst, progress, phases)
 
 
 def check_working_size(intrinsics: Any) -> None:
@@ -608,7 +627,9 @@ def _stop_between_frames(refining: Callable[[], bool]) -> Iterator[Callable[[], 
             signal.signal(number, handler)
 
 
-def _finished_scores(system: Any, gaussians: Any, backend: str) -> Any:
+def _finished_scores(
+    system: Any, gaussians: Any, backend: str, phases: Phases | None = None
+) -> Any:
     """The finished map with its PWAS sums scored again from every pose of the run
     (`PwasConfig.final_scores`): what each Gaussian of the map as it ends draws in the run's
     views, not what it drew while the map was still growing. A run that received a share keeps
@@ -619,7 +640,12 @@ def _finished_scores(system: Any, gaussians: Any, backend: str) -> Any:
     received = system.own_ids_from > 0
     if not system.config.pwas.final_scores or received or system.sigma_d is None:
         return gaussians
-    log.info("scoring the finished map from the run's %d views", len(system.poses))
+    log.debug("scoring the finished map from the run's %d views", len(system.poses))
+    views = len(system.poses)
+    step = None
+    if phases is not None:
+        phases(FINAL_SCORING, 0, views)
+        step = _counter(functools.partial(phases, FINAL_SCORING), views)
     return score_map(
         gaussians,
         system.refined_poses(),
@@ -627,10 +653,23 @@ def _finished_scores(system: Any, gaussians: Any, backend: str) -> Any:
         sigma_d=system.sigma_d,
         backend=backend,
         device=system.device,
+        progress=step,
     )
 
 
-def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, Any]:
+def _counter(report: Callable[[int, int], object], total: int) -> Callable[[Any], None]:
+    """A callback that reports one more of `total` steps each time it is called."""
+    done = itertools.count(1)
+
+    def step(_: Any) -> None:
+        report(next(done), total)
+
+    return step
+
+
+def _loop(
+    run: _Run, dst: str | Path, progress: Progress | None, phases: Phases | None = None
+) -> dict[str, Any]:
     """Process the frames from `run.start` on, writing the log as they are done."""
     from gscompress.importance import sigma_d_value
     from gscompress.metrics import ate_rmse_cm
@@ -656,6 +695,9 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
         try:
             with _stop_between_frames(lambda: system.in_final_refinement) as stopping:
                 system.stop_requested = stopping  # (for this run only: unset below)
+                if phases is not None:
+                    phases(FRAMES, run.start, total)
+                    system.on_final_step = functools.partial(phases, FINAL_REFINEMENT)
                 for i in range(run.start, total):
                     frame = sequence.frame(i)
                     whole = False
@@ -672,11 +714,11 @@ def _loop(run: _Run, dst: str | Path, progress: Progress | None) -> dict[str, An
             failure = exc
             whole = whole or isinstance(exc, TrackingLostError)  # (lost before it changed the map)
         finally:
-            system.stop_requested = None
+            system.stop_requested = system.on_final_step = None
         done = len(system.poses)
         gaussians = system.gaussian_map() if whole else None
         if gaussians is not None and failure is None and done == total:
-            gaussians = _finished_scores(system, gaussians, backend)  # (timed with the run)
+            gaussians = _finished_scores(system, gaussians, backend, phases)  # (timed too)
         seconds = time.perf_counter() - start
         if gaussians is not None:  # else the last snapshot stands (see _stop_between_frames)
             out.write_gaussians(gaussians, run.t_ns, run.codec)

@@ -34,6 +34,7 @@ two steps look at the run's own Gaussians only:
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections.abc import Callable
@@ -233,6 +234,9 @@ class SlamSystem:
         refinement)."""
         self.in_final_refinement = False
         """True while the final refinement runs (a stop then ends that refinement)."""
+        self.on_final_step: Callable[[int, int], object] | None = None
+        """Called after each iteration of the final refinement with (iterations done,
+        iterations): `gsc slam`'s progress through it (minutes at full size on a CPU)."""
         self.sigma_d: float | None = None
         """PWAS's distance scale in metres (inf: no proximity weighting), known from the first
         frame with valid depth on (`pwas.sigma_d` of the config, else derived from that
@@ -654,7 +658,7 @@ class SlamSystem:
             if self.config.poses.final:
                 self._repose_views()
             if iters:
-                log.info("final refinement: %d iterations over %d views", iters, len(views))
+                log.debug("final refinement: %d iterations over %d views", iters, len(views))
         added = 0
         refill = self.config.prune.refill if pruned else "off"
         if refill != "off":
@@ -665,9 +669,10 @@ class SlamSystem:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
         self.in_final_refinement = final
+        on_step = self._final_steps(iters) if final and iters else None
         try:
             stats = self.mapper.refine(
-                views, iters, rng, lr_final_fraction=fraction, stop=stop,
+                views, iters, rng, on_step=on_step, lr_final_fraction=fraction, stop=stop,
                 poses=final and self.config.poses.final,
             )  # fmt: skip
         finally:
@@ -676,6 +681,16 @@ class SlamSystem:
             log.warning("final refinement stopped after %d of %d iterations", stats.iters, iters)
         stats.added = added
         return stats
+
+    def _final_steps(self, iters: int) -> Callable[[float], object] | None:
+        """The mapper's `on_step` that counts the final refinement's iterations to
+        `on_final_step` (None without one)."""
+        report = self.on_final_step
+        if report is None:
+            return None
+        report(0, iters)
+        done = itertools.count(1)
+        return lambda _loss: report(next(done), iters)
 
     def _accumulate_pwas(self, current: View) -> float:
         """Add this frame's PWAS terms at the final mapped state; returns the frame's PSNR."""

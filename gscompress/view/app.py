@@ -72,6 +72,30 @@ def page_value_refusal(handle: Any, value: Any, whole: bool = False) -> str | No
     return None if fine else f"it takes {span}"
 
 
+def page_title(path: Path, compare: Path | None = None) -> str:
+    """The browser tab's title and the panel's label: the map's file name (and the one compared
+    with it), then the tool."""
+    names = path.name if compare is None else f"{path.name} vs {compare.name}"
+    if len(names) > 80:  # (a file name may be long)
+        names = names[:77] + "..."
+    return f"{names} - gsc view"
+
+
+def _set_page_title(server: Any, title: str) -> None:
+    """Name the page `title` instead of "Viser": viser has no call for it, so a line of script
+    is sent to every page that connects (the title as a JSON string: a file name cannot break
+    out of it). A viser without that message leaves viser's title."""
+    import json
+
+    try:
+        from viser import _messages
+
+        message = _messages.RunJavascriptMessage(source=f"document.title = {json.dumps(title)};")
+        server.scene._websock_interface.queue_message(message)
+    except (ImportError, AttributeError, TypeError):
+        log.debug("viser cannot set the page title; it stays viser's")
+
+
 @dataclass(frozen=True)
 class ViewOptions:
     """How the viewer is served.
@@ -125,7 +149,12 @@ class MapViewer:
         self._drawn: dict[str, Any] = {}
         self._share: cuts.SharePreview | None = None
         self._share_key: tuple[Any, ...] | None = None
-        self.server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
+        compare = None if options.compare is None else Path(options.compare)
+        self.title = page_title(Path(path), compare)
+        self.server = viser.ViserServer(
+            host=options.host, port=options.port, label=self.title, verbose=False
+        )
+        _set_page_title(self.server, self.title)
         # (no share button: a map stays on this machine unless a file is sent on purpose)
         self.server.gui.configure_theme(control_width="large", show_share_button=False)
         self.server.scene.set_up_direction("-y")  # (camera frames: +y down, +z forward)

@@ -151,7 +151,7 @@ def cross_scores(
         refined = {k: v for k, v in result["refined"].items() if k != "per_frame"}
         summary[name] = {"frames": frames[name], "start": start, "refined": refined,
                          **{key: result.get(key) for key in SUMMARY_KEYS}}  # fmt: skip
-        log.info("%s on %s frames: PSNR %.2f at refined poses (%.2f at the start)",
+        log.debug("%s on %s frames: PSNR %.2f at refined poses (%.2f at the start)",
                  log_path.name, name, refined["psnr"] or float("nan"),
                  result["psnr"] or float("nan"))  # fmt: skip
     write_text_atomic(path, json_text(full, indent=1))

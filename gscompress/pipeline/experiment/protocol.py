@@ -35,6 +35,34 @@ SPLITS = ("odd-even", "halves")
 MERGE_HOWS = ("exact", "default")
 """How the experiment's merges combine the maps (`ExperimentSettings.merge_how`)."""
 
+PROTOCOLS: dict[str, dict[str, Any]] = {
+    "commands": {"fold": True, "merge_how": "default"},
+    "paper": {"fold": False, "merge_how": "exact"},
+}
+"""What each share and merge of an experiment does, by name: "commands", as `gsc share` and
+`gsc merge` do by default (what a user of the commands gets); "paper", the paper's exact
+protocol (each share the top K of its strategy, nothing folded; every Gaussian of both maps
+merged and refined as one)."""
+
+FULL_STUDY: dict[str, Any] = {
+    "seeds": 3,
+    "strategies": ("random", "opacity", "alpha-t", "pwas", "pwas-inf"),
+    "sweep_seeds": 1,
+    "every": 1,
+    "refine_poses": 100,
+}
+"""The whole study (`gsc experiment --full`): three seeds, five strategies, the sweep with its
+references on the first seed, every frame evaluated and scored across agents with 100 tracking
+iterations a frame. The default (`ExperimentSettings`'s) is a first look: one seed, random
+against PWAS, no sweep, every 2nd frame, 20 tracking iterations a frame (the cross-agent scoring
+is most of an experiment's render passes)."""
+
+
+def protocol_of(fold: bool, merge_how: str) -> str:
+    """The name in `PROTOCOLS` of these share and merge settings, or "custom"."""
+    got = {"fold": fold, "merge_how": merge_how}
+    return next((name for name, chosen in PROTOCOLS.items() if chosen == got), "custom")
+
 
 AGENT_ROWS = {
     "odd-even": ("agent A (odd frames)", "agent B (even frames)"),
@@ -67,7 +95,8 @@ class ExperimentSettings:
         keep: PWAS keep ratio of the pruning stages (None: the config's).
         seeds: seeds of the two-agent protocol (SLAM seed and random selection seed).
         sweep: budgets of the rate-distortion sweep.
-        sweep_seeds: how many of the seeds the sweep runs on.
+        sweep_seeds: how many of the seeds the sweep runs on (0: no sweep; `FULL_STUDY` has
+            the whole study's seeds, strategies and sweep).
         strategies: share strategies compared: those of `gscompress.selection.STRATEGIES` and
             the PWAS ablations of `RESCORED` (by default "pwas-inf", PWAS without its proximity
             weight); a name ending in `FOR_B` (e.g. "pwas-for-b") is that strategy cut for B
@@ -88,12 +117,12 @@ class ExperimentSettings:
         merge_iters: refinement iterations of a merge.
         merge_views: what a merge refines on: B's "frames" (all) or "keyframes".
         merge_lr_final: a merge's learning rates decay to this fraction over its refinement.
-        merge_how: "exact" (every Gaussian of both maps, refined as one: the paper's merge and
-            the tables so far) or "default" (`gsc merge`'s: aligned, the surfaces both hold
-            resolved, the share's Gaussians moving as B's views see them; docs/merge.md).
+        merge_how: "default" (`gsc merge`'s: aligned, the surfaces both hold resolved, the
+            share's Gaussians moving as B's views see them; docs/merge.md) or "exact" (every
+            Gaussian of both maps, refined as one: the paper's merge).
         fold: each share folds what it leaves out into what it sends (`gsc share`'s default);
             off, the shares are the paper's top K, so that the strategies differ only in their
-            choice.
+            choice. `PROTOCOLS` names the two usual pairs of `fold` and `merge_how`.
         spread: every strategy's order spread over space (`gsc share --spread`).
         sums: the compact shares carry the PWAS sums (`gsc share`'s default); without them each
             Gaussian carries its score alone, so a byte budget holds more Gaussians and the
@@ -123,12 +152,12 @@ class ExperimentSettings:
     config_path: str | None = None
     budget: str = "0.2"
     keep: float | None = None
-    seeds: int = 3
+    seeds: int = 1
     sweep: tuple[str, ...] = ("0.05", "0.1", "0.2", "0.4")
-    sweep_seeds: int = 1
-    strategies: tuple[str, ...] = ("random", "opacity", "alpha-t", "pwas", "pwas-inf")
+    sweep_seeds: int = 0
+    strategies: tuple[str, ...] = ("random", "pwas")
     size: tuple[int, int] | None = None
-    every: int = 1
+    every: int = 2
     lpips: bool = True
     device: str = "auto"
     frames: str = "all"
@@ -138,13 +167,13 @@ class ExperimentSettings:
     merge_iters: int = 200
     merge_views: str = DEFAULT_REFINE_VIEWS
     merge_lr_final: float = DEFAULT_LR_FINAL
-    merge_how: str = "exact"
-    fold: bool = False
+    merge_how: str = "default"
+    fold: bool = True
     spread: bool = False
     sums: bool = True
     ids: bool = SHARE_IDS
     anchor: str = "gt"
-    refine_poses: int = 100
+    refine_poses: int = 20
     references: tuple[str, ...] = REFERENCE_FORMATS
     recording: Any = None
 

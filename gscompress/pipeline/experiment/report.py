@@ -25,6 +25,7 @@ from gscompress.pipeline.experiment.protocol import (
     TRUE_TRANSFORM_ROW,
     ExperimentSettings,
     RunHandle,
+    protocol_of,
     same_budget,
 )
 from gscompress.pipeline.offline import log_edges
@@ -357,8 +358,19 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     return buffer.getvalue()
 
 
+PROTOCOL_TEXT = {
+    "commands": "Protocol `commands`: each share and merge as `gsc share` and `gsc merge` make "
+    "them by default (`--protocol paper` runs the paper's exact protocol). ",
+    "paper": "Protocol `paper`: the paper's exact protocol (`--protocol paper`: top-K shares, "
+    "nothing folded; the exact merge), not what `gsc share` and `gsc merge` do by default. ",
+    "custom": "Protocol: custom (neither `gsc share` and `gsc merge`'s defaults nor the "
+    "paper's exact protocol). ",
+}
+"""How results.md names the experiment's protocol (`protocol_of`)."""
+
+
 def _receive_text(s: ExperimentSettings) -> str:
-    shares = (
+    shares = PROTOCOL_TEXT[protocol_of(s.fold, s.merge_how)] + (
         (
             "Each share folds what it leaves out into what it sends. "
             if s.fold

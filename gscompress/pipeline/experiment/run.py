@@ -59,6 +59,32 @@ EXPERIMENT_ENTRIES = frozenset({"runs", "plots", "results.md", "results.csv", "r
 """Everything an experiment puts in its folder (what a rerun may write over)."""
 
 
+def check_executor(
+    executor: str, jobs: int, address: str | None, cpus_per_run: float | None
+) -> None:
+    """Refuse an executor's options that do not go together (`run_experiment`'s)."""
+    if executor not in EXECUTORS:
+        raise OptionError(f"--executor is one of {', '.join(EXECUTORS)}, got {executor!r}")
+    if executor == "ray" and jobs != 1:
+        raise OptionError(
+            "--jobs is for the local executor: on Ray, the cluster's CPUs and --cpus-per-run "
+            "set how many runs go at once"
+        )
+    if executor == "local" and (address is not None or cpus_per_run is not None):
+        raise OptionError("--address and --cpus-per-run are for --executor ray")
+
+
+def check_output_folder(out: Path, seq: Path) -> None:
+    """Refuse an experiment folder that is a file, holds what an experiment does not write, or
+    lies inside the sequence (a rerun continues its own folder; nothing else is written over)."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output folder is a file: {out}")
+    if out.is_dir():
+        check_only_entries(out, EXPERIMENT_ENTRIES, "an experiment's", "give a new or empty folder")
+    if is_within(out, seq):
+        raise InputError(f"output folder {out} is inside the sequence folder {seq}")
+
+
 def run_experiment(
     seq: str | Path,
     out_dir: str | Path,
@@ -68,6 +94,7 @@ def run_experiment(
     executor: str = "local",
     address: str | None = None,
     cpus_per_run: float | None = None,
+    announce: Callable[[dict[str, Any]], object] | None = None,
 ) -> dict[str, Any]:
     """Run (or continue) the two-agent experiment on a sequence and write its report.
 
@@ -82,6 +109,9 @@ def run_experiment(
         executor: "local" (this machine, `jobs` at once) or "ray" (Ray tasks: `address`
             names the cluster, None starts Ray here; each task declares `cpus_per_run` CPUs
             (default 1) and as many torch threads, and a GPU where the runs render on CUDA).
+        announce: called once before the first step with what the experiment will do: its
+            `steps` and an estimate of its `seconds` on this machine (`estimate.estimate`, not
+            counting the steps a rerun reuses).
 
     Returns:
         Paths of the outputs, row count, steps run, reused and failed (name: error), and the
@@ -91,22 +121,9 @@ def run_experiment(
     from gscompress.pipeline.slam_run import check_working_size
 
     settings.check()
-    if executor not in EXECUTORS:
-        raise OptionError(f"--executor is one of {', '.join(EXECUTORS)}, got {executor!r}")
-    if executor == "ray" and jobs != 1:
-        raise OptionError(
-            "--jobs is for the local executor: on Ray, the cluster's CPUs and --cpus-per-run "
-            "set how many runs go at once"
-        )
-    if executor == "local" and (address is not None or cpus_per_run is not None):
-        raise OptionError("--address and --cpus-per-run are for --executor ray")
+    check_executor(executor, jobs, address, cpus_per_run)
     seq, out = Path(seq), Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"output folder is a file: {out}")
-    if out.is_dir():  # a rerun continues its own folder; nothing else is written over
-        check_only_entries(out, EXPERIMENT_ENTRIES, "an experiment's", "give a new or empty folder")
-    if is_within(out, seq):
-        raise InputError(f"output folder {out} is inside the sequence folder {seq}")
+    check_output_folder(out, seq)
     # a bad sequence or working size, or frames too few to give agent A (the odd positions)
     # one, fail before out_dir is made
     s, base = resolve_settings(settings)
@@ -119,6 +136,10 @@ def run_experiment(
             f"of {seq}; an experiment needs at least two frames"
         )
     check_working_size(sequence.intrinsics)
+    if announce is not None:
+        from gscompress.pipeline.experiment.estimate import estimate
+
+        announce(estimate(s, base, sequence, plan_size(s)))
     runner: Runner
     if executor == "ray":
         from gscompress.pipeline.experiment.execution_ray import RayRunner
