@@ -94,13 +94,17 @@ def _cube_root(T: np.ndarray) -> np.ndarray:
 
 
 def test_the_relocalisation_guesses():
-    poses = [np.eye(4), motion(1.0, [0.01, 0.0, 0.0])]
+    previous, velocity = motion(1.0, [0.01, 0.0, 0.0]), motion(2.0, [0.02, 0.0, 0.0])
     keyframes = [motion(5.0 * k, [0.1 * k, 0.0, 0.0]) for k in range(5)]
-    names = [name for name, _ in relocalisation_guesses(poses, [0.0, 0.1], 0.2, keyframes)]
+    first = ("the velocity guess", velocity)
+    names = [name for name, _ in relocalisation_guesses(first, previous, keyframes)]
     assert names == ["the velocity guess", "the previous pose", *(
         f"keyframe pose {k} back" for k in (1, 2, 3))]  # fmt: skip
-    guesses = dict(relocalisation_guesses(poses, [0.0, 0.1], 0.2, keyframes))
+    guesses = dict(relocalisation_guesses(first, previous, keyframes))
     np.testing.assert_allclose(guesses["keyframe pose 1 back"], keyframes[-1], atol=1e-12)
+    # a frame whose own guess is the previous pose does not try it twice
+    own = relocalisation_guesses(("the previous pose", previous), previous, keyframes)
+    assert [name for name, _ in own].count("the previous pose") == 1
 
 
 # ---------------------------------------------------------------------------- whole runs

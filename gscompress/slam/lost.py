@@ -29,7 +29,7 @@ import numpy as np
 from gscompress.errors import TrackingLostError
 from gscompress.slam.config import TrackingConfig
 from gscompress.slam.poses import orthonormalize
-from gscompress.slam.tracker import TrackResult, velocity_guess
+from gscompress.slam.tracker import TrackResult
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,9 @@ LEVEL_MIN_FRAMES = 3
 
 KEYFRAME_GUESSES = 3
 """Latest keyframes whose poses are tried when a track is lost."""
+
+VELOCITY, PREVIOUS = "the velocity guess", "the previous pose"
+"""The names of a frame's own guesses (`relocalisation_guesses`)."""
 
 
 class TrackLevel:
@@ -105,24 +108,14 @@ def gap_reason(dt: float, config: TrackingConfig) -> str | None:
 
 
 def relocalisation_guesses(
-    poses: list[np.ndarray],
-    stamps: list[float],
-    stamp: float,
-    keyframe_poses: list[np.ndarray],
+    first: tuple[str, np.ndarray], previous: np.ndarray, keyframe_poses: list[np.ndarray]
 ) -> list[tuple[str, np.ndarray]]:
-    """The named starting poses tried for a lost frame at `stamp`: the velocity guess, the
-    previous pose and the latest keyframes' poses.
-
-    Args:
-        poses: camera-to-world poses of the frames so far (at least one).
-        stamps: their stamps, seconds.
-        stamp: the lost frame's stamp.
-        keyframe_poses: camera-to-world poses of the keyframes so far, oldest first.
-    """
-    guesses = [("the previous pose", orthonormalize(poses[-1]))]
-    if len(poses) >= 2:
-        guess = velocity_guess(poses[-1], poses[-2], stamps[-1] - stamps[-2], stamp - stamps[-1])
-        guesses.insert(0, ("the velocity guess", guess))
+    """The named starting poses tried for a lost frame: the frame's own guess `first` (the
+    velocity guess, or the previous pose), the `previous` frame's pose and the latest
+    keyframes' poses (`keyframe_poses`, oldest first)."""
+    guesses = [first]
+    if first[0] != PREVIOUS:
+        guesses.append((PREVIOUS, orthonormalize(previous)))
     for k, T in enumerate(reversed(keyframe_poses[-KEYFRAME_GUESSES:])):
         guesses.append((f"keyframe pose {k + 1} back", orthonormalize(T)))
     return guesses
@@ -144,17 +137,19 @@ def relocalise(
     guesses: list[tuple[str, np.ndarray]],
     lost: Lost,
     config: TrackingConfig,
+    tracked: TrackResult | None = None,
 ) -> TrackResult:
     """The lost frame tracked again from each named guess (`track(T_world_cam)`): the result
     with the lowest depth error of those that cover enough of the frame, when it passes the
-    lost test, marked `relocalised` and reported in a warning.
+    lost test, marked `relocalised` and reported in a warning. `tracked`: the frame's track
+    from the first guess, when it was already run (it is not run again).
 
     Raises:
         TrackingLostError: no guess gives a track that passes.
     """
     best: tuple[str, TrackResult] | None = None
-    for name, guess in guesses:
-        result = track(guess)
+    for k, (name, guess) in enumerate(guesses):
+        result = tracked if k == 0 and tracked is not None else track(guess)
         covered = coverage_reason(result, lost.valid_pixels, config) is None
         if covered and (best is None or result.depth < best[1].depth):
             best = (name, result)

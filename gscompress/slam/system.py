@@ -61,6 +61,8 @@ from gscompress.slam.keyframes import (
     select_window,
 )
 from gscompress.slam.lost import (
+    PREVIOUS,
+    VELOCITY,
     Lost,
     TrackLevel,
     gap_reason,
@@ -546,11 +548,11 @@ class SlamSystem:
                     f"tracking.use_ground_truth is set but frame {frame.index} has no pose"
                 )
             return np.asarray(gt, dtype=np.float64), None
-        guess = self.poses[-1]
+        name, guess = PREVIOUS, self.poses[-1]
         if self.config.tracking.constant_velocity and position > 1:
             dt_prev = self.timestamps[-1] - self.timestamps[-2]
             dt = frame.timestamp - self.timestamps[-1]
-            guess = velocity_guess(self.poses[-1], self.poses[-2], dt_prev, dt)
+            name, guess = VELOCITY, velocity_guess(self.poses[-1], self.poses[-2], dt_prev, dt)
         elif self.config.tracking.constant_velocity:
             guess = constant_velocity(self.poses[-1], None)
         if self.prestage is not None:  # the map as it stood before the last stage
@@ -559,6 +561,7 @@ class SlamSystem:
         else:
             inputs = self.mapper.params.render_inputs()
         valid = int((depth > 0).sum())
+        result = None
         reason = gap_reason(frame.timestamp - self.timestamps[-1], self.config.tracking)
         if reason is None:
             result = self._track(inputs, color, depth, guess)
@@ -567,10 +570,12 @@ class SlamSystem:
             own = [v.T_world_cam for v in self.keyframes if v.index >= 0]
             result = relocalise(
                 lambda guess: self._track(inputs, color, depth, guess),
-                relocalisation_guesses(self.poses, self.timestamps, frame.timestamp, own),
+                relocalisation_guesses((name, guess), self.poses[-1], own),
                 Lost(frame.index, frame.timestamp, reason, valid, self.track_level.level()),
                 self.config.tracking,
+                result,
             )
+        assert result is not None
         self.track_level.add(result)
         return result.T_world_cam, result
 
