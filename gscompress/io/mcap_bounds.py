@@ -29,7 +29,7 @@ from mcap.records import Channel, Chunk, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
 from zstandard import ZstdError, frame_content_size
 
-from gscompress.errors import LogFormatError
+from gscompress.errors import GscError, LogFormatError
 from gscompress.io.decode_budget import DecodeBudget, inflate_lz4, inflate_zstd
 
 MAX_CHUNK_BYTES = 2 * 2**30
@@ -140,6 +140,19 @@ def read_chunk_header(stream: BoundedStream, offset: int) -> ChunkHeader:
     return header
 
 
+def check_chunk_claim(size: int, compressed: int, source: str, error: type[GscError]) -> None:
+    """Refuse a chunk (of an MCAP, or of a ROS 1 bag) of `compressed` bytes that claims `size`
+    bytes uncompressed: more than a chunk may hold (`MAX_CHUNK_BYTES`) or than its bytes may
+    decode to (the decode budget's `mcap-chunk` ratio), raising `error`."""
+    if size > MAX_CHUNK_BYTES:
+        raise error(
+            f"{source}: a chunk of {compressed} bytes claims {size} bytes uncompressed, more "
+            f"than the {MAX_CHUNK_BYTES >> 30} GiB a chunk may hold"
+        )
+    budget = DecodeBudget("mcap-chunk", compressed, source, error)
+    budget.check(size, f"a chunk of {compressed} bytes claims {size} bytes uncompressed")
+
+
 def check_chunk(header: ChunkHeader, head: bytes, source: str) -> None:
     """Refuse a chunk whose decompressed size is implausible, before it is decompressed.
 
@@ -159,13 +172,7 @@ def check_chunk(header: ChunkHeader, head: bytes, source: str) -> None:
         raise LogFormatError(
             f"{source}: an uncompressed chunk of {compressed} bytes claims {size} bytes"
         )
-    if size > MAX_CHUNK_BYTES:
-        raise LogFormatError(
-            f"{source}: a chunk of {compressed} bytes claims {size} bytes uncompressed, more "
-            f"than the {MAX_CHUNK_BYTES >> 30} GiB a chunk may hold"
-        )
-    budget = DecodeBudget("mcap-chunk", compressed, source, LogFormatError)
-    budget.check(size, f"a chunk of {compressed} bytes claims {size} bytes uncompressed")
+    check_chunk_claim(size, compressed, source, LogFormatError)
     declared = -1  # what the codec's frame header says it will allocate (-1: unsaid)
     if compression == "zstd":
         try:

@@ -50,18 +50,11 @@ def bound_ros1_chunks(reader: Any) -> None:
 def check_chunk_size(size: int, compressed: int, compression: str, source: str) -> None:
     """Refuse a ROS 1 chunk that declares more than the decode budget of an MCAP chunk allows
     (`gscompress.io.decode_budget`, format `mcap-chunk`), before it is inflated."""
-    from gscompress.io.decode_budget import DecodeBudget
-    from gscompress.io.mcap_bounds import MAX_CHUNK_BYTES
+    from gscompress.io.mcap_bounds import check_chunk_claim
 
     if compression == "none" and size != compressed:
         raise DatasetError(f"{source}: a chunk of {compressed} bytes claims {size} uncompressed")
-    if size > MAX_CHUNK_BYTES:
-        raise DatasetError(
-            f"{source}: a chunk of {compressed} bytes claims {size} bytes uncompressed, more "
-            f"than the {MAX_CHUNK_BYTES >> 30} GiB a chunk may hold"
-        )
-    budget = DecodeBudget("mcap-chunk", compressed, source, DatasetError)
-    budget.check(size, f"a chunk of {compressed} bytes claims {size} bytes uncompressed")
+    check_chunk_claim(size, compressed, source, DatasetError)
 
 
 def _ros1_inflater(compression: str, size: int, source: str) -> Callable[[bytes], bytes]:
