@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -29,6 +29,19 @@ def frame_tensors(frame: Any, device: Any) -> tuple[torch.Tensor, torch.Tensor]:
     color = torch.from_numpy(np.ascontiguousarray(frame.color, np.float32)).to(device)
     depth = torch.from_numpy(np.ascontiguousarray(frame.depth, np.float32)).to(device)
     return color, depth
+
+
+class ImageSource(NamedTuple):
+    """Where a released view's colour and depth are read again, and what it holds meanwhile.
+
+    Attributes:
+        read: the view's (colour, depth) tensors, read and decoded again.
+        empty: the empty (colour, depth) pair a released view holds: one pair for all of a
+            run's views, so that a release allocates nothing.
+    """
+
+    read: Callable[[], tuple[torch.Tensor, torch.Tensor]]
+    empty: tuple[torch.Tensor, torch.Tensor]
 
 
 @dataclass
@@ -52,9 +65,7 @@ class View:
     T_world_cam: np.ndarray
     _edges: dict[float, torch.Tensor] = field(default_factory=dict, repr=False, compare=False)
     pose: PoseVariable | None = field(default=None, repr=False, compare=False)
-    source: Callable[[], tuple[torch.Tensor, torch.Tensor]] | None = field(
-        default=None, repr=False, compare=False
-    )
+    source: ImageSource | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def from_frame(cls, index: int, frame: Any, T_world_cam: np.ndarray, device: Any) -> View:
@@ -69,16 +80,23 @@ class View:
         return self._edges[sigma]
 
     def release(self) -> None:
-        """Drop the colour, depth and edges of a view that has a `source` (kept otherwise)."""
+        """Drop the colour, depth and edges of a view that has a `source` (kept otherwise).
+
+        The view then holds its source's shared empty pair: a new pair per release would be
+        small allocations that outlive the images they replace, placed by the allocator in the
+        space those images just freed, so that the next view's images take fresh heap and the
+        process grows by about a view's images for every view a final refinement visits
+        (docs/recordings.md, "Streaming and memory").
+        """
         if self.source is not None:
-            self.color, self.depth = self.color.new_empty(0), self.depth.new_empty(0)
+            self.color, self.depth = self.source.empty
             self._edges.clear()
 
     def load(self) -> View:
         """This view with its colour and depth in memory (read again from `source` when
         released)."""
         if self.source is not None and self.color.numel() == 0:
-            self.color, self.depth = self.source()
+            self.color, self.depth = self.source.read()
         return self
 
     def refinable(self, lr: np.ndarray) -> View:
@@ -116,13 +134,15 @@ class HeldImages:
     def __init__(self, frames: Callable[[int], Any] | None, device: Any, capacity: int) -> None:
         self.frames, self.device, self.capacity = frames, device, capacity
         self.held: list[View] = []  # used last first
+        self.empty = (torch.empty(0, device=device), torch.empty(0, device=device))
+        """What every released view holds (`ImageSource.empty`)."""
 
     def sourced(self, view: View) -> View:
         """`view` with its `source` set when its frame can be read again."""
         frames, device = self.frames, self.device
         if frames is not None and view.index >= 0:
             position = view.index
-            view.source = lambda: frame_tensors(frames(position), device)
+            view.source = ImageSource(lambda: frame_tensors(frames(position), device), self.empty)
         return view
 
     def hold(self, used: list[View]) -> None:

@@ -1,0 +1,61 @@
+"""What a run keeps of its views does not grow with its frames: released views share one empty
+pair, so that only the keyframes the mapping used last hold tensors of their own (a release that
+allocated a new pair per view left the heap fragmented by every view the final refinement
+visited: docs/recordings.md, "Streaming and memory")."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from gscompress.datasets.synthetic import synthetic_sequence
+from gscompress.slam.config import preset
+from gscompress.slam.keyframes import HeldImages, View
+from gscompress.slam.system import SlamSystem
+
+
+def view_tensors(views: list[View]) -> set[int]:
+    """The distinct tensors (by id) that `views` hold: colour, depth and depth edges."""
+    return {id(t) for v in views for t in (v.color, v.depth, *v._edges.values())}
+
+
+def test_released_views_hold_one_shared_empty_pair() -> None:
+    seq = synthetic_sequence(6, (32, 24))
+    images = HeldImages(seq.frame, torch.device("cpu"), capacity=2)
+    views = [
+        images.sourced(View.from_frame(i, seq.frame(i), np.eye(4), images.device))
+        for i in range(len(seq))
+    ]
+    for _ in range(3):  # visits, as the final refinement makes them
+        for view in views:
+            view.load().edges(1.0)
+            view.release()
+    assert all(v.color.numel() == 0 and v.depth.numel() == 0 for v in views)
+    assert view_tensors(views) == view_tensors(views[:1])  # one pair, whatever the views
+    images.hold(views[-2:])
+    assert len(view_tensors(views)) == 2
+    assert torch.equal(views[3].load().color, torch.from_numpy(seq.frame(3).color))
+
+
+def run_census(frames: int) -> list[int]:
+    """Distinct tensors held by the views of a run with a final refinement on every frame,
+    after each frame (the last after the refinement)."""
+    seq = synthetic_sequence(frames, (32, 24))
+    config = preset("tiny").with_overrides(
+        **{"mapping.final_iters": 2 * frames, "mapping.final_views": "frames"}
+    )
+    system = SlamSystem(config, seq.intrinsics, total_frames=frames, frames=seq.frame)
+    counts = []
+    for i in range(frames):
+        system.process(seq.frame(i))
+        counts.append(len(view_tensors([*system.views, *system.keyframes])))
+    assert len(system.views) == frames
+    return counts
+
+
+def test_the_views_a_run_keeps_hold_no_more_tensors_with_more_frames() -> None:
+    window = preset("tiny").keyframes.window
+    short, long = run_census(6), run_census(16)
+    bound = 3 * (window + 1) + 2  # the held keyframes' images and edges, the empty pair
+    assert max(short) <= bound and max(long) <= bound, (short, long)
+    assert short[-1] == long[-1] == 2  # after the refinement, every view released
