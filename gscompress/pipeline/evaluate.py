@@ -1,15 +1,14 @@
 """`gsc eval`: a log's final map and trajectory scored against its sequence (needs torch).
 
-The log's estimated poses (`/camera/pose`) are matched to the sequence's frames by time: a
-frame matches the pose whose log time is nearest to the frame's timestamp in nanoseconds, when
-they differ by at most `POSE_MATCH_TOLERANCE_NS` (1 ms; `gsc slam` writes the frame timestamp
-itself, so its logs match exactly, and frames of a 30 Hz camera are 33 ms apart). Frames with no
-estimated pose are skipped and counted.
+The log's estimated poses (`/camera/pose`) are matched to the sequence's frames by time
+(`gscompress.pipeline.logs.frames_with_poses`, within `POSE_MATCH_TOLERANCE_NS`, 1 ms; `gsc
+slam` writes the frame timestamp itself, so its logs match exactly, and frames of a 30 Hz camera
+are 33 ms apart). Frames with no estimated pose are skipped and counted.
 
 Other poses may stand in for the log's own: another log's estimated poses (`poses_from`, matched
 the same way) or a TUM trajectory (`poses`, matched within `TUM_MATCH_TOLERANCE_NS`, 20 ms, the
-TUM association's default, as its times come from another clock). `pose_source` reads either, and
-`frames_with_poses` is the one lookup of a pose per frame (`gsc score` and `gsc merge` use it too).
+TUM association's default, as its times come from another clock); `logs.pose_source` reads
+either.
 With `refine_poses` N > 0 each rendered frame's pose is then also refined against the fixed map
 (`gscompress.ops.evaluate.refine_poses`: N iterations of the SLAM tracker, the log's tracking
 settings, else those of the default preset) and the images are scored again at the refined poses:
@@ -36,22 +35,28 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from gscompress.camera import invert_transform
-from gscompress.errors import InputError, LogFormatError, OptionError
+from gscompress.errors import InputError, OptionError
 from gscompress.io.mcap_log import (
     POSES_GROUND_TRUTH,
-    TOPIC_POSE,
     TOPIC_POSE_GT,
     LogMetadata,
     LogReader,
     seconds_to_ns,
 )
-from gscompress.io.trajectory import nearest_times, read_tum_trajectory
-from gscompress.pipeline import logs
+from gscompress.io.trajectory import nearest_times
+from gscompress.pipeline.logs import (
+    POSE_MATCH_TOLERANCE_NS,
+    carried_times,
+    frames_with_poses,
+    open_log_sequence,
+    pose_source,
+    working_size,
+)
 
 log = logging.getLogger(__name__)
 
@@ -60,165 +65,6 @@ GROUND_TRUTH_POSES = (
     "poses), not estimated: their error against it measures nothing"
 )
 """The reason ATE is unavailable for a log posed at the ground truth."""
-
-POSE_MATCH_TOLERANCE_NS = 1_000_000
-"""Largest |log time - frame timestamp| (ns) at which a logged pose belongs to a frame."""
-
-TUM_MATCH_TOLERANCE_NS = 20_000_000
-"""Largest |trajectory time - frame timestamp| (ns) at which a TUM trajectory's pose belongs to a
-frame (0.02 s, the default of TUM's association tool)."""
-
-
-class Poses(NamedTuple):
-    """The poses a file gives (`pose_source`).
-
-    Attributes:
-        times_ns: [N] int64 times.
-        T_world_cam: [N, 4, 4] camera-to-world poses.
-        tolerance_ns: how far a time may be from a frame's timestamp and still be its pose.
-        trajectory: "refined" / "tracked" / "refined, then tracked" for a log's, "file" for a
-            TUM trajectory's.
-    """
-
-    times_ns: np.ndarray
-    T_world_cam: np.ndarray
-    tolerance_ns: int
-    trajectory: str
-
-
-def pose_source(path: str | Path) -> Poses:
-    """The poses a file gives: a log's trajectory (refined where it has one: `logs.trajectory`),
-    or a TUM trajectory's.
-
-    Raises:
-        LogFormatError: a log without `/camera/pose`, or unreadable.
-        InputError: an unreadable or empty trajectory.
-    """
-    if Path(path).suffix.lower() == ".mcap":
-        with LogReader(path) as reader:
-            found = logs.trajectory(reader)
-        if len(found.times_ns) == 0:
-            raise LogFormatError(
-                f"{path} has no {TOPIC_POSE} messages (not a SLAM log): no poses to render at; "
-                "give them with --poses TRAJ.txt or --poses-from OTHER.mcap"
-            )
-        return Poses(found.times_ns, found.T_world_cam, POSE_MATCH_TOLERANCE_NS, found.source)
-    trajectory = read_tum_trajectory(path)
-    if len(trajectory) == 0:
-        raise InputError(f"{path} holds no poses")
-    times_ns = np.array([seconds_to_ns(t) for t in trajectory.timestamps], dtype=np.int64)
-    return Poses(times_ns, trajectory.T_world_cam, TUM_MATCH_TOLERANCE_NS, "file")
-
-
-def working_size(meta: LogMetadata) -> tuple[int, int] | None:
-    """The working size (W, H) a log's run recorded in its config, or None (a share, whose
-    config stays with the sender, or a run at the sequence's own size)."""
-    recorded = meta.config.get("size")
-    return (int(recorded[0]), int(recorded[1])) if recorded else None
-
-
-def open_log_sequence(
-    seq: str | Path,
-    log_path: str | Path,
-    meta: LogMetadata,
-    frames: str | None = None,
-    size: tuple[int, int] | None = None,
-    recording: Any = None,
-) -> Any:
-    """The sequence a log was made from, opened as its run had it: the log's frame subset,
-    working size and (a recording) topics unless given. Warns when the sequence is not the one
-    the log names (its poses would then be compared with frames they do not belong to), and
-    when the working size enlarges its frames.
-
-    Raises:
-        InputError: opened as the log's run had it, the sequence's first frame is not the one
-            the log recorded (another scene under the same name).
-    """
-    from gscompress.datasets import RecordingOptions, open_sequence
-    from gscompress.datasets.base import enlargement_note
-    from gscompress.datasets.recording import is_recording
-
-    recorded_size = working_size(meta)
-    size = size or recorded_size
-    subset = frames or meta.frames or "all"
-    if (recording is None or recording.is_default) and is_recording(Path(seq)):
-        recorded = RecordingOptions.from_record(meta.results.get("recording"))
-        if recorded is not None and recorded.gt is not None and not recorded.gt.is_file():
-            log.warning("%s: the run's ground truth %s is gone; using the log's", log_path,
-                        recorded.gt)  # fmt: skip
-            recorded = replace(recorded, gt=None)
-        recording = recorded or recording
-    sequence = open_sequence(seq, size=size, frames=subset, recording=recording)
-    if meta.sequence and meta.sequence != sequence.name:
-        log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
-                    sequence.name)  # fmt: skip
-    as_recorded = subset == (meta.frames or "all") and list(size or []) == list(recorded_size or [])
-    if as_recorded and len(sequence):  # (the first frame then is the one the run saw)
-        check_first_frame(log_path, meta.results.get("first_frame"), sequence)
-    if note := enlargement_note(sequence):
-        log.warning("%s", note)
-    return sequence
-
-
-def check_first_frame(log_path: str | Path, recorded: Any, sequence: Any) -> list[float]:
-    """The fingerprint of the sequence's first frame (`Frame.fingerprint`), checked against the
-    one a log recorded of its own first frame (`results.first_frame`; older logs have none).
-
-    Raises:
-        InputError: they differ: the sequence is another scene (under the log's sequence name
-            or another).
-    """
-    from gscompress.datasets.base import recorded_fingerprint, same_fingerprint
-
-    found: list[float] = sequence.frame(0).fingerprint()
-    recorded = recorded_fingerprint(recorded)
-    if recorded is not None and not same_fingerprint(recorded, found):
-        raise InputError(
-            f"{log_path} was not recorded on this {sequence.name}: its first frame differs "
-            f"(mean depth and colour {recorded} against {found})"
-        )
-    return found
-
-
-def frames_with_poses(
-    sequence: Any,
-    pose_ns: np.ndarray,
-    log_path: str | Path,
-    tolerance_ns: int = POSE_MATCH_TOLERANCE_NS,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The positions of the sequence's frames that have a pose (times `pose_ns`, from the file
-    `log_path`) within `tolerance_ns` of their timestamp, and the index of each one's pose.
-
-    Raises:
-        InputError: no frame has one.
-    """
-    frame_ns = np.array([seconds_to_ns(t) for t in sequence.timestamps], dtype=np.int64)
-    index = nearest_times(frame_ns, pose_ns, tolerance_ns)
-    positions = np.flatnonzero(index >= 0)
-    if len(positions) == 0:
-        raise InputError(
-            f"no frame of {sequence.name} has a pose in {log_path} within "
-            f"{tolerance_ns / 1e6:g} ms: is this the sequence (and frame subset) the poses "
-            "were made from?"
-        )
-    return positions, index[positions]
-
-
-def carried_times(meta: LogMetadata, reader: LogReader | None = None) -> np.ndarray:
-    """[K] int64 timestamps (ns) of the frames a share carried into this map and a merge
-    refined it on (`carried_ns` of its provenance's merge steps), and, given the file's
-    `reader`, of the keyframes it carries itself (a share's), sorted."""
-    times: set[int] = set()
-    if reader is not None:
-        from gscompress.io.keyframes import TOPIC_KEYFRAME_POSE
-
-        times.update(reader.read_poses(TOPIC_KEYFRAME_POSE)[0].tolist())
-    for step in meta.provenance:
-        operation = step.get("operation") if isinstance(step, dict) else None
-        values = operation.get("carried_ns") if isinstance(operation, dict) else None
-        if isinstance(values, list):
-            times.update(int(t) for t in values if isinstance(t, int) and not isinstance(t, bool))
-    return np.array(sorted(times), dtype=np.int64)
 
 
 def trajectory_errors(T_world_cam_gt: np.ndarray, T_world_cam_est: np.ndarray) -> dict[str, Any]:

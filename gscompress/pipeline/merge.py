@@ -6,112 +6,33 @@ refined on the receiver's own frames (all of them, or its keyframes only) at the
 estimated poses, the share's Gaussians held still or slowed (`MergeOptions.share_rate`). Both
 inputs are in the output's provenance: the receiver as the parent, the share (name, sha256, id
 offset) and the merge's options in the merge operation. The refinement is
-`gscompress.pipeline.refine`'s, which prune and share use too. Maps are merged only when their
+`gscompress.pipeline.refining`'s, which prune and share use too. Maps are merged only when their
 world frames agree (`LogMetadata.world_frame`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from gscompress.camera import Intrinsics
-from gscompress.errors import InputError, OptionError
+from gscompress.errors import OptionError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.files import check_output, sha256
+from gscompress.io.files import check_output
 from gscompress.io.keyframes import CarriedFrame
 from gscompress.io.mcap_log import LogReader
-from gscompress.ops.merge import WITH_SENDER_VIEWS, MergeOptions, check_same_world
-from gscompress.pipeline.offline import rewrite_map
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL, RefineOptions
+from gscompress.ops.merge import WITH_SENDER_VIEWS, MergeOptions
+from gscompress.pipeline.logs import check_same_camera, read_share, rewrite_map
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL, RefineOptions
 
 DEFAULT_REFINE_VIEWS = "frames"
 """What a merge refines on unless told (`REFINE_VIEWS`): every frame of the receiver's subset.
 Keyframes alone are few (5 of tabletop's 25 even frames), and 200 iterations on them lowered
 the receiver's PSNR on its other frames; every frame raises it."""
-
-
-@dataclass(frozen=True)
-class ReceivedShare:
-    """A share as a receiver takes it (`read_share`).
-
-    Attributes:
-        gaussians: its map in the receiver's world frame.
-        record: what a provenance step keeps of it (name, sha256, transform; `carried_ns`,
-            the timestamps of the keyframes it carries, when it carries some and they were
-            asked for).
-        carried: the sender's keyframes it carries, at their poses in the receiver's world
-            frame (when asked for).
-        camera: the camera of those keyframes (None without any).
-    """
-
-    gaussians: GaussianMap
-    record: dict[str, Any]
-    carried: list[CarriedFrame]
-    camera: Intrinsics | None
-
-
-def read_share(
-    share: str | Path,
-    receiver_world: str,
-    what: str,
-    transform: str | Path | None = None,
-    keyframes: bool = False,
-) -> ReceivedShare:
-    """A share's map in the receiver's world frame, what to record of it and, with `keyframes`,
-    the keyframes it carries (`gscompress.io.keyframes`) moved alike.
-
-    Without `transform` the share's recorded world frame must be the receiver's; with it, the
-    share is moved by the transform in the file (share frame -> receiver frame) instead.
-
-    Raises:
-        MapError: world frames unknown or different (without a transform).
-        LogFormatError: keyframes that cannot be read (`read_carried`).
-    """
-    from gscompress.io.keyframes import read_carried
-    from gscompress.io.trajectory import read_transform
-    from gscompress.ops.merge import transform_map
-
-    carried: list[CarriedFrame] = []
-    camera: Intrinsics | None = None
-    with LogReader(share) as share_log:
-        shared = share_log.read_map()
-        world = share_log.metadata.world_frame
-        if keyframes:
-            carried, camera = read_carried(share_log)
-    record: dict[str, Any] = {"share": Path(share).name, "share_sha256": sha256(share)}
-    if transform is None:
-        check_same_world(receiver_world, world, what)
-    else:
-        T = read_transform(transform)
-        shared = transform_map(shared, T)
-        carried = [f.moved(T) for f in carried]
-        record.update(share_world_frame=world, transform=np.round(T, 12).tolist())
-    if carried:
-        record["carried_ns"] = [f.time_ns for f in carried]
-    return ReceivedShare(shared, record, carried, camera)
-
-
-def check_same_camera(
-    carried: Intrinsics | None, receiver: Intrinsics, share: Path | str, what: str, remedy: str
-) -> None:
-    """Refuse keyframes taken with another camera (or size) than the receiver refines at: one
-    refinement renders every view with one camera. `what` names the receiving step ("the
-    merge refines"), `remedy` what the user can do instead."""
-    if carried is None or not np.allclose(
-        [carried.fx, carried.fy, carried.cx, carried.cy, carried.width, carried.height],
-        [receiver.fx, receiver.fy, receiver.cx, receiver.cy, receiver.width, receiver.height],
-        rtol=1e-3,
-    ):  # fmt: skip
-        got = "no camera" if carried is None else f"{carried.width}x{carried.height}"
-        raise InputError(
-            f"{share} carries keyframes of another camera ({got}) than the receiver's "
-            f"{receiver.width}x{receiver.height} at which {what}: {remedy}"
-        )
 
 
 def merge_logs(
@@ -209,7 +130,7 @@ def merge_logs(
     how.check()
     refiner = None
     if iters > 0:
-        from gscompress.pipeline.refine import LogRefiner
+        from gscompress.pipeline.refining import LogRefiner
 
         assert seq is not None
         instead = "merge with --iters 0 to concatenate only"

@@ -28,7 +28,7 @@ from gscompress.pipeline.experiment.protocol import (
     protocol_of,
     same_budget,
 )
-from gscompress.pipeline.offline import log_edges
+from gscompress.pipeline.info import log_edges
 from gscompress.selection import strategy_scores
 
 TIE_DB = 0.005
@@ -555,9 +555,9 @@ def _reference_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[
     curves = rate_distortion_curves(rows, s)
     lines = [
         "", "A's whole map, sent whole (mean over the sweep seeds): as our compact share, and as "
-        "the field's formats send it (`gscompress.pipeline.offline.format_share`: fp32 in our "
-        "fp32 codec; SPZ and SOG, which keep no ids or PWAS sums, written and read back), each "
-        "received by B like a share. The last column reads the PWAS curve at the same bytes, "
+        "the field's formats send it (`gscompress.pipeline.share.formats.format_share`: fp32 "
+        "in our fp32 codec; SPZ and SOG, which keep no ids or PWAS sums, written and read back), "
+        "each received by B like a share. The last column reads the PWAS curve at the same bytes, "
         "linear in log(bytes) between the two sweep budgets around it (n/a outside the sweep).",
         "", "| A's whole map as | Gaussians | Bytes | Bytes per Gaussian | PSNR | PWAS share at "
         "these bytes |", "|---|---|---|---|---|---|",

@@ -118,7 +118,7 @@ def run_experiment(
         PWAS-vs-random verdicts.
     """
     from gscompress.datasets import open_sequence
-    from gscompress.pipeline.slam_run import check_working_size
+    from gscompress.pipeline.slam_run.start import check_working_size
 
     settings.check()
     check_executor(executor, jobs, address, cpus_per_run)

@@ -21,8 +21,13 @@ from gscompress.io.mcap_log import (
     seconds_to_ns,
 )
 from gscompress.io.ply import read_ply
-from gscompress.pipeline.logs import trajectory
-from gscompress.pipeline.offline import rewrite_map
+from gscompress.pipeline.logs import (
+    frames_with_poses,
+    open_log_sequence,
+    pose_source,
+    rewrite_map,
+    trajectory,
+)
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +70,6 @@ def score_file(
     from gscompress.datasets import open_sequence
     from gscompress.importance import resolve_sigma_d, sigma_d_value
     from gscompress.ops.score import score_map
-    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
     from gscompress.render import resolve_device
 
     check_output(dst, [p for p in (src, seq, poses) if p is not None], force, ".mcap")
@@ -141,13 +145,12 @@ def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.
     """(timestamps [M], camera-to-world [M, 4, 4]) of a sequence's selected frames.
 
     From the sequence's ground truth, or from `poses` (a TUM trajectory, or a log's estimated
-    poses) matched to every frame by time (`gscompress.pipeline.evaluate.frames_with_poses`).
+    poses) matched to every frame by time (`gscompress.pipeline.logs.frames_with_poses`).
 
     Raises:
         DatasetError: no ground truth (without `poses`), or a frame without a pose in `poses`.
     """
     from gscompress.errors import DatasetError
-    from gscompress.pipeline.evaluate import frames_with_poses, pose_source
 
     if poses is None:
         if not sequence.has_ground_truth:
