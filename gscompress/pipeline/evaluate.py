@@ -32,10 +32,10 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -169,11 +169,28 @@ def evaluate_log(
         InputError: `every` < 1, `refine_poses` < 0, or no frame of the sequence has a pose.
         OptionError: both `poses` and `poses_from`.
     """
-    from gscompress.ops.evaluate import EvalView, evaluate_map, pose_change
-    from gscompress.ops.evaluate import refine_poses as refine
-    from gscompress.pipeline.images import ImageSaver
-    from gscompress.render import resolve_device
+    _check_options(every, refine_poses, poses, poses_from)
+    start = time.perf_counter()
+    log_path = Path(log_path)
+    target = _read_target(log_path)
+    meta = target.meta
+    source = poses if poses is not None else poses_from if poses_from is not None else log_path
+    frames = frames or meta.frames or "all"
+    matched = _match_frames(seq, log_path, meta, source, frames, size, poses_from, recording)
+    own = poses is None and poses_from is None
+    ate = _trajectory_scores(matched, target, own)
+    chosen, left_out = _chosen_frames(matched, every, meta, leave_out, log_path)
+    how = _ImageOptions(backend, device, lpips, save_images, colorings, side_by_side, progress)
+    scored = _image_scores(target, matched, chosen, refine_poses, how, log_path.name)
+    pose_text = meta.pose_origin() if own else str(source)
+    return _results(log_path, target, matched, (frames, every, pose_text, own), ate, left_out,
+                    scored, time.perf_counter() - start)  # fmt: skip
 
+
+def _check_options(
+    every: int, refine_poses: int, poses: str | Path | None, poses_from: str | Path | None
+) -> None:
+    """Refuse `evaluate_log`'s options out of range or at odds with each other."""
     if every < 1:
         raise InputError(f"`every` must be a positive integer, got {every}", options=("every",))
     if refine_poses < 0:
@@ -186,57 +203,165 @@ def evaluate_log(
             "`poses` and `poses_from` do not go together: give one source of poses",
             options=("poses", "poses_from"),
         )
-    start = time.perf_counter()
-    log_path = Path(log_path)
+
+
+class _Target(NamedTuple):
+    """What `evaluate_log` reads of the log it scores: its final map, the map message's bytes,
+    its `/camera/pose_gt` (times and poses) and its metadata."""
+
+    gaussians: Any
+    map_bytes: int
+    gt_ns: np.ndarray
+    gt_poses: np.ndarray
+    meta: LogMetadata
+
+
+def _read_target(log_path: Path) -> _Target:
+    """The log's final map with its message's bytes, ground-truth poses and metadata."""
     with LogReader(log_path) as reader:
         snapshot = reader.read_snapshot()
         gaussians, map_bytes = snapshot.gaussians, snapshot.message_bytes
         gt_log_ns, gt_log_poses = reader.read_poses(TOPIC_POSE_GT)
         meta = reader.metadata
-    source = poses if poses is not None else poses_from if poses_from is not None else log_path
+    return _Target(gaussians, map_bytes, gt_log_ns, gt_log_poses, meta)
+
+
+class _Matched(NamedTuple):
+    """The frames of a sequence that have a pose where the poses come from.
+
+    Attributes:
+        sequence: the sequence, opened as the log's run had it.
+        positions: [F] positions in it of the frames with a pose.
+        T_est: [F, 4, 4] their poses.
+        frame_ns: [F] int64 their timestamps.
+        trajectory: which of the file's trajectories the poses are (`Poses.trajectory`).
+    """
+
+    sequence: Any
+    positions: np.ndarray
+    T_est: np.ndarray
+    frame_ns: np.ndarray
+    trajectory: str
+
+
+def _match_frames(
+    seq: str | Path,
+    log_path: Path,
+    meta: LogMetadata,
+    source: str | Path,
+    frames: str,
+    size: tuple[int, int] | None,
+    poses_from: str | Path | None,
+    recording: Any,
+) -> _Matched:
+    """The log's sequence (`open_log_sequence`: a share scored at its sender's poses, with
+    `poses_from`, at the sender's working size unless `size` is given) and its frames that have
+    a pose in `source`."""
     est_ns, est_poses, tolerance_ns, used = pose_source(source)
-    frames = frames or meta.frames or "all"
     if size is None and working_size(meta) is None and poses_from is not None:
         with LogReader(poses_from) as other:  # (a share scored at its sender's poses)
             size = working_size(other.metadata)
     sequence = open_log_sequence(seq, log_path, meta, frames, size, recording)
     positions, pose_index = frames_with_poses(sequence, est_ns, source, tolerance_ns)
-    T_est = est_poses[pose_index]
+    frame_ns = np.array([seconds_to_ns(sequence.timestamps[p]) for p in positions], dtype=np.int64)
+    return _Matched(sequence, positions, est_poses[pose_index], frame_ns, used)
 
-    # ground truth per matched frame: the sequence's, else the log's /camera/pose_gt
-    gt_stamps, gt_poses = sequence.ground_truth()
+
+def _trajectory_scores(matched: _Matched, target: _Target, own: bool) -> dict[str, Any]:
+    """ATE of the matched poses (`trajectory_errors`) over the frames that have a ground-truth
+    pose: the sequence's, else the log's `/camera/pose_gt` (`ground_truth` says which); none,
+    with the reason, for the log's `own` poses when they are the ground truth."""
+    gt_stamps, gt_poses = matched.sequence.ground_truth()
     gt_source = "sequence"
     if len(gt_stamps) == 0:
-        gt_stamps_ns, gt_poses, gt_source = gt_log_ns, gt_log_poses, "log"
+        gt_stamps_ns, gt_poses, gt_source = target.gt_ns, target.gt_poses, "log"
     else:
         gt_stamps_ns = np.array([seconds_to_ns(t) for t in gt_stamps], dtype=np.int64)
         gt_poses = np.asarray(gt_poses)
-    frame_ns = np.array([seconds_to_ns(sequence.timestamps[p]) for p in positions], dtype=np.int64)
-    gt_index = nearest_times(frame_ns, gt_stamps_ns, POSE_MATCH_TOLERANCE_NS)
+    gt_index = nearest_times(matched.frame_ns, gt_stamps_ns, POSE_MATCH_TOLERANCE_NS)
     paired = gt_index >= 0
-    ate = trajectory_errors(gt_poses[gt_index[paired]], T_est[paired])
+    ate = trajectory_errors(gt_poses[gt_index[paired]], matched.T_est[paired])
     if ate["ate_frames"] == 0 and len(gt_stamps_ns) == 0:
         ate["ate_reason"] = "no ground truth: neither the sequence nor the log has poses"
     ate["ground_truth"] = gt_source if ate["ate_frames"] else None
-    own = poses is None and poses_from is None
-    if own and meta.pose_origin() == POSES_GROUND_TRUTH:
+    if own and target.meta.pose_origin() == POSES_GROUND_TRUTH:
         ate.update(ate_rmse_cm=None, ate_splatam_cm=None, ate_reason=GROUND_TRUTH_POSES)
+    return ate
 
-    chosen = list(range(0, len(positions), every))
+
+def _chosen_frames(
+    matched: _Matched,
+    every: int,
+    meta: LogMetadata,
+    leave_out: Sequence[str | Path],
+    log_path: Path,
+) -> tuple[list[int], int]:
+    """Every `every`-th matched frame (its index among them) but those a share carried into the
+    map or into one of `leave_out` (`carried_times`), and how many of those were left out.
+
+    Raises:
+        InputError: every frame chosen was carried.
+    """
+    chosen = list(range(0, len(matched.positions), every))
     carried, left_out = carried_times(meta), 0
     for path in leave_out:
         with LogReader(path) as other:
             carried = np.union1d(carried, carried_times(other.metadata, other))
     if len(carried):  # frames a merge refined on: scoring them would flatter the map
-        near = nearest_times(frame_ns, carried, POSE_MATCH_TOLERANCE_NS) >= 0
+        near = nearest_times(matched.frame_ns, carried, POSE_MATCH_TOLERANCE_NS) >= 0
         left_out = int(near[chosen].sum())
         chosen = [k for k in chosen if not near[k]]
         if not chosen:
             raise InputError(
-                f"every frame chosen in {sequence.name} was carried into "
+                f"every frame chosen in {matched.sequence.name} was carried into "
                 f"{log_path.name} by a share and refined on: none is left to score"
             )
-    torch_device = resolve_device(device, backend)
+    return chosen, left_out
+
+
+@dataclass(frozen=True)
+class _ImageOptions:
+    """How `evaluate_log` renders, scores and pictures the views (its options of these names)."""
+
+    backend: str
+    device: str
+    lpips: bool
+    save_images: str | Path | None
+    colorings: tuple[str, ...]
+    side_by_side: bool
+    progress: Callable[[int, int], object] | None
+
+
+class _Images(NamedTuple):
+    """The image scores of `_image_scores`: the metrics with the counts of views
+    (`evaluate_map`), `per_frame`, `refined` (None without `refine_poses`) and the pictures
+    written (None without `save_images`)."""
+
+    metrics: dict[str, Any]
+    per_frame: list[dict[str, Any]]
+    refined: dict[str, Any] | None
+    written: list[str] | None
+
+
+def _image_scores(
+    target: _Target,
+    matched: _Matched,
+    chosen: list[int],
+    refine_poses: int,
+    how: _ImageOptions,
+    log_name: str,
+) -> _Images:
+    """The map rendered at the chosen frames' poses and scored (`evaluate_map`), and, with
+    `refine_poses`, scored again at those poses refined against it (`refine_poses`
+    iterations of the log's tracking, `log_tracking_config`)."""
+    from gscompress.ops.evaluate import EvalView, evaluate_map, pose_change
+    from gscompress.ops.evaluate import refine_poses as refine
+    from gscompress.pipeline.images import ImageSaver
+    from gscompress.render import resolve_device
+
+    gaussians, sequence, positions = target.gaussians, matched.sequence, matched.positions
+    backend, progress = how.backend, how.progress
+    torch_device = resolve_device(how.device, backend)
 
     def views(T_world_cams: Any) -> Iterator[EvalView]:
         for k, T in zip(chosen, T_world_cams, strict=True):
@@ -255,24 +380,24 @@ def evaluate_log(
     savers: dict[str, ImageSaver] = {}
 
     def saver(folder: str) -> ImageSaver | None:
-        if save_images is None:
+        if how.save_images is None:
             return None
         savers[folder] = ImageSaver(
-            Path(save_images) / folder, gaussians, sequence.intrinsics, colorings,
-            side_by_side, backend, torch_device, title=f"{log_path.name} on {sequence.name}",
+            Path(how.save_images) / folder, gaussians, sequence.intrinsics, how.colorings,
+            how.side_by_side, backend, torch_device, title=f"{log_name} on {sequence.name}",
         )  # fmt: skip
         return savers[folder]
 
-    T_given = [T_est[k] for k in chosen]
+    T_given = [matched.T_est[k] for k in chosen]
     score = partial(
         evaluate_map, gaussians, intrinsics=sequence.intrinsics, backend=backend,
-        device=torch_device, lpips=lpips, progress=step,
+        device=torch_device, lpips=how.lpips, progress=step,
     )  # fmt: skip
     images = score(views(T_given), on_render=saver(""))
     per_frame = images.pop("per_view")
     refined: dict[str, Any] | None = None
     if refine_poses:
-        tracking = replace(log_tracking_config(meta), iters=refine_poses)
+        tracking = replace(log_tracking_config(target.meta), iters=refine_poses)
         T_refined = refine(
             gaussians, views(T_given), sequence.intrinsics, tracking, backend=backend,
             device=torch_device, progress=step,
@@ -292,6 +417,24 @@ def evaluate_log(
             **{k: v for k, v in refined.items() if k not in ("views", "views_without_depth")},
             "per_frame": refined_frames,
         }
+    written = [str(p) for s in savers.values() for p in s.written] if savers else None
+    return _Images(images, per_frame, refined, written)
+
+
+def _results(
+    log_path: Path,
+    target: _Target,
+    matched: _Matched,
+    settings: tuple[str, int, str, bool],
+    ate: dict[str, Any],
+    left_out: int,
+    scored: _Images,
+    seconds: float,
+) -> dict[str, Any]:
+    """`evaluate_log`'s results (see there); `settings`: the frame subset, `every`, where the
+    poses came from and whether they are the log's own."""
+    frames, every, pose_text, own = settings
+    sequence, positions, images = matched.sequence, matched.positions, scored.metrics
     intr = sequence.intrinsics
     return {
         "log": str(log_path),
@@ -299,9 +442,9 @@ def evaluate_log(
         "frames": str(frames),
         "size": [intr.width, intr.height],
         "every": every,
-        "poses": meta.pose_origin() if own else str(source),
+        "poses": pose_text,
         "own_poses": own,
-        "trajectory": used,
+        "trajectory": matched.trajectory,
         "frames_selected": len(sequence),
         "frames_with_pose": len(positions),
         "frames_without_pose": len(sequence) - len(positions),
@@ -310,13 +453,13 @@ def evaluate_log(
         "frames_without_depth": images.pop("views_without_depth"),
         **ate,
         **images,
-        "gaussians": len(gaussians),
-        "bytes": map_bytes,
+        "gaussians": len(target.gaussians),
+        "bytes": target.map_bytes,
         "file_bytes": log_path.stat().st_size,
-        "seconds": round(time.perf_counter() - start, 3),
-        "per_frame": per_frame,
-        **({"refined": refined} if refined is not None else {}),
-        **({"images": [str(p) for s in savers.values() for p in s.written]} if savers else {}),
+        "seconds": round(seconds, 3),
+        "per_frame": scored.per_frame,
+        **({"refined": scored.refined} if scored.refined is not None else {}),
+        **({"images": scored.written} if scored.written is not None else {}),
     }
 
 

@@ -12,6 +12,7 @@ world frames agree (`LogMetadata.world_frame`).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -19,14 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.camera import Intrinsics
 from gscompress.errors import OptionError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import check_output
-from gscompress.io.keyframes import CarriedFrame
 from gscompress.io.mcap_log import LogReader
-from gscompress.ops.merge import WITH_SENDER_VIEWS, MergeOptions
-from gscompress.pipeline.logs import check_same_camera, read_share, rewrite_map
+from gscompress.ops.merge import WITH_SENDER_VIEWS, MergeOptions, combine, share_rates
+from gscompress.pipeline.logs import ReceivedShare, check_same_camera, read_share, rewrite_map
 from gscompress.pipeline.refining import DEFAULT_LR_FINAL, RefineOptions
 
 DEFAULT_REFINE_VIEWS = "frames"
@@ -96,32 +95,18 @@ def merge_logs(
         Output path, Gaussian counts (receiver, share, merged), the id offset given to the
         share, and the refinement's first/last loss, views and render backend.
     """
-    from gscompress.ops.merge import combine, share_rates
-
     options = RefineOptions(
         iters, views, lr_final, frames, size, device, backend, seed, recording=recording
     )
-    options.check("--iters")
-    if iters > 0 and seq is None:
-        raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
-    inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
-    check_output(dst, inputs, force, ".mcap")
-    if share is not None and Path(share).exists() and Path(share).samefile(receiver):
-        raise OptionError(f"{share} is the receiver log itself: merging it would double its map")
+    _check_inputs(receiver, share, dst, seq, share_transform, options, force)
     with LogReader(receiver) as receiver_log:
         meta = receiver_log.metadata
         receiver_log.require_snapshots()
-    shared: GaussianMap | None = None
-    share_record: dict[str, Any] = {"share": None}
-    carried: list[CarriedFrame] = []
-    camera: Intrinsics | None = None
-    if share is not None:
-        # (the keyframes serve the refinement only)
+    received = None
+    if share is not None:  # (the keyframes serve the refinement only)
         received = read_share(share, meta.world_frame, "merge", share_transform,
                               keyframes=keyframes and iters > 0)  # fmt: skip
-        shared, share_record = received.gaussians, received.record
-        carried, camera = received.carried, received.camera
-
+    carried = [] if received is None else received.carried
     how = (
         merge
         if isinstance(merge, MergeOptions)
@@ -130,36 +115,79 @@ def merge_logs(
     how.check()
     refiner = None
     if iters > 0:
-        from gscompress.pipeline.refining import LogRefiner
-
         assert seq is not None
-        instead = "merge with --iters 0 to concatenate only"
-        refiner = LogRefiner(receiver, seq, options, progress, instead)
-        if carried:
-            check_same_camera(camera, refiner.intrinsics, str(share), "the merge refines",
-                              "merge with --no-keyframes")  # fmt: skip
-
-    def merge_into(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
-        received = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)
-        merged, from_share, offset, done = combine(own, received, how)
-        results: dict[str, Any] = {
-            "receiver": len(own),
-            "share": len(received),
-            "gaussians": len(merged),
-            "id_offset": offset,
-            **done,
-        }
-        if refiner is None:
-            return merged, results
-        if carried:
-            T_align = np.asarray(done.get("align_transform", np.eye(4)), np.float64)
-            refiner.carry([f.moved(T_align) for f in carried])
-        seen = refiner.contributions(merged) if how.by_view and from_share.any() else None
-        rates = share_rates(from_share, how, seen, merged.alpha_t_sum)
-        merged, stats = refiner(merged, rates)
-        return merged, {**results, **{f"refine_{k}": v for k, v in stats.items()}}
-
+        refiner = _receiver_refiner(receiver, seq, options, progress, received, share)
+    merge_into = functools.partial(_merge_into, received=received, how=how, refiner=refiner)
+    share_record = {"share": None} if received is None else received.record
     operation = {"name": "merge", **share_record, **options.record(), **how.record()}
     return rewrite_map(
         receiver, dst, operation, merge_into, codec=codec, command=command, force=force
     )
+
+
+def _check_inputs(
+    receiver: str | Path,
+    share: str | Path | None,
+    dst: str | Path,
+    seq: str | Path | None,
+    share_transform: str | Path | None,
+    options: RefineOptions,
+    force: bool,
+) -> None:
+    """Refuse `merge_logs`' refinement options out of range, a refinement without the receiver's
+    sequence, an output that would overwrite an input, and a share that is the receiver."""
+    options.check("--iters")
+    if options.iters > 0 and seq is None:
+        raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
+    inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
+    check_output(dst, inputs, force, ".mcap")
+    if share is not None and Path(share).exists() and Path(share).samefile(receiver):
+        raise OptionError(f"{share} is the receiver log itself: merging it would double its map")
+
+
+def _receiver_refiner(
+    receiver: str | Path,
+    seq: str | Path,
+    options: RefineOptions,
+    progress: Callable[[int, int], object] | None,
+    received: ReceivedShare | None,
+    share: str | Path | None,
+) -> Any:
+    """The refinement on the receiver's frames (`LogRefiner`), refusing keyframes the share
+    carries from another camera than the receiver's."""
+    from gscompress.pipeline.refining import LogRefiner
+
+    instead = "merge with --iters 0 to concatenate only"
+    refiner = LogRefiner(receiver, seq, options, progress, instead)
+    if received is not None and received.carried:
+        check_same_camera(received.camera, refiner.intrinsics, str(share), "the merge refines",
+                          "merge with --no-keyframes")  # fmt: skip
+    return refiner
+
+
+def _merge_into(
+    own: GaussianMap, received: ReceivedShare | None, how: MergeOptions, refiner: Any
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """The receiver's map `own` with the share combined into it (`combine`; an empty share
+    without one) and refined on the receiver's frames (and the keyframes the share carries,
+    moved as the merge aligned it) by `refiner` when there is one; and what to record."""
+    shared = received.gaussians if received is not None else None
+    carried = received.carried if received is not None else []
+    share_map = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)
+    merged, from_share, offset, done = combine(own, share_map, how)
+    results: dict[str, Any] = {
+        "receiver": len(own),
+        "share": len(share_map),
+        "gaussians": len(merged),
+        "id_offset": offset,
+        **done,
+    }
+    if refiner is None:
+        return merged, results
+    if carried:
+        T_align = np.asarray(done.get("align_transform", np.eye(4)), np.float64)
+        refiner.carry([f.moved(T_align) for f in carried])
+    seen = refiner.contributions(merged) if how.by_view and from_share.any() else None
+    rates = share_rates(from_share, how, seen, merged.alpha_t_sum)
+    merged, stats = refiner(merged, rates)
+    return merged, {**results, **{f"refine_{k}": v for k, v in stats.items()}}

@@ -112,29 +112,60 @@ def share_log(
     """
     budget = Budget.parse(budget)
     check_codec(codec)
-    outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
-    if ply is not None and Path(ply).resolve() == Path(dst).resolve():
-        raise OptionError("--ply must differ from the MCAP output")
-    inputs = [p for p in (src, align_to, receiver) if p is not None]
-    for path, suffix in outputs:
-        check_output(path, inputs, force, suffix)
-    align = None
-    if align_to is not None:
-        align = share_alignment(src, align_to)
+    _check_outputs(src, dst, ply, [p for p in (src, align_to, receiver) if p is not None], force)
+    align = None if align_to is None else share_alignment(src, align_to)
     cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, ids=ids, seed=seed,
                    fold_dropped=fold_dropped, refine=refine, solve=solve, command=command,
                    source=source, align=align, carry=carry,
                    receiver=None if receiver is None else read_request(receiver),
                    device=device, spread=spread)  # fmt: skip
-    searched = cut.budget.budget_bytes is not None
-    count = cut.budget.count(len(cut.full), _counted(cut.size, progress) if searched else cut.size)
-    if refine is not None:
-        count = cut.refined(count, refine)
-    data, shared, results = cut.file(count)
+    data, shared, results = cut.file(_count(cut, refine, progress))
     limit = cut.budget.budget_bytes
     if limit is not None and len(data) > limit:
         raise AssertionError(f"share of {len(data)} B exceeds {limit} B")
     results["file_bytes"] = len(data)
+    _write(data, shared, dst, ply, codec, src, force)
+    return {"output": str(dst), "ply": None if ply is None else str(ply), **results}
+
+
+def _check_outputs(
+    src: str | Path,
+    dst: str | Path,
+    ply: str | Path | None,
+    inputs: list[str | Path],
+    force: bool,
+) -> None:
+    """Refuse a PLY output that is the MCAP one, and outputs that would overwrite an input or
+    an existing file (without `force`)."""
+    outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
+    if ply is not None and Path(ply).resolve() == Path(dst).resolve():
+        raise OptionError("--ply must differ from the MCAP output")
+    for path, suffix in outputs:
+        check_output(path, inputs, force, suffix)
+
+
+def _count(
+    cut: ShareCut, refine: MapRefiner | None, progress: Callable[[int], object] | None
+) -> int:
+    """How many Gaussians the share sends: the budget's count (a byte budget's search reported
+    to `progress`), then the count that fits once they are refined (`ShareCut.refined`)."""
+    searched = cut.budget.budget_bytes is not None
+    count = cut.budget.count(len(cut.full), _counted(cut.size, progress) if searched else cut.size)
+    if refine is not None:
+        count = cut.refined(count, refine)
+    return count
+
+
+def _write(
+    data: bytes,
+    shared: GaussianMap,
+    dst: str | Path,
+    ply: str | Path | None,
+    codec: str,
+    src: str | Path,
+    force: bool,
+) -> None:
+    """Write the share file and, with `ply`, its decoded values as a PLY: both or neither."""
     write_bytes_atomic(dst, data)
     if ply is not None:
         try:  # the receiver's values: what the share decodes to
@@ -143,7 +174,6 @@ def share_log(
         except BaseException:  # a share is written whole or not at all
             Path(dst).unlink(missing_ok=True)
             raise
-    return {"output": str(dst), "ply": None if ply is None else str(ply), **results}
 
 
 def _counted(

@@ -1,7 +1,8 @@
 """`gsc slam`: a sequence through the SLAM system into a log (`gscompress.io.mcap_log`).
 
 A run starts fresh, from another agent's share (`inject`), or from the log of an interrupted
-run (`resume`); the frame loop and the log it writes are the same in all three cases.
+run (`resume`): `gscompress.pipeline.slam_run.start`; the frame loop and the log it writes (here)
+are the same in all three cases.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -29,7 +30,7 @@ from gscompress.errors import (
 )
 from gscompress.io.codec import DEFAULT_CODEC, check_codec
 from gscompress.io.mcap_log import LogWriter, seconds_to_ns
-from gscompress.pipeline.slam_run.start import Run, fresh_run, resume_run
+from gscompress.pipeline.slam_run.start import Run, SequenceSpec, fresh_run, resume_run
 from gscompress.selection import check_ratio
 
 log = logging.getLogger(__name__)
@@ -128,56 +129,76 @@ def slam_file(
         Output path, frame and Gaussian counts, seconds per frame, ATE (cm) when the sequence
         has ground truth, and whether the run was interrupted.
     """
+    _check_options(seq, sequence, codec, keep)
+    if resume:
+        kept = (preset, config_path or config, frames, size, backend, keep, inject, share_transform)
+        _refuse_own_settings(kept, no_prune, recording)
+        run = resume_run(seq, dst, device, sequence)
+    else:
+        config = _fresh_config(config, preset, config_path, size, keep, no_prune, backend)
+        if share_transform is not None and inject is None:
+            raise OptionError("a share transform needs --inject")
+        spec = SequenceSpec(seq, sequence, frames or "all", recording)
+        run = fresh_run(spec, dst, config, device, inject, share_transform, force, config_path)
+    run.meta.command = command
+    run.codec = codec
+    return _loop(run, dst, progress, phases)
+
+
+def _check_options(seq: str | Path | None, sequence: Any, codec: str, keep: float | None) -> None:
+    """Refuse a run without a sequence, an unknown codec and a keep ratio out of range."""
     if sequence is None and seq is None:
         raise InputError("slam_file needs a sequence folder or an opened sequence")
     check_codec(codec)
     if keep is not None:
         check_ratio(keep, "--keep")
-    if resume:
-        given = {
-            "--preset": preset,
-            "--config": config_path or config,
-            "--frames": frames,
-            "--size": size,
-            "--backend": backend,
-            "--keep": keep,
-            "--inject": inject,
-            "--share-transform": share_transform,
-        }
-        clashing = [name for name, value in given.items() if value is not None]
-        clashing += ["--no-prune"] if no_prune else []
-        clashing += ["--rgb/--depth/--camera-info/--max-dt/--gt"] if _given(recording) else []
-        if clashing:
-            dropped = ", ".join(clashing)
-            raise OptionError(f"--resume continues with the log's own settings; drop {dropped}")
-        run = resume_run(seq, dst, device, sequence)
-    else:
-        if config is None:
-            from gscompress.slam.config import resolve_config
 
-            config = resolve_config(
-                preset, config_path, size=size, keep=keep, no_prune=no_prune, backend=backend
-            )
-        elif any(v is not None for v in (preset, config_path, size, keep, backend)) or no_prune:
-            raise OptionError("a ready config takes no preset, config file or setting beside it")
-        if share_transform is not None and inject is None:
-            raise OptionError("a share transform needs --inject")
-        run = fresh_run(
-            seq,
-            dst,
-            config,
-            frames or "all",
-            device,
-            inject,
-            share_transform,
-            force,
-            sequence,
-            config_path,
-            recording,
+
+RESUME_KEEPS = (
+    "--preset",
+    "--config",
+    "--frames",
+    "--size",
+    "--backend",
+    "--keep",
+    "--inject",
+    "--share-transform",
+)
+"""The settings `--resume` takes from the log, which may not be given beside it (as well as
+`--no-prune` and a recording's options)."""
+
+
+def _refuse_own_settings(kept: tuple[Any, ...], no_prune: bool, recording: Any) -> None:
+    """Refuse settings given beside `--resume` (`kept`: the values given of `RESUME_KEEPS`, in
+    that order; None where not given)."""
+    clashing = [name for name, value in zip(RESUME_KEEPS, kept, strict=True) if value is not None]
+    clashing += ["--no-prune"] if no_prune else []
+    clashing += ["--rgb/--depth/--camera-info/--max-dt/--gt"] if _given(recording) else []
+    if clashing:
+        dropped = ", ".join(clashing)
+        raise OptionError(f"--resume continues with the log's own settings; drop {dropped}")
+
+
+def _fresh_config(
+    config: Any,
+    preset: str | None,
+    config_path: str | Path | None,
+    size: tuple[int, int] | None,
+    keep: float | None,
+    no_prune: bool,
+    backend: str | None,
+) -> Any:
+    """The `SlamConfig` of a fresh run: `config` when given (with no setting beside it), else
+    the preset's with the config file and the settings applied (`resolve_config`)."""
+    if config is None:
+        from gscompress.slam.config import resolve_config
+
+        return resolve_config(
+            preset, config_path, size=size, keep=keep, no_prune=no_prune, backend=backend
         )
-    run.meta.command = command
-    run.codec = codec
-    return _loop(run, dst, progress, phases)
+    if any(v is not None for v in (preset, config_path, size, keep, backend)) or no_prune:
+        raise OptionError("a ready config takes no preset, config file or setting beside it")
+    return config
 
 
 def _given(recording: Any) -> bool:
@@ -321,111 +342,161 @@ def _loop(
     run: Run, dst: str | Path, progress: Progress | None, phases: Phases | None = None
 ) -> dict[str, Any]:
     """Process the frames from `run.start` on, writing the log as they are done."""
-    from gscompress.importance import sigma_d_value
-    from gscompress.metrics import ate_rmse_cm
     from gscompress.render import resolve_backend
 
     sequence, system, meta = run.sequence, run.system, run.meta
     total = len(sequence)
-    failure: BaseException | None = None
     # resolved now so that a first-use kernel build is not timed; recorded with the timings
     backend = resolve_backend(run.config.backend, system.device)
     start = time.perf_counter()
     earlier = meta.results.pop("gaussians", None)  # (a resumed log's: its end map's count)
     meta.results.pop("error", None)
     with LogWriter(dst, meta, inputs=run.inputs, force=True) as out:
-        if run.carried:
-            for schema, channel, message in run.carried:
-                out.copy_message(schema, channel, message)
-        else:
-            out.write_calibration(sequence.intrinsics, 0)
-        out.write_metadata()
-        out.flush()
-        whole = True  # the map is the state after whole frames
-        try:
-            with _stop_between_frames(lambda: system.in_final_refinement) as stopping:
-                system.stop_requested = stopping  # (for this run only: unset below)
-                if phases is not None:
-                    phases(FRAMES, run.start, total)
-                    system.on_final_step = functools.partial(phases, FINAL_REFINEMENT)
-                for i in range(run.start, total):
-                    frame = sequence.frame(i)
-                    whole = False
-                    result = system.process(frame)
-                    whole = True
-                    stats = _log_frame(run, out, frame, result, i)
-                    if progress is not None:
-                        progress(i + 1, total, {**stats, "seconds": time.perf_counter() - start})
-                    if stopping():
-                        raise KeyboardInterrupt
-        except (KeyboardInterrupt, Exception) as exc:
-            if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
-                raise  # nothing done: no log is better than an empty one
-            failure = exc
-            whole = whole or isinstance(exc, TrackingLostError)  # (lost before it changed the map)
-        finally:
-            system.stop_requested = system.on_final_step = None
+        _write_start(run, out)
+        failure, whole = _process_frames(run, out, progress, phases, start)
         done = len(system.poses)
         gaussians = system.gaussian_map() if whole else None
         if gaussians is not None and failure is None and done == total:
             gaussians = _finished_scores(system, gaussians, backend, phases)  # (timed too)
         seconds = time.perf_counter() - start
-        if gaussians is not None:  # else the last snapshot stands (see _stop_between_frames)
-            out.write_gaussians(gaussians, run.t_ns, run.codec)
-            _write_refined(run, out)
-            meta.results["gaussians"] = len(gaussians)
-            run.map_frames = done
-        elif run.restart_map is not None and run.map_frames == run.start:
-            out.copy_message(*run.restart_map)  # the map this run started from is still the last
-            if earlier is not None:
-                meta.results["gaussians"] = earlier
-        meta.results.update(
-            {
-                "frames": done,
-                "frames_total": total,
-                "seconds": round(seconds, 3),
-                "seconds_per_frame": round(seconds / max(done - run.start, 1), 4),
-                "interrupted": failure is not None,
-                "map_frames": run.map_frames,
-                "device": str(system.device),
-                "render_backend": backend,
-                "sigma_d": sigma_d_value(system.sigma_d),
-            }
-        )
-        if run.start:
-            meta.results["resumed_at"] = run.start
-        if failure is not None and not isinstance(failure, KeyboardInterrupt):
-            meta.results["error"] = f"{type(failure).__name__}: {failure}"
-        if isinstance(failure, TrackingLostError):
-            meta.results["lost_at"] = {"frame": failure.frame, "timestamp": failure.timestamp}
-        if len(run.gt_poses) >= 2:
-            estimated = system.refined_poses() if whole else run.est_poses
-            meta.results["ate_rmse_cm"] = ate_rmse_cm(
-                np.array(run.gt_poses), np.array(estimated[: len(run.gt_poses)])
-            )
-            if run.config.poses.enabled:
-                meta.results["ate_rmse_cm_tracked"] = ate_rmse_cm(
-                    np.array(run.gt_poses), np.array(run.est_poses)
-                )
+        _write_end_map(run, out, gaussians, earlier)
+        _record_results(run, failure, whole, seconds, backend)
     for leftover in run.leftovers:
         leftover.unlink(missing_ok=True)
     if failure is not None:
-        if isinstance(failure, TrackingLostError):  # (one line: what the log holds, what next)
-            failure = TrackingLostError(
-                failure.frame, failure.timestamp, failure.reason,
-                f"{dst} holds the {done} frame(s) before it; to go on, map from there as a second "
-                f"agent (gsc slam SEQ --frames {failure.frame}: -o next.mcap) and register the "
-                f"two with gsc align next.mcap {dst}",
-            )  # fmt: skip
-        elif isinstance(failure, RECURRING):
-            log.warning(
-                "%s holds the %d frame(s) done before the error; a resume would meet it again: "
-                "run afresh with the settings changed (--force replaces the log)",
-                dst,
-                done,
-            )
-        elif not isinstance(failure, KeyboardInterrupt):  # (the caller says so for an interrupt)
-            note = map_note(done, run.map_frames)  # (gsc slam says how to resume)
-            log.warning("%s holds the %d frame(s) done before the error%s", dst, done, note)
-        raise failure
+        _raise_failure(failure, run, dst, done)
     return {"output": str(dst), **meta.results}
+
+
+def _write_start(run: Run, out: LogWriter) -> None:
+    """What a log holds before its frames: the resumed log's messages that are kept, or the
+    calibration; and the metadata, flushed."""
+    if run.carried:
+        for schema, channel, message in run.carried:
+            out.copy_message(schema, channel, message)
+    else:
+        out.write_calibration(run.sequence.intrinsics, 0)
+    out.write_metadata()
+    out.flush()
+
+
+def _process_frames(
+    run: Run, out: LogWriter, progress: Progress | None, phases: Phases | None, start: float
+) -> tuple[BaseException | None, bool]:
+    """Process and log the frames from `run.start` on until the last, or until a stop is asked
+    for or an error stops them; the error or interrupt that stopped them (None: none) and
+    whether the map is the state after whole frames.
+
+    Raises:
+        the error itself when it came before any frame was done (no log is better than an
+        empty one).
+    """
+    sequence, system = run.sequence, run.system
+    total = len(sequence)
+    failure: BaseException | None = None
+    whole = True  # the map is the state after whole frames
+    try:
+        with _stop_between_frames(lambda: system.in_final_refinement) as stopping:
+            system.stop_requested = stopping  # (for this run only: unset below)
+            if phases is not None:
+                phases(FRAMES, run.start, total)
+                system.on_final_step = functools.partial(phases, FINAL_REFINEMENT)
+            for i in range(run.start, total):
+                frame = sequence.frame(i)
+                whole = False
+                result = system.process(frame)
+                whole = True
+                stats = _log_frame(run, out, frame, result, i)
+                if progress is not None:
+                    progress(i + 1, total, {**stats, "seconds": time.perf_counter() - start})
+                if stopping():
+                    raise KeyboardInterrupt
+    except (KeyboardInterrupt, Exception) as exc:
+        if len(system.poses) == run.start and not isinstance(exc, KeyboardInterrupt):
+            raise  # nothing done: no log is better than an empty one
+        failure = exc
+        whole = whole or isinstance(exc, TrackingLostError)  # (lost before it changed the map)
+    finally:
+        system.stop_requested = system.on_final_step = None
+    return failure, whole
+
+
+def _write_end_map(run: Run, out: LogWriter, gaussians: Any, earlier: Any) -> None:
+    """The map at the end (`gaussians`, None: the map is not the state after whole frames),
+    with the refined trajectory; else the last snapshot stands (see `_stop_between_frames`),
+    and a resumed run that ends where it started puts back the map it started from."""
+    done = len(run.system.poses)
+    meta = run.meta
+    if gaussians is not None:  # else the last snapshot stands (see _stop_between_frames)
+        out.write_gaussians(gaussians, run.t_ns, run.codec)
+        _write_refined(run, out)
+        meta.results["gaussians"] = len(gaussians)
+        run.map_frames = done
+    elif run.restart_map is not None and run.map_frames == run.start:
+        out.copy_message(*run.restart_map)  # the map this run started from is still the last
+        if earlier is not None:
+            meta.results["gaussians"] = earlier
+
+
+def _record_results(
+    run: Run, failure: BaseException | None, whole: bool, seconds: float, backend: str
+) -> None:
+    """The run's results in its metadata: frames, timings, how it ended, ATE (cm) where the
+    sequence has ground truth."""
+    from gscompress.importance import sigma_d_value
+    from gscompress.metrics import ate_rmse_cm
+
+    system, meta = run.system, run.meta
+    done, total = len(system.poses), len(run.sequence)
+    meta.results.update(
+        {
+            "frames": done,
+            "frames_total": total,
+            "seconds": round(seconds, 3),
+            "seconds_per_frame": round(seconds / max(done - run.start, 1), 4),
+            "interrupted": failure is not None,
+            "map_frames": run.map_frames,
+            "device": str(system.device),
+            "render_backend": backend,
+            "sigma_d": sigma_d_value(system.sigma_d),
+        }
+    )
+    if run.start:
+        meta.results["resumed_at"] = run.start
+    if failure is not None and not isinstance(failure, KeyboardInterrupt):
+        meta.results["error"] = f"{type(failure).__name__}: {failure}"
+    if isinstance(failure, TrackingLostError):
+        meta.results["lost_at"] = {"frame": failure.frame, "timestamp": failure.timestamp}
+    if len(run.gt_poses) >= 2:
+        estimated = system.refined_poses() if whole else run.est_poses
+        meta.results["ate_rmse_cm"] = ate_rmse_cm(
+            np.array(run.gt_poses), np.array(estimated[: len(run.gt_poses)])
+        )
+        if run.config.poses.enabled:
+            meta.results["ate_rmse_cm_tracked"] = ate_rmse_cm(
+                np.array(run.gt_poses), np.array(run.est_poses)
+            )
+
+
+def _raise_failure(failure: BaseException, run: Run, dst: str | Path, done: int) -> NoReturn:
+    """Raise what stopped the run, once its log is closed: a lost track with what the log holds
+    and how to go on; an error its settings would meet again, or any other, with a warning of
+    what the log holds."""
+    if isinstance(failure, TrackingLostError):  # (one line: what the log holds, what next)
+        failure = TrackingLostError(
+            failure.frame, failure.timestamp, failure.reason,
+            f"{dst} holds the {done} frame(s) before it; to go on, map from there as a second "
+            f"agent (gsc slam SEQ --frames {failure.frame}: -o next.mcap) and register the "
+            f"two with gsc align next.mcap {dst}",
+        )  # fmt: skip
+    elif isinstance(failure, RECURRING):
+        log.warning(
+            "%s holds the %d frame(s) done before the error; a resume would meet it again: "
+            "run afresh with the settings changed (--force replaces the log)",
+            dst,
+            done,
+        )
+    elif not isinstance(failure, KeyboardInterrupt):  # (the caller says so for an interrupt)
+        note = map_note(done, run.map_frames)  # (gsc slam says how to resume)
+        log.warning("%s holds the %d frame(s) done before the error%s", dst, done, note)
+    raise failure

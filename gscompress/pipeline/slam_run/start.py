@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -104,18 +104,25 @@ def _open(
     return sequence
 
 
+class SequenceSpec(NamedTuple):
+    """The sequence a fresh run maps: a folder `seq` (opened with the frame subset `frames`
+    and, a recording, with `recording`'s options), or an already opened `sequence`."""
+
+    seq: str | Path | None
+    sequence: Any
+    frames: str
+    recording: Any = None
+
+
 def fresh_run(
-    seq: str | Path | None,
+    spec: SequenceSpec,
     dst: str | Path,
     config: Any,
-    frames: str,
     device: str,
     inject: str | Path | None,
     share_transform: str | Path | None,
     force: bool,
-    sequence: Any,
     config_path: str | Path | None,
-    recording: Any = None,
 ) -> Run:
     """A run from the first frame, optionally starting with another agent's share; no file
     it reads (sequence, config, share, transform) is written over. The unfinished file of a
@@ -123,6 +130,7 @@ def fresh_run(
     written its log, so that a later --resume cannot pick the older run)."""
     from gscompress.slam.system import SlamSystem
 
+    seq, sequence, frames, recording = spec
     reads = (seq if sequence is None else None, config_path, inject, share_transform)
     inputs = [p for p in reads if p is not None]
     check_output(dst, inputs, force, ".mcap")
@@ -188,7 +196,6 @@ def fresh_run(
 def resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: Any) -> Run:
     """A run restored from the log (or unfinished file) of an interrupted one at `dst`."""
     from gscompress.slam.config import SlamConfig
-    from gscompress.slam.keyframes import View, in_views
     from gscompress.slam.system import SlamSystem
 
     dst = Path(dst)
@@ -198,41 +205,13 @@ def resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: A
         raise InputError(f"--resume: there is no log {dst} nor an unfinished run of it")
     source, contents = _furthest(sources)
     meta = contents.metadata
-    derived = len(_injections(meta.provenance)) < len(meta.provenance)  # (pruned, shared...)
-    if any(step.get("carried_ns") for step in _injections(meta.provenance)):
-        raise InputError(
-            f"{dst} started with the keyframes of the share it received, which its log does "
-            "not hold: run it afresh (--inject SHARE --force)"
-        )
-    if derived or ("frames" not in meta.results and contents.finished):
-        raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
-    if not meta.config:
-        raise InputError(f"{source} records no SLAM config: not a `gsc slam` log")
-    if contents.finished and not meta.results.get("interrupted", False):
-        raise InputError(
-            f"{dst} is a finished run of {meta.results['frames']} frames; nothing to resume"
-        )
+    _check_resumable(dst, source, contents)
     config = SlamConfig.from_dict(meta.config)
-    from gscompress.datasets.recording import RecordingOptions
-
-    recorded = RecordingOptions.from_record(meta.results.get("recording"))
-    sequence = _open(seq, sequence, config, meta.frames or "all", recorded)
-    if meta.sequence and sequence.name != meta.sequence:
-        raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
-    found = check_first_frame(dst, meta.results.get("first_frame"), sequence)
-    if recorded_fingerprint(meta.results.get("first_frame")) is None:  # (for later resumes)
-        meta.results["first_frame"] = found
-
-    by_topic: dict[str, list[Record]] = {}
-    for record in contents.messages:
-        by_topic.setdefault(record[1].topic, []).append(record)
-    snapshots = by_topic.get(TOPIC_GAUSSIANS, [])
-    stamps = [r[2].log_time for r in by_topic.get(TOPIC_POSE, [])]
-    expected = [seconds_to_ns(t) for t in sequence.timestamps[: len(stamps)]]
-    if len(stamps) > len(sequence) or stamps != expected:
-        raise InputError(f"{dst}: its poses do not match the frames of {sequence.name}")
+    sequence = _open_resumed(seq, sequence, config, meta, dst)
+    by_topic, stamps = _records_by_topic(contents, dst, sequence)
 
     # restore at the last snapshot: the frames up to its time are kept, later ones redone
+    snapshots = by_topic.get(TOPIC_GAUSSIANS, [])
     done, last = contents.map_frames(), snapshots[-1] if snapshots else None
     cut = stamps[done - 1] if done else -1
     carried = [
@@ -260,6 +239,74 @@ def resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: A
         run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
         return run
     assert last is not None
+    _restore(run, by_topic, last, cut, source)
+    run.t_ns = cut
+    log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
+    return run
+
+
+def _check_resumable(dst: Path, source: Path, contents: LogContents) -> None:
+    """Refuse to resume what is not an interrupted `gsc slam` run whose log holds what it
+    started with (`source`: the file read, of `dst`'s run)."""
+    meta = contents.metadata
+    derived = len(_injections(meta.provenance)) < len(meta.provenance)  # (pruned, shared...)
+    if any(step.get("carried_ns") for step in _injections(meta.provenance)):
+        raise InputError(
+            f"{dst} started with the keyframes of the share it received, which its log does "
+            "not hold: run it afresh (--inject SHARE --force)"
+        )
+    if derived or ("frames" not in meta.results and contents.finished):
+        raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
+    if not meta.config:
+        raise InputError(f"{source} records no SLAM config: not a `gsc slam` log")
+    if contents.finished and not meta.results.get("interrupted", False):
+        raise InputError(
+            f"{dst} is a finished run of {meta.results['frames']} frames; nothing to resume"
+        )
+
+
+def _open_resumed(
+    seq: str | Path | None, sequence: Any, config: Any, meta: LogMetadata, dst: Path
+) -> Any:
+    """The sequence of the run to resume, opened as it had it (frame subset, a recording's
+    topics), checked to be the one it ran on (name and first frame)."""
+    from gscompress.datasets.recording import RecordingOptions
+
+    recorded = RecordingOptions.from_record(meta.results.get("recording"))
+    sequence = _open(seq, sequence, config, meta.frames or "all", recorded)
+    if meta.sequence and sequence.name != meta.sequence:
+        raise InputError(f"{dst} was recorded on {meta.sequence!r}, not on {sequence.name!r}")
+    found = check_first_frame(dst, meta.results.get("first_frame"), sequence)
+    if recorded_fingerprint(meta.results.get("first_frame")) is None:  # (for later resumes)
+        meta.results["first_frame"] = found
+    return sequence
+
+
+def _records_by_topic(
+    contents: LogContents, dst: Path, sequence: Any
+) -> tuple[dict[str, list[Record]], list[int]]:
+    """The log's records by topic, and the log times of its poses, checked to be those of the
+    sequence's first frames."""
+    by_topic: dict[str, list[Record]] = {}
+    for record in contents.messages:
+        by_topic.setdefault(record[1].topic, []).append(record)
+    stamps = [r[2].log_time for r in by_topic.get(TOPIC_POSE, [])]
+    expected = [seconds_to_ns(t) for t in sequence.timestamps[: len(stamps)]]
+    if len(stamps) > len(sequence) or stamps != expected:
+        raise InputError(f"{dst}: its poses do not match the frames of {sequence.name}")
+    return by_topic, stamps
+
+
+def _restore(
+    run: Run, by_topic: dict[str, list[Record]], last: Record, cut: int, source: Path
+) -> None:
+    """Restore the run's SLAM system as the log left it at its map `last` (log time `cut`,
+    covering the first `run.start` frames): the map, the frames' poses and views (at the
+    refined poses where the log has them), the mapping's counters and the lost-track level;
+    and the frames' ground truth."""
+    from gscompress.slam.keyframes import View, in_views
+
+    system, sequence, config, done = run.system, run.sequence, run.config, run.start
     budget = DecodeBudget("log", source.stat().st_size, str(source), LogFormatError)
     gaussians = decode_snapshot(last[0], last[2], str(source), budget).gaussians
     pose_records = by_topic[TOPIC_POSE][:done]
@@ -280,16 +327,13 @@ def resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: A
         mapping_iterations=sum(int(s.get("mapping_iters", 0)) for s in stats),
         next_id=next_id,
         first_depth=views[0].depth.cpu().numpy(),  # position 0 is always a keyframe
-        own_ids_from=_own_ids_from(meta.provenance),
+        own_ids_from=_own_ids_from(run.meta.provenance),
     )
     for frame_stats in stats:  # (the lost-track level as the interrupted run had it)
         system.track_level.add_error(frame_stats.get("tracking_depth_error", float("nan")))
     if sequence.has_ground_truth:
         _, gt = sequence.ground_truth()
         run.gt_poses, run.est_poses = list(gt[:done]), list(poses)
-    run.t_ns = cut
-    log.info("resuming %s after %d of %d frames", dst, done, len(sequence))
-    return run
 
 
 def _refined_at(
