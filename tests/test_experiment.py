@@ -27,7 +27,7 @@ from gscompress.pipeline.experiment import (
     resolve_settings,
 )
 from gscompress.pipeline.experiment.protocol import FULL_STUDY, PROTOCOLS, reference_formats
-from gscompress.pipeline.experiment.report import curve_at
+from gscompress.pipeline.experiment.results import curve_at
 from gscompress.pipeline.share.cut import smallest_share_bytes
 from gscompress_cli.main import cli
 

@@ -46,7 +46,8 @@ from gscompress.pipeline.experiment.protocol import (
     plan_size,
     resolve_settings,
 )
-from gscompress.pipeline.experiment.report import result_row, verdicts_of, write_reports
+from gscompress.pipeline.experiment.report import write_reports
+from gscompress.pipeline.experiment.results import result_row, verdicts_of
 
 log = logging.getLogger(__name__)
 
