@@ -538,7 +538,7 @@ def map_refine_options(f: F) -> F:
 
 def _refine_options(f: F, anisotropic_help: str) -> F:
     """`refine_options`, with this help of `--anisotropic`."""
-    from gscompress.pipeline.logs import KEYFRAME_RULE  # (no torch yet)
+    from gscompress.pipeline.logs import KEYFRAME_RULE  # (neither loads torch)
     from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 
     f = device_option(f)

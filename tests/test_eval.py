@@ -336,7 +336,7 @@ def test_foxglove_layout_names_our_topics_and_the_importance_field():
 def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, seq_dir, caplog):
     import logging
 
-    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.evaluate"):
+    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.logs"):
         evaluate_log(gt_log, seq_dir, every=6, lpips=False)
         assert "enlarges" not in caplog.text
         r = evaluate_log(gt_log, seq_dir, every=6, size=(128, 96), lpips=False)
