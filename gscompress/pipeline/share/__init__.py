@@ -1,6 +1,8 @@
 """`gsc share`: the budgeted top-K share of a log's map for another agent (numpy + mcap only;
 torch only to refine, solve or rank for a receiver, when asked).
 
+The command is `share_log`, here; its parts:
+
 - `cut`: `ShareCut`, the share file of the K best Gaussians for any K (what a byte budget
   searches over);
 - `solve`: the byte-budget solver of `gsc share --solve` (the codec and PWAS state that give
