@@ -21,7 +21,7 @@ import numpy as np
 
 from gscompress.io.mcap_log import TOPIC_POSE_GT, LogReader
 from gscompress.ops.align import AlignOptions, Cloud, align_clouds, transform_error
-from gscompress.pipeline.align import log_cloud
+from gscompress.pipeline.aligning import log_cloud
 
 
 def first_gt_pose(path: str) -> np.ndarray:

@@ -35,7 +35,7 @@ from gscompress.ops.merge import MergeOptions
 from gscompress.pipeline.align import align_agents
 from gscompress.pipeline.evaluate import evaluate_log
 from gscompress.pipeline.merge import merge_logs
-from gscompress.pipeline.offline import share_log
+from gscompress.pipeline.share import share_log
 
 
 def ground_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,7 @@ from gscompress.io.files import json_text
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.align import AlignOptions, refine_alignment, transform_error
 from gscompress.ops.icp import ICP, Cloud, Stages
-from gscompress.pipeline.align import log_cloud
+from gscompress.pipeline.aligning import log_cloud
 from gscompress.pipeline.evaluate import evaluate_log
 from gscompress.pipeline.merge import merge_logs
 from gscompress.threads import use_threads

@@ -174,7 +174,7 @@ def render_set(
     sequence, at the log's working size or the sequence's full size."""
     from gscompress.datasets import open_sequence
     from gscompress.io.mcap_log import TOPIC_POSE
-    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
+    from gscompress.pipeline.logs import frames_with_poses, open_log_sequence
 
     with LogReader(log) as reader:
         meta = reader.metadata

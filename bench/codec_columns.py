@@ -24,7 +24,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io import compact as codec
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log
-from gscompress.pipeline.offline import rewrite_map
+from gscompress.pipeline.logs import rewrite_map
 
 VARIANTS: dict[str, tuple[str, int, str]] = {
     "colour, linear 8 bits": ("sh_dc", 8, "linear"),

@@ -26,7 +26,7 @@ from gscompress.camera import invert_transform, rotation_angle_deg
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, LogReader
 from gscompress.io.trajectory import nearest_times
 from gscompress.ops.align import transform_error
-from gscompress.pipeline.evaluate import POSE_MATCH_TOLERANCE_NS
+from gscompress.pipeline.logs import POSE_MATCH_TOLERANCE_NS
 
 MIN_TURN_DEG, MIN_MOVE_M = 0.1, 1e-3
 

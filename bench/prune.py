@@ -14,7 +14,7 @@ For each sequence (default: the synthetic room, made here), one `gsc slam` log (
   keep ratio `inrun` prunes to its count.
 
 Every map is rendered at the log's estimated poses of the frames that are NOT keyframes (the
-refinement's views are the keyframes, `gscompress.pipeline.refine.KEYFRAME_RULE`) and scored
+refinement's views are the keyframes, `gscompress.pipeline.logs.KEYFRAME_RULE`) and scored
 against the sequence: mean PSNR, SSIM and (with `--lpips`) LPIPS. Writes `prune.json` per
 sequence and prints one Markdown table row per map.
 
@@ -40,7 +40,8 @@ import numpy as np
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader, read_map, seconds_to_ns
 from gscompress.pipeline import evaluate_log, prune_log, slam_file
-from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
+from gscompress.pipeline.logs import recorded_keyframes
+from gscompress.pipeline.refining import LogRefiner, RefineOptions
 
 
 def off_keyframes(log: Path, keyframe_ns: set[int], seq: Path, lpips: bool) -> dict[str, Any]:

@@ -49,7 +49,7 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, merge_logs, prune_log, slam_file
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.slam.system import PHASES
 

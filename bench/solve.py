@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.io.mcap_log import LogReader, seconds_to_ns
-from gscompress.pipeline.refine import recorded_keyframes
+from gscompress.pipeline.logs import recorded_keyframes
 
 CHOICES = {
     "solve": ["--solve"],

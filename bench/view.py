@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.gaussians import GaussianMap
-from gscompress.pipeline.offline import rewrite_map
+from gscompress.pipeline.logs import rewrite_map
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_SOURCE = ROOT / "bench_out" / "codec" / "icl-living1.mcap"

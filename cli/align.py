@@ -105,7 +105,8 @@ def align(
       gsc share a.mcap a_share.mcap --align-to b.mcap   (a share already in B's frame)
     """
     from gscompress.ops.align import AlignOptions
-    from gscompress.pipeline.align import ON_FRAMES, align_logs
+    from gscompress.pipeline.align import align_logs
+    from gscompress.pipeline.aligning import ON_FRAMES
 
     check_recording_seq(recording, seq)
     options = AlignOptions(voxel=voxel, min_overlap=min_overlap, seed=seed, icp=icp)

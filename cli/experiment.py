@@ -17,8 +17,8 @@ from gscompress.pipeline.experiment import (
 )
 from gscompress.pipeline.experiment.protocol import FULL_STUDY, PROTOCOLS, protocol_of
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.offline import REFERENCE_FORMATS
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
+from gscompress.pipeline.share.formats import REFERENCE_FORMATS
 from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (

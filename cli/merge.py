@@ -12,7 +12,7 @@ from click.core import ParameterSource
 from gscompress.ops.merge import RESOLVE, MergeOptions
 from gscompress.pipeline import merge_logs
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (

@@ -538,7 +538,8 @@ def map_refine_options(f: F) -> F:
 
 def _refine_options(f: F, anisotropic_help: str) -> F:
     """`refine_options`, with this help of `--anisotropic`."""
-    from gscompress.pipeline.refine import DEFAULT_LR_FINAL, KEYFRAME_RULE  # (no torch yet)
+    from gscompress.pipeline.logs import KEYFRAME_RULE  # (neither loads torch)
+    from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 
     f = device_option(f)
     f = recording_options(f)
@@ -574,7 +575,7 @@ def log_refiner(
     anisotropic: bool = False,
     recording: Any = None,
 ) -> Any:
-    """The `gscompress.pipeline.refine.LogRefiner` that `refine_options` ask for (drawing on
+    """The `gscompress.pipeline.refining.LogRefiner` that `refine_options` ask for (drawing on
     `bar`, or on its "refine" phase when it is `Phases`; a recording read with `recording`), or
     None for no refinement.
 
@@ -587,7 +588,7 @@ def log_refiner(
         return None
     if seq is None:
         raise click.UsageError("--refine needs the sequence the log was made from: pass --seq")
-    from gscompress.pipeline.refine import LogRefiner, RefineOptions
+    from gscompress.pipeline.refining import LogRefiner, RefineOptions
 
     options = RefineOptions(
         iters, device=device, seed=seed, anisotropic=anisotropic, recording=recording

@@ -217,7 +217,7 @@ def share(
         if keyframes:
             if seq is None:
                 raise click.UsageError("--keyframes takes the frames from --seq: pass it")
-            from gscompress.pipeline.refine import carried_keyframes
+            from gscompress.pipeline.logs import carried_keyframes
 
             carry = carried_keyframes(src, keyframes, seq, recording)
         common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
@@ -225,7 +225,7 @@ def share(
                                       device=device, command=command_line(),
                                       force=force, spread=spread, ids=ids)  # fmt: skip
         if solve:
-            from gscompress.pipeline.solve import share_solved
+            from gscompress.pipeline.share.solve import share_solved
 
             result = share_solved(
                 src, dst, budget, codec=codec if given["codec"] else None,

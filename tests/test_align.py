@@ -496,10 +496,10 @@ def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
     """With the target's frames, a registration refused for too few agreeing feature matches
     stands when, refined on the frames, the source draws them at most twice as badly as the
     target's own map; a registration refused for anything else is refused as before."""
-    import gscompress.pipeline.align as pipeline_align
+    import gscompress.pipeline.aligning as aligning
 
     source, target, T = logs
-    found = align_clouds(*(pipeline_align.log_cloud(p)[0] for p in (source, target)))
+    found = align_clouds(*(aligning.log_cloud(p)[0] for p in (source, target)))
     few = AlignOptions(min_inliers=10**6)  # (so that the feature matches alone refuse it)
     refined = T.copy()  # (what the frames make of it, stood in for: 3 mm off)
     refined[:3, 3] += [0.003, 0.0, 0.0]
@@ -508,22 +508,22 @@ def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
         return refined, {"views": 3, "loss": loss, "target_loss": 1.0, "change_cm": 0.0,
                          "change_deg": 0.0, "seq": "seq"}  # fmt: skip
 
-    monkeypatch.setattr(pipeline_align, "refined_on_frames", on_frames)
+    monkeypatch.setattr(aligning, "refined_on_frames", on_frames)
     seq = tmp_path  # (any folder: the frames are stood in for above)
     if accepted:
-        T_out, record = pipeline_align.align_logs_transform(source, target, options=few, seq=seq)
+        T_out, record = aligning.align_logs_transform(source, target, options=few, seq=seq)
         assert record["refused"] == "" and "too few feature matches" in record["on_frames"][
             "overruled"]  # fmt: skip
         assert record["on_frames"]["surface_kept"] >= 0.8
         np.testing.assert_allclose(T_out, refined)
     else:
         with pytest.raises(AlignmentError, match=r"too few feature matches agree.*; .*frames"):
-            pipeline_align.align_logs_transform(source, target, options=few, seq=seq)
+            aligning.align_logs_transform(source, target, options=few, seq=seq)
     with pytest.raises(AlignmentError, match="too few feature matches"):  # (no frames: refused)
-        pipeline_align.align_logs_transform(source, target, options=few)
+        aligning.align_logs_transform(source, target, options=few)
     little = AlignOptions(min_overlap=0.99, min_inliers=10**6)  # (another fault: refused)
     with pytest.raises(AlignmentError, match="too little overlap"):
-        pipeline_align.align_logs_transform(source, target, options=little, seq=seq)
+        aligning.align_logs_transform(source, target, options=little, seq=seq)
     assert found.refused == ""  # (with the default thresholds the registration stands)
 
 
@@ -533,7 +533,8 @@ def test_frames_that_pull_the_source_off_the_surfaces_are_not_taken(
 ) -> None:
     """A refinement that leaves less than `SURFACE_KEPT` of the registration's overlap keeps the
     registration's transform, and cannot vouch for a registration refused alone."""
-    import gscompress.pipeline.align as pipeline_align
+    import gscompress.pipeline.aligning as aligning
+    from gscompress.pipeline.align import write_transform_file
 
     source, target, T = logs
     off = T.copy()
@@ -543,13 +544,13 @@ def test_frames_that_pull_the_source_off_the_surfaces_are_not_taken(
         return off, {"views": 3, "loss": 0.5, "target_loss": 1.0, "change_cm": 17.3,
                      "change_deg": 0.0, "seq": "seq"}  # fmt: skip
 
-    monkeypatch.setattr(pipeline_align, "refined_on_frames", on_frames)
-    T_out, record = pipeline_align.align_logs_transform(source, target, seq=tmp_path)
+    monkeypatch.setattr(aligning, "refined_on_frames", on_frames)
+    T_out, record = aligning.align_logs_transform(source, target, seq=tmp_path)
     assert record["on_frames"]["kept_registration"] and record["on_frames"]["surface_kept"] < 0.8
     assert transform_error(T_out, T)[0] < 0.01  # (the registration's)
     out = tmp_path / "T.txt"
-    pipeline_align.write_transform_file(out, T_out, record)
+    write_transform_file(out, T_out, record)
     assert "kept the registration" in out.read_text()
     few = AlignOptions(min_inliers=10**6)
     with pytest.raises(AlignmentError, match="leaves its surfaces"):
-        pipeline_align.align_logs_transform(source, target, options=few, seq=tmp_path)
+        aligning.align_logs_transform(source, target, options=few, seq=tmp_path)

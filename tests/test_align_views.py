@@ -113,7 +113,7 @@ def test_an_alignment_reports_its_registration_and_each_iteration_on_the_frames(
 ) -> None:
     """`gsc align`'s bar: the registration as it starts, then each iteration on the frames."""
     from gscompress.ops.align_views import VIEW_ALIGN
-    from gscompress.pipeline.align import ON_FRAMES, REGISTRATION, align_logs_transform
+    from gscompress.pipeline.aligning import ON_FRAMES, REGISTRATION, align_logs_transform
 
     guess = tmp_path / "guess.txt"
     np.savetxt(guess, np.eye(4))

@@ -24,7 +24,7 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import read_ply
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.pipeline import log_info, prune_log, share_log
-from gscompress.pipeline.offline import ShareCut
+from gscompress.pipeline.share.cut import ShareCut
 from gscompress.selection import select_count, strategy_scores, top_k
 
 

@@ -147,12 +147,12 @@ def test_share_whose_ply_cannot_be_written_leaves_no_mcap(log_path, tmp_path, mo
     read-only mount that passes the permission check) takes the fresh MCAP with it."""
     import errno
 
-    from gscompress.pipeline import offline
+    from gscompress.pipeline import share
 
     def refuse(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system", str(tmp_path / "s.ply"))
 
-    monkeypatch.setattr(offline, "write_ply", refuse)
+    monkeypatch.setattr(share, "write_ply", refuse)
     r = gsc("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.ply")
     assert r.exit_code == 1 and r.output == f"Error: {tmp_path / 's.ply'}: Read-only file system\n"
     assert list(tmp_path.iterdir()) == [log_path]
@@ -653,7 +653,7 @@ def test_format_shares_send_the_whole_map_in_each_format(log_path, tmp_path):
 
     from gscompress.errors import InputError
     from gscompress.io.sog import splat_transform
-    from gscompress.pipeline.offline import format_share
+    from gscompress.pipeline.share.formats import format_share
 
     full = read_map(log_path)
     sizes = {}

@@ -336,7 +336,7 @@ def test_foxglove_layout_names_our_topics_and_the_importance_field():
 def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, seq_dir, caplog):
     import logging
 
-    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.evaluate"):
+    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.logs"):
         evaluate_log(gt_log, seq_dir, every=6, lpips=False)
         assert "enlarges" not in caplog.text
         r = evaluate_log(gt_log, seq_dir, every=6, size=(128, 96), lpips=False)
@@ -348,7 +348,7 @@ def test_another_scene_under_the_log_sequences_name_is_refused(gt_log, tmp_path)
     other = write_synthetic_sequence(tmp_path / "room", 6, (64, 48), seed=7)
     with pytest.raises(InputError, match="was not recorded on this room: its first frame differs"):
         evaluate_log(gt_log, other, lpips=False)
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     with pytest.raises(InputError, match="was not recorded on this room"):
         score_file(gt_log, tmp_path / "s.mcap", other)
@@ -536,7 +536,7 @@ def test_a_finished_run_logs_its_map_scored_from_every_pose_of_the_run(gt_log, s
     map drawn at every pose of the run, the run's sigma_d); without it, the sums accumulated
     while the map grew, which differ."""
     from gscompress.io.mcap_log import read_map
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     rescored = tmp_path / "rescored.mcap"
     score_file(gt_log, rescored, seq_dir)
@@ -561,7 +561,7 @@ def test_a_score_of_a_foreign_ply_is_posed_at_the_ground_truth_and_has_no_ate(
 ):
     from gscompress.io.mcap_log import read_map
     from gscompress.io.ply import write_ply
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     ply = write_ply(read_map(gt_log), tmp_path / "foreign.ply", importance=False)
     scored = tmp_path / "scored.mcap"

@@ -27,8 +27,8 @@ from gscompress.pipeline.experiment import (
     resolve_settings,
 )
 from gscompress.pipeline.experiment.protocol import FULL_STUDY, PROTOCOLS, reference_formats
-from gscompress.pipeline.experiment.report import curve_at
-from gscompress.pipeline.offline import smallest_share_bytes
+from gscompress.pipeline.experiment.results import curve_at
+from gscompress.pipeline.share.cut import smallest_share_bytes
 from gscompress_cli.main import cli
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -189,7 +189,7 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     refined poses; each B map starts at B's poses on B's frames, at A's on A's, and on all
     frames at its own where it has them and A's elsewhere."""
     from gscompress.io.trajectory import read_tum_trajectory
-    from gscompress.pipeline.evaluate import pose_source
+    from gscompress.pipeline.logs import pose_source
 
     _seq, out, _result = experiment
     rows = json.loads((out / "results.json").read_text())
@@ -757,7 +757,7 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
     assert {"registration_error_cm", "drift_cm"} <= aligned["on_frames"].keys()
     # cross-agent scoring: B's map on A's frames starts at A's poses moved by the estimate
     from gscompress.io.trajectory import read_tum_trajectory
-    from gscompress.pipeline.evaluate import pose_source
+    from gscompress.pipeline.logs import pose_source
 
     start = read_tum_trajectory(out / "runs" / "s0_pwas_0p2_agent_b_xeval_start_a.txt")
     poses_a = pose_source(out / rows["agent A (first part)"]["log"]).T_world_cam

@@ -14,7 +14,7 @@ from gscompress.io.mcap_log import LogMetadata, LogWriter
 from gscompress.ops import fold as fold_module
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.fold import FOLD_REACH, Folding, fold, fold_groups, moment_match
-from gscompress.pipeline.offline import ShareCut
+from gscompress.pipeline.share.cut import ShareCut
 from gscompress.selection import select_by, select_count, selection_scores, top_k
 from gscompress.threads import use_threads
 

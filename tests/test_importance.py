@@ -123,7 +123,7 @@ def test_gsc_score_ply_and_mcap(synth_sequence, tmp_path):
     assert r.exit_code == 0, r.output
     again = read_map(tmp_path / "t.mcap")
     assert np.all(again.importance_weight <= scored.importance_weight + 1e-6)
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     calls: list[tuple[int, int]] = []  # what the progress bar is given: views done, of how many
     score_file(tmp_path / "m.ply", tmp_path / "u.mcap", synth_sequence, frames="1:6:2",
@@ -177,7 +177,7 @@ def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(synth_sequence, tmp_
 
     from gscompress.io.trajectory import write_tum_trajectory
     from gscompress.pipeline import share_log, slam_file
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     seq = tmp_path / "nogt"  # no ground truth: the run's world frame is its first camera
     shutil.copytree(synth_sequence, seq)

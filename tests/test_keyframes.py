@@ -23,7 +23,7 @@ from gscompress.io.keyframes import (
 )
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pose_message
 from gscompress.pipeline import evaluate_log, merge_logs, share_log, slam_file
-from gscompress.pipeline.refine import carried_keyframes
+from gscompress.pipeline.logs import carried_keyframes
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow

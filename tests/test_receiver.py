@@ -12,8 +12,8 @@ from gscompress.camera import Intrinsics, make_transform
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
-from gscompress.pipeline.offline import share_log
-from gscompress.pipeline.receiver import read_request, unseen_ids
+from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.receiver import read_request, unseen_ids
 from gscompress.selection import top_k, top_k_first
 from gscompress_cli.main import cli
 

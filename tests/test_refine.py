@@ -14,12 +14,12 @@ from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
 from gscompress.pipeline import evaluate_log, prune_log, share_log
-from gscompress.pipeline.refine import (
+from gscompress.pipeline.logs import recorded_keyframes
+from gscompress.pipeline.refining import (
     PSEUDO_VIEWS,
     LogRefiner,
     RefineOptions,
     pseudo_poses,
-    recorded_keyframes,
     teacher_views,
 )
 from gscompress.selection import select_top
@@ -170,7 +170,7 @@ def test_an_anisotropic_cut_folds_into_the_group_covariance(run: dict[str, Path]
     """Folding into an anisotropic pool keeps each group's moment-matched covariance: a kept
     Gaussian that absorbs neighbours along a surface becomes elongated, where the isotropic
     fold keeps only the trace."""
-    from gscompress.pipeline.offline import cut_map, cut_pool
+    from gscompress.ops.fold import cut_map, cut_pool
 
     full = read_map(run["log"])
     scores = full.importance_sum / np.maximum(full.importance_weight, 1e-12)
@@ -216,7 +216,7 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
     out."""
     from dataclasses import replace
 
-    from gscompress.pipeline.offline import PROBE_ITERS
+    from gscompress.pipeline.share.cut import PROBE_ITERS
 
     class Turning:
         anisotropic = True

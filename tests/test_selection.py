@@ -163,7 +163,7 @@ def test_a_spread_share_records_it_and_sends_the_places_a_plain_one_leaves(tmp_p
 
     from gscompress.io.mcap_log import LogMetadata, LogReader
     from gscompress.io.ply import write_ply
-    from gscompress.pipeline.offline import share_log
+    from gscompress.pipeline.share import share_log
 
     g = random_map(200, seed=6)
     means = g.means.copy()

@@ -101,14 +101,14 @@ def test_a_resumes_summary_gives_the_speed_of_the_frames_it_ran(
 def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
     seq_dir_8: Path, tmp_path: Path
 ) -> None:
-    from gscompress.pipeline.slam_run import _resume_run
+    from gscompress.pipeline.slam_run.start import resume_run
 
     config = tmp_path / "frames.yaml"
     config.write_text(
         "preset: tiny\ncheckpoint_every: 2\nmapping:\n  final_iters: 3\n  final_views: frames\n"
     )
     out = interrupted(seq_dir_8, tmp_path / "run.mcap", config_path=config)
-    run = _resume_run(seq_dir_8, out, "cpu", None)
+    run = resume_run(seq_dir_8, out, "cpu", None)
     assert run.start == 3 and [v.index for v in run.system.views] == [0, 1, 2]
     assert [v.index for v in run.system.keyframes] == [0, 2]
     fresh = SlamSystem(run.config, run.system.intrinsics, total_frames=FRAMES)
@@ -258,7 +258,7 @@ def test_a_log_from_before_the_fingerprint_and_its_resumes_file_are_one_run(
 
     from gscompress.gaussians import random_map
     from gscompress.io.mcap_log import LogMetadata, LogWriter
-    from gscompress.pipeline.slam_run import _furthest
+    from gscompress.pipeline.slam_run.start import _furthest
 
     def log(path: Path, map_at: int, **results: object) -> Path:
         meta = LogMetadata(sequence="room", frames="all", config={"seed": 0}, results=results)

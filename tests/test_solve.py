@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from gscompress.errors import BudgetError
 from gscompress.io.mcap_log import LogReader, read_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.solve import CANDIDATES, share_solved, solve_share
+from gscompress.pipeline.share.solve import CANDIDATES, share_solved, solve_share
 from gscompress_cli.main import cli
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`

@@ -21,7 +21,7 @@ from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.budget import Budget
 from gscompress.ops.fold import fold
-from gscompress.pipeline.offline import share_log
+from gscompress.pipeline.share import share_log
 from gscompress.selection import select_top
 from gscompress.view import cuts, scene
 from gscompress.view.source import MapSource

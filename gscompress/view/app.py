@@ -22,7 +22,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import CODECS, DEFAULT_SHARE_CODEC
 from gscompress.io.mcap_log import decoded_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.offline import ShareCut, smallest_share_bytes
+from gscompress.pipeline.share.cut import ShareCut, smallest_share_bytes
 from gscompress.selection import STRATEGIES
 from gscompress.view import cuts, scene
 from gscompress.view.server_render import Layer, ServerRenderer
@@ -597,7 +597,7 @@ class MapViewer:
     # ------------------------------------------------------------------ buttons
 
     def _on_solve(self, *_args: Any) -> None:
-        from gscompress.pipeline.solve import solve_share
+        from gscompress.pipeline.share.solve import solve_share
 
         budget = Budget.parse(f"{int(self.budget.value)}kB")
         self._say(f"solving for {budget} (rendering candidates)...")

@@ -16,7 +16,9 @@ from gscompress.io.files import check_output
 from gscompress.io.map_files import write_map_file
 from gscompress.io.mcap_log import LogMetadata
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.offline import ShareCut, prune_log, share_log
+from gscompress.pipeline.prune import prune_log
+from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.cut import ShareCut
 from gscompress.selection import select_top
 
 SHARE_CODECS = tuple((codec, sums) for codec in reversed(CODECS) for sums in sums_choices(codec))

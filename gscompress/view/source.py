@@ -18,7 +18,7 @@ from gscompress.io.mcap_log import (
     LogMetadata,
     LogReader,
 )
-from gscompress.pipeline.refine import keyframe_positions, recorded_keyframes
+from gscompress.pipeline.logs import keyframe_positions, recorded_keyframes
 
 
 @dataclass

@@ -60,7 +60,7 @@ def start_poses(
         (times [N] int64 ns, camera-to-world poses [N, 4, 4]) in time order.
     """
     from gscompress.io.trajectory import nearest_times
-    from gscompress.pipeline.evaluate import POSE_MATCH_TOLERANCE_NS, pose_source
+    from gscompress.pipeline.logs import POSE_MATCH_TOLERANCE_NS, pose_source
 
     times, poses, _, _ = pose_source(other_log)
     if T_own_other is not None:

@@ -184,7 +184,7 @@ def _share_job(
     sums: bool = True,
     ids: bool = SHARE_IDS,
 ) -> dict[str, Any]:
-    from gscompress.pipeline.offline import share_log
+    from gscompress.pipeline.share import share_log
 
     # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
     return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
@@ -195,13 +195,13 @@ def _share_job(
 def _rescore_job(
     path: Path, source: Path, seq: Path, sigma_d: float | None, device: str = "auto"
 ) -> dict[str, Any]:
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     return score_file(source, path, seq, sigma_d=sigma_d, device=device, force=True)
 
 
 def _reference_job(path: Path, source: Path, fmt: str) -> dict[str, Any]:
-    from gscompress.pipeline.offline import format_share
+    from gscompress.pipeline.share.formats import format_share
 
     return format_share(source, path, fmt, force=True)
 

@@ -12,8 +12,9 @@ from gscompress.errors import InputError, OptionError
 from gscompress.io.codec import SHARE_IDS
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.offline import REFERENCE_FORMATS, smallest_share_bytes
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
+from gscompress.pipeline.share.cut import smallest_share_bytes
+from gscompress.pipeline.share.formats import REFERENCE_FORMATS
 from gscompress.selection import STRATEGIES, is_fraction
 from gscompress.slam.views import REFINE_VIEWS
 
@@ -140,7 +141,7 @@ class ExperimentSettings:
             against the fixed map (0: no cross-agent scoring, each run scored on its own
             frames only).
         references: formats of `REFERENCE_FORMATS` in which A's whole map is also sent to B
-            on the sweep seeds (`gscompress.pipeline.offline.format_share`: our fp32 codec,
+            on the sweep seeds (`gscompress.pipeline.share.formats.format_share`: our fp32 codec,
             SPZ, SOG), each received like a share: the field's points on the rate-distortion
             plot. SOG is left out where splat-transform is missing (`reference_formats`).
         recording: when the sequence is a recording, its topics, pairing and ground truth
@@ -268,7 +269,7 @@ class ExperimentSettings:
 
 
 FOR_B = "-for-b"
-"""Suffix of a strategy whose shares are cut for B (`gscompress.pipeline.receiver`)."""
+"""Suffix of a strategy whose shares are cut for B (`gscompress.pipeline.share.receiver`)."""
 
 
 RESCORED: dict[str, float | None] = {"pwas-inf": math.inf, "pwas-final": None}

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -18,11 +19,17 @@ from gscompress.io.mcap_log import (
     LogMetadata,
     LogReader,
     LogWriter,
+    Trajectory,
     seconds_to_ns,
 )
 from gscompress.io.ply import read_ply
-from gscompress.pipeline.logs import trajectory
-from gscompress.pipeline.offline import rewrite_map
+from gscompress.pipeline.logs import (
+    frames_with_poses,
+    open_log_sequence,
+    pose_source,
+    rewrite_map,
+    trajectory,
+)
 
 log = logging.getLogger(__name__)
 
@@ -62,39 +69,15 @@ def score_file(
         InputError: a log without poses whose world frame is its first camera (the ground
             truth is not in that frame; pass `poses`).
     """
-    from gscompress.datasets import open_sequence
     from gscompress.importance import resolve_sigma_d, sigma_d_value
-    from gscompress.ops.score import score_map
-    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
     from gscompress.render import resolve_device
 
     check_output(dst, [p for p in (src, seq, poses) if p is not None], force, ".mcap")
     if sigma_d is not None and not sigma_d > 0:
         raise InputError(f"`sigma_d` must be above 0 (or inf), got {sigma_d}", options=("sigma_d",))
-    is_log = Path(src).suffix.lower() != ".ply"
-    if is_log:
-        with LogReader(src) as reader:
-            reader.require_snapshots()
-            meta = reader.metadata
-            found = trajectory(reader)
-            log_ns, log_poses = found.times_ns, found.T_world_cam
-        frames = frames or meta.frames or "all"
-        sequence = open_log_sequence(seq, src, meta, frames, size, recording)
-    else:
-        frames = frames or "all"
-        sequence = open_sequence(seq, size=size, frames=frames, recording=recording)
-    if poses is None and is_log and len(log_ns):
-        positions, index = frames_with_poses(sequence, log_ns, src)
-        stamps, T_world_cams = np.asarray(sequence.timestamps)[positions], log_poses[index]
-        source = meta.pose_origin()
-    else:
-        if poses is None and is_log and meta.world_frame.startswith("first-camera:"):
-            raise InputError(
-                f"{src} has no poses and its world frame is its run's first camera, not the "
-                f"ground truth of {sequence.name}: pass --poses TRAJ.txt (in its frame)"
-            )
-        stamps, T_world_cams = view_poses(sequence, poses)
-        source = Path(poses).name if poses else POSES_GROUND_TRUTH
+    opened = _open_input(src, seq, frames, size, recording)
+    sequence = opened.sequence
+    stamps, T_world_cams, source = _poses_to_score_from(src, poses, opened)
     skipped = len(sequence) - len(stamps)
     if skipped:
         log.warning("%d of the %d frames selected have no pose (%s): scored from the other %d",
@@ -105,29 +88,123 @@ def score_file(
 
     views = itertools.count(1)
     on_view = None if progress is None else lambda _: progress(next(views), len(T_world_cams))
-
-    def score(gaussians: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
-        scored = score_map(
-            gaussians, T_world_cams, sequence.intrinsics, sigma_d=used_sigma_d, backend=backend,
-            device=torch_device, progress=on_view,
-        )  # fmt: skip
-        seen = int(np.count_nonzero(scored.importance_weight > 0))
-        results = {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen,
-                   "sigma_d": sigma_d_value(used_sigma_d)}  # fmt: skip
-        return scored, {**results, "frames_without_pose": skipped, "poses": source}
-
+    score = functools.partial(
+        _scored, T_world_cams=T_world_cams, intrinsics=sequence.intrinsics, sigma_d=used_sigma_d,
+        backend=backend, device=torch_device, progress=on_view,
+        extra={"frames_without_pose": skipped, "poses": source},
+    )  # fmt: skip
     operation = {
         "name": "score",
         "sequence": sequence.name,
-        "frames": frames,
+        "frames": opened.frames,
         "poses": source,
         "sigma_d": "auto" if sigma_d is None else sigma_d_value(sigma_d),
         "size": [sequence.intrinsics.width, sequence.intrinsics.height],
     }
-    if is_log:
+    if opened.meta is not None:
         return rewrite_map(src, dst, operation, score, command=command, force=force)
+    return _scored_map_log(src, dst, score, operation, opened, (stamps, T_world_cams),
+                           command, force)  # fmt: skip
+
+
+class _Opened(NamedTuple):
+    """What `score_file` scores from: the sequence, its frame subset, and a log's metadata and
+    trajectory (both None for a PLY)."""
+
+    sequence: Any
+    frames: str
+    meta: LogMetadata | None
+    found: Trajectory | None
+
+
+def _open_input(
+    src: str | Path,
+    seq: str | Path,
+    frames: str | None,
+    size: tuple[int, int] | None,
+    recording: Any,
+) -> _Opened:
+    """The sequence as a log's run had it (`open_log_sequence`), or for a PLY as asked (every
+    frame, the sequence's own size by default), with the log's metadata and trajectory."""
+    from gscompress.datasets import open_sequence
+
+    if Path(src).suffix.lower() != ".ply":
+        with LogReader(src) as reader:
+            reader.require_snapshots()
+            meta = reader.metadata
+            found = trajectory(reader)
+        frames = frames or meta.frames or "all"
+        sequence = open_log_sequence(seq, src, meta, frames, size, recording)
+        return _Opened(sequence, frames, meta, found)
+    frames = frames or "all"
+    sequence = open_sequence(seq, size=size, frames=frames, recording=recording)
+    return _Opened(sequence, frames, None, None)
+
+
+def _poses_to_score_from(
+    src: str | Path, poses: str | Path | None, opened: _Opened
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """(timestamps, camera-to-world poses, where they came from) of the views to score from:
+    the log's own poses of its frames that have one unless `poses` is given, else
+    `view_poses`'s.
+
+    Raises:
+        InputError: a log without poses whose world frame is its first camera.
+    """
+    sequence, meta, found = opened.sequence, opened.meta, opened.found
+    if poses is None and meta is not None and found is not None and len(found.times_ns):
+        positions, index = frames_with_poses(sequence, found.times_ns, src)
+        stamps, T_world_cams = np.asarray(sequence.timestamps)[positions], found.T_world_cam[index]
+        return stamps, T_world_cams, meta.pose_origin()
+    if poses is None and meta is not None and meta.world_frame.startswith("first-camera:"):
+        raise InputError(
+            f"{src} has no poses and its world frame is its run's first camera, not the "
+            f"ground truth of {sequence.name}: pass --poses TRAJ.txt (in its frame)"
+        )
+    stamps, T_world_cams = view_poses(sequence, poses)
+    return stamps, T_world_cams, Path(poses).name if poses else POSES_GROUND_TRUTH
+
+
+def _scored(
+    gaussians: GaussianMap,
+    T_world_cams: np.ndarray,
+    intrinsics: Any,
+    sigma_d: Any,
+    backend: str,
+    device: Any,
+    progress: Callable[[Any], object] | None,
+    extra: dict[str, Any],
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """`gaussians` PWAS-scored from the views (`score_map`), and the results: views, Gaussians,
+    how many were seen, the `sigma_d` used, then `extra`."""
+    from gscompress.importance import sigma_d_value
+    from gscompress.ops.score import score_map
+
+    scored = score_map(
+        gaussians, T_world_cams, intrinsics, sigma_d=sigma_d, backend=backend, device=device,
+        progress=progress,
+    )  # fmt: skip
+    seen = int(np.count_nonzero(scored.importance_weight > 0))
+    results = {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen,
+               "sigma_d": sigma_d_value(sigma_d)}  # fmt: skip
+    return scored, {**results, **extra}
+
+
+def _scored_map_log(
+    src: str | Path,
+    dst: str | Path,
+    score: Callable[[GaussianMap], tuple[GaussianMap, dict[str, Any]]],
+    operation: dict[str, Any],
+    opened: _Opened,
+    views: tuple[np.ndarray, np.ndarray],
+    command: str,
+    force: bool,
+) -> dict[str, Any]:
+    """A PLY's map scored (`score`) as a new log: the calibration, the poses of the `views`
+    (timestamps and poses) and the scored map."""
+    sequence, (stamps, T_world_cams) = opened.sequence, views
     scored, results = score(read_ply(src))
-    meta = LogMetadata(sequence=sequence.name, frames=frames).derive(operation, src, command)
+    meta = LogMetadata(sequence=sequence.name, frames=opened.frames).derive(operation, src, command)
     meta.results = results
     with LogWriter(dst, meta, inputs=[src], force=force) as out:
         out.write_calibration(sequence.intrinsics, 0)
@@ -141,13 +218,12 @@ def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.
     """(timestamps [M], camera-to-world [M, 4, 4]) of a sequence's selected frames.
 
     From the sequence's ground truth, or from `poses` (a TUM trajectory, or a log's estimated
-    poses) matched to every frame by time (`gscompress.pipeline.evaluate.frames_with_poses`).
+    poses) matched to every frame by time (`gscompress.pipeline.logs.frames_with_poses`).
 
     Raises:
         DatasetError: no ground truth (without `poses`), or a frame without a pose in `poses`.
     """
     from gscompress.errors import DatasetError
-    from gscompress.pipeline.evaluate import frames_with_poses, pose_source
 
     if poses is None:
         if not sequence.has_ground_truth:

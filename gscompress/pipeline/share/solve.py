@@ -24,7 +24,10 @@ from gscompress.io.codec import CODECS, SHARE_IDS, sums_choices
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, decoded_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.offline import MapRefiner, ShareCut, share_log
+from gscompress.ops.refine import MapRefiner
+from gscompress.pipeline.logs import spread_keyframes
+from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.cut import ShareCut
 
 log = logging.getLogger(__name__)
 
@@ -153,8 +156,6 @@ def _views(
 ) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[np.ndarray], Any]:
     """Poses of `views` keyframes spread over the log, with their images and valid-depth masks
     when `seq` is given (else None and all-pixel masks), and the intrinsics."""
-    from gscompress.pipeline.refine import spread_keyframes
-
     chosen = spread_keyframes(src, views, seq, "the solver", recording)
     if chosen.frames is None:
         shape = (chosen.intrinsics.height, chosen.intrinsics.width)
