@@ -60,8 +60,8 @@ def _plan_text(plan: dict[str, Any], s: ExperimentSettings) -> str:
     )
     return (
         f"experiment: {plan['steps']} steps ({study}; protocol "
-        f"{protocol_of(s.fold, s.merge_how)}), {took} of rendering on this machine as it is "
-        "now (one render timed now; starting, writing and LPIPS not counted; steps a rerun "
+        f"{protocol_of(s.fold, s.merge_how)}), {took} of SLAM-like iterations on this machine "
+        "as it is now (one timed now; starting, writing and LPIPS not counted; steps a rerun "
         "reuses take none)"
     )
 

@@ -113,3 +113,28 @@ def test_a_default_row_is_gsc_share_and_gsc_merge_run_by_hand(tmp_path: Path) ->
     every = ExperimentSettings().every  # (the experiment's evaluation: every N-th frame)
     scores = gsc("eval", tmp_path / "merged.mcap", "--seq", seq, "--every", every, "--no-lpips")
     assert scores["psnr"] == row["psnr"]
+
+
+def test_the_estimate_prices_each_kind_of_work_as_timed_on_two_frames(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Tracking-like iterations, mapping-like iterations and evaluation renders are counted
+    apart and priced apart: one kind at a second a unit and the others free gives that kind's
+    count; the pricing run maps the first frame and tracks and maps the second."""
+    from gscompress.datasets import open_sequence
+    from gscompress.pipeline.experiment import estimate as module
+
+    first = _settings(monkeypatch, tmp_path, "--preset", "tiny")
+    _, base = resolve_settings(first)
+    work = module.plan_work(first, base, 16)
+    assert min(work.parts()) > 0
+    assert round(sum(work.parts())) == render_passes(first, base, 16)
+    write_synthetic_sequence(tmp_path / "s", frames=2, size=(32, 24))
+    sequence = open_sequence(tmp_path / "s")
+    price = module.unit_seconds(sequence, base)
+    assert min(price.parts()) > 0
+    on_two = module.plan_work(first, base, len(sequence)).parts()
+    for i, kind in enumerate(("tracking", "mapping", "renders")):
+        priced = module.Work(**{kind: 1.0})
+        monkeypatch.setattr(module, "unit_seconds", lambda *a, p=priced: p)
+        assert module.estimate(first, base, sequence, steps=18)["seconds"] == on_two[i]
