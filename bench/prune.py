@@ -87,12 +87,12 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
             out = work / f"prune_{tag}_r{refine}.mcap"
             start = time.perf_counter()
             prune_log(log, out, keep, by=by, refine=refiner if refine else None,
-                      fold_dropped=fold, force=True)  # fmt: skip
+                      fold=fold, force=True)  # fmt: skip
             seconds = time.perf_counter() - start
             fields: dict[str, Any] = {"keep": keep, "by": by, "fold": fold, "refine": refine}
             if not refine:
                 alone = work / f"prune_{tag}_maponly.mcap"
-                prune_log(log, alone, keep, by=by, map_only=True, fold_dropped=fold, force=True)
+                prune_log(log, alone, keep, by=by, map_only=True, fold=fold, force=True)
                 fields["map_only_bytes"] = alone.stat().st_size
             name = f"prune {keep:.4g} {by}" + (" folded" if fold and keep < 1 else "")
             score(name + (f" +refine {refine}" if refine else ""), out, seconds, **fields)
