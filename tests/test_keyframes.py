@@ -22,7 +22,7 @@ from gscompress.io.keyframes import (
     write_carried,
 )
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pose_message
-from gscompress.pipeline import evaluate_log, merge_logs, share_log, slam_file
+from gscompress.pipeline import evaluate_log, merge_logs, resume_slam_file, share_log, slam_file
 from gscompress.pipeline.logs import carried_keyframes
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -272,4 +272,4 @@ def test_an_injected_share_brings_its_keyframes_into_the_run(agents: dict[str, P
     scored = evaluate_log(out, seq, frames="0:5", poses_from=agents["a"], lpips=False)
     assert scored["frames_carried_left_out"] == 2
     with pytest.raises(InputError, match="afresh"):
-        slam_file(seq, out, resume=True)
+        resume_slam_file(seq, out)
