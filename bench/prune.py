@@ -40,6 +40,7 @@ import numpy as np
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader, read_map, seconds_to_ns
 from gscompress.pipeline import evaluate_log, prune_log, slam_file
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import recorded_keyframes
 from gscompress.pipeline.refining import LogRefiner, RefineOptions
 
@@ -47,7 +48,7 @@ from gscompress.pipeline.refining import LogRefiner, RefineOptions
 def off_keyframes(log: Path, keyframe_ns: set[int], seq: Path, lpips: bool) -> dict[str, Any]:
     """Mean PSNR / SSIM / LPIPS of a log's map over the frames that are not keyframes (of the
     log the map was cut from, `keyframe_ns`), at the log's own poses."""
-    result = evaluate_log(log, seq, lpips=lpips)
+    result = evaluate_log(log, seq, ImageOptions(lpips=lpips))
     frames = [f for f in result["per_frame"] if seconds_to_ns(f["timestamp"]) not in keyframe_ns]
     scores: dict[str, Any] = {"frames": len(frames), "gaussians": result["gaussians"]}
     for name in ("psnr", "ssim", "lpips"):

@@ -123,8 +123,9 @@ def run_job(job: Callable[[Path], dict[str, Any]], path: Path) -> dict[str, Any]
 def _score(log_path: Path, seq: Path, every: int, lpips: bool, device: str) -> dict[str, Any]:
     """`gsc eval` of a run on its own frames (without the per-frame list)."""
     from gscompress.pipeline.evaluate import evaluate_log
+    from gscompress.pipeline.images import ImageOptions
 
-    scores = evaluate_log(log_path, seq, every=every, lpips=lpips, device=device)
+    scores = evaluate_log(log_path, seq, ImageOptions(every=every, lpips=lpips, device=device))
     scores.pop("per_frame", None)
     return scores
 
