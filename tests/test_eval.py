@@ -1,7 +1,6 @@
 """`gsc eval` (map + trajectory metrics of a log) and the Foxglove layout in examples/."""
 
 import json
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -471,9 +470,11 @@ def test_the_union_of_two_evaluations_is_one_evaluation_of_their_frames(
     the first result's where both scored a frame."""
     from gscompress.pipeline.evaluate import union_results
 
-    score = partial(evaluate_log, gt_log, seq_dir, poses=nudged_trajectory, refine_poses=5,
-                    lpips=False)  # fmt: skip
-    first, second, whole = score(frames="0:4"), score(frames="2:6"), score(frames="0:6")
+    def score(frames: str) -> dict:
+        views = ImageOptions(frames=frames, poses=nudged_trajectory, lpips=False)
+        return evaluate_log(gt_log, seq_dir, views, refine_poses=5)
+
+    first, second, whole = score("0:4"), score("2:6"), score("0:6")
     union = union_results(first, second)
     assert union["frames_evaluated"] == whole["frames_evaluated"] == 6
     for key in ("psnr", "ssim", "depth_l1_cm"):
