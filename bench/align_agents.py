@@ -34,6 +34,7 @@ from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.merge import MergeOptions
 from gscompress.pipeline.align import align_agents
 from gscompress.pipeline.evaluate import evaluate_log
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.merge import merge_logs
 from gscompress.pipeline.share import share_log
 
@@ -86,11 +87,11 @@ def main() -> None:
         merge_logs(args.b, share, merged, seq=args.seq, iters=args.iters,
                    share_transform=transform, merge=MergeOptions(align=False),
                    force=True)  # fmt: skip
-        own = evaluate_log(merged, args.seq, lpips=False)
-        every = evaluate_log(merged, args.seq, frames="all", poses=gt_in_b, every=args.every,
-                             lpips=False)  # fmt: skip
+        own = evaluate_log(merged, args.seq, ImageOptions(lpips=False))
+        views = ImageOptions(frames="all", poses=gt_in_b, every=args.every, lpips=False)
+        every = evaluate_log(merged, args.seq, views)
         record[f"merge_{name}"] = {"b_frames": scores(own), "all_frames_gt": scores(every)}
-    b_alone = evaluate_log(args.b, args.seq, lpips=False)
+    b_alone = evaluate_log(args.b, args.seq, ImageOptions(lpips=False))
     record["b_alone"] = {"b_frames": scores(b_alone)}
     for view in ("b_frames", "all_frames_gt"):
         est, true = record["merge_est"][view]["psnr"], record["merge_true"][view]["psnr"]

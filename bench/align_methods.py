@@ -40,6 +40,7 @@ from gscompress.ops.align import AlignOptions, refine_alignment, transform_error
 from gscompress.ops.icp import ICP, Cloud, Stages
 from gscompress.pipeline.aligning import log_cloud
 from gscompress.pipeline.evaluate import evaluate_log
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.merge import merge_logs
 from gscompress.threads import use_threads
 
@@ -119,10 +120,11 @@ def run_method(name: str, args: argparse.Namespace, share: Path, clouds: tuple[C
     done = merge_logs(args.b, share, merged, seq=args.seq, iters=args.iters,
                       merge={"icp": name}, force=True)  # fmt: skip
     T = np.asarray(done.get("align_transform", np.eye(4)), np.float64)
-    on_b = evaluate_log(merged, args.seq, every=args.every, lpips=False)
+    on_b = evaluate_log(merged, args.seq, ImageOptions(every=args.every, lpips=False))
     on_a = evaluate_log(
-        merged, args.seq, frames=frames_of(args.a), every=args.every, poses_from=args.a,
-        refine_poses=args.refine_poses, lpips=False,
+        merged, args.seq, ImageOptions(frames=frames_of(args.a), every=args.every,
+                                       poses_from=args.a, lpips=False),
+        refine_poses=args.refine_poses,
     )  # fmt: skip
     local = refine_alignment(*clouds, np.eye(4), AlignOptions(icp=name)).T_target_source
     return {

@@ -24,6 +24,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io import compact as codec
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import rewrite_map
 
 VARIANTS: dict[str, tuple[str, int, str]] = {
@@ -68,8 +69,8 @@ def main() -> None:
             out = Path(tmp) / "map.mcap"
             rewrite_map(opts.log, out, {"name": "bench"}, lambda _: (gaussians, {}),
                         codec="fp32", force=True)  # fmt: skip
-            scores = evaluate_log(out, opts.seq, frames=opts.frames, every=opts.every,
-                                  lpips=False)  # fmt: skip
+            scores = evaluate_log(out, opts.seq, ImageOptions(frames=opts.frames, every=opts.every,
+                                                              lpips=False))  # fmt: skip
             return float(scores["psnr"])
 
         base = psnr(exact)

@@ -40,6 +40,7 @@ import numpy as np
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader, read_map, seconds_to_ns
 from gscompress.pipeline import evaluate_log, prune_log, slam_file
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import recorded_keyframes
 from gscompress.pipeline.refining import LogRefiner, RefineOptions
 
@@ -47,7 +48,7 @@ from gscompress.pipeline.refining import LogRefiner, RefineOptions
 def off_keyframes(log: Path, keyframe_ns: set[int], seq: Path, lpips: bool) -> dict[str, Any]:
     """Mean PSNR / SSIM / LPIPS of a log's map over the frames that are not keyframes (of the
     log the map was cut from, `keyframe_ns`), at the log's own poses."""
-    result = evaluate_log(log, seq, lpips=lpips)
+    result = evaluate_log(log, seq, ImageOptions(lpips=lpips))
     frames = [f for f in result["per_frame"] if seconds_to_ns(f["timestamp"]) not in keyframe_ns]
     scores: dict[str, Any] = {"frames": len(frames), "gaussians": result["gaussians"]}
     for name in ("psnr", "ssim", "lpips"):
@@ -87,12 +88,12 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
             out = work / f"prune_{tag}_r{refine}.mcap"
             start = time.perf_counter()
             prune_log(log, out, keep, by=by, refine=refiner if refine else None,
-                      fold_dropped=fold, force=True)  # fmt: skip
+                      fold=fold, force=True)  # fmt: skip
             seconds = time.perf_counter() - start
             fields: dict[str, Any] = {"keep": keep, "by": by, "fold": fold, "refine": refine}
             if not refine:
                 alone = work / f"prune_{tag}_maponly.mcap"
-                prune_log(log, alone, keep, by=by, map_only=True, fold_dropped=fold, force=True)
+                prune_log(log, alone, keep, by=by, map_only=True, fold=fold, force=True)
                 fields["map_only_bytes"] = alone.stat().st_size
             name = f"prune {keep:.4g} {by}" + (" folded" if fold and keep < 1 else "")
             score(name + (f" +refine {refine}" if refine else ""), out, seconds, **fields)

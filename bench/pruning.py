@@ -49,6 +49,7 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, merge_logs, prune_log, slam_file
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.slam.system import PHASES
@@ -109,7 +110,7 @@ def run_one(
         )  # fmt: skip
         cpu_s = time.process_time() - cpu0
     frames = int(result["frames"])
-    evaluation = evaluate_log(log_path, seq, lpips=False, every=opts.eval_every)
+    evaluation = evaluate_log(log_path, seq, ImageOptions(lpips=False, every=opts.eval_every))
     stats = read_stats(log_path)
     wall = float(result["seconds_per_frame"])
     record: dict[str, Any] = {k: evaluation.get(k) for k in METRICS}
@@ -209,7 +210,7 @@ def offline_bound(
         refined = work / f"offline_{name}_refined.mcap"
         merge_logs(log_path, None, refined, seq=seq, iters=opts.refine_iters,
                    lr_final=opts.lr_final, force=True)  # fmt: skip
-        evaluation = evaluate_log(refined, seq, lpips=False, every=opts.eval_every)
+        evaluation = evaluate_log(refined, seq, ImageOptions(lpips=False, every=opts.eval_every))
         out[name] = {k: evaluation.get(k) for k in ("psnr", "ssim", "gaussians")}
         out[name]["psnr_delta_db"] = round(out[name]["psnr"] - out["unpruned"]["psnr"], 3)
     return out

@@ -33,12 +33,13 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, slam_file
+from gscompress.pipeline.images import ImageOptions
 from gscompress.slam.config import resolve_config, save_config
 
 
 def evaluate(log_path: Path, seq: Path, eval_every: int = 1) -> dict[str, Any]:
     """`gsc eval`'s metrics of a SLAM log (no LPIPS), its Gaussian counts and mean phase times."""
-    metrics = evaluate_log(log_path, seq, every=eval_every, lpips=False)
+    metrics = evaluate_log(log_path, seq, ImageOptions(every=eval_every, lpips=False))
     with LogReader(log_path) as log:
         stats = [json.loads(m.data) for _, _, m in log.iter_messages([TOPIC_STATS])]
     phases = ("tracking", "densification", "mapping", "pwas", "pruning", "total")

@@ -227,31 +227,7 @@ def browser_figures(
             if server is None:
                 out["fps_orbit"] = frames_while_orbiting(page, seconds)
             else:
-                sent, began = server.frames_sent, time.perf_counter()
-                draws: list[float] = []
-                sizes: set[tuple[int, int]] = set()
-                orbiting = threading.Event()
-                orbiting.set()
-
-                def watch_frames() -> None:
-                    seen = server.frames_sent
-                    while orbiting.is_set():
-                        if server.frames_sent != seen:
-                            seen = server.frames_sent
-                            width, height, s = server.last_frame
-                            draws.append(s)
-                            sizes.add((width, height))
-                        time.sleep(0.002)
-
-                watcher = threading.Thread(target=watch_frames)
-                watcher.start()
-                browser_fps = frames_while_orbiting(page, seconds)
-                orbiting.clear()
-                watcher.join()
-                out["fps_orbit"] = (server.frames_sent - sent) / (time.perf_counter() - began)
-                out["orbit_frame_sizes"] = sorted(sizes)
-                out["orbit_draw_encode_s_median"] = statistics.median(draws) if draws else None
-                out["page_fps_three_js"] = browser_fps
+                out.update(server_orbit(server, page, seconds))
             viewer.selection.value = SELECTIONS[1]  # (as a click in its menu sets it)
             budget_s, budget_server_s = [], []
             for kb in (50, 200, 500, 100):
@@ -274,6 +250,38 @@ def browser_figures(
     finally:
         viewer.close()
     return out
+
+
+def server_orbit(server: Any, page: Any, seconds: float) -> dict[str, Any]:
+    """The server's frames while the page orbits for `seconds`: their rate, sizes and median
+    draw-and-encode time, and the page's own frame rate."""
+    sent, began = server.frames_sent, time.perf_counter()
+    draws: list[float] = []
+    sizes: set[tuple[int, int]] = set()
+    orbiting = threading.Event()
+    orbiting.set()
+
+    def watch_frames() -> None:
+        seen = server.frames_sent
+        while orbiting.is_set():
+            if server.frames_sent != seen:
+                seen = server.frames_sent
+                width, height, s = server.last_frame
+                draws.append(s)
+                sizes.add((width, height))
+            time.sleep(0.002)
+
+    watcher = threading.Thread(target=watch_frames)
+    watcher.start()
+    browser_fps = frames_while_orbiting(page, seconds)
+    orbiting.clear()
+    watcher.join()
+    return {
+        "fps_orbit": (server.frames_sent - sent) / (time.perf_counter() - began),
+        "orbit_frame_sizes": sorted(sizes),
+        "orbit_draw_encode_s_median": statistics.median(draws) if draws else None,
+        "page_fps_three_js": browser_fps,
+    }
 
 
 def cpu_model() -> str:

@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from gscompress.pipeline import evaluate_log
+from gscompress.pipeline.images import ImageOptions
 
 from .options import (
     INPUT_FILE,
@@ -101,16 +102,18 @@ def eval_command(
         result = evaluate_log(
             src,
             seq,
-            frames=None if frames is None else str(frames),
-            every=every,
-            size=size,
-            poses=poses,
-            poses_from=poses_from,
+            ImageOptions(
+                frames=None if frames is None else str(frames),
+                every=every,
+                size=size,
+                poses=poses,
+                poses_from=poses_from,
+                backend=backend,
+                device=device,
+                lpips=not no_lpips,
+                save_images=save_images,
+            ),
             refine_poses=refine_poses or 0,
-            backend=backend,
-            device=device,
-            lpips=not no_lpips,
-            save_images=save_images,
             leave_out=leave_out,
             progress=partial(advance, bar),
             recording=recording,

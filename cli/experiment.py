@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any
 
 import click
 
-from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import (
     EXECUTORS,
     MERGE_HOWS,
@@ -24,6 +24,7 @@ from gscompress.slam.views import REFINE_VIEWS
 from .options import (
     INPUT_SEQUENCE,
     BudgetParam,
+    F,
     Ratio,
     advance,
     device_option,
@@ -77,6 +78,90 @@ def _formats(value: str) -> tuple[str, ...]:
             f"unknown format {unknown[0]!r}: give none or some of {', '.join(REFERENCE_FORMATS)}"
         )
     return items
+
+
+SETTINGS_OPTIONS = (
+    "preset",
+    "config_path",
+    "budget",
+    "keep",
+    "full",
+    "seeds",
+    "sweep",
+    "sweep_seeds",
+    "references",
+    "strategies",
+    "size",
+    "frames",
+    "split",
+    "overlap",
+    "every",
+    "anchor",
+    "refine_poses",
+    "mode",
+    "merge_iters",
+    "merge_views",
+    "merge_lr_final",
+    "protocol",
+    "merge_how",
+    "fold",
+    "spread",
+    "sums",
+    "ids",
+    "no_lpips",
+    "recording",
+    "device",
+)
+"""The options of `gsc experiment` its `ExperimentSettings` are made of (`_settings`)."""
+
+
+def _settings_option(f: F) -> F:
+    """The options of `SETTINGS_OPTIONS`, passed to the command as one `ExperimentSettings`
+    named `settings` (`_settings`)."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        given = {name: kwargs.pop(name) for name in SETTINGS_OPTIONS}
+        return f(*args, settings=_settings(given), **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _settings(o: dict[str, Any]) -> ExperimentSettings:
+    """The experiment's settings from its options (`SETTINGS_OPTIONS`, by name): --full's study
+    or a first look's, and --protocol's fold and merge unless given."""
+    study = FULL_STUDY if o["full"] else {f: getattr(ExperimentSettings, f) for f in FULL_STUDY}
+    chosen = PROTOCOLS[o["protocol"]]
+    return ExperimentSettings(
+        preset=o["preset"],
+        config_path=str(o["config_path"]) if o["config_path"] else None,
+        budget=str(o["budget"]),
+        keep=o["keep"],
+        seeds=study["seeds"] if o["seeds"] is None else o["seeds"],
+        sweep=o["sweep"],
+        sweep_seeds=study["sweep_seeds"] if o["sweep_seeds"] is None else o["sweep_seeds"],
+        references=o["references"],
+        strategies=study["strategies"] if o["strategies"] is None else _comma_list(o["strategies"]),
+        size=o["size"],
+        frames=o["frames"],
+        split=o["split"],
+        overlap=o["overlap"],
+        every=study["every"] if o["every"] is None else o["every"],
+        mode=o["mode"],
+        anchor=o["anchor"],
+        refine_poses=study["refine_poses"] if o["refine_poses"] is None else o["refine_poses"],
+        merge_iters=o["merge_iters"],
+        merge_views=o["merge_views"],
+        merge_lr_final=o["merge_lr_final"],
+        merge_how=chosen["merge_how"] if o["merge_how"] is None else o["merge_how"],
+        fold=chosen["fold"] if o["fold"] is None else o["fold"],
+        spread=o["spread"],
+        sums=o["sums"],
+        ids=o["ids"],
+        lpips=not o["no_lpips"],
+        device=o["device"],
+        recording=None if o["recording"].is_default else o["recording"],
+    )
 
 
 @click.command("experiment", short_help="Run the paper's two-agent protocol: tables and plots.")
@@ -249,43 +334,15 @@ def _formats(value: str) -> tuple[str, ...]:
 @recording_options
 @device_option
 @json_option
+@_settings_option
 def experiment(
     seq: Path,
     out_dir: Path,
-    budget: Budget,
-    keep: float | None,
-    preset: str | None,
-    config_path: Path | None,
-    full: bool,
-    seeds: int | None,
-    sweep: tuple[str, ...],
-    sweep_seeds: int | None,
-    references: tuple[str, ...],
-    strategies: str | None,
-    size: tuple[int, int] | None,
-    frames: str,
-    split: str,
-    overlap: float,
-    every: int | None,
-    anchor: str,
-    refine_poses: int | None,
-    mode: str,
-    merge_iters: int,
-    merge_views: str,
-    merge_lr_final: float,
-    protocol: str,
-    merge_how: str | None,
-    fold: bool | None,
-    spread: bool,
-    sums: bool,
-    ids: bool,
+    settings: ExperimentSettings,
     jobs: int,
     executor: str,
     address: str | None,
     cpus_per_run: float | None,
-    no_lpips: bool,
-    recording: Any,
-    device: str,
     as_json: bool,
 ) -> None:
     """Run the paper's protocol on the sequence in SEQ and write its tables and plots.
@@ -332,38 +389,6 @@ def experiment(
       gsc --threads 8 experiment data/office -o exp_office --jobs 4   # 4 runs at a time
       gsc experiment /shared/office -o /shared/exp --executor ray --address auto
     """
-    study = FULL_STUDY if full else {f: getattr(ExperimentSettings, f) for f in FULL_STUDY}
-    chosen = PROTOCOLS[protocol]
-    settings = ExperimentSettings(
-        preset=preset,
-        config_path=str(config_path) if config_path else None,
-        budget=str(budget),
-        keep=keep,
-        seeds=study["seeds"] if seeds is None else seeds,
-        sweep=sweep,
-        sweep_seeds=study["sweep_seeds"] if sweep_seeds is None else sweep_seeds,
-        references=references,
-        strategies=study["strategies"] if strategies is None else _comma_list(strategies),
-        size=size,
-        frames=frames,
-        split=split,
-        overlap=overlap,
-        every=study["every"] if every is None else every,
-        mode=mode,
-        anchor=anchor,
-        refine_poses=study["refine_poses"] if refine_poses is None else refine_poses,
-        merge_iters=merge_iters,
-        merge_views=merge_views,
-        merge_lr_final=merge_lr_final,
-        merge_how=chosen["merge_how"] if merge_how is None else merge_how,
-        fold=chosen["fold"] if fold is None else fold,
-        spread=spread,
-        sums=sums,
-        ids=ids,
-        lpips=not no_lpips,
-        device=device,
-        recording=None if recording.is_default else recording,
-    )
     with progress_bar("experiment", "run", hidden=as_json) as bar:
 
         def progress(name: str, done: int, total: int) -> None:
@@ -388,19 +413,7 @@ def experiment(
                 err=True,
             )
             raise SystemExit(130) from None
-    v = result["verdicts"]
-    emit(
-        result,
-        as_json,
-        f"wrote {result['results_md']} ({result['rows']} rows; {result['steps']} steps, "
-        f"{result['reused']} reused)\n"
-        f"PWAS beats random at {v['budget']}: PSNR in {v['pwas_beats_random_psnr']}/{v['seeds']}"
-        + (
-            " seeds (a merge leaves B's ATE as it was; --mode inject compares it)"
-            if v["mode"] == "merge"
-            else f" seeds, ATE in {v['pwas_beats_random_ate']}/{v['seeds']}"
-        ),
-    )
+    emit(result, as_json, _result_text(result))
     if result["failed"]:
         click.echo(
             f"{len(result['failed'])} run(s) failed or were not run (listed in "
@@ -408,3 +421,18 @@ def experiment(
             err=True,
         )
         raise SystemExit(1)
+
+
+def _result_text(result: dict[str, Any]) -> str:
+    """The lines `gsc experiment` prints of what it wrote, and PWAS against random."""
+    v = result["verdicts"]
+    return (
+        f"wrote {result['results_md']} ({result['rows']} rows; {result['steps']} steps, "
+        f"{result['reused']} reused)\n"
+        f"PWAS beats random at {v['budget']}: PSNR in {v['pwas_beats_random_psnr']}/{v['seeds']}"
+        + (
+            " seeds (a merge leaves B's ATE as it was; --mode inject compares it)"
+            if v["mode"] == "merge"
+            else f" seeds, ATE in {v['pwas_beats_random_ate']}/{v['seeds']}"
+        )
+    )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+from dataclasses import fields
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -17,6 +19,7 @@ from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,
+    F,
     FrameSubset,
     Phases,
     backend_option,
@@ -37,6 +40,26 @@ from .options import (
     share_transform_option,
     size_option,
 )
+
+MERGE_OPTIONS = tuple(field.name for field in fields(MergeOptions))
+"""The options of `gsc merge` that `MergeOptions` holds, by the names of its fields."""
+
+
+def _told_merge_options(f: F) -> F:
+    """The options of `MergeOptions` (--align, --icp, --resolve, --voxel, --margin,
+    --share-rate, --by-view, --footprint), passed to the command as one dict named `told` of
+    those given on the command line: the rest as the merge chooses (`WITH_SENDER_VIEWS` for a
+    share that carries keyframes)."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        context = click.get_current_context()
+        given = {name: kwargs.pop(name) for name in MERGE_OPTIONS}
+        told = {k: v for k, v in given.items()
+                if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip
+        return f(*args, told=told, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
 
 
 @click.command("merge", short_help="Merge another agent's share into a map and refine it.")
@@ -147,6 +170,7 @@ from .options import (
 @codec_option(None, " [default: the receiver map's own codec]")
 @force_option()
 @json_option
+@_told_merge_options
 def merge(
     receiver: Path,
     share: Path,
@@ -158,14 +182,7 @@ def merge(
     iters: int,
     views: str,
     lr_final: float,
-    align: bool,
-    icp: str,
-    resolve: str,
-    voxel: float,
-    margin: float,
-    share_rate: float,
-    by_view: bool,
-    footprint: bool,
+    told: dict[str, Any],
     keyframes: bool,
     device: str,
     backend: str | None,
@@ -222,12 +239,6 @@ def merge(
       gsc merge b.mcap a_views.mcap --seq data/room -o b_merged.mcap
     """
     check_recording_seq(recording, seq)
-    context = click.get_current_context()
-    given = {"align": align, "icp": icp, "resolve": resolve, "voxel": voxel, "margin": margin,
-             "share_rate": share_rate, "by_view": by_view, "footprint": footprint}  # fmt: skip
-    # (the rest as the merge chooses: WITH_SENDER_VIEWS for a share that carries keyframes)
-    told = {k: v for k, v in given.items()
-            if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip
     with progress_bar("merge", "step", hidden=as_json) as bar:
         phases = Phases(bar, {"refine": "iter"})
         phases("merging", 0, None)  # (reading, aligning, resolving: until the refinement)
@@ -253,6 +264,11 @@ def merge(
             force=force,
             progress=partial(phases, "refine"),
         )
+    emit(result, as_json, _merged_text(result, dst))
+
+
+def _merged_text(result: dict[str, Any], dst: Path) -> str:
+    """The line `gsc merge` prints of what it wrote."""
     text = (
         f"merged {result['share']} shared + {result['receiver']} own -> "
         f"{result['gaussians']} Gaussians in {dst}"
@@ -260,4 +276,4 @@ def merge(
     text += refined_text(result)
     if result.get("refine_carried_views"):
         text += f", {result['refine_carried_views']} of them the sender's keyframes"
-    emit(result, as_json, text)
+    return text

@@ -107,7 +107,7 @@ def prune(
                              "prune without --refine", anisotropic, recording)  # fmt: skip
         result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
                            options=CompactOptions(sums=sums), refine=refine, map_only=map_only,
-                           fold_dropped=fold,
+                           fold=fold,
                            command=command_line(), force=force)  # fmt: skip
     text = (
         f"kept {result['kept']} of {result['total']} Gaussians (by {by}"

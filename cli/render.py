@@ -89,22 +89,25 @@ def render(
       gsc render share.mcap --seq data/room -o pictures --poses-from run.mcap
     """
     from gscompress.pipeline.evaluate import evaluate_log
+    from gscompress.pipeline.images import ImageOptions
 
     with progress_bar("render", "view", hidden=as_json) as bar:
         result = evaluate_log(
             src,
             seq,
-            frames=None if frames is None else str(frames),
-            every=every,
-            size=size,
-            poses=poses,
-            poses_from=poses_from,
-            backend=backend,
-            device=device,
-            lpips=False,
-            save_images=out_dir,
-            colorings=colorings,
-            side_by_side=side_by_side,
+            ImageOptions(
+                frames=None if frames is None else str(frames),
+                every=every,
+                size=size,
+                poses=poses,
+                poses_from=poses_from,
+                backend=backend,
+                device=device,
+                lpips=False,
+                save_images=out_dir,
+                colorings=colorings,
+                side_by_side=side_by_side,
+            ),
             progress=partial(advance, bar),
             recording=recording,
         )

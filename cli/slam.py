@@ -197,7 +197,6 @@ def slam(
     """
     from gscompress.io.files import check_output
     from gscompress.io.recover import resume_sources
-    from gscompress.pipeline import slam_file
     from gscompress.pipeline.slam_run import RESUMABLE
     from gscompress.slam.config import resolve_config
     from gscompress.slam.config import save_config as write_config
@@ -249,25 +248,25 @@ def slam(
             )
             advance(bar, done, total)
 
+        fresh: dict[str, Any] = dict(
+            preset=preset,
+            config_path=config_path,
+            frames=str(frames) if frames_given else None,
+            inject=inject,
+            share_transform=share_transform,
+            recording=recording,
+            force=force,
+            **settings,
+        )
+        loop: dict[str, Any] = dict(
+            device=device,
+            codec=codec,
+            command=command_line(),
+            progress=progress,
+            phases=_phases(bar),
+        )
         try:
-            result = slam_file(
-                seq,
-                dst,
-                preset=preset,
-                config_path=config_path,
-                frames=str(frames) if frames_given else None,
-                device=device,
-                inject=inject,
-                share_transform=share_transform,
-                resume=resume,
-                recording=recording,
-                codec=codec,
-                command=command_line(),
-                force=force,
-                progress=progress,
-                phases=_phases(bar),
-                **settings,
-            )
+            result = _slam_or_resume(seq, dst, resume, fresh, loop)
         except KeyboardInterrupt:
             bar.close()
             click.echo(_interrupted_text(seq, dst), err=True)
@@ -289,6 +288,30 @@ def slam(
         + (f", ATE RMSE {ate:.2f} cm" if ate is not None else "")
         + ")",
     )
+
+
+def _slam_or_resume(
+    seq: Path, dst: Path, resume: bool, fresh: dict[str, Any], loop: dict[str, Any]
+) -> dict[str, Any]:
+    """The run: `slam_file` with the settings of a fresh run (`fresh`), or with --resume
+    `resume_slam_file`, which refuses them (they are the log's); `loop`: what both take."""
+    from gscompress.pipeline import resume_slam_file, slam_file
+    from gscompress.pipeline.slam_run import refuse_own_settings
+
+    if not resume:
+        return slam_file(seq, dst, **fresh, **loop)
+    kept = (
+        "preset",
+        "config_path",
+        "frames",
+        "size",
+        "backend",
+        "keep",
+        "inject",
+        "share_transform",
+    )  # (`RESUME_KEEPS`, in its order)
+    refuse_own_settings(tuple(fresh[k] for k in kept), fresh["no_prune"], fresh["recording"])
+    return resume_slam_file(seq, dst, **loop)
 
 
 def _speed(result: dict[str, Any]) -> str:

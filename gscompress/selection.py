@@ -62,6 +62,20 @@ def keep_count(n: int, ratio: float, what: str = "ratio") -> int:
     return k
 
 
+def check_strategy(strategy: str | Strategy) -> Strategy:
+    """The strategy called `strategy`.
+
+    Raises:
+        InputError: not one of `STRATEGIES`.
+    """
+    try:
+        return Strategy(strategy)
+    except ValueError:
+        raise InputError(
+            f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}"
+        ) from None
+
+
 def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int = 0) -> np.ndarray:
     """[N] float64 scores for `strategy`; higher is more important.
 
@@ -69,12 +83,7 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
         InputError: unknown strategy, or a negative seed for the random one.
         BudgetError: an empty map, or no scores for a score-based strategy.
     """
-    try:
-        strategy = Strategy(strategy)
-    except ValueError:
-        raise InputError(
-            f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}"
-        ) from None
+    strategy = check_strategy(strategy)
     if len(gaussians) == 0:  # (which would read as a map without scores below)
         raise BudgetError("the map is empty: there is nothing to select from")
     if strategy is Strategy.PWAS:

@@ -1,7 +1,6 @@
 """`gsc eval` (map + trajectory metrics of a log) and the Foxglove layout in examples/."""
 
 import json
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ from gscompress.metrics import ate_rmse_cm, ate_splatam_cm, psnr
 from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline import evaluate_log, share_log, slam_file
+from gscompress.pipeline.images import ImageOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -61,7 +61,7 @@ def gt_log(seq_dir, tmp_path_factory):
 
 
 def test_a_log_posed_at_the_ground_truth_reports_no_ate_and_why(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, lpips=False)
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False))
     assert r["ground_truth"] == "sequence" and r["ate_frames"] == 6
     assert r["poses"] == "ground-truth" and r["ate_rmse_cm"] is None
     assert (
@@ -84,7 +84,7 @@ def test_a_log_posed_at_the_ground_truth_reports_no_ate_and_why(gt_log, seq_dir)
 
 
 def test_psnr_matches_an_independent_render(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, lpips=False, frames="2:3")
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False, frames="2:3"))
     assert r["frames_evaluated"] == 1 and r["frames_without_pose"] == 0
     with LogReader(gt_log) as log:
         gaussians = log.read_map()
@@ -98,7 +98,7 @@ def test_psnr_matches_an_independent_render(gt_log, seq_dir):
 
 @pytest.mark.parametrize(("every", "count"), [(1, 6), (2, 3), (4, 2), (6, 1), (10, 1)])
 def test_every_n_renders_every_nth_frame_with_a_pose(gt_log, seq_dir, every, count):
-    r = evaluate_log(gt_log, seq_dir, lpips=False, every=every, backend="cpu")
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False, every=every, backend="cpu"))
     assert r["frames_evaluated"] == count
     assert [f["index"] for f in r["per_frame"]] == list(range(0, 6, every))
     assert r["ate_frames"] == 6  # the trajectory always uses every frame
@@ -122,7 +122,7 @@ def test_frames_without_a_logged_pose_are_skipped_and_ate_pairs_the_right_frames
             t_ns = round(sequence.timestamps[i] * 1e9) + 400_000  # within the 1 ms tolerance
             w.write_pose(T, t_ns)
         w.write_gaussians(gaussians, 0)
-    r = evaluate_log(out, seq_dir, lpips=False, every=2)
+    r = evaluate_log(out, seq_dir, ImageOptions(lpips=False, every=2))
     assert r["frames_with_pose"] == 5 and r["frames_without_pose"] == 1
     assert [f["index"] for f in r["per_frame"]] == [0, 3, 5]  # every 2nd frame with a pose
     assert r["ground_truth"] == "sequence" and r["ate_frames"] == 5
@@ -143,14 +143,14 @@ def test_no_ground_truth_anywhere_reports_ate_unavailable(bare, gt_log, seq_dir,
             f = sequence.frame(i)
             w.write_pose(f.T_world_cam, round(f.timestamp * 1e9))
         w.write_gaussians(gaussians, 0)
-    r = evaluate_log(out, bare, lpips=False, frames="0:3")
+    r = evaluate_log(out, bare, ImageOptions(lpips=False, frames="0:3"))
     assert r["ate_rmse_cm"] is None and r["ate_splatam_cm"] is None
     assert "no ground truth" in r["ate_reason"] and r["ground_truth"] is None
     assert r["frames_evaluated"] == 3 and r["psnr"] > 15
 
 
 def test_log_ground_truth_is_used_when_the_sequence_has_none(bare, gt_log):
-    r = evaluate_log(gt_log, bare, lpips=False, every=6)
+    r = evaluate_log(gt_log, bare, ImageOptions(lpips=False, every=6))
     assert r["ground_truth"] == "log" and r["ate_frames"] == 6 and r["ate_rmse_cm"] is None
 
 
@@ -183,7 +183,7 @@ def test_evaluate_map_rejects_mismatched_views_and_counts_depthless_ones(gt_log,
 
 
 def test_lpips_is_a_number_or_unavailable_with_a_reason(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, every=6)
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(every=6))
     if r["lpips"] is None:
         assert r["lpips_reason"]
     else:
@@ -272,7 +272,7 @@ def test_cli_errors_are_one_line(gt_log, seq_dir, tmp_path):
     # ... which renders at the poses it is given: here those of the log the map came from
     r = gsc("eval", noposes, "--seq", seq_dir, "--poses-from", gt_log, "--no-lpips", "--json")
     assert r.exit_code == 0, r.output
-    same = evaluate_log(gt_log, seq_dir, lpips=False)
+    same = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False))
     assert json.loads(r.output)["psnr"] == pytest.approx(same["psnr"], rel=1e-9)
     # poses at times no frame of the sequence has
     other = tmp_path / "other.mcap"
@@ -337,9 +337,9 @@ def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, se
     import logging
 
     with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.logs"):
-        evaluate_log(gt_log, seq_dir, every=6, lpips=False)
+        evaluate_log(gt_log, seq_dir, ImageOptions(every=6, lpips=False))
         assert "enlarges" not in caplog.text
-        r = evaluate_log(gt_log, seq_dir, every=6, size=(128, 96), lpips=False)
+        r = evaluate_log(gt_log, seq_dir, ImageOptions(every=6, size=(128, 96), lpips=False))
     assert r["size"] == [128, 96]
     assert "working size 128x96 enlarges room's 64x48 frames" in caplog.text
 
@@ -347,7 +347,7 @@ def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, se
 def test_another_scene_under_the_log_sequences_name_is_refused(gt_log, tmp_path):
     other = write_synthetic_sequence(tmp_path / "room", 6, (64, 48), seed=7)
     with pytest.raises(InputError, match="was not recorded on this room: its first frame differs"):
-        evaluate_log(gt_log, other, lpips=False)
+        evaluate_log(gt_log, other, ImageOptions(lpips=False))
     from gscompress.pipeline.score import score_file
 
     with pytest.raises(InputError, match="was not recorded on this room"):
@@ -444,9 +444,9 @@ def nudged_trajectory(seq_dir, tmp_path_factory):
 
 
 def test_eval_at_a_trajectory_and_with_poses_refined(gt_log, seq_dir, nudged_trajectory):
-    r = evaluate_log(gt_log, seq_dir, poses=nudged_trajectory, refine_poses=15, every=3,
-                     lpips=False)  # fmt: skip
-    own = evaluate_log(gt_log, seq_dir, every=3, lpips=False)
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(poses=nudged_trajectory, every=3, lpips=False),
+                     refine_poses=15)  # fmt: skip
+    own = evaluate_log(gt_log, seq_dir, ImageOptions(every=3, lpips=False))
     assert r["poses"] == str(nudged_trajectory) and own["poses"] == "ground-truth"  # (gt_log's)
     assert r["frames_evaluated"] == 2 and r["ate_rmse_cm"] > 0.5  # the nudged poses were used
     assert r["psnr"] < own["psnr"]
@@ -470,9 +470,11 @@ def test_the_union_of_two_evaluations_is_one_evaluation_of_their_frames(
     the first result's where both scored a frame."""
     from gscompress.pipeline.evaluate import union_results
 
-    score = partial(evaluate_log, gt_log, seq_dir, poses=nudged_trajectory, refine_poses=5,
-                    lpips=False)  # fmt: skip
-    first, second, whole = score(frames="0:4"), score(frames="2:6"), score(frames="0:6")
+    def score(frames: str) -> dict:
+        views = ImageOptions(frames=frames, poses=nudged_trajectory, lpips=False)
+        return evaluate_log(gt_log, seq_dir, views, refine_poses=5)
+
+    first, second, whole = score("0:4"), score("2:6"), score("0:6")
     union = union_results(first, second)
     assert union["frames_evaluated"] == whole["frames_evaluated"] == 6
     for key in ("psnr", "ssim", "depth_l1_cm"):
@@ -490,8 +492,8 @@ def test_the_union_of_two_evaluations_is_one_evaluation_of_their_frames(
 
 
 def test_eval_at_another_logs_poses(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, poses_from=gt_log, every=3, lpips=False)
-    own = evaluate_log(gt_log, seq_dir, every=3, lpips=False)
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(poses_from=gt_log, every=3, lpips=False))
+    own = evaluate_log(gt_log, seq_dir, ImageOptions(every=3, lpips=False))
     assert r["poses"] == str(gt_log)
     assert r["psnr"] == own["psnr"] and r["per_frame"] == own["per_frame"]
 
@@ -588,8 +590,11 @@ def test_a_share_is_scored_at_the_working_size_of_the_log_whose_poses_it_takes(
                                       sequence=meta.sequence)) as w:  # fmt: skip
         for t, T in zip(pose_ns, poses, strict=True):
             w.write_pose(T, int(t))
-    small = evaluate_log(share, seq_dir, poses_from=sized, lpips=False)
+    small = evaluate_log(share, seq_dir, ImageOptions(poses_from=sized, lpips=False))
     assert small["size"] == [32, 24]
-    assert evaluate_log(share, seq_dir, poses_from=gt_log, lpips=False)["size"] == [64, 48]
-    given = evaluate_log(share, seq_dir, poses_from=sized, size=(48, 36), lpips=False)
+    assert evaluate_log(share, seq_dir, ImageOptions(poses_from=gt_log, lpips=False))["size"] == [
+        64,
+        48,
+    ]
+    given = evaluate_log(share, seq_dir, ImageOptions(poses_from=sized, size=(48, 36), lpips=False))
     assert given["size"] == [48, 36]

@@ -15,6 +15,7 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 from gscompress.io.trajectory import read_tum_trajectory
 from gscompress.pipeline import share_log, slam_file
+from gscompress.pipeline.share.options import ShareOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -92,8 +93,8 @@ def test_budget_sweep_counts_the_bytes_a_share_of_each_budget_writes(
         if row["budget"] < 1:
             for codec in ("fp32", "fp16", "compact"):
                 dst = tmp_path / f"{row['strategy']}_{codec}.mcap"
-                share = share_log(log, dst, row["budget"], strategy=row["strategy"],
-                                  codec=codec)  # fmt: skip
+                share = share_log(log, dst, row["budget"],
+                                  ShareOptions(strategy=row["strategy"], codec=codec))  # fmt: skip
                 assert share["bytes"] == row[f"bytes_{codec}"]
 
 

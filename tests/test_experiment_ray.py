@@ -15,6 +15,7 @@ from conftest import TINY_STUDY
 
 from gscompress.errors import MissingDependencyError, OptionError
 from gscompress.pipeline.experiment import ExperimentSettings, execution, run_experiment
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress_cli.main import cli
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -139,13 +140,13 @@ def test_a_failing_run_is_retried_once_then_reported_and_the_rest_completes(
     attempts = []
     share_job = execution._share_job
 
-    def failing(path: Path, source: Path, budget: str, strategy: str, seed: int,
-                **options: Any) -> dict:  # fmt: skip
-        if strategy == "random":
+    def failing(path: Path, source: Path, budget: str, options: ShareOptions,
+                **more: Any) -> dict:  # fmt: skip
+        if options.strategy == "random":
             attempts.append(path.name)
             execution.log.warning("about to fail")
             raise RuntimeError("disk on fire")
-        return share_job(path, source, budget, strategy, seed, **options)
+        return share_job(path, source, budget, options, **more)
 
     monkeypatch.setattr(execution, "_share_job", failing)
     out = tmp_path / "exp"

@@ -15,6 +15,7 @@ from gscompress.ops import fold as fold_module
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.fold import FOLD_REACH, Folding, fold, fold_groups, moment_match
 from gscompress.pipeline.share.cut import ShareCut
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import select_by, select_count, selection_scores, top_k
 from gscompress.threads import use_threads
 
@@ -325,9 +326,10 @@ def test_a_byte_budget_search_chooses_the_count_and_bytes_of_the_plain_reference
     with LogWriter(src, LogMetadata(command="test")) as log:
         log.write_gaussians(g, 0)
     for codec in ("compact", "fp16"):
-        whole = ShareCut(src, Budget.parse("1"), codec=codec).size(len(g))
+        whole = ShareCut(src, Budget.parse("1"), ShareOptions(codec=codec)).size(len(g))
         budget = Budget(budget_bytes=int(whole * rng.uniform(0.05, 0.6)))
-        cut, plain = ShareCut(src, budget, codec=codec), PlainCut(src, budget, codec=codec)
+        how = ShareOptions(codec=codec)
+        cut, plain = ShareCut(src, budget, how), PlainCut(src, budget, how)
         count = largest_count_within(budget.budget_bytes, len(g), cut.size)
         assert count == largest_count_within(budget.budget_bytes, len(g), plain.size)
         data = cut.file(count)[0]

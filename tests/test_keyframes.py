@@ -22,7 +22,8 @@ from gscompress.io.keyframes import (
     write_carried,
 )
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pose_message
-from gscompress.pipeline import evaluate_log, merge_logs, share_log, slam_file
+from gscompress.pipeline import evaluate_log, merge_logs, resume_slam_file, share_log, slam_file
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import carried_keyframes
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -191,11 +192,13 @@ def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
     assert operation["resolve"] == "evidence" and operation["share_rate"] == 1.0
     assert told["refine_carried_views"] == 2
 
-    scored = evaluate_log(merged, seq, frames="0:5", poses_from=agents["a"], lpips=False)
+    scored = evaluate_log(
+        merged, seq, ImageOptions(frames="0:5", poses_from=agents["a"], lpips=False)
+    )
     assert scored["frames_carried_left_out"] == 2 and scored["frames_evaluated"] == 3
     assert all(r["timestamp"] * 1e9 not in times for r in scored["per_frame"])
     # the same frames left out of another map's scores on request
-    other = evaluate_log(agents["a"], seq, lpips=False, leave_out=[share])
+    other = evaluate_log(agents["a"], seq, ImageOptions(lpips=False), leave_out=[share])
     assert other["frames_carried_left_out"] == 2 and other["frames_evaluated"] == 3
 
     plain = merge_logs(agents["b"], share, root / "p.mcap", seq=seq, iters=6, keyframes=False,
@@ -269,7 +272,7 @@ def test_an_injected_share_brings_its_keyframes_into_the_run(agents: dict[str, P
     with LogReader(out) as log:
         step = log.metadata.provenance[0]["operation"]
     assert step["name"] == "inject" and step["carried_ns"] == [f.time_ns for f in carry[0]]
-    scored = evaluate_log(out, seq, frames="0:5", poses_from=agents["a"], lpips=False)
+    scored = evaluate_log(out, seq, ImageOptions(frames="0:5", poses_from=agents["a"], lpips=False))
     assert scored["frames_carried_left_out"] == 2
     with pytest.raises(InputError, match="afresh"):
-        slam_file(seq, out, resume=True)
+        resume_slam_file(seq, out)

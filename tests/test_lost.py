@@ -219,7 +219,7 @@ def test_gsc_slam_stops_on_a_lost_track_in_one_line_with_a_log_of_the_frames_bef
 def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_had(
     tmp_path, monkeypatch
 ):
-    from gscompress.pipeline import slam_file
+    from gscompress.pipeline import resume_slam_file, slam_file
 
     seq = write_synthetic_sequence(tmp_path / "room", 8, SIZE)
     levels: dict[str, dict[int, float | None]] = {"whole": {}, "resumed": {}}
@@ -240,7 +240,7 @@ def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_h
     with pytest.raises(KeyboardInterrupt):
         slam_file(seq, tmp_path / "cut.mcap", progress=stop_after_six, **run)
     name[0] = "resumed"
-    slam_file(seq, tmp_path / "cut.mcap", resume=True)
+    resume_slam_file(seq, tmp_path / "cut.mcap")
     first = min(levels["resumed"])
     assert first == 6 and levels["whole"][6] is not None
     assert levels["resumed"][6] == levels["whole"][6]

@@ -259,6 +259,7 @@ def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) ->
 
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.pipeline import evaluate_log, slam_file
+    from gscompress.pipeline.images import ImageOptions
     from gscompress_cli.main import cli
 
     seq = write_synthetic_sequence(tmp_path / "room", 6, (48, 36))
@@ -267,7 +268,9 @@ def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) ->
         r = CliRunner().invoke(cli, ["export-traj", str(tmp_path / "run.mcap"), "-o",
                                      str(tmp_path / name), *flags])  # fmt: skip
         assert r.exit_code == 0 and "wrote" in r.output and "6 poses" in r.output, r.output
-    ours_cm = evaluate_log(tmp_path / "run.mcap", seq, every=6, lpips=False)["ate_rmse_cm"]
+    ours_cm = evaluate_log(tmp_path / "run.mcap", seq, ImageOptions(every=6, lpips=False))[
+        "ate_rmse_cm"
+    ]
     assert ours_cm > 0.01  # a tracked run: the agreement means something
     evo_cm = 100 * _evo_ape_rmse(tmp_path / "gt.txt", tmp_path / "est.txt")
     assert abs(ours_cm - evo_cm) < 1e-4  # (TUM text holds the poses to about 1e-16 m)

@@ -17,7 +17,7 @@ from gscompress.io.mcap_log import (
     LogWriter,
     decode_trajectory,
 )
-from gscompress.pipeline import slam_file
+from gscompress.pipeline import resume_slam_file, slam_file
 from gscompress.slam.config import preset
 from gscompress.slam.keyframes import View
 from gscompress.slam.system import SlamSystem
@@ -184,7 +184,7 @@ def test_a_resumed_run_places_its_views_at_the_refined_poses_it_logged(
         restored.append({v.index: v.T_world_cam.copy() for v in self.views})
 
     monkeypatch.setattr(SlamSystem, "restore", spy)
-    slam_file(seq_dir, out, resume=True)
+    resume_slam_file(seq_dir, out)
     (views,) = restored
     assert sorted(views) == [0, 1, 2, 3, 4]
     for position in range(5):

@@ -13,6 +13,7 @@ from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.pipeline.share.receiver import read_request, unseen_ids
 from gscompress.selection import top_k, top_k_first
 from gscompress_cli.main import cli
@@ -85,10 +86,10 @@ def test_the_wall_behind_the_receiver_is_unseen(agents):
 
 def test_a_share_for_the_receiver_sends_what_it_has_not_seen(agents):
     plain = share_log(
-        agents["a"], agents["root"] / "plain.mcap", 0.5, fold_dropped=False, ids=True
+        agents["a"], agents["root"] / "plain.mcap", 0.5, ShareOptions(fold=False, ids=True)
     )  # fmt: skip  (the ids say which were sent)
-    aware = share_log(agents["a"], agents["root"] / "for_b.mcap", 0.5, fold_dropped=False,
-                      receiver=agents["b"], ids=True)  # fmt: skip
+    aware = share_log(agents["a"], agents["root"] / "for_b.mcap", 0.5,
+                      ShareOptions(fold=False, ids=True), receiver=agents["b"])  # fmt: skip
     assert sorted(read_map(plain["output"]).ids.tolist()) == list(range(16))
     assert sorted(read_map(aware["output"]).ids.tolist()) == list(range(16, 32))
     assert aware["unseen"] == 16 and aware["views"] == 2 and aware["for"] == "b.mcap"
@@ -100,12 +101,12 @@ def test_a_share_for_the_receiver_sends_what_it_has_not_seen(agents):
 def test_the_request_counts_in_a_byte_budget(agents):
     request_bytes = len(read_request(agents["b"]).data)
     assert request_bytes == 4 * (6 + 2 * 7)
-    fp32 = dict(fold_dropped=False, codec="fp32")  # (76 B a Gaussian: the request takes 2)
-    whole = share_log(agents["a"], agents["root"] / "w.mcap", "9999B", **fp32)
+    fp32 = ShareOptions(fold=False, codec="fp32")  # (76 B a Gaussian: the request takes 2)
+    whole = share_log(agents["a"], agents["root"] / "w.mcap", "9999B", fp32)
     assert whole["selected"] == 32
     budget = whole["file_bytes"] + 10  # holds the whole map, but not with the request
-    plain = share_log(agents["a"], agents["root"] / "p.mcap", f"{budget}B", **fp32)
-    aware = share_log(agents["a"], agents["root"] / "f.mcap", f"{budget}B", **fp32,
+    plain = share_log(agents["a"], agents["root"] / "p.mcap", f"{budget}B", fp32)
+    aware = share_log(agents["a"], agents["root"] / "f.mcap", f"{budget}B", fp32,
                       receiver=agents["b"])  # fmt: skip
     assert plain["selected"] == 32 > aware["selected"]
     assert aware["file_bytes"] + request_bytes <= budget

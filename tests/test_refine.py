@@ -14,6 +14,7 @@ from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
 from gscompress.pipeline import evaluate_log, prune_log, share_log
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import recorded_keyframes
 from gscompress.pipeline.refining import (
     PSEUDO_VIEWS,
@@ -39,7 +40,7 @@ def keyframe_indices(log: Path) -> set[int]:
 
 
 def mean_psnr_off_keyframes(log: Path, seq: Path, keyframes: set[int]) -> float:
-    per_frame = evaluate_log(log, seq, lpips=False)["per_frame"]
+    per_frame = evaluate_log(log, seq, ImageOptions(lpips=False))["per_frame"]
     scores = [f["psnr"] for f in per_frame if f["index"] not in keyframes]
     assert scores, "no frame outside the keyframes"
     return float(np.mean(scores))

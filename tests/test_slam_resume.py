@@ -20,7 +20,8 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import DatasetError, DivergenceError, InputError, MapError
 from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, LogReader
 from gscompress.io.recover import read_messages, unfinished_files
-from gscompress.pipeline import share_log, slam_file
+from gscompress.pipeline import resume_slam_file, share_log, slam_file
+from gscompress.pipeline.slam_run import refuse_own_settings
 from gscompress.slam.system import SlamSystem
 from gscompress_cli.main import cli
 
@@ -67,7 +68,7 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
         interrupted_map = log.read_map()
     assert frames_in(out) == [0, 1, 2]
 
-    result = slam_file(seq_dir_8, out, resume=True)
+    result = resume_slam_file(seq_dir_8, out)
     assert result["frames"] == FRAMES and result["resumed_at"] == 3
     assert result["interrupted"] is False
     assert frames_in(out) == list(range(FRAMES))
@@ -81,11 +82,17 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
     assert fresh and min(s["next_id"] for s in fresh) > int(interrupted_map.ids.max())
 
     with pytest.raises(InputError, match="finished run"):
-        slam_file(seq_dir_8, out, resume=True)
+        resume_slam_file(seq_dir_8, out)
+    # (the settings resume_slam_file takes from the log: gsc slam refuses them beside --resume)
+    resume = ["slam", str(seq_dir_8), "-o", str(out), "--resume"]
+    r = CliRunner().invoke(cli, [*resume, "--keep", "0.5"])
+    assert r.exit_code != 0 and "drop --keep" in r.output
+    r = CliRunner().invoke(cli, [*resume, "--preset", "tiny", "--frames", "0:4"])
+    assert r.exit_code != 0 and "drop --preset, --frames" in r.output
     with pytest.raises(InputError, match="drop --keep"):
-        slam_file(seq_dir_8, out, resume=True, keep=0.5)
+        refuse_own_settings((None, None, None, None, None, 0.5, None, None), False, None)
     with pytest.raises(InputError, match="drop --preset, --frames"):
-        slam_file(seq_dir_8, out, resume=True, preset="tiny", frames="0:4")
+        refuse_own_settings(("tiny", None, "0:4", None, None, None, None, None), False, None)
 
 
 def test_a_resumes_summary_gives_the_speed_of_the_frames_it_ran(
@@ -123,7 +130,7 @@ def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
 
 def test_nothing_to_resume_is_a_clear_error(seq_dir_8: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no log"):
-        slam_file(seq_dir_8, tmp_path / "none.mcap", resume=True)
+        resume_slam_file(seq_dir_8, tmp_path / "none.mcap")
 
 
 @pytest.mark.parametrize("cut", [False, True])
@@ -140,7 +147,7 @@ def test_a_share_or_pruned_log_is_not_resumed_even_cut_short(
             derived.write_bytes(derived.read_bytes()[: derived.stat().st_size * 2 // 3])
         before = derived.read_bytes()
         with pytest.raises(InputError, match="not the log of a `gsc slam` run"):
-            slam_file(seq_dir_8, derived, resume=True)
+            resume_slam_file(seq_dir_8, derived)
         assert derived.read_bytes() == before
 
 
@@ -215,7 +222,7 @@ def test_a_resume_killed_in_its_turn_is_resumed_from_where_it_got(
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert len(unfinished_files(out)) == 1  # frames 3-5 done beyond the log's 3, then killed
     assert frames_in(out) == [0, 1, 2]
-    result = slam_file(seq_dir_8, out, resume=True)
+    result = resume_slam_file(seq_dir_8, out)
     assert result["resumed_at"] > 3  # from the killed resume's file, not the older log
     assert frames_in(out) == list(range(FRAMES)) and unfinished_files(out) == []
 
@@ -230,7 +237,7 @@ def test_a_resume_takes_up_the_newest_run_not_an_older_one_further_along(
                            config_file, "--size", "48x36", "--force")  # fmt: skip
     assert subprocess.run(again, capture_output=True, timeout=300, check=False).returncode < 0
     assert len(unfinished_files(out)) == 2
-    result = slam_file(seq_dir_8, out, resume=True)
+    result = resume_slam_file(seq_dir_8, out)
     assert result.get("resumed_at", 0) < 4  # the 48x36 run's start, not the older run's 4
     with LogReader(out) as log:
         assert log.metadata.config["size"] == [48, 36]
@@ -247,7 +254,7 @@ def test_a_resume_takes_up_the_newest_run_of_another_scene_of_the_same_name(
                            "--force")  # fmt: skip
     for cmd in (older, newer):
         assert subprocess.run(cmd, capture_output=True, timeout=300, check=False).returncode < 0
-    result = slam_file(other, out, resume=True)  # not "not recorded on this room" from the older
+    result = resume_slam_file(other, out)  # not "not recorded on this room" from the older
     assert result["frames"] == FRAMES and unfinished_files(out) == []
 
 
@@ -474,7 +481,7 @@ def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resum
         slam_file(seq_dir_8, out, config_path=config, progress=stop_after(4))  # a map after 4
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(5))  # the resumed 2nd frame
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, resume=True)
+        resume_slam_file(seq_dir_8, out)
     monkeypatch.undo()
     assert frames_in(out) == [0, 1, 2, 3, 4]  # frame 5 was cut, and no map after frame 4
     with LogReader(out) as log:
@@ -482,7 +489,7 @@ def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resum
     said = _interrupted_text(seq_dir_8, out)
     assert f"holds 5 of {FRAMES} frames (its last map covers the first 4: a resume" in said
     # that map was put back (else the checkpoint after 3 frames would be the last)
-    resumed = slam_file(seq_dir_8, out, resume=True)
+    resumed = resume_slam_file(seq_dir_8, out)
     assert resumed["resumed_at"] == 4 and frames_in(out) == list(range(FRAMES))
 
 
@@ -497,7 +504,7 @@ def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
     with pytest.raises(KeyboardInterrupt):
         slam_file(seq_dir_8, out, config_path=config)
     monkeypatch.undo()
-    slam_file(seq_dir_8, out, resume=True)
+    resume_slam_file(seq_dir_8, out)
     with LogReader(out) as log:
         events = {
             m.log_time: json.loads(m.data).get("event")
@@ -525,7 +532,7 @@ def test_resuming_an_injected_run_that_holds_no_map_yet_is_refused(
         slam_file(seq_dir_8, b, config_path=config, frames="even", inject=share)
     monkeypatch.undo()
     with pytest.raises(InputError, match=r"holds no map yet, so not the share .*\(--inject"):
-        slam_file(seq_dir_8, b, resume=True)
+        resume_slam_file(seq_dir_8, b)
 
 
 def test_a_resume_past_an_error_clears_it(seq_dir_8: Path, tmp_path: Path) -> None:
@@ -539,7 +546,7 @@ def test_a_resume_past_an_error_clears_it(seq_dir_8: Path, tmp_path: Path) -> No
     with LogReader(out) as log:
         assert "cannot read depth image" in log.metadata.results["error"]
     depth.write_bytes(good)
-    slam_file(broken, out, resume=True)
+    resume_slam_file(broken, out)
     with LogReader(out) as log:
         assert "error" not in log.metadata.results and not log.metadata.results["interrupted"]
 
@@ -576,5 +583,5 @@ def test_a_resume_on_another_scene_of_the_same_name_is_refused(
         assert len(log.metadata.results["first_frame"]) == 4
     other = write_synthetic_sequence(tmp_path / "other" / seq_dir_8.name, FRAMES, (64, 48), seed=5)
     with pytest.raises(InputError, match=r"not recorded on this room: its first frame differs"):
-        slam_file(other, out, resume=True)
-    assert slam_file(seq_dir_8, out, resume=True)["frames"] == FRAMES  # the same scene goes on
+        resume_slam_file(other, out)
+    assert resume_slam_file(seq_dir_8, out)["frames"] == FRAMES  # the same scene goes on

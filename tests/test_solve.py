@@ -10,6 +10,7 @@ from click.testing import CliRunner
 from gscompress.errors import BudgetError
 from gscompress.io.mcap_log import LogReader, read_map
 from gscompress.ops.budget import Budget
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.pipeline.share.solve import CANDIDATES, share_solved, solve_share
 from gscompress_cli.main import cli
 
@@ -45,12 +46,18 @@ def test_a_constructed_case_where_fewer_exact_gaussians_win(run):
 
 
 def test_options_constrain_the_search_and_the_share_records_it(run):
-    best, weighed, _ = solve_share(run["log"], Budget.parse("8kB"), codec="compact", sums=True)
+    best, weighed, _ = solve_share(
+        run["log"], Budget.parse("8kB"), ShareOptions(codec="compact", sums=True),
+        fixed=("codec", "sums"),
+    )  # fmt: skip
     assert best == weighed[0]
     assert sorted((c.codec, c.sums, c.fold) for c in weighed) == [
         ("compact", True, False), ("compact", True, True),
     ]  # fmt: skip
-    _, exact, _ = solve_share(run["log"], Budget.parse("8kB"), codec="compact", fold=False)
+    _, exact, _ = solve_share(
+        run["log"], Budget.parse("8kB"), ShareOptions(codec="compact", fold=False),
+        fixed=("codec", "fold"),
+    )  # fmt: skip
     assert sorted((c.sums, c.fold) for c in exact) == [(False, False), (True, False)]
     out = run["root"] / "solve_solved.mcap"
     result = share_solved(run["log"], out, "8kB", seq=run["seq"], force=True)

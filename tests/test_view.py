@@ -22,6 +22,7 @@ from gscompress.io.ply import write_ply
 from gscompress.ops.budget import Budget
 from gscompress.ops.fold import fold
 from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import select_top
 from gscompress.view import cuts, scene
 from gscompress.view.source import MapSource
@@ -249,13 +250,13 @@ def test_share_preview_is_the_file_share_writes(
     source = MapSource.open(tiny_log)
     pair = (source.snapshot(), source.metadata)
     budget = Budget.parse("4kB")
-    preview = cuts.preview_share(tiny_log, pair, budget, strategy="pwas", codec=codec,
-                                 sums=sums, seed=0)  # fmt: skip
+    preview = cuts.preview_share(tiny_log, pair, budget, ShareOptions(strategy="pwas", codec=codec,
+                                 sums=sums, seed=0))  # fmt: skip
     assert 0 < preview.count < 300
     assert preview.file_bytes <= 4000
     dst = tmp_path / f"s_{codec}_{sums}.mcap"
-    result = cuts.write_share(tiny_log, pair, dst, budget, strategy="pwas", codec=codec,
-                              sums=sums, seed=0)  # fmt: skip
+    result = cuts.write_share(tiny_log, pair, dst, budget, ShareOptions(strategy="pwas",
+                              codec=codec, sums=sums, seed=0))  # fmt: skip
     assert result["selected"] == preview.count
     assert dst.stat().st_size == preview.file_bytes  # the bytes shown are the bytes written
     shared = read_map(dst)
@@ -276,13 +277,14 @@ def test_share_preview_is_the_file_share_writes(
 def test_share_preview_matches_the_share_command(tiny_log: Path, tmp_path: Path) -> None:
     source = MapSource.open(tiny_log)
     preview = cuts.preview_share(tiny_log, (source.snapshot(), source.metadata),
-                                 Budget.parse("3kB"), strategy="opacity", codec="compact",
-                                 sums=True, seed=0)  # fmt: skip
+                                 Budget.parse("3kB"), ShareOptions(strategy="opacity",
+                                 codec="compact", sums=True, seed=0))  # fmt: skip
     # the command line recorded in the share is part of its bytes: the preview records the
     # command it stands for, so `gsc share` run as that command sends the same file
-    command = cuts.share_command(tiny_log, Budget.parse("3kB"), "opacity", "compact", True, 0)
+    opacity = ShareOptions(strategy="opacity", codec="compact", sums=True, seed=0)
+    command = cuts.share_command(tiny_log, Budget.parse("3kB"), opacity)
     assert command == "gsc share tiny.mcap --budget 3kB --strategy opacity --codec compact --seed 0"
-    result = share_log(tiny_log, tmp_path / "cmd.mcap", "3kB", strategy="opacity",
+    result = share_log(tiny_log, tmp_path / "cmd.mcap", "3kB", ShareOptions(strategy="opacity"),
                        command=command)  # fmt: skip
     assert result["selected"] == preview.count
     assert result["file_bytes"] == preview.file_bytes
@@ -294,10 +296,9 @@ def test_share_of_a_map_file(tmp_path: Path) -> None:
     source = MapSource.open(tmp_path / "m.ply")
     pair = (source.snapshot(), source.metadata)
     budget = Budget.parse("3kB")
-    preview = cuts.preview_share(tmp_path / "m.ply", pair, budget, strategy="pwas",
-                                 codec="compact", sums=False, seed=0)  # fmt: skip
-    cuts.write_share(tmp_path / "m.ply", pair, tmp_path / "s.mcap", budget, strategy="pwas",
-                     codec="compact", sums=False, seed=0)  # fmt: skip
+    how = ShareOptions(strategy="pwas", codec="compact", sums=False, seed=0)
+    preview = cuts.preview_share(tmp_path / "m.ply", pair, budget, how)
+    cuts.write_share(tmp_path / "m.ply", pair, tmp_path / "s.mcap", budget, how)
     assert (tmp_path / "s.mcap").stat().st_size == preview.file_bytes <= 3000
     assert 0 < preview.count < 120
     assert len(read_map(tmp_path / "s.mcap")) == preview.count

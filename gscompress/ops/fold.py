@@ -85,19 +85,19 @@ def cut_map(
     full: GaussianMap,
     count: int,
     scores: np.ndarray,
-    fold_dropped: bool,
+    fold: bool,
     first: np.ndarray | None = None,
     folding: Folding | None = None,
 ) -> GaussianMap:
     """The `count` Gaussians of `full` with the highest `scores` (a strategy's, from
     `selection.selection_scores`: spread over space there if asked), each with the dropped ones
-    near it folded into it when `fold_dropped` (`gscompress.ops.fold`; same Gaussians, ids and
+    near it folded into it when `fold` (`gscompress.ops.fold`; same Gaussians, ids and
     order either way). What `gsc prune` keeps and `gsc share` sends. `first` ([N] bool) ranks
     the Gaussians it marks above all the others (a receiver-aware share). `folding`, the
     `Folding` of `full`, folds it when given: a caller that cuts many counts of one map passes
     the same one each time."""
     index = top_index(full, count, scores, first)
-    if not fold_dropped:
+    if not fold:
         return full.select(index)
     return (folding or Folding(full)).fold(index)
 

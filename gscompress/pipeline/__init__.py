@@ -39,7 +39,7 @@ from gscompress.pipeline.merge import merge_logs
 from gscompress.pipeline.prune import prune_log
 from gscompress.pipeline.score import score_file, view_poses
 from gscompress.pipeline.share import share_log
-from gscompress.pipeline.slam_run import slam_file
+from gscompress.pipeline.slam_run import resume_slam_file, slam_file
 
 __all__ = [
     "evaluate_log",
@@ -50,6 +50,7 @@ __all__ = [
     "map_summary",
     "merge_logs",
     "prune_log",
+    "resume_slam_file",
     "rewrite_map",
     "score_file",
     "share_log",

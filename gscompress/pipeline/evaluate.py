@@ -32,7 +32,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from gscompress.camera import invert_transform
-from gscompress.errors import InputError, OptionError
+from gscompress.errors import InputError
 from gscompress.io.mcap_log import (
     POSES_GROUND_TRUTH,
     TOPIC_POSE_GT,
@@ -49,6 +49,7 @@ from gscompress.io.mcap_log import (
     seconds_to_ns,
 )
 from gscompress.io.trajectory import nearest_times
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import (
     POSE_MATCH_TOLERANCE_NS,
     carried_times,
@@ -59,6 +60,9 @@ from gscompress.pipeline.logs import (
 )
 
 log = logging.getLogger(__name__)
+
+DEFAULTS = ImageOptions()
+"""`gsc eval`'s views and pictures unless asked otherwise."""
 
 GROUND_TRUTH_POSES = (
     "the log's poses are the sequence's ground truth (a map scored or made at the ground-truth "
@@ -101,19 +105,9 @@ def log_tracking_config(meta: LogMetadata) -> Any:
 def evaluate_log(
     log_path: str | Path,
     seq: str | Path,
+    options: ImageOptions = DEFAULTS,
     *,
-    frames: str | None = None,
-    every: int = 1,
-    size: tuple[int, int] | None = None,
-    poses: str | Path | None = None,
-    poses_from: str | Path | None = None,
     refine_poses: int = 0,
-    backend: str = "auto",
-    device: str = "auto",
-    lpips: bool = True,
-    save_images: str | Path | None = None,
-    colorings: tuple[str, ...] = ("rgb",),
-    side_by_side: bool = True,
     leave_out: Sequence[str | Path] = (),
     progress: Callable[[int, int], object] | None = None,
     recording: Any = None,
@@ -124,21 +118,12 @@ def evaluate_log(
         log_path: a gscompress log with `/gaussians` (and `/camera/pose` unless `poses` or
             `poses_from` gives the poses).
         seq: the sequence folder or recording.
-        frames: frame subset; None: the one recorded in the log's metadata (else all).
-        every: render every `every`-th frame that has a pose (ATE uses all of them).
-        size: working size (W, H); None: the one in the log's config, else (a share) the one
-            in `poses_from`'s, else the sequence's own.
-        poses: a TUM trajectory to render at instead of the log's poses.
-        poses_from: another log whose estimated poses to render at instead.
+        options: the frames rendered and at which poses, how, and the pictures written of
+            them (`ImageOptions`: frames, every, size, poses, poses_from, backend, device,
+            lpips, save_images, colorings, side_by_side; those at refined poses in
+            `refined/`).
         refine_poses: also refine each rendered frame's pose against the fixed map with this
             many tracking iterations and score the images again there (0: do not).
-        backend: render backend.
-        device: torch device to render on, or "auto".
-        lpips: compute LPIPS (reported unavailable with the reason when it cannot be).
-        save_images: a folder to write pictures of every view scored into
-            (`gscompress.pipeline.images.ImageSaver`; those at refined poses in `refined/`).
-        colorings: what the pictures are coloured by (`gscompress.pipeline.images.COLORINGS`).
-        side_by_side: also write one labelled figure per view (observed, render, error).
         leave_out: other files whose carried keyframes are left out of the scores too
             (`carried_times`): score maps that were not refined on them on the same frames
             as one that was.
@@ -169,40 +154,28 @@ def evaluate_log(
         InputError: `every` < 1, `refine_poses` < 0, or no frame of the sequence has a pose.
         OptionError: both `poses` and `poses_from`.
     """
-    _check_options(every, refine_poses, poses, poses_from)
-    start = time.perf_counter()
-    log_path = Path(log_path)
-    target = _read_target(log_path)
-    meta = target.meta
-    source = poses if poses is not None else poses_from if poses_from is not None else log_path
-    frames = frames or meta.frames or "all"
-    matched = _match_frames(seq, log_path, meta, source, frames, size, poses_from, recording)
-    own = poses is None and poses_from is None
-    ate = _trajectory_scores(matched, target, own)
-    chosen, left_out = _chosen_frames(matched, every, meta, leave_out, log_path)
-    how = _ImageOptions(backend, device, lpips, save_images, colorings, side_by_side, progress)
-    scored = _image_scores(target, matched, chosen, refine_poses, how, log_path.name)
-    pose_text = meta.pose_origin() if own else str(source)
-    return _results(log_path, target, matched, (frames, every, pose_text, own), ate, left_out,
-                    scored, time.perf_counter() - start)  # fmt: skip
-
-
-def _check_options(
-    every: int, refine_poses: int, poses: str | Path | None, poses_from: str | Path | None
-) -> None:
-    """Refuse `evaluate_log`'s options out of range or at odds with each other."""
-    if every < 1:
-        raise InputError(f"`every` must be a positive integer, got {every}", options=("every",))
+    o = options
+    o.check()
     if refine_poses < 0:
         raise InputError(
             f"`refine_poses` must be 0 or more iterations, got {refine_poses}",
             options=("refine_poses",),
         )
-    if poses is not None and poses_from is not None:
-        raise OptionError(
-            "`poses` and `poses_from` do not go together: give one source of poses",
-            options=("poses", "poses_from"),
-        )
+    start = time.perf_counter()
+    log_path = Path(log_path)
+    target = _read_target(log_path)
+    meta = target.meta
+    own = o.poses is None and o.poses_from is None
+    source = log_path if own else o.poses if o.poses is not None else o.poses_from
+    assert source is not None
+    frames = o.frames or meta.frames or "all"
+    matched = _match_frames(seq, log_path, meta, source, frames, o, recording)
+    ate = _trajectory_scores(matched, target, own)
+    chosen, left_out = _chosen_frames(matched, o.every, meta, leave_out, log_path)
+    scored = _image_scores(target, matched, chosen, refine_poses, o, progress, log_path.name)
+    pose_text = meta.pose_origin() if own else str(source)
+    return _results(log_path, target, matched, (frames, o.every, pose_text, own), ate, left_out,
+                    scored, time.perf_counter() - start)  # fmt: skip
 
 
 class _Target(NamedTuple):
@@ -250,14 +223,14 @@ def _match_frames(
     meta: LogMetadata,
     source: str | Path,
     frames: str,
-    size: tuple[int, int] | None,
-    poses_from: str | Path | None,
+    options: ImageOptions,
     recording: Any,
 ) -> _Matched:
     """The log's sequence (`open_log_sequence`: a share scored at its sender's poses, with
     `poses_from`, at the sender's working size unless `size` is given) and its frames that have
     a pose in `source`."""
     est_ns, est_poses, tolerance_ns, used = pose_source(source)
+    size, poses_from = options.size, options.poses_from
     if size is None and working_size(meta) is None and poses_from is not None:
         with LogReader(poses_from) as other:  # (a share scored at its sender's poses)
             size = working_size(other.metadata)
@@ -319,19 +292,6 @@ def _chosen_frames(
     return chosen, left_out
 
 
-@dataclass(frozen=True)
-class _ImageOptions:
-    """How `evaluate_log` renders, scores and pictures the views (its options of these names)."""
-
-    backend: str
-    device: str
-    lpips: bool
-    save_images: str | Path | None
-    colorings: tuple[str, ...]
-    side_by_side: bool
-    progress: Callable[[int, int], object] | None
-
-
 class _Images(NamedTuple):
     """The image scores of `_image_scores`: the metrics with the counts of views
     (`evaluate_map`), `per_frame`, `refined` (None without `refine_poses`) and the pictures
@@ -348,7 +308,8 @@ def _image_scores(
     matched: _Matched,
     chosen: list[int],
     refine_poses: int,
-    how: _ImageOptions,
+    how: ImageOptions,
+    progress: Callable[[int, int], object] | None,
     log_name: str,
 ) -> _Images:
     """The map rendered at the chosen frames' poses and scored (`evaluate_map`), and, with
@@ -360,7 +321,7 @@ def _image_scores(
     from gscompress.render import resolve_device
 
     gaussians, sequence, positions = target.gaussians, matched.sequence, matched.positions
-    backend, progress = how.backend, how.progress
+    backend = how.backend
     torch_device = resolve_device(how.device, backend)
 
     def views(T_world_cams: Any) -> Iterator[EvalView]:

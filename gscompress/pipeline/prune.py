@@ -25,12 +25,12 @@ def prune_log(
     options: CompactOptions = COMPACT_DEFAULTS,
     refine: MapRefiner | None = None,
     map_only: bool = False,
-    fold_dropped: bool = True,
+    fold: bool = True,
     command: str = "",
     force: bool = False,
 ) -> dict[str, Any]:
     """Keep the `keep` fraction of a log's map with the highest `by` scores (`cut_map`: with
-    `fold_dropped`, what is dropped is folded into the kept Gaussians).
+    `fold`, what is dropped is folded into the kept Gaussians).
 
     The last `/gaussians` snapshot is replaced by its pruned version (same log time), stored in
     `codec` (None: the codec of the map it replaces); every other message, earlier snapshots
@@ -42,12 +42,12 @@ def prune_log(
 
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         scores = selection_scores(full, by, seed)
-        kept = cut_map(cut_pool(full, refine), keep_count(len(full), keep), scores, fold_dropped)
-        return refined(kept, {"kept": len(kept), "total": len(full), "fold": fold_dropped},
+        kept = cut_map(cut_pool(full, refine), keep_count(len(full), keep), scores, fold)
+        return refined(kept, {"kept": len(kept), "total": len(full), "fold": fold},
                        refine, teacher=full)  # fmt: skip
 
     operation: dict[str, Any] = {"name": "prune", "keep": keep, "by": by, "seed": seed,
-                                 "fold": fold_dropped}  # fmt: skip
+                                 "fold": fold}  # fmt: skip
     if refine is not None:
         operation["refine"] = refine.record()
     if map_only:

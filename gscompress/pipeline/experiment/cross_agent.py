@@ -114,6 +114,7 @@ def cross_scores(
     """
     from gscompress.io.trajectory import read_transform, write_tum_trajectory
     from gscompress.pipeline.evaluate import evaluate_log, union_results
+    from gscompress.pipeline.images import ImageOptions
 
     T_own_other = None
     if transform is not None and own != "all":
@@ -143,10 +144,9 @@ def cross_scores(
             first, second = ("a", "b") if own == "all" else (own, "b" if own == "a" else "a")
             result = union_results(full[first], full[second])
         else:
-            result = evaluate_log(
-                log_path, seq, frames=frames[name], every=every, refine_poses=iters,
-                lpips=lpips, device=device, **poses,
-            )  # fmt: skip
+            views = ImageOptions(frames=frames[name], every=every, lpips=lpips, device=device,
+                                 **poses)  # fmt: skip
+            result = evaluate_log(log_path, seq, views, refine_poses=iters)
         full[name] = result
         refined = {k: v for k, v in result["refined"].items() if k != "per_frame"}
         summary[name] = {"frames": frames[name], "start": start, "refined": refined,

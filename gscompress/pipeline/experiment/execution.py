@@ -30,10 +30,11 @@ from typing import Any, NoReturn
 
 from gscompress import __version__
 from gscompress.errors import GscError
-from gscompress.io.codec import SHARE_IDS, layout
+from gscompress.io.codec import layout
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
 from gscompress.ops.merge import EXACT, MergeOptions
 from gscompress.pipeline.experiment.protocol import FOR_B, ExperimentSettings, RunHandle
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.threads import use_threads
 
 log = logging.getLogger(__name__)
@@ -122,8 +123,9 @@ def run_job(job: Callable[[Path], dict[str, Any]], path: Path) -> dict[str, Any]
 def _score(log_path: Path, seq: Path, every: int, lpips: bool, device: str) -> dict[str, Any]:
     """`gsc eval` of a run on its own frames (without the per-frame list)."""
     from gscompress.pipeline.evaluate import evaluate_log
+    from gscompress.pipeline.images import ImageOptions
 
-    scores = evaluate_log(log_path, seq, every=every, lpips=lpips, device=device)
+    scores = evaluate_log(log_path, seq, ImageOptions(every=every, lpips=lpips, device=device))
     scores.pop("per_frame", None)
     return scores
 
@@ -175,21 +177,13 @@ def _share_job(
     path: Path,
     source: Path,
     budget: str,
-    strategy: str,
-    seed: int,
-    fold: bool = False,
+    options: ShareOptions,
     receiver: Path | None = None,
     device: str = "auto",
-    spread: bool = False,
-    sums: bool = True,
-    ids: bool = SHARE_IDS,
 ) -> dict[str, Any]:
     from gscompress.pipeline.share import share_log
 
-    # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
-    return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
-                     receiver=receiver, device=device, spread=spread, sums=sums,
-                     ids=ids, force=True)  # fmt: skip
+    return share_log(source, path, budget, options, receiver=receiver, device=device, force=True)
 
 
 def _rescore_job(
@@ -471,10 +465,9 @@ class Runner:
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(
-            _share_job, source=source.path, budget=budget, strategy=strategy.removesuffix(FOR_B),
-            seed=seed, fold=self.settings.fold, device=self.settings.device,
-            receiver=None if receiver is None else receiver.path, spread=self.settings.spread,
-            sums=self.settings.sums, ids=self.settings.ids,
+            _share_job, source=source.path, budget=budget,
+            options=self.settings.share_options(strategy.removesuffix(FOR_B), seed),
+            device=self.settings.device, receiver=None if receiver is None else receiver.path,
         )  # fmt: skip
         return self._step(name, spec, job, after=[source] + ([receiver] if receiver else []))
 

@@ -15,6 +15,7 @@ from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
 from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 from gscompress.pipeline.share.cut import smallest_share_bytes
 from gscompress.pipeline.share.formats import REFERENCE_FORMATS
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import STRATEGIES, is_fraction
 from gscompress.slam.views import REFINE_VIEWS
 
@@ -177,6 +178,18 @@ class ExperimentSettings:
     refine_poses: int = 20
     references: tuple[str, ...] = REFERENCE_FORMATS
     recording: Any = None
+
+    def share_options(self, strategy: str, seed: int) -> ShareOptions:
+        """How each share by `strategy` with `seed` is cut: this experiment's fold, spread,
+        sums and ids, in `gsc share`'s codec."""
+        return ShareOptions(
+            strategy=strategy,
+            seed=seed,
+            fold=self.fold,
+            spread=self.spread,
+            sums=self.sums,
+            ids=self.ids,
+        )
 
     def agent_frames(self, n: int | None = None) -> tuple[str, str]:
         """The frame subsets of agents A and B: the odd and even positions within `frames`, or

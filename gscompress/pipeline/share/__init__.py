@@ -3,6 +3,7 @@ torch only to refine, solve or rank for a receiver, when asked).
 
 The command is `share_log`, here; its parts:
 
+- `options`: `ShareOptions`, the share's settings, their checks and the record it keeps;
 - `cut`: `ShareCut`, the share file of the K best Gaussians for any K (what a byte budget
   searches over);
 - `solve`: the byte-budget solver of `gsc share --solve` (the codec and PWAS state that give
@@ -23,14 +24,15 @@ import numpy as np
 from gscompress.camera import Intrinsics
 from gscompress.errors import OptionError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import DEFAULT_SHARE_CODEC, SHARE_IDS, check_codec, get_codec
+from gscompress.io.codec import get_codec
 from gscompress.io.files import check_output, sha256, write_bytes_atomic
 from gscompress.io.keyframes import CarriedFrame
 from gscompress.io.mcap_log import LogMetadata, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.budget import Budget
 from gscompress.ops.refine import MapRefiner
-from gscompress.pipeline.share.cut import ShareCut
+from gscompress.pipeline.share.cut import DEFAULTS, ShareCut
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.pipeline.share.receiver import read_request
 
 
@@ -38,13 +40,8 @@ def share_log(
     src: str | Path,
     dst: str | Path,
     budget: str | float | Budget,
+    options: ShareOptions = DEFAULTS,
     *,
-    strategy: str = "pwas",
-    codec: str = DEFAULT_SHARE_CODEC,
-    sums: bool = True,
-    ids: bool = SHARE_IDS,
-    seed: int = 0,
-    fold_dropped: bool = True,
     ply: str | Path | None = None,
     refine: MapRefiner | None = None,
     solve: dict[str, Any] | None = None,
@@ -55,7 +52,6 @@ def share_log(
     carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
     receiver: str | Path | None = None,
     device: str = "auto",
-    spread: bool = False,
     progress: Callable[[int], object] | None = None,
 ) -> dict[str, Any]:
     """Cut the budgeted top-K share of a log's map for another agent (MCAP, and PLY if asked).
@@ -71,16 +67,8 @@ def share_log(
             `"5%bytes"` of the map's fp32 message; see `Budget`). A byte budget bounds the whole
             share file as written (framing, schema, metadata and map: the bytes that cross the
             link), which holds the most Gaussians that fit.
-        strategy: what to rank Gaussians by (`Strategy`).
-        codec: how the map is stored (`gscompress.io.codec.CODECS`): compact (the default, about
-            10-20 bytes per Gaussian), fp16 or fp32 (a foxglove.PointCloud Foxglove draws).
-        sums: send the PWAS sums (a receiver that keeps accumulating needs them); without them
-            a compact share sends the score alone (fp32 and fp16 always send the sums).
-        ids: send each Gaussian's id (`SHARE_IDS`: not unless asked); without them a compact
-            share is about 2 bytes a Gaussian smaller and the receiver numbers them 0..N-1 (fp32
-            and fp16 always send them).
-        seed: seed of the random strategy.
-        fold_dropped: fold what the share leaves out into the Gaussians it sends (`cut_map`).
+        options: how the map is ranked, cut and encoded (`ShareOptions`: strategy, codec,
+            sums, ids, seed, fold, spread).
         ply: also write the share as a float32 3DGS PLY (the decoded values).
         refine: refines the selected Gaussians before they are sent (a
             `gscompress.pipeline.refining.LogRefiner` on the sender's frames); a byte budget
@@ -101,8 +89,6 @@ def share_log(
             first (`gscompress.pipeline.share.receiver`; needs torch, rendered on `device`); a byte
             budget counts its request's bytes too. In its own world frame, which must be the
             map's unless `align_to` gives the transform.
-        spread: send the best of distinct places first (`selection.spread_ranks`): the
-            strategy's order, spread over space.
         progress: called with how many cuts a byte budget has tried so far (each a fold and
             an encoding of the whole share), as its search goes (0: it starts).
 
@@ -113,20 +99,19 @@ def share_log(
         MapError: at fp16, a selected value beyond the float16 range.
     """
     budget = Budget.parse(budget)
-    check_codec(codec)
+    options.check()
     _check_outputs(src, dst, ply, [p for p in (src, align_to, receiver) if p is not None], force)
     align = None if align_to is None else share_alignment(src, align_to)
-    cut = ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, ids=ids, seed=seed,
-                   fold_dropped=fold_dropped, refine=refine, solve=solve, command=command,
+    cut = ShareCut(src, budget, options, refine=refine, solve=solve, command=command,
                    source=source, align=align, carry=carry,
                    receiver=None if receiver is None else read_request(receiver),
-                   device=device, spread=spread)  # fmt: skip
+                   device=device)  # fmt: skip
     data, shared, results = cut.file(_count(cut, refine, progress))
     limit = cut.budget.budget_bytes
     if limit is not None and len(data) > limit:
         raise AssertionError(f"share of {len(data)} B exceeds {limit} B")
     results["file_bytes"] = len(data)
-    _write(data, shared, dst, ply, codec, src, force)
+    _write(data, shared, dst, ply, options.codec, src, force)
     return {"output": str(dst), "ply": None if ply is None else str(ply), **results}
 
 

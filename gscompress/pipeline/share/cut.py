@@ -12,13 +12,7 @@ import numpy as np
 from gscompress.camera import Intrinsics
 from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import (
-    DEFAULT_CODEC,
-    DEFAULT_SHARE_CODEC,
-    SHARE_IDS,
-    carries_ids,
-    check_codec,
-)
+from gscompress.io.codec import DEFAULT_CODEC, DEFAULT_SHARE_CODEC
 from gscompress.io.compact import CompactOptions
 from gscompress.io.keyframes import CarriedFrame, carried_messages, write_carried
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pointcloud_bytes
@@ -27,6 +21,7 @@ from gscompress.ops.fold import Folding, cut_map, cut_pool
 from gscompress.ops.merge import transform_map
 from gscompress.ops.refine import MapRefiner, refined
 from gscompress.pipeline.logs import recorded_topics
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.pipeline.share.receiver import (
     Request,
     budget_less_request,
@@ -41,6 +36,10 @@ iterations with three scales a Gaussian: sized before the refinement, 4891 Gauss
 refined, 4350 of them fit afterwards, and with the rest folded in the share scored 25.87 dB
 off the keyframes, against 26.88 for the isotropic share; with the probe, 4355 are refined
 and sent: 27.22 dB (docs/prune-refine.md)."""
+
+
+DEFAULTS = ShareOptions()
+"""`gsc share`'s settings unless asked otherwise."""
 
 
 class ShareCut:
@@ -58,13 +57,8 @@ class ShareCut:
         self,
         src: str | Path,
         budget: Budget,
+        options: ShareOptions = DEFAULTS,
         *,
-        strategy: str = "pwas",
-        codec: str = DEFAULT_SHARE_CODEC,
-        sums: bool = True,
-        ids: bool = SHARE_IDS,
-        seed: int = 0,
-        fold_dropped: bool = True,
         refine: MapRefiner | None = None,
         solve: dict[str, Any] | None = None,
         command: str = "",
@@ -73,13 +67,11 @@ class ShareCut:
         carry: tuple[list[CarriedFrame], Intrinsics] | None = None,
         receiver: Request | None = None,
         device: str = "auto",
-        spread: bool = False,
     ):
+        options.check()
         self.src = Path(src)
         self.carry = carry
-        self.fold, self.spread = fold_dropped, spread
-        self.strategy, self.codec, self.sums, self.seed = strategy, check_codec(codec), sums, seed
-        self.ids = carries_ids(codec, ids)
+        self.options = options
         if source is None:
             with LogReader(src) as log_in:
                 source = log_in.read_map(), log_in.metadata
@@ -87,10 +79,7 @@ class ShareCut:
         self._recorded = recorded_topics(meta)
         fp32_bytes = pointcloud_bytes(self.full, DEFAULT_CODEC)(len(self.full))
         self.budget = budget = budget.resolve(fp32_bytes)
-        operation = {"name": "share", **budget.record(), "strategy": strategy, "seed": seed}
-        operation.update(codec=codec, sums=sums, ids=self.ids, fold=fold_dropped)
-        if spread:
-            operation["spread"] = True
+        operation = options.provenance(budget)
         self.first_ids: np.ndarray | None = None  # what the receiver has not seen (sent first)
         self.receiver: dict[str, Any] = {}
         if receiver is not None:
@@ -136,12 +125,14 @@ class ShareCut:
         here once, not for every count a byte budget tries."""
         self._sizes, self._last = {}, None
         self.pool = pool
-        self._scores = selection_scores(pool, self.strategy, self.seed, self.spread)
+        o = self.options
+        self._scores = selection_scores(pool, o.strategy, o.seed, o.spread)
         self._first = None if self.first_ids is None else np.isin(pool.ids, self.first_ids)
-        self._folding = Folding(pool) if self.fold else None  # (one for every count tried)
+        self._folding = Folding(pool) if o.fold else None  # (one for every count tried)
 
     def _cut(self, count: int) -> GaussianMap:
-        return cut_map(self.pool, count, self._scores, self.fold, self._first, self._folding)
+        return cut_map(self.pool, count, self._scores, self.options.fold, self._first,
+                       self._folding)  # fmt: skip
 
     def refined(self, count: int, refine: MapRefiner) -> int:
         """Refine the share of the `count` best Gaussians and take later shares from it; the
@@ -176,14 +167,7 @@ class ShareCut:
                 shared = transform_map(shared, self.T_target_source)
             meta = self._meta
             meta.results = {
-                "source": self.src.name,
-                "strategy": self.strategy,
-                **self.budget.record(),
-                "codec": self.codec,
-                "sums": self.sums,
-                "ids": self.ids,
-                "fold": self.fold,
-                **({"spread": True} if self.spread else {}),
+                **self.options.results(self.src.name, self.budget),
                 "selected": len(shared),
                 "total": len(self.full),
                 **self.receiver,
@@ -191,8 +175,9 @@ class ShareCut:
                 **self._recorded,
             }
             with LogWriter(None, meta) as out:
-                options = CompactOptions(sums=self.sums, ids=self.ids)
-                meta.results["bytes"] = out.write_gaussians(shared, 0, self.codec, options)
+                o = self.options
+                columns = CompactOptions(sums=o.sums, ids=o.sends_ids)
+                meta.results["bytes"] = out.write_gaussians(shared, 0, o.codec, columns)
                 if self.carry is not None:
                     frames, camera = self._carried
                     meta.results["keyframes"] = len(frames)

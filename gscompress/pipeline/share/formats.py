@@ -13,6 +13,7 @@ from gscompress.io.map_files import read_map_file
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline.logs import map_log, recorded_topics
 from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.options import ShareOptions
 
 REFERENCE_FORMATS = (DEFAULT_CODEC, "spz", "sog")
 """The formats `format_share` sends a whole map in: the points of the field on a
@@ -37,7 +38,7 @@ def format_share(
     if fmt not in REFERENCE_FORMATS:
         raise InputError(f"unknown format {fmt!r}; choose from {', '.join(REFERENCE_FORMATS)}")
     if fmt == DEFAULT_CODEC:
-        got = share_log(src, dst, "1", codec=fmt, fold_dropped=False, command=command,
+        got = share_log(src, dst, "1", ShareOptions(codec=fmt, fold=False), command=command,
                         force=force)  # fmt: skip
         return {**got, "format": fmt}
     import tempfile

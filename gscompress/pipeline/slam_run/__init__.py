@@ -1,8 +1,8 @@
 """`gsc slam`: a sequence through the SLAM system into a log (`gscompress.io.mcap_log`).
 
-A run starts fresh, from another agent's share (`inject`), or from the log of an interrupted
-run (`resume`): `gscompress.pipeline.slam_run.start`; the frame loop and the log it writes (here)
-are the same in all three cases.
+A run starts fresh or from another agent's share (`slam_file`, with `inject`), or from the log of
+an interrupted run (`resume_slam_file`): `gscompress.pipeline.slam_run.start`; the frame loop and
+the log it writes (here) are the same in all three cases.
 """
 
 from __future__ import annotations
@@ -65,7 +65,6 @@ def slam_file(
     no_prune: bool = False,
     inject: str | Path | None = None,
     share_transform: str | Path | None = None,
-    resume: bool = False,
     config: Any = None,
     command: str = "",
     force: bool = False,
@@ -85,8 +84,8 @@ def slam_file(
 
     On KeyboardInterrupt or an exception the map so far is written as the final snapshot, the
     log is closed (valid and readable, results marked `interrupted`) and the exception is raised
-    again. A run killed outright leaves its unfinished temporary file beside `dst`; `resume`
-    continues from either.
+    again. A run killed outright leaves its unfinished temporary file beside `dst`;
+    `resume_slam_file` continues from either.
 
     Args:
         seq: the sequence folder (None when `sequence` is given).
@@ -104,8 +103,6 @@ def slam_file(
             frame must be this run's, unless `share_transform` is given.
         share_transform: a file with the rigid transform from the share's world frame to this
             run's (4x4 or TUM `tx ty tz qx qy qz qw`).
-        resume: continue the interrupted run whose log (or unfinished file) is at `dst`, with
-            the config, frames and size recorded in it; the other options must be left unset.
         config: a ready `SlamConfig` to use instead of preset + `config_path` + options (which
             must then be left unset).
         command: the command line, for the metadata.
@@ -119,7 +116,7 @@ def slam_file(
             default, is a foxglove.PointCloud that Foxglove draws.
         recording: a recording's `RecordingOptions` (topics, pairing, ground truth; None:
             chosen). The topics read are recorded in the log's results (`recording`), where
-            `--resume` and the commands that reopen the log's sequence take them from.
+            `resume_slam_file` and the commands that reopen the log's sequence take them from.
         phases: called as the run goes through its phases, with (phase, steps done, steps
             in total): `FRAMES` once before the first frame (the frames a resumed log already
             holds as done), `FINAL_REFINEMENT` after each iteration of the refinement after the
@@ -130,16 +127,50 @@ def slam_file(
         has ground truth, and whether the run was interrupted.
     """
     _check_options(seq, sequence, codec, keep)
-    if resume:
-        kept = (preset, config_path or config, frames, size, backend, keep, inject, share_transform)
-        _refuse_own_settings(kept, no_prune, recording)
-        run = resume_run(seq, dst, device, sequence)
-    else:
-        config = _fresh_config(config, preset, config_path, size, keep, no_prune, backend)
-        if share_transform is not None and inject is None:
-            raise OptionError("a share transform needs --inject")
-        spec = SequenceSpec(seq, sequence, frames or "all", recording)
-        run = fresh_run(spec, dst, config, device, inject, share_transform, force, config_path)
+    config = _fresh_config(config, preset, config_path, size, keep, no_prune, backend)
+    if share_transform is not None and inject is None:
+        raise OptionError("a share transform needs --inject")
+    spec = SequenceSpec(seq, sequence, frames or "all", recording)
+    run = fresh_run(spec, dst, config, device, inject, share_transform, force, config_path)
+    return _run(run, dst, command, codec, progress, phases)
+
+
+def resume_slam_file(
+    seq: str | Path | None,
+    dst: str | Path,
+    *,
+    device: str = "auto",
+    command: str = "",
+    progress: Progress | None = None,
+    sequence: Any = None,
+    codec: str = DEFAULT_CODEC,
+    phases: Phases | None = None,
+) -> dict[str, Any]:
+    """Continue the interrupted run whose log (or unfinished file) is at `dst`, with the config,
+    frames, size, share and recording options recorded in it, through the frame loop of
+    `slam_file` (the arguments of these names are its).
+
+    Returns:
+        As `slam_file`, with `resumed_at`: the frames the interrupted run had done.
+
+    Raises:
+        InputError: no log nor unfinished run at `dst`, or one that cannot be resumed (a
+            finished run, a share or a pruned log, another sequence).
+    """
+    _check_options(seq, sequence, codec, None)
+    run = resume_run(seq, dst, device, sequence)
+    return _run(run, dst, command, codec, progress, phases)
+
+
+def _run(
+    run: Run,
+    dst: str | Path,
+    command: str,
+    codec: str,
+    progress: Progress | None,
+    phases: Phases | None,
+) -> dict[str, Any]:
+    """A started run (fresh, injected or resumed) through its frames into `dst`."""
     run.meta.command = command
     run.codec = codec
     return _loop(run, dst, progress, phases)
@@ -168,9 +199,13 @@ RESUME_KEEPS = (
 `--no-prune` and a recording's options)."""
 
 
-def _refuse_own_settings(kept: tuple[Any, ...], no_prune: bool, recording: Any) -> None:
+def refuse_own_settings(kept: tuple[Any, ...], no_prune: bool, recording: Any) -> None:
     """Refuse settings given beside `--resume` (`kept`: the values given of `RESUME_KEEPS`, in
-    that order; None where not given)."""
+    that order; None where not given), which `resume_slam_file` takes from the log.
+
+    Raises:
+        OptionError: naming the settings to drop.
+    """
     clashing = [name for name, value in zip(RESUME_KEEPS, kept, strict=True) if value is not None]
     clashing += ["--no-prune"] if no_prune else []
     clashing += ["--rgb/--depth/--camera-info/--max-dt/--gt"] if _given(recording) else []
