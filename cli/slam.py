@@ -195,12 +195,6 @@ def slam(
     checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
     even a killed run resumes with --resume, redoing at most that many frames.
     """
-    from gscompress.io.files import check_output
-    from gscompress.io.recover import resume_sources
-    from gscompress.pipeline.slam_run import RESUMABLE
-    from gscompress.slam.config import resolve_config
-    from gscompress.slam.config import save_config as write_config
-
     # the settings on top of the preset and file: --save-config's config is the run's
     settings: dict[str, Any] = {
         "size": size,
@@ -208,27 +202,83 @@ def slam(
         "no_prune": no_prune,
         "backend": backend,
     }
-    if save_config is not None:
-        if resume:
-            raise click.UsageError(
-                "--save-config does not go with --resume (the log holds its config)"
-            )
-        config = resolve_config(preset, config_path, **settings)
-        inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
-        check_output(save_config, inputs, force, ".yaml")
-        if dst is None:
-            write_config(config, save_config)
-            click.echo(f"wrote {save_config}")
-            return
-    if dst is None:
-        raise click.UsageError("give an output log with -o OUT.mcap (or only --save-config)")
-    if resume and not resume_sources(dst):
-        raise click.UsageError(f"--resume: there is no log {dst} nor an unfinished run of it")
+    inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
+    config = _config_to_save(save_config, resume, preset, config_path, settings, inputs, force)
+    if dst is None and save_config is not None:
+        from gscompress.slam.config import save_config as write_config
 
+        write_config(config, save_config)
+        click.echo(f"wrote {save_config}")
+        return
+    dst = _run_output(dst, resume)
     # what was not given stays None, so that --resume can refuse settings it would not use
     frames_given = (
         click.get_current_context().get_parameter_source("frames") != ParameterSource.DEFAULT
     )
+    fresh: dict[str, Any] = dict(
+        preset=preset,
+        config_path=config_path,
+        frames=str(frames) if frames_given else None,
+        inject=inject,
+        share_transform=share_transform,
+        recording=recording,
+        force=force,
+        **settings,
+    )
+    loop: dict[str, Any] = dict(device=device, codec=codec, command=command_line())
+    saving = (save_config, config) if save_config is not None else None
+    result = _run_with_progress(seq, dst, resume, fresh, loop, saving, as_json)
+    emit(result, as_json, _mapped_text(result, dst))
+
+
+def _config_to_save(
+    save_config: Path | None,
+    resume: bool,
+    preset: str | None,
+    config_path: Path | None,
+    settings: dict[str, Any],
+    inputs: list[Path],
+    force: bool,
+) -> Any:
+    """With --save-config, the run's resolved config once its file is checked (None without)."""
+    if save_config is None:
+        return None
+    from gscompress.io.files import check_output
+    from gscompress.slam.config import resolve_config
+
+    if resume:
+        raise click.UsageError("--save-config does not go with --resume (the log holds its config)")
+    config = resolve_config(preset, config_path, **settings)
+    check_output(save_config, inputs, force, ".yaml")
+    return config
+
+
+def _run_output(dst: Path | None, resume: bool) -> Path:
+    """-o, checked: given, and with --resume naming a log or an unfinished run."""
+    from gscompress.io.recover import resume_sources
+
+    if dst is None:
+        raise click.UsageError("give an output log with -o OUT.mcap (or only --save-config)")
+    if resume and not resume_sources(dst):
+        raise click.UsageError(f"--resume: there is no log {dst} nor an unfinished run of it")
+    return dst
+
+
+def _run_with_progress(
+    seq: Path,
+    dst: Path,
+    resume: bool,
+    fresh: dict[str, Any],
+    loop: dict[str, Any],
+    saving: tuple[Path, Any] | None,
+    as_json: bool,
+) -> dict[str, Any]:
+    """The run under a progress bar; `saving`: (--save-config's path, the config), written once
+    the run has mapped its first frame. Ctrl-C exits 130 with how to resume; an error --resume
+    can get past says so."""
+    from gscompress.pipeline.slam_run import RESUMABLE
+    from gscompress.slam.config import save_config as write_config
+
     before = _modified_ns(dst)
     with progress_bar("slam", "frame", hidden=as_json) as bar:
         processed = 0
@@ -236,8 +286,8 @@ def slam(
         def progress(done: int, total: int, stats: dict[str, Any]) -> None:
             nonlocal processed
             processed += 1
-            if processed == 1 and save_config is not None:  # once the run passed its checks
-                write_config(config, save_config)
+            if processed == 1 and saving is not None:  # once the run passed its checks
+                write_config(saving[1], saving[0])
             bar.set_postfix(  # counts as text: tqdm would show 10000 as "1e+4"
                 frame=str(stats["frame"]),
                 gaussians=str(stats["gaussians"]),
@@ -248,25 +298,10 @@ def slam(
             )
             advance(bar, done, total)
 
-        fresh: dict[str, Any] = dict(
-            preset=preset,
-            config_path=config_path,
-            frames=str(frames) if frames_given else None,
-            inject=inject,
-            share_transform=share_transform,
-            recording=recording,
-            force=force,
-            **settings,
-        )
-        loop: dict[str, Any] = dict(
-            device=device,
-            codec=codec,
-            command=command_line(),
-            progress=progress,
-            phases=_phases(bar),
-        )
         try:
-            result = _slam_or_resume(seq, dst, resume, fresh, loop)
+            return _slam_or_resume(
+                seq, dst, resume, fresh, {**loop, "progress": progress, "phases": _phases(bar)}
+            )
         except KeyboardInterrupt:
             bar.close()
             click.echo(_interrupted_text(seq, dst), err=True)
@@ -274,19 +309,24 @@ def slam(
         except RESUMABLE:  # a frame or the disk: --resume goes on once it is fixed
             bar.close()
             if _modified_ns(dst) != before:  # (a log this run wrote, the error said above)
-                click.echo(f"Once the error below is fixed, `gsc slam {seq} -o {dst} --resume` "
-                           "continues the run", err=True)  # fmt: skip
+                click.echo(
+                    f"Once the error below is fixed, `gsc slam {seq} -o {dst} --resume` "
+                    "continues the run",
+                    err=True,
+                )
             raise
+
+
+def _mapped_text(result: dict[str, Any], dst: Path) -> str:
+    """The line a finished run prints."""
     ate = result.get("ate_rmse_cm")
-    emit(
-        result,
-        as_json,
+    return (
         f"mapped {result['frames']} frame{'s' if result['frames'] != 1 else ''} -> "
         f"{result['gaussians']} Gaussians in {dst} "
         + (f"(started with {result['injected']} received) " if result.get("injected") else "")
         + f"({_speed(result)}"
         + (f", ATE RMSE {ate:.2f} cm" if ate is not None else "")
-        + ")",
+        + ")"
     )
 
 
