@@ -12,13 +12,13 @@ from gscompress.errors import BudgetError, DivergenceError, MapError
 from gscompress.gaussians import SH_C0, random_map
 from gscompress.render import render
 from gscompress.selection import STRATEGIES, keep_count, strategy_scores
-from gscompress.slam.config import TrackingConfig, preset
+from gscompress.slam.config import TrackingConfig, final_iterations, preset, stage_positions
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, overlap_fraction, sample_points, select_window
 from gscompress.slam.mapper import Mapper
 from gscompress.slam.params import GaussianParams
 from gscompress.slam.poses import PoseAdam, orthonormalize, pose_gradient, pose_increment
-from gscompress.slam.system import SlamSystem, final_iterations, stage_positions
+from gscompress.slam.system import SlamSystem
 from gscompress.slam.tracker import constant_velocity, track
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`

@@ -24,12 +24,11 @@ two steps look at the run's own Gaussians only:
 
 - densification adds Gaussians where the run's own map does not explain the frame: a share is
   a sparse, blurred cover of the scene, and letting it stand in for the receiver's own map
-  stopped B from mapping (on the synthetic room, B with a random 20% share ended with 2.9k
-  Gaussians instead of 7.8k and 1.4 dB lower PSNR, `gsc experiment --mode inject`);
+  stops the receiver from mapping;
 - the PWAS pruning stages rank the run's own Gaussians only: the sender already chose the share
-  under its budget, and ranking it again would cut it twice (when B's stages ranked the received
-  Gaussians too, even A's whole map left B at 19.5 dB / 1.03 cm ATE against 22.3 dB / 0.65 cm
-  alone).
+  under its budget, and ranking it again would cut it twice.
+
+(docs/merge.md, "Injected instead of merged", has what either did when it was not so.)
 """
 
 from __future__ import annotations
@@ -51,7 +50,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.importance import median_range, resolve_sigma_d
 from gscompress.render import render, resolve_device
 from gscompress.selection import keep_count, strategy_scores, top_k
-from gscompress.slam.config import MappingConfig, SlamConfig
+from gscompress.slam.config import SlamConfig, final_iterations, stage_positions
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import (
     HeldImages,
@@ -155,24 +154,6 @@ class FrameResult:
         if self.event:
             record["event"] = self.event
         return {k: v for k, v in record.items() if not isinstance(v, float) or np.isfinite(v)}
-
-
-def stage_positions(total_frames: int, stages: tuple[float, ...]) -> dict[int, int]:
-    """{processing position after which to prune: stage number (1-based)} for a run length.
-
-    Stage s at fraction p runs after frame round(p * total) - 1 (at least after the first).
-    """
-    out: dict[int, int] = {}
-    for number, fraction in enumerate(sorted(stages), start=1):
-        position = max(round(fraction * total_frames), 1) - 1
-        out.setdefault(position, number)
-    return out
-
-
-def final_iterations(mapping: MappingConfig, frames: int) -> int:
-    """Iterations of the final refinement of a run of `frames` frames."""
-    per_frame = mapping.final_iters_per_frame
-    return min(mapping.final_iters, per_frame * frames) if per_frame else mapping.final_iters
 
 
 class SlamSystem:

@@ -63,7 +63,7 @@ def plan_work(s: ExperimentSettings, base: Any, n: int) -> Work:
     """The work of the experiment's steps on `n` frames with SLAM config `base`: each SLAM run's
     tracking, mapping and final refinement iterations and its evaluation, each merge's
     refinement and evaluation, each cross-agent scoring's pose refinement and evaluation."""
-    from gscompress.slam.system import final_iterations
+    from gscompress.slam.config import final_iterations
 
     n_a, n_b = agent_frame_counts(s, n)
 
