@@ -22,7 +22,7 @@ from gscompress.io.codec import CODECS, SHARE_IDS
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
 from gscompress.ops.icp import DEFAULT_ICP, ICP
-from gscompress.selection import is_fraction
+from gscompress.selection import is_fraction, percent_hint
 
 if TYPE_CHECKING:
     from gscompress.datasets.base import FrameSelection
@@ -167,7 +167,9 @@ class Ratio(click.ParamType):
             except ValueError:
                 self.fail(f"{value!r} is not a number", param, ctx)
         if not is_fraction(ratio):
-            self.fail(f"{value} is outside (0, 1]", param, ctx)
+            hint = percent_hint(ratio)
+            meant = f": did you mean {hint}?" if hint else ""
+            self.fail(f"{value} is outside (0, 1]{meant}", param, ctx)
         return ratio
 
 

@@ -50,7 +50,7 @@ def main() -> None:
     gsc("slam", seq, "--frames", frames_b, "-o", b, "--force")
     middle = (3 * n) // 10
     gsc("render", a, "--seq", seq, "--frames", f"{middle}:{middle + 1}", "--color", "rgb",
-        "--color", "importance", "--side-by-side", "-o", out / "pictures")  # fmt: skip
+        "--color", "importance", "--side-by-side", "-o", out / "pictures", "--force")  # fmt: skip
     gsc("prune", a, "--keep", "0.3", "--map-only", "-o", out / "robot_a_pruned.mcap", "--force")
     gsc("share", a, out / "share.mcap", "--budget", "50kB", "--force")
     gsc("merge", b, out / "share.mcap", "-o", out / "robot_b_merged.mcap", "--seq", seq, "--force")

@@ -45,6 +45,14 @@ def is_fraction(value: object) -> bool:
     return isinstance(value, int | float) and math.isfinite(value) and 0.0 < value <= 1.0
 
 
+def percent_hint(number: float) -> str:
+    """What a number given for a fraction may have meant when it reads as a percentage (above 1,
+    up to 100): "0.3 or 30%" for 30; else ""."""
+    if not (math.isfinite(number) and 1.0 < number <= 100.0):
+        return ""
+    return f"{number / 100:g} or {number:g}%"
+
+
 def check_ratio(ratio: float, name: str = "ratio") -> float:
     """Return `ratio` if it lies in (0, 1], else raise InputError."""
     if not is_fraction(ratio):

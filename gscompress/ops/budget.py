@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from gscompress.errors import BudgetError, InputError
-from gscompress.selection import is_fraction, keep_count
+from gscompress.selection import is_fraction, keep_count, percent_hint
 
 _UNITS = {"B": 1, "kB": 1000, "MB": 1000**2, "GB": 1000**3, "KiB": 1024, "MiB": 1024**2,
           "GiB": 1024**3}  # fmt: skip
@@ -157,9 +157,11 @@ class Budget:
     @classmethod
     def _from_number(cls, number: float, text: str, percent: bool = False) -> Budget:
         if math.isfinite(number) and number > 1.0 and not percent:
+            hint = percent_hint(number)
             raise InputError(
-                f"budget {text} is above 1: a bare number is a fraction in (0, 1]; "
-                f"for bytes add a unit, e.g. {text}B, {text}kB or {text}MB"
+                f"budget {text} is above 1: a bare number is a fraction in (0, 1]"
+                + (f" (did you mean {hint}?)" if hint else "")
+                + f"; for bytes add a unit, e.g. {text}B, {text}kB or {text}MB"
             )
         if not is_fraction(number):
             raise InputError(f"budget {text} is not a fraction in (0, 1]")

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.camera import Intrinsics
-from gscompress.errors import InputError, MapError, OptionError
+from gscompress.errors import InputError, MapError, OptionError, OutputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import write_atomic
 
@@ -72,6 +72,7 @@ class ImageOptions:
         save_images: a folder to write pictures of every view rendered into (`ImageSaver`).
         colorings: what the pictures are coloured by (`COLORINGS`).
         side_by_side: also write one labelled figure per view (observed, render, error).
+        force: write into a `save_images` folder that already holds files (else refused).
     """
 
     frames: str | None = None
@@ -85,12 +86,15 @@ class ImageOptions:
     save_images: str | Path | None = None
     colorings: tuple[str, ...] = ("rgb",)
     side_by_side: bool = True
+    force: bool = False
 
     def check(self) -> None:
-        """Refuse options out of range or at odds with each other.
+        """Refuse options out of range or at odds with each other, and a `save_images` folder
+        that holds files already, without `force`.
 
         Raises:
             InputError: `every` below 1. OptionError: both `poses` and `poses_from`.
+            OutputError: a folder of earlier pictures, without `force`.
         """
         if self.every < 1:
             raise InputError(
@@ -101,6 +105,9 @@ class ImageOptions:
                 "`poses` and `poses_from` do not go together: give one source of poses",
                 options=("poses", "poses_from"),
             )
+        folder = None if self.save_images is None else Path(self.save_images)
+        if folder is not None and not self.force and folder.is_dir() and any(folder.iterdir()):
+            raise OutputError(f"{folder} holds files already; pass --force to write over them")
 
 
 @dataclass(frozen=True)
