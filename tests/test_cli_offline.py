@@ -435,7 +435,16 @@ def test_offline_commands_do_not_import_torch(log_path, tmp_path):
         ["prune", str(log_path), "--keep", "0.3", "--map-only", "-o", str(tmp_path / "m.mcap")],
         ["share", str(log_path), str(tmp_path / "s.mcap")],  # compact: encoded
         ["info", str(tmp_path / "s.mcap")],  # and decoded
-        ["prune", str(log_path), "--keep", "0.3", "--codec", "compact", "-o", str(tmp_path / "c.mcap")],
+        [
+            "prune",
+            str(log_path),
+            "--keep",
+            "0.3",
+            "--codec",
+            "compact",
+            "-o",
+            str(tmp_path / "c.mcap"),
+        ],
         ["share", str(log_path), str(tmp_path / "b.mcap"), "--budget", "20%bytes", "--no-sums"],
         ["export-ply", str(log_path), "-o", str(tmp_path / "e.ply")],
         ["export-traj", str(log_path), "-o", str(tmp_path / "t.txt")],
