@@ -70,8 +70,13 @@ def main() -> None:
     t_a, gt_a = ground_truth(args.a)
     t_b, gt_b = ground_truth(args.b)
     record: dict[str, Any] = {"a": str(args.a), "b": str(args.b), "seq": str(args.seq)}
-    record["align"] = align_agents(args.a, args.b, out / "T_est.txt", out / "T_true.txt",
-                                   seq=args.seq if args.on_frames else None)  # fmt: skip
+    record["align"] = align_agents(
+        args.a,
+        args.b,
+        out / "T_est.txt",
+        out / "T_true.txt",
+        seq=args.seq if args.on_frames else None,
+    )
     record["align"].pop("hypotheses", None)
     share = out / "a_share.mcap"
     share_log(args.a, share, args.budget, force=True)
@@ -84,9 +89,16 @@ def main() -> None:
     write_tum_trajectory(gt_in_b, times / 1e9, T_b_gt @ poses, ["ground truth in B's frame"])
     for name, transform in (("est", out / "T_est.txt"), ("true", out / "T_true.txt")):
         merged = out / f"b_merged_{name}.mcap"
-        merge_logs(args.b, share, merged, seq=args.seq, iters=args.iters,
-                   share_transform=transform, merge=MergeOptions(align=False),
-                   force=True)  # fmt: skip
+        merge_logs(
+            args.b,
+            share,
+            merged,
+            seq=args.seq,
+            iters=args.iters,
+            share_transform=transform,
+            merge=MergeOptions(align=False),
+            force=True,
+        )
         own = evaluate_log(merged, args.seq, ImageOptions(lpips=False))
         views = ImageOptions(frames="all", poses=gt_in_b, every=args.every, lpips=False)
         every = evaluate_log(merged, args.seq, views)

@@ -353,8 +353,11 @@ def table(result: dict[str, Any], name: str) -> str:
             if p is None:
                 cells += ["", "", ""]
                 continue
-            cells += [f"{p:.3f}", f"{p - base[f'psnr_gt_{size}']:+.3f}",
-                      f"{e[f'psnr_vs_fp32_{size}']:.1f}"]  # fmt: skip
+            cells += [
+                f"{p:.3f}",
+                f"{p - base[f'psnr_gt_{size}']:+.3f}",
+                f"{e[f'psnr_vs_fp32_{size}']:.1f}",
+            ]
         s = e.get("ssim_gt_working")
         cells.append("" if s is None else f"{s:.4f}")
         lines.append("| " + " | ".join(cells) + " |")
@@ -381,8 +384,10 @@ def _commit() -> str:
     try:
         return subprocess.run(
             ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-            capture_output=True, text=True, check=True,
-        ).stdout.strip()  # fmt: skip
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 

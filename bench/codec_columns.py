@@ -67,10 +67,17 @@ def main() -> None:
 
         def psnr(gaussians: GaussianMap) -> float:
             out = Path(tmp) / "map.mcap"
-            rewrite_map(opts.log, out, {"name": "bench"}, lambda _: (gaussians, {}),
-                        codec="fp32", force=True)  # fmt: skip
-            scores = evaluate_log(out, opts.seq, ImageOptions(frames=opts.frames, every=opts.every,
-                                                              lpips=False))  # fmt: skip
+            rewrite_map(
+                opts.log,
+                out,
+                {"name": "bench"},
+                lambda _: (gaussians, {}),
+                codec="fp32",
+                force=True,
+            )
+            scores = evaluate_log(
+                out, opts.seq, ImageOptions(frames=opts.frames, every=opts.every, lpips=False)
+            )
             return float(scores["psnr"])
 
         base = psnr(exact)

@@ -87,8 +87,9 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
             tag = f"{by}_{keep:g}_{'fold' if fold else 'nofold'}"
             out = work / f"prune_{tag}_r{refine}.mcap"
             start = time.perf_counter()
-            prune_log(log, out, keep, by=by, refine=refiner if refine else None,
-                      fold=fold, force=True)  # fmt: skip
+            prune_log(
+                log, out, keep, by=by, refine=refiner if refine else None, fold=fold, force=True
+            )
             seconds = time.perf_counter() - start
             fields: dict[str, Any] = {"keep": keep, "by": by, "fold": fold, "refine": refine}
             if not refine:
@@ -97,8 +98,13 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
                 fields["map_only_bytes"] = alone.stat().st_size
             name = f"prune {keep:.4g} {by}" + (" folded" if fold and keep < 1 else "")
             score(name + (f" +refine {refine}" if refine else ""), out, seconds, **fields)
-    return {"sequence": str(seq), "log": str(log), "keyframes": len(keyframe_ns),
-            "refine_iters": opts.refine, "rows": rows}  # fmt: skip
+    return {
+        "sequence": str(seq),
+        "log": str(log),
+        "keyframes": len(keyframe_ns),
+        "refine_iters": opts.refine,
+        "rows": rows,
+    }
 
 
 def main() -> None:
@@ -148,9 +154,11 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for result in results:
         for r in result["rows"]:
-            print(f"| {Path(result['sequence']).name} | {r['map']} | {r['gaussians']} | "
-                  f"{r['psnr']} | {r['ssim']} | {r['lpips']} | {r['file_bytes']} | "
-                  f"{r.get('map_only_bytes', '')} |")  # fmt: skip
+            print(
+                f"| {Path(result['sequence']).name} | {r['map']} | {r['gaussians']} | "
+                f"{r['psnr']} | {r['ssim']} | {r['lpips']} | {r['file_bytes']} | "
+                f"{r.get('map_only_bytes', '')} |"
+            )
 
 
 if __name__ == "__main__":

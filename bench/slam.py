@@ -102,9 +102,13 @@ def main() -> None:
     else:
         cpu0, wall0 = time.process_time(), time.perf_counter()
         result = slam_file(
-            seq, out, config_path=config_path, frames=opts.frames,  # the resolved config
-            command="bench/slam.py", force=True,
-        )  # fmt: skip
+            seq,
+            out,
+            config_path=config_path,
+            frames=opts.frames,  # the resolved config
+            command="bench/slam.py",
+            force=True,
+        )
         wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     report = evaluate(out, seq, opts.eval_every)
     report.update(

@@ -74,8 +74,12 @@ def grown_log(source: Path, count: int, out: Path) -> Path:
     """A copy of the log `source` whose map is tiled to `count` Gaussians (made once)."""
     dst = out / f"{source.stem}_{count // 1000}k.mcap"
     if not dst.exists():
-        rewrite_map(source, dst, {"name": "bench-tile", "count": count},
-                    lambda g: (tiled(g, count), {"gaussians": count}))  # fmt: skip
+        rewrite_map(
+            source,
+            dst,
+            {"name": "bench-tile", "count": count},
+            lambda g: (tiled(g, count), {"gaussians": count}),
+        )
     return dst
 
 
@@ -303,20 +307,36 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0, help="orbiting time for the fps")
     parser.add_argument("--viewport", default="1280x720", help="page size, WIDTHxHEIGHT")
     parser.add_argument("--skip-startup", action="store_true", help="browser figures only")
-    parser.add_argument("--draw-only", action="store_true",
-                        help="time the server's drawing alone (no browser)")  # fmt: skip
+    parser.add_argument(
+        "--draw-only", action="store_true", help="time the server's drawing alone (no browser)"
+    )
     parser.add_argument("--devices", default="cpu", help="with --draw-only: e.g. cpu,cuda")
-    parser.add_argument("--gl", choices=("swiftshader", "llvmpipe"), default="swiftshader",
-                        help="the page's software WebGL (browser.GL_FLAGS)")  # fmt: skip
-    parser.add_argument("--motion-scale", type=float, default=None,
-                        help="with --render server: draw moving frames at this fixed scale "
-                        "(default: adaptive, next_motion_scale)")  # fmt: skip
-    parser.add_argument("--render", choices=("browser", "server"), default="browser",
-                        help="where the splats are drawn (gsc view --render)")  # fmt: skip
+    parser.add_argument(
+        "--gl",
+        choices=("swiftshader", "llvmpipe"),
+        default="swiftshader",
+        help="the page's software WebGL (browser.GL_FLAGS)",
+    )
+    parser.add_argument(
+        "--motion-scale",
+        type=float,
+        default=None,
+        help="with --render server: draw moving frames at this fixed scale "
+        "(default: adaptive, next_motion_scale)",
+    )
+    parser.add_argument(
+        "--render",
+        choices=("browser", "server"),
+        default="browser",
+        help="where the splats are drawn (gsc view --render)",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "bench_out" / "view")
-    parser.add_argument("--json", type=Path, default=None,
-                        help="default: bench/results/view.json, view_server.json with "
-                        "--render server")  # fmt: skip
+    parser.add_argument(
+        "--json",
+        type=Path,
+        default=None,
+        help="default: bench/results/view.json, view_server.json with --render server",
+    )
     args = parser.parse_args()
     if args.json is None:
         name = "view.json" if args.render == "browser" else "view_server.json"
@@ -328,8 +348,9 @@ def main() -> None:
     log = grown_log(args.source, args.count, args.out)
     width, height = (int(v) for v in args.viewport.split("x"))
     viewport = (width, height)
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    commit = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
     figures: dict[str, Any] = {
         "commit": commit,
         "machine": f"{cpu_model()}, {os.cpu_count()} cores, no GPU in the browser",

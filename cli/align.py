@@ -111,13 +111,23 @@ def align(
     check_recording_seq(recording, seq)
     options = AlignOptions(voxel=voxel, min_overlap=min_overlap, seed=seed, icp=icp)
     with progress_bar("align", "step", hidden=as_json) as bar:
-        result = align_logs(source, target, dst, init=init, options=options, seq=seq,
-                            recording=recording, force=force,
-                            phases=Phases(bar, {ON_FRAMES: "iter"}))  # fmt: skip
+        result = align_logs(
+            source,
+            target,
+            dst,
+            init=init,
+            options=options,
+            seq=seq,
+            recording=recording,
+            force=force,
+            phases=Phases(bar, {ON_FRAMES: "iter"}),
+        )
     T = result["T_target_source"]
-    inliers = "" if result["inliers"] is None else (
-        f", {result['inliers']} feature inliers ({result['inlier_ratio']:.0%})"
-    )  # fmt: skip
+    inliers = (
+        ""
+        if result["inliers"] is None
+        else (f", {result['inliers']} feature inliers ({result['inlier_ratio']:.0%})")
+    )
     text = (
         f"wrote {dst}: {Path(source).name} -> {Path(target).name}, translation "
         f"{[round(v, 4) for v in (T[0][3], T[1][3], T[2][3])]} m\n"

@@ -167,88 +167,123 @@ def _settings(o: dict[str, Any]) -> ExperimentSettings:
 @click.command("experiment", short_help="Run the paper's two-agent protocol: tables and plots.")
 @click.argument("seq", type=INPUT_SEQUENCE)
 @click.option(
-    "-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+    "-o",
+    "--output",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
     help="Experiment folder: runs/, results.md/.csv/.json and plots/ (a rerun reuses runs).",
-)  # fmt: skip
+)
 @click.option(
-    "--budget", type=BudgetParam(), default="0.2", show_default=True,
+    "--budget",
+    type=BudgetParam(),
+    default="0.2",
+    show_default=True,
     help="Main share budget (Table 4): a fraction (0.2, 20%) or bytes (2MB).",
-)  # fmt: skip
+)
 @click.option(
-    "--keep", type=Ratio(), default=None,
+    "--keep",
+    type=Ratio(),
+    default=None,
     help="Fraction kept at each PWAS pruning stage [default: the config's, 0.3].",
-)  # fmt: skip
+)
 @slam_config_options
 @click.option(
-    "--full", is_flag=True,
+    "--full",
+    is_flag=True,
     help="The whole study instead of a first look: 3 seeds, the strategies random, opacity, "
     "alpha-t, pwas and pwas-inf, the --sweep with the --references on the first seed, every "
     "frame scored with 100 tracking iterations (--seeds, --strategies, --sweep-seeds, --every "
     "and --refine-poses, when given, still decide). On a 16-frame "
     "160x120 sequence with the tiny preset: 128-129 steps instead of 18.",
-)  # fmt: skip
+)
 @click.option(
-    "--seeds", type=click.IntRange(1, 1000), default=None,
+    "--seeds",
+    type=click.IntRange(1, 1000),
+    default=None,
     help="How many seeds to run: 0 to N-1, each the two-agent runs' SLAM seed and the random "
     "share's seed [default: 1; 3 with --full].",
-)  # fmt: skip
+)
 @click.option(
-    "--sweep", default="0.05,0.1,0.2,0.4", show_default=True, callback=_budget_list,
+    "--sweep",
+    default="0.05,0.1,0.2,0.4",
+    show_default=True,
+    callback=_budget_list,
     help="Comma-separated budgets of the rate-distortion sweep.",
-)  # fmt: skip
+)
 @click.option(
-    "--sweep-seeds", type=click.IntRange(min=0), default=None,
+    "--sweep-seeds",
+    type=click.IntRange(min=0),
+    default=None,
     help="How many of the seeds (the first ones) run the sweep, at most --seeds (0: none) "
     "[default: 0; 1 with --full].",
-)  # fmt: skip
+)
 @click.option(
-    "--references", default=",".join(REFERENCE_FORMATS), show_default=True,
+    "--references",
+    default=",".join(REFERENCE_FORMATS),
+    show_default=True,
     callback=lambda ctx, param, value: _formats(value),
     help="On the sweep seeds, A's whole map also sent whole in these formats and received by "
     "B like a share: the field's points on the rate-distortion plot and a table beside the "
     "PWAS curve at the same bytes. fp32: our fp32 codec; spz: SPZ v4; sog: PlayCanvas SOG, "
     "written by @playcanvas/splat-transform (left out, with a note, where it is missing: "
     "`make js-deps`). none: no such points.",
-)  # fmt: skip
+)
 @click.option(
-    "--strategies", default=None,
+    "--strategies",
+    default=None,
     help="Comma-separated share strategies to compare (random and pwas required) [default: "
     "random,pwas; random,opacity,alpha-t,pwas,pwas-inf with --full]. pwas-inf: "
     "PWAS without its proximity weight, A's finished map scored again from A's frames (`gsc "
     "score --sigma-d inf`); pwas-final: the same with the scene's sigma_d, which separates "
     "what scoring again changes from what the weight does. NAME-for-b cuts that strategy's "
     "shares for B (`gsc share --for`: what B has not seen first).",
-)  # fmt: skip
+)
 @size_option(help="Working size WxH of every run [default: the preset's].")
 @click.option(
-    "--frames", default="all", show_default=True,
+    "--frames",
+    default="all",
+    show_default=True,
     help="Frames of the experiment: all or START:STOP:STEP with START >= 0 (no counting from "
     "the end), split between A and B by --split.",
-)  # fmt: skip
+)
 @click.option(
-    "--split", type=click.Choice(SPLITS), default="odd-even", show_default=True,
+    "--split",
+    type=click.Choice(SPLITS),
+    default="odd-even",
+    show_default=True,
     help="odd-even: A gets the odd positions among the frames, B the even ones (the paper's "
     "protocol). halves: A the first ceil(N(1+overlap)/2) of the N frames, B the last as many.",
-)  # fmt: skip
+)
 @click.option(
-    "--overlap", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.2,
-    show_default=True, help="With --split halves, the fraction of the frames both agents get.",
-)  # fmt: skip
+    "--overlap",
+    type=click.FloatRange(0.0, 1.0, max_open=True),
+    default=0.2,
+    show_default=True,
+    help="With --split halves, the fraction of the frames both agents get.",
+)
 @click.option(
-    "--every", type=click.IntRange(min=1), default=None,
+    "--every",
+    type=click.IntRange(min=1),
+    default=None,
     help="Evaluate (and score across agents) every N-th frame of each run [default: 2; 1 with "
     "--full].",
-)  # fmt: skip
+)
 @click.option(
-    "--anchor", type=click.Choice(["gt", "own"]), default="gt", show_default=True,
+    "--anchor",
+    type=click.Choice(["gt", "own"]),
+    default="gt",
+    show_default=True,
     help="Where each agent's world frame starts: gt, at the ground-truth pose of its first "
     "frame (the two maps share a frame); own, at the identity at its own first frame: A's map "
     "is aligned to B's as `gsc align` does, shares are moved by that transform, and the "
     "report adds its error against the true one and B with the PWAS share at the true one. "
     "Needs `pip install 'gscompress[align]'`.",
-)  # fmt: skip
+)
 @click.option(
-    "--refine-poses", type=click.IntRange(min=0), default=None,
+    "--refine-poses",
+    type=click.IntRange(min=0),
+    default=None,
     help="Cross-agent scoring: the centralised run, A, B, B refined without a share, B with "
     "each share at each budget and B with A's whole map are scored on A's frames, B's frames "
     "and all frames after refining each frame's pose against the fixed map with this many "
@@ -257,79 +292,107 @@ def _settings(o: dict[str, Any]) -> ExperimentSettings:
     "alignment with --anchor own), and on all frames the map's own where it has them, the "
     "other agent's on the rest. 0: each run scored on its own frames only [default: 20; "
     "100 with --full].",
-)  # fmt: skip
+)
 @click.option(
-    "--mode", type=click.Choice(["merge", "inject"]), default="merge", show_default=True,
+    "--mode",
+    type=click.Choice(["merge", "inject"]),
+    default="merge",
+    show_default=True,
     help="How B receives a share: merged into its finished map and refined (the paper's "
     "protocol; B's poses do not change), or injected before its first frame (a new B run).",
-)  # fmt: skip
+)
 @click.option(
-    "--protocol", type=click.Choice(list(PROTOCOLS)), default="commands", show_default=True,
+    "--protocol",
+    type=click.Choice(list(PROTOCOLS)),
+    default="commands",
+    show_default=True,
     help="What each share and merge does: commands, as `gsc share` and `gsc merge` do by "
     "default (folded shares; merges aligned and resolved); paper, the paper's exact protocol "
     "(--no-fold --merge exact). --fold/--no-fold and --merge, when given, still decide.",
-)  # fmt: skip
+)
 @click.option(
-    "--merge", "merge_how", type=click.Choice(MERGE_HOWS), default=None,
+    "--merge",
+    "merge_how",
+    type=click.Choice(MERGE_HOWS),
+    default=None,
     help="How each merge combines the maps: default (`gsc merge`'s: the share aligned, the "
     "surfaces both maps hold resolved, its Gaussians moving as much as B's views see them) or "
     "exact (every Gaussian of both, refined as one: the paper's merge) [default: the "
     "--protocol's].",
-)  # fmt: skip
+)
 @click.option(
-    "--fold/--no-fold", default=None,
+    "--fold/--no-fold",
+    default=None,
     help="Fold what each share leaves out into what it sends (`gsc share`'s default); "
     "without, the shares are the paper's top K, the strategies differing only in their choice "
     "[default: the --protocol's].",
-)  # fmt: skip
+)
 @click.option(
-    "--spread/--no-spread", default=False, show_default=True,
+    "--spread/--no-spread",
+    default=False,
+    show_default=True,
     help="Spread every strategy's order over space (`gsc share --spread`): the best Gaussian "
     "of each of K distinct places first.",
-)  # fmt: skip
+)
 @sums_option
 @ids_option
 @click.option(
-    "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
+    "--merge-iters",
+    type=click.IntRange(min=0),
+    default=200,
+    show_default=True,
     help="Refinement iterations of each merge.",
-)  # fmt: skip
+)
 @click.option(
-    "--merge-views", type=click.Choice(REFINE_VIEWS), default=DEFAULT_REFINE_VIEWS,
+    "--merge-views",
+    type=click.Choice(REFINE_VIEWS),
+    default=DEFAULT_REFINE_VIEWS,
     show_default=True,
     help="What each merge refines on: all of B's frames, or B's keyframes only (`gsc merge "
     "--views`).",
-)  # fmt: skip
+)
 @click.option(
-    "--merge-lr-final", type=click.FloatRange(0.0, 1.0, min_open=True),
-    default=DEFAULT_LR_FINAL, show_default=True,
+    "--merge-lr-final",
+    type=click.FloatRange(0.0, 1.0, min_open=True),
+    default=DEFAULT_LR_FINAL,
+    show_default=True,
     help="Each merge's learning rates decay to this fraction by its last iteration; 1 keeps "
     "them constant (`gsc merge --lr-final`).",
-)  # fmt: skip
+)
 @click.option(
-    "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
+    "--jobs",
+    type=click.IntRange(1, 256),
+    default=1,
+    show_default=True,
     help="Runs at once, each in its own process with an equal share of the torch threads "
     "(`gsc --threads`, default one per core); a run starts as soon as the runs it reads have "
     "finished. The figures match a --jobs 1 table only at the same threads per run (`gsc "
     "--threads 4 ... --jobs 2` as `gsc --threads 2 ... --jobs 1`): thread counts change "
     "the rounding.",
-)  # fmt: skip
+)
 @click.option(
-    "--executor", type=click.Choice(EXECUTORS), default="local", show_default=True,
+    "--executor",
+    type=click.Choice(EXECUTORS),
+    default="local",
+    show_default=True,
     help="What runs the runs: this machine (--jobs at once), or Ray tasks on a cluster "
     "(--address), each started as soon as the runs it reads have finished. Needs the "
     "gscompress[cluster] extra; see docs/cluster.md.",
-)  # fmt: skip
+)
 @click.option(
-    "--address", default=None,
+    "--address",
+    default=None,
     help="With --executor ray: the cluster, `auto` (the one this machine joined with `ray "
     "start`, or RAY_ADDRESS) or the head's HOST:PORT [default: start Ray on this machine]. "
     "The sequence and -o must be on storage every node sees at the same path.",
-)  # fmt: skip
+)
 @click.option(
-    "--cpus-per-run", type=click.FloatRange(0.0, 1024.0, min_open=True), default=None,
+    "--cpus-per-run",
+    type=click.FloatRange(0.0, 1024.0, min_open=True),
+    default=None,
     help="With --executor ray: CPUs each run declares, and its torch threads (rounded up) "
     "[default: 1].",
-)  # fmt: skip
+)
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
 @recording_options
 @device_option
@@ -402,9 +465,16 @@ def experiment(
 
         try:
             result = run_experiment(
-                seq, out_dir, settings, progress=progress, jobs=jobs, executor=executor,
-                address=address, cpus_per_run=cpus_per_run, announce=announce,
-            )  # fmt: skip
+                seq,
+                out_dir,
+                settings,
+                progress=progress,
+                jobs=jobs,
+                executor=executor,
+                address=address,
+                cpus_per_run=cpus_per_run,
+                announce=announce,
+            )
         except KeyboardInterrupt:
             bar.close()
             click.echo(

@@ -55,8 +55,11 @@ def _told_merge_options(f: F) -> F:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         context = click.get_current_context()
         given = {name: kwargs.pop(name) for name in MERGE_OPTIONS}
-        told = {k: v for k, v in given.items()
-                if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip
+        told = {
+            k: v
+            for k, v in given.items()
+            if context.get_parameter_source(k) != ParameterSource.DEFAULT
+        }
         return f(*args, told=told, **kwargs)
 
     return wrapper  # type: ignore[return-value]

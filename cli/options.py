@@ -690,22 +690,47 @@ def recording_options(f: F) -> F:
         return f(*args, **kwargs)
 
     options = [
-        click.option("--rgb", metavar="TOPIC", default=None,
-                     help="A recording's colour topic [default: chosen when unambiguous]."),
-        click.option("--depth", metavar="TOPIC", default=None,
-                     help="A recording's depth topic, registered to colour [default: chosen]."),
-        click.option("--camera-info", metavar="TOPIC", default=None,
-                     help="A recording's CameraInfo / CameraCalibration topic [default: the "
-                     "colour camera's]."),
-        click.option("--max-dt", type=PositiveFloat(), default=MAX_DT,
-                     show_default=True,
-                     help="A recording's colour/depth pairing tolerance in seconds."),
-        click.option("--gt", type=INPUT_FILE, default=None,
-                     help="A recording's ground truth: a TUM trajectory (camera-to-world)."),
-        click.option("--gt-frames", nargs=2, metavar="WORLD CAMERA", default=None,
-                     help="A recording's ground truth from /tf: the pose of frame CAMERA in "
-                     "frame WORLD, interpolated to the colour stamps."),
-    ]  # fmt: skip
+        click.option(
+            "--rgb",
+            metavar="TOPIC",
+            default=None,
+            help="A recording's colour topic [default: chosen when unambiguous].",
+        ),
+        click.option(
+            "--depth",
+            metavar="TOPIC",
+            default=None,
+            help="A recording's depth topic, registered to colour [default: chosen].",
+        ),
+        click.option(
+            "--camera-info",
+            metavar="TOPIC",
+            default=None,
+            help="A recording's CameraInfo / CameraCalibration topic [default: the "
+            "colour camera's].",
+        ),
+        click.option(
+            "--max-dt",
+            type=PositiveFloat(),
+            default=MAX_DT,
+            show_default=True,
+            help="A recording's colour/depth pairing tolerance in seconds.",
+        ),
+        click.option(
+            "--gt",
+            type=INPUT_FILE,
+            default=None,
+            help="A recording's ground truth: a TUM trajectory (camera-to-world).",
+        ),
+        click.option(
+            "--gt-frames",
+            nargs=2,
+            metavar="WORLD CAMERA",
+            default=None,
+            help="A recording's ground truth from /tf: the pose of frame CAMERA in "
+            "frame WORLD, interpolated to the colour stamps.",
+        ),
+    ]
     for option in reversed(options):
         wrapper = option(wrapper)
     return wrapper  # type: ignore[return-value]

@@ -77,11 +77,13 @@ from .options import (
 @ids_option
 @fold_option
 @click.option(
-    "--spread/--no-spread", default=False, show_default=True,
+    "--spread/--no-spread",
+    default=False,
+    show_default=True,
     help="Spread the strategy's order over space: the best Gaussian of each of K distinct "
     "places before any place gets a second one (space cut by ever finer grids). Off: the K "
     "highest scores, wherever they cluster.",
-)  # fmt: skip
+)
 @click.option(
     "--ply",
     type=OUTPUT_FILE,
@@ -206,8 +208,17 @@ def share(
         phases = Phases(bar, {"refine": "iter", fitting: "cut"})
         # (--seq also serves --solve and --keyframes)
         refine_seq = seq if refine_iters or not (solve or keyframes) else None
-        refine = log_refiner(src, refine_iters, refine_seq, device, seed, phases,
-                             "share without --refine", anisotropic, recording)  # fmt: skip
+        refine = log_refiner(
+            src,
+            refine_iters,
+            refine_seq,
+            device,
+            seed,
+            phases,
+            "share without --refine",
+            anisotropic,
+            recording,
+        )
         carry = None
         if keyframes:
             if seq is None:
@@ -215,19 +226,32 @@ def share(
             from gscompress.pipeline.logs import carried_keyframes
 
             carry = carried_keyframes(src, keyframes, seq, recording)
-        common: dict[str, Any] = dict(ply=ply, refine=refine, align_to=align_to, carry=carry,
-                                      receiver=receiver, device=device, command=command_line(),
-                                      force=force)  # fmt: skip
+        common: dict[str, Any] = dict(
+            ply=ply,
+            refine=refine,
+            align_to=align_to,
+            carry=carry,
+            receiver=receiver,
+            device=device,
+            command=command_line(),
+            force=force,
+        )
         if solve:
             from gscompress.pipeline.share.solve import share_solved
 
-            result = share_solved(src, dst, budget, options, fixed=fixed, seq=seq,
-                                  recording=recording, **common)  # fmt: skip
+            result = share_solved(
+                src, dst, budget, options, fixed=fixed, seq=seq, recording=recording, **common
+            )
             click.echo(_solver_text(result), err=True)
         else:
-            result = share_log(src, dst, budget, options,
-                               progress=lambda tried: phases(fitting, tried, None),
-                               **common)  # fmt: skip
+            result = share_log(
+                src,
+                dst,
+                budget,
+                options,
+                progress=lambda tried: phases(fitting, tried, None),
+                **common,
+            )
     emit(result, as_json, _share_text(result, options, dst, ply, receiver))
 
 
@@ -281,11 +305,16 @@ def _share_text(
     """The line `gsc share` prints of what it wrote."""
     extra = f" and {ply}" if ply else ""
     folded = result["fold"] and result["selected"] < result["total"]
-    carried = (f" with {result['keyframes']} keyframes ({result['keyframe_bytes']} B)"
-               if result.get("keyframes") else "")  # fmt: skip
+    carried = (
+        f" with {result['keyframes']} keyframes ({result['keyframe_bytes']} B)"
+        if result.get("keyframes")
+        else ""
+    )
     if receiver is not None:
-        carried += (f", unseen by {receiver.name} first ({result['unseen']} of them; its request "
-                    f"{result['request_bytes']} B)")  # fmt: skip
+        carried += (
+            f", unseen by {receiver.name} first ({result['unseen']} of them; its request "
+            f"{result['request_bytes']} B)"
+        )
     return (
         f"shared {result['selected']} of {result['total']} Gaussians ({options.strategy}"
         f"{', spread' if options.spread else ''}{', the rest folded in' if folded else ''}, "

@@ -71,8 +71,9 @@ def synth(
 
         sequence = synthetic_sequence(frames, size, seed, supersample)
         with progress_bar("synth", "frame", total=frames, hidden=as_json) as bar:
-            write_recording(sequence, out_dir, fmt, color_encoding, depth_encoding, force,
-                            bar.update)  # fmt: skip
+            write_recording(
+                sequence, out_dir, fmt, color_encoding, depth_encoding, force, bar.update
+            )
         text = f"wrote {frames} frames ({size[0]}x{size[1]}, {fmt}) to {out_dir}"
         emit(_result(out_dir, frames, size, fmt), as_json, text)
         return

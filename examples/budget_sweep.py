@@ -85,10 +85,13 @@ def sweep(opts: argparse.Namespace, budgets: list[float], strategies: list[str])
                     }
                 )
                 r = rows[-1]
-                print(f"{budget:>5.0%} {strategy:<10} {r['gaussians']:>8} Gaussians, MB "
-                      f"{r['bytes_fp32'] / 1e6:.3f} fp32 / {r['bytes_fp16'] / 1e6:.3f} fp16 / "
-                      f"{r['bytes_compact'] / 1e6:.3f} compact, "
-                      f"PSNR {r['psnr']:6.2f} dB, SSIM {r['ssim']:.3f}", flush=True)  # fmt: skip
+                print(
+                    f"{budget:>5.0%} {strategy:<10} {r['gaussians']:>8} Gaussians, MB "
+                    f"{r['bytes_fp32'] / 1e6:.3f} fp32 / {r['bytes_fp16'] / 1e6:.3f} fp16 / "
+                    f"{r['bytes_compact'] / 1e6:.3f} compact, "
+                    f"PSNR {r['psnr']:6.2f} dB, SSIM {r['ssim']:.3f}",
+                    flush=True,
+                )
     if opts.json:
         opts.json.write_text(json.dumps(rows, indent=1) + "\n")
 

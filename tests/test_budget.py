@@ -366,8 +366,10 @@ def test_a_percentage_of_bytes_is_of_the_maps_fp32_message(tmp_path):
     resolved = budget.resolve(1_000_000)
     assert resolved.budget_bytes == 50_000 and str(resolved) == "5%bytes"
     assert resolved.record() == {
-        "budget": "5%bytes", "budget_bytes": 50_000, "budget_fp32_fraction": 0.05
-    }  # fmt: skip
+        "budget": "5%bytes",
+        "budget_bytes": 50_000,
+        "budget_fp32_fraction": 0.05,
+    }
     with pytest.raises(BudgetError, match="under one byte"):
         Budget.parse("0.0001%bytes").resolve(1000)
     with pytest.raises(InputError):

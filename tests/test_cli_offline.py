@@ -67,8 +67,12 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
         assert raw_a == raw_b
         step = b.metadata.provenance[-1]
         assert step["operation"] == {
-            "name": "prune", "keep": 0.3, "by": "pwas", "seed": 0, "fold": False,
-        }  # fmt: skip
+            "name": "prune",
+            "keep": 0.3,
+            "by": "pwas",
+            "seed": 0,
+            "fold": False,
+        }
         assert step["parent"] == "run.mcap" and b.metadata.sequence == "synthetic"
         assert b.metadata.results == {"kept": 300, "total": 1000, "codec": "fp32", "fold": False}
 
@@ -541,8 +545,9 @@ def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
     # a share is compact unless asked otherwise; --precision is an old name of --codec
     r = gsc("share", "--budget", "0.5", out, tmp_path / "again.mcap", "--json")
     assert json.loads(r.output)["codec"] == "compact", r.output
-    r = gsc("share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap",
-            "--json")  # fmt: skip
+    r = gsc(
+        "share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap", "--json"
+    )
     assert json.loads(r.output)["codec"] == "fp32", r.output
     r = gsc("share", "--precision", "fp32", "--codec", "fp16", out, tmp_path / "x.mcap")
     assert r.exit_code == 2 and "--precision is an old name of --codec" in r.output
@@ -609,8 +614,9 @@ def test_info_text_rounds_floats_also_within_lists() -> None:
 
 
 def test_a_group_option_after_the_command_says_where_it_goes(tmp_path):
-    r = CliRunner().invoke(cli, ["info", str(tmp_path / "x.mcap"), "--threads", "1"],
-                           prog_name="gsc")  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["info", str(tmp_path / "x.mcap"), "--threads", "1"], prog_name="gsc"
+    )
     assert r.exit_code == 2
     assert "--threads is an option of gsc itself" in r.output
     assert "gsc --threads N info ..." in r.output

@@ -200,8 +200,19 @@ def test_cli_json(gt_log, seq_dir):
     result = json.loads(r.output)
     assert result["frames_evaluated"] == 2 and result["ate_rmse_cm"] is None
     assert result["poses"] == "ground-truth" and "ground truth" in result["ate_reason"]
-    keys = ("ate_rmse_cm", "ate_splatam_cm", "psnr", "ssim", "ms_ssim", "lpips", "lpips_reason",
-            "depth_l1_cm", "gaussians", "bytes", "frames_evaluated")  # fmt: skip
+    keys = (
+        "ate_rmse_cm",
+        "ate_splatam_cm",
+        "psnr",
+        "ssim",
+        "ms_ssim",
+        "lpips",
+        "lpips_reason",
+        "depth_l1_cm",
+        "gaussians",
+        "bytes",
+        "frames_evaluated",
+    )
     assert set(keys) <= set(result)
     assert result["lpips"] is None and "not asked" in result["lpips_reason"]
 
@@ -399,8 +410,10 @@ def test_refining_poses_recovers_a_known_offset():
     intr = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
     gaussians = _relief_map()
     params = activated_tensors(gaussians)
-    truth = [make_transform(axis_angle(np.array([0, 0.05 * k + 1e-9, 0])), [0.1 * k, 0, 0])
-             for k in range(2)]  # fmt: skip
+    truth = [
+        make_transform(axis_angle(np.array([0, 0.05 * k + 1e-9, 0])), [0.1 * k, 0, 0])
+        for k in range(2)
+    ]
     frames = [render_view(params, T, intr) for T in truth]
     assert all((depth > 0).all() for _, depth in frames)  # the map fills every view
     rng = np.random.default_rng(1)
@@ -416,9 +429,11 @@ def test_refining_poses_recovers_a_known_offset():
     assert after[:, 1].mean() < 0.3 * before[:, 1].mean()  # degrees
     at_given = evaluate_map(gaussians, views, intr, lpips=False)["psnr"]
     at_refined = evaluate_map(
-        gaussians, [EvalView(c, d, T) for (c, d), T in zip(frames, refined, strict=True)], intr,
+        gaussians,
+        [EvalView(c, d, T) for (c, d), T in zip(frames, refined, strict=True)],
+        intr,
         lpips=False,
-    )["psnr"]  # fmt: skip
+    )["psnr"]
     assert at_refined > at_given + 10
 
 
@@ -444,8 +459,12 @@ def nudged_trajectory(seq_dir, tmp_path_factory):
 
 
 def test_eval_at_a_trajectory_and_with_poses_refined(gt_log, seq_dir, nudged_trajectory):
-    r = evaluate_log(gt_log, seq_dir, ImageOptions(poses=nudged_trajectory, every=3, lpips=False),
-                     refine_poses=15)  # fmt: skip
+    r = evaluate_log(
+        gt_log,
+        seq_dir,
+        ImageOptions(poses=nudged_trajectory, every=3, lpips=False),
+        refine_poses=15,
+    )
     own = evaluate_log(gt_log, seq_dir, ImageOptions(every=3, lpips=False))
     assert r["poses"] == str(nudged_trajectory) and own["poses"] == "ground-truth"  # (gt_log's)
     assert r["frames_evaluated"] == 2 and r["ate_rmse_cm"] > 0.5  # the nudged poses were used
@@ -499,18 +518,40 @@ def test_eval_at_another_logs_poses(gt_log, seq_dir):
 
 
 def test_cli_poses_options(gt_log, seq_dir, nudged_trajectory):
-    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--refine-poses",
-            "5", "--every", "6", "--no-lpips")  # fmt: skip
+    r = gsc(
+        "eval",
+        gt_log,
+        "--seq",
+        seq_dir,
+        "--poses",
+        nudged_trajectory,
+        "--refine-poses",
+        "5",
+        "--every",
+        "6",
+        "--no-lpips",
+    )
     assert r.exit_code == 0, r.output
     assert "at the poses of" in r.output and "at refined poses (5 iterations" in r.output
     assert "median pose change" in r.output
-    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses-from", gt_log, "--refine-poses", "5",
-            "--every", "6", "--no-lpips", "--json")  # fmt: skip
+    r = gsc(
+        "eval",
+        gt_log,
+        "--seq",
+        seq_dir,
+        "--poses-from",
+        gt_log,
+        "--refine-poses",
+        "5",
+        "--every",
+        "6",
+        "--no-lpips",
+        "--json",
+    )
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
     assert result["refined"]["iters"] == 5 and result["refined"]["pose_change_cm"] >= 0
-    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--poses-from",
-            gt_log)  # fmt: skip
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--poses-from", gt_log)
     assert r.exit_code == 2, r.output
     lines = r.output.strip().splitlines()
     assert len(lines) == 1 and "--poses and --poses-from do not go together" in lines[0]
@@ -544,11 +585,13 @@ def test_a_finished_run_logs_its_map_scored_from_every_pose_of_the_run(gt_log, s
     score_file(gt_log, rescored, seq_dir)
     logged, scored = read_map(gt_log), read_map(rescored)
     for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
-        np.testing.assert_allclose(getattr(logged, name), getattr(scored, name), rtol=1e-5,
-                                   atol=1e-6, err_msg=name)  # fmt: skip
+        np.testing.assert_allclose(
+            getattr(logged, name), getattr(scored, name), rtol=1e-5, atol=1e-6, err_msg=name
+        )
     config = tmp_path / "online.yaml"
-    config.write_text("preset: tiny\ntracking:\n  use_ground_truth: true\npwas:\n"
-                      "  final_scores: false\n")  # fmt: skip
+    config.write_text(
+        "preset: tiny\ntracking:\n  use_ground_truth: true\npwas:\n  final_scores: false\n"
+    )
     online = tmp_path / "online.mcap"
     slam_file(seq_dir, online, preset="tiny", config_path=config)
     grown = read_map(online)
@@ -586,8 +629,9 @@ def test_a_share_is_scored_at_the_working_size_of_the_log_whose_poses_it_takes(
         pose_ns, poses = reader.read_poses(TOPIC_POSE)
         meta = reader.metadata
     sized = tmp_path / "sized.mcap"
-    with LogWriter(sized, LogMetadata(config={**meta.config, "size": [32, 24]},
-                                      sequence=meta.sequence)) as w:  # fmt: skip
+    with LogWriter(
+        sized, LogMetadata(config={**meta.config, "size": [32, 24]}, sequence=meta.sequence)
+    ) as w:
         for t, T in zip(pose_ns, poses, strict=True):
             w.write_pose(T, int(t))
     small = evaluate_log(share, seq_dir, ImageOptions(poses_from=sized, lpips=False))

@@ -50,13 +50,18 @@ def test_the_default_shares_and_merges_are_the_commands(monkeypatch, tmp_path) -
     s = _settings(monkeypatch, tmp_path)
     share = _defaults(share_command)
     assert (s.fold, s.sums, s.ids, s.spread) == (
-        share["fold"], share["sums"], share["ids"], share["spread"],
-    )  # fmt: skip
+        share["fold"],
+        share["sums"],
+        share["ids"],
+        share["spread"],
+    )
     assert s.budget == share["budget"] and "pwas" in s.strategies
     merge = _defaults(merge_command)
     assert (s.merge_iters, s.merge_views, s.merge_lr_final) == (
-        merge["iters"], merge["views"], merge["lr_final"],
-    )  # fmt: skip
+        merge["iters"],
+        merge["views"],
+        merge["lr_final"],
+    )
     fields = ("align", "icp", "resolve", "voxel", "margin", "share_rate", "by_view", "footprint")
     assert merge_options(s.merge_how) == MergeOptions(**{f: merge[f] for f in fields})
 
@@ -82,8 +87,20 @@ def test_a_default_row_is_gsc_share_and_gsc_merge_run_by_hand(tmp_path: Path) ->
     its command line, which differs: the experiment's shares record none.)"""
     seq = write_synthetic_sequence(tmp_path / "room", 4, (64, 48))
     out = tmp_path / "exp"
-    r = CliRunner().invoke(cli, ["experiment", str(seq), "-o", str(out), "--preset", "tiny",
-                                 "--refine-poses", "0", "--no-lpips"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "experiment",
+            str(seq),
+            "-o",
+            str(out),
+            "--preset",
+            "tiny",
+            "--refine-poses",
+            "0",
+            "--no-lpips",
+        ],
+    )
     assert r.exit_code == 0, r.output
     steps = plan_size(ExperimentSettings(refine_poses=0))
     assert f"experiment: {steps} steps" in r.output and "protocol commands" in r.output
@@ -105,8 +122,15 @@ def test_a_default_row_is_gsc_share_and_gsc_merge_run_by_hand(tmp_path: Path) ->
 
     mine, theirs = read_map(tmp_path / "share.mcap"), read_map(runs / "s0_pwas_0p2_share.mcap")
     assert (mine.means == theirs.means).all() and (mine.importance == theirs.importance).all()
-    gsc("merge", runs / "s0_agent_b.mcap", tmp_path / "share.mcap", "--seq", seq, "-o",
-        tmp_path / "merged.mcap")  # fmt: skip
+    gsc(
+        "merge",
+        runs / "s0_agent_b.mcap",
+        tmp_path / "share.mcap",
+        "--seq",
+        seq,
+        "-o",
+        tmp_path / "merged.mcap",
+    )
     merged = read_map(tmp_path / "merged.mcap")
     assert len(merged) == row["gaussians"]
     assert (merged.means == read_map(out / row["log"]).means).all()

@@ -109,8 +109,9 @@ def test_hostile_carried_images_are_refused_before_decoding(
         out.write_calibration(CAMERA, 7)
         good = io.BytesIO()
         Image.fromarray(np.zeros((24, 32, 3), np.uint8)).save(good, format="JPEG")
-        out.write_protobuf(TOPIC_KEYFRAME_COLOR, CompressedImage(data=good.getvalue(),
-                                                                 format="jpeg"), 7)  # fmt: skip
+        out.write_protobuf(
+            TOPIC_KEYFRAME_COLOR, CompressedImage(data=good.getvalue(), format="jpeg"), 7
+        )
         out.write_protobuf(TOPIC_KEYFRAME_DEPTH, image, 7)
         out.write_protobuf("/share/keyframe/pose", pose_message(frame.T_world_cam, 7), 7)
     with LogReader(tmp_path / "h.mcap") as reader, pytest.raises(LogFormatError, match=needle):
@@ -136,8 +137,9 @@ def test_a_carried_frame_without_its_depth_is_refused(tmp_path: Path) -> None:
     # the same colour at another time, with no depth or pose there
     with LogReader(path) as reader:
         color = next(m for _s, _c, m in reader.iter_messages([TOPIC_KEYFRAME_COLOR])).data
-    lonely = written(tmp_path / "l.mcap", [frame],
-                     [(TOPIC_KEYFRAME_COLOR, CompressedImage.FromString(color))])  # fmt: skip
+    lonely = written(
+        tmp_path / "l.mcap", [frame], [(TOPIC_KEYFRAME_COLOR, CompressedImage.FromString(color))]
+    )
     with LogReader(lonely) as reader, pytest.raises(LogFormatError, match="has no depth"):
         read_carried(reader)
 
@@ -164,8 +166,7 @@ def test_a_byte_budget_counts_the_keyframes(agents: dict[str, Path]) -> None:
     assert plain["selected"] == whole["selected"]  # the map alone fits
     assert carried["selected"] < plain["selected"]  # the frames took bytes from the Gaussians
     with pytest.raises(BudgetError):  # the frames alone overfill it
-        share_log(agents["a"], root / "x.mcap", f"{carried['keyframe_bytes'] // 2}B",
-                  carry=carry)  # fmt: skip
+        share_log(agents["a"], root / "x.mcap", f"{carried['keyframe_bytes'] // 2}B", carry=carry)
 
 
 def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
@@ -185,8 +186,15 @@ def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
     assert operation["carried_ns"] == times
     # with the sender's views, the merge stacks and refines every Gaussian alike
     assert operation["resolve"] == "stack" and operation["share_rate"] == 1.0
-    told = merge_logs(agents["b"], share, root / "t.mcap", seq=seq, iters=2,
-                      merge={"resolve": "evidence"}, force=True)  # fmt: skip
+    told = merge_logs(
+        agents["b"],
+        share,
+        root / "t.mcap",
+        seq=seq,
+        iters=2,
+        merge={"resolve": "evidence"},
+        force=True,
+    )
     with LogReader(root / "t.mcap") as log:
         operation = log.metadata.provenance[-1]["operation"]
     assert operation["resolve"] == "evidence" and operation["share_rate"] == 1.0
@@ -201,8 +209,9 @@ def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
     other = evaluate_log(agents["a"], seq, ImageOptions(lpips=False), leave_out=[share])
     assert other["frames_carried_left_out"] == 2 and other["frames_evaluated"] == 3
 
-    plain = merge_logs(agents["b"], share, root / "p.mcap", seq=seq, iters=6, keyframes=False,
-                       force=True)  # fmt: skip
+    plain = merge_logs(
+        agents["b"], share, root / "p.mcap", seq=seq, iters=6, keyframes=False, force=True
+    )
     assert plain["refine_carried_views"] == 0 and plain["refine_views"] == 5
     with LogReader(root / "p.mcap") as log:  # the merge of a share without views
         assert log.metadata.provenance[-1]["operation"]["resolve"] == "evidence"
@@ -232,17 +241,31 @@ def test_share_and_merge_commands_carry_keyframes(agents: dict[str, Path]) -> No
     runner = CliRunner()
     refused = runner.invoke(cli, ["share", str(agents["a"]), share, "--keyframes", "2"])
     assert refused.exit_code == 2 and "--seq" in refused.output
-    done = runner.invoke(cli, ["share", str(agents["a"]), share, "--budget", "1",
-                               "--keyframes", "2", "--seq", seq])  # fmt: skip
+    done = runner.invoke(
+        cli, ["share", str(agents["a"]), share, "--budget", "1", "--keyframes", "2", "--seq", seq]
+    )
     assert done.exit_code == 0, done.output
     assert "with 2 keyframes" in done.output
     merged = str(root / "cli_m.mcap")
-    done = runner.invoke(cli, ["merge", str(agents["b"]), share, "--seq", seq, "--iters", "3",
-                               "-o", merged])  # fmt: skip
+    done = runner.invoke(
+        cli, ["merge", str(agents["b"]), share, "--seq", seq, "--iters", "3", "-o", merged]
+    )
     assert done.exit_code == 0, done.output
     assert "2 of them the sender's keyframes" in done.output
-    done = runner.invoke(cli, ["eval", merged, "--seq", seq, "--frames", "0:5", "--poses-from",
-                               str(agents["a"]), "--no-lpips"])  # fmt: skip
+    done = runner.invoke(
+        cli,
+        [
+            "eval",
+            merged,
+            "--seq",
+            seq,
+            "--frames",
+            "0:5",
+            "--poses-from",
+            str(agents["a"]),
+            "--no-lpips",
+        ],
+    )
     assert done.exit_code == 0, done.output
     assert "2 left out: carried by a share" in done.output
 

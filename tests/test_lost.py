@@ -98,8 +98,11 @@ def test_the_relocalisation_guesses():
     keyframes = [motion(5.0 * k, [0.1 * k, 0.0, 0.0]) for k in range(5)]
     first = ("the velocity guess", velocity)
     names = [name for name, _ in relocalisation_guesses(first, previous, keyframes)]
-    assert names == ["the velocity guess", "the previous pose", *(
-        f"keyframe pose {k} back" for k in (1, 2, 3))]  # fmt: skip
+    assert names == [
+        "the velocity guess",
+        "the previous pose",
+        *(f"keyframe pose {k} back" for k in (1, 2, 3)),
+    ]
     guesses = dict(relocalisation_guesses(first, previous, keyframes))
     np.testing.assert_allclose(guesses["keyframe pose 1 back"], keyframes[-1], atol=1e-12)
     # a frame whose own guess is the previous pose does not try it twice
@@ -167,8 +170,10 @@ def test_a_gap_over_max_gap_is_re_localised(caplog):
     assert out.tracking is not None and out.tracking.relocalised and out.stats()["relocalised"]
     error, length = motion_error(system, frames, GAP_TO)
     assert error < length / 4, (error, length)
-    assert f"frame {GAP_TO} (stamp {frames[GAP_TO].timestamp:.3f} s): tracking lost (it " \
-        f"comes {gap:.3f} s after the previous frame); re-localised" in caplog.text  # fmt: skip
+    assert (
+        f"frame {GAP_TO} (stamp {frames[GAP_TO].timestamp:.3f} s): tracking lost (it "
+        f"comes {gap:.3f} s after the previous frame); re-localised" in caplog.text
+    )
     # the next frame, one interval on, is tracked as usual
     after = system.process(frames[GAP_TO + 1])
     assert after.tracking is not None and not after.tracking.relocalised

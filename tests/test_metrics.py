@@ -84,8 +84,11 @@ def test_ate_matches_evo_command_line(tmp_path: Path) -> None:
     exe = str(evo_ape) if evo_ape.exists() else "evo_ape"
     out = subprocess.run(
         [exe, "tum", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "-a", "--no_warnings"],
-        capture_output=True, text=True, check=True, cwd=tmp_path,
-    ).stdout  # fmt: skip
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=tmp_path,
+    ).stdout
     rmse = next(float(line.split()[1]) for line in out.splitlines() if "rmse" in line)
     # the command prints 6 decimals
     assert abs(M.ate_rmse_cm(gt, est) / 100.0 - rmse) <= 1e-6
@@ -265,8 +268,9 @@ def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) ->
     seq = write_synthetic_sequence(tmp_path / "room", 6, (48, 36))
     slam_file(seq, tmp_path / "run.mcap", preset="tiny")
     for name, flags in (("est.txt", []), ("gt.txt", ["--ground-truth"])):
-        r = CliRunner().invoke(cli, ["export-traj", str(tmp_path / "run.mcap"), "-o",
-                                     str(tmp_path / name), *flags])  # fmt: skip
+        r = CliRunner().invoke(
+            cli, ["export-traj", str(tmp_path / "run.mcap"), "-o", str(tmp_path / name), *flags]
+        )
         assert r.exit_code == 0 and "wrote" in r.output and "6 poses" in r.output, r.output
     ours_cm = evaluate_log(tmp_path / "run.mcap", seq, ImageOptions(every=6, lpips=False))[
         "ate_rmse_cm"
@@ -279,7 +283,8 @@ def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) ->
     from gscompress.pipeline import share_log
 
     share_log(tmp_path / "run.mcap", tmp_path / "share.mcap", 0.5)
-    r = CliRunner().invoke(cli, ["export-traj", str(tmp_path / "share.mcap"), "-o",
-                                 str(tmp_path / "s.txt")])  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["export-traj", str(tmp_path / "share.mcap"), "-o", str(tmp_path / "s.txt")]
+    )
     assert r.exit_code == 1 and "has no /camera/pose messages" in r.output
     assert not (tmp_path / "s.txt").exists()

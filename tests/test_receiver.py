@@ -41,8 +41,9 @@ def two_walls() -> GaussianMap:
     )
 
 
-def write_log(path: Path, *, gaussians: GaussianMap | None, poses: list[np.ndarray],
-              world: str = WORLD) -> Path:  # fmt: skip
+def write_log(
+    path: Path, *, gaussians: GaussianMap | None, poses: list[np.ndarray], world: str = WORLD
+) -> Path:
     with LogWriter(path, LogMetadata(sequence="room", world_frame=world)) as out:
         out.write_calibration(CAMERA, 0)
         for i, T in enumerate(poses):
@@ -87,9 +88,14 @@ def test_the_wall_behind_the_receiver_is_unseen(agents):
 def test_a_share_for_the_receiver_sends_what_it_has_not_seen(agents):
     plain = share_log(
         agents["a"], agents["root"] / "plain.mcap", 0.5, ShareOptions(fold=False, ids=True)
-    )  # fmt: skip  (the ids say which were sent)
-    aware = share_log(agents["a"], agents["root"] / "for_b.mcap", 0.5,
-                      ShareOptions(fold=False, ids=True), receiver=agents["b"])  # fmt: skip
+    )  # (the ids say which were sent)
+    aware = share_log(
+        agents["a"],
+        agents["root"] / "for_b.mcap",
+        0.5,
+        ShareOptions(fold=False, ids=True),
+        receiver=agents["b"],
+    )
     assert sorted(read_map(plain["output"]).ids.tolist()) == list(range(16))
     assert sorted(read_map(aware["output"]).ids.tolist()) == list(range(16, 32))
     assert aware["unseen"] == 16 and aware["views"] == 2 and aware["for"] == "b.mcap"
@@ -106,18 +112,19 @@ def test_the_request_counts_in_a_byte_budget(agents):
     assert whole["selected"] == 32
     budget = whole["file_bytes"] + 10  # holds the whole map, but not with the request
     plain = share_log(agents["a"], agents["root"] / "p.mcap", f"{budget}B", fp32)
-    aware = share_log(agents["a"], agents["root"] / "f.mcap", f"{budget}B", fp32,
-                      receiver=agents["b"])  # fmt: skip
+    aware = share_log(
+        agents["a"], agents["root"] / "f.mcap", f"{budget}B", fp32, receiver=agents["b"]
+    )
     assert plain["selected"] == 32 > aware["selected"]
     assert aware["file_bytes"] + request_bytes <= budget
     with pytest.raises(BudgetError, match="request"):
-        share_log(agents["a"], agents["root"] / "x.mcap", f"{request_bytes}B",
-                  receiver=agents["b"])  # fmt: skip
+        share_log(agents["a"], agents["root"] / "x.mcap", f"{request_bytes}B", receiver=agents["b"])
 
 
 def test_a_receiver_in_another_frame_is_refused_without_alignment(agents):
-    other = write_log(agents["root"] / "c.mcap", gaussians=None, poses=[np.eye(4)],
-                      world="first-camera:room:0")  # fmt: skip
+    other = write_log(
+        agents["root"] / "c.mcap", gaussians=None, poses=[np.eye(4)], world="first-camera:room:0"
+    )
     with pytest.raises(InputError, match="--align-to"):
         share_log(agents["a"], agents["root"] / "c_share.mcap", 0.5, receiver=other)
     no_poses = write_log(agents["root"] / "d.mcap", gaussians=None, poses=[])

@@ -150,8 +150,9 @@ def test_an_anisotropic_refinement_shapes_the_kept_gaussians(run: dict[str, Path
     full = read_map(run["log"])
     assert full.isotropic
     flat, shaped = run["root"] / "iso.mcap", run["root"] / "aniso.mcap"
-    iso = prune_log(run["log"], flat, 0.3, refine=LogRefiner(run["log"], run["seq"],
-                                                              RefineOptions(40)))  # fmt: skip
+    iso = prune_log(
+        run["log"], flat, 0.3, refine=LogRefiner(run["log"], run["seq"], RefineOptions(40))
+    )
     refiner = LogRefiner(run["log"], run["seq"], RefineOptions(40, anisotropic=True))
     aniso = prune_log(run["log"], shaped, 0.3, refine=refiner)
     a, b = read_map(flat), read_map(shaped)
@@ -229,9 +230,12 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
             return {}
 
         def __call__(
-            self, gaussians: GaussianMap, rates: object = None,
-            teacher: GaussianMap | None = None, iters: int | None = None,
-        ) -> tuple[GaussianMap, dict[str, object]]:  # fmt: skip
+            self,
+            gaussians: GaussianMap,
+            rates: object = None,
+            teacher: GaussianMap | None = None,
+            iters: int | None = None,
+        ) -> tuple[GaussianMap, dict[str, object]]:
             self.calls.append((len(gaussians), iters))
             # each Gaussian turned by its id alone: the probe and the full refinement give the
             # Gaussians they share the same values
@@ -262,8 +266,7 @@ def test_a_refined_share_is_shaped_only_when_its_budget_leaves_gaussians_out(
     shaped."""
     refiner = LogRefiner(run["log"], run["seq"], RefineOptions(3, anisotropic=True))
     whole = share_log(run["log"], run["root"] / "w.mcap", 1.0)["file_bytes"]
-    roomy = share_log(run["log"], run["root"] / "roomy.mcap", f"{whole + 2000}B",
-                      refine=refiner)  # fmt: skip
+    roomy = share_log(run["log"], run["root"] / "roomy.mcap", f"{whole + 2000}B", refine=refiner)
     assert read_map(run["root"] / "roomy.mcap").isotropic and roomy["selected"] == roomy["total"]
     share_log(run["log"], run["root"] / "tight.mcap", f"{whole // 2}B", refine=refiner)
     assert not read_map(run["root"] / "tight.mcap").isotropic

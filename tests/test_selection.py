@@ -184,7 +184,7 @@ def test_a_spread_share_records_it_and_sends_the_places_a_plain_one_leaves(tmp_p
         0.2,
         ShareOptions(spread=True, ids=True),
         source=(g, LogMetadata()),
-    )  # fmt: skip  (the ids say which were sent)
+    )  # (the ids say which were sent)
     assert spread["spread"] is True and "spread" not in plain
     sent = {}
     for name in ("plain", "spread"):

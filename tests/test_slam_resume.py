@@ -121,10 +121,13 @@ def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
     fresh = SlamSystem(run.config, run.system.intrinsics, total_frames=FRAMES)
     with pytest.raises(MapError, match="every restored frame"):  # the keyframes alone
         fresh.restore(
-            run.system.gaussian_map(), [(i, float(i), np.eye(4)) for i in range(3)],
-            run.system.keyframes, mapping_iterations=0, next_id=0,
+            run.system.gaussian_map(),
+            [(i, float(i), np.eye(4)) for i in range(3)],
+            run.system.keyframes,
+            mapping_iterations=0,
+            next_id=0,
             first_depth=run.system.keyframes[0].depth.numpy(),
-        )  # fmt: skip
+        )
     assert len(fresh) == 0 and fresh.poses == []  # refused before any of it was taken
 
 
@@ -179,8 +182,9 @@ def _gsc_signalled(signum: int, after: int, *args: object) -> list[str]:
 
 
 def _checkpoints(path: Path) -> int:
-    return sum(1 for _, channel, _ in read_messages(path).messages
-               if channel.topic == TOPIC_GAUSSIANS)  # fmt: skip
+    return sum(
+        1 for _, channel, _ in read_messages(path).messages if channel.topic == TOPIC_GAUSSIANS
+    )
 
 
 def test_killed_run_resumes_to_the_same_number_of_frames(
@@ -233,8 +237,19 @@ def test_a_resume_takes_up_the_newest_run_not_an_older_one_further_along(
     out = tmp_path / "two.mcap"
     first = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir_8, "-o", out, "--config", config_file)
     assert subprocess.run(first, capture_output=True, timeout=300, check=False).returncode < 0
-    again = _gsc_signalled(signal.SIGKILL, 2, "slam", seq_dir_8, "-o", out, "--config",
-                           config_file, "--size", "48x36", "--force")  # fmt: skip
+    again = _gsc_signalled(
+        signal.SIGKILL,
+        2,
+        "slam",
+        seq_dir_8,
+        "-o",
+        out,
+        "--config",
+        config_file,
+        "--size",
+        "48x36",
+        "--force",
+    )
     assert subprocess.run(again, capture_output=True, timeout=300, check=False).returncode < 0
     assert len(unfinished_files(out)) == 2
     result = resume_slam_file(seq_dir_8, out)
@@ -250,8 +265,9 @@ def test_a_resume_takes_up_the_newest_run_of_another_scene_of_the_same_name(
     other = write_synthetic_sequence(tmp_path / "other" / seq_dir_8.name, FRAMES, (64, 48), seed=7)
     out = tmp_path / "r.mcap"
     older = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir_8, "-o", out, "--config", config_file)
-    newer = _gsc_signalled(signal.SIGKILL, 4, "slam", other, "-o", out, "--config", config_file,
-                           "--force")  # fmt: skip
+    newer = _gsc_signalled(
+        signal.SIGKILL, 4, "slam", other, "-o", out, "--config", config_file, "--force"
+    )
     for cmd in (older, newer):
         assert subprocess.run(cmd, capture_output=True, timeout=300, check=False).returncode < 0
     result = resume_slam_file(other, out)  # not "not recorded on this room" from the older
@@ -290,8 +306,20 @@ def test_a_fresh_run_with_force_replaces_an_unfinished_one(
     out = tmp_path / "again.mcap"
     stale = tmp_path / ".again.mcap.99999.tmp"  # as a killed writer leaves it
     stale.write_bytes(b"\x89MCAP0\r\n")
-    r = CliRunner().invoke(cli, ["slam", str(seq_dir_8), "-o", str(out), "--config",
-                                 str(config_file), "--frames", "0:2", "--force"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "slam",
+            str(seq_dir_8),
+            "-o",
+            str(out),
+            "--config",
+            str(config_file),
+            "--frames",
+            "0:2",
+            "--force",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert frames_in(out) == [0, 1] and not stale.exists()
 

@@ -93,10 +93,13 @@ def test_pose_gradient_matches_finite_differences():
     for x in (np.zeros(6), rng.normal(0, 0.2, 6)):
         h = 1e-6
         numeric = [
-            (np.sum(W * (pose_increment(x + h * e) @ T0))
-             - np.sum(W * (pose_increment(x - h * e) @ T0))) / (2 * h)
+            (
+                np.sum(W * (pose_increment(x + h * e) @ T0))
+                - np.sum(W * (pose_increment(x - h * e) @ T0))
+            )
+            / (2 * h)
             for e in np.eye(6)
-        ]  # fmt: skip
+        ]
         np.testing.assert_allclose(pose_gradient(x, T0, W), numeric, rtol=1e-6, atol=1e-8)
 
 
@@ -147,9 +150,13 @@ def test_a_map_that_diverged_stops_the_mapping_and_the_tracking(seq):
         mapper.refine([view], 5, np.random.default_rng(0))
     with pytest.raises(DivergenceError, match="tracking diverged"):
         track(
-            mapper.params.render_inputs(), view.color, view.depth, seq.intrinsics,
-            frame.T_world_cam, preset("tiny").tracking,
-        )  # fmt: skip
+            mapper.params.render_inputs(),
+            view.color,
+            view.depth,
+            seq.intrinsics,
+            frame.T_world_cam,
+            preset("tiny").tracking,
+        )
 
 
 def test_a_step_that_leaves_an_infinity_in_the_map_is_caught_at_once(seq, monkeypatch):
@@ -435,9 +442,13 @@ def test_a_stage_keeps_exactly_the_top_fraction_by_its_score(seq, by):
 
 def test_refinement_after_a_stage_and_after_the_last_frame(seq):
     config = preset("tiny").with_overrides(
-        **{"prune.stages": (0.5,), "prune.refine_iters": 5, "mapping.final_iters": 7,
-           "mapping.final_lr_fraction": 0.5}
-    )  # fmt: skip
+        **{
+            "prune.stages": (0.5,),
+            "prune.refine_iters": 5,
+            "mapping.final_iters": 7,
+            "mapping.final_lr_fraction": 0.5,
+        }
+    )
     system = SlamSystem(config, seq.intrinsics, total_frames=4)
     visited, rates = [], []
     step = system.mapper._step
@@ -472,9 +483,13 @@ def test_refinement_after_a_stage_and_after_the_last_frame(seq):
 
 def test_final_refinement_on_every_frame_with_decaying_rates(seq):
     config = preset("tiny").with_overrides(
-        **{"prune.stages": (), "mapping.final_iters": 9, "mapping.final_views": "frames",
-           "mapping.final_lr_fraction": 0.25}
-    )  # fmt: skip
+        **{
+            "prune.stages": (),
+            "mapping.final_iters": 9,
+            "mapping.final_views": "frames",
+            "mapping.final_lr_fraction": 0.25,
+        }
+    )
     system = SlamSystem(config, seq.intrinsics, total_frames=4)
     assert system.keeps_every_view
     visited, rates = [], []

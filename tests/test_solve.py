@@ -27,8 +27,10 @@ def test_every_candidate_fits_and_the_best_picture_wins(run, budget):
     # within one budget a smaller codec holds more Gaussians, until it holds the whole map
     counts = {(c.codec, c.sums): c.count for c in weighed}
     n = len(read_map(run["log"]))
-    order = [counts[key] for key in (("compact", False), ("compact", True), ("fp16", True),
-                                     ("fp32", True))]  # fmt: skip
+    order = [
+        counts[key]
+        for key in (("compact", False), ("compact", True), ("fp16", True), ("fp32", True))
+    ]
     assert all(a > b or a == b == n for a, b in itertools.pairwise(order)), (order, n)
     assert order[-1] < n
 
@@ -47,17 +49,22 @@ def test_a_constructed_case_where_fewer_exact_gaussians_win(run):
 
 def test_options_constrain_the_search_and_the_share_records_it(run):
     best, weighed, _ = solve_share(
-        run["log"], Budget.parse("8kB"), ShareOptions(codec="compact", sums=True),
+        run["log"],
+        Budget.parse("8kB"),
+        ShareOptions(codec="compact", sums=True),
         fixed=("codec", "sums"),
-    )  # fmt: skip
+    )
     assert best == weighed[0]
     assert sorted((c.codec, c.sums, c.fold) for c in weighed) == [
-        ("compact", True, False), ("compact", True, True),
-    ]  # fmt: skip
+        ("compact", True, False),
+        ("compact", True, True),
+    ]
     _, exact, _ = solve_share(
-        run["log"], Budget.parse("8kB"), ShareOptions(codec="compact", fold=False),
+        run["log"],
+        Budget.parse("8kB"),
+        ShareOptions(codec="compact", fold=False),
         fixed=("codec", "fold"),
-    )  # fmt: skip
+    )
     assert sorted((c.sums, c.fold) for c in exact) == [(False, False), (True, False)]
     out = run["root"] / "solve_solved.mcap"
     result = share_solved(run["log"], out, "8kB", seq=run["seq"], force=True)

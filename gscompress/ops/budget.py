@@ -26,8 +26,15 @@ from typing import Any
 from gscompress.errors import BudgetError, InputError
 from gscompress.selection import is_fraction, keep_count, percent_hint
 
-_UNITS = {"B": 1, "kB": 1000, "MB": 1000**2, "GB": 1000**3, "KiB": 1024, "MiB": 1024**2,
-          "GiB": 1024**3}  # fmt: skip
+_UNITS = {
+    "B": 1,
+    "kB": 1000,
+    "MB": 1000**2,
+    "GB": 1000**3,
+    "KiB": 1024,
+    "MiB": 1024**2,
+    "GiB": 1024**3,
+}
 BYTE_UNITS: dict[str, int] = {name.lower(): size for name, size in _UNITS.items()}
 """Byte units (lower case: the prefix is read in either case) and their sizes in bytes."""
 _SPELLING = {name.lower(): name for name in _UNITS}

@@ -111,11 +111,15 @@ def refine(
     on_step = None if progress is None else lambda _: progress(1)
     try:
         mapper.refine(
-            views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction,
-            row_rates=None if rates is None else torch.as_tensor(
-                rates, dtype=torch.float32, device=mapper.device
-            ),
-        )  # fmt: skip
+            views,
+            iters,
+            rng,
+            on_step=on_step,
+            lr_final_fraction=lr_final_fraction,
+            row_rates=None
+            if rates is None
+            else torch.as_tensor(rates, dtype=torch.float32, device=mapper.device),
+        )
     except DivergenceError as exc:  # (its rates are the log's mapping ones, from its config)
         raise DivergenceError(
             "the refinement", exc.detail, f"it ran at the log's mapping rates; {instead}"

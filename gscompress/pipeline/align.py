@@ -59,8 +59,9 @@ def align_logs(
     """
     inputs = [source, target] + ([init] if init is not None else [])
     check_output(dst, inputs, force, ".txt")
-    T, record = align_logs_transform(source, target, init, options, seq, recording=recording,
-                                     phases=phases)  # fmt: skip
+    T, record = align_logs_transform(
+        source, target, init, options, seq, recording=recording, phases=phases
+    )
     write_transform_file(dst, T, record)
     record["output"] = str(dst)
     return record
@@ -152,8 +153,9 @@ def align_agents(
     drift = refine_alignment(src_cloud, tgt_cloud, T_true, options)
     dt, dr = transform_error(T, T_true)
     ot, orot = transform_error(drift.T_target_source, T_true)
-    record.update(error_cm=100 * dt, error_deg=dr, drift_cm=100 * ot, drift_deg=orot,
-                  T_true=T_true.tolist())  # fmt: skip
+    record.update(
+        error_cm=100 * dt, error_deg=dr, drift_cm=100 * ot, drift_deg=orot, T_true=T_true.tolist()
+    )
     if on_frames := record.get("on_frames"):  # (and the registration's, before the frames)
         rt, rr = transform_error(np.asarray(on_frames["T_registration"]), T_true)
         on_frames.update(registration_error_cm=100 * rt, registration_error_deg=rr)

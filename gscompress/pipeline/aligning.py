@@ -240,11 +240,16 @@ def align_logs_transform(
     T = alignment.T_target_source
     if seq is not None:
         T, refused = _judged_on_frames(
-            (source, target, seq, recording), alignment, (src_cloud, tgt_cloud), record,
-            (refused, overrulable), phases,
-        )  # fmt: skip
+            (source, target, seq, recording),
+            alignment,
+            (src_cloud, tgt_cloud),
+            record,
+            (refused, overrulable),
+            phases,
+        )
     if refused and refuse:
-        raise AlignmentError(f"{where}: {refused}", replace(alignment, T_target_source=T,
-                                                            refused=refused))  # fmt: skip
+        raise AlignmentError(
+            f"{where}: {refused}", replace(alignment, T_target_source=T, refused=refused)
+        )
     record["refused"] = f"{where}: {refused}" if refused else ""
     return T, record

@@ -174,8 +174,16 @@ def evaluate_log(
     chosen, left_out = _chosen_frames(matched, o.every, meta, leave_out, log_path)
     scored = _image_scores(target, matched, chosen, refine_poses, o, progress, log_path.name)
     pose_text = meta.pose_origin() if own else str(source)
-    return _results(log_path, target, matched, (frames, o.every, pose_text, own), ate, left_out,
-                    scored, time.perf_counter() - start)  # fmt: skip
+    return _results(
+        log_path,
+        target,
+        matched,
+        (frames, o.every, pose_text, own),
+        ate,
+        left_out,
+        scored,
+        time.perf_counter() - start,
+    )
 
 
 class _Target(NamedTuple):
@@ -344,25 +352,41 @@ def _image_scores(
         if how.save_images is None:
             return None
         savers[folder] = ImageSaver(
-            Path(how.save_images) / folder, gaussians, sequence.intrinsics, how.colorings,
-            how.side_by_side, backend, torch_device, title=f"{log_name} on {sequence.name}",
-        )  # fmt: skip
+            Path(how.save_images) / folder,
+            gaussians,
+            sequence.intrinsics,
+            how.colorings,
+            how.side_by_side,
+            backend,
+            torch_device,
+            title=f"{log_name} on {sequence.name}",
+        )
         return savers[folder]
 
     T_given = [matched.T_est[k] for k in chosen]
     score = partial(
-        evaluate_map, gaussians, intrinsics=sequence.intrinsics, backend=backend,
-        device=torch_device, lpips=how.lpips, progress=step,
-    )  # fmt: skip
+        evaluate_map,
+        gaussians,
+        intrinsics=sequence.intrinsics,
+        backend=backend,
+        device=torch_device,
+        lpips=how.lpips,
+        progress=step,
+    )
     images = score(views(T_given), on_render=saver(""))
     per_frame = images.pop("per_view")
     refined: dict[str, Any] | None = None
     if refine_poses:
         tracking = replace(log_tracking_config(target.meta), iters=refine_poses)
         T_refined = refine(
-            gaussians, views(T_given), sequence.intrinsics, tracking, backend=backend,
-            device=torch_device, progress=step,
-        )  # fmt: skip
+            gaussians,
+            views(T_given),
+            sequence.intrinsics,
+            tracking,
+            backend=backend,
+            device=torch_device,
+            progress=step,
+        )
         refined = score(views(T_refined), on_render=saver("refined"))
         changes = {
             int(sequence.indices[positions[k]]): pose_change(T_given[i], T_refined[i])
@@ -454,7 +478,7 @@ def union_results(first: dict[str, Any], second: dict[str, Any]) -> dict[str, An
         per_frame = sorted(
             [*a["per_frame"], *(r for r in b["per_frame"] if r["index"] not in seen)],
             key=lambda r: r["index"],
-        )  # fmt: skip
+        )
         reasons = {m: a.get(f"{m}_reason") or "" for m in METRICS}
         return {**mean_metrics(per_frame, reasons), "per_frame": per_frame}
 

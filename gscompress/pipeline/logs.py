@@ -148,14 +148,16 @@ def open_log_sequence(
     if (recording is None or recording.is_default) and is_recording(Path(seq)):
         recorded = RecordingOptions.from_record(meta.results.get("recording"))
         if recorded is not None and recorded.gt is not None and not recorded.gt.is_file():
-            log.warning("%s: the run's ground truth %s is gone; using the log's", log_path,
-                        recorded.gt)  # fmt: skip
+            log.warning(
+                "%s: the run's ground truth %s is gone; using the log's", log_path, recorded.gt
+            )
             recorded = replace(recorded, gt=None)
         recording = recorded or recording
     sequence = open_sequence(seq, size=size, frames=subset, recording=recording)
     if meta.sequence and meta.sequence != sequence.name:
-        log.warning("%s was recorded from sequence %r, not %r", log_path, meta.sequence,
-                    sequence.name)  # fmt: skip
+        log.warning(
+            "%s was recorded from sequence %r, not %r", log_path, meta.sequence, sequence.name
+        )
     as_recorded = subset == (meta.frames or "all") and list(size or []) == list(recorded_size or [])
     if as_recorded and len(sequence):  # (the first frame then is the one the run saw)
         check_first_frame(log_path, meta.results.get("first_frame"), sequence)
@@ -295,8 +297,11 @@ def map_log(
     force: bool = False,
 ) -> dict[str, Any]:
     """A one-snapshot log of a map that came from `src` (`meta`: its metadata)."""
-    meta.results = {"gaussians": len(gaussians), "scored": gaussians.has_importance,
-                    **(results or {})}  # fmt: skip
+    meta.results = {
+        "gaussians": len(gaussians),
+        "scored": gaussians.has_importance,
+        **(results or {}),
+    }
     with LogWriter(dst, meta, inputs=[src], force=force) as out:
         out.write_gaussians(gaussians, 0)
     return {"output": str(dst), **meta.results}
@@ -523,7 +528,7 @@ def check_same_camera(
         [carried.fx, carried.fy, carried.cx, carried.cy, carried.width, carried.height],
         [receiver.fx, receiver.fy, receiver.cx, receiver.cy, receiver.width, receiver.height],
         rtol=1e-3,
-    ):  # fmt: skip
+    ):
         got = "no camera" if carried is None else f"{carried.width}x{carried.height}"
         raise InputError(
             f"{share} carries keyframes of another camera ({got}) than the receiver's "

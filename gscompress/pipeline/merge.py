@@ -104,8 +104,9 @@ def merge_logs(
         receiver_log.require_snapshots()
     received = None
     if share is not None:  # (the keyframes serve the refinement only)
-        received = read_share(share, meta.world_frame, "merge", share_transform,
-                              keyframes=keyframes and iters > 0)  # fmt: skip
+        received = read_share(
+            share, meta.world_frame, "merge", share_transform, keyframes=keyframes and iters > 0
+        )
     carried = [] if received is None else received.carried
     how = (
         merge
@@ -160,8 +161,13 @@ def _receiver_refiner(
     instead = "merge with --iters 0 to concatenate only"
     refiner = LogRefiner(receiver, seq, options, progress, instead)
     if received is not None and received.carried:
-        check_same_camera(received.camera, refiner.intrinsics, str(share), "the merge refines",
-                          "merge with --no-keyframes")  # fmt: skip
+        check_same_camera(
+            received.camera,
+            refiner.intrinsics,
+            str(share),
+            "the merge refines",
+            "merge with --no-keyframes",
+        )
     return refiner
 
 

@@ -43,14 +43,29 @@ def prune_log(
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         scores = selection_scores(full, by, seed)
         kept = cut_map(cut_pool(full, refine), keep_count(len(full), keep), scores, fold)
-        return refined(kept, {"kept": len(kept), "total": len(full), "fold": fold},
-                       refine, teacher=full)  # fmt: skip
+        return refined(
+            kept, {"kept": len(kept), "total": len(full), "fold": fold}, refine, teacher=full
+        )
 
-    operation: dict[str, Any] = {"name": "prune", "keep": keep, "by": by, "seed": seed,
-                                 "fold": fold}  # fmt: skip
+    operation: dict[str, Any] = {
+        "name": "prune",
+        "keep": keep,
+        "by": by,
+        "seed": seed,
+        "fold": fold,
+    }
     if refine is not None:
         operation["refine"] = refine.record()
     if map_only:
         operation["map_only"] = True
-    return rewrite_map(src, dst, operation, prune, codec=codec, options=options,
-                       command=command, force=force, map_only=map_only)  # fmt: skip
+    return rewrite_map(
+        src,
+        dst,
+        operation,
+        prune,
+        codec=codec,
+        options=options,
+        command=command,
+        force=force,
+        map_only=map_only,
+    )

@@ -108,10 +108,15 @@ class RefineOptions:
 
     def record(self) -> dict[str, Any]:
         """What a provenance step keeps of these options."""
-        return {"iters": self.iters, "views": self.views, "lr_final": self.lr_final,
-                "seed": self.seed, "backend": self.backend,
-                "pseudo_views": self.pseudo_views,
-                **({"anisotropic": True} if self.anisotropic else {})}  # fmt: skip
+        return {
+            "iters": self.iters,
+            "views": self.views,
+            "lr_final": self.lr_final,
+            "seed": self.seed,
+            "backend": self.backend,
+            "pseudo_views": self.pseudo_views,
+            **({"anisotropic": True} if self.anisotropic else {}),
+        }
 
 
 class LogRefiner:
@@ -225,11 +230,18 @@ class LogRefiner:
             poses = pseudo_poses([v.T_world_cam for v in self.views], self.options.pseudo_views)
             pseudo = teacher_views(teacher, poses, self.intrinsics, self.backend, self.device)
         refined, stats = refine(
-            gaussians, self.views + self.carried + pseudo, self.intrinsics, self.config, iters,
+            gaussians,
+            self.views + self.carried + pseudo,
+            self.intrinsics,
+            self.config,
+            iters,
             device=self.device,
-            seed=self.options.seed, lr_final_fraction=self.options.lr_final, progress=step,
-            rates=rates, **({"instead": self.instead} if self.instead else {}),
-        )  # fmt: skip
+            seed=self.options.seed,
+            lr_final_fraction=self.options.lr_final,
+            progress=step,
+            rates=rates,
+            **({"instead": self.instead} if self.instead else {}),
+        )
         stats["views"] = len(self.views) + len(self.carried)
         stats["pseudo_views"] = len(pseudo)
         stats["carried_views"] = len(self.carried)
@@ -293,8 +305,9 @@ def view_contributions(
     with torch.no_grad():
         inputs = params.render_inputs()
         for view in views:
-            out = render(*inputs, intrinsics, view.T_cam_world(), backend=backend,
-                         want_contribution=True)  # fmt: skip
+            out = render(
+                *inputs, intrinsics, view.T_cam_world(), backend=backend, want_contribution=True
+            )
             assert out.contribution is not None
             total += out.contribution.detach().cpu().to(torch.float64)
     return total.numpy()

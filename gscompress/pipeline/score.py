@@ -80,8 +80,13 @@ def score_file(
     stamps, T_world_cams, source = _poses_to_score_from(src, poses, opened)
     skipped = len(sequence) - len(stamps)
     if skipped:
-        log.warning("%d of the %d frames selected have no pose (%s): scored from the other %d",
-                    skipped, len(sequence), source, len(stamps))  # fmt: skip
+        log.warning(
+            "%d of the %d frames selected have no pose (%s): scored from the other %d",
+            skipped,
+            len(sequence),
+            source,
+            len(stamps),
+        )
     depths = (sequence.frame(i).depth for i in range(len(sequence)))
     used_sigma_d = resolve_sigma_d(sigma_d, depths, sequence.intrinsics)
     torch_device = resolve_device(device, backend)
@@ -89,10 +94,15 @@ def score_file(
     views = itertools.count(1)
     on_view = None if progress is None else lambda _: progress(next(views), len(T_world_cams))
     score = functools.partial(
-        _scored, T_world_cams=T_world_cams, intrinsics=sequence.intrinsics, sigma_d=used_sigma_d,
-        backend=backend, device=torch_device, progress=on_view,
+        _scored,
+        T_world_cams=T_world_cams,
+        intrinsics=sequence.intrinsics,
+        sigma_d=used_sigma_d,
+        backend=backend,
+        device=torch_device,
+        progress=on_view,
         extra={"frames_without_pose": skipped, "poses": source},
-    )  # fmt: skip
+    )
     operation = {
         "name": "score",
         "sequence": sequence.name,
@@ -103,8 +113,9 @@ def score_file(
     }
     if opened.meta is not None:
         return rewrite_map(src, dst, operation, score, command=command, force=force)
-    return _scored_map_log(src, dst, score, operation, opened, (stamps, T_world_cams),
-                           command, force)  # fmt: skip
+    return _scored_map_log(
+        src, dst, score, operation, opened, (stamps, T_world_cams), command, force
+    )
 
 
 class _Opened(NamedTuple):
@@ -181,12 +192,21 @@ def _scored(
     from gscompress.ops.score import score_map
 
     scored = score_map(
-        gaussians, T_world_cams, intrinsics, sigma_d=sigma_d, backend=backend, device=device,
+        gaussians,
+        T_world_cams,
+        intrinsics,
+        sigma_d=sigma_d,
+        backend=backend,
+        device=device,
         progress=progress,
-    )  # fmt: skip
+    )
     seen = int(np.count_nonzero(scored.importance_weight > 0))
-    results = {"views": len(T_world_cams), "gaussians": len(scored), "scored": seen,
-               "sigma_d": sigma_d_value(sigma_d)}  # fmt: skip
+    results = {
+        "views": len(T_world_cams),
+        "gaussians": len(scored),
+        "scored": seen,
+        "sigma_d": sigma_d_value(sigma_d),
+    }
     return scored, {**results, **extra}
 
 

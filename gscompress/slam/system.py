@@ -564,9 +564,14 @@ class SlamSystem:
         self, inputs: RenderInputs, color: torch.Tensor, depth: torch.Tensor, guess: np.ndarray
     ) -> TrackResult:
         return track(
-            inputs, color, depth, self.intrinsics, guess, self.config.tracking,
+            inputs,
+            color,
+            depth,
+            self.intrinsics,
+            guess,
+            self.config.tracking,
             backend=self.config.backend,
-        )  # fmt: skip
+        )
 
     def _init_scene_radius(self, depth: np.ndarray) -> None:
         """Scene radius (for the huge-Gaussian cleanup) and PWAS's sigma_d from the first valid
@@ -600,9 +605,15 @@ class SlamSystem:
                 mask &= whole | (error >= settings.received_color_error)
         self._init_scene_radius(depth)
         new = gaussians_from_rgbd(
-            current.color.cpu().numpy(), depth, self.intrinsics, current.T_world_cam, mask=mask,
-            stride=settings.stride, first_id=self.next_id, opacity=settings.opacity,
-        )  # fmt: skip
+            current.color.cpu().numpy(),
+            depth,
+            self.intrinsics,
+            current.T_world_cam,
+            mask=mask,
+            stride=settings.stride,
+            first_id=self.next_id,
+            opacity=settings.opacity,
+        )
         if not self.config.isotropic:
             new = new.as_anisotropic()
         return self.add_gaussians(new, renumber=False)
@@ -658,9 +669,14 @@ class SlamSystem:
         on_step = self._final_steps(iters) if final and iters else None
         try:
             stats = self.mapper.refine(
-                views, iters, rng, on_step=on_step, lr_final_fraction=fraction, stop=stop,
+                views,
+                iters,
+                rng,
+                on_step=on_step,
+                lr_final_fraction=fraction,
+                stop=stop,
                 poses=final and self.config.poses.final,
-            )  # fmt: skip
+            )
         finally:
             self.in_final_refinement = False
         if stop is not None and stats.iters < iters and len(self.mapper.params):  # (not emptied)
@@ -686,9 +702,12 @@ class SlamSystem:
         with torch.no_grad():
             inputs = params.render_inputs()
             out = render(
-                *inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend,
+                *inputs,
+                self.intrinsics,
+                current.T_cam_world(),
+                backend=self.config.backend,
                 want_contribution=True,
-            )  # fmt: skip
+            )
             assert out.contribution is not None
             center = torch.as_tensor(current.T_world_cam[:3, 3], device=self.device)
             if self.sigma_d is not None:  # (else no frame so far had valid depth)

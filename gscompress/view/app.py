@@ -261,8 +261,17 @@ class MapViewer:
         self.compare = gui.add_dropdown(
             "Show", COMPARE_MODES, initial_value=COMPARE_MODES[0], visible=self.other is not None
         )
-        for handle in (self.colour, self.hide_dropped, self.selection, self.strategy, self.codec,
-                       self.sums, self.compare, self.solve, self.write):  # fmt: skip
+        for handle in (
+            self.colour,
+            self.hide_dropped,
+            self.selection,
+            self.strategy,
+            self.codec,
+            self.sums,
+            self.compare,
+            self.solve,
+            self.write,
+        ):
             self._guard(handle)
         for control in (
             self.colour,
@@ -608,9 +617,13 @@ class MapViewer:
         self._say(f"solving for {budget} (rendering candidates)...")
         try:
             best, weighed, record = solve_share(
-                self.source.path, budget, self._share_options(), fixed=("fold",),
-                seq=self.options.seq, recording=self.options.recording,
-            )  # fmt: skip  # (the viewer's shares fold, as gsc share's do by default)
+                self.source.path,
+                budget,
+                self._share_options(),
+                fixed=("fold",),
+                seq=self.options.seq,
+                recording=self.options.recording,
+            )  # # (the viewer's shares fold, as gsc share's do by default)
         except GscError as exc:
             self._say(f"**{exc}**")
             return

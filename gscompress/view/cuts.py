@@ -33,8 +33,9 @@ def codec_label(codec: str, sums: bool) -> str:
 
 def prune_command(src: Path, keep: float, by: str, seed: int) -> str:
     """The `gsc prune` command line a prune in the viewer stands for (its provenance)."""
-    return shlex.join(["gsc", "prune", src.name, "--keep", f"{keep:g}", "--by", by,
-                       "--seed", str(seed)])  # fmt: skip
+    return shlex.join(
+        ["gsc", "prune", src.name, "--keep", f"{keep:g}", "--by", by, "--seed", str(seed)]
+    )
 
 
 def share_command(src: Path, budget: Budget, options: ShareOptions) -> str:
@@ -42,8 +43,19 @@ def share_command(src: Path, budget: Budget, options: ShareOptions) -> str:
     in the file, so the preview's bytes are those written). Its strategy, codec, sums and seed:
     the viewer's shares take `gsc share`'s other settings as they are by default."""
     o = options
-    words = ["gsc", "share", src.name, "--budget", str(budget), "--strategy", o.strategy,
-             "--codec", o.codec, "--seed", str(o.seed)]  # fmt: skip
+    words = [
+        "gsc",
+        "share",
+        src.name,
+        "--budget",
+        str(budget),
+        "--strategy",
+        o.strategy,
+        "--codec",
+        o.codec,
+        "--seed",
+        str(o.seed),
+    ]
     return shlex.join([*words, *([] if o.sums else ["--no-sums"])])
 
 
@@ -108,9 +120,14 @@ def preview_share(
 
 
 def write_prune(
-    src: Path, source: tuple[GaussianMap, LogMetadata], is_log: bool, dst: Path, keep: float,
-    by: str, seed: int,
-) -> dict[str, Any]:  # fmt: skip
+    src: Path,
+    source: tuple[GaussianMap, LogMetadata],
+    is_log: bool,
+    dst: Path,
+    keep: float,
+    by: str,
+    seed: int,
+) -> dict[str, Any]:
     """Write the prune of `src` as `gsc prune` does (a log; for a map file, the kept Gaussians
     as a map file named by `dst`'s suffix)."""
     command = prune_command(src, keep, by, seed)
@@ -123,9 +140,12 @@ def write_prune(
 
 
 def write_share(
-    src: Path, source: tuple[GaussianMap, LogMetadata], dst: Path, budget: Budget,
+    src: Path,
+    source: tuple[GaussianMap, LogMetadata],
+    dst: Path,
+    budget: Budget,
     options: ShareOptions,
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     """Write the share of `src` as `gsc share` does (`share_log`)."""
     command = share_command(src, budget, options)
     return share_log(src, dst, budget, options, command=command, source=source)

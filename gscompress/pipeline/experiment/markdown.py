@@ -165,9 +165,13 @@ def _table4_lines(
             f"{_fmt(r['ssim'], '.3f')} | {_fmt(r['lpips'], '.3f')} | {r['gaussians']} | "
             f"{_fmt(r['share_gaussians'], 'd')} | {_fmt(r['share_bytes'], 'd')} |"
         )
-    lines += ["", f"Mean over {s.seeds} seed(s):", "",
-              "| Method | ATE RMSE (cm) | PSNR | SSIM | LPIPS | Gaussians | Bytes shared |",
-              "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines += [
+        "",
+        f"Mean over {s.seeds} seed(s):",
+        "",
+        "| Method | ATE RMSE (cm) | PSNR | SSIM | LPIPS | Gaussians | Bytes shared |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name in dict.fromkeys(r["name"] for r in t4):
         group = [r for r in t4 if r["name"] == name]
         lines.append(
@@ -229,10 +233,11 @@ def _sweep_lines(
         ]
         for b in v["sweep"]:
             cells = [
-                b["budget"], b["pairs"],
+                b["budget"],
+                b["pairs"],
                 _plus_minus(b["psnr_difference"], b["psnr_difference_se"], ".2f"),
                 f"{b['pwas_higher_psnr']} of {b['pairs']}",
-            ]  # fmt: skip
+            ]
             if inject:
                 cells += [
                     _plus_minus(b["ate_difference_cm"], b["ate_difference_se_cm"], ".3f"),
@@ -271,31 +276,41 @@ def _reference_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[
 
     curves = rate_distortion_curves(rows, s)
     lines = [
-        "", "A's whole map, sent whole (mean over the sweep seeds): as our compact share, and as "
+        "",
+        "A's whole map, sent whole (mean over the sweep seeds): as our compact share, and as "
         "the field's formats send it (`gscompress.pipeline.share.formats.format_share`: fp32 "
         "in our fp32 codec; SPZ and SOG, which keep no ids or PWAS sums, written and read back), "
         "each received by B like a share. The last column reads the PWAS curve at the same bytes, "
         "linear in log(bytes) between the two sweep budgets around it (n/a outside the sweep).",
-        "", "| A's whole map as | Gaussians | Bytes | Bytes per Gaussian | PSNR | PWAS share at "
-        "these bytes |", "|---|---|---|---|---|---|",
-    ]  # fmt: skip
+        "",
+        "| A's whole map as | Gaussians | Bytes | Bytes per Gaussian | PSNR | PWAS share at "
+        "these bytes |",
+        "|---|---|---|---|---|---|",
+    ]
     for name in ("full", *s.references):
         point = curves.get(name)
         label = "compact (our share)" if name == "full" else name
         if not point:
-            why = ("not measured: splat-transform was not found (`make js-deps` installs it)"
-                   if name == "sog" and splat_transform() is None
-                   else "not measured (see the failed runs)")  # fmt: skip
+            why = (
+                "not measured: splat-transform was not found (`make js-deps` installs it)"
+                if name == "sog" and splat_transform() is None
+                else "not measured (see the failed runs)"
+            )
             lines.append(f"| {label} | {why} | | | | |")
             continue
         size, psnr, _ = point[0]
-        group = [r for r in rows if r["strategy"] == name and r["seed"] is not None
-                 and r["seed"] < s.sweep_seeds]  # fmt: skip
+        group = [
+            r
+            for r in rows
+            if r["strategy"] == name and r["seed"] is not None and r["seed"] < s.sweep_seeds
+        ]
         count = mean_of([r["share_gaussians"] for r in group])
         per = size / count if count else None
         at = curve_at(curves.get("pwas", []), size)
-        lines.append(f"| {label} | {_fmt(count, '.0f')} | {size:.0f} | {_fmt(per, '.2f')} | "
-                     f"{_fmt(psnr)} | {_fmt(at)} |")  # fmt: skip
+        lines.append(
+            f"| {label} | {_fmt(count, '.0f')} | {size:.0f} | {_fmt(per, '.2f')} | "
+            f"{_fmt(psnr)} | {_fmt(at)} |"
+        )
     return lines
 
 
@@ -378,10 +393,24 @@ def _alignment_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[
         "|---|---|---|---|---|---|---|",
     ]
     for seed in range(s.seeds):
-        est = next((r for r in rows if r["seed"] == seed and r["table"] == "table4"
-                    and r["name"] == f"B + pwas {s.budget}"), None)  # fmt: skip
-        true = next((r for r in rows if r["seed"] == seed
-                     and r["name"] == f"{TRUE_TRANSFORM_ROW} {s.budget}"), None)  # fmt: skip
+        est = next(
+            (
+                r
+                for r in rows
+                if r["seed"] == seed
+                and r["table"] == "table4"
+                and r["name"] == f"B + pwas {s.budget}"
+            ),
+            None,
+        )
+        true = next(
+            (
+                r
+                for r in rows
+                if r["seed"] == seed and r["name"] == f"{TRUE_TRANSFORM_ROW} {s.budget}"
+            ),
+            None,
+        )
         if est is None or true is None:
             continue
         diff = None if est["psnr"] is None or true["psnr"] is None else est["psnr"] - true["psnr"]
@@ -390,9 +419,12 @@ def _alignment_lines(rows: list[dict[str, Any]], s: ExperimentSettings) -> list[
             f"{_fmt(est['psnr'])} | {_fmt(true['psnr'])} | {_fmt(diff)} | "
             f"{est['align_refused'] or 'no'} |"
         )
-    lines += ["", "Each alignment's figures (overlap, residual, inliers, the drift that local "
-              "refinement finds from the true transform, a refusal; under `on_frames` the "
-              "registration's error before B's frames refined it, and the drift those frames "
-              "find) are in runs/s*_align.json; "
-              "a refused alignment's estimate is still merged, and counts as a miss."]  # fmt: skip
+    lines += [
+        "",
+        "Each alignment's figures (overlap, residual, inliers, the drift that local "
+        "refinement finds from the true transform, a refusal; under `on_frames` the "
+        "registration's error before B's frames refined it, and the drift those frames "
+        "find) are in runs/s*_align.json; "
+        "a refused alignment's estimate is still merged, and counts as a miss.",
+    ]
     return lines

@@ -47,8 +47,14 @@ def _plot_rate_distortion(
     In merge mode B's poses are fixed, so the ATE panel is left out (results.md says why)."""
     import matplotlib.pyplot as plt
 
-    columns = [(1, "PSNR of B, all frames, poses refined (dB)" if s.refine_poses
-                else "PSNR of agent B on its frames (dB)")]  # fmt: skip
+    columns = [
+        (
+            1,
+            "PSNR of B, all frames, poses refined (dB)"
+            if s.refine_poses
+            else "PSNR of agent B on its frames (dB)",
+        )
+    ]
     if s.mode == "inject":
         columns.append((2, "ATE RMSE of agent B (cm)"))
     fig, axes = plt.subplots(1, len(columns), figsize=(5.5 * len(columns), 4.2), squeeze=False)
@@ -61,11 +67,15 @@ def _plot_rate_distortion(
                 continue
             whole = name == "full" or name in s.references
             ax.plot(
-                [p[0] for p in shared], [p[column] for p in shared],
+                [p[0] for p in shared],
+                [p[column] for p in shared],
                 label=_curve_label(name, s),
-                **(dict(marker=_WHOLE_MARKERS.get(name, "*"), markersize=11, linestyle="none")
-                   if whole else dict(marker="o")),
-            )  # fmt: skip
+                **(
+                    dict(marker=_WHOLE_MARKERS.get(name, "*"), markersize=11, linestyle="none")
+                    if whole
+                    else dict(marker="o")
+                ),
+            )
         if baseline is not None:
             ax.axhline(baseline, color="grey", linestyle="--", label="B, no share")
         ax.set_xscale("log")
@@ -75,11 +85,18 @@ def _plot_rate_distortion(
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize="small")
         else:  # (every run this panel reads failed: results.md lists them)
-            ax.text(0.5, 0.5, "no points: see results.md", ha="center", va="center",
-                    transform=ax.transAxes)  # fmt: skip
+            ax.text(
+                0.5,
+                0.5,
+                "no points: see results.md",
+                ha="center",
+                va="center",
+                transform=ax.transAxes,
+            )
     seeds = f"mean over seed(s) 0-{s.sweep_seeds - 1}" if s.sweep_seeds > 1 else "seed 0"
-    fig.suptitle(_plot_title(seq, s, "Rate-distortion: agent B with A's share", seeds),
-                 fontsize="medium")  # fmt: skip
+    fig.suptitle(
+        _plot_title(seq, s, "Rate-distortion: agent B with A's share", seeds), fontsize="medium"
+    )
     fig.tight_layout()
     return _save(fig, folder / "rate_distortion.png")
 
@@ -122,8 +139,9 @@ def write_plots(
     ax.set_xlabel("PWAS importance S / (W + eps) (log scale)")
     ax.set_ylabel("Gaussians (count)")
     ax.legend(fontsize="small")
-    fig.suptitle(_plot_title(seq, s, "PWAS importance before and after pruning", run),
-                 fontsize="medium")  # fmt: skip
+    fig.suptitle(
+        _plot_title(seq, s, "PWAS importance before and after pruning", run), fontsize="medium"
+    )
     fig.tight_layout()
     paths.append(_save(fig, folder / "importance_hist.png"))
 
@@ -133,15 +151,21 @@ def write_plots(
     shown = positive.size > 0
     low, high = (positive.min(), positive.max()) if shown else (1e-12, 1.0)
     dots = ax.scatter(
-        plan[order, 0], plan[order, 1], c=np.maximum(scores[order], low), s=1, cmap="viridis",
+        plan[order, 0],
+        plan[order, 1],
+        c=np.maximum(scores[order], low),
+        s=1,
+        cmap="viridis",
         norm=LogNorm(low, max(high, low * (1 + 1e-9))),
-    )  # fmt: skip
+    )
     fig.colorbar(dots, ax=ax, label="PWAS importance (log scale)")
     ax.set_aspect("equal")
     ax.set_xlabel("first principal axis of the map (m)")
     ax.set_ylabel("second principal axis of the map (m)")
-    fig.suptitle(_plot_title(seq, s, "Top-down view of the map coloured by importance", run),
-                 fontsize="medium")  # fmt: skip
+    fig.suptitle(
+        _plot_title(seq, s, "Top-down view of the map coloured by importance", run),
+        fontsize="medium",
+    )
     fig.tight_layout()
     paths.append(_save(fig, folder / "importance_topdown.png"))
     return paths

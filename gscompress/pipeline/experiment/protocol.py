@@ -440,8 +440,9 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
     frames = {"a": frames_a, "b": frames_b, "all": s.frames}
     a_alone, b_alone = AGENT_ROWS[s.split]
 
-    def score(run: RunHandle, own: str, other: RunHandle | None = None,
-              align: RunHandle | None = None) -> dict[str, Any]:  # fmt: skip
+    def score(
+        run: RunHandle, own: str, other: RunHandle | None = None, align: RunHandle | None = None
+    ) -> dict[str, Any]:
         if not s.refine_poses:
             return {}
         return {"cross": runner.score(run, own, frames, other, align)}
@@ -449,8 +450,9 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
     full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
     pruned = runner.slam("full_pwas", base, s.frames)
     rows.append({"name": "full, no pruning", "table": "table3", "run": full})
-    rows.append({"name": "full, PWAS pruning", "table": "table3", "run": pruned,
-                 **score(pruned, "all")})  # fmt: skip
+    rows.append(
+        {"name": "full, PWAS pruning", "table": "table3", "run": pruned, **score(pruned, "all")}
+    )
 
     budgets = [s.budget] + [b for b in s.sweep if not same_budget(b, s.budget)]
     own = s.anchor == "own"
@@ -461,45 +463,100 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
         a = runner.slam(f"s{seed}_agent_a", config, frames_a)
         b = runner.slam(f"s{seed}_agent_b", config, frames_b)
         align = runner.align(f"s{seed}_align", a, b) if own else None
-        rows.append({"name": a_alone, "table": "table4", "run": a, "seed": seed,
-                     **score(a, "a", b, align)})  # fmt: skip
-        rows.append({"name": b_alone, "table": "table4", "run": b, "seed": seed,
-                     **score(b, "b", a, align)})  # fmt: skip
+        rows.append(
+            {"name": a_alone, "table": "table4", "run": a, "seed": seed, **score(a, "a", b, align)}
+        )
+        rows.append(
+            {"name": b_alone, "table": "table4", "run": b, "seed": seed, **score(b, "b", a, align)}
+        )
         if s.mode == "merge":
             alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
-            rows.append({"name": B_NO_SHARE, "table": "table4", "run": alone, "seed": seed,
-                         "strategy": "none", **score(alone, "b", a, align)})  # fmt: skip
+            rows.append(
+                {
+                    "name": B_NO_SHARE,
+                    "table": "table4",
+                    "run": alone,
+                    "seed": seed,
+                    "strategy": "none",
+                    **score(alone, "b", a, align),
+                }
+            )
         scored = {x: runner.rescore(f"s{seed}_agent_a_{x}", a, RESCORED[x]) for x in _rescored(s)}
         for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
                 source = scored.get(strategy.removesuffix(FOR_B), a)
-                share = runner.share(f"{tag}_share", source, budget, ranked_by(strategy), seed,
-                                     b if strategy.endswith(FOR_B) else None)  # fmt: skip
+                share = runner.share(
+                    f"{tag}_share",
+                    source,
+                    budget,
+                    ranked_by(strategy),
+                    seed,
+                    b if strategy.endswith(FOR_B) else None,
+                )
                 got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed, align)
-                rows.append({"name": f"B + {strategy} {budget}", "table": table, "run": got,
-                             "seed": seed, "strategy": strategy, "budget": budget,
-                             "share": share, "align": align,
-                             **score(got, "b", a, align)})  # fmt: skip
+                rows.append(
+                    {
+                        "name": f"B + {strategy} {budget}",
+                        "table": table,
+                        "run": got,
+                        "seed": seed,
+                        "strategy": strategy,
+                        "budget": budget,
+                        "share": share,
+                        "align": align,
+                        **score(got, "b", a, align),
+                    }
+                )
                 if own and table == "table4" and strategy == "pwas":
-                    got = runner.receive(f"{tag}_true_agent_b", b, share, config, frames_b, seed,
-                                         align, true=True)  # fmt: skip
-                    rows.append({"name": f"{TRUE_TRANSFORM_ROW} {budget}", "table": table,
-                                 "run": got, "seed": seed, "budget": budget, "share": share,
-                                 **score(got, "b", a, align)})  # fmt: skip
+                    got = runner.receive(
+                        f"{tag}_true_agent_b", b, share, config, frames_b, seed, align, true=True
+                    )
+                    rows.append(
+                        {
+                            "name": f"{TRUE_TRANSFORM_ROW} {budget}",
+                            "table": table,
+                            "run": got,
+                            "seed": seed,
+                            "budget": budget,
+                            "share": share,
+                            **score(got, "b", a, align),
+                        }
+                    )
         whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
         got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed, align)
-        rows.append({"name": "B + A's full map", "table": "table4", "run": got, "seed": seed,
-                     "strategy": "full", "budget": "1", "share": whole, "align": align,
-                     **score(got, "b", a, align)})  # fmt: skip
+        rows.append(
+            {
+                "name": "B + A's full map",
+                "table": "table4",
+                "run": got,
+                "seed": seed,
+                "strategy": "full",
+                "budget": "1",
+                "share": whole,
+                "align": align,
+                **score(got, "b", a, align),
+            }
+        )
         for fmt in reference_formats(s) if seed < s.sweep_seeds else ():
             sent = runner.reference(f"s{seed}_whole_{fmt}_share", a, fmt)
-            got = runner.receive(f"s{seed}_whole_{fmt}_agent_b", b, sent, config, frames_b, seed,
-                                 align)  # fmt: skip
-            rows.append({"name": f"B + A's whole map as {fmt}", "table": REFERENCE_TABLE,
-                         "run": got, "seed": seed, "strategy": fmt, "budget": "1",
-                         "share": sent, "align": align, **score(got, "b", a, align)})  # fmt: skip
+            got = runner.receive(
+                f"s{seed}_whole_{fmt}_agent_b", b, sent, config, frames_b, seed, align
+            )
+            rows.append(
+                {
+                    "name": f"B + A's whole map as {fmt}",
+                    "table": REFERENCE_TABLE,
+                    "run": got,
+                    "seed": seed,
+                    "strategy": fmt,
+                    "budget": "1",
+                    "share": sent,
+                    "align": align,
+                    **score(got, "b", a, align),
+                }
+            )
     return rows
 
 

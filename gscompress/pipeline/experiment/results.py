@@ -31,12 +31,33 @@ CROSS_KEYS = ("refined_psnr", "pose_change_cm", "pose_change_deg", "start_psnr")
 
 
 ROW_KEYS = (
-    "name", "table", "seed", "strategy", "budget", "frames", "ate_rmse_cm", "ate_splatam_cm",
-    "ate_reason", "psnr", "ssim", "ms_ssim", "lpips", "depth_l1_cm", "gaussians", "bytes",
-    "share_gaussians", "share_bytes", "seconds_per_frame", "log", "error", "align_error_cm",
-    "align_error_deg", "align_refused", "refine_iters",
+    "name",
+    "table",
+    "seed",
+    "strategy",
+    "budget",
+    "frames",
+    "ate_rmse_cm",
+    "ate_splatam_cm",
+    "ate_reason",
+    "psnr",
+    "ssim",
+    "ms_ssim",
+    "lpips",
+    "depth_l1_cm",
+    "gaussians",
+    "bytes",
+    "share_gaussians",
+    "share_bytes",
+    "seconds_per_frame",
+    "log",
+    "error",
+    "align_error_cm",
+    "align_error_deg",
+    "align_refused",
+    "refine_iters",
     *(f"{key}_{name}" for name in FRAME_SETS for key in CROSS_KEYS),
-)  # fmt: skip
+)
 """Columns of results.csv (every row of results.json has them). The cross-agent scores
 (`cross_agent`) are empty in rows not scored so (and with `refine_poses` 0): `refined_psnr_a`,
 `refined_psnr_b`, `refined_psnr_all` (PSNR on A's, B's and all frames at refined poses),
@@ -64,16 +85,24 @@ def result_row(
     got = share.result if share is not None and share.error is None else {}
     row = {key: ev.get(key) for key in ROW_KEYS}
     row.update(
-        name=name, table=table, seed=seed, strategy=strategy, budget=budget,
-        frames=ev.get("frames"), seconds_per_frame=slam.get("seconds_per_frame"),
+        name=name,
+        table=table,
+        seed=seed,
+        strategy=strategy,
+        budget=budget,
+        frames=ev.get("frames"),
+        seconds_per_frame=slam.get("seconds_per_frame"),
         share_gaussians=got.get("selected"),
         share_bytes=got.get("file_bytes", got.get("bytes")),  # (what crosses the link)
-        log=None if error else f"runs/{run.path.name}", error=error,
-    )  # fmt: skip
+        log=None if error else f"runs/{run.path.name}",
+        error=error,
+    )
     if align is not None and align.error is None:
-        row.update(align_error_cm=align.result["error_cm"],
-                   align_error_deg=align.result["error_deg"],
-                   align_refused=align.result["refused"])  # fmt: skip
+        row.update(
+            align_error_cm=align.result["error_cm"],
+            align_error_deg=align.result["error_deg"],
+            align_refused=align.result["refused"],
+        )
     if cross is not None and cross.error is None:
         row.update(cross_columns(cross.result["cross"]))
     return row
@@ -97,9 +126,15 @@ def failed_runs(runs: dict[str, str]) -> list[str]:
     """results.md's lines on the runs that failed: name and first line of the error each."""
     if not runs:
         return []
-    lines = ["", "## Failed runs", "",
-             f"{len(runs)} run(s) failed (after one retry) or were not run; a rerun redoes them.",
-             "", "| Run | Error |", "|---|---|"]  # fmt: skip
+    lines = [
+        "",
+        "## Failed runs",
+        "",
+        f"{len(runs)} run(s) failed (after one retry) or were not run; a rerun redoes them.",
+        "",
+        "| Run | Error |",
+        "|---|---|",
+    ]
     for name, error in sorted(runs.items()):
         first = error.split("\n", 1)[0].replace("|", "\\|")
         lines.append(f"| {name} | {first} |")
@@ -119,12 +154,14 @@ def sweep_rows(
     """Rows of B with a share at `budget` on the sweep seeds (the main budget's included), of
     one strategy or (None) of every compared one."""
     return [
-        r for r in rows
+        r
+        for r in rows
         if r["table"] in ("table4", "sweep")
         and (r["strategy"] == strategy if strategy else r["strategy"] in s.strategies)
-        and r["seed"] is not None and r["seed"] < s.sweep_seeds
+        and r["seed"] is not None
+        and r["seed"] < s.sweep_seeds
         and same_budget(r["budget"], budget)
-    ]  # fmt: skip
+    ]
 
 
 def rate_distortion_curves(
@@ -248,8 +285,11 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
     def pick(table: str, strategy: str, budget: str, seed: int) -> dict[str, Any] | None:
         for row in rows:
             if (row["table"], row["strategy"], row["budget"], row["seed"]) == (
-                table, strategy, budget, seed,
-            ):  # fmt: skip
+                table,
+                strategy,
+                budget,
+                seed,
+            ):
                 return row
         return None
 
@@ -265,8 +305,9 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
         ate_win = (p["ate_rmse_cm"] or math.inf) < (r["ate_rmse_cm"] or math.inf)
         psnr_wins += psnr_win
         ate_wins += ate_win
-        per_seed.append({"seed": seed, "pwas_beats_random_psnr": psnr_win,
-                         "pwas_beats_random_ate": ate_win})  # fmt: skip
+        per_seed.append(
+            {"seed": seed, "pwas_beats_random_psnr": psnr_win, "pwas_beats_random_ate": ate_win}
+        )
     sweep = []
     for budget in s.sweep:
         group = sweep_rows(rows, s, budget)
@@ -276,12 +317,21 @@ def verdicts_of(rows: list[dict[str, Any]], s: ExperimentSettings) -> dict[str, 
             continue
         psnr = paired_difference(group, key)
         ate = paired_difference(group, "ate_rmse_cm")
-        sweep.append({"budget": budget, "pwas_psnr": mp, "random_psnr": mr,
-                      "pwas_at_or_above_random": mp >= mr, "pairs": psnr["pairs"],
-                      "psnr_difference": psnr["mean"], "psnr_difference_se": psnr["se"],
-                      "pwas_higher_psnr": psnr["positive"],
-                      "ate_difference_cm": ate["mean"], "ate_difference_se_cm": ate["se"],
-                      "pwas_lower_ate": ate["negative"]})  # fmt: skip
+        sweep.append(
+            {
+                "budget": budget,
+                "pwas_psnr": mp,
+                "random_psnr": mr,
+                "pwas_at_or_above_random": mp >= mr,
+                "pairs": psnr["pairs"],
+                "psnr_difference": psnr["mean"],
+                "psnr_difference_se": psnr["se"],
+                "pwas_higher_psnr": psnr["positive"],
+                "ate_difference_cm": ate["mean"],
+                "ate_difference_se_cm": ate["se"],
+                "pwas_lower_ate": ate["negative"],
+            }
+        )
     return {
         "budget": s.budget,
         "seeds": s.seeds,

@@ -102,10 +102,19 @@ def share_log(
     options.check()
     _check_outputs(src, dst, ply, [p for p in (src, align_to, receiver) if p is not None], force)
     align = None if align_to is None else share_alignment(src, align_to)
-    cut = ShareCut(src, budget, options, refine=refine, solve=solve, command=command,
-                   source=source, align=align, carry=carry,
-                   receiver=None if receiver is None else read_request(receiver),
-                   device=device)  # fmt: skip
+    cut = ShareCut(
+        src,
+        budget,
+        options,
+        refine=refine,
+        solve=solve,
+        command=command,
+        source=source,
+        align=align,
+        carry=carry,
+        receiver=None if receiver is None else read_request(receiver),
+        device=device,
+    )
     data, shared, results = cut.file(_count(cut, refine, progress))
     limit = cut.budget.budget_bytes
     if limit is not None and len(data) > limit:
@@ -188,6 +197,7 @@ def share_alignment(source: str | Path, target: str | Path) -> tuple[np.ndarray,
     T, record = align_logs_transform(source, target)
     keep = ("overlap", "residual", "inliers", "ambiguity", "conditioning", "target_world_frame")
     out = {k: record[k] for k in keep}
-    out.update(target=Path(target).name, target_sha256=sha256(target),
-               transform=np.round(T, 12).tolist())  # fmt: skip
+    out.update(
+        target=Path(target).name, target_sha256=sha256(target), transform=np.round(T, 12).tolist()
+    )
     return T, out

@@ -90,8 +90,9 @@ class ShareCut:
                     "transform between them"
                 )
             self.budget = budget_less_request(budget, receiver)
-            self.first_ids = unseen_ids(self.full, receiver, None if align is None else align[0],
-                                        device=device)  # fmt: skip
+            self.first_ids = unseen_ids(
+                self.full, receiver, None if align is None else align[0], device=device
+            )
             self.receiver = {**receiver.record(), "unseen": len(self.first_ids)}
             operation["for"] = self.receiver
         if refine is not None:
@@ -131,8 +132,9 @@ class ShareCut:
         self._folding = Folding(pool) if o.fold else None  # (one for every count tried)
 
     def _cut(self, count: int) -> GaussianMap:
-        return cut_map(self.pool, count, self._scores, self.options.fold, self._first,
-                       self._folding)  # fmt: skip
+        return cut_map(
+            self.pool, count, self._scores, self.options.fold, self._first, self._folding
+        )
 
     def refined(self, count: int, refine: MapRefiner) -> int:
         """Refine the share of the `count` best Gaussians and take later shares from it; the

@@ -38,8 +38,9 @@ def format_share(
     if fmt not in REFERENCE_FORMATS:
         raise InputError(f"unknown format {fmt!r}; choose from {', '.join(REFERENCE_FORMATS)}")
     if fmt == DEFAULT_CODEC:
-        got = share_log(src, dst, "1", ShareOptions(codec=fmt, fold=False), command=command,
-                        force=force)  # fmt: skip
+        got = share_log(
+            src, dst, "1", ShareOptions(codec=fmt, fold=False), command=command, force=force
+        )
         return {**got, "format": fmt}
     import tempfile
 

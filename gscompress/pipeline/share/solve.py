@@ -136,11 +136,18 @@ def solve_share(
             psnr(render_view(params, pose, intrinsics)[0], target, mask)
             for pose, target, mask in zip(poses, targets, masks, strict=True)
         ]
-        weighed.append(Candidate(cand_codec, cand_sums, cand_fold, count, len(data),
-                                 float(np.mean(scores))))  # fmt: skip
-        log.info("solver: %s%s%s, %d Gaussians, %d B: %.2f dB", cand_codec,
-                 "" if cand_sums else " (no sums)", " folded" if cand_fold else "", count,
-                 len(data), weighed[-1].psnr)  # fmt: skip
+        weighed.append(
+            Candidate(cand_codec, cand_sums, cand_fold, count, len(data), float(np.mean(scores)))
+        )
+        log.info(
+            "solver: %s%s%s, %d Gaussians, %d B: %.2f dB",
+            cand_codec,
+            "" if cand_sums else " (no sums)",
+            " folded" if cand_fold else "",
+            count,
+            len(data),
+            weighed[-1].psnr,
+        )
     if not weighed:
         raise BudgetError(refusals[0])  # (the smallest codec's: the others hold no more)
     weighed.sort(key=lambda c: (-c.psnr, c.file_bytes))
@@ -198,12 +205,25 @@ def share_solved(
     `solve_share`'s."""
     budget = Budget.parse(budget)
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
-    best, _weighed, record = solve_share(src, budget, options, fixed=fixed, seq=seq, views=views,
-                                         device=device, recording=recording)  # fmt: skip
+    best, _weighed, record = solve_share(
+        src, budget, options, fixed=fixed, seq=seq, views=views, device=device, recording=recording
+    )
     record["predicted_psnr"] = best.psnr
     chosen = replace(options, codec=best.codec, sums=best.sums, fold=best.fold)
-    result = share_log(src, dst, budget, chosen, ply=ply, refine=refine, solve=record,
-                       align_to=align_to, carry=carry, receiver=receiver, device=device,
-                       command=command, force=force)  # fmt: skip
+    result = share_log(
+        src,
+        dst,
+        budget,
+        chosen,
+        ply=ply,
+        refine=refine,
+        solve=record,
+        align_to=align_to,
+        carry=carry,
+        receiver=receiver,
+        device=device,
+        command=command,
+        force=force,
+    )
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result

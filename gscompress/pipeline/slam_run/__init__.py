@@ -519,11 +519,13 @@ def _raise_failure(failure: BaseException, run: Run, dst: str | Path, done: int)
     what the log holds."""
     if isinstance(failure, TrackingLostError):  # (one line: what the log holds, what next)
         failure = TrackingLostError(
-            failure.frame, failure.timestamp, failure.reason,
+            failure.frame,
+            failure.timestamp,
+            failure.reason,
             f"{dst} holds the {done} frame(s) before it; to go on, map from there as a second "
             f"agent (gsc slam SEQ --frames {failure.frame}: -o next.mcap) and register the "
             f"two with gsc align next.mcap {dst}",
-        )  # fmt: skip
+        )
     elif isinstance(failure, RECURRING):
         log.warning(
             "%s holds the %d frame(s) done before the error; a resume would meet it again: "
