@@ -102,7 +102,7 @@ def align(
       gsc align a.mcap b.mcap -o a_to_b.txt
       gsc align a.mcap b.mcap -o a_to_b.txt --seq data/room   (refined on b's frames)
       gsc merge b.mcap a_share.mcap --share-transform a_to_b.txt --seq data/room -o m.mcap
-      gsc share a.mcap a_share.mcap --align-to b.mcap   (a share already in B's frame)
+      X
     """
     from gscompress.ops.align import AlignOptions
     from gscompress.pipeline.align import align_logs

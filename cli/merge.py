@@ -233,12 +233,12 @@ def merge(
 
     \b
     Examples:
-      gsc share a.mcap a_share.mcap --budget 0.2
+      gsc share a.mcap -o a_share.mcap --budget 0.2
       gsc merge b.mcap a_share.mcap --seq data/room -o b_merged.mcap
       gsc merge b.mcap a.mcap --seq data/room --no-align --resolve stack \\
           --share-rate 1 --no-by-view -o b_stacked.mcap
       gsc eval b_merged.mcap --seq data/room
-      gsc share a.mcap a_views.mcap --budget 1 --keyframes 6 --seq data/room
+      gsc share a.mcap -o a_views.mcap --budget 1 --keyframes 6 --seq data/room
       gsc merge b.mcap a_views.mcap --seq data/room -o b_merged.mcap
     """
     check_recording_seq(recording, seq)

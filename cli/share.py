@@ -186,15 +186,15 @@ def share(
 
     \b
     Examples:
-      gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
-      gsc share --budget 50kB agent_a.mcap share.mcap
-      gsc share --budget 5%bytes --no-sums agent_a.mcap share.mcap
-      gsc share --budget 72kB --ids agent_a.mcap share.mcap
+      gsc share --budget 0.2 agent_a.mcap -o share.mcap --ply share.ply
+      gsc share --budget 50kB agent_a.mcap -o share.mcap
+      gsc share --budget 5%bytes --no-sums agent_a.mcap -o share.mcap
+      gsc share --budget 72kB --ids agent_a.mcap -o share.mcap
       gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
-      gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
-      gsc share agent_a.mcap share.mcap --align-to agent_b.mcap
-      gsc share --budget 1 --keyframes 3 --seq data/room agent_a.mcap share.mcap
-      gsc share --budget 5%bytes agent_a.mcap share.mcap --for agent_b.mcap
+      gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap -o share.mcap
+      gsc share agent_a.mcap -o share.mcap --align-to agent_b.mcap
+      gsc share --budget 1 --keyframes 3 --seq data/room agent_a.mcap -o share.mcap
+      gsc share --budget 5%bytes agent_a.mcap -o share.mcap --for agent_b.mcap
     """
     options = _share_options(strategy, codec, precision, sums, ids, seed, fold, spread)
     dst = _share_path(dst, output)

@@ -66,7 +66,7 @@ def main() -> None:
         "--force",
     )
     gsc("prune", a, "--keep", "0.3", "--map-only", "-o", out / "robot_a_pruned.mcap", "--force")
-    gsc("share", a, out / "share.mcap", "--budget", "50kB", "--force")
+    gsc("share", a, "-o", out / "share.mcap", "--budget", "50kB", "--force")
     gsc("merge", b, out / "share.mcap", "-o", out / "robot_b_merged.mcap", "--seq", seq, "--force")
     for log in (b, out / "robot_b_merged.mcap"):
         gsc(
