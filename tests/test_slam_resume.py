@@ -285,11 +285,12 @@ def test_a_log_from_before_the_fingerprint_and_its_resumes_file_are_one_run(
 
     def log(path: Path, map_at: int, **results: object) -> Path:
         meta = LogMetadata(sequence="room", frames="all", config={"seed": 0}, results=results)
-        with LogWriter(path, meta) as out:
+        written = path.with_name("written.mcap")  # (then named as a killed writer leaves it)
+        with LogWriter(written, meta) as out:
             for t in range(1, 4):
                 out.write_pose(np.eye(4), t)
             out.write_gaussians(random_map(5), map_at)
-        return path
+        return written.rename(path)
 
     old = log(tmp_path / "old.mcap", 3)  # written before logs recorded their first frame
     newer = log(tmp_path / ".old.mcap.1.tmp", 1, first_frame=[3.6, 0.5, 0.4, 0.3])
