@@ -138,6 +138,7 @@ def ensure_maps(names: list[str], out: Path) -> dict[str, tuple[Path, Path]]:
     """Name -> (SLAM log, sequence folder), mapping what is not cached in `out` yet."""
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.pipeline import slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
     from gscompress.slam.config import resolve_config
 
     maps: dict[str, tuple[Path, Path]] = {}
@@ -159,7 +160,7 @@ def ensure_maps(names: list[str], out: Path) -> dict[str, tuple[Path, Path]]:
             if name == "synthetic-aniso":
                 config = config.with_overrides(isotropic=False)
             logging.warning("mapping %s (cpu preset) into %s", seq, log)
-            slam_file(seq, log, config=config, frames=frames, command="bench/codec.py")
+            slam_file(seq, log, SlamOptions(frames=frames), config=config, command="bench/codec.py")
         maps[name] = (log, seq)
     return maps
 

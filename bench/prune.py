@@ -43,6 +43,7 @@ from gscompress.pipeline import evaluate_log, prune_log, slam_file
 from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import recorded_keyframes
 from gscompress.pipeline.refining import LogRefiner, RefineOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 
 def off_keyframes(log: Path, keyframe_ns: set[int], seq: Path, lpips: bool) -> dict[str, Any]:
@@ -146,7 +147,7 @@ def main() -> None:
         work.mkdir(parents=True, exist_ok=True)
         log = opts.log or work / "slam.mcap"
         if not log.exists():
-            slam_file(seq, log, preset=opts.preset, frames=opts.frames)
+            slam_file(seq, log, SlamOptions(preset=opts.preset, frames=opts.frames))
         result = bench_sequence(seq, log, work, opts)
         (work / "prune.json").write_text(json.dumps(result, indent=2) + "\n")
         results.append(result)

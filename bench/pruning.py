@@ -51,6 +51,7 @@ from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, merge_logs, prune_log, slam_file
 from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.refining import DEFAULT_LR_FINAL
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.slam.system import PHASES
 
@@ -107,8 +108,7 @@ def run_one(
         result = slam_file(
             seq,
             log_path,
-            config_path=config_path,
-            frames=opts.frames,  # the resolved config
+            SlamOptions(config_path=config_path, frames=opts.frames),  # the resolved config
             command=f"bench/pruning.py ({name})",
             force=True,
         )

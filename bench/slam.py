@@ -34,6 +34,7 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, slam_file
 from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config, save_config
 
 
@@ -104,8 +105,7 @@ def main() -> None:
         result = slam_file(
             seq,
             out,
-            config_path=config_path,
-            frames=opts.frames,  # the resolved config
+            SlamOptions(config_path=config_path, frames=opts.frames),  # the resolved config
             command="bench/slam.py",
             force=True,
         )

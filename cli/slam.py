@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from click.core import ParameterSource
@@ -33,6 +33,9 @@ from .options import (
     size_option,
     slam_config_options,
 )
+
+if TYPE_CHECKING:
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
 
 def _phases(bar: Any) -> Callable[[str, int, int | None], None]:
@@ -195,15 +198,26 @@ def slam(
     checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
     even a killed run resumes with --resume, redoing at most that many frames.
     """
-    # the settings on top of the preset and file: --save-config's config is the run's
-    settings: dict[str, Any] = {
-        "size": size,
-        "keep": keep,
-        "no_prune": no_prune,
-        "backend": backend,
-    }
+    from gscompress.pipeline.slam_run.options import SlamOptions
+
+    # what was not given stays None, so that --resume can refuse settings it would not use
+    frames_given = (
+        click.get_current_context().get_parameter_source("frames") != ParameterSource.DEFAULT
+    )
+    fresh = SlamOptions(
+        preset=preset,
+        config_path=config_path,
+        frames=str(frames) if frames_given else None,
+        size=size,
+        keep=keep,
+        no_prune=no_prune,
+        backend=backend,
+        inject=inject,
+        share_transform=share_transform,
+        recording=recording,
+    )
     inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
-    config = _config_to_save(save_config, resume, preset, config_path, settings, inputs, force)
+    config = _config_to_save(save_config, resume, fresh, inputs, force)
     if dst is None and save_config is not None:
         from gscompress.slam.config import save_config as write_config
 
@@ -211,34 +225,14 @@ def slam(
         click.echo(f"wrote {save_config}")
         return
     dst = _run_output(dst, resume)
-    # what was not given stays None, so that --resume can refuse settings it would not use
-    frames_given = (
-        click.get_current_context().get_parameter_source("frames") != ParameterSource.DEFAULT
-    )
-    fresh: dict[str, Any] = dict(
-        preset=preset,
-        config_path=config_path,
-        frames=str(frames) if frames_given else None,
-        inject=inject,
-        share_transform=share_transform,
-        recording=recording,
-        force=force,
-        **settings,
-    )
-    loop: dict[str, Any] = dict(device=device, codec=codec, command=command_line())
+    loop: dict[str, Any] = dict(device=device, codec=codec, force=force, command=command_line())
     saving = (save_config, config) if save_config is not None else None
     result = _run_with_progress(seq, dst, resume, fresh, loop, saving, as_json)
     emit(result, as_json, _mapped_text(result, dst))
 
 
 def _config_to_save(
-    save_config: Path | None,
-    resume: bool,
-    preset: str | None,
-    config_path: Path | None,
-    settings: dict[str, Any],
-    inputs: list[Path],
-    force: bool,
+    save_config: Path | None, resume: bool, fresh: SlamOptions, inputs: list[Path], force: bool
 ) -> Any:
     """With --save-config, the run's resolved config once its file is checked (None without)."""
     if save_config is None:
@@ -248,7 +242,7 @@ def _config_to_save(
 
     if resume:
         raise click.UsageError("--save-config does not go with --resume (the log holds its config)")
-    config = resolve_config(preset, config_path, **settings)
+    config = resolve_config(fresh.preset, fresh.config_path, **fresh.settings)
     check_output(save_config, inputs, force, ".yaml")
     return config
 
@@ -268,7 +262,7 @@ def _run_with_progress(
     seq: Path,
     dst: Path,
     resume: bool,
-    fresh: dict[str, Any],
+    fresh: SlamOptions,
     loop: dict[str, Any],
     saving: tuple[Path, Any] | None,
     as_json: bool,
@@ -331,26 +325,18 @@ def _mapped_text(result: dict[str, Any], dst: Path) -> str:
 
 
 def _slam_or_resume(
-    seq: Path, dst: Path, resume: bool, fresh: dict[str, Any], loop: dict[str, Any]
+    seq: Path, dst: Path, resume: bool, fresh: SlamOptions, loop: dict[str, Any]
 ) -> dict[str, Any]:
-    """The run: `slam_file` with the settings of a fresh run (`fresh`), or with --resume
-    `resume_slam_file`, which refuses them (they are the log's); `loop`: what both take."""
+    """The run: `slam_file` with the settings of a fresh run (`fresh`, its `SlamOptions`), or
+    with --resume `resume_slam_file`, which refuses them (they are the log's); `loop`: what
+    both take (--force only a fresh run's)."""
     from gscompress.pipeline import resume_slam_file, slam_file
     from gscompress.pipeline.slam_run import refuse_own_settings
 
+    force = loop.pop("force")
     if not resume:
-        return slam_file(seq, dst, **fresh, **loop)
-    kept = (
-        "preset",
-        "config_path",
-        "frames",
-        "size",
-        "backend",
-        "keep",
-        "inject",
-        "share_transform",
-    )  # (`RESUME_KEEPS`, in its order)
-    refuse_own_settings(tuple(fresh[k] for k in kept), fresh["no_prune"], fresh["recording"])
+        return slam_file(seq, dst, fresh, force=force, **loop)
+    refuse_own_settings(fresh.kept, fresh.no_prune, fresh.recording)
     return resume_slam_file(seq, dst, **loop)
 
 

@@ -13,6 +13,7 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log, slam_file
 from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 pytestmark = [pytest.mark.gpu, gpu]
 
@@ -22,7 +23,7 @@ def test_slam_on_cuda_maps_as_well_as_on_the_cpu(tmp_path):
     runs = {}
     for device in ("cpu", "cuda"):
         log = tmp_path / f"{device}.mcap"
-        result = slam_file(seq, log, preset="tiny", device=device)
+        result = slam_file(seq, log, SlamOptions(preset="tiny"), device=device)
         with LogReader(log) as reader:
             assert reader.metadata.results["device"].startswith(device)
         runs[device] = (result, evaluate_log(log, seq, ImageOptions(device=device, lpips=False)))

@@ -30,6 +30,7 @@ from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline import evaluate_log, share_log, slam_file
 from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -56,7 +57,7 @@ def gt_log(seq_dir, tmp_path_factory):
     config = tmp / "gt.yaml"
     config.write_text("preset: tiny\ntracking:\n  use_ground_truth: true\n")
     out = tmp / "gt.mcap"
-    slam_file(seq_dir, out, preset="tiny", config_path=config)
+    slam_file(seq_dir, out, SlamOptions(preset="tiny", config_path=config))
     return out
 
 
@@ -593,7 +594,7 @@ def test_a_finished_run_logs_its_map_scored_from_every_pose_of_the_run(gt_log, s
         "preset: tiny\ntracking:\n  use_ground_truth: true\npwas:\n  final_scores: false\n"
     )
     online = tmp_path / "online.mcap"
-    slam_file(seq_dir, online, preset="tiny", config_path=config)
+    slam_file(seq_dir, online, SlamOptions(preset="tiny", config_path=config))
     grown = read_map(online)
     np.testing.assert_array_equal(grown.means, logged.means)  # the same run, other sums
     assert not np.allclose(grown.alpha_t_sum, logged.alpha_t_sum, rtol=1e-3)

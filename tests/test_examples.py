@@ -16,6 +16,7 @@ from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 from gscompress.io.trajectory import read_tum_trajectory
 from gscompress.pipeline import share_log, slam_file
 from gscompress.pipeline.share.options import ShareOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -27,7 +28,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     seq = write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, (64, 48))
     log = tmp_path_factory.mktemp("run") / "run.mcap"
-    slam_file(seq, log, preset="tiny")
+    slam_file(seq, log, SlamOptions(preset="tiny"))
     return seq, log
 
 

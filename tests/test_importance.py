@@ -229,11 +229,12 @@ def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(synth_sequence, tmp_
     from gscompress.io.trajectory import write_tum_trajectory
     from gscompress.pipeline import share_log, slam_file
     from gscompress.pipeline.score import score_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     seq = tmp_path / "nogt"  # no ground truth: the run's world frame is its first camera
     shutil.copytree(synth_sequence, seq)
     (seq / "groundtruth.txt").unlink()
-    slam_file(seq, tmp_path / "a.mcap", preset="tiny", frames="odd", size=(24, 18))
+    slam_file(seq, tmp_path / "a.mcap", SlamOptions(preset="tiny", frames="odd", size=(24, 18)))
     r = score_file(tmp_path / "a.mcap", tmp_path / "s.mcap", seq)
     assert r["views"] == 3 and r["poses"] == "estimated"  # frames 1, 3, 5 at the log's poses
     assert r["frames_without_pose"] == 0

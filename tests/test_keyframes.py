@@ -25,6 +25,7 @@ from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pose_messa
 from gscompress.pipeline import evaluate_log, merge_logs, resume_slam_file, share_log, slam_file
 from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.logs import carried_keyframes
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -148,8 +149,8 @@ def test_a_carried_frame_without_its_depth_is_refused(tmp_path: Path) -> None:
 def agents(tmp_path_factory: pytest.TempPathFactory, seq_dir_8: Path) -> dict[str, Path]:
     root, seq = tmp_path_factory.mktemp("carry"), seq_dir_8
     a, b = root / "a.mcap", root / "b.mcap"
-    slam_file(seq, a, preset="tiny", frames="0:5")
-    slam_file(seq, b, preset="tiny", frames="3:8")
+    slam_file(seq, a, SlamOptions(preset="tiny", frames="0:5"))
+    slam_file(seq, b, SlamOptions(preset="tiny", frames="3:8"))
     return {"seq": seq, "a": a, "b": b, "root": root}
 
 
@@ -226,7 +227,11 @@ def test_keyframes_of_another_camera_are_refused(agents: dict[str, Path]) -> Non
     assert not (root / "c.mcap").exists()
     # an injected run has no --no-keyframes: the message names what it can do
     with pytest.raises(InputError, match=r"another camera.*sender's --size") as refused:
-        slam_file(seq, root / "i.mcap", preset="tiny", frames="3:5", size=(32, 24), inject=share)
+        slam_file(
+            seq,
+            root / "i.mcap",
+            SlamOptions(preset="tiny", frames="3:5", size=(32, 24), inject=share),
+        )
     assert "--no-keyframes" not in str(refused.value)
     assert not (root / "i.mcap").exists()
 
@@ -288,7 +293,7 @@ def test_an_injected_share_brings_its_keyframes_into_the_run(agents: dict[str, P
     out = root / "b_inject.mcap"
     SlamSystem.receive = spy  # type: ignore[method-assign]
     try:
-        slam_file(seq, out, preset="tiny", frames="3:8", inject=share, force=True)
+        slam_file(seq, out, SlamOptions(preset="tiny", frames="3:8", inject=share), force=True)
     finally:
         SlamSystem.receive = original  # type: ignore[method-assign]
     assert received == [2]  # A's two keyframes were keyframes before B's first frame

@@ -225,6 +225,7 @@ def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_h
     tmp_path, monkeypatch
 ):
     from gscompress.pipeline import resume_slam_file, slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     seq = write_synthetic_sequence(tmp_path / "room", 8, SIZE)
     levels: dict[str, dict[int, float | None]] = {"whole": {}, "resumed": {}}
@@ -235,15 +236,15 @@ def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_h
         return process(self, frame)
 
     monkeypatch.setattr(SlamSystem, "process", recorded)
-    run = {"preset": "cpu", "size": SIZE}
-    slam_file(seq, tmp_path / "whole.mcap", **run)
+    run = SlamOptions(preset="cpu", size=SIZE)
+    slam_file(seq, tmp_path / "whole.mcap", run)
 
     def stop_after_six(done, total, stats):  # type: ignore[no-untyped-def]
         if done == 6:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq, tmp_path / "cut.mcap", progress=stop_after_six, **run)
+        slam_file(seq, tmp_path / "cut.mcap", run, progress=stop_after_six)
     name[0] = "resumed"
     resume_slam_file(seq, tmp_path / "cut.mcap")
     first = min(levels["resumed"])

@@ -20,6 +20,7 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.io.ply import write_ply
 from gscompress.ops.merge import EXACT, merge_maps
 from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
 
@@ -53,8 +54,8 @@ def test_merge_maps_keeps_every_gaussian_and_its_sums() -> None:
 def agents(tmp_path_factory: pytest.TempPathFactory, seq_dir_8: Path) -> dict[str, Path]:
     root, seq = tmp_path_factory.mktemp("agents"), seq_dir_8
     a, b = root / "a.mcap", root / "b.mcap"
-    slam_file(seq, a, preset="tiny", frames="odd")
-    slam_file(seq, b, preset="tiny", frames="even")
+    slam_file(seq, a, SlamOptions(preset="tiny", frames="odd"))
+    slam_file(seq, b, SlamOptions(preset="tiny", frames="even"))
     share = root / "share.mcap"
     share_log(a, share, 0.3)
     return {"seq": seq, "a": a, "b": b, "share": share, "root": root}
@@ -133,7 +134,7 @@ def test_merge_refuses_unknown_or_different_world_frames(
         merge_logs(agents["b"], foreign, tmp_path / "x.mcap", iters=0)
     other_seq = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=2)
     other = tmp_path / "other.mcap"
-    slam_file(other_seq, other, preset="tiny")
+    slam_file(other_seq, other, SlamOptions(preset="tiny"))
     with pytest.raises(MapError, match="not known to agree"):
         merge_logs(agents["b"], other, tmp_path / "x.mcap", iters=0)
     with pytest.raises(InputError, match="--seq"):
@@ -237,7 +238,7 @@ def test_merge_across_world_frames_with_an_explicit_transform(
 
     other_seq = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=2)
     other = tmp_path / "other.mcap"
-    slam_file(other_seq, other, preset="tiny")
+    slam_file(other_seq, other, SlamOptions(preset="tiny"))
     transform = tmp_path / "T.txt"
     transform.write_text("# share frame -> receiver frame\n0.5 0 0  0 0 0 1\n")
     out = tmp_path / "merged.mcap"

@@ -263,10 +263,11 @@ def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) ->
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.pipeline import evaluate_log, slam_file
     from gscompress.pipeline.images import ImageOptions
+    from gscompress.pipeline.slam_run.options import SlamOptions
     from gscompress_cli.main import cli
 
     seq = write_synthetic_sequence(tmp_path / "room", 6, (48, 36))
-    slam_file(seq, tmp_path / "run.mcap", preset="tiny")
+    slam_file(seq, tmp_path / "run.mcap", SlamOptions(preset="tiny"))
     for name, flags in (("est.txt", []), ("gt.txt", ["--ground-truth"])):
         r = CliRunner().invoke(
             cli, ["export-traj", str(tmp_path / "run.mcap"), "-o", str(tmp_path / name), *flags]

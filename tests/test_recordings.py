@@ -87,10 +87,11 @@ def test_16uc1_refuses_depth_finer_than_a_millimetre(folders, tmp_path):
 @pytest.mark.slow
 def test_slam_maps_and_poses_are_equal_from_a_folder_and_each_recording(folders, tmp_path):
     from gscompress.pipeline import slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     def run(seq: Path, name: str, **options: Any) -> tuple[Any, Any, dict[str, Any]]:
         out = tmp_path / f"{name}.mcap"
-        slam_file(seq, out, preset="tiny", frames="0:3", **options)
+        slam_file(seq, out, SlamOptions(preset="tiny", frames="0:3", **options))
         with LogReader(out) as reader:
             return reader.read_map(), reader.read_poses(), reader.metadata.results
 

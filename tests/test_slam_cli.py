@@ -20,6 +20,7 @@ from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogRe
 from gscompress.metrics import ate_rmse_cm
 from gscompress.pipeline import slam_file
 from gscompress.pipeline.slam_run import FRAMES
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.render import resolve_backend
 from gscompress.selection import keep_count
 from gscompress.slam.config import load_config, preset
@@ -180,7 +181,11 @@ def test_keyboard_interrupt_leaves_a_readable_log_of_the_frames_done(tmp_path):
 
     with pytest.raises(KeyboardInterrupt):
         slam_file(
-            None, out, preset="tiny", no_prune=True, progress=stop_after_three, sequence=sequence
+            None,
+            out,
+            SlamOptions(preset="tiny", no_prune=True),
+            progress=stop_after_three,
+            sequence=sequence,
         )
     with LogReader(out) as log:
         counts = {c.topic: c.messages for c in log.channels}
@@ -226,7 +231,11 @@ def test_render_kernels_are_ready_before_the_first_timed_frame(monkeypatch, tmp_
 
     sequence = synthetic_sequence(2, (32, 24))
     result = slam_file(
-        None, tmp_path / "run.mcap", preset="tiny", sequence=sequence, progress=progress
+        None,
+        tmp_path / "run.mcap",
+        SlamOptions(preset="tiny"),
+        sequence=sequence,
+        progress=progress,
     )
     assert events[0] == "kernels" and events.count("frame") == 2
     # the bar's s/frame and the summary's come from one clock, started after the build
@@ -265,7 +274,7 @@ def test_progress_bar_counts_only_the_frames_this_run_does(monkeypatch, caplog, 
 
     out = tmp_path / "run.mcap"
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, preset="tiny", progress=stop_after_two)
+        slam_file(seq_dir, out, SlamOptions(preset="tiny"), progress=stop_after_two)
     monkeypatch.setattr(render, "resolve_backend", slow_resolve)
     monkeypatch.setattr(slam_command, "progress_bar", kept_bar)
     caplog.set_level(logging.INFO)  # the bar shows at gsc's default level, not under -q
@@ -465,15 +474,14 @@ def test_a_size_too_small_to_map_is_refused_and_an_enlarging_one_is_warned(
     assert r.exit_code == 2 and "working size 15x12 is too small to map" in r.output
     assert not out.exists()
     with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"):
-        slam_file(seq_dir, tmp_path / "own.mcap", preset="tiny", frames="0:2", no_prune=True)
+        slam_file(
+            seq_dir, tmp_path / "own.mcap", SlamOptions(preset="tiny", frames="0:2", no_prune=True)
+        )
         assert "enlarges" not in caplog.text
         slam_file(
             seq_dir,
             tmp_path / "big.mcap",
-            preset="tiny",
-            frames="0:2",
-            size=(96, 72),
-            no_prune=True,
+            SlamOptions(preset="tiny", frames="0:2", size=(96, 72), no_prune=True),
         )
     assert "working size 96x72 enlarges room's 64x48 frames" in caplog.text
 
@@ -506,7 +514,7 @@ def test_a_passing_error_partway_is_not_called_a_settings_one(
         caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"),
         pytest.raises(MemoryError),
     ):
-        slam_file(seq_dir, tmp_path / "m.mcap", preset="tiny", no_prune=True)
+        slam_file(seq_dir, tmp_path / "m.mcap", SlamOptions(preset="tiny", no_prune=True))
     assert "holds the 3 frame(s) done before the error" in caplog.text
     assert "run afresh" not in caplog.text
 
@@ -519,7 +527,7 @@ def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, c
         caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"),
         pytest.raises(DatasetError, match="cannot read depth image"),
     ):
-        slam_file(broken, out, preset="tiny", no_prune=True)
+        slam_file(broken, out, SlamOptions(preset="tiny", no_prune=True))
     assert f"{out} holds the 3 frame(s) done before the error" in caplog.text
     with LogReader(out) as log:
         assert log.metadata.results["frames"] == 3 and log.metadata.results["interrupted"]

@@ -22,6 +22,7 @@ from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, Log
 from gscompress.io.recover import read_messages, unfinished_files
 from gscompress.pipeline import resume_slam_file, share_log, slam_file
 from gscompress.pipeline.slam_run import refuse_own_settings
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.system import SlamSystem
 from gscompress_cli.main import cli
 
@@ -46,7 +47,7 @@ def frames_in(path: Path) -> list[int]:
 def interrupted(seq_dir_8: Path, out: Path, frames: int = 3, **options: object) -> Path:
     """`out`: a run of `seq_dir_8` stopped by Ctrl-C after `frames` frames."""
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, progress=stop_after(frames), **options)
+        slam_file(seq_dir_8, out, SlamOptions(**options), progress=stop_after(frames))
     return out
 
 
@@ -142,7 +143,7 @@ def test_a_share_or_pruned_log_is_not_resumed_even_cut_short(
 ) -> None:
     from gscompress.pipeline import prune_log
 
-    slam_file(seq_dir_8, tmp_path / "a.mcap", preset="tiny", frames="0:4")
+    slam_file(seq_dir_8, tmp_path / "a.mcap", SlamOptions(preset="tiny", frames="0:4"))
     share_log(tmp_path / "a.mcap", tmp_path / "s.mcap", 0.2)
     prune_log(tmp_path / "a.mcap", tmp_path / "p.mcap", 0.3)
     for derived in (tmp_path / "s.mcap", tmp_path / "p.mcap"):
@@ -360,7 +361,7 @@ def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
     monkeypatch.setattr(SlamSystem, "process", interrupted_process)
     out = tmp_path / "stopped.mcap"
     with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config_file)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config_file))
     assert frames_in(out) == [0, 1, 2]  # the frame finished, and no later one started
     assert "stopping after this frame (again to stop at once)" in caplog.text
     with LogReader(out) as log:
@@ -393,7 +394,7 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
     monkeypatch.setattr(Mapper, "refine", refine_then_signal)
     out = tmp_path / "stopped.mcap"
     with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config))
     assert len(done) == 5  # 5 of the 400 iterations, then the refinement ended
     assert "ending the final refinement at the next iteration" in caplog.text
     assert "stopping after this frame" not in caplog.text
@@ -414,7 +415,7 @@ def test_inject_starts_the_map_with_the_share(
     seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     a = tmp_path / "a.mcap"
-    slam_file(seq_dir_8, a, config_path=config_file, frames="odd")
+    slam_file(seq_dir_8, a, SlamOptions(config_path=config_file, frames="odd"))
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     with LogReader(share) as log:
@@ -422,7 +423,9 @@ def test_inject_starts_the_map_with_the_share(
         assert log.metadata.world_frame == "ground-truth:room"
 
     b = tmp_path / "b.mcap"
-    result = slam_file(seq_dir_8, b, config_path=config_file, frames="even", inject=share)
+    result = slam_file(
+        seq_dir_8, b, SlamOptions(config_path=config_file, frames="even", inject=share)
+    )
     assert result["injected"] == len(shared)
     with LogReader(b) as log:
         first = log.read_map(0)
@@ -441,11 +444,13 @@ def test_inject_refuses_a_share_from_another_world_frame(
 ) -> None:
     other = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=1)
     a = tmp_path / "a.mcap"
-    slam_file(other, a, config_path=config_file)
+    slam_file(other, a, SlamOptions(config_path=config_file))
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     with pytest.raises(MapError, match="world frame"):
-        slam_file(seq_dir_8, tmp_path / "b.mcap", config_path=config_file, inject=share)
+        slam_file(
+            seq_dir_8, tmp_path / "b.mcap", SlamOptions(config_path=config_file, inject=share)
+        )
     assert not (tmp_path / "b.mcap").exists()
 
 
@@ -453,7 +458,7 @@ def test_unfinished_reader_stops_at_a_truncated_tail(
     seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "full.mcap"
-    slam_file(seq_dir_8, out, config_path=config_file)
+    slam_file(seq_dir_8, out, SlamOptions(config_path=config_file))
     data = out.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
@@ -507,7 +512,9 @@ def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resum
     config = _tiny_config(tmp_path, "checkpoint_every: 3\nprune: {stages: []}\n")
     out = tmp_path / "twice.mcap"
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config, progress=stop_after(4))  # a map after 4
+        slam_file(
+            seq_dir_8, out, SlamOptions(config_path=config), progress=stop_after(4)
+        )  # a map after 4
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(5))  # the resumed 2nd frame
     with pytest.raises(KeyboardInterrupt):
         resume_slam_file(seq_dir_8, out)
@@ -531,7 +538,7 @@ def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
     out = tmp_path / "staged.mcap"
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(4))
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config))
     monkeypatch.undo()
     resume_slam_file(seq_dir_8, out)
     with LogReader(out) as log:
@@ -552,13 +559,13 @@ def test_resuming_an_injected_run_that_holds_no_map_yet_is_refused(
 ) -> None:
     config = _tiny_config(tmp_path, "checkpoint_every: 0\nprune: {stages: []}\n")
     a = tmp_path / "a.mcap"
-    slam_file(seq_dir_8, a, config_path=config, frames="odd")
+    slam_file(seq_dir_8, a, SlamOptions(config_path=config, frames="odd"))
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     b = tmp_path / "b.mcap"
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(2))
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, b, config_path=config, frames="even", inject=share)
+        slam_file(seq_dir_8, b, SlamOptions(config_path=config, frames="even", inject=share))
     monkeypatch.undo()
     with pytest.raises(InputError, match=r"holds no map yet, so not the share .*\(--inject"):
         resume_slam_file(seq_dir_8, b)
@@ -571,7 +578,7 @@ def test_a_resume_past_an_error_clears_it(seq_dir_8: Path, tmp_path: Path) -> No
     depth.write_bytes(b"not a png")
     out = tmp_path / "e.mcap"
     with pytest.raises(DatasetError):
-        slam_file(broken, out, preset="tiny")
+        slam_file(broken, out, SlamOptions(preset="tiny"))
     with LogReader(out) as log:
         assert "cannot read depth image" in log.metadata.results["error"]
     depth.write_bytes(good)
@@ -595,7 +602,7 @@ def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
     monkeypatch.setattr(SlamSystem, "process", diverging)
     out = tmp_path / "diverged.mcap"
     with pytest.raises(DivergenceError, match="diverged"):
-        slam_file(seq_dir_8, out, config_path=config)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config))
     assert frames_in(out) == [0, 1, 2]
     with LogReader(out) as log:
         results = log.metadata.results

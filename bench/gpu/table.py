@@ -48,6 +48,7 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import slam_file
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.threads import use_threads
 
@@ -215,8 +216,7 @@ def run_one(
         slam_file(
             seq,
             log_path,
-            config_path=config_path,
-            frames=frames,
+            SlamOptions(config_path=config_path, frames=frames),
             device=device,
             command=f"bench/gpu/table.py ({name})",
             force=True,

@@ -140,18 +140,12 @@ def _slam_job(
     share_transform: Path | None = None,
 ) -> dict[str, Any]:
     from gscompress.pipeline.slam_run import slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
-    run = slam_file(
-        seq,
-        path,
-        config=config,
-        frames=frames,
-        device=s.device,
-        inject=inject,
-        share_transform=share_transform,
-        recording=s.recording,
-        force=True,
+    options = SlamOptions(
+        frames=frames, inject=inject, share_transform=share_transform, recording=s.recording
     )
+    run = slam_file(seq, path, options, config=config, device=s.device, force=True)
     return {"slam": run, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 

@@ -30,8 +30,8 @@ from gscompress.errors import (
 )
 from gscompress.io.codec import DEFAULT_CODEC, check_codec
 from gscompress.io.mcap_log import LogWriter, seconds_to_ns
-from gscompress.pipeline.slam_run.start import Run, SequenceSpec, fresh_run, resume_run
-from gscompress.selection import check_ratio
+from gscompress.pipeline.slam_run.options import SlamOptions
+from gscompress.pipeline.slam_run.start import Run, fresh_run, resume_run
 
 log = logging.getLogger(__name__)
 
@@ -54,25 +54,16 @@ FINAL_SCORING = "final scoring"
 def slam_file(
     seq: str | Path | None,
     dst: str | Path,
+    options: SlamOptions | None = None,
     *,
-    preset: str | None = None,
-    config_path: str | Path | None = None,
-    frames: str | None = None,
-    size: tuple[int, int] | None = None,
-    device: str = "auto",
-    backend: str | None = None,
-    keep: float | None = None,
-    no_prune: bool = False,
-    inject: str | Path | None = None,
-    share_transform: str | Path | None = None,
     config: Any = None,
+    device: str = "auto",
+    codec: str = DEFAULT_CODEC,
     command: str = "",
     force: bool = False,
     progress: Progress | None = None,
-    sequence: Any = None,
-    codec: str = DEFAULT_CODEC,
-    recording: Any = None,
     phases: Phases | None = None,
+    sequence: Any = None,
 ) -> dict[str, Any]:
     """Run SLAM over a sequence and write the log.
 
@@ -90,33 +81,20 @@ def slam_file(
     Args:
         seq: the sequence folder (None when `sequence` is given).
         dst: the output log (.mcap).
-        preset: starting configuration (`gscompress.slam.config.PRESETS`; None: the config
-            file's `preset:` entry, else `DEFAULT_PRESET`).
-        config_path: a YAML config applied on top of the preset.
-        frames: frame subset (all, odd, even, START:STOP:STEP; None: all).
-        size: working size (W, H), overriding the config's.
+        options: what defines the run (`SlamOptions`: preset, config file, frames, size,
+            keep ratio, backend, share, recording; None: the defaults).
+        config: a ready `SlamConfig` to use instead of `options`' preset, config file and
+            settings (which must then be left unset).
         device: torch device, or "auto".
-        backend: render backend (`gscompress.render.BACKENDS`), overriding the config's.
-        keep: PWAS keep ratio of the pruning stages, overriding the config's.
-        no_prune: skip the PWAS pruning stages (cyclic opacity cleanup still runs).
-        inject: a share log whose Gaussians (with ids and PWAS sums) start the map; its world
-            frame must be this run's, unless `share_transform` is given.
-        share_transform: a file with the rigid transform from the share's world frame to this
-            run's (4x4 or TUM `tx ty tz qx qy qz qw`).
-        config: a ready `SlamConfig` to use instead of preset + `config_path` + options (which
-            must then be left unset).
         command: the command line, for the metadata.
         force: overwrite `dst`.
         progress: called after every frame with (frames done, total, the frame's stats plus
             `seconds`, the wall time of this call's frames so far, the figure behind the
             result's `seconds_per_frame`).
         sequence: an already opened `RGBDSequence` (e.g. an in-memory synthetic one) instead
-            of `seq`; `frames` and `size` are then not applied to it.
+            of `seq`; `options.frames` and `options.size` are then not applied to it.
         codec: how the map snapshots are stored (`gscompress.io.codec.CODECS`); fp32, the
             default, is a foxglove.PointCloud that Foxglove draws.
-        recording: a recording's `RecordingOptions` (topics, pairing, ground truth; None:
-            chosen). The topics read are recorded in the log's results (`recording`), where
-            `resume_slam_file` and the commands that reopen the log's sequence take them from.
         phases: called as the run goes through its phases, with (phase, steps done, steps
             in total): `FRAMES` once before the first frame (the frames a resumed log already
             holds as done), `FINAL_REFINEMENT` after each iteration of the refinement after the
@@ -126,12 +104,11 @@ def slam_file(
         Output path, frame and Gaussian counts, seconds per frame, ATE (cm) when the sequence
         has ground truth, and whether the run was interrupted.
     """
-    _check_options(seq, sequence, codec, keep)
-    config = _fresh_config(config, preset, config_path, size, keep, no_prune, backend)
-    if share_transform is not None and inject is None:
-        raise OptionError("a share transform needs --inject")
-    spec = SequenceSpec(seq, sequence, frames or "all", recording)
-    run = fresh_run(spec, dst, config, device, inject, share_transform, force, config_path)
+    options = SlamOptions() if options is None else options
+    _check_options(seq, sequence, codec)
+    options.check()
+    config = _fresh_config(config, options)
+    run = fresh_run(seq, sequence, dst, config, options, device, force)
     return _run(run, dst, command, codec, progress, phases)
 
 
@@ -157,7 +134,7 @@ def resume_slam_file(
         InputError: no log nor unfinished run at `dst`, or one that cannot be resumed (a
             finished run, a share or a pruned log, another sequence).
     """
-    _check_options(seq, sequence, codec, None)
+    _check_options(seq, sequence, codec)
     run = resume_run(seq, dst, device, sequence)
     return _run(run, dst, command, codec, progress, phases)
 
@@ -176,13 +153,11 @@ def _run(
     return _loop(run, dst, progress, phases)
 
 
-def _check_options(seq: str | Path | None, sequence: Any, codec: str, keep: float | None) -> None:
-    """Refuse a run without a sequence, an unknown codec and a keep ratio out of range."""
+def _check_options(seq: str | Path | None, sequence: Any, codec: str) -> None:
+    """Refuse a run without a sequence and an unknown codec."""
     if sequence is None and seq is None:
         raise InputError("slam_file needs a sequence folder or an opened sequence")
     check_codec(codec)
-    if keep is not None:
-        check_ratio(keep, "--keep")
 
 
 RESUME_KEEPS = (
@@ -214,24 +189,17 @@ def refuse_own_settings(kept: tuple[Any, ...], no_prune: bool, recording: Any) -
         raise OptionError(f"--resume continues with the log's own settings; drop {dropped}")
 
 
-def _fresh_config(
-    config: Any,
-    preset: str | None,
-    config_path: str | Path | None,
-    size: tuple[int, int] | None,
-    keep: float | None,
-    no_prune: bool,
-    backend: str | None,
-) -> Any:
+def _fresh_config(config: Any, options: SlamOptions) -> Any:
     """The `SlamConfig` of a fresh run: `config` when given (with no setting beside it), else
     the preset's with the config file and the settings applied (`resolve_config`)."""
+    o = options
     if config is None:
         from gscompress.slam.config import resolve_config
 
-        return resolve_config(
-            preset, config_path, size=size, keep=keep, no_prune=no_prune, backend=backend
-        )
-    if any(v is not None for v in (preset, config_path, size, keep, backend)) or no_prune:
+        return resolve_config(o.preset, o.config_path, **o.settings)
+    if any(v is not None for v in (o.preset, o.config_path, o.size, o.keep, o.backend)) or (
+        o.no_prune
+    ):
         raise OptionError("a ready config takes no preset, config file or setting beside it")
     return config
 

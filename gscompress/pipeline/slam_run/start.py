@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +38,7 @@ from gscompress.io.recover import (
     unfinished_files,
 )
 from gscompress.pipeline.logs import check_first_frame, check_same_camera, read_share
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 log = logging.getLogger(__name__)
 
@@ -104,34 +105,26 @@ def _open(
     return sequence
 
 
-class SequenceSpec(NamedTuple):
-    """The sequence a fresh run maps: a folder `seq` (opened with the frame subset `frames`
-    and, a recording, with `recording`'s options), or an already opened `sequence`."""
-
-    seq: str | Path | None
-    sequence: Any
-    frames: str
-    recording: Any = None
-
-
 def fresh_run(
-    spec: SequenceSpec,
+    seq: str | Path | None,
+    sequence: Any,
     dst: str | Path,
     config: Any,
+    options: SlamOptions,
     device: str,
-    inject: str | Path | None,
-    share_transform: str | Path | None,
     force: bool,
-    config_path: str | Path | None,
 ) -> Run:
-    """A run from the first frame, optionally starting with another agent's share; no file
-    it reads (sequence, config, share, transform) is written over. The unfinished file of a
-    killed run of `dst` is, as an existing `dst` is, only with `force` (and once this run has
-    written its log, so that a later --resume cannot pick the older run)."""
+    """A run from the first frame of the sequence, a folder `seq` (opened with `options`'
+    frames and recording options) or an already opened `sequence`, optionally starting with
+    another agent's share (`options.inject`); no file it reads (sequence, config, share,
+    transform) is written over. The unfinished file of a killed run of `dst` is, as an
+    existing `dst` is, only with `force` (and once this run has written its log, so that a
+    later --resume cannot pick the older run)."""
     from gscompress.slam.system import SlamSystem
 
-    seq, sequence, frames, recording = spec
-    reads = (seq if sequence is None else None, config_path, inject, share_transform)
+    frames, recording = options.frames or "all", options.recording
+    inject, share_transform = options.inject, options.share_transform
+    reads = (seq if sequence is None else None, options.config_path, inject, share_transform)
     inputs = [p for p in reads if p is not None]
     check_output(dst, inputs, force, ".mcap")
     unfinished = unfinished_files(dst)
