@@ -47,7 +47,7 @@ demo: install
 picture: install
 	test -f demo_out/robot_a.mcap || $(PY) examples/demo.py --out demo_out
 	$(VENV)/bin/gsc render demo_out/robot_a.mcap --seq demo_out/synthetic --frames 12:13 \
-		--color rgb --color importance --side-by-side -o demo_out/pictures
+		--color rgb --color importance --side-by-side -o demo_out/pictures --force
 	mkdir -p docs/images
 	$(PY) -c "from PIL import Image; Image.open('demo_out/pictures/side_by_side/000012.png').convert('RGB').save('docs/images/map_importance.png', optimize=True)"
 

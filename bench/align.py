@@ -21,7 +21,7 @@ import numpy as np
 
 from gscompress.io.mcap_log import TOPIC_POSE_GT, LogReader
 from gscompress.ops.align import AlignOptions, Cloud, align_clouds, transform_error
-from gscompress.pipeline.align import log_cloud
+from gscompress.pipeline.aligning import log_cloud
 
 
 def first_gt_pose(path: str) -> np.ndarray:
@@ -62,15 +62,29 @@ def main() -> None:
         result = align_clouds(src, tgt, AlignOptions(seed=seed))
         seconds, cpu = time.perf_counter() - started, time.process_time() - cpu
         dt, dr = transform_error(result.T_target_source, T_true)
-        run = {"seconds": seconds, "cpu_seconds": cpu, "error_cm": 100 * dt, "error_deg": dr,
-               "overlap": result.overlap, "voxel": result.voxel}  # fmt: skip
+        run = {
+            "seconds": seconds,
+            "cpu_seconds": cpu,
+            "error_cm": 100 * dt,
+            "error_deg": dr,
+            "overlap": result.overlap,
+            "voxel": result.voxel,
+        }
         runs.append({k: round(v, 4) for k, v in run.items()})
-    print(json.dumps({
-        "source": args.source, "target": args.target,
-        "gaussians": [len(src.points), len(tgt.points)],
-        "runs": runs, "median_seconds": float(np.median([r["seconds"] for r in runs])),
-        "cpus": os.cpu_count(), "loadavg": os.getloadavg(),
-    }, indent=2))  # fmt: skip
+    print(
+        json.dumps(
+            {
+                "source": args.source,
+                "target": args.target,
+                "gaussians": [len(src.points), len(tgt.points)],
+                "runs": runs,
+                "median_seconds": float(np.median([r["seconds"] for r in runs])),
+                "cpus": os.cpu_count(),
+                "loadavg": os.getloadavg(),
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -34,8 +34,9 @@ from gscompress.io.trajectory import write_tum_trajectory
 from gscompress.ops.merge import MergeOptions
 from gscompress.pipeline.align import align_agents
 from gscompress.pipeline.evaluate import evaluate_log
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.merge import merge_logs
-from gscompress.pipeline.offline import share_log
+from gscompress.pipeline.share import share_log
 
 
 def ground_truth(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -69,8 +70,13 @@ def main() -> None:
     t_a, gt_a = ground_truth(args.a)
     t_b, gt_b = ground_truth(args.b)
     record: dict[str, Any] = {"a": str(args.a), "b": str(args.b), "seq": str(args.seq)}
-    record["align"] = align_agents(args.a, args.b, out / "T_est.txt", out / "T_true.txt",
-                                   seq=args.seq if args.on_frames else None)  # fmt: skip
+    record["align"] = align_agents(
+        args.a,
+        args.b,
+        out / "T_est.txt",
+        out / "T_true.txt",
+        seq=args.seq if args.on_frames else None,
+    )
     record["align"].pop("hypotheses", None)
     share = out / "a_share.mcap"
     share_log(args.a, share, args.budget, force=True)
@@ -83,14 +89,21 @@ def main() -> None:
     write_tum_trajectory(gt_in_b, times / 1e9, T_b_gt @ poses, ["ground truth in B's frame"])
     for name, transform in (("est", out / "T_est.txt"), ("true", out / "T_true.txt")):
         merged = out / f"b_merged_{name}.mcap"
-        merge_logs(args.b, share, merged, seq=args.seq, iters=args.iters,
-                   share_transform=transform, merge=MergeOptions(align=False),
-                   force=True)  # fmt: skip
-        own = evaluate_log(merged, args.seq, lpips=False)
-        every = evaluate_log(merged, args.seq, frames="all", poses=gt_in_b, every=args.every,
-                             lpips=False)  # fmt: skip
+        merge_logs(
+            args.b,
+            share,
+            merged,
+            seq=args.seq,
+            iters=args.iters,
+            share_transform=transform,
+            merge=MergeOptions(align=False),
+            force=True,
+        )
+        own = evaluate_log(merged, args.seq, ImageOptions(lpips=False))
+        views = ImageOptions(frames="all", poses=gt_in_b, every=args.every, lpips=False)
+        every = evaluate_log(merged, args.seq, views)
         record[f"merge_{name}"] = {"b_frames": scores(own), "all_frames_gt": scores(every)}
-    b_alone = evaluate_log(args.b, args.seq, lpips=False)
+    b_alone = evaluate_log(args.b, args.seq, ImageOptions(lpips=False))
     record["b_alone"] = {"b_frames": scores(b_alone)}
     for view in ("b_frames", "all_frames_gt"):
         est, true = record["merge_est"][view]["psnr"], record["merge_true"][view]["psnr"]

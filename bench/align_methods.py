@@ -38,8 +38,9 @@ from gscompress.io.files import json_text
 from gscompress.io.mcap_log import LogReader
 from gscompress.ops.align import AlignOptions, refine_alignment, transform_error
 from gscompress.ops.icp import ICP, Cloud, Stages
-from gscompress.pipeline.align import log_cloud
+from gscompress.pipeline.aligning import log_cloud
 from gscompress.pipeline.evaluate import evaluate_log
+from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.merge import merge_logs
 from gscompress.threads import use_threads
 
@@ -57,10 +58,16 @@ def icp_small_gicp(
     tree = small_gicp.KdTree(tgt)
     for scale, iters in stages:
         result = small_gicp.align(
-            tgt, src, tree, init_T_target_source=T, registration_type="GICP",
-            max_correspondence_distance=scale * voxel, max_iterations=iters,
-            rotation_epsilon=1e-6, translation_epsilon=1e-6,
-        )  # fmt: skip
+            tgt,
+            src,
+            tree,
+            init_T_target_source=T,
+            registration_type="GICP",
+            max_correspondence_distance=scale * voxel,
+            max_iterations=iters,
+            rotation_epsilon=1e-6,
+            translation_epsilon=1e-6,
+        )
         T = np.asarray(result.T_target_source)
     return T
 
@@ -106,24 +113,39 @@ def scores(result: dict[str, Any]) -> dict[str, Any]:
 
 def cut_share(a: Path, share: Path, budget: str) -> None:
     """A's share as `gsc share` cuts it by default."""
-    command = [sys.executable, "-m", "gscompress_cli", "--threads", "1", "share", str(a),
-               str(share), "--budget", budget, "--force"]  # fmt: skip
+    command = [
+        sys.executable,
+        "-m",
+        "gscompress_cli",
+        "--threads",
+        "1",
+        "share",
+        str(a),
+        str(share),
+        "--budget",
+        budget,
+        "--force",
+    ]
     subprocess.run(command, check=True, capture_output=True, text=True)
 
 
-def run_method(name: str, args: argparse.Namespace, share: Path, clouds: tuple[Cloud, Cloud]
-               ) -> dict[str, Any]:  # fmt: skip
+def run_method(
+    name: str, args: argparse.Namespace, share: Path, clouds: tuple[Cloud, Cloud]
+) -> dict[str, Any]:
     """Merge the share into B with the ICP `name`, score the result, and align the two whole
     maps by the local step alone."""
     merged = args.out / f"merged_{name}.mcap"
-    done = merge_logs(args.b, share, merged, seq=args.seq, iters=args.iters,
-                      merge={"icp": name}, force=True)  # fmt: skip
+    done = merge_logs(
+        args.b, share, merged, seq=args.seq, iters=args.iters, merge={"icp": name}, force=True
+    )
     T = np.asarray(done.get("align_transform", np.eye(4)), np.float64)
-    on_b = evaluate_log(merged, args.seq, every=args.every, lpips=False)
+    on_b = evaluate_log(merged, args.seq, ImageOptions(every=args.every, lpips=False))
     on_a = evaluate_log(
-        merged, args.seq, frames=frames_of(args.a), every=args.every, poses_from=args.a,
-        refine_poses=args.refine_poses, lpips=False,
-    )  # fmt: skip
+        merged,
+        args.seq,
+        ImageOptions(frames=frames_of(args.a), every=args.every, poses_from=args.a, lpips=False),
+        refine_poses=args.refine_poses,
+    )
     local = refine_alignment(*clouds, np.eye(4), AlignOptions(icp=name)).T_target_source
     return {
         "merge": {k: v for k, v in done.items() if k.startswith("align_")} | error(T),
@@ -137,8 +159,9 @@ def run_method(name: str, args: argparse.Namespace, share: Path, clouds: tuple[C
 def differences(method: dict[str, Any], first: dict[str, Any]) -> dict[str, float]:
     """`method`'s transforms and PSNRs against `first`'s."""
     dt, dr = transform_error(np.asarray(method["T"]), np.asarray(first["T"]))
-    lt, lr = transform_error(np.asarray(method["local_step"]["T"]),
-                             np.asarray(first["local_step"]["T"]))  # fmt: skip
+    lt, lr = transform_error(
+        np.asarray(method["local_step"]["T"]), np.asarray(first["local_step"]["T"])
+    )
     a, a0 = method["a_frames"], first["a_frames"]
     return {
         "merge_transform_cm": 100.0 * dt,
@@ -174,8 +197,14 @@ def main() -> None:
     results = {name: run_method(name, args, share, clouds) for name in names}
     for name in names[1:]:
         results[name][f"minus_{names[0]}"] = differences(results[name], results[names[0]])
-    record = {"a": str(args.a), "b": str(args.b), "seq": str(args.seq), "budget": args.budget,
-              "iters": args.iters, "methods": results}  # fmt: skip
+    record = {
+        "a": str(args.a),
+        "b": str(args.b),
+        "seq": str(args.seq),
+        "budget": args.budget,
+        "iters": args.iters,
+        "methods": results,
+    }
     text = json_text(record, indent=2)
     (args.out / "result.json").write_text(text)
     print(text)

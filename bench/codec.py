@@ -138,6 +138,7 @@ def ensure_maps(names: list[str], out: Path) -> dict[str, tuple[Path, Path]]:
     """Name -> (SLAM log, sequence folder), mapping what is not cached in `out` yet."""
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.pipeline import slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
     from gscompress.slam.config import resolve_config
 
     maps: dict[str, tuple[Path, Path]] = {}
@@ -159,7 +160,7 @@ def ensure_maps(names: list[str], out: Path) -> dict[str, tuple[Path, Path]]:
             if name == "synthetic-aniso":
                 config = config.with_overrides(isotropic=False)
             logging.warning("mapping %s (cpu preset) into %s", seq, log)
-            slam_file(seq, log, config=config, frames=frames, command="bench/codec.py")
+            slam_file(seq, log, SlamOptions(frames=frames), config=config, command="bench/codec.py")
         maps[name] = (log, seq)
     return maps
 
@@ -174,7 +175,7 @@ def render_set(
     sequence, at the log's working size or the sequence's full size."""
     from gscompress.datasets import open_sequence
     from gscompress.io.mcap_log import TOPIC_POSE
-    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
+    from gscompress.pipeline.logs import frames_with_poses, open_log_sequence
 
     with LogReader(log) as reader:
         meta = reader.metadata
@@ -353,8 +354,11 @@ def table(result: dict[str, Any], name: str) -> str:
             if p is None:
                 cells += ["", "", ""]
                 continue
-            cells += [f"{p:.3f}", f"{p - base[f'psnr_gt_{size}']:+.3f}",
-                      f"{e[f'psnr_vs_fp32_{size}']:.1f}"]  # fmt: skip
+            cells += [
+                f"{p:.3f}",
+                f"{p - base[f'psnr_gt_{size}']:+.3f}",
+                f"{e[f'psnr_vs_fp32_{size}']:.1f}",
+            ]
         s = e.get("ssim_gt_working")
         cells.append("" if s is None else f"{s:.4f}")
         lines.append("| " + " | ".join(cells) + " |")
@@ -381,8 +385,10 @@ def _commit() -> str:
     try:
         return subprocess.run(
             ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-            capture_output=True, text=True, check=True,
-        ).stdout.strip()  # fmt: skip
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 

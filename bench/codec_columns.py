@@ -24,7 +24,8 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io import compact as codec
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log
-from gscompress.pipeline.offline import rewrite_map
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.logs import rewrite_map
 
 VARIANTS: dict[str, tuple[str, int, str]] = {
     "colour, linear 8 bits": ("sh_dc", 8, "linear"),
@@ -66,10 +67,17 @@ def main() -> None:
 
         def psnr(gaussians: GaussianMap) -> float:
             out = Path(tmp) / "map.mcap"
-            rewrite_map(opts.log, out, {"name": "bench"}, lambda _: (gaussians, {}),
-                        codec="fp32", force=True)  # fmt: skip
-            scores = evaluate_log(out, opts.seq, frames=opts.frames, every=opts.every,
-                                  lpips=False)  # fmt: skip
+            rewrite_map(
+                opts.log,
+                out,
+                {"name": "bench"},
+                lambda _: (gaussians, {}),
+                codec="fp32",
+                force=True,
+            )
+            scores = evaluate_log(
+                out, opts.seq, ImageOptions(frames=opts.frames, every=opts.every, lpips=False)
+            )
             return float(scores["psnr"])
 
         base = psnr(exact)

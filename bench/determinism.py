@@ -46,17 +46,35 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_det_") as tmp:
         for k in range(opts.runs):
             log = Path(tmp) / f"run{k}.mcap"
-            command = [sys.executable, "-m", "gscompress_cli", "--quiet", "--threads",
-                       str(opts.threads), "slam", opts.seq, "-o", str(log), "--frames",
-                       opts.frames, "--preset", opts.preset]  # fmt: skip
+            command = [
+                sys.executable,
+                "-m",
+                "gscompress_cli",
+                "--quiet",
+                "--threads",
+                str(opts.threads),
+                "slam",
+                opts.seq,
+                "-o",
+                str(log),
+                "--frames",
+                opts.frames,
+                "--preset",
+                opts.preset,
+            ]
             run = subprocess.run(command, capture_output=True, text=True)
             if run.returncode != 0:
                 sys.exit(f"run {k} failed: {run.stderr.strip().splitlines()[-1:]}")
             counts[map_hash(log)] += 1
     report = {
-        "seq": opts.seq, "frames": opts.frames, "threads": opts.threads, "runs": opts.runs,
-        "preset": opts.preset, "distinct_maps": len(counts), "maps": dict(counts),
-    }  # fmt: skip
+        "seq": opts.seq,
+        "frames": opts.frames,
+        "threads": opts.threads,
+        "runs": opts.runs,
+        "preset": opts.preset,
+        "distinct_maps": len(counts),
+        "maps": dict(counts),
+    }
     print(json.dumps(report, indent=2))
 
 

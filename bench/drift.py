@@ -26,7 +26,7 @@ from gscompress.camera import invert_transform, rotation_angle_deg
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, LogReader
 from gscompress.io.trajectory import nearest_times
 from gscompress.ops.align import transform_error
-from gscompress.pipeline.evaluate import POSE_MATCH_TOLERANCE_NS
+from gscompress.pipeline.logs import POSE_MATCH_TOLERANCE_NS
 
 MIN_TURN_DEG, MIN_MOVE_M = 0.1, 1e-3
 
@@ -62,13 +62,22 @@ def drift(path: str, at: list[int], tracked: bool = False) -> dict[str, object]:
         cm, deg = transform_error(e, g)
         turned, true_turn = rotation_angle_deg(e[:3, :3]), rotation_angle_deg(g[:3, :3])
         moved, true_move = float(np.linalg.norm(e[:3, 3])), float(np.linalg.norm(g[:3, 3]))
-        rows.append({
-            "pose": k, "error_cm": 100 * cm, "error_deg": deg,
-            "turn_ratio": ratio(turned, true_turn, MIN_TURN_DEG),
-            "move_ratio": ratio(moved, true_move, MIN_MOVE_M),
-        })  # fmt: skip
-    return {"log": path, "trajectory": poses, "poses": len(est), "at": rows,
-            "path_ratio": ratio(path_length(est), path_length(gt), MIN_MOVE_M)}  # fmt: skip
+        rows.append(
+            {
+                "pose": k,
+                "error_cm": 100 * cm,
+                "error_deg": deg,
+                "turn_ratio": ratio(turned, true_turn, MIN_TURN_DEG),
+                "move_ratio": ratio(moved, true_move, MIN_MOVE_M),
+            }
+        )
+    return {
+        "log": path,
+        "trajectory": poses,
+        "poses": len(est),
+        "at": rows,
+        "path_ratio": ratio(path_length(est), path_length(gt), MIN_MOVE_M),
+    }
 
 
 def main() -> None:

@@ -24,18 +24,55 @@ from typing import Any
 
 from gscompress.datasets.synthetic import write_synthetic_sequence
 
-STUDY = ["--preset", "tiny", "--seeds", "1", "--sweep", "0.2", "--strategies", "random,pwas",
-         "--merge-iters", "5", "--no-lpips", "--every", "1", "--refine-poses", "100",
-         "--sweep-seeds", "1", "--protocol", "paper", "--json"]  # fmt: skip
+STUDY = [
+    "--preset",
+    "tiny",
+    "--seeds",
+    "1",
+    "--sweep",
+    "0.2",
+    "--strategies",
+    "random,pwas",
+    "--merge-iters",
+    "5",
+    "--no-lpips",
+    "--every",
+    "1",
+    "--refine-poses",
+    "100",
+    "--sweep-seeds",
+    "1",
+    "--protocol",
+    "paper",
+    "--json",
+]
 """The tests' tiny study (tests/conftest.py TINY_STUDY): 11 runs."""
 
 EXECUTORS = {
     "local, one at a time": ["--threads", "1", "experiment", "{seq}", "-o", "{out}", *STUDY],
-    "local, --jobs 2": ["--threads", "2", "experiment", "{seq}", "-o", "{out}", *STUDY,
-                        "--jobs", "2"],
-    "ray, started here": ["experiment", "{seq}", "-o", "{out}", *STUDY, "--executor", "ray",
-                          "--cpus-per-run", "1"],
-}  # fmt: skip
+    "local, --jobs 2": [
+        "--threads",
+        "2",
+        "experiment",
+        "{seq}",
+        "-o",
+        "{out}",
+        *STUDY,
+        "--jobs",
+        "2",
+    ],
+    "ray, started here": [
+        "experiment",
+        "{seq}",
+        "-o",
+        "{out}",
+        *STUDY,
+        "--executor",
+        "ray",
+        "--cpus-per-run",
+        "1",
+    ],
+}
 
 
 def timed(args: list[str]) -> tuple[float, dict[str, Any]]:

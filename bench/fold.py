@@ -56,8 +56,11 @@ def shim(tree: Path, where: Path) -> Path:
     """A folder that imports the packages of source tree `tree` (gscompress, and cli/ and
     schemas/ under their installed names)."""
     where.mkdir(parents=True, exist_ok=True)
-    for name, folder in (("gscompress", "gscompress"), ("gscompress_cli", "cli"),
-                         ("gscompress_schemas", "schemas")):  # fmt: skip
+    for name, folder in (
+        ("gscompress", "gscompress"),
+        ("gscompress_cli", "cli"),
+        ("gscompress_schemas", "schemas"),
+    ):
         link = where / name
         if not link.exists():
             link.symlink_to(tree.resolve() / folder)
@@ -68,8 +71,9 @@ def commit(tree: Path) -> str:
     """The tree's commit, with "+dirty" when it has changes not committed."""
 
     def git(*args: str) -> str:
-        return subprocess.run(["git", "-C", str(tree), *args], capture_output=True, text=True,
-                              check=True).stdout.strip()  # fmt: skip
+        return subprocess.run(
+            ["git", "-C", str(tree), *args], capture_output=True, text=True, check=True
+        ).stdout.strip()
 
     return git("rev-parse", "--short", "HEAD") + ("+dirty" if git("status", "--porcelain") else "")
 
@@ -91,8 +95,14 @@ def run_child(shim_dir: Path, cwd: Path, args: list[str]) -> dict[str, float]:
     for name in OUTPUTS.values():
         (cwd / name).unlink(missing_ok=True)
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-c", CHILD, json.dumps(args)], cwd=cwd, env=env,
-                         capture_output=True, text=True, check=True)  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, json.dumps(args)],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     result: dict[str, float] = json.loads(out.stdout.strip().splitlines()[-1])
     result["wall_s"] = time.perf_counter() - t0
     return result
@@ -159,8 +169,9 @@ def main() -> None:
         print(json.dumps(line), flush=True)
 
     def median(log_name: str, name: str, tree: str, key: str = "wall_s") -> float:
-        return next(r[key] for r in rows if (r["log"], r["command"], r["tree"]) == (
-            log_name, name, tree))  # fmt: skip
+        return next(
+            r[key] for r in rows if (r["log"], r["command"], r["tree"]) == (log_name, name, tree)
+        )
 
     per_log: dict[str, dict[str, object]] = {}
     for log, budget in logs:
@@ -168,13 +179,23 @@ def main() -> None:
         figures: dict[str, object] = {}
         for key in ("wall_s", "run_s", "cpu_s"):
             figures[key] = {
-                **{tree: {f"{name}/info": round(median(log.name, name, tree, key)
-                                                / median(log.name, "info", tree, key), 2)
-                          for name in names[1:]} for tree in trees},
-                "new/old": {name: round(median(log.name, name, "new", key)
-                                        / median(log.name, name, "old", key), 3)
-                            for name in names},
-            }  # fmt: skip
+                **{
+                    tree: {
+                        f"{name}/info": round(
+                            median(log.name, name, tree, key) / median(log.name, "info", tree, key),
+                            2,
+                        )
+                        for name in names[1:]
+                    }
+                    for tree in trees
+                },
+                "new/old": {
+                    name: round(
+                        median(log.name, name, "new", key) / median(log.name, name, "old", key), 3
+                    )
+                    for name in names
+                },
+            }
         figures["same_bytes"] = {name: same[(log.name, name)] for name in names[1:]}
         per_log[log.name] = figures
     summary = {"summary": "folding commands, old and new", **info, "logs": per_log}

@@ -55,8 +55,11 @@ def main() -> None:
             relocalised.append(frame.index)
         if args.per_frame:
             record = {"frame": frame.index, "depth_error": tracking.depth, "ratio": ratio}
-            print(json.dumps({k: round(v, 4) if isinstance(v, float) else v
-                              for k, v in record.items()}))  # fmt: skip
+            print(
+                json.dumps(
+                    {k: round(v, 4) if isinstance(v, float) else v for k, v in record.items()}
+                )
+            )
     ate = None
     if len(truth) >= 2 and all(T is not None for T in truth):
         ate = ate_rmse_cm(np.array(truth), np.array(system.refined_poses()[: len(truth)]))

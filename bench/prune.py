@@ -14,7 +14,7 @@ For each sequence (default: the synthetic room, made here), one `gsc slam` log (
   keep ratio `inrun` prunes to its count.
 
 Every map is rendered at the log's estimated poses of the frames that are NOT keyframes (the
-refinement's views are the keyframes, `gscompress.pipeline.refine.KEYFRAME_RULE`) and scored
+refinement's views are the keyframes, `gscompress.pipeline.logs.KEYFRAME_RULE`) and scored
 against the sequence: mean PSNR, SSIM and (with `--lpips`) LPIPS. Writes `prune.json` per
 sequence and prints one Markdown table row per map.
 
@@ -40,13 +40,16 @@ import numpy as np
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader, read_map, seconds_to_ns
 from gscompress.pipeline import evaluate_log, prune_log, slam_file
-from gscompress.pipeline.refine import LogRefiner, RefineOptions, recorded_keyframes
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.logs import recorded_keyframes
+from gscompress.pipeline.refining import LogRefiner, RefineOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 
 def off_keyframes(log: Path, keyframe_ns: set[int], seq: Path, lpips: bool) -> dict[str, Any]:
     """Mean PSNR / SSIM / LPIPS of a log's map over the frames that are not keyframes (of the
     log the map was cut from, `keyframe_ns`), at the log's own poses."""
-    result = evaluate_log(log, seq, lpips=lpips)
+    result = evaluate_log(log, seq, ImageOptions(lpips=lpips))
     frames = [f for f in result["per_frame"] if seconds_to_ns(f["timestamp"]) not in keyframe_ns]
     scores: dict[str, Any] = {"frames": len(frames), "gaussians": result["gaussians"]}
     for name in ("psnr", "ssim", "lpips"):
@@ -85,18 +88,24 @@ def bench_sequence(seq: Path, log: Path, work: Path, opts: argparse.Namespace) -
             tag = f"{by}_{keep:g}_{'fold' if fold else 'nofold'}"
             out = work / f"prune_{tag}_r{refine}.mcap"
             start = time.perf_counter()
-            prune_log(log, out, keep, by=by, refine=refiner if refine else None,
-                      fold_dropped=fold, force=True)  # fmt: skip
+            prune_log(
+                log, out, keep, by=by, refine=refiner if refine else None, fold=fold, force=True
+            )
             seconds = time.perf_counter() - start
             fields: dict[str, Any] = {"keep": keep, "by": by, "fold": fold, "refine": refine}
             if not refine:
                 alone = work / f"prune_{tag}_maponly.mcap"
-                prune_log(log, alone, keep, by=by, map_only=True, fold_dropped=fold, force=True)
+                prune_log(log, alone, keep, by=by, map_only=True, fold=fold, force=True)
                 fields["map_only_bytes"] = alone.stat().st_size
             name = f"prune {keep:.4g} {by}" + (" folded" if fold and keep < 1 else "")
             score(name + (f" +refine {refine}" if refine else ""), out, seconds, **fields)
-    return {"sequence": str(seq), "log": str(log), "keyframes": len(keyframe_ns),
-            "refine_iters": opts.refine, "rows": rows}  # fmt: skip
+    return {
+        "sequence": str(seq),
+        "log": str(log),
+        "keyframes": len(keyframe_ns),
+        "refine_iters": opts.refine,
+        "rows": rows,
+    }
 
 
 def main() -> None:
@@ -138,7 +147,7 @@ def main() -> None:
         work.mkdir(parents=True, exist_ok=True)
         log = opts.log or work / "slam.mcap"
         if not log.exists():
-            slam_file(seq, log, preset=opts.preset, frames=opts.frames)
+            slam_file(seq, log, SlamOptions(preset=opts.preset, frames=opts.frames))
         result = bench_sequence(seq, log, work, opts)
         (work / "prune.json").write_text(json.dumps(result, indent=2) + "\n")
         results.append(result)
@@ -146,9 +155,11 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for result in results:
         for r in result["rows"]:
-            print(f"| {Path(result['sequence']).name} | {r['map']} | {r['gaussians']} | "
-                  f"{r['psnr']} | {r['ssim']} | {r['lpips']} | {r['file_bytes']} | "
-                  f"{r.get('map_only_bytes', '')} |")  # fmt: skip
+            print(
+                f"| {Path(result['sequence']).name} | {r['map']} | {r['gaussians']} | "
+                f"{r['psnr']} | {r['ssim']} | {r['lpips']} | {r['file_bytes']} | "
+                f"{r.get('map_only_bytes', '')} |"
+            )
 
 
 if __name__ == "__main__":

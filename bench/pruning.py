@@ -49,7 +49,9 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, merge_logs, prune_log, slam_file
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.slam.system import PHASES
 
@@ -104,12 +106,15 @@ def run_one(
     else:
         cpu0 = time.process_time()
         result = slam_file(
-            seq, log_path, config_path=config_path, frames=opts.frames,  # the resolved config
-            command=f"bench/pruning.py ({name})", force=True,
-        )  # fmt: skip
+            seq,
+            log_path,
+            SlamOptions(config_path=config_path, frames=opts.frames),  # the resolved config
+            command=f"bench/pruning.py ({name})",
+            force=True,
+        )
         cpu_s = time.process_time() - cpu0
     frames = int(result["frames"])
-    evaluation = evaluate_log(log_path, seq, lpips=False, every=opts.eval_every)
+    evaluation = evaluate_log(log_path, seq, ImageOptions(lpips=False, every=opts.eval_every))
     stats = read_stats(log_path)
     wall = float(result["seconds_per_frame"])
     record: dict[str, Any] = {k: evaluation.get(k) for k in METRICS}
@@ -207,9 +212,16 @@ def offline_bound(
     out: dict[str, dict[str, Any]] = {}
     for name, log_path in maps.items():
         refined = work / f"offline_{name}_refined.mcap"
-        merge_logs(log_path, None, refined, seq=seq, iters=opts.refine_iters,
-                   lr_final=opts.lr_final, force=True)  # fmt: skip
-        evaluation = evaluate_log(refined, seq, lpips=False, every=opts.eval_every)
+        merge_logs(
+            log_path,
+            None,
+            refined,
+            seq=seq,
+            iters=opts.refine_iters,
+            lr_final=opts.lr_final,
+            force=True,
+        )
+        evaluation = evaluate_log(refined, seq, ImageOptions(lpips=False, every=opts.eval_every))
         out[name] = {k: evaluation.get(k) for k in ("psnr", "ssim", "gaussians")}
         out[name]["psnr_delta_db"] = round(out[name]["psnr"] - out["unpruned"]["psnr"], 3)
     return out
@@ -278,8 +290,11 @@ def main() -> None:
         print(f"| run, refined {opts.refine_iters} iterations | Gaussians | PSNR dB | change |")
         print("|---|---|---|---|")
         for run_name, row in offline.items():
-            print(f"| {run_name} | {row['gaussians']} | {row['psnr']:.2f} | "
-                  f"{row['psnr_delta_db']:+.2f} |", flush=True)  # fmt: skip
+            print(
+                f"| {run_name} | {row['gaussians']} | {row['psnr']:.2f} | "
+                f"{row['psnr_delta_db']:+.2f} |",
+                flush=True,
+            )
 
     report = {
         "sequence": str(seq),

@@ -69,18 +69,25 @@ def main() -> None:
     fps = {name: counts[name] / best[name] for name in paths}
     k = open_sequence(seq, frames=subset).intrinsics
     result: dict[str, Any] = {
-        "sequence": str(seq), "size": [k.width, k.height], "frames": counts["folder"],
-        "repeats": opts.repeats, "frames_per_second": {n: round(v, 2) for n, v in fps.items()},
+        "sequence": str(seq),
+        "size": [k.width, k.height],
+        "frames": counts["folder"],
+        "repeats": opts.repeats,
+        "frames_per_second": {n: round(v, 2) for n, v in fps.items()},
         "ratio_to_folder": {n: round(v / fps["folder"], 3) for n, v in fps.items()},
         "bytes": {n: _bytes(p) for n, p in paths.items()},
-    }  # fmt: skip
+    }
     (opts.out / "recordings.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(f"| reader | frames/s | x folder | bytes |  ({k.width}x{k.height}, {counts['folder']} "
-          f"frames, best of {opts.repeats})")  # fmt: skip
+    print(
+        f"| reader | frames/s | x folder | bytes |  ({k.width}x{k.height}, {counts['folder']} "
+        f"frames, best of {opts.repeats})"
+    )
     print("|---|---|---|---|")
     for name in paths:
-        print(f"| {name} | {fps[name]:.1f} | {fps[name] / fps['folder']:.2f} | "
-              f"{result['bytes'][name]:,} |")  # fmt: skip
+        print(
+            f"| {name} | {fps[name]:.1f} | {fps[name] / fps['folder']:.2f} | "
+            f"{result['bytes'][name]:,} |"
+        )
 
 
 def _bytes(path: Path) -> int:

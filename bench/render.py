@@ -146,16 +146,24 @@ def worker(
 
         if load_extension() is None:
             return {"backend": backend, "skipped": "the C++ extension could not be built"}
-    params = {k: scene[k].to(device).requires_grad_(True) for k in
-              ("means", "quats", "scales", "opacities", "colors", "T_cam_world")}  # fmt: skip
+    params = {
+        k: scene[k].to(device).requires_grad_(True)
+        for k in ("means", "quats", "scales", "opacities", "colors", "T_cam_world")
+    }
     baseline = rss_mb()
 
     def forward(contribution: bool = False):
         return render(
-            params["means"], params["quats"], params["scales"], params["opacities"],
-            params["colors"], intr, params["T_cam_world"], backend=backend,
+            params["means"],
+            params["quats"],
+            params["scales"],
+            params["opacities"],
+            params["colors"],
+            intr,
+            params["T_cam_world"],
+            backend=backend,
             want_contribution=contribution,
-        )  # fmt: skip
+        )
 
     def forward_backward():
         out = forward()
@@ -216,9 +224,11 @@ def main() -> None:
         "--torch-all", action="store_true", help="also run pure torch on the largest case"
     )
     parser.add_argument(
-        "--device", choices=sorted(BACKENDS), default="cpu",
+        "--device",
+        choices=sorted(BACKENDS),
+        default="cpu",
         help="cpu: C++ and pure torch; cuda: gsplat and pure torch on the GPU",
-    )  # fmt: skip
+    )
     parser.add_argument("--backends", help="comma-separated (default: the device's pair)")
     parser.add_argument(
         "--march",
@@ -256,10 +266,21 @@ def main() -> None:
                 iters = max(3, args.iters // 3) if slow else args.iters
                 env = dict(os.environ, **({MARCH_ENV: march} if march else {}))
                 proc = subprocess.run(
-                    [sys.executable, __file__, "--worker", f"{width},{height},{n},{backend}",
-                     "--iters", str(iters), "--device", args.device],
-                    capture_output=True, text=True, check=False, env=env,
-                )  # fmt: skip
+                    [
+                        sys.executable,
+                        __file__,
+                        "--worker",
+                        f"{width},{height},{n},{backend}",
+                        "--iters",
+                        str(iters),
+                        "--device",
+                        args.device,
+                    ],
+                    capture_output=True,
+                    text=True,
+                    check=False,
+                    env=env,
+                )
                 if proc.returncode != 0:
                     tail = proc.stderr.strip().splitlines()[-1:] or ["no output"]
                     records[label] = {"skipped": f"worker failed: {tail[0]}"}

@@ -33,12 +33,14 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_STATS, LogReader
 from gscompress.pipeline import evaluate_log, slam_file
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config, save_config
 
 
 def evaluate(log_path: Path, seq: Path, eval_every: int = 1) -> dict[str, Any]:
     """`gsc eval`'s metrics of a SLAM log (no LPIPS), its Gaussian counts and mean phase times."""
-    metrics = evaluate_log(log_path, seq, every=eval_every, lpips=False)
+    metrics = evaluate_log(log_path, seq, ImageOptions(every=eval_every, lpips=False))
     with LogReader(log_path) as log:
         stats = [json.loads(m.data) for _, _, m in log.iter_messages([TOPIC_STATS])]
     phases = ("tracking", "densification", "mapping", "pwas", "pruning", "total")
@@ -101,9 +103,12 @@ def main() -> None:
     else:
         cpu0, wall0 = time.process_time(), time.perf_counter()
         result = slam_file(
-            seq, out, config_path=config_path, frames=opts.frames,  # the resolved config
-            command="bench/slam.py", force=True,
-        )  # fmt: skip
+            seq,
+            out,
+            SlamOptions(config_path=config_path, frames=opts.frames),  # the resolved config
+            command="bench/slam.py",
+            force=True,
+        )
         wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     report = evaluate(out, seq, opts.eval_every)
     report.update(

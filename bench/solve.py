@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.io.mcap_log import LogReader, seconds_to_ns
-from gscompress.pipeline.refine import recorded_keyframes
+from gscompress.pipeline.logs import recorded_keyframes
 
 CHOICES = {
     "solve": ["--solve"],
@@ -52,8 +52,9 @@ def gsc(*args: str) -> dict[str, Any]:
 
 def off_keyframe_psnr(result: dict[str, Any], keyframe_ns: set[int]) -> tuple[int, float]:
     """(frames, mean PSNR) over an eval result's frames that are not keyframes."""
-    psnr = [f["psnr"] for f in result["per_frame"]
-            if seconds_to_ns(f["timestamp"]) not in keyframe_ns]  # fmt: skip
+    psnr = [
+        f["psnr"] for f in result["per_frame"] if seconds_to_ns(f["timestamp"]) not in keyframe_ns
+    ]
     return len(psnr), round(float(np.mean(psnr)), 3)
 
 
@@ -78,22 +79,49 @@ def main() -> None:
         for name, flags in CHOICES.items():
             path = out / f"{name.replace(' ', '_')}_{budget.replace('%', 'pct')}.mcap"
             extra = ["--seq", str(opts.seq)] if name == "solve" else []
-            shared = gsc("share", str(opts.log), str(path), "--budget", budget, "--by", opts.by,
-                         *flags, *extra, "--force")  # fmt: skip
-            scored = gsc("eval", str(path), "--seq", str(opts.seq), "--poses-from",
-                         str(opts.log), "--no-lpips")  # fmt: skip
+            shared = gsc(
+                "share",
+                str(opts.log),
+                str(path),
+                "--budget",
+                budget,
+                "--by",
+                opts.by,
+                *flags,
+                *extra,
+                "--force",
+            )
+            scored = gsc(
+                "eval",
+                str(path),
+                "--seq",
+                str(opts.seq),
+                "--poses-from",
+                str(opts.log),
+                "--no-lpips",
+            )
             frames, psnr = off_keyframe_psnr(scored, keyframe_ns)
-            row = {"budget": budget, "share": name, "codec": shared.get("codec"),
-                   "sums": shared.get("sums"), "fold": shared.get("fold"),
-                   "gaussians": shared.get("selected"),
-                   "file_bytes": path.stat().st_size, "frames": frames, "psnr": psnr,
-                   "predicted_psnr": shared.get("predicted_psnr")}  # fmt: skip
+            row = {
+                "budget": budget,
+                "share": name,
+                "codec": shared.get("codec"),
+                "sums": shared.get("sums"),
+                "fold": shared.get("fold"),
+                "gaussians": shared.get("selected"),
+                "file_bytes": path.stat().st_size,
+                "frames": frames,
+                "psnr": psnr,
+                "predicted_psnr": shared.get("predicted_psnr"),
+            }
             rows.append(row)
             how = f"{row['codec']} ({'sums' if row['sums'] else 'no sums'}, " + (
                 "folded)" if row["fold"] else "top-K)"
             )
-            print(f"| {budget} | {name} | {how} | {row['gaussians']} | "
-                  f"{row['file_bytes']:,} | {psnr:.2f} |", flush=True)  # fmt: skip
+            print(
+                f"| {budget} | {name} | {how} | {row['gaussians']} | "
+                f"{row['file_bytes']:,} | {psnr:.2f} |",
+                flush=True,
+            )
     (out / "solve.json").write_text(json.dumps({"log": str(opts.log), "rows": rows}, indent=1))
 
 

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.gaussians import GaussianMap
-from gscompress.pipeline.offline import rewrite_map
+from gscompress.pipeline.logs import rewrite_map
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_SOURCE = ROOT / "bench_out" / "codec" / "icl-living1.mcap"
@@ -74,8 +74,12 @@ def grown_log(source: Path, count: int, out: Path) -> Path:
     """A copy of the log `source` whose map is tiled to `count` Gaussians (made once)."""
     dst = out / f"{source.stem}_{count // 1000}k.mcap"
     if not dst.exists():
-        rewrite_map(source, dst, {"name": "bench-tile", "count": count},
-                    lambda g: (tiled(g, count), {"gaussians": count}))  # fmt: skip
+        rewrite_map(
+            source,
+            dst,
+            {"name": "bench-tile", "count": count},
+            lambda g: (tiled(g, count), {"gaussians": count}),
+        )
     return dst
 
 
@@ -227,31 +231,7 @@ def browser_figures(
             if server is None:
                 out["fps_orbit"] = frames_while_orbiting(page, seconds)
             else:
-                sent, began = server.frames_sent, time.perf_counter()
-                draws: list[float] = []
-                sizes: set[tuple[int, int]] = set()
-                orbiting = threading.Event()
-                orbiting.set()
-
-                def watch_frames() -> None:
-                    seen = server.frames_sent
-                    while orbiting.is_set():
-                        if server.frames_sent != seen:
-                            seen = server.frames_sent
-                            width, height, s = server.last_frame
-                            draws.append(s)
-                            sizes.add((width, height))
-                        time.sleep(0.002)
-
-                watcher = threading.Thread(target=watch_frames)
-                watcher.start()
-                browser_fps = frames_while_orbiting(page, seconds)
-                orbiting.clear()
-                watcher.join()
-                out["fps_orbit"] = (server.frames_sent - sent) / (time.perf_counter() - began)
-                out["orbit_frame_sizes"] = sorted(sizes)
-                out["orbit_draw_encode_s_median"] = statistics.median(draws) if draws else None
-                out["page_fps_three_js"] = browser_fps
+                out.update(server_orbit(server, page, seconds))
             viewer.selection.value = SELECTIONS[1]  # (as a click in its menu sets it)
             budget_s, budget_server_s = [], []
             for kb in (50, 200, 500, 100):
@@ -276,6 +256,38 @@ def browser_figures(
     return out
 
 
+def server_orbit(server: Any, page: Any, seconds: float) -> dict[str, Any]:
+    """The server's frames while the page orbits for `seconds`: their rate, sizes and median
+    draw-and-encode time, and the page's own frame rate."""
+    sent, began = server.frames_sent, time.perf_counter()
+    draws: list[float] = []
+    sizes: set[tuple[int, int]] = set()
+    orbiting = threading.Event()
+    orbiting.set()
+
+    def watch_frames() -> None:
+        seen = server.frames_sent
+        while orbiting.is_set():
+            if server.frames_sent != seen:
+                seen = server.frames_sent
+                width, height, s = server.last_frame
+                draws.append(s)
+                sizes.add((width, height))
+            time.sleep(0.002)
+
+    watcher = threading.Thread(target=watch_frames)
+    watcher.start()
+    browser_fps = frames_while_orbiting(page, seconds)
+    orbiting.clear()
+    watcher.join()
+    return {
+        "fps_orbit": (server.frames_sent - sent) / (time.perf_counter() - began),
+        "orbit_frame_sizes": sorted(sizes),
+        "orbit_draw_encode_s_median": statistics.median(draws) if draws else None,
+        "page_fps_three_js": browser_fps,
+    }
+
+
 def cpu_model() -> str:
     """The CPU's model name (Linux), else the machine type."""
     try:
@@ -295,20 +307,36 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0, help="orbiting time for the fps")
     parser.add_argument("--viewport", default="1280x720", help="page size, WIDTHxHEIGHT")
     parser.add_argument("--skip-startup", action="store_true", help="browser figures only")
-    parser.add_argument("--draw-only", action="store_true",
-                        help="time the server's drawing alone (no browser)")  # fmt: skip
+    parser.add_argument(
+        "--draw-only", action="store_true", help="time the server's drawing alone (no browser)"
+    )
     parser.add_argument("--devices", default="cpu", help="with --draw-only: e.g. cpu,cuda")
-    parser.add_argument("--gl", choices=("swiftshader", "llvmpipe"), default="swiftshader",
-                        help="the page's software WebGL (browser.GL_FLAGS)")  # fmt: skip
-    parser.add_argument("--motion-scale", type=float, default=None,
-                        help="with --render server: draw moving frames at this fixed scale "
-                        "(default: adaptive, next_motion_scale)")  # fmt: skip
-    parser.add_argument("--render", choices=("browser", "server"), default="browser",
-                        help="where the splats are drawn (gsc view --render)")  # fmt: skip
+    parser.add_argument(
+        "--gl",
+        choices=("swiftshader", "llvmpipe"),
+        default="swiftshader",
+        help="the page's software WebGL (browser.GL_FLAGS)",
+    )
+    parser.add_argument(
+        "--motion-scale",
+        type=float,
+        default=None,
+        help="with --render server: draw moving frames at this fixed scale "
+        "(default: adaptive, next_motion_scale)",
+    )
+    parser.add_argument(
+        "--render",
+        choices=("browser", "server"),
+        default="browser",
+        help="where the splats are drawn (gsc view --render)",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "bench_out" / "view")
-    parser.add_argument("--json", type=Path, default=None,
-                        help="default: bench/results/view.json, view_server.json with "
-                        "--render server")  # fmt: skip
+    parser.add_argument(
+        "--json",
+        type=Path,
+        default=None,
+        help="default: bench/results/view.json, view_server.json with --render server",
+    )
     args = parser.parse_args()
     if args.json is None:
         name = "view.json" if args.render == "browser" else "view_server.json"
@@ -320,8 +348,9 @@ def main() -> None:
     log = grown_log(args.source, args.count, args.out)
     width, height = (int(v) for v in args.viewport.split("x"))
     viewport = (width, height)
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                            capture_output=True, text=True).stdout.strip()  # fmt: skip
+    commit = subprocess.run(
+        ["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+    ).stdout.strip()
     figures: dict[str, Any] = {
         "commit": commit,
         "machine": f"{cpu_model()}, {os.cpu_count()} cores, no GPU in the browser",

@@ -102,21 +102,32 @@ def align(
       gsc align a.mcap b.mcap -o a_to_b.txt
       gsc align a.mcap b.mcap -o a_to_b.txt --seq data/room   (refined on b's frames)
       gsc merge b.mcap a_share.mcap --share-transform a_to_b.txt --seq data/room -o m.mcap
-      gsc share a.mcap a_share.mcap --align-to b.mcap   (a share already in B's frame)
+      X
     """
     from gscompress.ops.align import AlignOptions
-    from gscompress.pipeline.align import ON_FRAMES, align_logs
+    from gscompress.pipeline.align import align_logs
+    from gscompress.pipeline.aligning import ON_FRAMES
 
     check_recording_seq(recording, seq)
     options = AlignOptions(voxel=voxel, min_overlap=min_overlap, seed=seed, icp=icp)
     with progress_bar("align", "step", hidden=as_json) as bar:
-        result = align_logs(source, target, dst, init=init, options=options, seq=seq,
-                            recording=recording, force=force,
-                            phases=Phases(bar, {ON_FRAMES: "iter"}))  # fmt: skip
+        result = align_logs(
+            source,
+            target,
+            dst,
+            init=init,
+            options=options,
+            seq=seq,
+            recording=recording,
+            force=force,
+            phases=Phases(bar, {ON_FRAMES: "iter"}),
+        )
     T = result["T_target_source"]
-    inliers = "" if result["inliers"] is None else (
-        f", {result['inliers']} feature inliers ({result['inlier_ratio']:.0%})"
-    )  # fmt: skip
+    inliers = (
+        ""
+        if result["inliers"] is None
+        else (f", {result['inliers']} feature inliers ({result['inlier_ratio']:.0%})")
+    )
     text = (
         f"wrote {dst}: {Path(source).name} -> {Path(target).name}, translation "
         f"{[round(v, 4) for v in (T[0][3], T[1][3], T[2][3])]} m\n"

@@ -45,9 +45,14 @@ def format_options(f: Any) -> Any:
 
 @click.command("convert", short_help="Write a sequence as a ROS 1/2 bag or a Foxglove MCAP.")
 @click.argument("seq", type=INPUT_SEQUENCE)
-@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
-              help="The recording: a folder (ros2, ros2-sqlite), a .bag (ros1) or a .mcap "
-              "(foxglove).")  # fmt: skip
+@click.option(
+    "-o",
+    "--output",
+    "out",
+    required=True,
+    type=click.Path(path_type=Path),
+    help="The recording: a folder (ros2, ros2-sqlite), a .bag (ros1) or a .mcap (foxglove).",
+)
 @click.option(
     "--format",
     "fmt",
@@ -92,7 +97,15 @@ def convert(
 
     with progress_bar("convert", "frame", hidden=as_json) as bar:
         result = convert_sequence(
-            seq, out, fmt, frames=str(frames), size=size, color=color_encoding,
-            depth=depth_encoding, recording=recording, force=force, progress=bar.update,
-        )  # fmt: skip
+            seq,
+            out,
+            fmt,
+            frames=str(frames),
+            size=size,
+            color=color_encoding,
+            depth=depth_encoding,
+            recording=recording,
+            force=force,
+            progress=bar.update,
+        )
     emit(result, as_json, f"wrote {result['frames']} frames ({fmt}) to {out}")

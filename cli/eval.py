@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from gscompress.pipeline import evaluate_log
+from gscompress.pipeline.images import ImageOptions
 
 from .options import (
     INPUT_FILE,
@@ -17,6 +18,7 @@ from .options import (
     backend_option,
     device_option,
     emit,
+    force_option,
     json_option,
     progress_bar,
     recording_options,
@@ -58,6 +60,7 @@ from .options import (
     "as keyframes, to score maps on the same frames as one refined on them (repeatable). A "
     "map's own carried frames are always left out.",
 )
+@force_option(more=" (the pictures in the folder)")
 @json_option
 def eval_command(
     src: Path,
@@ -74,6 +77,7 @@ def eval_command(
     no_lpips: bool,
     save_images: Path | None,
     leave_out: tuple[Path, ...],
+    force: bool,
     as_json: bool,
 ) -> None:
     """Score the map and trajectory of a SLAM log against its sequence.
@@ -101,16 +105,19 @@ def eval_command(
         result = evaluate_log(
             src,
             seq,
-            frames=None if frames is None else str(frames),
-            every=every,
-            size=size,
-            poses=poses,
-            poses_from=poses_from,
+            ImageOptions(
+                frames=None if frames is None else str(frames),
+                every=every,
+                size=size,
+                poses=poses,
+                poses_from=poses_from,
+                backend=backend,
+                device=device,
+                lpips=not no_lpips,
+                save_images=save_images,
+                force=force,
+            ),
             refine_poses=refine_poses or 0,
-            backend=backend,
-            device=device,
-            lpips=not no_lpips,
-            save_images=save_images,
             leave_out=leave_out,
             progress=partial(advance, bar),
             recording=recording,

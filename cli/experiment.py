@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any
 
 import click
 
-from gscompress.ops.budget import Budget
 from gscompress.pipeline.experiment import (
     EXECUTORS,
     MERGE_HOWS,
@@ -17,13 +17,14 @@ from gscompress.pipeline.experiment import (
 )
 from gscompress.pipeline.experiment.protocol import FULL_STUDY, PROTOCOLS, protocol_of
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.offline import REFERENCE_FORMATS
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
+from gscompress.pipeline.share.formats import REFERENCE_FORMATS
 from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (
     INPUT_SEQUENCE,
     BudgetParam,
+    F,
     Ratio,
     advance,
     device_option,
@@ -60,8 +61,8 @@ def _plan_text(plan: dict[str, Any], s: ExperimentSettings) -> str:
     )
     return (
         f"experiment: {plan['steps']} steps ({study}; protocol "
-        f"{protocol_of(s.fold, s.merge_how)}), {took} of rendering on this machine as it is "
-        "now (one render timed now; starting, writing and LPIPS not counted; steps a rerun "
+        f"{protocol_of(s.fold, s.merge_how)}), {took} of SLAM-like iterations on this machine "
+        "as it is now (one timed now; starting, writing and LPIPS not counted; steps a rerun "
         "reuses take none)"
     )
 
@@ -79,91 +80,210 @@ def _formats(value: str) -> tuple[str, ...]:
     return items
 
 
+SETTINGS_OPTIONS = (
+    "preset",
+    "config_path",
+    "budget",
+    "keep",
+    "full",
+    "seeds",
+    "sweep",
+    "sweep_seeds",
+    "references",
+    "strategies",
+    "size",
+    "frames",
+    "split",
+    "overlap",
+    "every",
+    "anchor",
+    "refine_poses",
+    "mode",
+    "merge_iters",
+    "merge_views",
+    "merge_lr_final",
+    "protocol",
+    "merge_how",
+    "fold",
+    "spread",
+    "sums",
+    "ids",
+    "no_lpips",
+    "recording",
+    "device",
+)
+"""The options of `gsc experiment` its `ExperimentSettings` are made of (`_settings`)."""
+
+
+def _settings_option(f: F) -> F:
+    """The options of `SETTINGS_OPTIONS`, passed to the command as one `ExperimentSettings`
+    named `settings` (`_settings`)."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        given = {name: kwargs.pop(name) for name in SETTINGS_OPTIONS}
+        return f(*args, settings=_settings(given), **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _settings(o: dict[str, Any]) -> ExperimentSettings:
+    """The experiment's settings from its options (`SETTINGS_OPTIONS`, by name): --full's study
+    or a first look's, and --protocol's fold and merge unless given."""
+    study = FULL_STUDY if o["full"] else {f: getattr(ExperimentSettings, f) for f in FULL_STUDY}
+    chosen = PROTOCOLS[o["protocol"]]
+    return ExperimentSettings(
+        preset=o["preset"],
+        config_path=str(o["config_path"]) if o["config_path"] else None,
+        budget=str(o["budget"]),
+        keep=o["keep"],
+        seeds=study["seeds"] if o["seeds"] is None else o["seeds"],
+        sweep=o["sweep"],
+        sweep_seeds=study["sweep_seeds"] if o["sweep_seeds"] is None else o["sweep_seeds"],
+        references=o["references"],
+        strategies=study["strategies"] if o["strategies"] is None else _comma_list(o["strategies"]),
+        size=o["size"],
+        frames=o["frames"],
+        split=o["split"],
+        overlap=o["overlap"],
+        every=study["every"] if o["every"] is None else o["every"],
+        mode=o["mode"],
+        anchor=o["anchor"],
+        refine_poses=study["refine_poses"] if o["refine_poses"] is None else o["refine_poses"],
+        merge_iters=o["merge_iters"],
+        merge_views=o["merge_views"],
+        merge_lr_final=o["merge_lr_final"],
+        merge_how=chosen["merge_how"] if o["merge_how"] is None else o["merge_how"],
+        fold=chosen["fold"] if o["fold"] is None else o["fold"],
+        spread=o["spread"],
+        sums=o["sums"],
+        ids=o["ids"],
+        lpips=not o["no_lpips"],
+        device=o["device"],
+        recording=None if o["recording"].is_default else o["recording"],
+    )
+
+
 @click.command("experiment", short_help="Run the paper's two-agent protocol: tables and plots.")
 @click.argument("seq", type=INPUT_SEQUENCE)
 @click.option(
-    "-o", "--output", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+    "-o",
+    "--output",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
     help="Experiment folder: runs/, results.md/.csv/.json and plots/ (a rerun reuses runs).",
-)  # fmt: skip
+)
 @click.option(
-    "--budget", type=BudgetParam(), default="0.2", show_default=True,
+    "--budget",
+    type=BudgetParam(),
+    default="0.2",
+    show_default=True,
     help="Main share budget (Table 4): a fraction (0.2, 20%) or bytes (2MB).",
-)  # fmt: skip
+)
 @click.option(
-    "--keep", type=Ratio(), default=None,
+    "--keep",
+    type=Ratio(),
+    default=None,
     help="Fraction kept at each PWAS pruning stage [default: the config's, 0.3].",
-)  # fmt: skip
+)
 @slam_config_options
 @click.option(
-    "--full", is_flag=True,
+    "--full",
+    is_flag=True,
     help="The whole study instead of a first look: 3 seeds, the strategies random, opacity, "
     "alpha-t, pwas and pwas-inf, the --sweep with the --references on the first seed, every "
     "frame scored with 100 tracking iterations (--seeds, --strategies, --sweep-seeds, --every "
     "and --refine-poses, when given, still decide). On a 16-frame "
     "160x120 sequence with the tiny preset: 128-129 steps instead of 18.",
-)  # fmt: skip
+)
 @click.option(
-    "--seeds", type=click.IntRange(1, 1000), default=None,
+    "--seeds",
+    type=click.IntRange(1, 1000),
+    default=None,
     help="How many seeds to run: 0 to N-1, each the two-agent runs' SLAM seed and the random "
     "share's seed [default: 1; 3 with --full].",
-)  # fmt: skip
+)
 @click.option(
-    "--sweep", default="0.05,0.1,0.2,0.4", show_default=True, callback=_budget_list,
+    "--sweep",
+    default="0.05,0.1,0.2,0.4",
+    show_default=True,
+    callback=_budget_list,
     help="Comma-separated budgets of the rate-distortion sweep.",
-)  # fmt: skip
+)
 @click.option(
-    "--sweep-seeds", type=click.IntRange(min=0), default=None,
+    "--sweep-seeds",
+    type=click.IntRange(min=0),
+    default=None,
     help="How many of the seeds (the first ones) run the sweep, at most --seeds (0: none) "
     "[default: 0; 1 with --full].",
-)  # fmt: skip
+)
 @click.option(
-    "--references", default=",".join(REFERENCE_FORMATS), show_default=True,
+    "--references",
+    default=",".join(REFERENCE_FORMATS),
+    show_default=True,
     callback=lambda ctx, param, value: _formats(value),
     help="On the sweep seeds, A's whole map also sent whole in these formats and received by "
     "B like a share: the field's points on the rate-distortion plot and a table beside the "
     "PWAS curve at the same bytes. fp32: our fp32 codec; spz: SPZ v4; sog: PlayCanvas SOG, "
     "written by @playcanvas/splat-transform (left out, with a note, where it is missing: "
     "`make js-deps`). none: no such points.",
-)  # fmt: skip
+)
 @click.option(
-    "--strategies", default=None,
+    "--strategies",
+    default=None,
     help="Comma-separated share strategies to compare (random and pwas required) [default: "
     "random,pwas; random,opacity,alpha-t,pwas,pwas-inf with --full]. pwas-inf: "
     "PWAS without its proximity weight, A's finished map scored again from A's frames (`gsc "
     "score --sigma-d inf`); pwas-final: the same with the scene's sigma_d, which separates "
     "what scoring again changes from what the weight does. NAME-for-b cuts that strategy's "
     "shares for B (`gsc share --for`: what B has not seen first).",
-)  # fmt: skip
+)
 @size_option(help="Working size WxH of every run [default: the preset's].")
 @click.option(
-    "--frames", default="all", show_default=True,
+    "--frames",
+    default="all",
+    show_default=True,
     help="Frames of the experiment: all or START:STOP:STEP with START >= 0 (no counting from "
     "the end), split between A and B by --split.",
-)  # fmt: skip
+)
 @click.option(
-    "--split", type=click.Choice(SPLITS), default="odd-even", show_default=True,
+    "--split",
+    type=click.Choice(SPLITS),
+    default="odd-even",
+    show_default=True,
     help="odd-even: A gets the odd positions among the frames, B the even ones (the paper's "
     "protocol). halves: A the first ceil(N(1+overlap)/2) of the N frames, B the last as many.",
-)  # fmt: skip
+)
 @click.option(
-    "--overlap", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.2,
-    show_default=True, help="With --split halves, the fraction of the frames both agents get.",
-)  # fmt: skip
+    "--overlap",
+    type=click.FloatRange(0.0, 1.0, max_open=True),
+    default=0.2,
+    show_default=True,
+    help="With --split halves, the fraction of the frames both agents get.",
+)
 @click.option(
-    "--every", type=click.IntRange(min=1), default=None,
+    "--every",
+    type=click.IntRange(min=1),
+    default=None,
     help="Evaluate (and score across agents) every N-th frame of each run [default: 2; 1 with "
     "--full].",
-)  # fmt: skip
+)
 @click.option(
-    "--anchor", type=click.Choice(["gt", "own"]), default="gt", show_default=True,
+    "--anchor",
+    type=click.Choice(["gt", "own"]),
+    default="gt",
+    show_default=True,
     help="Where each agent's world frame starts: gt, at the ground-truth pose of its first "
     "frame (the two maps share a frame); own, at the identity at its own first frame: A's map "
     "is aligned to B's as `gsc align` does, shares are moved by that transform, and the "
     "report adds its error against the true one and B with the PWAS share at the true one. "
     "Needs `pip install 'gscompress[align]'`.",
-)  # fmt: skip
+)
 @click.option(
-    "--refine-poses", type=click.IntRange(min=0), default=None,
+    "--refine-poses",
+    type=click.IntRange(min=0),
+    default=None,
     help="Cross-agent scoring: the centralised run, A, B, B refined without a share, B with "
     "each share at each budget and B with A's whole map are scored on A's frames, B's frames "
     "and all frames after refining each frame's pose against the fixed map with this many "
@@ -172,120 +292,120 @@ def _formats(value: str) -> tuple[str, ...]:
     "alignment with --anchor own), and on all frames the map's own where it has them, the "
     "other agent's on the rest. 0: each run scored on its own frames only [default: 20; "
     "100 with --full].",
-)  # fmt: skip
+)
 @click.option(
-    "--mode", type=click.Choice(["merge", "inject"]), default="merge", show_default=True,
+    "--mode",
+    type=click.Choice(["merge", "inject"]),
+    default="merge",
+    show_default=True,
     help="How B receives a share: merged into its finished map and refined (the paper's "
     "protocol; B's poses do not change), or injected before its first frame (a new B run).",
-)  # fmt: skip
+)
 @click.option(
-    "--protocol", type=click.Choice(list(PROTOCOLS)), default="commands", show_default=True,
+    "--protocol",
+    type=click.Choice(list(PROTOCOLS)),
+    default="commands",
+    show_default=True,
     help="What each share and merge does: commands, as `gsc share` and `gsc merge` do by "
     "default (folded shares; merges aligned and resolved); paper, the paper's exact protocol "
     "(--no-fold --merge exact). --fold/--no-fold and --merge, when given, still decide.",
-)  # fmt: skip
+)
 @click.option(
-    "--merge", "merge_how", type=click.Choice(MERGE_HOWS), default=None,
+    "--merge",
+    "merge_how",
+    type=click.Choice(MERGE_HOWS),
+    default=None,
     help="How each merge combines the maps: default (`gsc merge`'s: the share aligned, the "
     "surfaces both maps hold resolved, its Gaussians moving as much as B's views see them) or "
     "exact (every Gaussian of both, refined as one: the paper's merge) [default: the "
     "--protocol's].",
-)  # fmt: skip
+)
 @click.option(
-    "--fold/--no-fold", default=None,
+    "--fold/--no-fold",
+    default=None,
     help="Fold what each share leaves out into what it sends (`gsc share`'s default); "
     "without, the shares are the paper's top K, the strategies differing only in their choice "
     "[default: the --protocol's].",
-)  # fmt: skip
+)
 @click.option(
-    "--spread/--no-spread", default=False, show_default=True,
+    "--spread/--no-spread",
+    default=False,
+    show_default=True,
     help="Spread every strategy's order over space (`gsc share --spread`): the best Gaussian "
     "of each of K distinct places first.",
-)  # fmt: skip
+)
 @sums_option
 @ids_option
 @click.option(
-    "--merge-iters", type=click.IntRange(min=0), default=200, show_default=True,
+    "--merge-iters",
+    type=click.IntRange(min=0),
+    default=200,
+    show_default=True,
     help="Refinement iterations of each merge.",
-)  # fmt: skip
+)
 @click.option(
-    "--merge-views", type=click.Choice(REFINE_VIEWS), default=DEFAULT_REFINE_VIEWS,
+    "--merge-views",
+    type=click.Choice(REFINE_VIEWS),
+    default=DEFAULT_REFINE_VIEWS,
     show_default=True,
     help="What each merge refines on: all of B's frames, or B's keyframes only (`gsc merge "
     "--views`).",
-)  # fmt: skip
+)
 @click.option(
-    "--merge-lr-final", type=click.FloatRange(0.0, 1.0, min_open=True),
-    default=DEFAULT_LR_FINAL, show_default=True,
+    "--merge-lr-final",
+    type=click.FloatRange(0.0, 1.0, min_open=True),
+    default=DEFAULT_LR_FINAL,
+    show_default=True,
     help="Each merge's learning rates decay to this fraction by its last iteration; 1 keeps "
     "them constant (`gsc merge --lr-final`).",
-)  # fmt: skip
+)
 @click.option(
-    "--jobs", type=click.IntRange(1, 256), default=1, show_default=True,
+    "--jobs",
+    type=click.IntRange(1, 256),
+    default=1,
+    show_default=True,
     help="Runs at once, each in its own process with an equal share of the torch threads "
     "(`gsc --threads`, default one per core); a run starts as soon as the runs it reads have "
     "finished. The figures match a --jobs 1 table only at the same threads per run (`gsc "
     "--threads 4 ... --jobs 2` as `gsc --threads 2 ... --jobs 1`): thread counts change "
     "the rounding.",
-)  # fmt: skip
+)
 @click.option(
-    "--executor", type=click.Choice(EXECUTORS), default="local", show_default=True,
+    "--executor",
+    type=click.Choice(EXECUTORS),
+    default="local",
+    show_default=True,
     help="What runs the runs: this machine (--jobs at once), or Ray tasks on a cluster "
     "(--address), each started as soon as the runs it reads have finished. Needs the "
     "gscompress[cluster] extra; see docs/cluster.md.",
-)  # fmt: skip
+)
 @click.option(
-    "--address", default=None,
+    "--address",
+    default=None,
     help="With --executor ray: the cluster, `auto` (the one this machine joined with `ray "
     "start`, or RAY_ADDRESS) or the head's HOST:PORT [default: start Ray on this machine]. "
     "The sequence and -o must be on storage every node sees at the same path.",
-)  # fmt: skip
+)
 @click.option(
-    "--cpus-per-run", type=click.FloatRange(0.0, 1024.0, min_open=True), default=None,
+    "--cpus-per-run",
+    type=click.FloatRange(0.0, 1024.0, min_open=True),
+    default=None,
     help="With --executor ray: CPUs each run declares, and its torch threads (rounded up) "
     "[default: 1].",
-)  # fmt: skip
+)
 @click.option("--no-lpips", is_flag=True, help="Skip LPIPS in the evaluations.")
 @recording_options
 @device_option
 @json_option
+@_settings_option
 def experiment(
     seq: Path,
     out_dir: Path,
-    budget: Budget,
-    keep: float | None,
-    preset: str | None,
-    config_path: Path | None,
-    full: bool,
-    seeds: int | None,
-    sweep: tuple[str, ...],
-    sweep_seeds: int | None,
-    references: tuple[str, ...],
-    strategies: str | None,
-    size: tuple[int, int] | None,
-    frames: str,
-    split: str,
-    overlap: float,
-    every: int | None,
-    anchor: str,
-    refine_poses: int | None,
-    mode: str,
-    merge_iters: int,
-    merge_views: str,
-    merge_lr_final: float,
-    protocol: str,
-    merge_how: str | None,
-    fold: bool | None,
-    spread: bool,
-    sums: bool,
-    ids: bool,
+    settings: ExperimentSettings,
     jobs: int,
     executor: str,
     address: str | None,
     cpus_per_run: float | None,
-    no_lpips: bool,
-    recording: Any,
-    device: str,
     as_json: bool,
 ) -> None:
     """Run the paper's protocol on the sequence in SEQ and write its tables and plots.
@@ -332,38 +452,6 @@ def experiment(
       gsc --threads 8 experiment data/office -o exp_office --jobs 4   # 4 runs at a time
       gsc experiment /shared/office -o /shared/exp --executor ray --address auto
     """
-    study = FULL_STUDY if full else {f: getattr(ExperimentSettings, f) for f in FULL_STUDY}
-    chosen = PROTOCOLS[protocol]
-    settings = ExperimentSettings(
-        preset=preset,
-        config_path=str(config_path) if config_path else None,
-        budget=str(budget),
-        keep=keep,
-        seeds=study["seeds"] if seeds is None else seeds,
-        sweep=sweep,
-        sweep_seeds=study["sweep_seeds"] if sweep_seeds is None else sweep_seeds,
-        references=references,
-        strategies=study["strategies"] if strategies is None else _comma_list(strategies),
-        size=size,
-        frames=frames,
-        split=split,
-        overlap=overlap,
-        every=study["every"] if every is None else every,
-        mode=mode,
-        anchor=anchor,
-        refine_poses=study["refine_poses"] if refine_poses is None else refine_poses,
-        merge_iters=merge_iters,
-        merge_views=merge_views,
-        merge_lr_final=merge_lr_final,
-        merge_how=chosen["merge_how"] if merge_how is None else merge_how,
-        fold=chosen["fold"] if fold is None else fold,
-        spread=spread,
-        sums=sums,
-        ids=ids,
-        lpips=not no_lpips,
-        device=device,
-        recording=None if recording.is_default else recording,
-    )
     with progress_bar("experiment", "run", hidden=as_json) as bar:
 
         def progress(name: str, done: int, total: int) -> None:
@@ -377,9 +465,16 @@ def experiment(
 
         try:
             result = run_experiment(
-                seq, out_dir, settings, progress=progress, jobs=jobs, executor=executor,
-                address=address, cpus_per_run=cpus_per_run, announce=announce,
-            )  # fmt: skip
+                seq,
+                out_dir,
+                settings,
+                progress=progress,
+                jobs=jobs,
+                executor=executor,
+                address=address,
+                cpus_per_run=cpus_per_run,
+                announce=announce,
+            )
         except KeyboardInterrupt:
             bar.close()
             click.echo(
@@ -388,19 +483,7 @@ def experiment(
                 err=True,
             )
             raise SystemExit(130) from None
-    v = result["verdicts"]
-    emit(
-        result,
-        as_json,
-        f"wrote {result['results_md']} ({result['rows']} rows; {result['steps']} steps, "
-        f"{result['reused']} reused)\n"
-        f"PWAS beats random at {v['budget']}: PSNR in {v['pwas_beats_random_psnr']}/{v['seeds']}"
-        + (
-            " seeds (a merge leaves B's ATE as it was; --mode inject compares it)"
-            if v["mode"] == "merge"
-            else f" seeds, ATE in {v['pwas_beats_random_ate']}/{v['seeds']}"
-        ),
-    )
+    emit(result, as_json, _result_text(result))
     if result["failed"]:
         click.echo(
             f"{len(result['failed'])} run(s) failed or were not run (listed in "
@@ -408,3 +491,18 @@ def experiment(
             err=True,
         )
         raise SystemExit(1)
+
+
+def _result_text(result: dict[str, Any]) -> str:
+    """The lines `gsc experiment` prints of what it wrote, and PWAS against random."""
+    v = result["verdicts"]
+    return (
+        f"wrote {result['results_md']} ({result['rows']} rows; {result['steps']} steps, "
+        f"{result['reused']} reused)\n"
+        f"PWAS beats random at {v['budget']}: PSNR in {v['pwas_beats_random_psnr']}/{v['seeds']}"
+        + (
+            " seeds (a merge leaves B's ATE as it was; --mode inject compares it)"
+            if v["mode"] == "merge"
+            else f" seeds, ATE in {v['pwas_beats_random_ate']}/{v['seeds']}"
+        )
+    )

@@ -197,7 +197,7 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
       gsc slam SEQ -o a.mcap              map a sequence, score every Gaussian (PWAS)
       gsc eval a.mcap --seq SEQ           ATE, PSNR, SSIM, LPIPS of the map
       gsc prune a.mcap --keep 0.3 -o p.mcap   keep the most important 30%
-      gsc share --budget 0.2 a.mcap s.mcap    cut the top-20% share for another agent
+      gsc share a.mcap -o s.mcap --budget 0.2   the top-20% share for another agent
       gsc merge b.mcap s.mcap --seq SEQ -o m.mcap   give that share to agent B's map
       gsc export-ply a.mcap -o a.ply      open the map in any 3DGS viewer
       gsc export-traj a.mcap -o a.txt     the trajectory for evo (TUM text)

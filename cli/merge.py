@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+from dataclasses import fields
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -12,11 +14,12 @@ from click.core import ParameterSource
 from gscompress.ops.merge import RESOLVE, MergeOptions
 from gscompress.pipeline import merge_logs
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 from gscompress.slam.views import REFINE_VIEWS
 
 from .options import (
     INPUT_FILE,
+    F,
     FrameSubset,
     Phases,
     backend_option,
@@ -37,6 +40,29 @@ from .options import (
     share_transform_option,
     size_option,
 )
+
+MERGE_OPTIONS = tuple(field.name for field in fields(MergeOptions))
+"""The options of `gsc merge` that `MergeOptions` holds, by the names of its fields."""
+
+
+def _told_merge_options(f: F) -> F:
+    """The options of `MergeOptions` (--align, --icp, --resolve, --voxel, --margin,
+    --share-rate, --by-view, --footprint), passed to the command as one dict named `told` of
+    those given on the command line: the rest as the merge chooses (`WITH_SENDER_VIEWS` for a
+    share that carries keyframes)."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        context = click.get_current_context()
+        given = {name: kwargs.pop(name) for name in MERGE_OPTIONS}
+        told = {
+            k: v
+            for k, v in given.items()
+            if context.get_parameter_source(k) != ParameterSource.DEFAULT
+        }
+        return f(*args, told=told, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
 
 
 @click.command("merge", short_help="Merge another agent's share into a map and refine it.")
@@ -147,6 +173,7 @@ from .options import (
 @codec_option(None, " [default: the receiver map's own codec]")
 @force_option()
 @json_option
+@_told_merge_options
 def merge(
     receiver: Path,
     share: Path,
@@ -158,14 +185,7 @@ def merge(
     iters: int,
     views: str,
     lr_final: float,
-    align: bool,
-    icp: str,
-    resolve: str,
-    voxel: float,
-    margin: float,
-    share_rate: float,
-    by_view: bool,
-    footprint: bool,
+    told: dict[str, Any],
     keyframes: bool,
     device: str,
     backend: str | None,
@@ -213,21 +233,15 @@ def merge(
 
     \b
     Examples:
-      gsc share a.mcap a_share.mcap --budget 0.2
+      gsc share a.mcap -o a_share.mcap --budget 0.2
       gsc merge b.mcap a_share.mcap --seq data/room -o b_merged.mcap
       gsc merge b.mcap a.mcap --seq data/room --no-align --resolve stack \\
           --share-rate 1 --no-by-view -o b_stacked.mcap
       gsc eval b_merged.mcap --seq data/room
-      gsc share a.mcap a_views.mcap --budget 1 --keyframes 6 --seq data/room
+      gsc share a.mcap -o a_views.mcap --budget 1 --keyframes 6 --seq data/room
       gsc merge b.mcap a_views.mcap --seq data/room -o b_merged.mcap
     """
     check_recording_seq(recording, seq)
-    context = click.get_current_context()
-    given = {"align": align, "icp": icp, "resolve": resolve, "voxel": voxel, "margin": margin,
-             "share_rate": share_rate, "by_view": by_view, "footprint": footprint}  # fmt: skip
-    # (the rest as the merge chooses: WITH_SENDER_VIEWS for a share that carries keyframes)
-    told = {k: v for k, v in given.items()
-            if context.get_parameter_source(k) != ParameterSource.DEFAULT}  # fmt: skip
     with progress_bar("merge", "step", hidden=as_json) as bar:
         phases = Phases(bar, {"refine": "iter"})
         phases("merging", 0, None)  # (reading, aligning, resolving: until the refinement)
@@ -253,6 +267,11 @@ def merge(
             force=force,
             progress=partial(phases, "refine"),
         )
+    emit(result, as_json, _merged_text(result, dst))
+
+
+def _merged_text(result: dict[str, Any], dst: Path) -> str:
+    """The line `gsc merge` prints of what it wrote."""
     text = (
         f"merged {result['share']} shared + {result['receiver']} own -> "
         f"{result['gaussians']} Gaussians in {dst}"
@@ -260,4 +279,4 @@ def merge(
     text += refined_text(result)
     if result.get("refine_carried_views"):
         text += f", {result['refine_carried_views']} of them the sender's keyframes"
-    emit(result, as_json, text)
+    return text

@@ -22,7 +22,7 @@ from gscompress.io.codec import CODECS, SHARE_IDS
 from gscompress.io.files import json_text
 from gscompress.ops.budget import Budget
 from gscompress.ops.icp import DEFAULT_ICP, ICP
-from gscompress.selection import is_fraction
+from gscompress.selection import is_fraction, percent_hint
 
 if TYPE_CHECKING:
     from gscompress.datasets.base import FrameSelection
@@ -167,7 +167,9 @@ class Ratio(click.ParamType):
             except ValueError:
                 self.fail(f"{value!r} is not a number", param, ctx)
         if not is_fraction(ratio):
-            self.fail(f"{value} is outside (0, 1]", param, ctx)
+            hint = percent_hint(ratio)
+            meant = f": did you mean {hint}?" if hint else ""
+            self.fail(f"{value} is outside (0, 1]{meant}", param, ctx)
         return ratio
 
 
@@ -538,7 +540,8 @@ def map_refine_options(f: F) -> F:
 
 def _refine_options(f: F, anisotropic_help: str) -> F:
     """`refine_options`, with this help of `--anisotropic`."""
-    from gscompress.pipeline.refine import DEFAULT_LR_FINAL, KEYFRAME_RULE  # (no torch yet)
+    from gscompress.pipeline.logs import KEYFRAME_RULE  # (neither loads torch)
+    from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 
     f = device_option(f)
     f = recording_options(f)
@@ -574,7 +577,7 @@ def log_refiner(
     anisotropic: bool = False,
     recording: Any = None,
 ) -> Any:
-    """The `gscompress.pipeline.refine.LogRefiner` that `refine_options` ask for (drawing on
+    """The `gscompress.pipeline.refining.LogRefiner` that `refine_options` ask for (drawing on
     `bar`, or on its "refine" phase when it is `Phases`; a recording read with `recording`), or
     None for no refinement.
 
@@ -587,7 +590,7 @@ def log_refiner(
         return None
     if seq is None:
         raise click.UsageError("--refine needs the sequence the log was made from: pass --seq")
-    from gscompress.pipeline.refine import LogRefiner, RefineOptions
+    from gscompress.pipeline.refining import LogRefiner, RefineOptions
 
     options = RefineOptions(
         iters, device=device, seed=seed, anisotropic=anisotropic, recording=recording
@@ -687,22 +690,47 @@ def recording_options(f: F) -> F:
         return f(*args, **kwargs)
 
     options = [
-        click.option("--rgb", metavar="TOPIC", default=None,
-                     help="A recording's colour topic [default: chosen when unambiguous]."),
-        click.option("--depth", metavar="TOPIC", default=None,
-                     help="A recording's depth topic, registered to colour [default: chosen]."),
-        click.option("--camera-info", metavar="TOPIC", default=None,
-                     help="A recording's CameraInfo / CameraCalibration topic [default: the "
-                     "colour camera's]."),
-        click.option("--max-dt", type=PositiveFloat(), default=MAX_DT,
-                     show_default=True,
-                     help="A recording's colour/depth pairing tolerance in seconds."),
-        click.option("--gt", type=INPUT_FILE, default=None,
-                     help="A recording's ground truth: a TUM trajectory (camera-to-world)."),
-        click.option("--gt-frames", nargs=2, metavar="WORLD CAMERA", default=None,
-                     help="A recording's ground truth from /tf: the pose of frame CAMERA in "
-                     "frame WORLD, interpolated to the colour stamps."),
-    ]  # fmt: skip
+        click.option(
+            "--rgb",
+            metavar="TOPIC",
+            default=None,
+            help="A recording's colour topic [default: chosen when unambiguous].",
+        ),
+        click.option(
+            "--depth",
+            metavar="TOPIC",
+            default=None,
+            help="A recording's depth topic, registered to colour [default: chosen].",
+        ),
+        click.option(
+            "--camera-info",
+            metavar="TOPIC",
+            default=None,
+            help="A recording's CameraInfo / CameraCalibration topic [default: the "
+            "colour camera's].",
+        ),
+        click.option(
+            "--max-dt",
+            type=PositiveFloat(),
+            default=MAX_DT,
+            show_default=True,
+            help="A recording's colour/depth pairing tolerance in seconds.",
+        ),
+        click.option(
+            "--gt",
+            type=INPUT_FILE,
+            default=None,
+            help="A recording's ground truth: a TUM trajectory (camera-to-world).",
+        ),
+        click.option(
+            "--gt-frames",
+            nargs=2,
+            metavar="WORLD CAMERA",
+            default=None,
+            help="A recording's ground truth from /tf: the pose of frame CAMERA in "
+            "frame WORLD, interpolated to the colour stamps.",
+        ),
+    ]
     for option in reversed(options):
         wrapper = option(wrapper)
     return wrapper  # type: ignore[return-value]

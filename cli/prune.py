@@ -103,12 +103,31 @@ def prune(
     check_recording_seq(recording, seq)
     with progress_bar("prune", "step", hidden=as_json) as bar:  # (a fold of a large map: seconds)
         phases = Phases(bar, {"refine": "iter"})
-        refine = log_refiner(src, refine_iters, seq, device, seed, phases,
-                             "prune without --refine", anisotropic, recording)  # fmt: skip
-        result = prune_log(src, dst, keep, by=by, seed=seed, codec=codec,
-                           options=CompactOptions(sums=sums), refine=refine, map_only=map_only,
-                           fold_dropped=fold,
-                           command=command_line(), force=force)  # fmt: skip
+        refine = log_refiner(
+            src,
+            refine_iters,
+            seq,
+            device,
+            seed,
+            phases,
+            "prune without --refine",
+            anisotropic,
+            recording,
+        )
+        result = prune_log(
+            src,
+            dst,
+            keep,
+            by=by,
+            seed=seed,
+            codec=codec,
+            options=CompactOptions(sums=sums),
+            refine=refine,
+            map_only=map_only,
+            fold=fold,
+            command=command_line(),
+            force=force,
+        )
     text = (
         f"kept {result['kept']} of {result['total']} Gaussians (by {by}"
         f"{', the rest folded in' if result['fold'] and result['kept'] < result['total'] else ''}"

@@ -17,6 +17,7 @@ from .options import (
     backend_option,
     device_option,
     emit,
+    force_option,
     json_option,
     progress_bar,
     recording_options,
@@ -55,6 +56,7 @@ from .options import (
 )
 @backend_option()
 @device_option
+@force_option(more=" (the pictures in the folder)")
 @json_option
 def render(
     src: Path,
@@ -70,6 +72,7 @@ def render(
     poses_from: Path | None,
     backend: str,
     device: str,
+    force: bool,
     as_json: bool,
 ) -> None:
     """Render the map of LOG at the frames of SEQ and write PNGs to a folder.
@@ -89,22 +92,26 @@ def render(
       gsc render share.mcap --seq data/room -o pictures --poses-from run.mcap
     """
     from gscompress.pipeline.evaluate import evaluate_log
+    from gscompress.pipeline.images import ImageOptions
 
     with progress_bar("render", "view", hidden=as_json) as bar:
         result = evaluate_log(
             src,
             seq,
-            frames=None if frames is None else str(frames),
-            every=every,
-            size=size,
-            poses=poses,
-            poses_from=poses_from,
-            backend=backend,
-            device=device,
-            lpips=False,
-            save_images=out_dir,
-            colorings=colorings,
-            side_by_side=side_by_side,
+            ImageOptions(
+                frames=None if frames is None else str(frames),
+                every=every,
+                size=size,
+                poses=poses,
+                poses_from=poses_from,
+                backend=backend,
+                device=device,
+                lpips=False,
+                save_images=out_dir,
+                force=force,
+                colorings=colorings,
+                side_by_side=side_by_side,
+            ),
             progress=partial(advance, bar),
             recording=recording,
         )

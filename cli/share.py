@@ -12,6 +12,7 @@ from gscompress.io.codec import DEFAULT_SHARE_CODEC, PRECISIONS
 from gscompress.io.keyframes import MAX_CARRIED
 from gscompress.ops.budget import Budget
 from gscompress.pipeline import share_log
+from gscompress.pipeline.share.options import SOLVED, ShareOptions
 from gscompress.selection import STRATEGIES
 
 from .options import (
@@ -76,11 +77,13 @@ from .options import (
 @ids_option
 @fold_option
 @click.option(
-    "--spread/--no-spread", default=False, show_default=True,
+    "--spread/--no-spread",
+    default=False,
+    show_default=True,
     help="Spread the strategy's order over space: the best Gaussian of each of K distinct "
     "places before any place gets a second one (space cut by ever finer grids). Off: the K "
     "highest scores, wherever they cluster.",
-)  # fmt: skip
+)
 @click.option(
     "--ply",
     type=OUTPUT_FILE,
@@ -183,78 +186,138 @@ def share(
 
     \b
     Examples:
-      gsc share --budget 0.2 agent_a.mcap share.mcap --ply share.ply
-      gsc share --budget 50kB agent_a.mcap share.mcap
-      gsc share --budget 5%bytes --no-sums agent_a.mcap share.mcap
-      gsc share --budget 72kB --ids agent_a.mcap share.mcap
+      gsc share --budget 0.2 agent_a.mcap -o share.mcap --ply share.ply
+      gsc share --budget 50kB agent_a.mcap -o share.mcap
+      gsc share --budget 5%bytes --no-sums agent_a.mcap -o share.mcap
+      gsc share --budget 72kB --ids agent_a.mcap -o share.mcap
       gsc share --budget 2MB --codec fp16 agent_a.mcap -o share.mcap
-      gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap share.mcap
-      gsc share agent_a.mcap share.mcap --align-to agent_b.mcap
-      gsc share --budget 1 --keyframes 3 --seq data/room agent_a.mcap share.mcap
-      gsc share --budget 5%bytes agent_a.mcap share.mcap --for agent_b.mcap
+      gsc share --budget 50kB --refine 500 --seq data/room agent_a.mcap -o share.mcap
+      gsc share agent_a.mcap -o share.mcap --align-to agent_b.mcap
+      gsc share --budget 1 --keyframes 3 --seq data/room agent_a.mcap -o share.mcap
+      gsc share --budget 5%bytes agent_a.mcap -o share.mcap --for agent_b.mcap
     """
-    if precision is not None:
-        if codec != DEFAULT_SHARE_CODEC and codec != precision:
-            raise click.UsageError("--precision is an old name of --codec: give one of them")
-        codec = precision
-    if dst is not None and output is not None:
-        raise click.UsageError("give the share's path once: as DST or with -o, not both")
-    dst = dst if output is None else output
-    if dst is None:
-        raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
+    options = _share_options(strategy, codec, precision, sums, ids, seed, fold, spread)
+    dst = _share_path(dst, output)
     check_recording_seq(recording, seq)
     context = click.get_current_context()
-    given = {name: context.get_parameter_source(name) != ParameterSource.DEFAULT
-             for name in ("codec", "sums", "fold")}  # fmt: skip
+    fixed = [
+        name for name in SOLVED if context.get_parameter_source(name) != ParameterSource.DEFAULT
+    ]
     with progress_bar("share", "cut", hidden=as_json) as bar:
         fitting = f"fitting {budget}"  # (a byte budget's search: each cut a fold and an encoding)
         phases = Phases(bar, {"refine": "iter", fitting: "cut"})
         # (--seq also serves --solve and --keyframes)
         refine_seq = seq if refine_iters or not (solve or keyframes) else None
-        refine = log_refiner(src, refine_iters, refine_seq, device, seed, phases,
-                             "share without --refine", anisotropic, recording)  # fmt: skip
+        refine = log_refiner(
+            src,
+            refine_iters,
+            refine_seq,
+            device,
+            seed,
+            phases,
+            "share without --refine",
+            anisotropic,
+            recording,
+        )
         carry = None
         if keyframes:
             if seq is None:
                 raise click.UsageError("--keyframes takes the frames from --seq: pass it")
-            from gscompress.pipeline.refine import carried_keyframes
+            from gscompress.pipeline.logs import carried_keyframes
 
             carry = carried_keyframes(src, keyframes, seq, recording)
-        common: dict[str, Any] = dict(strategy=strategy, seed=seed, ply=ply, refine=refine,
-                                      align_to=align_to, carry=carry, receiver=receiver,
-                                      device=device, command=command_line(),
-                                      force=force, spread=spread, ids=ids)  # fmt: skip
+        common: dict[str, Any] = dict(
+            ply=ply,
+            refine=refine,
+            align_to=align_to,
+            carry=carry,
+            receiver=receiver,
+            device=device,
+            command=command_line(),
+            force=force,
+        )
         if solve:
-            from gscompress.pipeline.solve import share_solved
+            from gscompress.pipeline.share.solve import share_solved
 
             result = share_solved(
-                src, dst, budget, codec=codec if given["codec"] else None,
-                sums=sums if given["sums"] else None, fold=fold if given["fold"] else None,
-                seq=seq, recording=recording, **common,
-            )  # fmt: skip
-            codec = result["codec"]
-            click.echo(
-                f"solver: {codec}{'' if result['sums'] else ' without sums'}"
-                f"{', folded,' if result['fold'] else ', not folded,'} predicted "
-                f"{result['predicted_psnr']:.2f} dB against the {result['solved_against']}",
-                err=True,
+                src, dst, budget, options, fixed=fixed, seq=seq, recording=recording, **common
             )
+            click.echo(_solver_text(result), err=True)
         else:
-            result = share_log(src, dst, budget, codec=codec, sums=sums, fold_dropped=fold,
-                               progress=lambda tried: phases(fitting, tried, None),
-                               **common)  # fmt: skip
+            result = share_log(
+                src,
+                dst,
+                budget,
+                options,
+                progress=lambda tried: phases(fitting, tried, None),
+                **common,
+            )
+    emit(result, as_json, _share_text(result, options, dst, ply, receiver))
+
+
+def _share_options(
+    strategy: str,
+    codec: str,
+    precision: str | None,
+    sums: bool,
+    ids: bool,
+    seed: int,
+    fold: bool,
+    spread: bool,
+) -> ShareOptions:
+    """The share's settings from the command's options (`--precision`: the old name of
+    `--codec`)."""
+    if precision is not None:
+        if codec != DEFAULT_SHARE_CODEC and codec != precision:
+            raise click.UsageError("--precision is an old name of --codec: give one of them")
+        codec = precision
+    return ShareOptions(
+        strategy=strategy, codec=codec, sums=sums, ids=ids, seed=seed, fold=fold, spread=spread
+    )
+
+
+def _share_path(dst: Path | None, output: Path | None) -> Path:
+    """The share's path, given as DST or with -o (once)."""
+    if dst is not None and output is not None:
+        raise click.UsageError("give the share's path once: as DST or with -o, not both")
+    dst = dst if output is None else output
+    if dst is None:
+        raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
+    return dst
+
+
+def _solver_text(result: dict[str, Any]) -> str:
+    """What the solver chose, and the picture it predicts."""
+    return (
+        f"solver: {result['codec']}{'' if result['sums'] else ' without sums'}"
+        f"{', folded,' if result['fold'] else ', not folded,'} predicted "
+        f"{result['predicted_psnr']:.2f} dB against the {result['solved_against']}"
+    )
+
+
+def _share_text(
+    result: dict[str, Any],
+    options: ShareOptions,
+    dst: Path,
+    ply: Path | None,
+    receiver: Path | None,
+) -> str:
+    """The line `gsc share` prints of what it wrote."""
     extra = f" and {ply}" if ply else ""
     folded = result["fold"] and result["selected"] < result["total"]
-    carried = (f" with {result['keyframes']} keyframes ({result['keyframe_bytes']} B)"
-               if result.get("keyframes") else "")  # fmt: skip
+    carried = (
+        f" with {result['keyframes']} keyframes ({result['keyframe_bytes']} B)"
+        if result.get("keyframes")
+        else ""
+    )
     if receiver is not None:
-        carried += (f", unseen by {receiver.name} first ({result['unseen']} of them; its request "
-                    f"{result['request_bytes']} B)")  # fmt: skip
-    emit(
-        result,
-        as_json,
-        f"shared {result['selected']} of {result['total']} Gaussians ({strategy}"
-        f"{', spread' if spread else ''}{', the rest folded in' if folded else ''}, {codec}, "
-        f"{result['file_bytes']} B)"
-        f"{carried}{refined_text(result)} -> {dst}{extra}",
+        carried += (
+            f", unseen by {receiver.name} first ({result['unseen']} of them; its request "
+            f"{result['request_bytes']} B)"
+        )
+    return (
+        f"shared {result['selected']} of {result['total']} Gaussians ({options.strategy}"
+        f"{', spread' if options.spread else ''}{', the rest folded in' if folded else ''}, "
+        f"{result['codec']}, {result['file_bytes']} B)"
+        f"{carried}{refined_text(result)} -> {dst}{extra}"
     )

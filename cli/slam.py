@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from click.core import ParameterSource
@@ -33,6 +33,9 @@ from .options import (
     size_option,
     slam_config_options,
 )
+
+if TYPE_CHECKING:
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
 
 def _phases(bar: Any) -> Callable[[str, int, int | None], None]:
@@ -195,41 +198,81 @@ def slam(
     checkpoint of the map is logged every `checkpoint_every` frames (config, default 20), so
     even a killed run resumes with --resume, redoing at most that many frames.
     """
-    from gscompress.io.files import check_output
-    from gscompress.io.recover import resume_sources
-    from gscompress.pipeline import slam_file
-    from gscompress.pipeline.slam_run import RESUMABLE
-    from gscompress.slam.config import resolve_config
-    from gscompress.slam.config import save_config as write_config
-
-    # the settings on top of the preset and file: --save-config's config is the run's
-    settings: dict[str, Any] = {
-        "size": size,
-        "keep": keep,
-        "no_prune": no_prune,
-        "backend": backend,
-    }
-    if save_config is not None:
-        if resume:
-            raise click.UsageError(
-                "--save-config does not go with --resume (the log holds its config)"
-            )
-        config = resolve_config(preset, config_path, **settings)
-        inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
-        check_output(save_config, inputs, force, ".yaml")
-        if dst is None:
-            write_config(config, save_config)
-            click.echo(f"wrote {save_config}")
-            return
-    if dst is None:
-        raise click.UsageError("give an output log with -o OUT.mcap (or only --save-config)")
-    if resume and not resume_sources(dst):
-        raise click.UsageError(f"--resume: there is no log {dst} nor an unfinished run of it")
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     # what was not given stays None, so that --resume can refuse settings it would not use
     frames_given = (
         click.get_current_context().get_parameter_source("frames") != ParameterSource.DEFAULT
     )
+    fresh = SlamOptions(
+        preset=preset,
+        config_path=config_path,
+        frames=str(frames) if frames_given else None,
+        size=size,
+        keep=keep,
+        no_prune=no_prune,
+        backend=backend,
+        inject=inject,
+        share_transform=share_transform,
+        recording=recording,
+    )
+    inputs = [p for p in (config_path, seq, dst, inject, share_transform) if p is not None]
+    config = _config_to_save(save_config, resume, fresh, inputs, force)
+    if dst is None and save_config is not None:
+        from gscompress.slam.config import save_config as write_config
+
+        write_config(config, save_config)
+        click.echo(f"wrote {save_config}")
+        return
+    dst = _run_output(dst, resume)
+    loop: dict[str, Any] = dict(device=device, codec=codec, force=force, command=command_line())
+    saving = (save_config, config) if save_config is not None else None
+    result = _run_with_progress(seq, dst, resume, fresh, loop, saving, as_json)
+    emit(result, as_json, _mapped_text(result, dst))
+
+
+def _config_to_save(
+    save_config: Path | None, resume: bool, fresh: SlamOptions, inputs: list[Path], force: bool
+) -> Any:
+    """With --save-config, the run's resolved config once its file is checked (None without)."""
+    if save_config is None:
+        return None
+    from gscompress.io.files import check_output
+    from gscompress.slam.config import resolve_config
+
+    if resume:
+        raise click.UsageError("--save-config does not go with --resume (the log holds its config)")
+    config = resolve_config(fresh.preset, fresh.config_path, **fresh.settings)
+    check_output(save_config, inputs, force, ".yaml")
+    return config
+
+
+def _run_output(dst: Path | None, resume: bool) -> Path:
+    """-o, checked: given, and with --resume naming a log or an unfinished run."""
+    from gscompress.io.recover import resume_sources
+
+    if dst is None:
+        raise click.UsageError("give an output log with -o OUT.mcap (or only --save-config)")
+    if resume and not resume_sources(dst):
+        raise click.UsageError(f"--resume: there is no log {dst} nor an unfinished run of it")
+    return dst
+
+
+def _run_with_progress(
+    seq: Path,
+    dst: Path,
+    resume: bool,
+    fresh: SlamOptions,
+    loop: dict[str, Any],
+    saving: tuple[Path, Any] | None,
+    as_json: bool,
+) -> dict[str, Any]:
+    """The run under a progress bar; `saving`: (--save-config's path, the config), written once
+    the run has mapped its first frame. Ctrl-C exits 130 with how to resume; an error --resume
+    can get past says so."""
+    from gscompress.pipeline.slam_run import RESUMABLE
+    from gscompress.slam.config import save_config as write_config
+
     before = _modified_ns(dst)
     with progress_bar("slam", "frame", hidden=as_json) as bar:
         processed = 0
@@ -237,8 +280,8 @@ def slam(
         def progress(done: int, total: int, stats: dict[str, Any]) -> None:
             nonlocal processed
             processed += 1
-            if processed == 1 and save_config is not None:  # once the run passed its checks
-                write_config(config, save_config)
+            if processed == 1 and saving is not None:  # once the run passed its checks
+                write_config(saving[1], saving[0])
             bar.set_postfix(  # counts as text: tqdm would show 10000 as "1e+4"
                 frame=str(stats["frame"]),
                 gaussians=str(stats["gaussians"]),
@@ -250,23 +293,8 @@ def slam(
             advance(bar, done, total)
 
         try:
-            result = slam_file(
-                seq,
-                dst,
-                preset=preset,
-                config_path=config_path,
-                frames=str(frames) if frames_given else None,
-                device=device,
-                inject=inject,
-                share_transform=share_transform,
-                resume=resume,
-                recording=recording,
-                codec=codec,
-                command=command_line(),
-                force=force,
-                progress=progress,
-                phases=_phases(bar),
-                **settings,
+            return _slam_or_resume(
+                seq, dst, resume, fresh, {**loop, "progress": progress, "phases": _phases(bar)}
             )
         except KeyboardInterrupt:
             bar.close()
@@ -275,20 +303,41 @@ def slam(
         except RESUMABLE:  # a frame or the disk: --resume goes on once it is fixed
             bar.close()
             if _modified_ns(dst) != before:  # (a log this run wrote, the error said above)
-                click.echo(f"Once the error below is fixed, `gsc slam {seq} -o {dst} --resume` "
-                           "continues the run", err=True)  # fmt: skip
+                click.echo(
+                    f"Once the error below is fixed, `gsc slam {seq} -o {dst} --resume` "
+                    "continues the run",
+                    err=True,
+                )
             raise
+
+
+def _mapped_text(result: dict[str, Any], dst: Path) -> str:
+    """The line a finished run prints."""
     ate = result.get("ate_rmse_cm")
-    emit(
-        result,
-        as_json,
+    return (
         f"mapped {result['frames']} frame{'s' if result['frames'] != 1 else ''} -> "
         f"{result['gaussians']} Gaussians in {dst} "
         + (f"(started with {result['injected']} received) " if result.get("injected") else "")
         + f"({_speed(result)}"
         + (f", ATE RMSE {ate:.2f} cm" if ate is not None else "")
-        + ")",
+        + ")"
     )
+
+
+def _slam_or_resume(
+    seq: Path, dst: Path, resume: bool, fresh: SlamOptions, loop: dict[str, Any]
+) -> dict[str, Any]:
+    """The run: `slam_file` with the settings of a fresh run (`fresh`, its `SlamOptions`), or
+    with --resume `resume_slam_file`, which refuses them (they are the log's); `loop`: what
+    both take (--force only a fresh run's)."""
+    from gscompress.pipeline import resume_slam_file, slam_file
+    from gscompress.pipeline.slam_run import refuse_own_settings
+
+    force = loop.pop("force")
+    if not resume:
+        return slam_file(seq, dst, fresh, force=force, **loop)
+    refuse_own_settings(fresh.kept, fresh.no_prune, fresh.recording)
+    return resume_slam_file(seq, dst, **loop)
 
 
 def _speed(result: dict[str, Any]) -> str:

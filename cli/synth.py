@@ -9,7 +9,7 @@ import click
 from gscompress.datasets.synthetic import write_synthetic_sequence
 
 from .convert import FORMATS, format_options
-from .options import force_option, progress_bar, seed_option, size_option
+from .options import emit, force_option, json_option, progress_bar, seed_option, size_option
 
 
 @click.command("synth", short_help="Make a synthetic RGB-D room sequence with ground truth.")
@@ -37,6 +37,7 @@ from .options import force_option, progress_bar, seed_option, size_option
 )
 @format_options
 @force_option()
+@json_option
 def synth(
     out_dir: Path,
     frames: int,
@@ -47,6 +48,7 @@ def synth(
     color_encoding: str,
     depth_encoding: str,
     force: bool,
+    as_json: bool,
 ) -> None:
     """Render a textured synthetic room with exact depth and ground-truth poses to OUT_DIR.
 
@@ -68,12 +70,14 @@ def synth(
         from gscompress.datasets.synthetic import synthetic_sequence
 
         sequence = synthetic_sequence(frames, size, seed, supersample)
-        with progress_bar("synth", "frame", total=frames) as bar:
-            write_recording(sequence, out_dir, fmt, color_encoding, depth_encoding, force,
-                            bar.update)  # fmt: skip
-        click.echo(f"wrote {frames} frames ({size[0]}x{size[1]}, {fmt}) to {out_dir}")
+        with progress_bar("synth", "frame", total=frames, hidden=as_json) as bar:
+            write_recording(
+                sequence, out_dir, fmt, color_encoding, depth_encoding, force, bar.update
+            )
+        text = f"wrote {frames} frames ({size[0]}x{size[1]}, {fmt}) to {out_dir}"
+        emit(_result(out_dir, frames, size, fmt), as_json, text)
         return
-    with progress_bar("synth", "frame", total=frames) as bar:
+    with progress_bar("synth", "frame", total=frames, hidden=as_json) as bar:
         out = write_synthetic_sequence(
             out_dir,
             frames=frames,
@@ -83,4 +87,10 @@ def synth(
             progress=bar.update,
             supersample=supersample,
         )
-    click.echo(f"wrote {frames} frames ({size[0]}x{size[1]}) to {out}")
+    text = f"wrote {frames} frames ({size[0]}x{size[1]}) to {out}"
+    emit(_result(out, frames, size, fmt), as_json, text)
+
+
+def _result(out: Path, frames: int, size: tuple[int, int], fmt: str) -> dict[str, object]:
+    """What --json prints."""
+    return {"output": str(out), "frames": frames, "size": list(size), "format": fmt}

@@ -32,9 +32,13 @@ from .options import INPUT_FILE, check_recording_seq, recording_options, seed_op
     "these frames (else against the whole map's renders).",
 )
 @recording_options
-@click.option("--compare", type=INPUT_FILE, default=None,
-              help="A second log or map file (agent B): shown alone, beside SRC, or with the "
-              "share of SRC the page previews.")  # fmt: skip
+@click.option(
+    "--compare",
+    type=INPUT_FILE,
+    default=None,
+    help="A second log or map file (agent B): shown alone, beside SRC, or with the "
+    "share of SRC the page previews.",
+)
 @click.option(
     "--out-dir",
     type=click.Path(file_okay=False, path_type=Path),
@@ -83,8 +87,16 @@ def view(
     from gscompress.view import MapViewer, ViewOptions
 
     check_recording_seq(recording, seq)
-    options = ViewOptions(host=host, port=port, seq=seq, compare=compare, out_dir=out_dir,
-                          seed=seed, render=render, recording=recording)  # fmt: skip
+    options = ViewOptions(
+        host=host,
+        port=port,
+        seq=seq,
+        compare=compare,
+        out_dir=out_dir,
+        seed=seed,
+        render=render,
+        recording=recording,
+    )
     viewer = MapViewer(src, options)
     click.echo(f"gsc view: http://{host}:{viewer.port} (Ctrl-C to stop)", err=True)
     try:

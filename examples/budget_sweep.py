@@ -25,6 +25,7 @@ from gscompress.io.codec import SHARE_DEFAULTS as SHARE
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, encoded_size
 from gscompress.pipeline import evaluate_log, prune_log
+from gscompress.pipeline.images import ImageOptions
 from gscompress.selection import STRATEGIES
 
 
@@ -72,7 +73,7 @@ def sweep(opts: argparse.Namespace, budgets: list[float], strategies: list[str])
                 prune_log(opts.log, cut, budget, by=strategy if budget < 1 else "pwas")
                 with LogReader(cut) as log:
                     gaussians = log.read_map()
-                scores = evaluate_log(cut, opts.seq, every=opts.every, lpips=False)
+                scores = evaluate_log(cut, opts.seq, ImageOptions(every=opts.every, lpips=False))
                 rows.append(
                     {
                         "budget": budget,
@@ -84,10 +85,13 @@ def sweep(opts: argparse.Namespace, budgets: list[float], strategies: list[str])
                     }
                 )
                 r = rows[-1]
-                print(f"{budget:>5.0%} {strategy:<10} {r['gaussians']:>8} Gaussians, MB "
-                      f"{r['bytes_fp32'] / 1e6:.3f} fp32 / {r['bytes_fp16'] / 1e6:.3f} fp16 / "
-                      f"{r['bytes_compact'] / 1e6:.3f} compact, "
-                      f"PSNR {r['psnr']:6.2f} dB, SSIM {r['ssim']:.3f}", flush=True)  # fmt: skip
+                print(
+                    f"{budget:>5.0%} {strategy:<10} {r['gaussians']:>8} Gaussians, MB "
+                    f"{r['bytes_fp32'] / 1e6:.3f} fp32 / {r['bytes_fp16'] / 1e6:.3f} fp16 / "
+                    f"{r['bytes_compact'] / 1e6:.3f} compact, "
+                    f"PSNR {r['psnr']:6.2f} dB, SSIM {r['ssim']:.3f}",
+                    flush=True,
+                )
     if opts.json:
         opts.json.write_text(json.dumps(rows, indent=1) + "\n")
 

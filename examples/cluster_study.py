@@ -41,9 +41,10 @@ def summary_row(seq: Path, out: Path, result: dict[str, Any]) -> dict[str, Any]:
 
     def mean_psnr(strategy: str) -> float | None:
         got = [
-            r["psnr"] for r in rows
+            r["psnr"]
+            for r in rows
             if r["table"] == "table4" and r["strategy"] == strategy and r["psnr"] is not None
-        ]  # fmt: skip
+        ]
         return sum(got) / len(got) if got else None
 
     return {

@@ -49,17 +49,44 @@ def main() -> None:
     gsc("slam", seq, "--frames", frames_a, "-o", a, "--force")
     gsc("slam", seq, "--frames", frames_b, "-o", b, "--force")
     middle = (3 * n) // 10
-    gsc("render", a, "--seq", seq, "--frames", f"{middle}:{middle + 1}", "--color", "rgb",
-        "--color", "importance", "--side-by-side", "-o", out / "pictures")  # fmt: skip
+    gsc(
+        "render",
+        a,
+        "--seq",
+        seq,
+        "--frames",
+        f"{middle}:{middle + 1}",
+        "--color",
+        "rgb",
+        "--color",
+        "importance",
+        "--side-by-side",
+        "-o",
+        out / "pictures",
+        "--force",
+    )
     gsc("prune", a, "--keep", "0.3", "--map-only", "-o", out / "robot_a_pruned.mcap", "--force")
-    gsc("share", a, out / "share.mcap", "--budget", "50kB", "--force")
+    gsc("share", a, "-o", out / "share.mcap", "--budget", "50kB", "--force")
     gsc("merge", b, out / "share.mcap", "-o", out / "robot_b_merged.mcap", "--seq", seq, "--force")
     for log in (b, out / "robot_b_merged.mcap"):
-        gsc("eval", log, "--seq", seq, "--frames", frames_a, "--poses-from", a,
-            "--refine-poses", 100, "--no-lpips")  # fmt: skip
+        gsc(
+            "eval",
+            log,
+            "--seq",
+            seq,
+            "--frames",
+            frames_a,
+            "--poses-from",
+            a,
+            "--refine-poses",
+            100,
+            "--no-lpips",
+        )
     gsc("export-ply", a, "-o", out / "robot_a.ply", "--force")
-    print(f"\nDone. Open {out}/*.ply in a splat viewer, {out}/*.mcap in Foxglove, and "
-          f"{out}/pictures/side_by_side/ for the pictures.")  # fmt: skip
+    print(
+        f"\nDone. Open {out}/*.ply in a splat viewer, {out}/*.mcap in Foxglove, and "
+        f"{out}/pictures/side_by_side/ for the pictures."
+    )
 
 
 if __name__ == "__main__":

@@ -64,8 +64,10 @@ def show(opts: argparse.Namespace) -> None:
 
         # the map: the last snapshot, raw parameters plus activated views of them
         gaussians = log.read_map()
-    print(f"map: {len(gaussians)} Gaussians, isotropic {gaussians.isotropic}, "
-          f"SH degree {gaussians.sh_degree}")  # fmt: skip
+    print(
+        f"map: {len(gaussians)} Gaussians, isotropic {gaussians.isotropic}, "
+        f"SH degree {gaussians.sh_degree}"
+    )
     if not gaussians.has_importance or len(gaussians) == 0:
         return
     importance = gaussians.importance
@@ -76,9 +78,11 @@ def show(opts: argparse.Namespace) -> None:
     for i in top:
         x, y, z = gaussians.means[i]
         r, g, b = colors[i]
-        print(f"  id {gaussians.ids[i]:>6}: at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m, scale "
-              f"{scales[i].max() * 100:.2f} cm, opacity {opacities[i]:.2f}, "
-              f"rgb ({r:.2f}, {g:.2f}, {b:.2f}), importance {importance[i]:.4g}")  # fmt: skip
+        print(
+            f"  id {gaussians.ids[i]:>6}: at ({x:+.3f}, {y:+.3f}, {z:+.3f}) m, scale "
+            f"{scales[i].max() * 100:.2f} cm, opacity {opacities[i]:.2f}, "
+            f"rgb ({r:.2f}, {g:.2f}, {b:.2f}), importance {importance[i]:.4g}"
+        )
 
 
 if __name__ == "__main__":

@@ -7,6 +7,6 @@ numpy, mcap and protobuf. SLAM and rendering import torch where they are used.
 from gscompress.errors import GscError
 from gscompress.gaussians import GaussianMap
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = ["GaussianMap", "GscError", "__version__"]

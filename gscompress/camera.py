@@ -84,12 +84,18 @@ def quat_to_rotmat(q_wxyz: np.ndarray) -> np.ndarray:
     w, x, y, z = np.moveaxis(q, -1, 0)
     R = np.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         axis=-1,
-    )  # fmt: skip
+    )
     return R.reshape((*q.shape[:-1], 3, 3))
 
 
@@ -110,8 +116,14 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
         if case == 0:
             t = np.sqrt(1.0 + tr[s]) * 2
             q[s] = np.stack(
-                [0.25 * t, (r[:, 2, 1] - r[:, 1, 2]) / t, (r[:, 0, 2] - r[:, 2, 0]) / t,
-                 (r[:, 1, 0] - r[:, 0, 1]) / t], axis=1)  # fmt: skip
+                [
+                    0.25 * t,
+                    (r[:, 2, 1] - r[:, 1, 2]) / t,
+                    (r[:, 0, 2] - r[:, 2, 0]) / t,
+                    (r[:, 1, 0] - r[:, 0, 1]) / t,
+                ],
+                axis=1,
+            )
         else:
             i = case - 1
             j, m2 = (i + 1) % 3, (i + 2) % 3

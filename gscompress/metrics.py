@@ -337,8 +337,13 @@ LPIPS_WEIGHTS_ENV = "GSC_LPIPS_WEIGHTS"
 _LPIPS_SHIFT = (-0.030, -0.088, -0.188)
 _LPIPS_SCALE = (0.458, 0.448, 0.450)
 # (out channels, in channels, kernel, stride, padding) of AlexNet's five conv layers
-_ALEX_CONVS = ((64, 3, 11, 4, 2), (192, 64, 5, 1, 2), (384, 192, 3, 1, 1),
-               (256, 384, 3, 1, 1), (256, 256, 3, 1, 1))  # fmt: skip
+_ALEX_CONVS = (
+    (64, 3, 11, 4, 2),
+    (192, 64, 5, 1, 2),
+    (384, 192, 3, 1, 1),
+    (256, 384, 3, 1, 1),
+    (256, 256, 3, 1, 1),
+)
 
 
 @dataclass(frozen=True)
@@ -453,9 +458,11 @@ class LpipsAlex(torch.nn.Module):
             conv.bias = torch.nn.Parameter(torch.from_numpy(params[f"conv{i}.bias"].copy()))
             self.convs.append(conv)
         self.lins = torch.nn.ParameterList(
-            [torch.nn.Parameter(torch.from_numpy(params[f"lin{i}.weight"].copy()))
-             for i in range(len(_ALEX_CONVS))]
-        )  # fmt: skip
+            [
+                torch.nn.Parameter(torch.from_numpy(params[f"lin{i}.weight"].copy()))
+                for i in range(len(_ALEX_CONVS))
+            ]
+        )
         self.register_buffer("shift", torch.tensor(_LPIPS_SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(_LPIPS_SCALE).view(1, 3, 1, 1))
         self.requires_grad_(False)

@@ -45,6 +45,14 @@ def is_fraction(value: object) -> bool:
     return isinstance(value, int | float) and math.isfinite(value) and 0.0 < value <= 1.0
 
 
+def percent_hint(number: float) -> str:
+    """What a number given for a fraction may have meant when it reads as a percentage (above 1,
+    up to 100): "0.3 or 30%" for 30; else ""."""
+    if not (math.isfinite(number) and 1.0 < number <= 100.0):
+        return ""
+    return f"{number / 100:g} or {number:g}%"
+
+
 def check_ratio(ratio: float, name: str = "ratio") -> float:
     """Return `ratio` if it lies in (0, 1], else raise InputError."""
     if not is_fraction(ratio):
@@ -62,6 +70,20 @@ def keep_count(n: int, ratio: float, what: str = "ratio") -> int:
     return k
 
 
+def check_strategy(strategy: str | Strategy) -> Strategy:
+    """The strategy called `strategy`.
+
+    Raises:
+        InputError: not one of `STRATEGIES`.
+    """
+    try:
+        return Strategy(strategy)
+    except ValueError:
+        raise InputError(
+            f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}"
+        ) from None
+
+
 def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int = 0) -> np.ndarray:
     """[N] float64 scores for `strategy`; higher is more important.
 
@@ -69,12 +91,7 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
         InputError: unknown strategy, or a negative seed for the random one.
         BudgetError: an empty map, or no scores for a score-based strategy.
     """
-    try:
-        strategy = Strategy(strategy)
-    except ValueError:
-        raise InputError(
-            f"unknown strategy {strategy!r}; choose one of {', '.join(STRATEGIES)}"
-        ) from None
+    strategy = check_strategy(strategy)
     if len(gaussians) == 0:  # (which would read as a map without scores below)
         raise BudgetError("the map is empty: there is nothing to select from")
     if strategy is Strategy.PWAS:

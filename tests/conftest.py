@@ -182,13 +182,14 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     mostly Gaussians that absorb no others (tests/test_eval.py checks those sums)."""
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.pipeline import slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     root = tmp_path_factory.mktemp("tiny-run")
     seq = write_synthetic_sequence(root / "room", 6, (48, 36))
     log = root / "run.mcap"
     config = root / "accumulated.yaml"
     config.write_text("preset: tiny\npwas:\n  final_scores: false\n")
-    slam_file(seq, log, preset="tiny", config_path=config)
+    slam_file(seq, log, SlamOptions(preset="tiny", config_path=config))
     return {"seq": seq, "log": log, "root": root}
 
 

@@ -147,9 +147,14 @@ def test_recovers_a_known_transform(noise: float, outliers: float, split: float)
     T = random_transform(3)
     lo, hi = 2.4 * (1.0 - split), 2.4 * split  # (split 1: both see everything)
     source, target = agents(
-        points, colors, T, source_part=points[:, 0] <= hi + 1e-9,
-        target_part=points[:, 0] >= lo - 1e-9, noise=noise, outliers=outliers,
-    )  # fmt: skip
+        points,
+        colors,
+        T,
+        source_part=points[:, 0] <= hi + 1e-9,
+        target_part=points[:, 0] >= lo - 1e-9,
+        noise=noise,
+        outliers=outliers,
+    )
     result = align_clouds(source, target)
     dt, dr = transform_error(result.T_target_source, T)
     assert dt < 0.01 and dr < 0.5, (dt, dr)
@@ -167,8 +172,9 @@ def test_refinement_from_a_guess_and_refine_alignment() -> None:
     points, colors = room()
     T = random_transform(5)
     everything = np.ones(len(points), bool)
-    source, target = agents(points, colors, T, source_part=everything, target_part=everything,
-                            noise=0.003)  # fmt: skip
+    source, target = agents(
+        points, colors, T, source_part=everything, target_part=everything, noise=0.003
+    )
     nudge = np.eye(4)
     nudge[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(3.0)]).as_matrix()
     nudge[:3, 3] = [0.04, -0.03, 0.02]
@@ -227,8 +233,14 @@ def test_symmetric_and_flat_scenes_are_refused(
 ) -> None:
     points, colors = scene()
     everything = np.ones(len(points), bool)
-    source, target = agents(points, colors, random_transform(11), source_part=everything,
-                            target_part=everything, noise=0.003)  # fmt: skip
+    source, target = agents(
+        points,
+        colors,
+        random_transform(11),
+        source_part=everything,
+        target_part=everything,
+        noise=0.003,
+    )
     with pytest.raises(AlignmentError, match=r"ambiguous|degenerate"):
         align_clouds(source, target)
 
@@ -251,12 +263,15 @@ def test_without_open3d_the_global_step_names_the_extra_and_the_local_step_runs(
     points, colors = room()
     T = small_transform()
     everything = np.ones(len(points), bool)
-    source, target = agents(points, colors, T, source_part=everything, target_part=everything,
-                            noise=0.003)  # fmt: skip
+    source, target = agents(
+        points, colors, T, source_part=everything, target_part=everything, noise=0.003
+    )
     with pytest.raises(MissingDependencyError, match=r"global step.*gscompress\[align\]"):
         align_clouds(source, target)
-    for local in (refine_alignment(source, target, np.eye(4)),
-                  align_clouds(source, target, init=np.eye(4))):  # fmt: skip
+    for local in (
+        refine_alignment(source, target, np.eye(4)),
+        align_clouds(source, target, init=np.eye(4)),
+    ):
         dt, dr = transform_error(local.T_target_source, T)
         assert dt < 0.002 and dr < 0.1, (dt, dr)
         assert local.icp == "builtin" and local.refused == ""
@@ -272,14 +287,16 @@ def small_transform() -> np.ndarray:
     return T
 
 
-@pytest.mark.parametrize("icp", [p if p != "open3d" else pytest.param(p, marks=needs_open3d)
-                                 for p in ICP])  # fmt: skip
+@pytest.mark.parametrize(
+    "icp", [p if p != "open3d" else pytest.param(p, marks=needs_open3d) for p in ICP]
+)
 def test_the_local_step_recovers_a_known_small_transform(icp: str) -> None:
     points, colors = room()
     T = small_transform()
     everything = np.ones(len(points), bool)
-    source, target = agents(points, colors, T, source_part=everything, target_part=everything,
-                            noise=0.003)  # fmt: skip
+    source, target = agents(
+        points, colors, T, source_part=everything, target_part=everything, noise=0.003
+    )
     result = refine_alignment(source, target, np.eye(4), AlignOptions(icp=icp))
     dt, dr = transform_error(result.T_target_source, T)
     assert dt < 0.002 and dr < 0.1, (dt, dr)  # (from 2 cm and 1 degree off)
@@ -295,8 +312,9 @@ def test_the_builtin_grid_and_icp_are_open3ds() -> None:
     points, colors = room(0.02)
     T = small_transform()
     everything = np.ones(len(points), bool)
-    source, target = agents(points, colors, T, source_part=everything, target_part=everything,
-                            noise=0.003)  # fmt: skip
+    source, target = agents(
+        points, colors, T, source_part=everything, target_part=everything, noise=0.003
+    )
     voxel = 0.03
     grid = grid_cloud(target, voxel)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target.points))
@@ -330,8 +348,14 @@ def test_map_cloud_keeps_opaque_gaussians_and_flat_normals() -> None:
 # ---------------------------------------------------------------- the command
 
 
-def _write_log(path: Path, points: np.ndarray, colors: np.ndarray, views: np.ndarray,
-               world: str, gt_first: np.ndarray | None = None) -> None:  # fmt: skip
+def _write_log(
+    path: Path,
+    points: np.ndarray,
+    colors: np.ndarray,
+    views: np.ndarray,
+    world: str,
+    gt_first: np.ndarray | None = None,
+) -> None:
     n = len(points)
     gaussians = GaussianMap.new(
         means=points.astype(np.float32),
@@ -357,16 +381,29 @@ def logs(tmp_path: Path) -> tuple[Path, Path, np.ndarray]:
     src_mask, tgt_mask = points[:, 0] < 1.7, points[:, 0] > 0.7
     source, target = tmp_path / "a.mcap", tmp_path / "b.mcap"
     inv = np.linalg.inv(T)
-    _write_log(source, transform_points(inv, points[src_mask]), colors[src_mask],
-               transform_points(inv, VIEWS), "first-camera:room:0", gt_first=T)  # fmt: skip
-    _write_log(target, points[tgt_mask], colors[tgt_mask], VIEWS, "first-camera:room:20",
-               gt_first=np.eye(4))  # fmt: skip
+    _write_log(
+        source,
+        transform_points(inv, points[src_mask]),
+        colors[src_mask],
+        transform_points(inv, VIEWS),
+        "first-camera:room:0",
+        gt_first=T,
+    )
+    _write_log(
+        target,
+        points[tgt_mask],
+        colors[tgt_mask],
+        VIEWS,
+        "first-camera:room:20",
+        gt_first=np.eye(4),
+    )
     return source, target, T
 
 
 @needs_open3d
-def test_gsc_align_writes_what_merge_reads(logs: tuple[Path, Path, np.ndarray],
-                                           tmp_path: Path) -> None:  # fmt: skip
+def test_gsc_align_writes_what_merge_reads(
+    logs: tuple[Path, Path, np.ndarray], tmp_path: Path
+) -> None:
     source, target, T = logs
     out = tmp_path / "T.txt"
     r = CliRunner().invoke(cli, ["align", str(source), str(target), "-o", str(out), "--json"])
@@ -376,15 +413,30 @@ def test_gsc_align_writes_what_merge_reads(logs: tuple[Path, Path, np.ndarray],
     assert dt < 0.01 and dr < 0.5
     assert "first-camera:room:0" in out.read_text()  # (what it maps, in its comments)
     again = tmp_path / "T2.txt"
-    r = CliRunner().invoke(cli, ["align", str(source), str(target), "--init", str(out), "-o",
-                                 str(again), "--json"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["align", str(source), str(target), "--init", str(out), "-o", str(again), "--json"]
+    )
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["global_step"] == "init"
     assert transform_error(read_transform(again), T)[0] < 0.01
     merged = tmp_path / "m.mcap"
-    r = CliRunner().invoke(cli, ["merge", str(target), str(source), "--iters", "0",
-                                 "--no-align", "--resolve", "stack",  # the exact concatenation
-                                 "--share-transform", str(out), "-o", str(merged)])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "merge",
+            str(target),
+            str(source),
+            "--iters",
+            "0",
+            "--no-align",
+            "--resolve",
+            "stack",  # the exact concatenation
+            "--share-transform",
+            str(out),
+            "-o",
+            str(merged),
+        ],
+    )
     assert r.exit_code == 0, r.output
     with LogReader(merged) as log, LogReader(target) as b:
         tail = log.read_map().means[len(b.read_map()) :]
@@ -404,8 +456,9 @@ def test_gsc_align_without_open3d_refines_a_guess_and_names_the_extra_for_a_sear
     assert len(r.output.strip().splitlines()) == 1
     assert "global step" in r.output and "pip install 'gscompress[align]'" in r.output
     np.savetxt(guess, small_transform() @ T)
-    r = CliRunner().invoke(cli, ["align", str(source), str(target), "--init", str(guess), "-o",
-                                 str(out), "--json"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["align", str(source), str(target), "--init", str(guess), "-o", str(out), "--json"]
+    )
     assert r.exit_code == 0, r.output
     assert json.loads(r.output)["icp"] == "builtin"
     dt, dr = transform_error(read_transform(out), T)
@@ -430,9 +483,23 @@ def test_share_align_to_cuts_a_share_in_the_targets_frame(
 ) -> None:
     source, target, T = logs
     share = tmp_path / "s.mcap"
-    r = CliRunner().invoke(cli, ["share", str(source), str(share), "--budget", "0.5",
-                                 "--codec", "fp32", "--by", "opacity", "--no-fold",
-                                 "--align-to", str(target)])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "share",
+            str(source),
+            str(share),
+            "--budget",
+            "0.5",
+            "--codec",
+            "fp32",
+            "--by",
+            "opacity",
+            "--no-fold",
+            "--align-to",
+            str(target),
+        ],
+    )
     assert r.exit_code == 0, r.output
     with LogReader(share) as s, LogReader(source) as a:
         shared, meta = s.read_map(), s.metadata
@@ -443,14 +510,16 @@ def test_share_align_to_cuts_a_share_in_the_targets_frame(
     moved = transform_points(T, original)
     assert np.max(np.linalg.norm(shared.means - moved, axis=1)) < 0.02
     merged = tmp_path / "m.mcap"
-    r = CliRunner().invoke(cli, ["merge", str(target), str(share), "--iters", "0", "-o",
-                                 str(merged)])  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["merge", str(target), str(share), "--iters", "0", "-o", str(merged)]
+    )
     assert r.exit_code == 0, r.output
 
 
 @needs_open3d
-def test_gsc_align_does_not_import_torch(logs: tuple[Path, Path, np.ndarray],
-                                         tmp_path: Path) -> None:  # fmt: skip
+def test_gsc_align_does_not_import_torch(
+    logs: tuple[Path, Path, np.ndarray], tmp_path: Path
+) -> None:
     source, target, _ = logs
     code = (
         "import sys\nfrom gscompress_cli.main import cli\n"
@@ -458,10 +527,20 @@ def test_gsc_align_does_not_import_torch(logs: tuple[Path, Path, np.ndarray],
         "print('torch' in sys.modules)\n"
     )
     out = subprocess.run(
-        [sys.executable, "-c", code, "align", str(source), str(target), "-o",
-         str(tmp_path / "T.txt")],
-        capture_output=True, text=True, check=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-c",
+            code,
+            "align",
+            str(source),
+            str(target),
+            "-o",
+            str(tmp_path / "T.txt"),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert out.stdout.strip().splitlines()[-1] == "False"
 
 
@@ -490,40 +569,51 @@ def test_align_agents_scores_the_estimate_against_the_first_poses(
 @needs_open3d
 @pytest.mark.parametrize("loss, accepted", [(1.5, True), (2.5, False), (None, False)])
 def test_the_frames_judge_a_registration_only_its_feature_matches_fault(
-    logs: tuple[Path, Path, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-    loss: float | None, accepted: bool,
-) -> None:  # fmt: skip
+    logs: tuple[Path, Path, np.ndarray],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    loss: float | None,
+    accepted: bool,
+) -> None:
     """With the target's frames, a registration refused for too few agreeing feature matches
     stands when, refined on the frames, the source draws them at most twice as badly as the
     target's own map; a registration refused for anything else is refused as before."""
-    import gscompress.pipeline.align as pipeline_align
+    import gscompress.pipeline.aligning as aligning
 
     source, target, T = logs
-    found = align_clouds(*(pipeline_align.log_cloud(p)[0] for p in (source, target)))
+    found = align_clouds(*(aligning.log_cloud(p)[0] for p in (source, target)))
     few = AlignOptions(min_inliers=10**6)  # (so that the feature matches alone refuse it)
     refined = T.copy()  # (what the frames make of it, stood in for: 3 mm off)
     refined[:3, 3] += [0.003, 0.0, 0.0]
 
     def on_frames(*args: object) -> tuple[np.ndarray, dict]:
-        return refined, {"views": 3, "loss": loss, "target_loss": 1.0, "change_cm": 0.0,
-                         "change_deg": 0.0, "seq": "seq"}  # fmt: skip
+        return refined, {
+            "views": 3,
+            "loss": loss,
+            "target_loss": 1.0,
+            "change_cm": 0.0,
+            "change_deg": 0.0,
+            "seq": "seq",
+        }
 
-    monkeypatch.setattr(pipeline_align, "refined_on_frames", on_frames)
+    monkeypatch.setattr(aligning, "refined_on_frames", on_frames)
     seq = tmp_path  # (any folder: the frames are stood in for above)
     if accepted:
-        T_out, record = pipeline_align.align_logs_transform(source, target, options=few, seq=seq)
-        assert record["refused"] == "" and "too few feature matches" in record["on_frames"][
-            "overruled"]  # fmt: skip
+        T_out, record = aligning.align_logs_transform(source, target, options=few, seq=seq)
+        assert (
+            record["refused"] == ""
+            and "too few feature matches" in record["on_frames"]["overruled"]
+        )
         assert record["on_frames"]["surface_kept"] >= 0.8
         np.testing.assert_allclose(T_out, refined)
     else:
         with pytest.raises(AlignmentError, match=r"too few feature matches agree.*; .*frames"):
-            pipeline_align.align_logs_transform(source, target, options=few, seq=seq)
+            aligning.align_logs_transform(source, target, options=few, seq=seq)
     with pytest.raises(AlignmentError, match="too few feature matches"):  # (no frames: refused)
-        pipeline_align.align_logs_transform(source, target, options=few)
+        aligning.align_logs_transform(source, target, options=few)
     little = AlignOptions(min_overlap=0.99, min_inliers=10**6)  # (another fault: refused)
     with pytest.raises(AlignmentError, match="too little overlap"):
-        pipeline_align.align_logs_transform(source, target, options=little, seq=seq)
+        aligning.align_logs_transform(source, target, options=little, seq=seq)
     assert found.refused == ""  # (with the default thresholds the registration stands)
 
 
@@ -533,23 +623,30 @@ def test_frames_that_pull_the_source_off_the_surfaces_are_not_taken(
 ) -> None:
     """A refinement that leaves less than `SURFACE_KEPT` of the registration's overlap keeps the
     registration's transform, and cannot vouch for a registration refused alone."""
-    import gscompress.pipeline.align as pipeline_align
+    import gscompress.pipeline.aligning as aligning
+    from gscompress.pipeline.align import write_transform_file
 
     source, target, T = logs
     off = T.copy()
     off[:3, 3] += [0.1, 0.1, 0.1]  # (17 cm across every wall: off the room's surfaces)
 
     def on_frames(*args: object) -> tuple[np.ndarray, dict]:
-        return off, {"views": 3, "loss": 0.5, "target_loss": 1.0, "change_cm": 17.3,
-                     "change_deg": 0.0, "seq": "seq"}  # fmt: skip
+        return off, {
+            "views": 3,
+            "loss": 0.5,
+            "target_loss": 1.0,
+            "change_cm": 17.3,
+            "change_deg": 0.0,
+            "seq": "seq",
+        }
 
-    monkeypatch.setattr(pipeline_align, "refined_on_frames", on_frames)
-    T_out, record = pipeline_align.align_logs_transform(source, target, seq=tmp_path)
+    monkeypatch.setattr(aligning, "refined_on_frames", on_frames)
+    T_out, record = aligning.align_logs_transform(source, target, seq=tmp_path)
     assert record["on_frames"]["kept_registration"] and record["on_frames"]["surface_kept"] < 0.8
     assert transform_error(T_out, T)[0] < 0.01  # (the registration's)
     out = tmp_path / "T.txt"
-    pipeline_align.write_transform_file(out, T_out, record)
+    write_transform_file(out, T_out, record)
     assert "kept the registration" in out.read_text()
     few = AlignOptions(min_inliers=10**6)
     with pytest.raises(AlignmentError, match="leaves its surfaces"):
-        pipeline_align.align_logs_transform(source, target, options=few, seq=tmp_path)
+        aligning.align_logs_transform(source, target, options=few, seq=tmp_path)

@@ -34,11 +34,19 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[GaussianMap, list, 
     root = tmp_path_factory.mktemp("align-views")
     sequence = open_sequence(write_synthetic_sequence(root / "room", 40, (64, 48)))
     _, poses = sequence.ground_truth()
-    gaussians = GaussianMap.concat([
-        gaussians_from_rgbd(sequence.frame(i).color, sequence.frame(i).depth,
-                            sequence.intrinsics, poses[i], opacity=0.95, first_id=10_000 * i)
-        for i in (10, 14)
-    ])  # fmt: skip
+    gaussians = GaussianMap.concat(
+        [
+            gaussians_from_rgbd(
+                sequence.frame(i).color,
+                sequence.frame(i).depth,
+                sequence.intrinsics,
+                poses[i],
+                opacity=0.95,
+                first_id=10_000 * i,
+            )
+            for i in (10, 14)
+        ]
+    )
     params = activated_tensors(gaussians)
     frames = []
     for i in VIEWS:
@@ -113,13 +121,19 @@ def test_an_alignment_reports_its_registration_and_each_iteration_on_the_frames(
 ) -> None:
     """`gsc align`'s bar: the registration as it starts, then each iteration on the frames."""
     from gscompress.ops.align_views import VIEW_ALIGN
-    from gscompress.pipeline.align import ON_FRAMES, REGISTRATION, align_logs_transform
+    from gscompress.pipeline.aligning import ON_FRAMES, REGISTRATION, align_logs_transform
 
     guess = tmp_path / "guess.txt"
     np.savetxt(guess, np.eye(4))
     events: list[tuple[str, int, int | None]] = []
-    align_logs_transform(run["log"], run["log"], init=guess, seq=run["seq"], refuse=False,
-                         phases=lambda *event: events.append(event))  # fmt: skip
+    align_logs_transform(
+        run["log"],
+        run["log"],
+        init=guess,
+        seq=run["seq"],
+        refuse=False,
+        phases=lambda *event: events.append(event),
+    )
     assert events[0] == (REGISTRATION, 0, None)
     on_frames = [e for e in events if e[0] == ON_FRAMES]
     assert on_frames[0] == (ON_FRAMES, 0, VIEW_ALIGN.iters) and len(on_frames) > 10

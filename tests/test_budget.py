@@ -24,7 +24,8 @@ from gscompress.io.mcap_log import (
 from gscompress.io.ply import read_ply
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.pipeline import log_info, prune_log, share_log
-from gscompress.pipeline.offline import ShareCut
+from gscompress.pipeline.share.cut import ShareCut
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import select_count, strategy_scores, top_k
 
 
@@ -139,7 +140,7 @@ def test_fp16_records_are_smaller():
 
 def share_bytes(src, budget_text, count, codec, ids=SHARE_IDS):
     """Bytes of the share file of the `count` best Gaussians under `budget_text`."""
-    return ShareCut(src, Budget.parse(budget_text), codec=codec, ids=ids).size(count)
+    return ShareCut(src, Budget.parse(budget_text), ShareOptions(codec=codec, ids=ids)).size(count)
 
 
 @st.composite
@@ -170,7 +171,7 @@ def test_byte_budget_bounds_the_whole_file_and_holds_the_most_that_fit(case):
         src = write_log(Path(tmp) / "a.mcap", full)
         dst = Path(tmp) / "s.mcap"
         try:
-            result = share_log(src, dst, f"{budget_bytes}B", codec=codec, ids=ids)
+            result = share_log(src, dst, f"{budget_bytes}B", ShareOptions(codec=codec, ids=ids))
         except BudgetError as exc:
             event("below one Gaussian")
             assert "raise the budget" in str(exc) and not dst.exists()
@@ -195,22 +196,23 @@ def test_budget_below_one_gaussian_is_a_budget_error(tmp_path, codec):
     src = write_log(tmp_path / "a.mcap", full)
     for budget_bytes in (1, 500, share_bytes(src, "1000B", 1, codec) - 1):
         with pytest.raises(BudgetError, match=r"cannot hold one Gaussian: that takes"):
-            share_log(src, tmp_path / "s.mcap", f"{budget_bytes}B", codec=codec)
+            share_log(src, tmp_path / "s.mcap", f"{budget_bytes}B", ShareOptions(codec=codec))
     assert not (tmp_path / "s.mcap").exists()
     one = share_bytes(src, "1000B", 1, codec)  # (a budget written with as many digits)
-    exact = share_log(src, tmp_path / "s.mcap", f"{one}B", codec=codec)
+    exact = share_log(src, tmp_path / "s.mcap", f"{one}B", ShareOptions(codec=codec))
     assert exact["selected"] == 1 and exact["file_bytes"] == one
     with pytest.raises(
         BudgetError, match=r"0.001 of 100 Gaussians rounds to none; raise the budget"
     ):
-        share_log(src, tmp_path / "t.mcap", 0.001, codec=codec)
+        share_log(src, tmp_path / "t.mcap", 0.001, ShareOptions(codec=codec))
 
 
 def test_smaller_codecs_fit_more_of_the_same_ranking(tmp_path):
     full = random_map(5_000, seed=4)
     src = write_log(tmp_path / "a.mcap", full)
     results = {
-        c: share_log(src, tmp_path / f"{c}.mcap", "100kB", codec=c, ids=True) for c in CODECS
+        c: share_log(src, tmp_path / f"{c}.mcap", "100kB", ShareOptions(codec=c, ids=True))
+        for c in CODECS
     }
     selected = {c: r["selected"] for c, r in results.items()}
     # 76 vs 54 bytes per Gaussian in the message; the file's zstd chunk shrinks float32 more
@@ -227,7 +229,7 @@ def test_smaller_codecs_fit_more_of_the_same_ranking(tmp_path):
 
 def test_fraction_budget_with_fp16(tmp_path):
     src = write_log(tmp_path / "a.mcap", random_map(1000, seed=2))
-    r = share_log(src, tmp_path / "s.mcap", 0.2, codec="fp16", ply=tmp_path / "s.ply")
+    r = share_log(src, tmp_path / "s.mcap", 0.2, ShareOptions(codec="fp16"), ply=tmp_path / "s.ply")
     assert r["selected"] == 200 and r["budget"] == 0.2 and "budget_bytes" not in r
     shared = read_map(tmp_path / "s.mcap")
     assert read_ply(tmp_path / "s.ply").equals(shared)  # the PLY holds the decoded float32 values
@@ -269,7 +271,7 @@ def test_fp16_overflow_is_refused_not_written_as_inf(tmp_path):
     g.sh_dc[3, 0] = 70_000.0
     src = write_log(tmp_path / "a.mcap", g)  # fine at fp32
     with pytest.raises(MapError, match="use precision fp32"):
-        share_log(src, tmp_path / "s.mcap", 1.0, codec="fp16")
+        share_log(src, tmp_path / "s.mcap", 1.0, ShareOptions(codec="fp16"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap"]  # no partial output
     g.sh_dc[3, 0] = 0.0
     g.importance_sum[3] = 1e9  # scores and sums stay float32: no range limit
@@ -344,9 +346,9 @@ def test_select_count_matches_top_k():
 def test_pruning_an_fp16_share_keeps_it_fp16(tmp_path):
     src = write_log(tmp_path / "a.mcap", random_map(200, 4))
     share = tmp_path / "s.mcap"
-    share_log(src, share, 0.5, codec="fp16")
+    share_log(src, share, 0.5, ShareOptions(codec="fp16"))
     pruned = tmp_path / "p.mcap"
-    prune_log(share, pruned, 0.5, fold_dropped=False)
+    prune_log(share, pruned, 0.5, fold=False)
     assert log_info(pruned)["map"]["codec"] == "fp16"
     kept, received = read_map(pruned), read_map(share)
     where = {int(i): k for k, i in enumerate(received.ids)}
@@ -364,8 +366,10 @@ def test_a_percentage_of_bytes_is_of_the_maps_fp32_message(tmp_path):
     resolved = budget.resolve(1_000_000)
     assert resolved.budget_bytes == 50_000 and str(resolved) == "5%bytes"
     assert resolved.record() == {
-        "budget": "5%bytes", "budget_bytes": 50_000, "budget_fp32_fraction": 0.05
-    }  # fmt: skip
+        "budget": "5%bytes",
+        "budget_bytes": 50_000,
+        "budget_fp32_fraction": 0.05,
+    }
     with pytest.raises(BudgetError, match="under one byte"):
         Budget.parse("0.0001%bytes").resolve(1000)
     with pytest.raises(InputError):

@@ -67,8 +67,12 @@ def test_prune_keeps_top_fraction_and_passes_the_rest_through(log_path, tmp_path
         assert raw_a == raw_b
         step = b.metadata.provenance[-1]
         assert step["operation"] == {
-            "name": "prune", "keep": 0.3, "by": "pwas", "seed": 0, "fold": False,
-        }  # fmt: skip
+            "name": "prune",
+            "keep": 0.3,
+            "by": "pwas",
+            "seed": 0,
+            "fold": False,
+        }
         assert step["parent"] == "run.mcap" and b.metadata.sequence == "synthetic"
         assert b.metadata.results == {"kept": 300, "total": 1000, "codec": "fp32", "fold": False}
 
@@ -147,12 +151,12 @@ def test_share_whose_ply_cannot_be_written_leaves_no_mcap(log_path, tmp_path, mo
     read-only mount that passes the permission check) takes the fresh MCAP with it."""
     import errno
 
-    from gscompress.pipeline import offline
+    from gscompress.pipeline import share
 
     def refuse(*args, **kwargs):
         raise OSError(errno.EROFS, "Read-only file system", str(tmp_path / "s.ply"))
 
-    monkeypatch.setattr(offline, "write_ply", refuse)
+    monkeypatch.setattr(share, "write_ply", refuse)
     r = gsc("share", log_path, tmp_path / "s.mcap", "--ply", tmp_path / "s.ply")
     assert r.exit_code == 1 and r.output == f"Error: {tmp_path / 's.ply'}: Read-only file system\n"
     assert list(tmp_path.iterdir()) == [log_path]
@@ -435,7 +439,16 @@ def test_offline_commands_do_not_import_torch(log_path, tmp_path):
         ["prune", str(log_path), "--keep", "0.3", "--map-only", "-o", str(tmp_path / "m.mcap")],
         ["share", str(log_path), str(tmp_path / "s.mcap")],  # compact: encoded
         ["info", str(tmp_path / "s.mcap")],  # and decoded
-        ["prune", str(log_path), "--keep", "0.3", "--codec", "compact", "-o", str(tmp_path / "c")],
+        [
+            "prune",
+            str(log_path),
+            "--keep",
+            "0.3",
+            "--codec",
+            "compact",
+            "-o",
+            str(tmp_path / "c.mcap"),
+        ],
         ["share", str(log_path), str(tmp_path / "b.mcap"), "--budget", "20%bytes", "--no-sums"],
         ["export-ply", str(log_path), "-o", str(tmp_path / "e.ply")],
         ["export-traj", str(log_path), "-o", str(tmp_path / "t.txt")],
@@ -532,8 +545,9 @@ def test_share_byte_budget_fp16_then_info(log_path, tmp_path):
     # a share is compact unless asked otherwise; --precision is an old name of --codec
     r = gsc("share", "--budget", "0.5", out, tmp_path / "again.mcap", "--json")
     assert json.loads(r.output)["codec"] == "compact", r.output
-    r = gsc("share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap",
-            "--json")  # fmt: skip
+    r = gsc(
+        "share", "--budget", "0.5", "--precision", "fp32", out, tmp_path / "wide.mcap", "--json"
+    )
     assert json.loads(r.output)["codec"] == "fp32", r.output
     r = gsc("share", "--precision", "fp32", "--codec", "fp16", out, tmp_path / "x.mcap")
     assert r.exit_code == 2 and "--precision is an old name of --codec" in r.output
@@ -600,8 +614,9 @@ def test_info_text_rounds_floats_also_within_lists() -> None:
 
 
 def test_a_group_option_after_the_command_says_where_it_goes(tmp_path):
-    r = CliRunner().invoke(cli, ["info", str(tmp_path / "x.mcap"), "--threads", "1"],
-                           prog_name="gsc")  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["info", str(tmp_path / "x.mcap"), "--threads", "1"], prog_name="gsc"
+    )
     assert r.exit_code == 2
     assert "--threads is an option of gsc itself" in r.output
     assert "gsc --threads N info ..." in r.output
@@ -653,7 +668,7 @@ def test_format_shares_send_the_whole_map_in_each_format(log_path, tmp_path):
 
     from gscompress.errors import InputError
     from gscompress.io.sog import splat_transform
-    from gscompress.pipeline.offline import format_share
+    from gscompress.pipeline.share.formats import format_share
 
     full = read_map(log_path)
     sizes = {}

@@ -12,6 +12,8 @@ from test_render import gpu
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import evaluate_log, slam_file
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 pytestmark = [pytest.mark.gpu, gpu]
 
@@ -21,15 +23,15 @@ def test_slam_on_cuda_maps_as_well_as_on_the_cpu(tmp_path):
     runs = {}
     for device in ("cpu", "cuda"):
         log = tmp_path / f"{device}.mcap"
-        result = slam_file(seq, log, preset="tiny", device=device)
+        result = slam_file(seq, log, SlamOptions(preset="tiny"), device=device)
         with LogReader(log) as reader:
             assert reader.metadata.results["device"].startswith(device)
-        runs[device] = (result, evaluate_log(log, seq, device=device, lpips=False))
+        runs[device] = (result, evaluate_log(log, seq, ImageOptions(device=device, lpips=False)))
     (cpu, cpu_eval), (cuda, cuda_eval) = runs["cpu"], runs["cuda"]
     assert cuda["render_backend"] == "gsplat" and cuda["frames"] == cpu["frames"] == 6
     assert cuda_eval["ate_rmse_cm"] < 1.5 * cpu_eval["ate_rmse_cm"] + 0.5
     assert cuda_eval["psnr"] > cpu_eval["psnr"] - 1.5
     assert cuda_eval["ssim"] > cpu_eval["ssim"] - 0.05
     # the CUDA map evaluated on the CPU renders alike (eval moves the map, not the log)
-    cross = evaluate_log(tmp_path / "cuda.mcap", seq, device="cpu", lpips=False)
+    cross = evaluate_log(tmp_path / "cuda.mcap", seq, ImageOptions(device="cpu", lpips=False))
     assert cross["psnr"] == pytest.approx(cuda_eval["psnr"], abs=0.5)

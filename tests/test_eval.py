@@ -1,7 +1,6 @@
 """`gsc eval` (map + trajectory metrics of a log) and the Foxglove layout in examples/."""
 
 import json
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,8 @@ from gscompress.metrics import ate_rmse_cm, ate_splatam_cm, psnr
 from gscompress.ops.evaluate import EvalView, evaluate_map, render_view
 from gscompress.ops.score import activated_tensors
 from gscompress.pipeline import evaluate_log, share_log, slam_file
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -56,12 +57,12 @@ def gt_log(seq_dir, tmp_path_factory):
     config = tmp / "gt.yaml"
     config.write_text("preset: tiny\ntracking:\n  use_ground_truth: true\n")
     out = tmp / "gt.mcap"
-    slam_file(seq_dir, out, preset="tiny", config_path=config)
+    slam_file(seq_dir, out, SlamOptions(preset="tiny", config_path=config))
     return out
 
 
 def test_a_log_posed_at_the_ground_truth_reports_no_ate_and_why(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, lpips=False)
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False))
     assert r["ground_truth"] == "sequence" and r["ate_frames"] == 6
     assert r["poses"] == "ground-truth" and r["ate_rmse_cm"] is None
     assert (
@@ -84,7 +85,7 @@ def test_a_log_posed_at_the_ground_truth_reports_no_ate_and_why(gt_log, seq_dir)
 
 
 def test_psnr_matches_an_independent_render(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, lpips=False, frames="2:3")
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False, frames="2:3"))
     assert r["frames_evaluated"] == 1 and r["frames_without_pose"] == 0
     with LogReader(gt_log) as log:
         gaussians = log.read_map()
@@ -98,7 +99,7 @@ def test_psnr_matches_an_independent_render(gt_log, seq_dir):
 
 @pytest.mark.parametrize(("every", "count"), [(1, 6), (2, 3), (4, 2), (6, 1), (10, 1)])
 def test_every_n_renders_every_nth_frame_with_a_pose(gt_log, seq_dir, every, count):
-    r = evaluate_log(gt_log, seq_dir, lpips=False, every=every, backend="cpu")
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False, every=every, backend="cpu"))
     assert r["frames_evaluated"] == count
     assert [f["index"] for f in r["per_frame"]] == list(range(0, 6, every))
     assert r["ate_frames"] == 6  # the trajectory always uses every frame
@@ -122,7 +123,7 @@ def test_frames_without_a_logged_pose_are_skipped_and_ate_pairs_the_right_frames
             t_ns = round(sequence.timestamps[i] * 1e9) + 400_000  # within the 1 ms tolerance
             w.write_pose(T, t_ns)
         w.write_gaussians(gaussians, 0)
-    r = evaluate_log(out, seq_dir, lpips=False, every=2)
+    r = evaluate_log(out, seq_dir, ImageOptions(lpips=False, every=2))
     assert r["frames_with_pose"] == 5 and r["frames_without_pose"] == 1
     assert [f["index"] for f in r["per_frame"]] == [0, 3, 5]  # every 2nd frame with a pose
     assert r["ground_truth"] == "sequence" and r["ate_frames"] == 5
@@ -143,14 +144,14 @@ def test_no_ground_truth_anywhere_reports_ate_unavailable(bare, gt_log, seq_dir,
             f = sequence.frame(i)
             w.write_pose(f.T_world_cam, round(f.timestamp * 1e9))
         w.write_gaussians(gaussians, 0)
-    r = evaluate_log(out, bare, lpips=False, frames="0:3")
+    r = evaluate_log(out, bare, ImageOptions(lpips=False, frames="0:3"))
     assert r["ate_rmse_cm"] is None and r["ate_splatam_cm"] is None
     assert "no ground truth" in r["ate_reason"] and r["ground_truth"] is None
     assert r["frames_evaluated"] == 3 and r["psnr"] > 15
 
 
 def test_log_ground_truth_is_used_when_the_sequence_has_none(bare, gt_log):
-    r = evaluate_log(gt_log, bare, lpips=False, every=6)
+    r = evaluate_log(gt_log, bare, ImageOptions(lpips=False, every=6))
     assert r["ground_truth"] == "log" and r["ate_frames"] == 6 and r["ate_rmse_cm"] is None
 
 
@@ -183,7 +184,7 @@ def test_evaluate_map_rejects_mismatched_views_and_counts_depthless_ones(gt_log,
 
 
 def test_lpips_is_a_number_or_unavailable_with_a_reason(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, every=6)
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(every=6))
     if r["lpips"] is None:
         assert r["lpips_reason"]
     else:
@@ -200,8 +201,19 @@ def test_cli_json(gt_log, seq_dir):
     result = json.loads(r.output)
     assert result["frames_evaluated"] == 2 and result["ate_rmse_cm"] is None
     assert result["poses"] == "ground-truth" and "ground truth" in result["ate_reason"]
-    keys = ("ate_rmse_cm", "ate_splatam_cm", "psnr", "ssim", "ms_ssim", "lpips", "lpips_reason",
-            "depth_l1_cm", "gaussians", "bytes", "frames_evaluated")  # fmt: skip
+    keys = (
+        "ate_rmse_cm",
+        "ate_splatam_cm",
+        "psnr",
+        "ssim",
+        "ms_ssim",
+        "lpips",
+        "lpips_reason",
+        "depth_l1_cm",
+        "gaussians",
+        "bytes",
+        "frames_evaluated",
+    )
     assert set(keys) <= set(result)
     assert result["lpips"] is None and "not asked" in result["lpips_reason"]
 
@@ -272,7 +284,7 @@ def test_cli_errors_are_one_line(gt_log, seq_dir, tmp_path):
     # ... which renders at the poses it is given: here those of the log the map came from
     r = gsc("eval", noposes, "--seq", seq_dir, "--poses-from", gt_log, "--no-lpips", "--json")
     assert r.exit_code == 0, r.output
-    same = evaluate_log(gt_log, seq_dir, lpips=False)
+    same = evaluate_log(gt_log, seq_dir, ImageOptions(lpips=False))
     assert json.loads(r.output)["psnr"] == pytest.approx(same["psnr"], rel=1e-9)
     # poses at times no frame of the sequence has
     other = tmp_path / "other.mcap"
@@ -336,10 +348,10 @@ def test_foxglove_layout_names_our_topics_and_the_importance_field():
 def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, seq_dir, caplog):
     import logging
 
-    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.evaluate"):
-        evaluate_log(gt_log, seq_dir, every=6, lpips=False)
+    with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.logs"):
+        evaluate_log(gt_log, seq_dir, ImageOptions(every=6, lpips=False))
         assert "enlarges" not in caplog.text
-        r = evaluate_log(gt_log, seq_dir, every=6, size=(128, 96), lpips=False)
+        r = evaluate_log(gt_log, seq_dir, ImageOptions(every=6, size=(128, 96), lpips=False))
     assert r["size"] == [128, 96]
     assert "working size 128x96 enlarges room's 64x48 frames" in caplog.text
 
@@ -347,8 +359,8 @@ def test_a_working_size_that_enlarges_the_frames_is_warned_as_in_slam(gt_log, se
 def test_another_scene_under_the_log_sequences_name_is_refused(gt_log, tmp_path):
     other = write_synthetic_sequence(tmp_path / "room", 6, (64, 48), seed=7)
     with pytest.raises(InputError, match="was not recorded on this room: its first frame differs"):
-        evaluate_log(gt_log, other, lpips=False)
-    from gscompress.pipeline.scoring import score_file
+        evaluate_log(gt_log, other, ImageOptions(lpips=False))
+    from gscompress.pipeline.score import score_file
 
     with pytest.raises(InputError, match="was not recorded on this room"):
         score_file(gt_log, tmp_path / "s.mcap", other)
@@ -399,8 +411,10 @@ def test_refining_poses_recovers_a_known_offset():
     intr = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
     gaussians = _relief_map()
     params = activated_tensors(gaussians)
-    truth = [make_transform(axis_angle(np.array([0, 0.05 * k + 1e-9, 0])), [0.1 * k, 0, 0])
-             for k in range(2)]  # fmt: skip
+    truth = [
+        make_transform(axis_angle(np.array([0, 0.05 * k + 1e-9, 0])), [0.1 * k, 0, 0])
+        for k in range(2)
+    ]
     frames = [render_view(params, T, intr) for T in truth]
     assert all((depth > 0).all() for _, depth in frames)  # the map fills every view
     rng = np.random.default_rng(1)
@@ -416,9 +430,11 @@ def test_refining_poses_recovers_a_known_offset():
     assert after[:, 1].mean() < 0.3 * before[:, 1].mean()  # degrees
     at_given = evaluate_map(gaussians, views, intr, lpips=False)["psnr"]
     at_refined = evaluate_map(
-        gaussians, [EvalView(c, d, T) for (c, d), T in zip(frames, refined, strict=True)], intr,
+        gaussians,
+        [EvalView(c, d, T) for (c, d), T in zip(frames, refined, strict=True)],
+        intr,
         lpips=False,
-    )["psnr"]  # fmt: skip
+    )["psnr"]
     assert at_refined > at_given + 10
 
 
@@ -444,9 +460,13 @@ def nudged_trajectory(seq_dir, tmp_path_factory):
 
 
 def test_eval_at_a_trajectory_and_with_poses_refined(gt_log, seq_dir, nudged_trajectory):
-    r = evaluate_log(gt_log, seq_dir, poses=nudged_trajectory, refine_poses=15, every=3,
-                     lpips=False)  # fmt: skip
-    own = evaluate_log(gt_log, seq_dir, every=3, lpips=False)
+    r = evaluate_log(
+        gt_log,
+        seq_dir,
+        ImageOptions(poses=nudged_trajectory, every=3, lpips=False),
+        refine_poses=15,
+    )
+    own = evaluate_log(gt_log, seq_dir, ImageOptions(every=3, lpips=False))
     assert r["poses"] == str(nudged_trajectory) and own["poses"] == "ground-truth"  # (gt_log's)
     assert r["frames_evaluated"] == 2 and r["ate_rmse_cm"] > 0.5  # the nudged poses were used
     assert r["psnr"] < own["psnr"]
@@ -470,9 +490,11 @@ def test_the_union_of_two_evaluations_is_one_evaluation_of_their_frames(
     the first result's where both scored a frame."""
     from gscompress.pipeline.evaluate import union_results
 
-    score = partial(evaluate_log, gt_log, seq_dir, poses=nudged_trajectory, refine_poses=5,
-                    lpips=False)  # fmt: skip
-    first, second, whole = score(frames="0:4"), score(frames="2:6"), score(frames="0:6")
+    def score(frames: str) -> dict:
+        views = ImageOptions(frames=frames, poses=nudged_trajectory, lpips=False)
+        return evaluate_log(gt_log, seq_dir, views, refine_poses=5)
+
+    first, second, whole = score("0:4"), score("2:6"), score("0:6")
     union = union_results(first, second)
     assert union["frames_evaluated"] == whole["frames_evaluated"] == 6
     for key in ("psnr", "ssim", "depth_l1_cm"):
@@ -490,25 +512,47 @@ def test_the_union_of_two_evaluations_is_one_evaluation_of_their_frames(
 
 
 def test_eval_at_another_logs_poses(gt_log, seq_dir):
-    r = evaluate_log(gt_log, seq_dir, poses_from=gt_log, every=3, lpips=False)
-    own = evaluate_log(gt_log, seq_dir, every=3, lpips=False)
+    r = evaluate_log(gt_log, seq_dir, ImageOptions(poses_from=gt_log, every=3, lpips=False))
+    own = evaluate_log(gt_log, seq_dir, ImageOptions(every=3, lpips=False))
     assert r["poses"] == str(gt_log)
     assert r["psnr"] == own["psnr"] and r["per_frame"] == own["per_frame"]
 
 
 def test_cli_poses_options(gt_log, seq_dir, nudged_trajectory):
-    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--refine-poses",
-            "5", "--every", "6", "--no-lpips")  # fmt: skip
+    r = gsc(
+        "eval",
+        gt_log,
+        "--seq",
+        seq_dir,
+        "--poses",
+        nudged_trajectory,
+        "--refine-poses",
+        "5",
+        "--every",
+        "6",
+        "--no-lpips",
+    )
     assert r.exit_code == 0, r.output
     assert "at the poses of" in r.output and "at refined poses (5 iterations" in r.output
     assert "median pose change" in r.output
-    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses-from", gt_log, "--refine-poses", "5",
-            "--every", "6", "--no-lpips", "--json")  # fmt: skip
+    r = gsc(
+        "eval",
+        gt_log,
+        "--seq",
+        seq_dir,
+        "--poses-from",
+        gt_log,
+        "--refine-poses",
+        "5",
+        "--every",
+        "6",
+        "--no-lpips",
+        "--json",
+    )
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
     assert result["refined"]["iters"] == 5 and result["refined"]["pose_change_cm"] >= 0
-    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--poses-from",
-            gt_log)  # fmt: skip
+    r = gsc("eval", gt_log, "--seq", seq_dir, "--poses", nudged_trajectory, "--poses-from", gt_log)
     assert r.exit_code == 2, r.output
     lines = r.output.strip().splitlines()
     assert len(lines) == 1 and "--poses and --poses-from do not go together" in lines[0]
@@ -536,19 +580,21 @@ def test_a_finished_run_logs_its_map_scored_from_every_pose_of_the_run(gt_log, s
     map drawn at every pose of the run, the run's sigma_d); without it, the sums accumulated
     while the map grew, which differ."""
     from gscompress.io.mcap_log import read_map
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     rescored = tmp_path / "rescored.mcap"
     score_file(gt_log, rescored, seq_dir)
     logged, scored = read_map(gt_log), read_map(rescored)
     for name in ("importance_sum", "importance_weight", "alpha_t_sum"):
-        np.testing.assert_allclose(getattr(logged, name), getattr(scored, name), rtol=1e-5,
-                                   atol=1e-6, err_msg=name)  # fmt: skip
+        np.testing.assert_allclose(
+            getattr(logged, name), getattr(scored, name), rtol=1e-5, atol=1e-6, err_msg=name
+        )
     config = tmp_path / "online.yaml"
-    config.write_text("preset: tiny\ntracking:\n  use_ground_truth: true\npwas:\n"
-                      "  final_scores: false\n")  # fmt: skip
+    config.write_text(
+        "preset: tiny\ntracking:\n  use_ground_truth: true\npwas:\n  final_scores: false\n"
+    )
     online = tmp_path / "online.mcap"
-    slam_file(seq_dir, online, preset="tiny", config_path=config)
+    slam_file(seq_dir, online, SlamOptions(preset="tiny", config_path=config))
     grown = read_map(online)
     np.testing.assert_array_equal(grown.means, logged.means)  # the same run, other sums
     assert not np.allclose(grown.alpha_t_sum, logged.alpha_t_sum, rtol=1e-3)
@@ -561,7 +607,7 @@ def test_a_score_of_a_foreign_ply_is_posed_at_the_ground_truth_and_has_no_ate(
 ):
     from gscompress.io.mcap_log import read_map
     from gscompress.io.ply import write_ply
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     ply = write_ply(read_map(gt_log), tmp_path / "foreign.ply", importance=False)
     scored = tmp_path / "scored.mcap"
@@ -584,12 +630,16 @@ def test_a_share_is_scored_at_the_working_size_of_the_log_whose_poses_it_takes(
         pose_ns, poses = reader.read_poses(TOPIC_POSE)
         meta = reader.metadata
     sized = tmp_path / "sized.mcap"
-    with LogWriter(sized, LogMetadata(config={**meta.config, "size": [32, 24]},
-                                      sequence=meta.sequence)) as w:  # fmt: skip
+    with LogWriter(
+        sized, LogMetadata(config={**meta.config, "size": [32, 24]}, sequence=meta.sequence)
+    ) as w:
         for t, T in zip(pose_ns, poses, strict=True):
             w.write_pose(T, int(t))
-    small = evaluate_log(share, seq_dir, poses_from=sized, lpips=False)
+    small = evaluate_log(share, seq_dir, ImageOptions(poses_from=sized, lpips=False))
     assert small["size"] == [32, 24]
-    assert evaluate_log(share, seq_dir, poses_from=gt_log, lpips=False)["size"] == [64, 48]
-    given = evaluate_log(share, seq_dir, poses_from=sized, size=(48, 36), lpips=False)
+    assert evaluate_log(share, seq_dir, ImageOptions(poses_from=gt_log, lpips=False))["size"] == [
+        64,
+        48,
+    ]
+    given = evaluate_log(share, seq_dir, ImageOptions(poses_from=sized, size=(48, 36), lpips=False))
     assert given["size"] == [48, 36]

@@ -15,6 +15,8 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import TOPIC_POSE, LogReader
 from gscompress.io.trajectory import read_tum_trajectory
 from gscompress.pipeline import share_log, slam_file
+from gscompress.pipeline.share.options import ShareOptions
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -26,15 +28,18 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     seq = write_synthetic_sequence(tmp_path_factory.mktemp("seq") / "room", 6, (64, 48))
     log = tmp_path_factory.mktemp("run") / "run.mcap"
-    slam_file(seq, log, preset="tiny")
+    slam_file(seq, log, SlamOptions(preset="tiny"))
     return seq, log
 
 
 def example(name: str, *args: object) -> str:
     proc = subprocess.run(
         [sys.executable, str(EXAMPLES / name), *map(str, args)],
-        capture_output=True, text=True, timeout=300, check=False,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr
     return proc.stdout
 
@@ -43,8 +48,11 @@ def test_the_demo_stops_at_a_failed_step_with_gscs_one_line(tmp_path: Path) -> N
     """A step that fails ends the demo with gsc's own message and exit status, no traceback."""
     proc = subprocess.run(
         [sys.executable, str(EXAMPLES / "demo.py"), "--out", tmp_path / "demo", "--frames", "0"],
-        capture_output=True, text=True, timeout=300, check=False,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
     assert proc.returncode == 2, proc.stderr  # (gsc synth's usage error)
     assert "Traceback" not in proc.stderr
     assert (
@@ -77,12 +85,26 @@ def test_budget_sweep_counts_the_bytes_a_share_of_each_budget_writes(
 ) -> None:
     seq, log = run
     rows_file = tmp_path / "rows.json"
-    example("budget_sweep.py", log, "--seq", seq, "--budgets", "0.2,1", "--strategies",
-            "pwas,random", "--every", 3, "--json", rows_file)  # fmt: skip
+    example(
+        "budget_sweep.py",
+        log,
+        "--seq",
+        seq,
+        "--budgets",
+        "0.2,1",
+        "--strategies",
+        "pwas,random",
+        "--every",
+        3,
+        "--json",
+        rows_file,
+    )
     rows = json.loads(rows_file.read_text())
     assert [(r["budget"], r["strategy"]) for r in rows] == [
-        (0.2, "pwas"), (0.2, "random"), (1.0, "whole map")
-    ]  # fmt: skip
+        (0.2, "pwas"),
+        (0.2, "random"),
+        (1.0, "whole map"),
+    ]
     with LogReader(log) as reader:
         total = len(reader.read_map())
     for row in rows:
@@ -92,8 +114,9 @@ def test_budget_sweep_counts_the_bytes_a_share_of_each_budget_writes(
         if row["budget"] < 1:
             for codec in ("fp32", "fp16", "compact"):
                 dst = tmp_path / f"{row['strategy']}_{codec}.mcap"
-                share = share_log(log, dst, row["budget"], strategy=row["strategy"],
-                                  codec=codec)  # fmt: skip
+                share = share_log(
+                    log, dst, row["budget"], ShareOptions(strategy=row["strategy"], codec=codec)
+                )
                 assert share["bytes"] == row[f"bytes_{codec}"]
 
 
@@ -107,8 +130,9 @@ def test_cluster_study_runs_each_sequence_and_tabulates_pwas_against_random(
     shutil.copytree(tiny_sequence, other)
     study = tmp_path / "study"
     options = [o for o in TINY_STUDY if o != "--json"]
-    out = example("cluster_study.py", tiny_sequence, other, "-o", study, "--executor", "local",
-                  "--", *options)  # fmt: skip
+    out = example(
+        "cluster_study.py", tiny_sequence, other, "-o", study, "--executor", "local", "--", *options
+    )
     table = json.loads((study / "summary.json").read_text())
     assert [row["sequence"] for row in table] == ["room", "room2"]
     for row in table:

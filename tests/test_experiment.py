@@ -27,8 +27,8 @@ from gscompress.pipeline.experiment import (
     resolve_settings,
 )
 from gscompress.pipeline.experiment.protocol import FULL_STUDY, PROTOCOLS, reference_formats
-from gscompress.pipeline.experiment.report import curve_at
-from gscompress.pipeline.offline import smallest_share_bytes
+from gscompress.pipeline.experiment.results import curve_at
+from gscompress.pipeline.share.cut import smallest_share_bytes
 from gscompress_cli.main import cli
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -50,8 +50,23 @@ PAPER_FULL = {**FULL_STUDY, **PROTOCOLS["paper"]}
 
 def _run(seq: Path, out: Path, *extra: str, refine: tuple[str, ...] = REFINE) -> dict:
     """The fixture's experiment written to `out`, with `extra` options; its JSON result."""
-    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *STUDY, *refine, *extra]  # fmt: skip
+    args = [
+        "experiment",
+        str(seq),
+        "-o",
+        str(out),
+        "--preset",
+        "tiny",
+        "--seeds",
+        "1",
+        "--sweep",
+        "0.2,0.5",
+        "--no-lpips",
+        "--json",
+        *STUDY,
+        *refine,
+        *extra,
+    ]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     return json.loads(r.output)
@@ -75,10 +90,16 @@ def experiment(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, di
 
 def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, dict]) -> None:
     _seq, out, result = experiment
-    settings = ExperimentSettings(**{
-        **PAPER_FULL, "preset": "tiny", "seeds": 1, "sweep": ("0.2", "0.5"), "lpips": False,
-        "refine_poses": 3,
-    })  # fmt: skip
+    settings = ExperimentSettings(
+        **{
+            **PAPER_FULL,
+            "preset": "tiny",
+            "seeds": 1,
+            "sweep": ("0.2", "0.5"),
+            "lpips": False,
+            "refine_poses": 3,
+        }
+    )
     assert result["steps"] == plan_size(settings) and result["reused"] == 0
     rows = json.loads((out / "results.json").read_text())
     assert all(set(REQUIRED) <= set(row) for row in rows)
@@ -129,7 +150,7 @@ def test_experiment_writes_tables_rows_and_plots(experiment: tuple[Path, Path, d
     assert result["verdicts"]["psnr_key"] == "refined_psnr_all"
     pwas, random = (
         by_name[(f"B + {k} 0.2", "table4")]["refined_psnr_all"] for k in ("pwas", "random")
-    )  # fmt: skip
+    )
     assert first["pairs"] == 1 and first["psnr_difference_se"] is None
     assert first["psnr_difference"] == pytest.approx(pwas - random)
     cells = result["verdicts"]["cells"]  # 1 seed x 2 budgets, PWAS against three others
@@ -176,8 +197,9 @@ def test_pwas_without_proximity_ranks_a_scored_again_from_its_own_frames(
     assert share["selected"] == round(0.2 * len(online))
     rows = json.loads((out / "results.json").read_text())
     assert {r["name"] for r in rows if r["strategy"] == "pwas-inf"} == {
-        "B + pwas-inf 0.2", "B + pwas-inf 0.5"
-    }  # fmt: skip
+        "B + pwas-inf 0.2",
+        "B + pwas-inf 0.5",
+    }
     settings = ExperimentSettings(strategies=("random", "pwas", "pwas-final"))
     settings.check()
     with pytest.raises(OptionError, match="unknown strategies"):
@@ -189,7 +211,7 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     refined poses; each B map starts at B's poses on B's frames, at A's on A's, and on all
     frames at its own where it has them and A's elsewhere."""
     from gscompress.io.trajectory import read_tum_trajectory
-    from gscompress.pipeline.evaluate import pose_source
+    from gscompress.pipeline.logs import pose_source
 
     _seq, out, _result = experiment
     rows = json.loads((out / "results.json").read_text())
@@ -205,8 +227,10 @@ def test_cross_agent_scoring_fills_the_three_columns(experiment: tuple[Path, Pat
     record = json.loads((out / "runs" / "s0_pwas_0p2_agent_b_xeval.json").read_text())
     cross = record["result"]["cross"]
     assert [cross[k]["start"] for k in ("a", "b", "all")] == [
-        "the other agent's", "own", "own, the other agent's elsewhere",
-    ]  # fmt: skip
+        "the other agent's",
+        "own",
+        "own, the other agent's elsewhere",
+    ]
     assert (cross["a"]["frames"], cross["b"]["frames"]) == ("odd", "even")
     assert cross["all"]["frames_evaluated"] == 4 and cross["a"]["frames_evaluated"] == 2
     centralised = json.loads((out / "runs" / "full_pwas_xeval.json").read_text())["result"]
@@ -238,8 +262,9 @@ def test_refine_poses_0_leaves_the_own_frame_scores_alone(
     scored = json.loads((copy / "results.json").read_text())
     scored_md = (copy / "results.md").read_text()
     result = _run(seq, copy, refine=("--refine-poses", "0"))
-    settings = ExperimentSettings(**{**PAPER_FULL, "preset": "tiny", "seeds": 1,
-                                     "sweep": ("0.2", "0.5"), "refine_poses": 0})  # fmt: skip
+    settings = ExperimentSettings(
+        **{**PAPER_FULL, "preset": "tiny", "seeds": 1, "sweep": ("0.2", "0.5"), "refine_poses": 0}
+    )
     references = len(reference_formats(settings))  # (a share and B's run with it, each)
     assert result["steps"] == result["reused"] == plan_size(settings) == 28 + 2 * references
     rows = json.loads((copy / "results.json").read_text())
@@ -266,9 +291,26 @@ def test_parallel_runs_give_the_same_rows(
     seq, out, first = experiment
     parallel = out.parent / "parallel"
     threads = 2 * torch.get_num_threads()  # each worker gets what the fixture's runs had
-    args = ["--threads", str(threads), "experiment", str(seq), "-o", str(parallel),
-            "--preset", "tiny", "--seeds", "1", "--sweep", "0.2,0.5", "--no-lpips", "--json",
-            "--jobs", "2", *STUDY, *REFINE]  # fmt: skip
+    args = [
+        "--threads",
+        str(threads),
+        "experiment",
+        str(seq),
+        "-o",
+        str(parallel),
+        "--preset",
+        "tiny",
+        "--seeds",
+        "1",
+        "--sweep",
+        "0.2,0.5",
+        "--no-lpips",
+        "--json",
+        "--jobs",
+        "2",
+        *STUDY,
+        *REFINE,
+    ]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
@@ -286,8 +328,9 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
     experiment: tuple[Path, Path, dict],
 ) -> None:
     _seq, out, _result = experiment
-    settings = ExperimentSettings(**{**PAPER_FULL, "preset": "tiny", "seeds": 1,
-                                     "sweep": ("0.2", "0.5"), "lpips": False})  # fmt: skip
+    settings = ExperimentSettings(
+        **{**PAPER_FULL, "preset": "tiny", "seeds": 1, "sweep": ("0.2", "0.5"), "lpips": False}
+    )
     rows = json.loads((out / "results.json").read_text())
     alone = next(r for r in rows if r["name"] == "B refined, no share")
     full = next(r for r in rows if r["strategy"] == "full")
@@ -309,8 +352,9 @@ def test_rate_distortion_curves_start_at_b_without_a_share(
                 r[key] for r in sorted(sweep, key=lambda r: r["share_bytes"])
             ]
         assert curves["full"] == [(full["share_bytes"], full[key], full["ate_rmse_cm"])]
-    inject = ExperimentSettings(**{**PAPER_FULL, "preset": "tiny", "seeds": 1,
-                                   "sweep": ("0.2", "0.5"), "mode": "inject"})  # fmt: skip
+    inject = ExperimentSettings(
+        **{**PAPER_FULL, "preset": "tiny", "seeds": 1, "sweep": ("0.2", "0.5"), "mode": "inject"}
+    )
     b = next(r for r in rows if r["name"] == "agent B (even frames)")
     assert rate_distortion_curves(rows, inject)["pwas"][0][1] == b["refined_psnr_all"]
     assert rate_distortion_curves(rows, ExperimentSettings(preset="tiny", sweep_seeds=0)) == {}
@@ -337,29 +381,47 @@ def test_pwas_minus_random_is_paired_by_seed() -> None:
         return {"seed": seed, "budget": "0.2", "strategy": strategy, "psnr": psnr}
 
     group = [
-        row(0, "pwas", 25.0), row(0, "random", 24.9), row(1, "random", 25.3),
-        row(1, "pwas", 25.2), row(2, "pwas", 24.9), row(2, "random", 24.6),
+        row(0, "pwas", 25.0),
+        row(0, "random", 24.9),
+        row(1, "random", 25.3),
+        row(1, "pwas", 25.2),
+        row(2, "pwas", 24.9),
+        row(2, "random", 24.6),
         row(2, "opacity", 30.0),  # another strategy: not compared
         row(3, "pwas", 26.0),  # no random run for seed 3
-        row(4, "pwas", None), row(4, "random", 24.0),  # no PSNR for PWAS
-        row(5, "pwas", float("nan")), row(5, "random", 24.0),
-    ]  # fmt: skip
+        row(4, "pwas", None),
+        row(4, "random", 24.0),  # no PSNR for PWAS
+        row(5, "pwas", float("nan")),
+        row(5, "random", 24.0),
+    ]
     d = paired_difference(group, "psnr")  # differences +0.1, -0.1, +0.3
     assert (d["pairs"], d["positive"], d["negative"]) == (3, 2, 1)
     assert (d["above"], d["ties"], d["below"]) == (2, 0, 1)
     assert d["mean"] == pytest.approx(0.1)
     assert d["se"] == pytest.approx(0.2 / 3**0.5)
     none = paired_difference(group[6:8], "psnr")
-    assert none == {"pairs": 0, "mean": None, "se": None, "positive": 0, "negative": 0,
-                    "above": 0, "below": 0, "ties": 0}  # fmt: skip
+    assert none == {
+        "pairs": 0,
+        "mean": None,
+        "se": None,
+        "positive": 0,
+        "negative": 0,
+        "above": 0,
+        "below": 0,
+        "ties": 0,
+    }
     opacity = paired_difference(group, "psnr", "opacity")  # seed 2 only: 24.9 - 30.0
     assert opacity["pairs"] == 1 and opacity["mean"] == pytest.approx(-5.1)
     # pairs are (seed, budget) cells; a difference within TIE_DB is a tie, counted apart
     cells = [
         {"seed": 0, "budget": b, "strategy": k, "psnr": v}
-        for b, k, v in [("1%", "pwas", 20.0), ("1%", "random", 20.004), ("2%", "pwas", 21.0),
-                        ("2%", "random", 20.5)]
-    ]  # fmt: skip
+        for b, k, v in [
+            ("1%", "pwas", 20.0),
+            ("1%", "random", 20.004),
+            ("2%", "pwas", 21.0),
+            ("2%", "random", 20.5),
+        ]
+    ]
     tied = paired_difference(cells, "psnr")
     assert (tied["pairs"], tied["above"], tied["ties"], tied["below"]) == (2, 1, 1, 0)
 
@@ -489,8 +551,11 @@ def test_agent_frames_split_the_experiment_frames() -> None:
     assert list(parse_frames(b).apply(100)) == list(range(10, 30, 2))
     a, b = ExperimentSettings(frames="::3").agent_frames()
     assert list(parse_frames(a).apply(20)) == [3, 9, 15] and list(parse_frames(b).apply(20)) == [
-        0, 6, 12, 18,
-    ]  # fmt: skip
+        0,
+        6,
+        12,
+        18,
+    ]
     with pytest.raises(InputError):
         ExperimentSettings(frames="odd").check()
 
@@ -498,9 +563,28 @@ def test_agent_frames_split_the_experiment_frames() -> None:
 def test_inject_mode_runs_b_again_with_the_share(experiment: tuple[Path, Path, dict]) -> None:
     seq, out, _ = experiment
     inject = out.parent / "inject"
-    args = ["experiment", str(seq), "-o", str(inject), "--preset", "tiny",
-            "--seeds", "1", "--sweep", "0.2", "--strategies", "random,pwas", "--mode", "inject",
-            "--sweep-seeds", "0", "--no-lpips", "--json", "--refine-poses", "0"]  # fmt: skip
+    args = [
+        "experiment",
+        str(seq),
+        "-o",
+        str(inject),
+        "--preset",
+        "tiny",
+        "--seeds",
+        "1",
+        "--sweep",
+        "0.2",
+        "--strategies",
+        "random,pwas",
+        "--mode",
+        "inject",
+        "--sweep-seeds",
+        "0",
+        "--no-lpips",
+        "--json",
+        "--refine-poses",
+        "0",
+    ]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     rows = json.loads((inject / "results.json").read_text())
@@ -518,8 +602,22 @@ def test_both_modes_share_one_folder_without_overwriting_runs(
     experiment: tuple[Path, Path, dict],
 ) -> None:
     seq, out, first = experiment
-    base = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2,0.5", "--no-lpips", "--json", *STUDY, *REFINE]  # fmt: skip
+    base = [
+        "experiment",
+        str(seq),
+        "-o",
+        str(out),
+        "--preset",
+        "tiny",
+        "--seeds",
+        "1",
+        "--sweep",
+        "0.2,0.5",
+        "--no-lpips",
+        "--json",
+        *STUDY,
+        *REFINE,
+    ]
     r = CliRunner().invoke(cli, [*base, "--mode", "inject", "--strategies", "random,pwas"])
     assert r.exit_code == 0, r.output
     inject = json.loads(r.output)
@@ -568,8 +666,22 @@ def test_sigterm_stops_the_workers_and_a_rerun_goes_on(tmp_path: Path) -> None:
 
     seq = write_synthetic_sequence(tmp_path / "room", 16, (64, 48))
     out = tmp_path / "exp"
-    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep-seeds", "0", "--no-lpips", "--json", "--refine-poses", "0"]  # fmt: skip
+    args = [
+        "experiment",
+        str(seq),
+        "-o",
+        str(out),
+        "--preset",
+        "tiny",
+        "--seeds",
+        "1",
+        "--sweep-seeds",
+        "0",
+        "--no-lpips",
+        "--json",
+        "--refine-poses",
+        "0",
+    ]
     cmd = [sys.executable, "-m", "gscompress_cli", "--threads", "2", *args, "--jobs", "2"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
@@ -613,9 +725,28 @@ def test_workers_end_when_the_runner_is_killed_outright(tmp_path: Path) -> None:
 
     seq = write_synthetic_sequence(tmp_path / "room", 16, (64, 48))
     out = tmp_path / "exp"
-    cmd = [sys.executable, "-m", "gscompress_cli", "--threads", "2", "experiment", str(seq),
-           "-o", str(out), "--preset", "tiny", "--seeds", "1", "--sweep-seeds", "0",
-           "--no-lpips", "--jobs", "2", "--refine-poses", "0"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "gscompress_cli",
+        "--threads",
+        "2",
+        "experiment",
+        str(seq),
+        "-o",
+        str(out),
+        "--preset",
+        "tiny",
+        "--seeds",
+        "1",
+        "--sweep-seeds",
+        "0",
+        "--no-lpips",
+        "--jobs",
+        "2",
+        "--refine-poses",
+        "0",
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + 300
@@ -707,12 +838,16 @@ def test_halves_split_names_frame_subsets_of_the_experiment_frames() -> None:
     a, b = ExperimentSettings(split="halves", overlap=0.2, frames="10:60:2").agent_frames(25)
     assert list(parse_frames(a).apply(100)) == list(range(10, 40, 2))  # positions 0..14
     assert list(parse_frames(b).apply(100)) == list(range(30, 60, 2))  # positions 10..24
-    for bad in ({"split": "thirds"}, {"split": "halves", "overlap": 1.0},
-                {"split": "halves", "overlap": -0.1}):  # fmt: skip
+    for bad in (
+        {"split": "thirds"},
+        {"split": "halves", "overlap": 1.0},
+        {"split": "halves", "overlap": -0.1},
+    ):
         with pytest.raises(OptionError):
             ExperimentSettings(**bad).check()
-    r = CliRunner().invoke(cli, ["experiment", ".", "-o", "x", "--split", "halves", "--overlap",
-                                 "1"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["experiment", ".", "-o", "x", "--split", "halves", "--overlap", "1"]
+    )
     assert r.exit_code == 2 and "--overlap" in r.output
 
 
@@ -724,15 +859,46 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
 
     seq = write_synthetic_sequence(tmp_path / "room", 4, (64, 48))
     out = tmp_path / "exp"
-    args = ["experiment", str(seq), "-o", str(out), "--preset", "tiny", "--seeds", "1",
-            "--sweep", "0.2", "--strategies", "random,pwas", "--sweep-seeds", "0",
-            "--split", "halves", "--anchor", "own", "--merge-iters", "0", "--no-lpips",
-            "--json", "--refine-poses", "2"]  # fmt: skip
+    args = [
+        "experiment",
+        str(seq),
+        "-o",
+        str(out),
+        "--preset",
+        "tiny",
+        "--seeds",
+        "1",
+        "--sweep",
+        "0.2",
+        "--strategies",
+        "random,pwas",
+        "--sweep-seeds",
+        "0",
+        "--split",
+        "halves",
+        "--anchor",
+        "own",
+        "--merge-iters",
+        "0",
+        "--no-lpips",
+        "--json",
+        "--refine-poses",
+        "2",
+    ]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
-    settings = ExperimentSettings(preset="tiny", seeds=1, sweep=("0.2",), sweep_seeds=0,
-                                  strategies=("random", "pwas"), split="halves", anchor="own",
-                                  merge_iters=0, lpips=False, refine_poses=2)  # fmt: skip
+    settings = ExperimentSettings(
+        preset="tiny",
+        seeds=1,
+        sweep=("0.2",),
+        sweep_seeds=0,
+        strategies=("random", "pwas"),
+        split="halves",
+        anchor="own",
+        merge_iters=0,
+        lpips=False,
+        refine_poses=2,
+    )
     assert json.loads(r.output)["steps"] == plan_size(settings)
     rows = {row["name"]: row for row in json.loads((out / "results.json").read_text())}
     est, true = rows["B + pwas 0.2"], rows["B + pwas at the true transform 0.2"]
@@ -757,7 +923,7 @@ def test_anchor_own_aligns_the_agents_and_merges_at_both_transforms(tmp_path: Pa
     assert {"registration_error_cm", "drift_cm"} <= aligned["on_frames"].keys()
     # cross-agent scoring: B's map on A's frames starts at A's poses moved by the estimate
     from gscompress.io.trajectory import read_tum_trajectory
-    from gscompress.pipeline.evaluate import pose_source
+    from gscompress.pipeline.logs import pose_source
 
     start = read_tum_trajectory(out / "runs" / "s0_pwas_0p2_agent_b_xeval_start_a.txt")
     poses_a = pose_source(out / rows["agent A (first part)"]["log"]).T_world_cam
@@ -778,8 +944,12 @@ def test_folded_spread_shares_and_the_default_merge_rerun_only_what_they_change(
     assert len(folded) >= 2 and all(s["result"]["fold"] for s in folded)  # pwas and random
     assert all(s["spec"]["spread"] and s["result"]["spread"] for s in folded)
     assert "spread over space (`--spread`)" in (copy / "results.md").read_text()
-    merges = [name for name, r in records.items() if r.get("spec", {}).get("kind") == "merge"
-              and r["spec"].get("merge", {}).get("resolve") == "evidence"]  # fmt: skip
+    merges = [
+        name
+        for name, r in records.items()
+        if r.get("spec", {}).get("kind") == "merge"
+        and r["spec"].get("merge", {}).get("resolve") == "evidence"
+    ]
     assert merges
     for name in merges:
         with LogReader(copy / "runs" / f"{name}.mcap") as log:
@@ -826,5 +996,5 @@ def test_shares_cut_for_b_sit_beside_the_blind_ones(
     assert "B + pwas-for-b 0.2" in (copy / "results.md").read_text()
     r = CliRunner().invoke(
         cli, ["experiment", str(seq), "-o", str(copy), "--strategies", "pwas,random,opacity-for-c"]
-    )  # fmt: skip
+    )
     assert r.exit_code != 0 and "unknown strategies ['opacity-for-c']" in r.output

@@ -50,13 +50,18 @@ def test_the_default_shares_and_merges_are_the_commands(monkeypatch, tmp_path) -
     s = _settings(monkeypatch, tmp_path)
     share = _defaults(share_command)
     assert (s.fold, s.sums, s.ids, s.spread) == (
-        share["fold"], share["sums"], share["ids"], share["spread"],
-    )  # fmt: skip
+        share["fold"],
+        share["sums"],
+        share["ids"],
+        share["spread"],
+    )
     assert s.budget == share["budget"] and "pwas" in s.strategies
     merge = _defaults(merge_command)
     assert (s.merge_iters, s.merge_views, s.merge_lr_final) == (
-        merge["iters"], merge["views"], merge["lr_final"],
-    )  # fmt: skip
+        merge["iters"],
+        merge["views"],
+        merge["lr_final"],
+    )
     fields = ("align", "icp", "resolve", "voxel", "margin", "share_rate", "by_view", "footprint")
     assert merge_options(s.merge_how) == MergeOptions(**{f: merge[f] for f in fields})
 
@@ -82,8 +87,20 @@ def test_a_default_row_is_gsc_share_and_gsc_merge_run_by_hand(tmp_path: Path) ->
     its command line, which differs: the experiment's shares record none.)"""
     seq = write_synthetic_sequence(tmp_path / "room", 4, (64, 48))
     out = tmp_path / "exp"
-    r = CliRunner().invoke(cli, ["experiment", str(seq), "-o", str(out), "--preset", "tiny",
-                                 "--refine-poses", "0", "--no-lpips"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "experiment",
+            str(seq),
+            "-o",
+            str(out),
+            "--preset",
+            "tiny",
+            "--refine-poses",
+            "0",
+            "--no-lpips",
+        ],
+    )
     assert r.exit_code == 0, r.output
     steps = plan_size(ExperimentSettings(refine_poses=0))
     assert f"experiment: {steps} steps" in r.output and "protocol commands" in r.output
@@ -105,11 +122,43 @@ def test_a_default_row_is_gsc_share_and_gsc_merge_run_by_hand(tmp_path: Path) ->
 
     mine, theirs = read_map(tmp_path / "share.mcap"), read_map(runs / "s0_pwas_0p2_share.mcap")
     assert (mine.means == theirs.means).all() and (mine.importance == theirs.importance).all()
-    gsc("merge", runs / "s0_agent_b.mcap", tmp_path / "share.mcap", "--seq", seq, "-o",
-        tmp_path / "merged.mcap")  # fmt: skip
+    gsc(
+        "merge",
+        runs / "s0_agent_b.mcap",
+        tmp_path / "share.mcap",
+        "--seq",
+        seq,
+        "-o",
+        tmp_path / "merged.mcap",
+    )
     merged = read_map(tmp_path / "merged.mcap")
     assert len(merged) == row["gaussians"]
     assert (merged.means == read_map(out / row["log"]).means).all()
     every = ExperimentSettings().every  # (the experiment's evaluation: every N-th frame)
     scores = gsc("eval", tmp_path / "merged.mcap", "--seq", seq, "--every", every, "--no-lpips")
     assert scores["psnr"] == row["psnr"]
+
+
+def test_the_estimate_prices_each_kind_of_work_as_timed_on_two_frames(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Tracking-like iterations, mapping-like iterations and evaluation renders are counted
+    apart and priced apart: one kind at a second a unit and the others free gives that kind's
+    count; the pricing run maps the first frame and tracks and maps the second."""
+    from gscompress.datasets import open_sequence
+    from gscompress.pipeline.experiment import estimate as module
+
+    first = _settings(monkeypatch, tmp_path, "--preset", "tiny")
+    _, base = resolve_settings(first)
+    work = module.plan_work(first, base, 16)
+    assert min(work.parts()) > 0
+    assert round(sum(work.parts())) == render_passes(first, base, 16)
+    write_synthetic_sequence(tmp_path / "s", frames=2, size=(32, 24))
+    sequence = open_sequence(tmp_path / "s")
+    price = module.unit_seconds(sequence, base)
+    assert min(price.parts()) > 0
+    on_two = module.plan_work(first, base, len(sequence)).parts()
+    for i, kind in enumerate(("tracking", "mapping", "renders")):
+        priced = module.Work(**{kind: 1.0})
+        monkeypatch.setattr(module, "unit_seconds", lambda *a, p=priced: p)
+        assert module.estimate(first, base, sequence, steps=18)["seconds"] == on_two[i]

@@ -15,6 +15,7 @@ from conftest import TINY_STUDY
 
 from gscompress.errors import MissingDependencyError, OptionError
 from gscompress.pipeline.experiment import ExperimentSettings, execution, run_experiment
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress_cli.main import cli
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -51,8 +52,17 @@ def test_two_node_ray_cluster_gives_the_local_executors_rows(
         cluster.add_node(**node)
         ids = {n.node_id for n in cluster.list_all_nodes()}
         on_ray = tmp_path / "ray"
-        args = ["experiment", str(tiny_sequence), "-o", str(on_ray), *TINY_STUDY,
-                "--executor", "ray", "--address", cluster.address]  # fmt: skip
+        args = [
+            "experiment",
+            str(tiny_sequence),
+            "-o",
+            str(on_ray),
+            *TINY_STUDY,
+            "--executor",
+            "ray",
+            "--address",
+            cluster.address,
+        ]
         r = CliRunner().invoke(cli, args)
         assert r.exit_code == 0, r.output
         result = json.loads(r.output)
@@ -64,8 +74,17 @@ def test_two_node_ray_cluster_gives_the_local_executors_rows(
         broken = tmp_path / "broken"
         shutil.copytree(tiny_sequence, broken)
         (broken / "depth" / "000003.png").write_bytes(b"not a png")
-        args = ["experiment", str(broken), "-o", str(tmp_path / "failing"), *TINY_STUDY,
-                "--executor", "ray", "--address", cluster.address]  # fmt: skip
+        args = [
+            "experiment",
+            str(broken),
+            "-o",
+            str(tmp_path / "failing"),
+            *TINY_STUDY,
+            "--executor",
+            "ray",
+            "--address",
+            cluster.address,
+        ]
         failing = CliRunner().invoke(cli, args)
         # runs that no node can hold are refused, not left waiting for ever
         big = CliRunner().invoke(cli, [*args, "--cpus-per-run", "2"])
@@ -85,8 +104,10 @@ def test_two_node_ray_cluster_gives_the_local_executors_rows(
     assert big.exit_code == 2 and "no node of the Ray cluster has 2 CPUs" in big.output
     assert failing.exit_code == 1, failing.output
     failed = json.loads(failing.stdout)["failed"]
-    scoring = [f"{name}_xeval" for name in ("full_pwas", "s0_agent_a", "s0_agent_b",
-                                            "s0_no_share_agent_b", *NEEDS_A[1::2])]  # fmt: skip
+    scoring = [
+        f"{name}_xeval"
+        for name in ("full_pwas", "s0_agent_a", "s0_agent_b", "s0_no_share_agent_b", *NEEDS_A[1::2])
+    ]
     assert set(failed) == {"full_no_prune", "full_pwas", "s0_agent_a", *NEEDS_A, *scoring}
     assert failed["s0_agent_a"].startswith("DatasetError: cannot read depth image")
     assert "its last log lines" in failed["s0_agent_a"]
@@ -114,9 +135,13 @@ def test_without_ray_the_ray_executor_says_how_to_install_it(
 
 @pytest.mark.parametrize(
     "options",
-    [{"executor": "ray", "jobs": 2}, {"address": "auto"}, {"cpus_per_run": 2.0},
-     {"executor": "slurm"}],
-)  # fmt: skip
+    [
+        {"executor": "ray", "jobs": 2},
+        {"address": "auto"},
+        {"cpus_per_run": 2.0},
+        {"executor": "slurm"},
+    ],
+)
 def test_options_of_another_executor_are_refused(
     tiny_sequence: Path, tmp_path: Path, options: dict
 ) -> None:
@@ -139,13 +164,12 @@ def test_a_failing_run_is_retried_once_then_reported_and_the_rest_completes(
     attempts = []
     share_job = execution._share_job
 
-    def failing(path: Path, source: Path, budget: str, strategy: str, seed: int,
-                **options: Any) -> dict:  # fmt: skip
-        if strategy == "random":
+    def failing(path: Path, source: Path, budget: str, options: ShareOptions, **more: Any) -> dict:
+        if options.strategy == "random":
             attempts.append(path.name)
             execution.log.warning("about to fail")
             raise RuntimeError("disk on fire")
-        return share_job(path, source, budget, strategy, seed, **options)
+        return share_job(path, source, budget, options, **more)
 
     monkeypatch.setattr(execution, "_share_job", failing)
     out = tmp_path / "exp"

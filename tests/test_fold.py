@@ -14,7 +14,8 @@ from gscompress.io.mcap_log import LogMetadata, LogWriter
 from gscompress.ops import fold as fold_module
 from gscompress.ops.budget import Budget, largest_count_within
 from gscompress.ops.fold import FOLD_REACH, Folding, fold, fold_groups, moment_match
-from gscompress.pipeline.offline import ShareCut
+from gscompress.pipeline.share.cut import ShareCut
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import select_by, select_count, selection_scores, top_k
 from gscompress.threads import use_threads
 
@@ -109,9 +110,13 @@ def test_a_folded_prune_draws_the_surface_a_dropped_one_leaves_as_holes():
 
     n = 40
     g = row_map(n, spacing=0.02, scale=0.01)
-    g = GaussianMap.new(**{**{f: getattr(g, f) for f in ("means", "log_scales", "quats")},
-                           "opacity_logits": g.opacity_logits,
-                           "sh_dc": np.full((n, 3), 1.5)})  # fmt: skip
+    g = GaussianMap.new(
+        **{
+            **{f: getattr(g, f) for f in ("means", "log_scales", "quats")},
+            "opacity_logits": g.opacity_logits,
+            "sh_dc": np.full((n, 3), 1.5),
+        }
+    )
     intrinsics = Intrinsics(60.0, 60.0, 32.0, 8.0, 64, 16)
     pose = make_transform(np.eye(3), np.array([0.39, 0.0, 0.0]))
 
@@ -214,8 +219,9 @@ def varied_map(seed: int, n: int, isotropic: bool = True, sh_degree: int = 0) ->
     g = random_map(n, seed, isotropic, sh_degree, extent=3.0)
     clustered = rng.random(n) < 0.6
     centres = rng.uniform(-3.0, 3.0, (5, 3))
-    g.means[clustered] = (centres[rng.integers(0, 5, clustered.sum())]
-                          + rng.normal(0.0, 0.1, (clustered.sum(), 3)))  # fmt: skip
+    g.means[clustered] = centres[rng.integers(0, 5, clustered.sum())] + rng.normal(
+        0.0, 0.1, (clustered.sum(), 3)
+    )
     return g.validate()
 
 
@@ -289,10 +295,15 @@ def test_equal_distances_go_to_one_of_the_nearest_kept():
     side = np.arange(12, dtype=np.float64) * 0.02
     means = np.stack(np.meshgrid(side, side, side, indexing="ij"), -1).reshape(-1, 3)
     n = len(means)
-    g = GaussianMap.new(means=means, log_scales=np.full((n, 1), np.log(0.01)),
-                        quats=np.tile([1.0, 0, 0, 0], (n, 1)), opacity_logits=np.zeros(n),
-                        sh_dc=np.zeros((n, 3)), importance_sum=np.random.default_rng(0).random(n),
-                        importance_weight=np.ones(n))  # fmt: skip
+    g = GaussianMap.new(
+        means=means,
+        log_scales=np.full((n, 1), np.log(0.01)),
+        quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+        opacity_logits=np.zeros(n),
+        sh_dc=np.zeros((n, 3)),
+        importance_sum=np.random.default_rng(0).random(n),
+        importance_weight=np.ones(n),
+    )
     scores = selection_scores(g, "pwas")
     folding = Folding(g)
     for k in (300, 800, 840, 836, 838):
@@ -325,9 +336,10 @@ def test_a_byte_budget_search_chooses_the_count_and_bytes_of_the_plain_reference
     with LogWriter(src, LogMetadata(command="test")) as log:
         log.write_gaussians(g, 0)
     for codec in ("compact", "fp16"):
-        whole = ShareCut(src, Budget.parse("1"), codec=codec).size(len(g))
+        whole = ShareCut(src, Budget.parse("1"), ShareOptions(codec=codec)).size(len(g))
         budget = Budget(budget_bytes=int(whole * rng.uniform(0.05, 0.6)))
-        cut, plain = ShareCut(src, budget, codec=codec), PlainCut(src, budget, codec=codec)
+        how = ShareOptions(codec=codec)
+        cut, plain = ShareCut(src, budget, how), PlainCut(src, budget, how)
         count = largest_count_within(budget.budget_bytes, len(g), cut.size)
         assert count == largest_count_within(budget.budget_bytes, len(g), plain.size)
         data = cut.file(count)[0]

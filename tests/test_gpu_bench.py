@@ -73,8 +73,11 @@ def test_table_smoke_writes_the_gpu_json(tmp_path):
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     out = tmp_path / "out"
     assert sorted(p.name for p in out.iterdir()) == [
-        "gpu_tabletop.json", "gpu_tabletop.log", "gpu_tests.txt", "setup.json",
-    ]  # fmt: skip
+        "gpu_tabletop.json",
+        "gpu_tabletop.log",
+        "gpu_tests.txt",
+        "setup.json",
+    ]
     setup = json.loads((out / "setup.json").read_text())
     assert setup["mode"] == "cpu-smoke"
     assert set(setup["steps_s"]) == {"files", "venv", "wheels", "gscompress"}
@@ -108,10 +111,26 @@ def test_a_run_past_its_deadline_stops_and_is_scored_as_far_as_it_got(tmp_path):
     config = save_config(preset("tiny").with_overrides(backend="torch"), tmp_path / "run.yaml")
     record_path = tmp_path / "run.json"
     child = [
-        sys.executable, str(GPU_BENCH / "table.py"), "--child", "unpruned", str(seq),
-        "--log", str(tmp_path / "run.mcap"), "--config", str(config), "--frames", "all",
-        "--device", "cpu", "--deadline", "0", "--threads", "1", "--json-out", str(record_path),
-    ]  # fmt: skip
+        sys.executable,
+        str(GPU_BENCH / "table.py"),
+        "--child",
+        "unpruned",
+        str(seq),
+        "--log",
+        str(tmp_path / "run.mcap"),
+        "--config",
+        str(config),
+        "--frames",
+        "all",
+        "--device",
+        "cpu",
+        "--deadline",
+        "0",
+        "--threads",
+        "1",
+        "--json-out",
+        str(record_path),
+    ]
     done = subprocess.run(child, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "[unpruned] deadline: stopped after frame 1 of 3" in done.stdout

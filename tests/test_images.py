@@ -55,8 +55,18 @@ def test_importance_colours_span_the_colour_map_from_least_to_most_important(run
 def test_side_by_side_figure_and_every_colouring_are_written(run, tmp_path):
     out = tmp_path / "pics"
     colors = ("--color", "rgb", "--color", "importance", "--color", "depth")
-    r = gsc("render", run["log"], "--seq", run["seq"], "-o", out, "--frames", "2:4", *colors,
-            "--side-by-side")  # fmt: skip
+    r = gsc(
+        "render",
+        run["log"],
+        "--seq",
+        run["seq"],
+        "-o",
+        out,
+        "--frames",
+        "2:4",
+        *colors,
+        "--side-by-side",
+    )
     assert r.exit_code == 0, r.output
     for folder in ("rgb", "importance", "depth", "side_by_side"):
         assert sorted(p.name for p in (out / folder).iterdir()) == ["000002.png", "000003.png"]
@@ -90,8 +100,20 @@ def test_importance_of_a_map_without_sums_is_refused_before_anything_is_written(
 
 def test_eval_saves_pictures_at_given_and_refined_poses(run, tmp_path):
     out = tmp_path / "pics"
-    r = gsc("eval", run["log"], "--seq", run["seq"], "--frames", "0:2", "--no-lpips",
-            "--refine-poses", "2", "--save-images", out, "--json")  # fmt: skip
+    r = gsc(
+        "eval",
+        run["log"],
+        "--seq",
+        run["seq"],
+        "--frames",
+        "0:2",
+        "--no-lpips",
+        "--refine-poses",
+        "2",
+        "--save-images",
+        out,
+        "--json",
+    )
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
     for folder in ("rgb", "side_by_side", "refined/rgb", "refined/side_by_side"):

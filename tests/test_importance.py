@@ -108,8 +108,18 @@ def test_gsc_score_ply_and_mcap(synth_sequence, tmp_path):
     f = seq.frame(0)
     g = gaussians_from_rgbd(f.color, f.depth, seq.intrinsics, f.T_world_cam, stride=2)
     write_ply(g, tmp_path / "m.ply", importance=False)
-    r = CliRunner().invoke(cli, ["score", str(tmp_path / "m.ply"), "--seq", str(synth_sequence),
-                                 "-o", str(tmp_path / "s.mcap"), "--json"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "score",
+            str(tmp_path / "m.ply"),
+            "--seq",
+            str(synth_sequence),
+            "-o",
+            str(tmp_path / "s.mcap"),
+            "--json",
+        ],
+    )
     assert r.exit_code == 0, r.output
     scored = read_map(tmp_path / "s.mcap")
     assert scored.has_importance and np.array_equal(scored.means, g.means)
@@ -118,16 +128,32 @@ def test_gsc_score_ply_and_mcap(synth_sequence, tmp_path):
         assert counts["/camera/pose"] == 6 and counts["/camera/calibration"] == 1
         assert log.metadata.provenance[-1]["operation"]["name"] == "score"
     # scoring a log again replaces only its map
-    r = CliRunner().invoke(cli, ["score", str(tmp_path / "s.mcap"), "--seq", str(synth_sequence),
-                                 "--frames", "0:3", "-o", str(tmp_path / "t.mcap")])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "score",
+            str(tmp_path / "s.mcap"),
+            "--seq",
+            str(synth_sequence),
+            "--frames",
+            "0:3",
+            "-o",
+            str(tmp_path / "t.mcap"),
+        ],
+    )
     assert r.exit_code == 0, r.output
     again = read_map(tmp_path / "t.mcap")
     assert np.all(again.importance_weight <= scored.importance_weight + 1e-6)
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     calls: list[tuple[int, int]] = []  # what the progress bar is given: views done, of how many
-    score_file(tmp_path / "m.ply", tmp_path / "u.mcap", synth_sequence, frames="1:6:2",
-               progress=lambda done, total: calls.append((done, total)))  # fmt: skip
+    score_file(
+        tmp_path / "m.ply",
+        tmp_path / "u.mcap",
+        synth_sequence,
+        frames="1:6:2",
+        progress=lambda done, total: calls.append((done, total)),
+    )
     assert calls == [(1, 3), (2, 3), (3, 3)]
 
 
@@ -138,8 +164,9 @@ def test_gsc_score_without_poses_is_a_clear_error(synth_sequence, tmp_path):
     shutil.copytree(synth_sequence, seq)
     (seq / "groundtruth.txt").unlink()
     write_ply(_scene(), tmp_path / "m.ply")
-    r = CliRunner().invoke(cli, ["score", str(tmp_path / "m.ply"), "--seq", str(seq),
-                                 "-o", str(tmp_path / "s.mcap")])  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["score", str(tmp_path / "m.ply"), "--seq", str(seq), "-o", str(tmp_path / "s.mcap")]
+    )
     assert r.exit_code == 1 and "--poses" in r.output
     assert not (tmp_path / "s.mcap").exists()
 
@@ -152,22 +179,46 @@ def test_gsc_score_with_poses_matches_them_to_frames_by_time(synth_sequence, tmp
     (seq / "groundtruth.txt").unlink()
     write_ply(_scene(), tmp_path / "m.ply")
     # the ground truth as another tool's estimate: shuffled rows, times off by 10 ms
-    rows = [r for r in (synth_sequence / "groundtruth.txt").read_text().splitlines()
-            if r and not r.startswith("#")][::-1]  # fmt: skip
+    rows = [
+        r
+        for r in (synth_sequence / "groundtruth.txt").read_text().splitlines()
+        if r and not r.startswith("#")
+    ][::-1]
     shifted = [f"{float(r.split()[0]) + 0.01:.6f} {' '.join(r.split()[1:])}" for r in rows]
     (tmp_path / "est.txt").write_text("\n".join(shifted) + "\n")
     args = ["score", str(tmp_path / "m.ply"), "-o"]
     r = CliRunner().invoke(cli, [*args, str(tmp_path / "gt.mcap"), "--seq", str(synth_sequence)])
     assert r.exit_code == 0, r.output
-    r = CliRunner().invoke(cli, [*args, str(tmp_path / "est.mcap"), "--seq", str(seq),
-                                 "--poses", str(tmp_path / "est.txt")])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            *args,
+            str(tmp_path / "est.mcap"),
+            "--seq",
+            str(seq),
+            "--poses",
+            str(tmp_path / "est.txt"),
+        ],
+    )
     assert r.exit_code == 0, r.output
-    np.testing.assert_allclose(read_map(tmp_path / "est.mcap").importance,
-                               read_map(tmp_path / "gt.mcap").importance, rtol=1e-5)  # fmt: skip
+    np.testing.assert_allclose(
+        read_map(tmp_path / "est.mcap").importance,
+        read_map(tmp_path / "gt.mcap").importance,
+        rtol=1e-5,
+    )
 
     (tmp_path / "short.txt").write_text("\n".join(shifted[1:]) + "\n")  # the last frame's row gone
-    r = CliRunner().invoke(cli, [*args, str(tmp_path / "s.mcap"), "--seq", str(seq),
-                                 "--poses", str(tmp_path / "short.txt")])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            *args,
+            str(tmp_path / "s.mcap"),
+            "--seq",
+            str(seq),
+            "--poses",
+            str(tmp_path / "short.txt"),
+        ],
+    )
     assert r.exit_code == 1 and "has no pose within 0.02 s of frame time" in r.output
     assert not (tmp_path / "s.mcap").exists()
 
@@ -177,12 +228,13 @@ def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(synth_sequence, tmp_
 
     from gscompress.io.trajectory import write_tum_trajectory
     from gscompress.pipeline import share_log, slam_file
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     seq = tmp_path / "nogt"  # no ground truth: the run's world frame is its first camera
     shutil.copytree(synth_sequence, seq)
     (seq / "groundtruth.txt").unlink()
-    slam_file(seq, tmp_path / "a.mcap", preset="tiny", frames="odd", size=(24, 18))
+    slam_file(seq, tmp_path / "a.mcap", SlamOptions(preset="tiny", frames="odd", size=(24, 18)))
     r = score_file(tmp_path / "a.mcap", tmp_path / "s.mcap", seq)
     assert r["views"] == 3 and r["poses"] == "estimated"  # frames 1, 3, 5 at the log's poses
     assert r["frames_without_pose"] == 0
@@ -192,11 +244,20 @@ def test_gsc_score_of_a_log_takes_its_poses_frames_and_size(synth_sequence, tmp_
         assert log.metadata.provenance[-1]["operation"]["size"] == [24, 18]
         stamps, poses = log.read_poses()
     write_tum_trajectory(tmp_path / "est.txt", stamps / 1e9, poses)
-    again = score_file(tmp_path / "a.mcap", tmp_path / "t.mcap", seq, poses=tmp_path / "est.txt",
-                       frames="odd", size=(24, 18))  # fmt: skip
+    again = score_file(
+        tmp_path / "a.mcap",
+        tmp_path / "t.mcap",
+        seq,
+        poses=tmp_path / "est.txt",
+        frames="odd",
+        size=(24, 18),
+    )
     assert again["poses"] == "est.txt"
-    np.testing.assert_allclose(read_map(tmp_path / "t.mcap").importance,
-                               read_map(tmp_path / "s.mcap").importance, rtol=1e-5)  # fmt: skip
+    np.testing.assert_allclose(
+        read_map(tmp_path / "t.mcap").importance,
+        read_map(tmp_path / "s.mcap").importance,
+        rtol=1e-5,
+    )
 
     share_log(tmp_path / "a.mcap", tmp_path / "share.mcap", 0.5)  # a map without poses
     with pytest.raises(InputError, match="world frame is its run's first camera"):
@@ -238,11 +299,15 @@ def test_sigma_d_rule_is_the_median_camera_to_gaussian_distance_of_the_first_fra
     # 4 m (the paper's 20 m: 1.18 times, i.e. hardly at all; inf: exactly equal)
     near, far = np.argmin(distances), np.argmax(distances)
     means = torch.from_numpy(gaussians.means[[near, far]])
-    for scale, ratio in ((sigma_d, np.exp(3.4 / 1.5)), (PAPER_SIGMA_D, np.exp(3.4 / 20)),
-                         (math.inf, 1.0)):  # fmt: skip
+    for scale, ratio in (
+        (sigma_d, np.exp(3.4 / 1.5)),
+        (PAPER_SIGMA_D, np.exp(3.4 / 20)),
+        (math.inf, 1.0),
+    ):
         sums = ImportanceSums.zeros(2)
-        sums.accumulate(torch.ones(2), torch.ones(2, dtype=torch.bool), means,
-                        torch.from_numpy(T[:3, 3]), scale)  # fmt: skip
+        sums.accumulate(
+            torch.ones(2), torch.ones(2, dtype=torch.bool), means, torch.from_numpy(T[:3, 3]), scale
+        )
         w = sums.importance_weight.numpy()
         assert w[0] / w[1] == pytest.approx(ratio, rel=1e-6)
     assert np.exp(3.4 / 1.5) > 5 and np.exp(3.4 / 20) < 1.2

@@ -45,13 +45,22 @@ def test_typescript_mcap_reader_lists_our_channels_and_counts(tmp_path):
         log.write_gaussians(random_map(1234, seed=2, sh_degree=1), 8)
     out = subprocess.run(
         ["node", str(JS / "read_mcap.mjs"), str(path)],
-        capture_output=True, text=True, check=True, timeout=120,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    )
     result = json.loads(out.stdout)
     assert result["profile"] == "gscompress"
     assert result["metadata"] == ["gscompress"]
-    expected = {"/gaussians": 2, "/camera/pose": 7, "/camera/pose_gt": 7, "/tf": 7,
-                "/slam/stats": 7, "/camera/calibration": 1}  # fmt: skip
+    expected = {
+        "/gaussians": 2,
+        "/camera/pose": 7,
+        "/camera/pose_gt": 7,
+        "/tf": 7,
+        "/slam/stats": 7,
+        "/camera/calibration": 1,
+    }
     assert {t: c["messages"] for t, c in result["channels"].items()} == expected
     assert result["counted"] == expected
     assert result["channels"]["/gaussians"]["schema"] == "foxglove.PointCloud"

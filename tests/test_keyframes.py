@@ -22,8 +22,10 @@ from gscompress.io.keyframes import (
     write_carried,
 )
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pose_message
-from gscompress.pipeline import evaluate_log, merge_logs, share_log, slam_file
-from gscompress.pipeline.refine import carried_keyframes
+from gscompress.pipeline import evaluate_log, merge_logs, resume_slam_file, share_log, slam_file
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.logs import carried_keyframes
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
 pytestmark = pytest.mark.slow
@@ -108,8 +110,9 @@ def test_hostile_carried_images_are_refused_before_decoding(
         out.write_calibration(CAMERA, 7)
         good = io.BytesIO()
         Image.fromarray(np.zeros((24, 32, 3), np.uint8)).save(good, format="JPEG")
-        out.write_protobuf(TOPIC_KEYFRAME_COLOR, CompressedImage(data=good.getvalue(),
-                                                                 format="jpeg"), 7)  # fmt: skip
+        out.write_protobuf(
+            TOPIC_KEYFRAME_COLOR, CompressedImage(data=good.getvalue(), format="jpeg"), 7
+        )
         out.write_protobuf(TOPIC_KEYFRAME_DEPTH, image, 7)
         out.write_protobuf("/share/keyframe/pose", pose_message(frame.T_world_cam, 7), 7)
     with LogReader(tmp_path / "h.mcap") as reader, pytest.raises(LogFormatError, match=needle):
@@ -135,8 +138,9 @@ def test_a_carried_frame_without_its_depth_is_refused(tmp_path: Path) -> None:
     # the same colour at another time, with no depth or pose there
     with LogReader(path) as reader:
         color = next(m for _s, _c, m in reader.iter_messages([TOPIC_KEYFRAME_COLOR])).data
-    lonely = written(tmp_path / "l.mcap", [frame],
-                     [(TOPIC_KEYFRAME_COLOR, CompressedImage.FromString(color))])  # fmt: skip
+    lonely = written(
+        tmp_path / "l.mcap", [frame], [(TOPIC_KEYFRAME_COLOR, CompressedImage.FromString(color))]
+    )
     with LogReader(lonely) as reader, pytest.raises(LogFormatError, match="has no depth"):
         read_carried(reader)
 
@@ -145,8 +149,8 @@ def test_a_carried_frame_without_its_depth_is_refused(tmp_path: Path) -> None:
 def agents(tmp_path_factory: pytest.TempPathFactory, seq_dir_8: Path) -> dict[str, Path]:
     root, seq = tmp_path_factory.mktemp("carry"), seq_dir_8
     a, b = root / "a.mcap", root / "b.mcap"
-    slam_file(seq, a, preset="tiny", frames="0:5")
-    slam_file(seq, b, preset="tiny", frames="3:8")
+    slam_file(seq, a, SlamOptions(preset="tiny", frames="0:5"))
+    slam_file(seq, b, SlamOptions(preset="tiny", frames="3:8"))
     return {"seq": seq, "a": a, "b": b, "root": root}
 
 
@@ -163,8 +167,7 @@ def test_a_byte_budget_counts_the_keyframes(agents: dict[str, Path]) -> None:
     assert plain["selected"] == whole["selected"]  # the map alone fits
     assert carried["selected"] < plain["selected"]  # the frames took bytes from the Gaussians
     with pytest.raises(BudgetError):  # the frames alone overfill it
-        share_log(agents["a"], root / "x.mcap", f"{carried['keyframe_bytes'] // 2}B",
-                  carry=carry)  # fmt: skip
+        share_log(agents["a"], root / "x.mcap", f"{carried['keyframe_bytes'] // 2}B", carry=carry)
 
 
 def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
@@ -184,22 +187,32 @@ def test_merge_refines_on_carried_keyframes_and_eval_leaves_them_out(
     assert operation["carried_ns"] == times
     # with the sender's views, the merge stacks and refines every Gaussian alike
     assert operation["resolve"] == "stack" and operation["share_rate"] == 1.0
-    told = merge_logs(agents["b"], share, root / "t.mcap", seq=seq, iters=2,
-                      merge={"resolve": "evidence"}, force=True)  # fmt: skip
+    told = merge_logs(
+        agents["b"],
+        share,
+        root / "t.mcap",
+        seq=seq,
+        iters=2,
+        merge={"resolve": "evidence"},
+        force=True,
+    )
     with LogReader(root / "t.mcap") as log:
         operation = log.metadata.provenance[-1]["operation"]
     assert operation["resolve"] == "evidence" and operation["share_rate"] == 1.0
     assert told["refine_carried_views"] == 2
 
-    scored = evaluate_log(merged, seq, frames="0:5", poses_from=agents["a"], lpips=False)
+    scored = evaluate_log(
+        merged, seq, ImageOptions(frames="0:5", poses_from=agents["a"], lpips=False)
+    )
     assert scored["frames_carried_left_out"] == 2 and scored["frames_evaluated"] == 3
     assert all(r["timestamp"] * 1e9 not in times for r in scored["per_frame"])
     # the same frames left out of another map's scores on request
-    other = evaluate_log(agents["a"], seq, lpips=False, leave_out=[share])
+    other = evaluate_log(agents["a"], seq, ImageOptions(lpips=False), leave_out=[share])
     assert other["frames_carried_left_out"] == 2 and other["frames_evaluated"] == 3
 
-    plain = merge_logs(agents["b"], share, root / "p.mcap", seq=seq, iters=6, keyframes=False,
-                       force=True)  # fmt: skip
+    plain = merge_logs(
+        agents["b"], share, root / "p.mcap", seq=seq, iters=6, keyframes=False, force=True
+    )
     assert plain["refine_carried_views"] == 0 and plain["refine_views"] == 5
     with LogReader(root / "p.mcap") as log:  # the merge of a share without views
         assert log.metadata.provenance[-1]["operation"]["resolve"] == "evidence"
@@ -214,7 +227,11 @@ def test_keyframes_of_another_camera_are_refused(agents: dict[str, Path]) -> Non
     assert not (root / "c.mcap").exists()
     # an injected run has no --no-keyframes: the message names what it can do
     with pytest.raises(InputError, match=r"another camera.*sender's --size") as refused:
-        slam_file(seq, root / "i.mcap", preset="tiny", frames="3:5", size=(32, 24), inject=share)
+        slam_file(
+            seq,
+            root / "i.mcap",
+            SlamOptions(preset="tiny", frames="3:5", size=(32, 24), inject=share),
+        )
     assert "--no-keyframes" not in str(refused.value)
     assert not (root / "i.mcap").exists()
 
@@ -229,17 +246,31 @@ def test_share_and_merge_commands_carry_keyframes(agents: dict[str, Path]) -> No
     runner = CliRunner()
     refused = runner.invoke(cli, ["share", str(agents["a"]), share, "--keyframes", "2"])
     assert refused.exit_code == 2 and "--seq" in refused.output
-    done = runner.invoke(cli, ["share", str(agents["a"]), share, "--budget", "1",
-                               "--keyframes", "2", "--seq", seq])  # fmt: skip
+    done = runner.invoke(
+        cli, ["share", str(agents["a"]), share, "--budget", "1", "--keyframes", "2", "--seq", seq]
+    )
     assert done.exit_code == 0, done.output
     assert "with 2 keyframes" in done.output
     merged = str(root / "cli_m.mcap")
-    done = runner.invoke(cli, ["merge", str(agents["b"]), share, "--seq", seq, "--iters", "3",
-                               "-o", merged])  # fmt: skip
+    done = runner.invoke(
+        cli, ["merge", str(agents["b"]), share, "--seq", seq, "--iters", "3", "-o", merged]
+    )
     assert done.exit_code == 0, done.output
     assert "2 of them the sender's keyframes" in done.output
-    done = runner.invoke(cli, ["eval", merged, "--seq", seq, "--frames", "0:5", "--poses-from",
-                               str(agents["a"]), "--no-lpips"])  # fmt: skip
+    done = runner.invoke(
+        cli,
+        [
+            "eval",
+            merged,
+            "--seq",
+            seq,
+            "--frames",
+            "0:5",
+            "--poses-from",
+            str(agents["a"]),
+            "--no-lpips",
+        ],
+    )
     assert done.exit_code == 0, done.output
     assert "2 left out: carried by a share" in done.output
 
@@ -262,14 +293,14 @@ def test_an_injected_share_brings_its_keyframes_into_the_run(agents: dict[str, P
     out = root / "b_inject.mcap"
     SlamSystem.receive = spy  # type: ignore[method-assign]
     try:
-        slam_file(seq, out, preset="tiny", frames="3:8", inject=share, force=True)
+        slam_file(seq, out, SlamOptions(preset="tiny", frames="3:8", inject=share), force=True)
     finally:
         SlamSystem.receive = original  # type: ignore[method-assign]
     assert received == [2]  # A's two keyframes were keyframes before B's first frame
     with LogReader(out) as log:
         step = log.metadata.provenance[0]["operation"]
     assert step["name"] == "inject" and step["carried_ns"] == [f.time_ns for f in carry[0]]
-    scored = evaluate_log(out, seq, frames="0:5", poses_from=agents["a"], lpips=False)
+    scored = evaluate_log(out, seq, ImageOptions(frames="0:5", poses_from=agents["a"], lpips=False))
     assert scored["frames_carried_left_out"] == 2
     with pytest.raises(InputError, match="afresh"):
-        slam_file(seq, out, resume=True)
+        resume_slam_file(seq, out)

@@ -98,8 +98,11 @@ def test_the_relocalisation_guesses():
     keyframes = [motion(5.0 * k, [0.1 * k, 0.0, 0.0]) for k in range(5)]
     first = ("the velocity guess", velocity)
     names = [name for name, _ in relocalisation_guesses(first, previous, keyframes)]
-    assert names == ["the velocity guess", "the previous pose", *(
-        f"keyframe pose {k} back" for k in (1, 2, 3))]  # fmt: skip
+    assert names == [
+        "the velocity guess",
+        "the previous pose",
+        *(f"keyframe pose {k} back" for k in (1, 2, 3)),
+    ]
     guesses = dict(relocalisation_guesses(first, previous, keyframes))
     np.testing.assert_allclose(guesses["keyframe pose 1 back"], keyframes[-1], atol=1e-12)
     # a frame whose own guess is the previous pose does not try it twice
@@ -167,8 +170,10 @@ def test_a_gap_over_max_gap_is_re_localised(caplog):
     assert out.tracking is not None and out.tracking.relocalised and out.stats()["relocalised"]
     error, length = motion_error(system, frames, GAP_TO)
     assert error < length / 4, (error, length)
-    assert f"frame {GAP_TO} (stamp {frames[GAP_TO].timestamp:.3f} s): tracking lost (it " \
-        f"comes {gap:.3f} s after the previous frame); re-localised" in caplog.text  # fmt: skip
+    assert (
+        f"frame {GAP_TO} (stamp {frames[GAP_TO].timestamp:.3f} s): tracking lost (it "
+        f"comes {gap:.3f} s after the previous frame); re-localised" in caplog.text
+    )
     # the next frame, one interval on, is tracked as usual
     after = system.process(frames[GAP_TO + 1])
     assert after.tracking is not None and not after.tracking.relocalised
@@ -219,7 +224,8 @@ def test_gsc_slam_stops_on_a_lost_track_in_one_line_with_a_log_of_the_frames_bef
 def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_had(
     tmp_path, monkeypatch
 ):
-    from gscompress.pipeline import slam_file
+    from gscompress.pipeline import resume_slam_file, slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     seq = write_synthetic_sequence(tmp_path / "room", 8, SIZE)
     levels: dict[str, dict[int, float | None]] = {"whole": {}, "resumed": {}}
@@ -230,17 +236,17 @@ def test_a_resumed_run_judges_its_frames_against_the_level_the_interrupted_run_h
         return process(self, frame)
 
     monkeypatch.setattr(SlamSystem, "process", recorded)
-    run = {"preset": "cpu", "size": SIZE}
-    slam_file(seq, tmp_path / "whole.mcap", **run)
+    run = SlamOptions(preset="cpu", size=SIZE)
+    slam_file(seq, tmp_path / "whole.mcap", run)
 
     def stop_after_six(done, total, stats):  # type: ignore[no-untyped-def]
         if done == 6:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq, tmp_path / "cut.mcap", progress=stop_after_six, **run)
+        slam_file(seq, tmp_path / "cut.mcap", run, progress=stop_after_six)
     name[0] = "resumed"
-    slam_file(seq, tmp_path / "cut.mcap", resume=True)
+    resume_slam_file(seq, tmp_path / "cut.mcap")
     first = min(levels["resumed"])
     assert first == 6 and levels["whole"][6] is not None
     assert levels["resumed"][6] == levels["whole"][6]

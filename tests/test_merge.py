@@ -20,6 +20,7 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.io.ply import write_ply
 from gscompress.ops.merge import EXACT, merge_maps
 from gscompress.pipeline import import_ply, merge_logs, share_log, slam_file
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.render import resolve_backend
 from gscompress_cli.main import cli
 
@@ -53,8 +54,8 @@ def test_merge_maps_keeps_every_gaussian_and_its_sums() -> None:
 def agents(tmp_path_factory: pytest.TempPathFactory, seq_dir_8: Path) -> dict[str, Path]:
     root, seq = tmp_path_factory.mktemp("agents"), seq_dir_8
     a, b = root / "a.mcap", root / "b.mcap"
-    slam_file(seq, a, preset="tiny", frames="odd")
-    slam_file(seq, b, preset="tiny", frames="even")
+    slam_file(seq, a, SlamOptions(preset="tiny", frames="odd"))
+    slam_file(seq, b, SlamOptions(preset="tiny", frames="even"))
     share = root / "share.mcap"
     share_log(a, share, 0.3)
     return {"seq": seq, "a": a, "b": b, "share": share, "root": root}
@@ -91,15 +92,23 @@ def test_merge_refines_and_keeps_every_gaussian_and_sum(agents: dict[str, Path])
 
 def test_merge_refines_on_keyframes_only_when_asked(agents: dict[str, Path]) -> None:
     out = agents["root"] / "keyframes.mcap"
-    result = merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=4,
-                        views="keyframes", backend="torch")  # fmt: skip
+    result = merge_logs(
+        agents["b"],
+        agents["share"],
+        out,
+        seq=agents["seq"],
+        iters=4,
+        views="keyframes",
+        backend="torch",
+    )
     assert result["refine_views"] == 2  # B's 4 frames, a keyframe every 2 in the tiny preset
     assert result["refine_backend"] == "torch"  # the option's, not the receiver's config's
     with LogReader(out) as log:
         assert log.metadata.provenance[-1]["operation"]["views"] == "keyframes"
     with pytest.raises(InputError, match="--views"):
-        merge_logs(agents["b"], agents["share"], agents["root"] / "x.mcap", seq=agents["seq"],
-                   views="all")  # fmt: skip
+        merge_logs(
+            agents["b"], agents["share"], agents["root"] / "x.mcap", seq=agents["seq"], views="all"
+        )
     assert not (agents["root"] / "x.mcap").exists()
 
 
@@ -125,7 +134,7 @@ def test_merge_refuses_unknown_or_different_world_frames(
         merge_logs(agents["b"], foreign, tmp_path / "x.mcap", iters=0)
     other_seq = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=2)
     other = tmp_path / "other.mcap"
-    slam_file(other_seq, other, preset="tiny")
+    slam_file(other_seq, other, SlamOptions(preset="tiny"))
     with pytest.raises(MapError, match="not known to agree"):
         merge_logs(agents["b"], other, tmp_path / "x.mcap", iters=0)
     with pytest.raises(InputError, match="--seq"):
@@ -154,8 +163,18 @@ def test_merge_warns_of_another_sequence_name_and_refuses_other_frames(
 
 def test_gsc_merge_command(agents: dict[str, Path]) -> None:
     out = agents["root"] / "cli.mcap"
-    args = ["merge", agents["b"], agents["share"], "--seq", agents["seq"], "-o", out,
-            "--iters", "5", "--json"]  # fmt: skip
+    args = [
+        "merge",
+        agents["b"],
+        agents["share"],
+        "--seq",
+        agents["seq"],
+        "-o",
+        out,
+        "--iters",
+        "5",
+        "--json",
+    ]
     r = CliRunner().invoke(cli, [str(a) for a in args])
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
@@ -198,8 +217,7 @@ def test_transform_map_moves_means_and_orientations_rigidly() -> None:
 
     gaussians = random_map(30, seed=5, isotropic=False)
     angle = 0.7
-    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
-                  [0, 0, 1]])  # fmt: skip
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
     T = make_transform(R, [1.0, -2.0, 0.5])
     moved = transform_map(gaussians, T)
     np.testing.assert_allclose(moved.means, gaussians.means @ R.T + T[:3, 3], atol=1e-5)
@@ -220,7 +238,7 @@ def test_merge_across_world_frames_with_an_explicit_transform(
 
     other_seq = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=2)
     other = tmp_path / "other.mcap"
-    slam_file(other_seq, other, preset="tiny")
+    slam_file(other_seq, other, SlamOptions(preset="tiny"))
     transform = tmp_path / "T.txt"
     transform.write_text("# share frame -> receiver frame\n0.5 0 0  0 0 0 1\n")
     out = tmp_path / "merged.mcap"
@@ -277,8 +295,16 @@ def test_gsc_merge_usage_errors_and_sigterm(
         cli, ["merge", str(agents["b"]), str(agents["b"]), "-o", str(out), "--iters", "0"]
     )
     assert r.exit_code == 2 and "the receiver log itself" in r.output
-    cmd = [sys.executable, "-m", "gscompress_cli", *base, "--seq", str(agents["seq"]),
-           "--iters", "100000"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "gscompress_cli",
+        *base,
+        "--seq",
+        str(agents["seq"]),
+        "--iters",
+        "100000",
+    ]
 
     def refining(stderr: str) -> bool:  # after torch's import: its output is open, unfinished
         return "refine:" in stderr and any(tmp_path.glob(".m.mcap.*.tmp"))
@@ -318,8 +344,9 @@ def test_refinement_learning_rates_decay_to_the_fraction_and_are_restored(
     with LogReader(out) as log:
         assert log.metadata.provenance[-1]["operation"]["lr_final"] == 0.01
     seen.clear()
-    merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=1.0,
-               force=True)  # fmt: skip
+    merge_logs(
+        agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=1.0, force=True
+    )
     assert np.all(np.array(seen) == np.array(seen)[0])  # constant, exactly
     # an exception part-way leaves the optimizer at its mapping rates
     from gscompress.slam.mapper import Mapper
@@ -333,8 +360,9 @@ def test_refinement_learning_rates_decay_to_the_fraction_and_are_restored(
 
     monkeypatch.setattr(Mapper, "_step", failing_step)
     with pytest.raises(RuntimeError, match="step failed"):
-        merge_logs(agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=0.1,
-                   force=True)  # fmt: skip
+        merge_logs(
+            agents["b"], agents["share"], out, seq=agents["seq"], iters=3, lr_final=0.1, force=True
+        )
     (mapper, first), (_, second) = calls
     assert second != first and [g["lr"] for g in mapper.optimizer.param_groups] == first
     base = ["merge", str(agents["b"]), str(agents["share"]), "-o", str(agents["root"] / "x.mcap")]

@@ -51,9 +51,13 @@ def wall() -> GaussianMap:
     depth = 2.0 + np.random.default_rng(0).uniform(-0.004, 0.004, n)  # (no ties in the sort)
     means = np.stack([gx.ravel(), gy.ravel(), depth], axis=1)
     rgb = np.stack(
-        [0.5 + 0.4 * np.sin(9 * gx.ravel()), 0.5 + 0.4 * np.cos(7 * gy.ravel()),
-         0.5 + 0.3 * np.sin(5 * (gx + gy).ravel())], axis=1,
-    )  # fmt: skip
+        [
+            0.5 + 0.4 * np.sin(9 * gx.ravel()),
+            0.5 + 0.4 * np.cos(7 * gy.ravel()),
+            0.5 + 0.3 * np.sin(5 * (gx + gy).ravel()),
+        ],
+        axis=1,
+    )
     return GaussianMap.new(
         means=means,
         log_scales=np.full((n, 1), np.log(0.025)),
@@ -93,10 +97,12 @@ def agents() -> dict[str, object]:
     b_part = scene.select(scene.means[:, 0] > -0.15)
     b = transform_map(replace(b_part, ids=b_part.ids + np.uint32(10_000)), shift(B_OFFSET))
     return {
-        "scene": scene, "a": a, "b": b,
+        "scene": scene,
+        "a": a,
+        "b": b,
         "a_views": [pose(x) for x in (-0.35, -0.3, -0.25)],
         "b_views": [pose(x) for x in (0.25, 0.3, 0.35)],
-    }  # fmt: skip
+    }
 
 
 def test_merge_of_a_map_with_itself_renders_like_the_map(agents: dict) -> None:
@@ -212,14 +218,21 @@ def test_a_fold_of_many_does_not_take_a_cell_from_the_receivers_small_gaussians(
     # the share sends one fold of 25 Gaussians there (10 cm across, its group's evidence 25).
     small = GaussianMap.new(
         means=np.array([[x, y, 2.0] for x in (0.01, 0.03) for y in (0.01, 0.03)]),
-        log_scales=np.full((4, 1), np.log(0.005)), quats=np.tile([1.0, 0, 0, 0], (4, 1)),
-        opacity_logits=np.full(4, 4.0), sh_dc=np.zeros((4, 3)), alpha_t_sum=np.ones(4),
-    )  # fmt: skip
+        log_scales=np.full((4, 1), np.log(0.005)),
+        quats=np.tile([1.0, 0, 0, 0], (4, 1)),
+        opacity_logits=np.full(4, 4.0),
+        sh_dc=np.zeros((4, 3)),
+        alpha_t_sum=np.ones(4),
+    )
     fold = GaussianMap.new(
-        means=np.array([[0.02, 0.02, 2.0]]), log_scales=np.full((1, 1), np.log(0.05)),
-        quats=np.array([[1.0, 0, 0, 0]]), opacity_logits=np.full(1, 4.0), sh_dc=np.zeros((1, 3)),
-        alpha_t_sum=np.array([25.0]), ids=np.array([100], np.uint32),
-    )  # fmt: skip
+        means=np.array([[0.02, 0.02, 2.0]]),
+        log_scales=np.full((1, 1), np.log(0.05)),
+        quats=np.array([[1.0, 0, 0, 0]]),
+        opacity_logits=np.full(1, 4.0),
+        sh_dc=np.zeros((1, 3)),
+        alpha_t_sum=np.array([25.0]),
+        ids=np.array([100], np.uint32),
+    )
     assert np.allclose(voxel_evidence(small, 0.04), 1.0)  # (each fits in a cell face)
     assert voxel_evidence(fold, 0.04)[0] == 0.0  # (its 2-sigma ellipse is 20 times a face)
     assert voxel_evidence(fold, None)[0] == 25.0
@@ -256,7 +269,9 @@ def test_refinement_keeps_the_share_still_where_its_rate_is_zero(agents: dict) -
     assert seen.any()  # without rates, B's views move some of A's Gaussians
     assert share_rates(from_share, EXACT) is None
     by_view = share_rates(
-        from_share, MergeOptions(share_rate=0.0, by_view=True),
-        np.full(len(merged), 3.0), np.full(len(merged), 1.0),
-    )  # fmt: skip
+        from_share,
+        MergeOptions(share_rate=0.0, by_view=True),
+        np.full(len(merged), 3.0),
+        np.full(len(merged), 1.0),
+    )
     assert by_view is not None and np.allclose(by_view[from_share], 0.75)

@@ -84,8 +84,11 @@ def test_ate_matches_evo_command_line(tmp_path: Path) -> None:
     exe = str(evo_ape) if evo_ape.exists() else "evo_ape"
     out = subprocess.run(
         [exe, "tum", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "-a", "--no_warnings"],
-        capture_output=True, text=True, check=True, cwd=tmp_path,
-    ).stdout  # fmt: skip
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=tmp_path,
+    ).stdout
     rmse = next(float(line.split()[1]) for line in out.splitlines() if "rmse" in line)
     # the command prints 6 decimals
     assert abs(M.ate_rmse_cm(gt, est) / 100.0 - rmse) <= 1e-6
@@ -259,15 +262,20 @@ def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) ->
 
     from gscompress.datasets.synthetic import write_synthetic_sequence
     from gscompress.pipeline import evaluate_log, slam_file
+    from gscompress.pipeline.images import ImageOptions
+    from gscompress.pipeline.slam_run.options import SlamOptions
     from gscompress_cli.main import cli
 
     seq = write_synthetic_sequence(tmp_path / "room", 6, (48, 36))
-    slam_file(seq, tmp_path / "run.mcap", preset="tiny")
+    slam_file(seq, tmp_path / "run.mcap", SlamOptions(preset="tiny"))
     for name, flags in (("est.txt", []), ("gt.txt", ["--ground-truth"])):
-        r = CliRunner().invoke(cli, ["export-traj", str(tmp_path / "run.mcap"), "-o",
-                                     str(tmp_path / name), *flags])  # fmt: skip
+        r = CliRunner().invoke(
+            cli, ["export-traj", str(tmp_path / "run.mcap"), "-o", str(tmp_path / name), *flags]
+        )
         assert r.exit_code == 0 and "wrote" in r.output and "6 poses" in r.output, r.output
-    ours_cm = evaluate_log(tmp_path / "run.mcap", seq, every=6, lpips=False)["ate_rmse_cm"]
+    ours_cm = evaluate_log(tmp_path / "run.mcap", seq, ImageOptions(every=6, lpips=False))[
+        "ate_rmse_cm"
+    ]
     assert ours_cm > 0.01  # a tracked run: the agreement means something
     evo_cm = 100 * _evo_ape_rmse(tmp_path / "gt.txt", tmp_path / "est.txt")
     assert abs(ours_cm - evo_cm) < 1e-4  # (TUM text holds the poses to about 1e-16 m)
@@ -276,7 +284,8 @@ def test_gsc_eval_ate_is_evo_ape_on_the_exported_trajectories(tmp_path: Path) ->
     from gscompress.pipeline import share_log
 
     share_log(tmp_path / "run.mcap", tmp_path / "share.mcap", 0.5)
-    r = CliRunner().invoke(cli, ["export-traj", str(tmp_path / "share.mcap"), "-o",
-                                 str(tmp_path / "s.txt")])  # fmt: skip
+    r = CliRunner().invoke(
+        cli, ["export-traj", str(tmp_path / "share.mcap"), "-o", str(tmp_path / "s.txt")]
+    )
     assert r.exit_code == 1 and "has no /camera/pose messages" in r.output
     assert not (tmp_path / "s.txt").exists()

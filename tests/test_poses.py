@@ -17,7 +17,8 @@ from gscompress.io.mcap_log import (
     LogWriter,
     decode_trajectory,
 )
-from gscompress.pipeline import slam_file
+from gscompress.pipeline import resume_slam_file, slam_file
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import preset
 from gscompress.slam.keyframes import View
 from gscompress.slam.system import SlamSystem
@@ -143,7 +144,7 @@ def test_a_run_that_refines_poses_logs_its_refined_trajectory(
     seq_dir: Path, refining_config: Path, tmp_path: Path
 ):
     out = tmp_path / "a.mcap"
-    summary = slam_file(seq_dir, out, config_path=refining_config)
+    summary = slam_file(seq_dir, out, SlamOptions(config_path=refining_config))
     with LogReader(out) as log:
         found = log.read_trajectory()
         _, tracked = log.read_poses(TOPIC_POSE)
@@ -169,7 +170,7 @@ def test_a_resumed_run_places_its_views_at_the_refined_poses_it_logged(
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, config_path=refining_config, progress=stop)
+        slam_file(seq_dir, out, SlamOptions(config_path=refining_config), progress=stop)
     with LogReader(out) as log:
         logs = [decode_trajectory(s, m) for s, _, m in log.iter_messages([TOPIC_POSE_REFINED])]
         _, tracked = log.read_poses(TOPIC_POSE)
@@ -184,7 +185,7 @@ def test_a_resumed_run_places_its_views_at_the_refined_poses_it_logged(
         restored.append({v.index: v.T_world_cam.copy() for v in self.views})
 
     monkeypatch.setattr(SlamSystem, "restore", spy)
-    slam_file(seq_dir, out, resume=True)
+    resume_slam_file(seq_dir, out)
     (views,) = restored
     assert sorted(views) == [0, 1, 2, 3, 4]
     for position in range(5):

@@ -12,8 +12,9 @@ from gscompress.camera import Intrinsics, make_transform
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
-from gscompress.pipeline.offline import share_log
-from gscompress.pipeline.receiver import read_request, unseen_ids
+from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.options import ShareOptions
+from gscompress.pipeline.share.receiver import read_request, unseen_ids
 from gscompress.selection import top_k, top_k_first
 from gscompress_cli.main import cli
 
@@ -40,8 +41,9 @@ def two_walls() -> GaussianMap:
     )
 
 
-def write_log(path: Path, *, gaussians: GaussianMap | None, poses: list[np.ndarray],
-              world: str = WORLD) -> Path:  # fmt: skip
+def write_log(
+    path: Path, *, gaussians: GaussianMap | None, poses: list[np.ndarray], world: str = WORLD
+) -> Path:
     with LogWriter(path, LogMetadata(sequence="room", world_frame=world)) as out:
         out.write_calibration(CAMERA, 0)
         for i, T in enumerate(poses):
@@ -85,10 +87,15 @@ def test_the_wall_behind_the_receiver_is_unseen(agents):
 
 def test_a_share_for_the_receiver_sends_what_it_has_not_seen(agents):
     plain = share_log(
-        agents["a"], agents["root"] / "plain.mcap", 0.5, fold_dropped=False, ids=True
-    )  # fmt: skip  (the ids say which were sent)
-    aware = share_log(agents["a"], agents["root"] / "for_b.mcap", 0.5, fold_dropped=False,
-                      receiver=agents["b"], ids=True)  # fmt: skip
+        agents["a"], agents["root"] / "plain.mcap", 0.5, ShareOptions(fold=False, ids=True)
+    )  # (the ids say which were sent)
+    aware = share_log(
+        agents["a"],
+        agents["root"] / "for_b.mcap",
+        0.5,
+        ShareOptions(fold=False, ids=True),
+        receiver=agents["b"],
+    )
     assert sorted(read_map(plain["output"]).ids.tolist()) == list(range(16))
     assert sorted(read_map(aware["output"]).ids.tolist()) == list(range(16, 32))
     assert aware["unseen"] == 16 and aware["views"] == 2 and aware["for"] == "b.mcap"
@@ -100,23 +107,24 @@ def test_a_share_for_the_receiver_sends_what_it_has_not_seen(agents):
 def test_the_request_counts_in_a_byte_budget(agents):
     request_bytes = len(read_request(agents["b"]).data)
     assert request_bytes == 4 * (6 + 2 * 7)
-    fp32 = dict(fold_dropped=False, codec="fp32")  # (76 B a Gaussian: the request takes 2)
-    whole = share_log(agents["a"], agents["root"] / "w.mcap", "9999B", **fp32)
+    fp32 = ShareOptions(fold=False, codec="fp32")  # (76 B a Gaussian: the request takes 2)
+    whole = share_log(agents["a"], agents["root"] / "w.mcap", "9999B", fp32)
     assert whole["selected"] == 32
     budget = whole["file_bytes"] + 10  # holds the whole map, but not with the request
-    plain = share_log(agents["a"], agents["root"] / "p.mcap", f"{budget}B", **fp32)
-    aware = share_log(agents["a"], agents["root"] / "f.mcap", f"{budget}B", **fp32,
-                      receiver=agents["b"])  # fmt: skip
+    plain = share_log(agents["a"], agents["root"] / "p.mcap", f"{budget}B", fp32)
+    aware = share_log(
+        agents["a"], agents["root"] / "f.mcap", f"{budget}B", fp32, receiver=agents["b"]
+    )
     assert plain["selected"] == 32 > aware["selected"]
     assert aware["file_bytes"] + request_bytes <= budget
     with pytest.raises(BudgetError, match="request"):
-        share_log(agents["a"], agents["root"] / "x.mcap", f"{request_bytes}B",
-                  receiver=agents["b"])  # fmt: skip
+        share_log(agents["a"], agents["root"] / "x.mcap", f"{request_bytes}B", receiver=agents["b"])
 
 
 def test_a_receiver_in_another_frame_is_refused_without_alignment(agents):
-    other = write_log(agents["root"] / "c.mcap", gaussians=None, poses=[np.eye(4)],
-                      world="first-camera:room:0")  # fmt: skip
+    other = write_log(
+        agents["root"] / "c.mcap", gaussians=None, poses=[np.eye(4)], world="first-camera:room:0"
+    )
     with pytest.raises(InputError, match="--align-to"):
         share_log(agents["a"], agents["root"] / "c_share.mcap", 0.5, receiver=other)
     no_poses = write_log(agents["root"] / "d.mcap", gaussians=None, poses=[])

@@ -87,10 +87,11 @@ def test_16uc1_refuses_depth_finer_than_a_millimetre(folders, tmp_path):
 @pytest.mark.slow
 def test_slam_maps_and_poses_are_equal_from_a_folder_and_each_recording(folders, tmp_path):
     from gscompress.pipeline import slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
     def run(seq: Path, name: str, **options: Any) -> tuple[Any, Any, dict[str, Any]]:
         out = tmp_path / f"{name}.mcap"
-        slam_file(seq, out, preset="tiny", frames="0:3", **options)
+        slam_file(seq, out, SlamOptions(preset="tiny", frames="0:3", **options))
         with LogReader(out) as reader:
             return reader.read_map(), reader.read_poses(), reader.metadata.results
 
@@ -104,8 +105,9 @@ def test_slam_maps_and_poses_are_equal_from_a_folder_and_each_recording(folders,
             if isinstance(value, np.ndarray):
                 assert np.array_equal(value, getattr(base_map, f.name)), (fmt, f.name)
         assert np.array_equal(poses[0], base_poses[0]) and np.array_equal(poses[1], base_poses[1])
-        assert results["recording"]["rgb"] == ("/camera/color" if fmt == "foxglove" else
-                                               "/camera/color/image_raw")  # fmt: skip
+        assert results["recording"]["rgb"] == (
+            "/camera/color" if fmt == "foxglove" else "/camera/color/image_raw"
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -260,7 +262,7 @@ def test_topics_chosen_when_unambiguous():
     choice = choose_topics(compressed, RecordingOptions(), "rec")
     assert choice.rgb == "/camera/rgb/image_color/compressed" and "OpenNI" in choice.reason
     generic = _topics("/front/color", "/front/depth", info=("/front/info",))
-    assert choose_topics(generic, RecordingOptions(), "rec").depth == "/front/depth"  # fmt: skip
+    assert choose_topics(generic, RecordingOptions(), "rec").depth == "/front/depth"
 
 
 def test_ambiguous_topics_name_the_candidates():
@@ -310,33 +312,52 @@ def _write_bag(
 
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         rgb = writer.add_connection("/rgb/image_raw", "sensor_msgs/msg/Image", typestore=store)
-        depth = writer.add_connection("/depth/image_raw", "sensor_msgs/msg/Image",
-                                      typestore=store)  # fmt: skip
-        cam = writer.add_connection("/rgb/camera_info", "sensor_msgs/msg/CameraInfo",
-                                    typestore=store)  # fmt: skip
+        depth = writer.add_connection("/depth/image_raw", "sensor_msgs/msg/Image", typestore=store)
+        cam = writer.add_connection(
+            "/rgb/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store
+        )
         for k, ns in enumerate(color_stamps):
             pixels = np.full((3, width, 3), [10 * k, 20, 30], dtype=np.uint8)  # b, g, r
             msg = t["sensor_msgs/msg/Image"](
-                header=header(ns, "rgb_camera_link"), height=3, width=width, encoding=encoding,
-                is_bigendian=0, step=width * 3, data=pixels.reshape(-1),
-            )  # fmt: skip
+                header=header(ns, "rgb_camera_link"),
+                height=3,
+                width=width,
+                encoding=encoding,
+                is_bigendian=0,
+                step=width * 3,
+                data=pixels.reshape(-1),
+            )
             writer.write(rgb, ns + 5, store.serialize_cdr(msg, "sensor_msgs/msg/Image"))
             if info:
                 K = np.array([50.0, 0, 1.5, 0, 50.0, 1.0, 0, 0, 1])
-                roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0,
-                                                            width=0, do_rectify=False)  # fmt: skip
+                roi = t["sensor_msgs/msg/RegionOfInterest"](
+                    x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+                )
                 ci = t["sensor_msgs/msg/CameraInfo"](
-                    header=header(ns, "rgb_camera_link"), height=3, width=info_width,
-                    distortion_model="plumb_bob", d=np.array(distortion), k=K, r=np.eye(3).ravel(),
-                    p=np.zeros(12), binning_x=0, binning_y=0, roi=roi,
-                )  # fmt: skip
+                    header=header(ns, "rgb_camera_link"),
+                    height=3,
+                    width=info_width,
+                    distortion_model="plumb_bob",
+                    d=np.array(distortion),
+                    k=K,
+                    r=np.eye(3).ravel(),
+                    p=np.zeros(12),
+                    binning_x=0,
+                    binning_y=0,
+                    roi=roi,
+                )
                 writer.write(cam, ns + 5, store.serialize_cdr(ci, "sensor_msgs/msg/CameraInfo"))
         for k, ns in enumerate(depth_stamps):
             mm = np.full((3, width), 1000 + k, dtype="<u2")
             msg = t["sensor_msgs/msg/Image"](
-                header=header(ns, depth_frame), height=3, width=width, encoding="16UC1",
-                is_bigendian=0, step=width * 2, data=mm.view(np.uint8).reshape(-1),
-            )  # fmt: skip
+                header=header(ns, depth_frame),
+                height=3,
+                width=width,
+                encoding="16UC1",
+                is_bigendian=0,
+                step=width * 2,
+                data=mm.view(np.uint8).reshape(-1),
+            )
             writer.write(depth, ns + 7, store.serialize_cdr(msg, "sensor_msgs/msg/Image"))
 
 
@@ -395,8 +416,9 @@ def test_ground_truth_from_tf_matches_the_folders(folders):
     folder = open_sequence(folders["room"])
     frames = ("world", "camera_color_optical_frame")
     for fmt in FORMATS:
-        seq = open_sequence(_recording(folders, "room", fmt), recording=RecordingOptions(
-            gt_frames=frames))  # fmt: skip
+        seq = open_sequence(
+            _recording(folders, "room", fmt), recording=RecordingOptions(gt_frames=frames)
+        )
         stamps, poses = seq.ground_truth()
         assert np.array_equal(stamps, folder.ground_truth()[0])
         assert np.allclose(poses, folder.ground_truth()[1], atol=1e-12)
@@ -435,15 +457,17 @@ def test_unknown_encoding_and_unregistered_depth_are_refused(tmp_path):
     _write_bag(tmp_path / "yuv", [SECOND], [SECOND], encoding="yuv422")
     _one_line(tmp_path / "yuv", "colour encoding 'yuv422'")
     _write_bag(tmp_path / "apart", [SECOND], [SECOND], depth_frame="depth_camera_link")
-    _one_line(tmp_path / "apart", "depth /depth/image_raw .* is not registered to colour "
-              "/rgb/image_raw")  # fmt: skip
+    _one_line(
+        tmp_path / "apart", "depth /depth/image_raw .* is not registered to colour /rgb/image_raw"
+    )
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_a_truncated_recording_is_refused(folders, tmp_path, fmt):
     source = _recording(folders, "room", fmt)
-    files = sorted(p for p in source.iterdir() if p.suffix != ".yaml") if source.is_dir() else [
-        source]  # fmt: skip
+    files = (
+        sorted(p for p in source.iterdir() if p.suffix != ".yaml") if source.is_dir() else [source]
+    )
     target = tmp_path / source.name
     if source.is_dir():
         target.mkdir()
@@ -497,10 +521,12 @@ def test_a_gsc_log_is_not_taken_for_a_recording(run):
 
 def test_gsc_info_says_what_each_mcap_is(folders, run):
     ros2_file = next(_recording(folders, "room", "ros2").glob("*.mcap"))
-    for path, kind in ((ros2_file, "ROS 2 bag (MCAP)"),
-                       (_recording(folders, "room", "foxglove"), "Foxglove recording (MCAP)"),
-                       (_recording(folders, "room", "ros1"), "ROS 1 bag"),
-                       (run["log"], "gscompress log")):  # fmt: skip
+    for path, kind in (
+        (ros2_file, "ROS 2 bag (MCAP)"),
+        (_recording(folders, "room", "foxglove"), "Foxglove recording (MCAP)"),
+        (_recording(folders, "room", "ros1"), "ROS 1 bag"),
+        (run["log"], "gscompress log"),
+    ):
         result = gsc("info", path)
         assert result.exit_code == 0, result.output
         assert f"({kind}" in result.output.splitlines()[0]
@@ -526,8 +552,18 @@ def test_gsc_info_names_the_candidates_of_an_ambiguous_recording(tmp_path):
 
 
 def test_convert_and_synth_write_recordings(folders, tmp_path):
-    result = gsc("convert", folders["mm"], "-o", tmp_path / "mm.bag", "--format", "ros1",
-                 "--depth-encoding", "compressedDepth", "--color-encoding", "png")  # fmt: skip
+    result = gsc(
+        "convert",
+        folders["mm"],
+        "-o",
+        tmp_path / "mm.bag",
+        "--format",
+        "ros1",
+        "--depth-encoding",
+        "compressedDepth",
+        "--color-encoding",
+        "png",
+    )
     assert result.exit_code == 0, result.output
     seq, folder = open_sequence(tmp_path / "mm.bag"), open_sequence(folders["mm"])
     assert np.array_equal(seq.frame(4).depth, folder.frame(4).depth)
@@ -548,8 +584,21 @@ def test_every_seq_command_takes_a_recording(folders, tmp_path):
     are recorded and reused by eval and render."""
     bag = _recording(folders, "room", "ros2")
     log = tmp_path / "run.mcap"
-    result = gsc("--threads", 1, "slam", bag, "-o", log, "--preset", "tiny", "--frames", "0:3",
-                 "--gt-frames", "world", "camera_color_optical_frame")  # fmt: skip
+    result = gsc(
+        "--threads",
+        1,
+        "slam",
+        bag,
+        "-o",
+        log,
+        "--preset",
+        "tiny",
+        "--frames",
+        "0:3",
+        "--gt-frames",
+        "world",
+        "camera_color_optical_frame",
+    )
     assert result.exit_code == 0, result.output
     assert "ATE RMSE" in result.output
     result = gsc("eval", log, "--seq", bag, "--no-lpips", "--json")
@@ -558,7 +607,9 @@ def test_every_seq_command_takes_a_recording(folders, tmp_path):
     result = gsc("render", log, "--seq", bag, "-o", tmp_path / "pictures", "--every", 2)
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in (tmp_path / "pictures" / "rgb").iterdir()) == [
-        "000000.png", "000002.png"]  # fmt: skip
+        "000000.png",
+        "000002.png",
+    ]
     result = gsc("score", log, "--seq", bag, "-o", tmp_path / "scored.mcap")
     assert result.exit_code == 0, result.output
     wrong = gsc("eval", log, "--seq", bag, "--rgb", "/camera/nothing")

@@ -14,12 +14,13 @@ from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader, read_map
 from gscompress.pipeline import evaluate_log, prune_log, share_log
-from gscompress.pipeline.refine import (
+from gscompress.pipeline.images import ImageOptions
+from gscompress.pipeline.logs import recorded_keyframes
+from gscompress.pipeline.refining import (
     PSEUDO_VIEWS,
     LogRefiner,
     RefineOptions,
     pseudo_poses,
-    recorded_keyframes,
     teacher_views,
 )
 from gscompress.selection import select_top
@@ -39,7 +40,7 @@ def keyframe_indices(log: Path) -> set[int]:
 
 
 def mean_psnr_off_keyframes(log: Path, seq: Path, keyframes: set[int]) -> float:
-    per_frame = evaluate_log(log, seq, lpips=False)["per_frame"]
+    per_frame = evaluate_log(log, seq, ImageOptions(lpips=False))["per_frame"]
     scores = [f["psnr"] for f in per_frame if f["index"] not in keyframes]
     assert scores, "no frame outside the keyframes"
     return float(np.mean(scores))
@@ -149,8 +150,9 @@ def test_an_anisotropic_refinement_shapes_the_kept_gaussians(run: dict[str, Path
     full = read_map(run["log"])
     assert full.isotropic
     flat, shaped = run["root"] / "iso.mcap", run["root"] / "aniso.mcap"
-    iso = prune_log(run["log"], flat, 0.3, refine=LogRefiner(run["log"], run["seq"],
-                                                              RefineOptions(40)))  # fmt: skip
+    iso = prune_log(
+        run["log"], flat, 0.3, refine=LogRefiner(run["log"], run["seq"], RefineOptions(40))
+    )
     refiner = LogRefiner(run["log"], run["seq"], RefineOptions(40, anisotropic=True))
     aniso = prune_log(run["log"], shaped, 0.3, refine=refiner)
     a, b = read_map(flat), read_map(shaped)
@@ -170,7 +172,7 @@ def test_an_anisotropic_cut_folds_into_the_group_covariance(run: dict[str, Path]
     """Folding into an anisotropic pool keeps each group's moment-matched covariance: a kept
     Gaussian that absorbs neighbours along a surface becomes elongated, where the isotropic
     fold keeps only the trace."""
-    from gscompress.pipeline.offline import cut_map, cut_pool
+    from gscompress.ops.fold import cut_map, cut_pool
 
     full = read_map(run["log"])
     scores = full.importance_sum / np.maximum(full.importance_weight, 1e-12)
@@ -216,7 +218,7 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
     out."""
     from dataclasses import replace
 
-    from gscompress.pipeline.offline import PROBE_ITERS
+    from gscompress.pipeline.share.cut import PROBE_ITERS
 
     class Turning:
         anisotropic = True
@@ -228,9 +230,12 @@ def test_a_byte_budget_share_refines_the_count_its_refined_values_fit(
             return {}
 
         def __call__(
-            self, gaussians: GaussianMap, rates: object = None,
-            teacher: GaussianMap | None = None, iters: int | None = None,
-        ) -> tuple[GaussianMap, dict[str, object]]:  # fmt: skip
+            self,
+            gaussians: GaussianMap,
+            rates: object = None,
+            teacher: GaussianMap | None = None,
+            iters: int | None = None,
+        ) -> tuple[GaussianMap, dict[str, object]]:
             self.calls.append((len(gaussians), iters))
             # each Gaussian turned by its id alone: the probe and the full refinement give the
             # Gaussians they share the same values
@@ -261,8 +266,7 @@ def test_a_refined_share_is_shaped_only_when_its_budget_leaves_gaussians_out(
     shaped."""
     refiner = LogRefiner(run["log"], run["seq"], RefineOptions(3, anisotropic=True))
     whole = share_log(run["log"], run["root"] / "w.mcap", 1.0)["file_bytes"]
-    roomy = share_log(run["log"], run["root"] / "roomy.mcap", f"{whole + 2000}B",
-                      refine=refiner)  # fmt: skip
+    roomy = share_log(run["log"], run["root"] / "roomy.mcap", f"{whole + 2000}B", refine=refiner)
     assert read_map(run["root"] / "roomy.mcap").isotropic and roomy["selected"] == roomy["total"]
     share_log(run["log"], run["root"] / "tight.mcap", f"{whole // 2}B", refine=refiner)
     assert not read_map(run["root"] / "tight.mcap").isotropic

@@ -269,9 +269,15 @@ def test_gradcheck_means_and_scales_torch():
 
     def f(means, scales, quats):
         out = render(
-            means, quats, scales, scene["opacities"], scene["colors"], INTR,
-            scene["T_cam_world"], backend="torch",
-        )  # fmt: skip
+            means,
+            quats,
+            scales,
+            scene["opacities"],
+            scene["colors"],
+            INTR,
+            scene["T_cam_world"],
+            backend="torch",
+        )
         return torch.stack([(getattr(out, k) * w).sum() for k, w in weights.items()])
 
     args = tuple(scene[k].clone().requires_grad_(True) for k in ("means", "scales", "quats"))

@@ -96,8 +96,13 @@ def _compare_backends(scene, intr, tol):
     results = []
     for backend in ("cpu", "torch"):
         leaves = {k: v.detach().clone().requires_grad_(True) for k, v in scene.items()}
-        out = render(*(leaves[k] for k in ARGS), intr, leaves["T_cam_world"], backend=backend,
-                     want_contribution=True)  # fmt: skip
+        out = render(
+            *(leaves[k] for k in ARGS),
+            intr,
+            leaves["T_cam_world"],
+            backend=backend,
+            want_contribution=True,
+        )
         assert out.backend == backend
         loss = outputs_loss(out, weights)
         results.append((out, torch.autograd.grad(loss, [leaves[k] for k in INPUTS])))
@@ -415,8 +420,10 @@ def test_mapping_loss_with_the_cpu_ssim_equals_torch(extension):
     config = preset("cpu").mapping
     grads = {}
     for backend, edges in (
-        ("cpu", None), ("cpu", depth_edges(depth_gt, config.illum_edge_sigma)), ("torch", None),
-    ):  # fmt: skip
+        ("cpu", None),
+        ("cpu", depth_edges(depth_gt, config.illum_edge_sigma)),
+        ("torch", None),
+    ):
         color = torch.rand(40, 48, 3, generator=torch.Generator().manual_seed(4))
         color.requires_grad_(True)
         out = RenderOutput(

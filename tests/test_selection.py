@@ -163,7 +163,8 @@ def test_a_spread_share_records_it_and_sends_the_places_a_plain_one_leaves(tmp_p
 
     from gscompress.io.mcap_log import LogMetadata, LogReader
     from gscompress.io.ply import write_ply
-    from gscompress.pipeline.offline import share_log
+    from gscompress.pipeline.share import share_log
+    from gscompress.pipeline.share.options import ShareOptions
 
     g = random_map(200, seed=6)
     means = g.means.copy()
@@ -174,10 +175,16 @@ def test_a_spread_share_records_it_and_sends_the_places_a_plain_one_leaves(tmp_p
     assert g.importance[:150].min() > g.importance[150:].max()
     src = tmp_path / "src.ply"
     write_ply(g, src)
-    plain = share_log(src, tmp_path / "plain.mcap", 0.2, source=(g, LogMetadata()), ids=True)
+    plain = share_log(
+        src, tmp_path / "plain.mcap", 0.2, ShareOptions(ids=True), source=(g, LogMetadata())
+    )
     spread = share_log(
-        src, tmp_path / "spread.mcap", 0.2, source=(g, LogMetadata()), spread=True, ids=True
-    )  # fmt: skip  (the ids say which were sent)
+        src,
+        tmp_path / "spread.mcap",
+        0.2,
+        ShareOptions(spread=True, ids=True),
+        source=(g, LogMetadata()),
+    )  # (the ids say which were sent)
     assert spread["spread"] is True and "spread" not in plain
     sent = {}
     for name in ("plain", "spread"):

@@ -20,6 +20,7 @@ from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_POSE_GT, TOPIC_STATS, LogRe
 from gscompress.metrics import ate_rmse_cm
 from gscompress.pipeline import slam_file
 from gscompress.pipeline.slam_run import FRAMES
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.render import resolve_backend
 from gscompress.selection import keep_count
 from gscompress.slam.config import load_config, preset
@@ -38,8 +39,9 @@ def poses(log, topic):
     for _, _, message in log.iter_messages([topic]):
         p = PoseInFrame.FromString(message.data).pose
         q = [p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z]
-        out.append(make_transform(quat_to_rotmat(np.array(q)), [p.position.x, p.position.y,
-                                                               p.position.z]))  # fmt: skip
+        out.append(
+            make_transform(quat_to_rotmat(np.array(q)), [p.position.x, p.position.y, p.position.z])
+        )
     return np.array(out)
 
 
@@ -66,8 +68,14 @@ def test_log_has_poses_stats_snapshots_and_metadata(slam_log):
     for record in stats:
         jsonschema.validate(record, schema)
     assert [s["frame"] for s in stats] == list(range(6))
-    assert [s.get("event") for s in stats] == [None, "prune-stage-1", None, "prune-stage-2",
-                                               None, None]  # fmt: skip
+    assert [s.get("event") for s in stats] == [
+        None,
+        "prune-stage-1",
+        None,
+        "prune-stage-2",
+        None,
+        None,
+    ]
     assert stats[-1]["gaussians"] == len(final) and final.has_importance
     assert set(stats[1]["ms"]) >= {"tracking", "densification", "mapping", "pwas", "pruning"}
     ate = ate_rmse_cm(gt, est)
@@ -97,8 +105,9 @@ def test_offline_commands_accept_the_log(slam_log, tmp_path):
 
 def test_config_save_load_and_no_prune(seq_dir, tmp_path):
     cfg = tmp_path / "c.yaml"
-    r = gsc("slam", seq_dir, "--preset", "tiny", "--no-prune", "--keep", "0.4",
-            "--save-config", cfg)  # fmt: skip
+    r = gsc(
+        "slam", seq_dir, "--preset", "tiny", "--no-prune", "--keep", "0.4", "--save-config", cfg
+    )
     assert r.exit_code == 2 and "--keep does not go with --no-prune" in r.output
     assert not cfg.exists()
     r = gsc("slam", seq_dir, "--preset", "tiny", "--no-prune", "--save-config", cfg)
@@ -171,8 +180,13 @@ def test_keyboard_interrupt_leaves_a_readable_log_of_the_frames_done(tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        slam_file(None, out, preset="tiny", no_prune=True, progress=stop_after_three,
-                  sequence=sequence)  # fmt: skip
+        slam_file(
+            None,
+            out,
+            SlamOptions(preset="tiny", no_prune=True),
+            progress=stop_after_three,
+            sequence=sequence,
+        )
     with LogReader(out) as log:
         counts = {c.topic: c.messages for c in log.channels}
         assert counts["/camera/pose"] == 3 and counts["/slam/stats"] == 3
@@ -216,8 +230,13 @@ def test_render_kernels_are_ready_before_the_first_timed_frame(monkeypatch, tmp_
         seconds.append(stats["seconds"])
 
     sequence = synthetic_sequence(2, (32, 24))
-    result = slam_file(None, tmp_path / "run.mcap", preset="tiny", sequence=sequence,
-                       progress=progress)  # fmt: skip
+    result = slam_file(
+        None,
+        tmp_path / "run.mcap",
+        SlamOptions(preset="tiny"),
+        sequence=sequence,
+        progress=progress,
+    )
     assert events[0] == "kernels" and events.count("frame") == 2
     # the bar's s/frame and the summary's come from one clock, started after the build
     assert len(seconds) == 2 and 0 < seconds[0] < seconds[1] <= result["seconds"] + 1e-3
@@ -255,7 +274,7 @@ def test_progress_bar_counts_only_the_frames_this_run_does(monkeypatch, caplog, 
 
     out = tmp_path / "run.mcap"
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir, out, preset="tiny", progress=stop_after_two)
+        slam_file(seq_dir, out, SlamOptions(preset="tiny"), progress=stop_after_two)
     monkeypatch.setattr(render, "resolve_backend", slow_resolve)
     monkeypatch.setattr(slam_command, "progress_bar", kept_bar)
     caplog.set_level(logging.INFO)  # the bar shows at gsc's default level, not under -q
@@ -296,8 +315,14 @@ def test_every_phase_of_a_run_reports_its_progress(tmp_path):
         frames_done.append(len(events))
 
     config = preset("tiny").with_overrides(**{"mapping.final_iters": 7})
-    slam_file(None, tmp_path / "run.mcap", config=config, sequence=synthetic_sequence(3, (32, 24)),
-              progress=progress, phases=phases)  # fmt: skip
+    slam_file(
+        None,
+        tmp_path / "run.mcap",
+        config=config,
+        sequence=synthetic_sequence(3, (32, 24)),
+        progress=progress,
+        phases=phases,
+    )
     assert events[0] == (FRAMES, 0, 3) and frames_done[0] == 1  # before the first frame
     refining = [e for e in events if e[0] == FINAL_REFINEMENT]
     assert refining == [(FINAL_REFINEMENT, k, 7) for k in range(8)]
@@ -319,8 +344,20 @@ def test_threads_option_sets_torch_and_openmp_threads(
     import torch
 
     monkeypatch.setenv("OMP_NUM_THREADS", "7")
-    r = gsc("--threads", "1", "slam", seq_dir, "-o", tmp_path / "t.mcap", "--preset", "tiny",
-            "--size", "32x24", "--frames", "0:2")  # fmt: skip
+    r = gsc(
+        "--threads",
+        "1",
+        "slam",
+        seq_dir,
+        "-o",
+        tmp_path / "t.mcap",
+        "--preset",
+        "tiny",
+        "--size",
+        "32x24",
+        "--frames",
+        "0:2",
+    )
     assert r.exit_code == 0, r.output
     assert torch.get_num_threads() == 1 and os.environ["OMP_NUM_THREADS"] == "1"
     assert gsc("--threads", "0", "info", tmp_path / "t.mcap").exit_code == 2
@@ -365,10 +402,19 @@ def test_force_never_writes_over_a_file_the_command_reads(seq_dir, slam_log, tmp
     for args in (
         ("slam", seq_dir, "--preset", "tiny", "--config", config, "-o", config),
         ("slam", seq_dir, "--preset", "tiny", *inject, "-o", transform),
-        ("slam", seq_dir, "--preset", "tiny", *inject, "-o", tmp_path / "b.mcap",
-         "--save-config", share),
+        (
+            "slam",
+            seq_dir,
+            "--preset",
+            "tiny",
+            *inject,
+            "-o",
+            tmp_path / "b.mcap",
+            "--save-config",
+            share,
+        ),
         ("merge", slam_log, share, "--iters", "0", "--share-transform", transform, "-o", transform),
-    ):  # fmt: skip
+    ):
         r = gsc(*args, "--force")
         assert r.exit_code == 1 and "also an input" in r.output, (args, r.output)
     r = gsc("slam", seq_dir, "--save-config", slam_log, "--force")  # a config over a log
@@ -378,8 +424,10 @@ def test_force_never_writes_over_a_file_the_command_reads(seq_dir, slam_log, tmp
 
 def test_a_file_system_refusal_is_a_one_line_error(seq_dir, slam_log, tmp_path):
     long_name = tmp_path / ("a" * 300 + ".mcap")  # longer than any file system allows
-    for args in (("prune", slam_log, "--keep", "0.5", "-o", long_name),
-                 ("slam", seq_dir, "--preset", "tiny", "-o", long_name)):  # fmt: skip
+    for args in (
+        ("prune", slam_log, "--keep", "0.5", "-o", long_name),
+        ("slam", seq_dir, "--preset", "tiny", "-o", long_name),
+    ):
         r = gsc(*args)
         assert r.exit_code == 1 and isinstance(r.exception, SystemExit), r.exception
         assert r.output.count("\n") == 1 and "File name too long" in r.output, r.output
@@ -426,10 +474,15 @@ def test_a_size_too_small_to_map_is_refused_and_an_enlarging_one_is_warned(
     assert r.exit_code == 2 and "working size 15x12 is too small to map" in r.output
     assert not out.exists()
     with caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"):
-        slam_file(seq_dir, tmp_path / "own.mcap", preset="tiny", frames="0:2", no_prune=True)
+        slam_file(
+            seq_dir, tmp_path / "own.mcap", SlamOptions(preset="tiny", frames="0:2", no_prune=True)
+        )
         assert "enlarges" not in caplog.text
-        slam_file(seq_dir, tmp_path / "big.mcap", preset="tiny", frames="0:2", size=(96, 72),
-                  no_prune=True)  # fmt: skip
+        slam_file(
+            seq_dir,
+            tmp_path / "big.mcap",
+            SlamOptions(preset="tiny", frames="0:2", size=(96, 72), no_prune=True),
+        )
     assert "working size 96x72 enlarges room's 64x48 frames" in caplog.text
 
 
@@ -461,7 +514,7 @@ def test_a_passing_error_partway_is_not_called_a_settings_one(
         caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"),
         pytest.raises(MemoryError),
     ):
-        slam_file(seq_dir, tmp_path / "m.mcap", preset="tiny", no_prune=True)
+        slam_file(seq_dir, tmp_path / "m.mcap", SlamOptions(preset="tiny", no_prune=True))
     assert "holds the 3 frame(s) done before the error" in caplog.text
     assert "run afresh" not in caplog.text
 
@@ -474,7 +527,7 @@ def test_an_error_partway_keeps_the_frames_done_and_says_so(seq_dir, tmp_path, c
         caplog.at_level(logging.WARNING, logger="gscompress.pipeline.slam_run"),
         pytest.raises(DatasetError, match="cannot read depth image"),
     ):
-        slam_file(broken, out, preset="tiny", no_prune=True)
+        slam_file(broken, out, SlamOptions(preset="tiny", no_prune=True))
     assert f"{out} holds the 3 frame(s) done before the error" in caplog.text
     with LogReader(out) as log:
         assert log.metadata.results["frames"] == 3 and log.metadata.results["interrupted"]
@@ -521,8 +574,13 @@ def test_verbose_adds_each_frames_stats_and_quiet_keeps_to_warnings(seq_dir, tmp
     def stderr(*flags: str) -> str:
         out = tmp_path / f"v{len(flags)}{'q' if '-q' in flags else ''}.mcap"
         args = ["slam", str(seq_dir), "--preset", "tiny", "--frames", "0:2", "-o", str(out)]
-        proc = subprocess.run([sys.executable, "-m", "gscompress_cli", *flags, *args],
-                              capture_output=True, text=True, timeout=300, check=True)  # fmt: skip
+        proc = subprocess.run(
+            [sys.executable, "-m", "gscompress_cli", *flags, *args],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=True,
+        )
         return proc.stderr
 
     assert "DEBUG gscompress.pipeline.slam_run: frame 2 of 2: {'frame': 1," in stderr("-v")

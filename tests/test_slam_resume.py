@@ -20,7 +20,9 @@ from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.errors import DatasetError, DivergenceError, InputError, MapError
 from gscompress.io.mcap_log import TOPIC_GAUSSIANS, TOPIC_POSE, TOPIC_STATS, LogReader
 from gscompress.io.recover import read_messages, unfinished_files
-from gscompress.pipeline import share_log, slam_file
+from gscompress.pipeline import resume_slam_file, share_log, slam_file
+from gscompress.pipeline.slam_run import refuse_own_settings
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.system import SlamSystem
 from gscompress_cli.main import cli
 
@@ -45,7 +47,7 @@ def frames_in(path: Path) -> list[int]:
 def interrupted(seq_dir_8: Path, out: Path, frames: int = 3, **options: object) -> Path:
     """`out`: a run of `seq_dir_8` stopped by Ctrl-C after `frames` frames."""
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, progress=stop_after(frames), **options)
+        slam_file(seq_dir_8, out, SlamOptions(**options), progress=stop_after(frames))
     return out
 
 
@@ -67,7 +69,7 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
         interrupted_map = log.read_map()
     assert frames_in(out) == [0, 1, 2]
 
-    result = slam_file(seq_dir_8, out, resume=True)
+    result = resume_slam_file(seq_dir_8, out)
     assert result["frames"] == FRAMES and result["resumed_at"] == 3
     assert result["interrupted"] is False
     assert frames_in(out) == list(range(FRAMES))
@@ -81,11 +83,17 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
     assert fresh and min(s["next_id"] for s in fresh) > int(interrupted_map.ids.max())
 
     with pytest.raises(InputError, match="finished run"):
-        slam_file(seq_dir_8, out, resume=True)
+        resume_slam_file(seq_dir_8, out)
+    # (the settings resume_slam_file takes from the log: gsc slam refuses them beside --resume)
+    resume = ["slam", str(seq_dir_8), "-o", str(out), "--resume"]
+    r = CliRunner().invoke(cli, [*resume, "--keep", "0.5"])
+    assert r.exit_code != 0 and "drop --keep" in r.output
+    r = CliRunner().invoke(cli, [*resume, "--preset", "tiny", "--frames", "0:4"])
+    assert r.exit_code != 0 and "drop --preset, --frames" in r.output
     with pytest.raises(InputError, match="drop --keep"):
-        slam_file(seq_dir_8, out, resume=True, keep=0.5)
+        refuse_own_settings((None, None, None, None, None, 0.5, None, None), False, None)
     with pytest.raises(InputError, match="drop --preset, --frames"):
-        slam_file(seq_dir_8, out, resume=True, preset="tiny", frames="0:4")
+        refuse_own_settings(("tiny", None, "0:4", None, None, None, None, None), False, None)
 
 
 def test_a_resumes_summary_gives_the_speed_of_the_frames_it_ran(
@@ -101,29 +109,32 @@ def test_a_resumes_summary_gives_the_speed_of_the_frames_it_ran(
 def test_a_resumed_run_keeps_the_view_of_every_frame_it_restored(
     seq_dir_8: Path, tmp_path: Path
 ) -> None:
-    from gscompress.pipeline.slam_run import _resume_run
+    from gscompress.pipeline.slam_run.start import resume_run
 
     config = tmp_path / "frames.yaml"
     config.write_text(
         "preset: tiny\ncheckpoint_every: 2\nmapping:\n  final_iters: 3\n  final_views: frames\n"
     )
     out = interrupted(seq_dir_8, tmp_path / "run.mcap", config_path=config)
-    run = _resume_run(seq_dir_8, out, "cpu", None)
+    run = resume_run(seq_dir_8, out, "cpu", None)
     assert run.start == 3 and [v.index for v in run.system.views] == [0, 1, 2]
     assert [v.index for v in run.system.keyframes] == [0, 2]
     fresh = SlamSystem(run.config, run.system.intrinsics, total_frames=FRAMES)
     with pytest.raises(MapError, match="every restored frame"):  # the keyframes alone
         fresh.restore(
-            run.system.gaussian_map(), [(i, float(i), np.eye(4)) for i in range(3)],
-            run.system.keyframes, mapping_iterations=0, next_id=0,
+            run.system.gaussian_map(),
+            [(i, float(i), np.eye(4)) for i in range(3)],
+            run.system.keyframes,
+            mapping_iterations=0,
+            next_id=0,
             first_depth=run.system.keyframes[0].depth.numpy(),
-        )  # fmt: skip
+        )
     assert len(fresh) == 0 and fresh.poses == []  # refused before any of it was taken
 
 
 def test_nothing_to_resume_is_a_clear_error(seq_dir_8: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no log"):
-        slam_file(seq_dir_8, tmp_path / "none.mcap", resume=True)
+        resume_slam_file(seq_dir_8, tmp_path / "none.mcap")
 
 
 @pytest.mark.parametrize("cut", [False, True])
@@ -132,7 +143,7 @@ def test_a_share_or_pruned_log_is_not_resumed_even_cut_short(
 ) -> None:
     from gscompress.pipeline import prune_log
 
-    slam_file(seq_dir_8, tmp_path / "a.mcap", preset="tiny", frames="0:4")
+    slam_file(seq_dir_8, tmp_path / "a.mcap", SlamOptions(preset="tiny", frames="0:4"))
     share_log(tmp_path / "a.mcap", tmp_path / "s.mcap", 0.2)
     prune_log(tmp_path / "a.mcap", tmp_path / "p.mcap", 0.3)
     for derived in (tmp_path / "s.mcap", tmp_path / "p.mcap"):
@@ -140,7 +151,7 @@ def test_a_share_or_pruned_log_is_not_resumed_even_cut_short(
             derived.write_bytes(derived.read_bytes()[: derived.stat().st_size * 2 // 3])
         before = derived.read_bytes()
         with pytest.raises(InputError, match="not the log of a `gsc slam` run"):
-            slam_file(seq_dir_8, derived, resume=True)
+            resume_slam_file(seq_dir_8, derived)
         assert derived.read_bytes() == before
 
 
@@ -172,8 +183,9 @@ def _gsc_signalled(signum: int, after: int, *args: object) -> list[str]:
 
 
 def _checkpoints(path: Path) -> int:
-    return sum(1 for _, channel, _ in read_messages(path).messages
-               if channel.topic == TOPIC_GAUSSIANS)  # fmt: skip
+    return sum(
+        1 for _, channel, _ in read_messages(path).messages if channel.topic == TOPIC_GAUSSIANS
+    )
 
 
 def test_killed_run_resumes_to_the_same_number_of_frames(
@@ -215,7 +227,7 @@ def test_a_resume_killed_in_its_turn_is_resumed_from_where_it_got(
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert len(unfinished_files(out)) == 1  # frames 3-5 done beyond the log's 3, then killed
     assert frames_in(out) == [0, 1, 2]
-    result = slam_file(seq_dir_8, out, resume=True)
+    result = resume_slam_file(seq_dir_8, out)
     assert result["resumed_at"] > 3  # from the killed resume's file, not the older log
     assert frames_in(out) == list(range(FRAMES)) and unfinished_files(out) == []
 
@@ -226,11 +238,22 @@ def test_a_resume_takes_up_the_newest_run_not_an_older_one_further_along(
     out = tmp_path / "two.mcap"
     first = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir_8, "-o", out, "--config", config_file)
     assert subprocess.run(first, capture_output=True, timeout=300, check=False).returncode < 0
-    again = _gsc_signalled(signal.SIGKILL, 2, "slam", seq_dir_8, "-o", out, "--config",
-                           config_file, "--size", "48x36", "--force")  # fmt: skip
+    again = _gsc_signalled(
+        signal.SIGKILL,
+        2,
+        "slam",
+        seq_dir_8,
+        "-o",
+        out,
+        "--config",
+        config_file,
+        "--size",
+        "48x36",
+        "--force",
+    )
     assert subprocess.run(again, capture_output=True, timeout=300, check=False).returncode < 0
     assert len(unfinished_files(out)) == 2
-    result = slam_file(seq_dir_8, out, resume=True)
+    result = resume_slam_file(seq_dir_8, out)
     assert result.get("resumed_at", 0) < 4  # the 48x36 run's start, not the older run's 4
     with LogReader(out) as log:
         assert log.metadata.config["size"] == [48, 36]
@@ -243,11 +266,12 @@ def test_a_resume_takes_up_the_newest_run_of_another_scene_of_the_same_name(
     other = write_synthetic_sequence(tmp_path / "other" / seq_dir_8.name, FRAMES, (64, 48), seed=7)
     out = tmp_path / "r.mcap"
     older = _gsc_signalled(signal.SIGKILL, 6, "slam", seq_dir_8, "-o", out, "--config", config_file)
-    newer = _gsc_signalled(signal.SIGKILL, 4, "slam", other, "-o", out, "--config", config_file,
-                           "--force")  # fmt: skip
+    newer = _gsc_signalled(
+        signal.SIGKILL, 4, "slam", other, "-o", out, "--config", config_file, "--force"
+    )
     for cmd in (older, newer):
         assert subprocess.run(cmd, capture_output=True, timeout=300, check=False).returncode < 0
-    result = slam_file(other, out, resume=True)  # not "not recorded on this room" from the older
+    result = resume_slam_file(other, out)  # not "not recorded on this room" from the older
     assert result["frames"] == FRAMES and unfinished_files(out) == []
 
 
@@ -258,15 +282,16 @@ def test_a_log_from_before_the_fingerprint_and_its_resumes_file_are_one_run(
 
     from gscompress.gaussians import random_map
     from gscompress.io.mcap_log import LogMetadata, LogWriter
-    from gscompress.pipeline.slam_run import _furthest
+    from gscompress.pipeline.slam_run.start import _furthest
 
     def log(path: Path, map_at: int, **results: object) -> Path:
         meta = LogMetadata(sequence="room", frames="all", config={"seed": 0}, results=results)
-        with LogWriter(path, meta) as out:
+        written = path.with_name("written.mcap")  # (then named as a killed writer leaves it)
+        with LogWriter(written, meta) as out:
             for t in range(1, 4):
                 out.write_pose(np.eye(4), t)
             out.write_gaussians(random_map(5), map_at)
-        return path
+        return written.rename(path)
 
     old = log(tmp_path / "old.mcap", 3)  # written before logs recorded their first frame
     newer = log(tmp_path / ".old.mcap.1.tmp", 1, first_frame=[3.6, 0.5, 0.4, 0.3])
@@ -283,8 +308,20 @@ def test_a_fresh_run_with_force_replaces_an_unfinished_one(
     out = tmp_path / "again.mcap"
     stale = tmp_path / ".again.mcap.99999.tmp"  # as a killed writer leaves it
     stale.write_bytes(b"\x89MCAP0\r\n")
-    r = CliRunner().invoke(cli, ["slam", str(seq_dir_8), "-o", str(out), "--config",
-                                 str(config_file), "--frames", "0:2", "--force"])  # fmt: skip
+    r = CliRunner().invoke(
+        cli,
+        [
+            "slam",
+            str(seq_dir_8),
+            "-o",
+            str(out),
+            "--config",
+            str(config_file),
+            "--frames",
+            "0:2",
+            "--force",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert frames_in(out) == [0, 1] and not stale.exists()
 
@@ -324,7 +361,7 @@ def test_a_signal_in_the_middle_of_a_frame_stops_after_that_frame(
     monkeypatch.setattr(SlamSystem, "process", interrupted_process)
     out = tmp_path / "stopped.mcap"
     with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config_file)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config_file))
     assert frames_in(out) == [0, 1, 2]  # the frame finished, and no later one started
     assert "stopping after this frame (again to stop at once)" in caplog.text
     with LogReader(out) as log:
@@ -357,7 +394,7 @@ def test_a_signal_during_the_final_refinement_ends_it_and_keeps_the_map(
     monkeypatch.setattr(Mapper, "refine", refine_then_signal)
     out = tmp_path / "stopped.mcap"
     with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config))
     assert len(done) == 5  # 5 of the 400 iterations, then the refinement ended
     assert "ending the final refinement at the next iteration" in caplog.text
     assert "stopping after this frame" not in caplog.text
@@ -378,7 +415,7 @@ def test_inject_starts_the_map_with_the_share(
     seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     a = tmp_path / "a.mcap"
-    slam_file(seq_dir_8, a, config_path=config_file, frames="odd")
+    slam_file(seq_dir_8, a, SlamOptions(config_path=config_file, frames="odd"))
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     with LogReader(share) as log:
@@ -386,7 +423,9 @@ def test_inject_starts_the_map_with_the_share(
         assert log.metadata.world_frame == "ground-truth:room"
 
     b = tmp_path / "b.mcap"
-    result = slam_file(seq_dir_8, b, config_path=config_file, frames="even", inject=share)
+    result = slam_file(
+        seq_dir_8, b, SlamOptions(config_path=config_file, frames="even", inject=share)
+    )
     assert result["injected"] == len(shared)
     with LogReader(b) as log:
         first = log.read_map(0)
@@ -405,11 +444,13 @@ def test_inject_refuses_a_share_from_another_world_frame(
 ) -> None:
     other = write_synthetic_sequence(tmp_path / "other", 3, (64, 48), seed=1)
     a = tmp_path / "a.mcap"
-    slam_file(other, a, config_path=config_file)
+    slam_file(other, a, SlamOptions(config_path=config_file))
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     with pytest.raises(MapError, match="world frame"):
-        slam_file(seq_dir_8, tmp_path / "b.mcap", config_path=config_file, inject=share)
+        slam_file(
+            seq_dir_8, tmp_path / "b.mcap", SlamOptions(config_path=config_file, inject=share)
+        )
     assert not (tmp_path / "b.mcap").exists()
 
 
@@ -417,7 +458,7 @@ def test_unfinished_reader_stops_at_a_truncated_tail(
     seq_dir_8: Path, config_file: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "full.mcap"
-    slam_file(seq_dir_8, out, config_path=config_file)
+    slam_file(seq_dir_8, out, SlamOptions(config_path=config_file))
     data = out.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
@@ -471,10 +512,12 @@ def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resum
     config = _tiny_config(tmp_path, "checkpoint_every: 3\nprune: {stages: []}\n")
     out = tmp_path / "twice.mcap"
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config, progress=stop_after(4))  # a map after 4
+        slam_file(
+            seq_dir_8, out, SlamOptions(config_path=config), progress=stop_after(4)
+        )  # a map after 4
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(5))  # the resumed 2nd frame
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, resume=True)
+        resume_slam_file(seq_dir_8, out)
     monkeypatch.undo()
     assert frames_in(out) == [0, 1, 2, 3, 4]  # frame 5 was cut, and no map after frame 4
     with LogReader(out) as log:
@@ -482,7 +525,7 @@ def test_a_second_signal_inside_a_frame_keeps_the_last_map_and_says_what_a_resum
     said = _interrupted_text(seq_dir_8, out)
     assert f"holds 5 of {FRAMES} frames (its last map covers the first 4: a resume" in said
     # that map was put back (else the checkpoint after 3 frames would be the last)
-    resumed = slam_file(seq_dir_8, out, resume=True)
+    resumed = resume_slam_file(seq_dir_8, out)
     assert resumed["resumed_at"] == 4 and frames_in(out) == list(range(FRAMES))
 
 
@@ -495,9 +538,9 @@ def test_a_resume_keeps_a_stage_snapshot_that_was_a_stopped_runs_last(
     out = tmp_path / "staged.mcap"
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(4))
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, out, config_path=config)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config))
     monkeypatch.undo()
-    slam_file(seq_dir_8, out, resume=True)
+    resume_slam_file(seq_dir_8, out)
     with LogReader(out) as log:
         events = {
             m.log_time: json.loads(m.data).get("event")
@@ -516,16 +559,16 @@ def test_resuming_an_injected_run_that_holds_no_map_yet_is_refused(
 ) -> None:
     config = _tiny_config(tmp_path, "checkpoint_every: 0\nprune: {stages: []}\n")
     a = tmp_path / "a.mcap"
-    slam_file(seq_dir_8, a, config_path=config, frames="odd")
+    slam_file(seq_dir_8, a, SlamOptions(config_path=config, frames="odd"))
     share = tmp_path / "share.mcap"
     share_log(a, share, 0.5)
     b = tmp_path / "b.mcap"
     monkeypatch.setattr(SlamSystem, "process", _signalled_twice_in(2))
     with pytest.raises(KeyboardInterrupt):
-        slam_file(seq_dir_8, b, config_path=config, frames="even", inject=share)
+        slam_file(seq_dir_8, b, SlamOptions(config_path=config, frames="even", inject=share))
     monkeypatch.undo()
     with pytest.raises(InputError, match=r"holds no map yet, so not the share .*\(--inject"):
-        slam_file(seq_dir_8, b, resume=True)
+        resume_slam_file(seq_dir_8, b)
 
 
 def test_a_resume_past_an_error_clears_it(seq_dir_8: Path, tmp_path: Path) -> None:
@@ -535,11 +578,11 @@ def test_a_resume_past_an_error_clears_it(seq_dir_8: Path, tmp_path: Path) -> No
     depth.write_bytes(b"not a png")
     out = tmp_path / "e.mcap"
     with pytest.raises(DatasetError):
-        slam_file(broken, out, preset="tiny")
+        slam_file(broken, out, SlamOptions(preset="tiny"))
     with LogReader(out) as log:
         assert "cannot read depth image" in log.metadata.results["error"]
     depth.write_bytes(good)
-    slam_file(broken, out, resume=True)
+    resume_slam_file(broken, out)
     with LogReader(out) as log:
         assert "error" not in log.metadata.results and not log.metadata.results["interrupted"]
 
@@ -559,7 +602,7 @@ def test_a_run_whose_map_diverges_keeps_the_frames_before_with_a_finite_map(
     monkeypatch.setattr(SlamSystem, "process", diverging)
     out = tmp_path / "diverged.mcap"
     with pytest.raises(DivergenceError, match="diverged"):
-        slam_file(seq_dir_8, out, config_path=config)
+        slam_file(seq_dir_8, out, SlamOptions(config_path=config))
     assert frames_in(out) == [0, 1, 2]
     with LogReader(out) as log:
         results = log.metadata.results
@@ -576,5 +619,5 @@ def test_a_resume_on_another_scene_of_the_same_name_is_refused(
         assert len(log.metadata.results["first_frame"]) == 4
     other = write_synthetic_sequence(tmp_path / "other" / seq_dir_8.name, FRAMES, (64, 48), seed=5)
     with pytest.raises(InputError, match=r"not recorded on this room: its first frame differs"):
-        slam_file(other, out, resume=True)
-    assert slam_file(seq_dir_8, out, resume=True)["frames"] == FRAMES  # the same scene goes on
+        resume_slam_file(other, out)
+    assert resume_slam_file(seq_dir_8, out)["frames"] == FRAMES  # the same scene goes on

@@ -12,13 +12,13 @@ from gscompress.errors import BudgetError, DivergenceError, MapError
 from gscompress.gaussians import SH_C0, random_map
 from gscompress.render import render
 from gscompress.selection import STRATEGIES, keep_count, strategy_scores
-from gscompress.slam.config import TrackingConfig, preset
+from gscompress.slam.config import TrackingConfig, final_iterations, preset, stage_positions
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import View, overlap_fraction, sample_points, select_window
 from gscompress.slam.mapper import Mapper
 from gscompress.slam.params import GaussianParams
 from gscompress.slam.poses import PoseAdam, orthonormalize, pose_gradient, pose_increment
-from gscompress.slam.system import SlamSystem, final_iterations, stage_positions
+from gscompress.slam.system import SlamSystem
 from gscompress.slam.tracker import constant_velocity, track
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -93,10 +93,13 @@ def test_pose_gradient_matches_finite_differences():
     for x in (np.zeros(6), rng.normal(0, 0.2, 6)):
         h = 1e-6
         numeric = [
-            (np.sum(W * (pose_increment(x + h * e) @ T0))
-             - np.sum(W * (pose_increment(x - h * e) @ T0))) / (2 * h)
+            (
+                np.sum(W * (pose_increment(x + h * e) @ T0))
+                - np.sum(W * (pose_increment(x - h * e) @ T0))
+            )
+            / (2 * h)
             for e in np.eye(6)
-        ]  # fmt: skip
+        ]
         np.testing.assert_allclose(pose_gradient(x, T0, W), numeric, rtol=1e-6, atol=1e-8)
 
 
@@ -147,9 +150,13 @@ def test_a_map_that_diverged_stops_the_mapping_and_the_tracking(seq):
         mapper.refine([view], 5, np.random.default_rng(0))
     with pytest.raises(DivergenceError, match="tracking diverged"):
         track(
-            mapper.params.render_inputs(), view.color, view.depth, seq.intrinsics,
-            frame.T_world_cam, preset("tiny").tracking,
-        )  # fmt: skip
+            mapper.params.render_inputs(),
+            view.color,
+            view.depth,
+            seq.intrinsics,
+            frame.T_world_cam,
+            preset("tiny").tracking,
+        )
 
 
 def test_a_step_that_leaves_an_infinity_in_the_map_is_caught_at_once(seq, monkeypatch):
@@ -435,9 +442,13 @@ def test_a_stage_keeps_exactly_the_top_fraction_by_its_score(seq, by):
 
 def test_refinement_after_a_stage_and_after_the_last_frame(seq):
     config = preset("tiny").with_overrides(
-        **{"prune.stages": (0.5,), "prune.refine_iters": 5, "mapping.final_iters": 7,
-           "mapping.final_lr_fraction": 0.5}
-    )  # fmt: skip
+        **{
+            "prune.stages": (0.5,),
+            "prune.refine_iters": 5,
+            "mapping.final_iters": 7,
+            "mapping.final_lr_fraction": 0.5,
+        }
+    )
     system = SlamSystem(config, seq.intrinsics, total_frames=4)
     visited, rates = [], []
     step = system.mapper._step
@@ -472,9 +483,13 @@ def test_refinement_after_a_stage_and_after_the_last_frame(seq):
 
 def test_final_refinement_on_every_frame_with_decaying_rates(seq):
     config = preset("tiny").with_overrides(
-        **{"prune.stages": (), "mapping.final_iters": 9, "mapping.final_views": "frames",
-           "mapping.final_lr_fraction": 0.25}
-    )  # fmt: skip
+        **{
+            "prune.stages": (),
+            "mapping.final_iters": 9,
+            "mapping.final_views": "frames",
+            "mapping.final_lr_fraction": 0.25,
+        }
+    )
     system = SlamSystem(config, seq.intrinsics, total_frames=4)
     assert system.keeps_every_view
     visited, rates = [], []

@@ -10,7 +10,8 @@ from click.testing import CliRunner
 from gscompress.errors import BudgetError
 from gscompress.io.mcap_log import LogReader, read_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.solve import CANDIDATES, share_solved, solve_share
+from gscompress.pipeline.share.options import ShareOptions
+from gscompress.pipeline.share.solve import CANDIDATES, share_solved, solve_share
 from gscompress_cli.main import cli
 
 # runs SLAM (or another minutes-long pipeline): not in `make test-fast`
@@ -26,8 +27,10 @@ def test_every_candidate_fits_and_the_best_picture_wins(run, budget):
     # within one budget a smaller codec holds more Gaussians, until it holds the whole map
     counts = {(c.codec, c.sums): c.count for c in weighed}
     n = len(read_map(run["log"]))
-    order = [counts[key] for key in (("compact", False), ("compact", True), ("fp16", True),
-                                     ("fp32", True))]  # fmt: skip
+    order = [
+        counts[key]
+        for key in (("compact", False), ("compact", True), ("fp16", True), ("fp32", True))
+    ]
     assert all(a > b or a == b == n for a, b in itertools.pairwise(order)), (order, n)
     assert order[-1] < n
 
@@ -45,12 +48,23 @@ def test_a_constructed_case_where_fewer_exact_gaussians_win(run):
 
 
 def test_options_constrain_the_search_and_the_share_records_it(run):
-    best, weighed, _ = solve_share(run["log"], Budget.parse("8kB"), codec="compact", sums=True)
+    best, weighed, _ = solve_share(
+        run["log"],
+        Budget.parse("8kB"),
+        ShareOptions(codec="compact", sums=True),
+        fixed=("codec", "sums"),
+    )
     assert best == weighed[0]
     assert sorted((c.codec, c.sums, c.fold) for c in weighed) == [
-        ("compact", True, False), ("compact", True, True),
-    ]  # fmt: skip
-    _, exact, _ = solve_share(run["log"], Budget.parse("8kB"), codec="compact", fold=False)
+        ("compact", True, False),
+        ("compact", True, True),
+    ]
+    _, exact, _ = solve_share(
+        run["log"],
+        Budget.parse("8kB"),
+        ShareOptions(codec="compact", fold=False),
+        fixed=("codec", "fold"),
+    )
     assert sorted((c.sums, c.fold) for c in exact) == [(False, False), (True, False)]
     out = run["root"] / "solve_solved.mcap"
     result = share_solved(run["log"], out, "8kB", seq=run["seq"], force=True)

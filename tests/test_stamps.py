@@ -74,8 +74,9 @@ def test_associate_on_equal_distances_and_shared_stamps() -> None:
     same = np.full(50, 3.0)
     assert associate(same, same[:20], 0.02) == [(i, i) for i in range(20)]
     assert associate(np.array([]), same, 0.02) == []
-    assert associate(np.array([0.0, 0.033, 0.066, 0.5]), np.array([0.001, 0.03, 0.031, 0.07, 0.9]),
-                     0.02) == [(0, 0), (1, 2), (2, 3)]  # fmt: skip
+    assert associate(
+        np.array([0.0, 0.033, 0.066, 0.5]), np.array([0.001, 0.03, 0.031, 0.07, 0.9]), 0.02
+    ) == [(0, 0), (1, 2), (2, 3)]
 
 
 def test_3000_rows_sharing_one_stamp_pair_in_bounded_memory() -> None:
@@ -98,9 +99,12 @@ def test_3000_rows_sharing_one_stamp_pair_in_bounded_memory() -> None:
         """
     )
     done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        timeout=120,
         env={"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", **_env()},
-    )  # fmt: skip
+    )
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
 
 

@@ -125,8 +125,14 @@ def test_gsc_synth_command(tmp_path: Path) -> None:
     result = runner.invoke(cli, ["synth", str(out), "--frames", "3", "--size", "32x24"])
     assert result.exit_code == 0, result.output
     assert "wrote 3 frames (32x24)" in result.output
-    for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "intrinsics.json",
-                 "rgb/000002.png", "depth/000002.png"):  # fmt: skip
+    for name in (
+        "rgb.txt",
+        "depth.txt",
+        "groundtruth.txt",
+        "intrinsics.json",
+        "rgb/000002.png",
+        "depth/000002.png",
+    ):
         assert (out / name).is_file()
     seq = open_sequence(out)
     assert len(seq) == 3 and seq.intrinsics.width == 32 and seq.has_ground_truth
@@ -173,8 +179,17 @@ def test_sigterm_ends_synth_with_130_and_leaves_no_temporary_folder(
     """SIGTERM while frames are being written: exit code 130 as on Ctrl-C, one line saying so,
     and neither the sequence nor its hidden temporary folder is left behind."""
     out = tmp_path / "room"
-    cmd = [sys.executable, "-m", "gscompress_cli", "synth", str(out), "--frames", "2000",
-           "--size", "64x48"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "gscompress_cli",
+        "synth",
+        str(out),
+        "--frames",
+        "2000",
+        "--size",
+        "64x48",
+    ]
 
     def writing(stderr: str) -> bool:  # a frame is in the temporary folder
         return any(tmp.glob("rgb/*.png") for tmp in tmp_path.glob(".room.*.tmp"))

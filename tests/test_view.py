@@ -21,7 +21,8 @@ from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
 from gscompress.io.ply import write_ply
 from gscompress.ops.budget import Budget
 from gscompress.ops.fold import fold
-from gscompress.pipeline.offline import share_log
+from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import select_top
 from gscompress.view import cuts, scene
 from gscompress.view.source import MapSource
@@ -157,9 +158,12 @@ def test_rgba_words_pack_like_the_splat_buffer() -> None:
     server = viser.ViserServer(port=0, verbose=False)
     try:
         handle = server.scene.add_gaussian_splats(
-            "/x", centers=np.zeros((2, 3)), covariances=np.tile(np.eye(3), (2, 1, 1)) * 0.01,
-            rgbs=rgbs, opacities=opacities,
-        )  # fmt: skip
+            "/x",
+            centers=np.zeros((2, 3)),
+            covariances=np.tile(np.eye(3), (2, 1, 1)) * 0.01,
+            rgbs=rgbs,
+            opacities=opacities,
+        )
         np.testing.assert_array_equal(handle.buffer[:, 7], words)
     finally:
         server.stop()
@@ -249,13 +253,15 @@ def test_share_preview_is_the_file_share_writes(
     source = MapSource.open(tiny_log)
     pair = (source.snapshot(), source.metadata)
     budget = Budget.parse("4kB")
-    preview = cuts.preview_share(tiny_log, pair, budget, strategy="pwas", codec=codec,
-                                 sums=sums, seed=0)  # fmt: skip
+    preview = cuts.preview_share(
+        tiny_log, pair, budget, ShareOptions(strategy="pwas", codec=codec, sums=sums, seed=0)
+    )
     assert 0 < preview.count < 300
     assert preview.file_bytes <= 4000
     dst = tmp_path / f"s_{codec}_{sums}.mcap"
-    result = cuts.write_share(tiny_log, pair, dst, budget, strategy="pwas", codec=codec,
-                              sums=sums, seed=0)  # fmt: skip
+    result = cuts.write_share(
+        tiny_log, pair, dst, budget, ShareOptions(strategy="pwas", codec=codec, sums=sums, seed=0)
+    )
     assert result["selected"] == preview.count
     assert dst.stat().st_size == preview.file_bytes  # the bytes shown are the bytes written
     shared = read_map(dst)
@@ -275,15 +281,20 @@ def test_share_preview_is_the_file_share_writes(
 
 def test_share_preview_matches_the_share_command(tiny_log: Path, tmp_path: Path) -> None:
     source = MapSource.open(tiny_log)
-    preview = cuts.preview_share(tiny_log, (source.snapshot(), source.metadata),
-                                 Budget.parse("3kB"), strategy="opacity", codec="compact",
-                                 sums=True, seed=0)  # fmt: skip
+    preview = cuts.preview_share(
+        tiny_log,
+        (source.snapshot(), source.metadata),
+        Budget.parse("3kB"),
+        ShareOptions(strategy="opacity", codec="compact", sums=True, seed=0),
+    )
     # the command line recorded in the share is part of its bytes: the preview records the
     # command it stands for, so `gsc share` run as that command sends the same file
-    command = cuts.share_command(tiny_log, Budget.parse("3kB"), "opacity", "compact", True, 0)
+    opacity = ShareOptions(strategy="opacity", codec="compact", sums=True, seed=0)
+    command = cuts.share_command(tiny_log, Budget.parse("3kB"), opacity)
     assert command == "gsc share tiny.mcap --budget 3kB --strategy opacity --codec compact --seed 0"
-    result = share_log(tiny_log, tmp_path / "cmd.mcap", "3kB", strategy="opacity",
-                       command=command)  # fmt: skip
+    result = share_log(
+        tiny_log, tmp_path / "cmd.mcap", "3kB", ShareOptions(strategy="opacity"), command=command
+    )
     assert result["selected"] == preview.count
     assert result["file_bytes"] == preview.file_bytes
 
@@ -294,10 +305,9 @@ def test_share_of_a_map_file(tmp_path: Path) -> None:
     source = MapSource.open(tmp_path / "m.ply")
     pair = (source.snapshot(), source.metadata)
     budget = Budget.parse("3kB")
-    preview = cuts.preview_share(tmp_path / "m.ply", pair, budget, strategy="pwas",
-                                 codec="compact", sums=False, seed=0)  # fmt: skip
-    cuts.write_share(tmp_path / "m.ply", pair, tmp_path / "s.mcap", budget, strategy="pwas",
-                     codec="compact", sums=False, seed=0)  # fmt: skip
+    how = ShareOptions(strategy="pwas", codec="compact", sums=False, seed=0)
+    preview = cuts.preview_share(tmp_path / "m.ply", pair, budget, how)
+    cuts.write_share(tmp_path / "m.ply", pair, tmp_path / "s.mcap", budget, how)
     assert (tmp_path / "s.mcap").stat().st_size == preview.file_bytes <= 3000
     assert 0 < preview.count < 120
     assert len(read_map(tmp_path / "s.mcap")) == preview.count
@@ -322,8 +332,10 @@ def test_view_help_and_bad_input(tmp_path: Path) -> None:
 def test_view_serves_until_stopped(tiny_log: Path, terminated: Callable[..., Any]) -> None:
     pytest.importorskip("viser")
     gsc = str(Path(sys.executable).parent / "gsc")
-    code, stderr = terminated([gsc, "view", str(tiny_log), "--port", "0"],
-                              lambda text: "gsc view: http://127.0.0.1:" in text)  # fmt: skip
+    code, stderr = terminated(
+        [gsc, "view", str(tiny_log), "--port", "0"],
+        lambda text: "gsc view: http://127.0.0.1:" in text,
+    )
     port = int(stderr.split("gsc view: http://127.0.0.1:")[1].split()[0])
     assert port > 0 and code == 0  # stopped cleanly: nothing to write, nothing interrupted
     assert "Traceback" not in stderr

@@ -179,9 +179,12 @@ def test_a_camera_of_a_canvas_in_text_is_refused_and_the_page_still_drawn(
     frames: list[np.ndarray] = []
     notes: list[str] = []
     page = SimpleNamespace(
-        wxyz=np.array(camera[0]), position=np.array(camera[1]), fov=0.9,
-        image_width=size[0], image_height=size[1],
-    )  # fmt: skip
+        wxyz=np.array(camera[0]),
+        position=np.array(camera[1]),
+        fov=0.9,
+        image_width=size[0],
+        image_height=size[1],
+    )
     client = SimpleNamespace(
         client_id=1,
         camera=page,

@@ -48,6 +48,7 @@ import yaml
 from gscompress.datasets.synthetic import write_synthetic_sequence
 from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline import slam_file
+from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config, save_config
 from gscompress.threads import use_threads
 
@@ -100,16 +101,22 @@ def commit() -> dict[str, Any]:
         ).stdout.strip()
         status = subprocess.run(
             ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=ROOT, capture_output=True, text=True, check=True,
-        ).stdout  # fmt: skip
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
     except (OSError, subprocess.CalledProcessError):
         staged = ROOT / "bench/gpu/data/commit.txt"
         if os.environ.get("GSC_COMMIT"):
             return {"commit": os.environ["GSC_COMMIT"], "dirty": None, "commit_from": "GSC_COMMIT"}
         if staged.is_file():
             head, _, dirty = staged.read_text(encoding="utf-8").partition(" ")
-            return {"commit": head.strip(), "dirty": dirty.strip() == "dirty",
-                    "commit_from": "bench/gpu/data/commit.txt"}  # fmt: skip
+            return {
+                "commit": head.strip(),
+                "dirty": dirty.strip() == "dirty",
+                "commit_from": "bench/gpu/data/commit.txt",
+            }
         return {"commit": "unknown", "dirty": None, "commit_from": None}
     return {"commit": head, "dirty": bool(status.strip()), "commit_from": "git"}
 
@@ -167,9 +174,14 @@ def table_lines(runs: dict[str, dict[str, Any]]) -> list[str]:
 
 
 def run_one(
-    name: str, seq: Path, log_path: Path, config_path: Path, frames: str, device: str,
+    name: str,
+    seq: Path,
+    log_path: Path,
+    config_path: Path,
+    frames: str,
+    device: str,
     deadline: float,
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     """Run SLAM with the config at `config_path`, stopping after the frame that ends past
     `deadline` (time.time()), and score the log, as far as it got, with its phase times and
     the peak GPU memory of the run and of its evaluation."""
@@ -202,9 +214,14 @@ def run_one(
     started = time.perf_counter()
     try:
         slam_file(
-            seq, log_path, config_path=config_path, frames=frames, device=device,
-            command=f"bench/gpu/table.py ({name})", force=True, progress=progress,
-        )  # fmt: skip
+            seq,
+            log_path,
+            SlamOptions(config_path=config_path, frames=frames),
+            device=device,
+            command=f"bench/gpu/table.py ({name})",
+            force=True,
+            progress=progress,
+        )
     except KeyboardInterrupt:
         if not stopped:  # Ctrl-C
             raise
@@ -236,9 +253,14 @@ def child(opts: argparse.Namespace) -> None:
     """`--child NAME`: one run, its record written to --json-out."""
     use_threads(opts.threads)
     record = run_one(
-        opts.child, Path(opts.seq), Path(opts.log), Path(opts.config), opts.frames,
-        opts.device, opts.deadline,
-    )  # fmt: skip
+        opts.child,
+        Path(opts.seq),
+        Path(opts.log),
+        Path(opts.config),
+        opts.frames,
+        opts.device,
+        opts.deadline,
+    )
     write_json(record, Path(opts.json_out))
 
 
@@ -248,11 +270,26 @@ def child(opts: argparse.Namespace) -> None:
 def launch(name: str, seq: Path, work: Path, opts: argparse.Namespace, threads: int) -> Any:
     """Start the process of one run (its output goes to ours, each line marked by its name)."""
     command = [
-        sys.executable, str(Path(__file__).resolve()), "--child", name, str(seq),
-        "--log", str(work / f"{name}.mcap"), "--config", str(work / f"{name}.yaml"),
-        "--frames", opts.frames, "--device", opts.device, "--deadline", str(opts.deadline),
-        "--threads", str(threads), "--json-out", str(work / f"{name}.json"),
-    ]  # fmt: skip
+        sys.executable,
+        str(Path(__file__).resolve()),
+        "--child",
+        name,
+        str(seq),
+        "--log",
+        str(work / f"{name}.mcap"),
+        "--config",
+        str(work / f"{name}.yaml"),
+        "--frames",
+        opts.frames,
+        "--device",
+        opts.device,
+        "--deadline",
+        str(opts.deadline),
+        "--threads",
+        str(threads),
+        "--json-out",
+        str(work / f"{name}.json"),
+    ]
     (work / f"{name}.json").unlink(missing_ok=True)
     return subprocess.Popen(command)
 
@@ -399,9 +436,14 @@ def write_configs(
 
 
 def run_all(
-    names: list[str], seq: Path, work: Path, opts: argparse.Namespace, threads: int,
-    report: dict[str, Any], json_out: Path,
-) -> None:  # fmt: skip
+    names: list[str],
+    seq: Path,
+    work: Path,
+    opts: argparse.Namespace,
+    threads: int,
+    report: dict[str, Any],
+    json_out: Path,
+) -> None:
     """The runs, at once (--parallel) or one after the other, each recorded in the report (and
     the report written) as it finishes."""
     runs: dict[str, dict[str, Any]] = report["runs"]

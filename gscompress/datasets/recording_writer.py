@@ -237,16 +237,22 @@ class _RosWriter:
         h, w = pixels.shape[:2]
         data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
         msg = self.types["sensor_msgs/msg/Image"](
-            header=self._header(stamp, CAMERA_FRAME), height=h, width=w, encoding=encoding,
-            is_bigendian=0, step=data.size // h, data=data,
-        )  # fmt: skip
+            header=self._header(stamp, CAMERA_FRAME),
+            height=h,
+            width=w,
+            encoding=encoding,
+            is_bigendian=0,
+            step=data.size // h,
+            data=data,
+        )
         self._write(topic, "sensor_msgs/msg/Image", stamp, msg)
 
     def _compressed(self, topic: str, stamp: int, fmt: str, data: bytes) -> None:
         msg = self.types["sensor_msgs/msg/CompressedImage"](
-            header=self._header(stamp, CAMERA_FRAME), format=fmt,
+            header=self._header(stamp, CAMERA_FRAME),
+            format=fmt,
             data=np.frombuffer(data, dtype=np.uint8),
-        )  # fmt: skip
+        )
         self._write(topic, "sensor_msgs/msg/CompressedImage", stamp, msg)
 
     def color(self, stamp: int, rgb8: np.ndarray, coding: str) -> None:
@@ -280,9 +286,15 @@ class _RosWriter:
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         )
         msg = self.types["sensor_msgs/msg/CameraInfo"](
-            header=self._header(stamp, CAMERA_FRAME), height=k.height, width=k.width,
-            distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi, **values,
-        )  # fmt: skip
+            header=self._header(stamp, CAMERA_FRAME),
+            height=k.height,
+            width=k.width,
+            distortion_model="plumb_bob",
+            binning_x=0,
+            binning_y=0,
+            roi=roi,
+            **values,
+        )
         self._write("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", stamp, msg)
 
     def transform(self, stamp: int, T_world_cam: np.ndarray) -> None:
@@ -291,9 +303,10 @@ class _RosWriter:
         v = self.types["geometry_msgs/msg/Vector3"](*T_world_cam[:3, 3].tolist())
         r = self.types["geometry_msgs/msg/Quaternion"](x=q[1], y=q[2], z=q[3], w=q[0])
         stamped = self.types["geometry_msgs/msg/TransformStamped"](
-            header=self._header(stamp, WORLD_FRAME), child_frame_id=CAMERA_FRAME,
+            header=self._header(stamp, WORLD_FRAME),
+            child_frame_id=CAMERA_FRAME,
             transform=self.types["geometry_msgs/msg/Transform"](translation=v, rotation=r),
-        )  # fmt: skip
+        )
         msg = self.types["tf2_msgs/msg/TFMessage"](transforms=[stamped])
         self._write("/tf", "tf2_msgs/msg/TFMessage", stamp, msg)
 
@@ -321,9 +334,10 @@ class _FoxgloveWriter:
 
         if topic not in self.channels:
             schema = self.mcap.register_schema(
-                message.DESCRIPTOR.full_name, "protobuf",
+                message.DESCRIPTOR.full_name,
+                "protobuf",
                 build_file_descriptor_set(type(message)).SerializeToString(),
-            )  # fmt: skip
+            )
             self.channels[topic] = self.mcap.register_channel(topic, "protobuf", schema)
         self.mcap.add_message(self.channels[topic], stamp, message.SerializeToString(), stamp)
 
@@ -336,8 +350,14 @@ class _FoxgloveWriter:
 
         h, w = pixels.shape[:2]
         data = np.ascontiguousarray(pixels).tobytes()
-        m = RawImage(frame_id=CAMERA_FRAME, width=w, height=h, encoding=encoding,
-                     step=len(data) // h, data=data)  # fmt: skip
+        m = RawImage(
+            frame_id=CAMERA_FRAME,
+            width=w,
+            height=h,
+            encoding=encoding,
+            step=len(data) // h,
+            data=data,
+        )
         self._time(m, stamp)
         self._write(topic, m, stamp)
 
@@ -365,10 +385,15 @@ class _FoxgloveWriter:
         from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 
         m = CameraCalibration(
-            frame_id=CAMERA_FRAME, width=k.width, height=k.height, distortion_model="plumb_bob",
-            D=[0.0] * 5, K=[k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1],
-            R=[1, 0, 0, 0, 1, 0, 0, 0, 1], P=[k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1, 0],
-        )  # fmt: skip
+            frame_id=CAMERA_FRAME,
+            width=k.width,
+            height=k.height,
+            distortion_model="plumb_bob",
+            D=[0.0] * 5,
+            K=[k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1],
+            R=[1, 0, 0, 0, 1, 0, 0, 0, 1],
+            P=[k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1, 0],
+        )
         self._time(m, stamp)
         self._write("/camera/calibration", m, stamp)
 

@@ -130,13 +130,14 @@ def make_scene(seed: int = 0) -> Scene:
     top_half = np.array([0.2, 0.22, 0.18])
     boxes.append(
         Box(
-            np.array([under.center[0] + 0.1, under.center[1] - 0.1,
-                      2 * under.half[2] + top_half[2]]),
+            np.array(
+                [under.center[0] + 0.1, under.center[1] - 0.1, 2 * under.half[2] + top_half[2]]
+            ),
             top_half,
             0.6,
             material("stripes", (0.2, 0.6, 0.65), 0.05),
         )
-    )  # fmt: skip
+    )
     noise = rng.random((_NOISE_SIZE, _NOISE_SIZE), dtype=np.float32)
     noise = np.pad(noise, ((0, 1), (0, 1)), mode="wrap")
     return Scene(room, tuple(boxes), noise)
@@ -209,8 +210,9 @@ def cast(
         t = t_axes[np.arange(len(dirs)), axis]
         positive = dirs[np.arange(len(dirs)), axis] > 0
         # axis 2 (z): going down hits the floor (0), up the ceiling (1); x: 2/3, y: 4/5
-        surface = np.where(axis == 2, np.where(positive, CEILING, FLOOR),
-                           2 + 2 * axis + positive.astype(np.int64))  # fmt: skip
+        surface = np.where(
+            axis == 2, np.where(positive, CEILING, FLOOR), 2 + 2 * axis + positive.astype(np.int64)
+        )
         for k, box in enumerate(scene.boxes):
             idx = None if candidates is None else candidates[k]
             if idx is not None and len(idx) == 0:
@@ -554,8 +556,11 @@ def _check_replaceable(out: Path) -> None:
             listed = {name for _, name in read_file_list(listing)}
         except DatasetError:  # missing or unreadable: it names nothing
             listed = set()
-        foreign = [p.name for p in folder.iterdir()
-                   if not p.is_file() or f"{images}/{p.name}" not in listed]  # fmt: skip
+        foreign = [
+            p.name
+            for p in folder.iterdir()
+            if not p.is_file() or f"{images}/{p.name}" not in listed
+        ]
         if foreign:
             raise OutputError(
                 f"{folder} holds files that {listing.name} does not list "

@@ -151,8 +151,10 @@ def _bounded_logits(logits: np.ndarray, source: str, infinite: bool) -> np.ndarr
         parts.append(f"{count - infinities} beyond +-{MAX_ABS_OPACITY_LOGIT:g}")
     logger.warning(
         "%s: %s opacity logit(s) read as +-%g (opacity 1 or 0)",
-        source, " and ".join(parts), MAX_ABS_OPACITY_LOGIT,
-    )  # fmt: skip
+        source,
+        " and ".join(parts),
+        MAX_ABS_OPACITY_LOGIT,
+    )
     clamped = np.where(beyond, np.sign(as_float) * MAX_ABS_OPACITY_LOGIT, as_float)
     return clamped.astype(np.float32)
 

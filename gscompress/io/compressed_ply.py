@@ -79,9 +79,12 @@ def decompress(elements: dict[str, np.ndarray], source: str) -> GaussianMap:
 
 
 def _element(
-    elements: dict[str, np.ndarray], name: str, props: list[str] | tuple[str, ...], kind: str,
+    elements: dict[str, np.ndarray],
+    name: str,
+    props: list[str] | tuple[str, ...],
+    kind: str,
     source: str,
-) -> np.ndarray:  # fmt: skip
+) -> np.ndarray:
     """Element `name`, refused unless it has every property of `props` as type `kind`."""
     if name not in elements:
         raise PlyFormatError(f"{source}: compressed PLY without a {name!r} element")

@@ -187,8 +187,8 @@ def check_output(
     sequence), onto a directory, a symbolic link, a device or a FIFO (the rename into place
     would replace them), or over an existing file without `force`; the output's
     directory must exist and be writable. With `suffix` (a key of `SUFFIXES`, what is written),
-    a name ending in another kind's suffix is refused: `-o map.ply` on a command that writes a
-    log is a slip that would leave an MCAP file named .ply.
+    the name must end in it: `-o map.ply` on a command that writes a log is a slip that would
+    leave an MCAP file named .ply, and `-o map` one that leaves a file no tool recognises.
     """
     output = Path(output)
     for source in map(Path, inputs):
@@ -198,10 +198,11 @@ def check_output(
         if source.is_dir() and is_within(output, source):
             raise OutputError(f"output {output} is inside the input folder {source}")
     named = output.suffix.lower()
-    if suffix and named in SUFFIXES and named != suffix:
+    if suffix and named != suffix:
+        what = f", not {SUFFIXES[named]}" if named in SUFFIXES else ""
         raise OutputError(
-            f"{output}: this writes {SUFFIXES[suffix]}, not {SUFFIXES[named]}; name it "
-            f"{output.with_suffix(suffix).name}"
+            f"{output}: this writes {SUFFIXES[suffix]}{what}; name it "
+            f"{output.name + suffix if not named else output.with_suffix(suffix).name}"
             + (f" (gsc export-ply writes {named[1:].upper()})" if named in (".ply", ".spz") else "")
         )
     if output.is_dir():

@@ -120,8 +120,9 @@ def carried_messages(frames: Sequence[CarriedFrame]) -> list[tuple[str, Message,
             image = CompressedImage(frame_id=CAMERA_FRAME, data=data, format=fmt)
             image.timestamp.FromNanoseconds(frame.time_ns)
             messages.append((topic, image, frame.time_ns))
-        messages.append((TOPIC_KEYFRAME_POSE, pose_message(frame.T_world_cam, frame.time_ns),
-                         frame.time_ns))  # fmt: skip
+        messages.append(
+            (TOPIC_KEYFRAME_POSE, pose_message(frame.T_world_cam, frame.time_ns), frame.time_ns)
+        )
     return messages
 
 

@@ -125,8 +125,9 @@ def read_transform(path: str | Path) -> np.ndarray:
         InputError: missing file, another count of numbers, or non-finite values.
     """
     path = Path(path)
-    words = [w for line in read_text(path, "transform").splitlines()
-             for w in line.split("#")[0].split()]  # fmt: skip
+    words = [
+        w for line in read_text(path, "transform").splitlines() for w in line.split("#")[0].split()
+    ]
     try:
         values = np.array([float(w) for w in words])
     except ValueError:

@@ -234,9 +234,13 @@ def surface_fit(
 
 
 def _agreement(
-    src_pts: np.ndarray, src_colors: np.ndarray, tgt_tree: Any, tgt_colors: np.ndarray,
-    T: np.ndarray, dist: float,
-) -> float:  # fmt: skip
+    src_pts: np.ndarray,
+    src_colors: np.ndarray,
+    tgt_tree: Any,
+    tgt_colors: np.ndarray,
+    T: np.ndarray,
+    dist: float,
+) -> float:
     """How well `T` explains the source: the fraction of its points with a target point within
     `dist` whose colour agrees (mean channel difference under `COLOR_AGREEMENT`)."""
     d, j = tgt_tree.query(transform_points(T, src_pts), distance_upper_bound=dist)
@@ -246,9 +250,13 @@ def _agreement(
 
 
 def _conditioning(
-    src_pts: np.ndarray, tgt_pts: np.ndarray, tgt_normals: np.ndarray, tgt_tree: Any,
-    T: np.ndarray, dist: float,
-) -> float:  # fmt: skip
+    src_pts: np.ndarray,
+    tgt_pts: np.ndarray,
+    tgt_normals: np.ndarray,
+    tgt_tree: Any,
+    T: np.ndarray,
+    dist: float,
+) -> float:
     """Weakest over strongest eigenvalue of the point-to-plane information of the overlap, with
     rotations scaled by the overlap's radius (so both are metres)."""
     moved = transform_points(T, src_pts)
@@ -264,8 +272,9 @@ def _conditioning(
     return float(max(eig[0], 0.0) / eig[-1]) if eig[-1] > 0 else 0.0
 
 
-def _distinct(T1: np.ndarray, T2: np.ndarray, centroid: np.ndarray, o: AlignOptions,
-              voxel: float) -> bool:  # fmt: skip
+def _distinct(
+    T1: np.ndarray, T2: np.ndarray, centroid: np.ndarray, o: AlignOptions, voxel: float
+) -> bool:
     shift = np.linalg.norm(
         transform_points(T1, centroid[None]) - transform_points(T2, centroid[None])
     )
@@ -354,8 +363,9 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
     _, rms = points_fit(source.points, cKDTree(target.points), T, voxel)  # (every Gaussian)
     tgt_fit, _ = points_fit(tgt_fine.points, cKDTree(src_fine.points), np.linalg.inv(T), voxel)
     assert tgt_fine.normals is not None
-    conditioning = _conditioning(src_fine.points, tgt_fine.points, tgt_fine.normals, tgt_tree, T,
-                                 voxel)  # fmt: skip
+    conditioning = _conditioning(
+        src_fine.points, tgt_fine.points, tgt_fine.normals, tgt_tree, T, voxel
+    )
     alignment = Alignment(
         T_target_source=T,
         overlap=max(fit, tgt_fit),
@@ -375,9 +385,14 @@ def _align(source: Cloud, target: Cloud, o: AlignOptions, init: np.ndarray | Non
     alignment.seconds = time.perf_counter() - started
     log.debug(
         "aligned: overlap %.3f, residual %.4f m, inliers %s, ambiguity %.3f, conditioning %.4f, "
-        "%.2f s", alignment.overlap, rms, inliers, found.ambiguity, conditioning,
+        "%.2f s",
+        alignment.overlap,
+        rms,
+        inliers,
+        found.ambiguity,
+        conditioning,
         alignment.seconds,
-    )  # fmt: skip
+    )
     return alignment
 
 
@@ -417,14 +432,24 @@ def _open3d_grid(cloud: Cloud, voxel: float) -> Cloud:
     estimated = o3d.geometry.PointCloud(down)
     estimated.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
     known = None if cloud.normals is None else np.asarray(down.normals)
-    return gridded(np.asarray(down.points), np.asarray(down.colors),
-                   np.asarray(estimated.normals), known, cloud.viewpoints)  # fmt: skip
+    return gridded(
+        np.asarray(down.points),
+        np.asarray(down.colors),
+        np.asarray(estimated.normals),
+        known,
+        cloud.viewpoints,
+    )
 
 
 def _global_step(
-    source: Cloud, target: Cloud, src_fine: Cloud, tgt_fine: Cloud, tgt_tree: Any, voxel: float,
+    source: Cloud,
+    target: Cloud,
+    src_fine: Cloud,
+    tgt_fine: Cloud,
+    tgt_tree: Any,
+    voxel: float,
     o: AlignOptions,
-) -> _Hypotheses:  # fmt: skip
+) -> _Hypotheses:
     """Hypotheses without an initial guess (FPFH matches under Fast Global Registration and
     RANSAC, then the best one turned about its principal axes), each settled by point-to-plane
     ICP on the `voxel` grid and scored by its agreement on the fine grids. Needs Open3D."""
@@ -435,8 +460,9 @@ def _global_step(
 
     def settled(T: np.ndarray) -> tuple[np.ndarray, float]:
         T = local_icp(src_down, tgt_down, T, voxel, COARSE_STAGES, colored=False, icp=o.icp)
-        return T, _agreement(src_fine.points, src_fine.colors, tgt_tree, tgt_fine.colors, T,
-                             voxel / 2.0)  # fmt: skip
+        return T, _agreement(
+            src_fine.points, src_fine.colors, tgt_tree, tgt_fine.colors, T, voxel / 2.0
+        )
 
     f_src, f_tgt = _fpfh(src_o3d, voxel), _fpfh(tgt_o3d, voxel)
     matches = np.asarray(reg.correspondences_from_features(f_src, f_tgt, True))  # (mutual)
@@ -451,11 +477,18 @@ def _global_step(
     ]
     for run in range(o.ransac_runs):
         o3d.utility.random.seed(o.seed + run)
-        found.append(reg.registration_ransac_based_on_correspondence(
-            src_o3d, tgt_o3d, pairs, 1.5 * voxel,
-            reg.TransformationEstimationPointToPoint(False), 3, checkers,
-            reg.RANSACConvergenceCriteria(o.ransac_iterations, 0.9999),
-        ))  # fmt: skip
+        found.append(
+            reg.registration_ransac_based_on_correspondence(
+                src_o3d,
+                tgt_o3d,
+                pairs,
+                1.5 * voxel,
+                reg.TransformationEstimationPointToPoint(False),
+                3,
+                checkers,
+                reg.RANSACConvergenceCriteria(o.ransac_iterations, 0.9999),
+            )
+        )
     hypotheses = [settled(np.asarray(f.transformation)) for f in found]
     best = max(hypotheses, key=lambda h: h[1])
     hypotheses += [settled(best[0] @ P) for P in _probes(src_down.points)]

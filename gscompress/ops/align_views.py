@@ -81,13 +81,19 @@ class ViewAlignment:
 
 
 def _terms(
-    fixed: RenderInputs, T_cam: np.ndarray, observed: tuple[torch.Tensor, torch.Tensor],
-    intrinsics: Intrinsics, config: TrackingConfig, backend: str, grad: bool,
-) -> tuple[LossTerms, np.ndarray | None]:  # fmt: skip
+    fixed: RenderInputs,
+    T_cam: np.ndarray,
+    observed: tuple[torch.Tensor, torch.Tensor],
+    intrinsics: Intrinsics,
+    config: TrackingConfig,
+    backend: str,
+    grad: bool,
+) -> tuple[LossTerms, np.ndarray | None]:
     """One view's tracking loss with the source at camera `T_cam` (world-to-camera), and with
     `grad` its gradient dL/dT_cam (None when the view draws none of the source)."""
-    pose = torch.tensor(T_cam, dtype=fixed.means.dtype, device=observed[0].device,
-                        requires_grad=grad)  # fmt: skip
+    pose = torch.tensor(
+        T_cam, dtype=fixed.means.dtype, device=observed[0].device, requires_grad=grad
+    )
     terms = tracking_loss(render(*fixed, intrinsics, pose, backend=backend), *observed, config)
     if not grad or terms.pixels == 0:
         return terms, None
@@ -157,8 +163,10 @@ def refine_on_views(
     after = invert_transform(centre) @ T  # K^-1 T
     befores = [invert_transform(np.asarray(P, np.float64)) @ centre for P in poses]  # P^-1 K
     x = np.zeros(6)
-    adam = PoseAdam(np.repeat([config.lr_rotation, config.lr_translation], 3),
-                    decay_per_step(config.lr_final_fraction, config.iters))  # fmt: skip
+    adam = PoseAdam(
+        np.repeat([config.lr_rotation, config.lr_translation], 3),
+        decay_per_step(config.lr_final_fraction, config.iters),
+    )
     first = last = math.nan
     pixels = seen = 0
     for step in range(config.iters):
@@ -166,8 +174,9 @@ def refine_on_views(
         g_delta = np.zeros((4, 4))
         total, pixels, seen = 0.0, 0, 0
         for before, view in zip(befores, observed, strict=True):
-            terms, g_cam = _terms(fixed, before @ delta @ after, view, intrinsics, config,
-                                  backend, grad=True)  # fmt: skip
+            terms, g_cam = _terms(
+                fixed, before @ delta @ after, view, intrinsics, config, backend, grad=True
+            )
             if g_cam is None:
                 continue
             g_delta += before.T @ g_cam @ after.T

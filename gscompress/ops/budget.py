@@ -24,10 +24,17 @@ from dataclasses import dataclass
 from typing import Any
 
 from gscompress.errors import BudgetError, InputError
-from gscompress.selection import is_fraction, keep_count
+from gscompress.selection import is_fraction, keep_count, percent_hint
 
-_UNITS = {"B": 1, "kB": 1000, "MB": 1000**2, "GB": 1000**3, "KiB": 1024, "MiB": 1024**2,
-          "GiB": 1024**3}  # fmt: skip
+_UNITS = {
+    "B": 1,
+    "kB": 1000,
+    "MB": 1000**2,
+    "GB": 1000**3,
+    "KiB": 1024,
+    "MiB": 1024**2,
+    "GiB": 1024**3,
+}
 BYTE_UNITS: dict[str, int] = {name.lower(): size for name, size in _UNITS.items()}
 """Byte units (lower case: the prefix is read in either case) and their sizes in bytes."""
 _SPELLING = {name.lower(): name for name in _UNITS}
@@ -157,9 +164,11 @@ class Budget:
     @classmethod
     def _from_number(cls, number: float, text: str, percent: bool = False) -> Budget:
         if math.isfinite(number) and number > 1.0 and not percent:
+            hint = percent_hint(number)
             raise InputError(
-                f"budget {text} is above 1: a bare number is a fraction in (0, 1]; "
-                f"for bytes add a unit, e.g. {text}B, {text}kB or {text}MB"
+                f"budget {text} is above 1: a bare number is a fraction in (0, 1]"
+                + (f" (did you mean {hint}?)" if hint else "")
+                + f"; for bytes add a unit, e.g. {text}B, {text}kB or {text}MB"
             )
         if not is_fraction(number):
             raise InputError(f"budget {text} is not a fraction in (0, 1]")

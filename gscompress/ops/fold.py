@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -29,7 +30,11 @@ from scipy.spatial import cKDTree
 from gscompress.camera import rotmat_to_quat
 from gscompress.gaussians import GaussianMap
 from gscompress.io.quantise import morton_codes
+from gscompress.selection import top_index
 from gscompress.threads import cpu_threads
+
+if TYPE_CHECKING:
+    from gscompress.ops.refine import MapRefiner
 
 FOLD_REACH = 4.0
 """A dropped Gaussian folds into its nearest kept one when their centres lie within this many
@@ -67,6 +72,34 @@ def fold(gaussians: GaussianMap, kept: np.ndarray, reach: float = FOLD_REACH) ->
     that fold into it (module docstring). Same count, order and ids as `gaussians.select(kept)`;
     an isotropic map stays isotropic (the isotropic Gaussian of the same trace)."""
     return Folding(gaussians, reach).fold(kept)
+
+
+def cut_pool(full: GaussianMap, refine: MapRefiner | None) -> GaussianMap:
+    """The map a prune or a share cuts from: `full`, with three scales a Gaussian when `refine`
+    refines them so (`RefineOptions.anisotropic`): the fold then keeps each group's covariance
+    (`gscompress.ops.fold`) instead of the isotropic Gaussian of its trace."""
+    return full.as_anisotropic() if refine is not None and refine.anisotropic else full
+
+
+def cut_map(
+    full: GaussianMap,
+    count: int,
+    scores: np.ndarray,
+    fold: bool,
+    first: np.ndarray | None = None,
+    folding: Folding | None = None,
+) -> GaussianMap:
+    """The `count` Gaussians of `full` with the highest `scores` (a strategy's, from
+    `selection.selection_scores`: spread over space there if asked), each with the dropped ones
+    near it folded into it when `fold` (`gscompress.ops.fold`; same Gaussians, ids and
+    order either way). What `gsc prune` keeps and `gsc share` sends. `first` ([N] bool) ranks
+    the Gaussians it marks above all the others (a receiver-aware share). `folding`, the
+    `Folding` of `full`, folds it when given: a caller that cuts many counts of one map passes
+    the same one each time."""
+    index = top_index(full, count, scores, first)
+    if not fold:
+        return full.select(index)
+    return (folding or Folding(full)).fold(index)
 
 
 @dataclass(frozen=True)
@@ -237,7 +270,7 @@ class Folding:
         """[N] the Gaussians cell by cell along a Morton curve of 2^(3 x `SPATIAL_BITS`) cells:
         queries in this order walk the k-d tree through memory they have just visited (3x
         faster on the 1M-Gaussian map of bench/offline.py, measured on two busy cores)."""
-        columns = self._means.T  # (a reduction a column at a time: 20x faster than axis=0)
+        columns = self._means.T  # (a reduction a column at a time: faster than along axis 0)
         low = np.array([c.min() for c in columns], dtype=np.float64)
         high = np.array([c.max() for c in columns], dtype=np.float64)
         extent = max(float((high - low).max()), np.finfo(np.float64).tiny)

@@ -140,14 +140,18 @@ def grid_cloud(cloud: Cloud, voxel: float) -> Cloud:
 
     points = mean(cloud.points)
     known = None if cloud.normals is None else mean(cloud.normals)
-    return gridded(points, mean(cloud.colors), estimate_normals(points, 2.5 * voxel), known,
-                   cloud.viewpoints)  # fmt: skip
+    return gridded(
+        points, mean(cloud.colors), estimate_normals(points, 2.5 * voxel), known, cloud.viewpoints
+    )
 
 
 def gridded(
-    points: np.ndarray, colors: np.ndarray, estimated: np.ndarray, known: np.ndarray | None,
+    points: np.ndarray,
+    colors: np.ndarray,
+    estimated: np.ndarray,
+    known: np.ndarray | None,
     viewpoints: np.ndarray | None,
-) -> Cloud:  # fmt: skip
+) -> Cloud:
     """A grid's cloud from its cells' mean points and colours ([M, 3] each): each cell's normal
     the mean of its points' `known` normals where that mean is longer than a half, else the
     `estimated` one, turned towards the nearest of `viewpoints` (or the centroid)."""
@@ -207,9 +211,12 @@ def _increment(x: np.ndarray) -> np.ndarray:
 
 
 def _icp_step(
-    moved: np.ndarray, source: Cloud, target: Cloud, pairs: tuple[np.ndarray, np.ndarray],
+    moved: np.ndarray,
+    source: Cloud,
+    target: Cloud,
+    pairs: tuple[np.ndarray, np.ndarray],
     gradients: np.ndarray | None,
-) -> np.ndarray:  # fmt: skip
+) -> np.ndarray:
     """One Gauss-Newton step over the pairs (source rows `moved`, already transformed): the
     [4, 4] transform that lowers the point-to-plane residual, and with `gradients` the
     photometric one (weighted by `LAMBDA_GEOMETRIC`); the identity where the system is
@@ -303,10 +310,13 @@ def icp_open3d(
         if colored:
             try:
                 result = reg.registration_colored_icp(
-                    src, tgt, scale * voxel, T,
+                    src,
+                    tgt,
+                    scale * voxel,
+                    T,
                     reg.TransformationEstimationForColoredICP(lambda_geometric=LAMBDA_GEOMETRIC),
                     criteria,
-                )  # fmt: skip
+                )
             except RuntimeError as exc:  # (Open3D's coloured ICP raises where others return 0)
                 if "No correspondences" not in str(exc):
                     raise
@@ -331,9 +341,14 @@ DEFAULT_ICP = "builtin"
 
 
 def local_icp(
-    source: Cloud, target: Cloud, T: np.ndarray, voxel: float, stages: Stages,
-    colored: bool = True, icp: str = DEFAULT_ICP,
-) -> np.ndarray:  # fmt: skip
+    source: Cloud,
+    target: Cloud,
+    T: np.ndarray,
+    voxel: float,
+    stages: Stages,
+    colored: bool = True,
+    icp: str = DEFAULT_ICP,
+) -> np.ndarray:
     """`T` (source -> target, [4, 4]) refined by ICP between two `grid_cloud`s (the target's
     normals are used; with `colored`, both clouds' colours), by the implementation `icp`.
 

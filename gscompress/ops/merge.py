@@ -63,9 +63,12 @@ def transform_map(gaussians: GaussianMap, T_new_old: np.ndarray) -> GaussianMap:
     """
     T = np.asarray(T_new_old, dtype=np.float64)
     R = T[:3, :3]
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(
-        R @ R.T, np.eye(3), atol=1e-6
-    ) or not np.isclose(np.linalg.det(R), 1.0, atol=1e-6):  # fmt: skip
+    if (
+        T.shape != (4, 4)
+        or not np.all(np.isfinite(T))
+        or not np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+        or not np.isclose(np.linalg.det(R), 1.0, atol=1e-6)
+    ):
         raise MapError("the transform is not a finite rigid 4x4 transform (rotation + shift)")
     if gaussians.sh_degree > 0:
         raise MapError("moving a map with SH degree > 0 needs its SH rotated; not supported")
@@ -371,18 +374,25 @@ def combine(
     if options.resolve == "evidence":
         voxel = options.voxel if options.footprint else None
         keep_r, keep_s, dropped = resolve_overlap(
-            receiver, share, voxel_evidence(receiver, voxel), voxel_evidence(share, voxel),
-            options.voxel, options.margin,
-        )  # fmt: skip
+            receiver,
+            share,
+            voxel_evidence(receiver, voxel),
+            voxel_evidence(share, voxel),
+            options.voxel,
+            options.margin,
+        )
         stats.update(dropped)
     elif options.resolve != "stack":
         ones_r = np.ones(len(receiver), np.float64)
         ones_s = np.ones(len(share), np.float64)
         share_first = options.resolve == "share"
         keep_r, keep_s, dropped = resolve_overlap(
-            receiver, share, ones_r * (0.0 if share_first else 1.0),
-            ones_s * (1.0 if share_first else 0.0), options.voxel,
-        )  # fmt: skip
+            receiver,
+            share,
+            ones_r * (0.0 if share_first else 1.0),
+            ones_s * (1.0 if share_first else 0.0),
+            options.voxel,
+        )
         stats.update(dropped)
     merged, offset = merge_maps(receiver.select(keep_r), share.select(keep_s))
     from_share = np.zeros(len(merged), bool)

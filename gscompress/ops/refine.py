@@ -12,12 +12,39 @@ decay over the refinement. PWAS sums are carried, not added to.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 from gscompress.camera import Intrinsics
 from gscompress.errors import DivergenceError, MapError
 from gscompress.gaussians import GaussianMap
 from gscompress.seeds import seeded_rng
+
+
+class MapRefiner(Protocol):
+    """Refines a map on the frames of the log it came from
+    (`gscompress.pipeline.refining.LogRefiner`, which needs torch: prune and share take one only
+    when asked to refine)."""
+
+    def __call__(
+        self,
+        gaussians: GaussianMap,
+        rates: Any = None,
+        teacher: GaussianMap | None = None,
+        iters: int | None = None,
+    ) -> tuple[GaussianMap, dict[str, Any]]:
+        """The map refined (same Gaussians, same order) and the refinement's statistics;
+        `teacher`, the map it was cut from, is also rendered between the keyframes and refined
+        on (`gscompress.pipeline.refining.PSEUDO_VIEWS`); `iters` (None: its own) iterations."""
+        ...
+
+    def record(self) -> dict[str, Any]:
+        """What a provenance step records of the refinement."""
+        ...
+
+    @property
+    def anisotropic(self) -> bool:
+        """Whether it refines three scales and a rotation per Gaussian (`cut_pool`)."""
+        ...
 
 
 def refine(
@@ -84,14 +111,32 @@ def refine(
     on_step = None if progress is None else lambda _: progress(1)
     try:
         mapper.refine(
-            views, iters, rng, on_step=on_step, lr_final_fraction=lr_final_fraction,
-            row_rates=None if rates is None else torch.as_tensor(
-                rates, dtype=torch.float32, device=mapper.device
-            ),
-        )  # fmt: skip
+            views,
+            iters,
+            rng,
+            on_step=on_step,
+            lr_final_fraction=lr_final_fraction,
+            row_rates=None
+            if rates is None
+            else torch.as_tensor(rates, dtype=torch.float32, device=mapper.device),
+        )
     except DivergenceError as exc:  # (its rates are the log's mapping ones, from its config)
         raise DivergenceError(
             "the refinement", exc.detail, f"it ran at the log's mapping rates; {instead}"
         ) from None
     stats = {"iters": iters, "loss_before": loss_before, "loss_after": mapper.loss(views)}
     return mapper.params.to_map(), stats
+
+
+def refined(
+    gaussians: GaussianMap,
+    results: dict[str, Any],
+    refine: MapRefiner | None,
+    teacher: GaussianMap | None = None,
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """`gaussians` through `refine` when there is one (with `teacher`, the map they were cut
+    from), its statistics added to `results` as `refine_*`."""
+    if refine is None:
+        return gaussians, results
+    gaussians, stats = refine(gaussians, teacher=teacher)
+    return gaussians, {**results, **{f"refine_{k}": v for k, v in stats.items()}}

@@ -42,10 +42,16 @@ def render_at(
     T_cam_world = torch.as_tensor(invert_transform(np.asarray(T_world_cam)), dtype=torch.float32)
     with torch.no_grad():
         return render(
-            params["means"], params["quats"], params["scales"], params["opacities"],
-            params["colors"], intrinsics, T_cam_world.to(device), backend=backend,
+            params["means"],
+            params["quats"],
+            params["scales"],
+            params["opacities"],
+            params["colors"],
+            intrinsics,
+            T_cam_world.to(device),
+            backend=backend,
             want_contribution=want_contribution,
-        )  # fmt: skip
+        )
 
 
 def score_map(

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from gscompress.camera import Intrinsics
-from gscompress.errors import InputError, MapError
+from gscompress.errors import InputError, MapError, OptionError, OutputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.files import write_atomic
 
@@ -52,6 +52,62 @@ def check_colorings(colorings: tuple[str, ...]) -> tuple[str, ...]:
     if unknown or not colorings:
         raise InputError(f"--color takes {', '.join(COLORINGS)}; got {', '.join(colorings)}")
     return tuple(dict.fromkeys(colorings))
+
+
+@dataclass(frozen=True)
+class ImageOptions:
+    """The views of a sequence a log's map is rendered at, how, and the pictures written of
+    them: what `gsc eval` and `gsc render` share (`gscompress.pipeline.evaluate.evaluate_log`).
+
+    Attributes:
+        frames: frame subset; None: the one recorded in the log's metadata (else all).
+        every: render every `every`-th frame that has a pose (ATE uses all of them).
+        size: working size (W, H); None: the one in the log's config, else (a share) the one
+            in `poses_from`'s, else the sequence's own.
+        poses: a TUM trajectory to render at instead of the log's poses.
+        poses_from: another log whose estimated poses to render at instead.
+        backend: render backend.
+        device: torch device to render on, or "auto".
+        lpips: compute LPIPS (reported unavailable with the reason when it cannot be).
+        save_images: a folder to write pictures of every view rendered into (`ImageSaver`).
+        colorings: what the pictures are coloured by (`COLORINGS`).
+        side_by_side: also write one labelled figure per view (observed, render, error).
+        force: write into a `save_images` folder that already holds files (else refused).
+    """
+
+    frames: str | None = None
+    every: int = 1
+    size: tuple[int, int] | None = None
+    poses: str | Path | None = None
+    poses_from: str | Path | None = None
+    backend: str = "auto"
+    device: str = "auto"
+    lpips: bool = True
+    save_images: str | Path | None = None
+    colorings: tuple[str, ...] = ("rgb",)
+    side_by_side: bool = True
+    force: bool = False
+
+    def check(self) -> None:
+        """Refuse options out of range or at odds with each other, and a `save_images` folder
+        that holds files already, without `force`.
+
+        Raises:
+            InputError: `every` below 1. OptionError: both `poses` and `poses_from`.
+            OutputError: a folder of earlier pictures, without `force`.
+        """
+        if self.every < 1:
+            raise InputError(
+                f"`every` must be a positive integer, got {self.every}", options=("every",)
+            )
+        if self.poses is not None and self.poses_from is not None:
+            raise OptionError(
+                "`poses` and `poses_from` do not go together: give one source of poses",
+                options=("poses", "poses_from"),
+            )
+        folder = None if self.save_images is None else Path(self.save_images)
+        if folder is not None and not self.force and folder.is_dir() and any(folder.iterdir()):
+            raise OutputError(f"{folder} holds files already; pass --force to write over them")
 
 
 @dataclass(frozen=True)

@@ -6,112 +6,32 @@ refined on the receiver's own frames (all of them, or its keyframes only) at the
 estimated poses, the share's Gaussians held still or slowed (`MergeOptions.share_rate`). Both
 inputs are in the output's provenance: the receiver as the parent, the share (name, sha256, id
 offset) and the merge's options in the merge operation. The refinement is
-`gscompress.pipeline.refine`'s, which prune and share use too. Maps are merged only when their
+`gscompress.pipeline.refining`'s, which prune and share use too. Maps are merged only when their
 world frames agree (`LogMetadata.world_frame`).
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gscompress.camera import Intrinsics
-from gscompress.errors import InputError, OptionError
+from gscompress.errors import OptionError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.files import check_output, sha256
-from gscompress.io.keyframes import CarriedFrame
+from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader
-from gscompress.ops.merge import WITH_SENDER_VIEWS, MergeOptions, check_same_world
-from gscompress.pipeline.offline import rewrite_map
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL, RefineOptions
+from gscompress.ops.merge import WITH_SENDER_VIEWS, MergeOptions, combine, share_rates
+from gscompress.pipeline.logs import ReceivedShare, check_same_camera, read_share, rewrite_map
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL, RefineOptions
 
 DEFAULT_REFINE_VIEWS = "frames"
 """What a merge refines on unless told (`REFINE_VIEWS`): every frame of the receiver's subset.
 Keyframes alone are few (5 of tabletop's 25 even frames), and 200 iterations on them lowered
 the receiver's PSNR on its other frames; every frame raises it."""
-
-
-@dataclass(frozen=True)
-class ReceivedShare:
-    """A share as a receiver takes it (`read_share`).
-
-    Attributes:
-        gaussians: its map in the receiver's world frame.
-        record: what a provenance step keeps of it (name, sha256, transform; `carried_ns`,
-            the timestamps of the keyframes it carries, when it carries some and they were
-            asked for).
-        carried: the sender's keyframes it carries, at their poses in the receiver's world
-            frame (when asked for).
-        camera: the camera of those keyframes (None without any).
-    """
-
-    gaussians: GaussianMap
-    record: dict[str, Any]
-    carried: list[CarriedFrame]
-    camera: Intrinsics | None
-
-
-def read_share(
-    share: str | Path,
-    receiver_world: str,
-    what: str,
-    transform: str | Path | None = None,
-    keyframes: bool = False,
-) -> ReceivedShare:
-    """A share's map in the receiver's world frame, what to record of it and, with `keyframes`,
-    the keyframes it carries (`gscompress.io.keyframes`) moved alike.
-
-    Without `transform` the share's recorded world frame must be the receiver's; with it, the
-    share is moved by the transform in the file (share frame -> receiver frame) instead.
-
-    Raises:
-        MapError: world frames unknown or different (without a transform).
-        LogFormatError: keyframes that cannot be read (`read_carried`).
-    """
-    from gscompress.io.keyframes import read_carried
-    from gscompress.io.trajectory import read_transform
-    from gscompress.ops.merge import transform_map
-
-    carried: list[CarriedFrame] = []
-    camera: Intrinsics | None = None
-    with LogReader(share) as share_log:
-        shared = share_log.read_map()
-        world = share_log.metadata.world_frame
-        if keyframes:
-            carried, camera = read_carried(share_log)
-    record: dict[str, Any] = {"share": Path(share).name, "share_sha256": sha256(share)}
-    if transform is None:
-        check_same_world(receiver_world, world, what)
-    else:
-        T = read_transform(transform)
-        shared = transform_map(shared, T)
-        carried = [f.moved(T) for f in carried]
-        record.update(share_world_frame=world, transform=np.round(T, 12).tolist())
-    if carried:
-        record["carried_ns"] = [f.time_ns for f in carried]
-    return ReceivedShare(shared, record, carried, camera)
-
-
-def check_same_camera(
-    carried: Intrinsics | None, receiver: Intrinsics, share: Path | str, what: str, remedy: str
-) -> None:
-    """Refuse keyframes taken with another camera (or size) than the receiver refines at: one
-    refinement renders every view with one camera. `what` names the receiving step ("the
-    merge refines"), `remedy` what the user can do instead."""
-    if carried is None or not np.allclose(
-        [carried.fx, carried.fy, carried.cx, carried.cy, carried.width, carried.height],
-        [receiver.fx, receiver.fy, receiver.cx, receiver.cy, receiver.width, receiver.height],
-        rtol=1e-3,
-    ):  # fmt: skip
-        got = "no camera" if carried is None else f"{carried.width}x{carried.height}"
-        raise InputError(
-            f"{share} carries keyframes of another camera ({got}) than the receiver's "
-            f"{receiver.width}x{receiver.height} at which {what}: {remedy}"
-        )
 
 
 def merge_logs(
@@ -175,32 +95,19 @@ def merge_logs(
         Output path, Gaussian counts (receiver, share, merged), the id offset given to the
         share, and the refinement's first/last loss, views and render backend.
     """
-    from gscompress.ops.merge import combine, share_rates
-
     options = RefineOptions(
         iters, views, lr_final, frames, size, device, backend, seed, recording=recording
     )
-    options.check("--iters")
-    if iters > 0 and seq is None:
-        raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
-    inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
-    check_output(dst, inputs, force, ".mcap")
-    if share is not None and Path(share).exists() and Path(share).samefile(receiver):
-        raise OptionError(f"{share} is the receiver log itself: merging it would double its map")
+    _check_inputs(receiver, share, dst, seq, share_transform, options, force)
     with LogReader(receiver) as receiver_log:
         meta = receiver_log.metadata
         receiver_log.require_snapshots()
-    shared: GaussianMap | None = None
-    share_record: dict[str, Any] = {"share": None}
-    carried: list[CarriedFrame] = []
-    camera: Intrinsics | None = None
-    if share is not None:
-        # (the keyframes serve the refinement only)
-        received = read_share(share, meta.world_frame, "merge", share_transform,
-                              keyframes=keyframes and iters > 0)  # fmt: skip
-        shared, share_record = received.gaussians, received.record
-        carried, camera = received.carried, received.camera
-
+    received = None
+    if share is not None:  # (the keyframes serve the refinement only)
+        received = read_share(
+            share, meta.world_frame, "merge", share_transform, keyframes=keyframes and iters > 0
+        )
+    carried = [] if received is None else received.carried
     how = (
         merge
         if isinstance(merge, MergeOptions)
@@ -209,36 +116,84 @@ def merge_logs(
     how.check()
     refiner = None
     if iters > 0:
-        from gscompress.pipeline.refine import LogRefiner
-
         assert seq is not None
-        instead = "merge with --iters 0 to concatenate only"
-        refiner = LogRefiner(receiver, seq, options, progress, instead)
-        if carried:
-            check_same_camera(camera, refiner.intrinsics, str(share), "the merge refines",
-                              "merge with --no-keyframes")  # fmt: skip
-
-    def merge_into(own: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
-        received = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)
-        merged, from_share, offset, done = combine(own, received, how)
-        results: dict[str, Any] = {
-            "receiver": len(own),
-            "share": len(received),
-            "gaussians": len(merged),
-            "id_offset": offset,
-            **done,
-        }
-        if refiner is None:
-            return merged, results
-        if carried:
-            T_align = np.asarray(done.get("align_transform", np.eye(4)), np.float64)
-            refiner.carry([f.moved(T_align) for f in carried])
-        seen = refiner.contributions(merged) if how.by_view and from_share.any() else None
-        rates = share_rates(from_share, how, seen, merged.alpha_t_sum)
-        merged, stats = refiner(merged, rates)
-        return merged, {**results, **{f"refine_{k}": v for k, v in stats.items()}}
-
+        refiner = _receiver_refiner(receiver, seq, options, progress, received, share)
+    merge_into = functools.partial(_merge_into, received=received, how=how, refiner=refiner)
+    share_record = {"share": None} if received is None else received.record
     operation = {"name": "merge", **share_record, **options.record(), **how.record()}
     return rewrite_map(
         receiver, dst, operation, merge_into, codec=codec, command=command, force=force
     )
+
+
+def _check_inputs(
+    receiver: str | Path,
+    share: str | Path | None,
+    dst: str | Path,
+    seq: str | Path | None,
+    share_transform: str | Path | None,
+    options: RefineOptions,
+    force: bool,
+) -> None:
+    """Refuse `merge_logs`' refinement options out of range, a refinement without the receiver's
+    sequence, an output that would overwrite an input, and a share that is the receiver."""
+    options.check("--iters")
+    if options.iters > 0 and seq is None:
+        raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
+    inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
+    check_output(dst, inputs, force, ".mcap")
+    if share is not None and Path(share).exists() and Path(share).samefile(receiver):
+        raise OptionError(f"{share} is the receiver log itself: merging it would double its map")
+
+
+def _receiver_refiner(
+    receiver: str | Path,
+    seq: str | Path,
+    options: RefineOptions,
+    progress: Callable[[int, int], object] | None,
+    received: ReceivedShare | None,
+    share: str | Path | None,
+) -> Any:
+    """The refinement on the receiver's frames (`LogRefiner`), refusing keyframes the share
+    carries from another camera than the receiver's."""
+    from gscompress.pipeline.refining import LogRefiner
+
+    instead = "merge with --iters 0 to concatenate only"
+    refiner = LogRefiner(receiver, seq, options, progress, instead)
+    if received is not None and received.carried:
+        check_same_camera(
+            received.camera,
+            refiner.intrinsics,
+            str(share),
+            "the merge refines",
+            "merge with --no-keyframes",
+        )
+    return refiner
+
+
+def _merge_into(
+    own: GaussianMap, received: ReceivedShare | None, how: MergeOptions, refiner: Any
+) -> tuple[GaussianMap, dict[str, Any]]:
+    """The receiver's map `own` with the share combined into it (`combine`; an empty share
+    without one) and refined on the receiver's frames (and the keyframes the share carries,
+    moved as the merge aligned it) by `refiner` when there is one; and what to record."""
+    shared = received.gaussians if received is not None else None
+    carried = received.carried if received is not None else []
+    share_map = shared if shared is not None else GaussianMap.empty(own.isotropic, own.sh_degree)
+    merged, from_share, offset, done = combine(own, share_map, how)
+    results: dict[str, Any] = {
+        "receiver": len(own),
+        "share": len(share_map),
+        "gaussians": len(merged),
+        "id_offset": offset,
+        **done,
+    }
+    if refiner is None:
+        return merged, results
+    if carried:
+        T_align = np.asarray(done.get("align_transform", np.eye(4)), np.float64)
+        refiner.carry([f.moved(T_align) for f in carried])
+    seen = refiner.contributions(merged) if how.by_view and from_share.any() else None
+    rates = share_rates(from_share, how, seen, merged.alpha_t_sum)
+    merged, stats = refiner(merged, rates)
+    return merged, {**results, **{f"refine_{k}": v for k, v in stats.items()}}

@@ -89,5 +89,11 @@ def convert_sequence(
         if close is not None:
             close()
     k = sequence.intrinsics
-    return {"output": str(out), "format": fmt, "frames": len(sequence),
-            "size": [k.width, k.height], "color": color, "depth": depth}  # fmt: skip
+    return {
+        "output": str(out),
+        "format": fmt,
+        "frames": len(sequence),
+        "size": [k.width, k.height],
+        "color": color,
+        "depth": depth,
+    }

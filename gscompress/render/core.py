@@ -89,9 +89,17 @@ def render(
         from gscompress.render.gsplat_backend import render_gsplat
 
         return render_gsplat(
-            means, quats, scales, opacities, colors, intrinsics, T_cam_world,
-            want_contribution=want_contribution, near=near, background=background,
-        )  # fmt: skip
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            intrinsics,
+            T_cam_world,
+            want_contribution=want_contribution,
+            near=near,
+            background=background,
+        )
 
     project, bin_, composite = project_gaussians, bin_tiles, composite_torch
     if backend == "cpu":

@@ -112,11 +112,14 @@ def render_gsplat(
         raise InputError("render_gsplat needs at least one Gaussian (render() draws an empty map)")
     width, height = intrinsics.width, intrinsics.height
     K = torch.tensor(
-        [[intrinsics.fx, 0.0, intrinsics.cx + 0.5],
-         [0.0, intrinsics.fy, intrinsics.cy + 0.5],
-         [0.0, 0.0, 1.0]],
-        dtype=torch.float32, device=device,
-    )  # [3, 3]  # fmt: skip
+        [
+            [intrinsics.fx, 0.0, intrinsics.cx + 0.5],
+            [0.0, intrinsics.fy, intrinsics.cy + 0.5],
+            [0.0, 0.0, 1.0],
+        ],
+        dtype=torch.float32,
+        device=device,
+    )  # [3, 3]
     grad_wanted = torch.is_grad_enabled()
     with torch.enable_grad():
         features = colors.float()  # [N, 3]
@@ -125,11 +128,20 @@ def render_gsplat(
             ones = torch.ones(n, 1, dtype=torch.float32, device=device, requires_grad=True)
             features = torch.cat([features, ones], dim=1)  # [N, 4]
         rendered, alphas, _meta = rasterization(  # _meta's radii are opacity-sized: unused
-            means.float(), quats.float(), scales.float(),
-            opacities.float().clamp(max=ALPHA_MAX), features,
-            T_cam_world.float()[None], K[None], width, height,
-            near_plane=near, eps2d=0.3, packed=False, render_mode="RGB+D",
-        )  # rendered [1, H, W, 3 (+1) + 1], alphas [1, H, W, 1]  # fmt: skip
+            means.float(),
+            quats.float(),
+            scales.float(),
+            opacities.float().clamp(max=ALPHA_MAX),
+            features,
+            T_cam_world.float()[None],
+            K[None],
+            width,
+            height,
+            near_plane=near,
+            eps2d=0.3,
+            packed=False,
+            render_mode="RGB+D",
+        )  # rendered [1, H, W, 3 (+1) + 1], alphas [1, H, W, 1]
         contribution = None
         if ones is not None:
             (grad_ones,) = torch.autograd.grad(
@@ -149,6 +161,11 @@ def render_gsplat(
             return project_gaussians(means, quats, scales, T_cam_world, intrinsics, near).radii
 
     return finish_output(
-        rendered[..., :3], rendered[..., -1], T_final, radii_of, contribution,
-        background, "gsplat",
-    )  # fmt: skip
+        rendered[..., :3],
+        rendered[..., -1],
+        T_final,
+        radii_of,
+        contribution,
+        background,
+        "gsplat",
+    )

@@ -671,3 +671,21 @@ def resolve_config(
     if backend is not None:
         overrides["backend"] = backend
     return config.with_overrides(**overrides) if overrides else config
+
+
+def stage_positions(total_frames: int, stages: tuple[float, ...]) -> dict[int, int]:
+    """{processing position after which to prune: stage number (1-based)} for a run length.
+
+    Stage s at fraction p runs after frame round(p * total) - 1 (at least after the first).
+    """
+    out: dict[int, int] = {}
+    for number, fraction in enumerate(sorted(stages), start=1):
+        position = max(round(fraction * total_frames), 1) - 1
+        out.setdefault(position, number)
+    return out
+
+
+def final_iterations(mapping: MappingConfig, frames: int) -> int:
+    """Iterations of the final refinement of a run of `frames` frames."""
+    per_frame = mapping.final_iters_per_frame
+    return min(mapping.final_iters, per_frame * frames) if per_frame else mapping.final_iters

@@ -133,9 +133,11 @@ def tracking_loss(
     l_color = masked_mean((out.color - color_gt).abs().mean(dim=-1), mask, count)
     l_depth = masked_mean(depth_error, mask, count)
     w_im, w_depth = adaptive_weights(l_color, l_depth, config)
-    balance = config.balance_weight * (torch.log(w_depth / w_im) - torch.log(
-        torch.as_tensor(config.rho, dtype=w_im.dtype)
-    )) ** 2  # fmt: skip
+    balance = (
+        config.balance_weight
+        * (torch.log(w_depth / w_im) - torch.log(torch.as_tensor(config.rho, dtype=w_im.dtype)))
+        ** 2
+    )
     total = w_im * l_color + w_depth * l_depth + balance
     return LossTerms(
         total=total,

@@ -157,7 +157,10 @@ def relocalise(
         raise TrackingLostError(lost.frame, lost.timestamp, lost.reason)
     log.warning(
         "frame %d (stamp %.3f s): tracking lost (%s); re-localised against the map from %s",
-        lost.frame, lost.timestamp, lost.reason, best[0],
-    )  # fmt: skip
+        lost.frame,
+        lost.timestamp,
+        lost.reason,
+        best[0],
+    )
     best[1].relocalised = True
     return best[1]

@@ -24,12 +24,11 @@ two steps look at the run's own Gaussians only:
 
 - densification adds Gaussians where the run's own map does not explain the frame: a share is
   a sparse, blurred cover of the scene, and letting it stand in for the receiver's own map
-  stopped B from mapping (on the synthetic room, B with a random 20% share ended with 2.9k
-  Gaussians instead of 7.8k and 1.4 dB lower PSNR, `gsc experiment --mode inject`);
+  stops the receiver from mapping;
 - the PWAS pruning stages rank the run's own Gaussians only: the sender already chose the share
-  under its budget, and ranking it again would cut it twice (when B's stages ranked the received
-  Gaussians too, even A's whole map left B at 19.5 dB / 1.03 cm ATE against 22.3 dB / 0.65 cm
-  alone).
+  under its budget, and ranking it again would cut it twice.
+
+(docs/merge.md, "Injected instead of merged", has what either did when it was not so.)
 """
 
 from __future__ import annotations
@@ -51,7 +50,7 @@ from gscompress.gaussians import GaussianMap
 from gscompress.importance import median_range, resolve_sigma_d
 from gscompress.render import render, resolve_device
 from gscompress.selection import keep_count, strategy_scores, top_k
-from gscompress.slam.config import MappingConfig, SlamConfig
+from gscompress.slam.config import SlamConfig, final_iterations, stage_positions
 from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
 from gscompress.slam.keyframes import (
     HeldImages,
@@ -155,24 +154,6 @@ class FrameResult:
         if self.event:
             record["event"] = self.event
         return {k: v for k, v in record.items() if not isinstance(v, float) or np.isfinite(v)}
-
-
-def stage_positions(total_frames: int, stages: tuple[float, ...]) -> dict[int, int]:
-    """{processing position after which to prune: stage number (1-based)} for a run length.
-
-    Stage s at fraction p runs after frame round(p * total) - 1 (at least after the first).
-    """
-    out: dict[int, int] = {}
-    for number, fraction in enumerate(sorted(stages), start=1):
-        position = max(round(fraction * total_frames), 1) - 1
-        out.setdefault(position, number)
-    return out
-
-
-def final_iterations(mapping: MappingConfig, frames: int) -> int:
-    """Iterations of the final refinement of a run of `frames` frames."""
-    per_frame = mapping.final_iters_per_frame
-    return min(mapping.final_iters, per_frame * frames) if per_frame else mapping.final_iters
 
 
 class SlamSystem:
@@ -583,9 +564,14 @@ class SlamSystem:
         self, inputs: RenderInputs, color: torch.Tensor, depth: torch.Tensor, guess: np.ndarray
     ) -> TrackResult:
         return track(
-            inputs, color, depth, self.intrinsics, guess, self.config.tracking,
+            inputs,
+            color,
+            depth,
+            self.intrinsics,
+            guess,
+            self.config.tracking,
             backend=self.config.backend,
-        )  # fmt: skip
+        )
 
     def _init_scene_radius(self, depth: np.ndarray) -> None:
         """Scene radius (for the huge-Gaussian cleanup) and PWAS's sigma_d from the first valid
@@ -619,9 +605,15 @@ class SlamSystem:
                 mask &= whole | (error >= settings.received_color_error)
         self._init_scene_radius(depth)
         new = gaussians_from_rgbd(
-            current.color.cpu().numpy(), depth, self.intrinsics, current.T_world_cam, mask=mask,
-            stride=settings.stride, first_id=self.next_id, opacity=settings.opacity,
-        )  # fmt: skip
+            current.color.cpu().numpy(),
+            depth,
+            self.intrinsics,
+            current.T_world_cam,
+            mask=mask,
+            stride=settings.stride,
+            first_id=self.next_id,
+            opacity=settings.opacity,
+        )
         if not self.config.isotropic:
             new = new.as_anisotropic()
         return self.add_gaussians(new, renumber=False)
@@ -677,9 +669,14 @@ class SlamSystem:
         on_step = self._final_steps(iters) if final and iters else None
         try:
             stats = self.mapper.refine(
-                views, iters, rng, on_step=on_step, lr_final_fraction=fraction, stop=stop,
+                views,
+                iters,
+                rng,
+                on_step=on_step,
+                lr_final_fraction=fraction,
+                stop=stop,
                 poses=final and self.config.poses.final,
-            )  # fmt: skip
+            )
         finally:
             self.in_final_refinement = False
         if stop is not None and stats.iters < iters and len(self.mapper.params):  # (not emptied)
@@ -705,9 +702,12 @@ class SlamSystem:
         with torch.no_grad():
             inputs = params.render_inputs()
             out = render(
-                *inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend,
+                *inputs,
+                self.intrinsics,
+                current.T_cam_world(),
+                backend=self.config.backend,
                 want_contribution=True,
-            )  # fmt: skip
+            )
             assert out.contribution is not None
             center = torch.as_tensor(current.T_world_cam[:3, 3], device=self.device)
             if self.sigma_d is not None:  # (else no frame so far had valid depth)

@@ -22,7 +22,8 @@ from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import CODECS, DEFAULT_SHARE_CODEC
 from gscompress.io.mcap_log import decoded_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.offline import ShareCut, smallest_share_bytes
+from gscompress.pipeline.share.cut import ShareCut, smallest_share_bytes
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import STRATEGIES
 from gscompress.view import cuts, scene
 from gscompress.view.server_render import Layer, ServerRenderer
@@ -260,8 +261,17 @@ class MapViewer:
         self.compare = gui.add_dropdown(
             "Show", COMPARE_MODES, initial_value=COMPARE_MODES[0], visible=self.other is not None
         )
-        for handle in (self.colour, self.hide_dropped, self.selection, self.strategy, self.codec,
-                       self.sums, self.compare, self.solve, self.write):  # fmt: skip
+        for handle in (
+            self.colour,
+            self.hide_dropped,
+            self.selection,
+            self.strategy,
+            self.codec,
+            self.sums,
+            self.compare,
+            self.solve,
+            self.write,
+        ):
             self._guard(handle)
         for control in (
             self.colour,
@@ -340,10 +350,10 @@ class MapViewer:
         in the chosen codec."""
         codec, sums = self.codec.value, self.sums.value
         smallest = smallest_share_bytes(codec)
-        whole = ShareCut(
-            self.source.path, Budget(ratio=1.0), codec=codec, sums=sums, source=self._source_pair()
-        ).size(len(self.gaussians))
-        low, high = int(np.ceil(smallest / 1000)) + 1, max(int(np.ceil(whole / 1000)), 3)
+        how = ShareOptions(codec=codec, sums=sums)
+        whole = ShareCut(self.source.path, Budget(ratio=1.0), how, source=self._source_pair())
+        whole_bytes = whole.size(len(self.gaussians))
+        low, high = int(np.ceil(smallest / 1000)) + 1, max(int(np.ceil(whole_bytes / 1000)), 3)
         self.budget.min, self.budget.max = low, high
         if not low <= self.budget.value <= high:
             self.budget.value = int(np.clip(round(high * 0.1), low, high))
@@ -361,6 +371,16 @@ class MapViewer:
         self._request()
 
     # ------------------------------------------------------------------ the map
+
+    def _share_options(self) -> ShareOptions:
+        """The share the controls ask for: `gsc share`'s with their strategy, codec and sums,
+        and the viewer's seed."""
+        return ShareOptions(
+            strategy=self.strategy.value,
+            codec=self.codec.value,
+            sums=self.sums.value,
+            seed=self.options.seed,
+        )
 
     def _source_pair(self) -> tuple[GaussianMap, Any]:
         return self.gaussians, self.source.metadata
@@ -429,13 +449,7 @@ class MapViewer:
         key = (self.snapshot, str(budget), strategy, self.codec.value, self.sums.value)
         if key != self._share_key or self._share is None:
             self._share = cuts.preview_share(
-                self.source.path,
-                self._source_pair(),
-                budget,
-                strategy=strategy,
-                codec=self.codec.value,
-                sums=self.sums.value,
-                seed=seed,
+                self.source.path, self._source_pair(), budget, self._share_options()
             )
             self._share_key = key
         share = self._share
@@ -597,15 +611,19 @@ class MapViewer:
     # ------------------------------------------------------------------ buttons
 
     def _on_solve(self, *_args: Any) -> None:
-        from gscompress.pipeline.solve import solve_share
+        from gscompress.pipeline.share.solve import solve_share
 
         budget = Budget.parse(f"{int(self.budget.value)}kB")
         self._say(f"solving for {budget} (rendering candidates)...")
         try:
             best, weighed, record = solve_share(
-                self.source.path, budget, strategy=self.strategy.value, seed=self.options.seed,
-                fold=True, seq=self.options.seq, recording=self.options.recording,
-            )  # fmt: skip  # (the viewer's shares fold, as gsc share's do by default)
+                self.source.path,
+                budget,
+                self._share_options(),
+                fixed=("fold",),
+                seq=self.options.seq,
+                recording=self.options.recording,
+            )  # # (the viewer's shares fold, as gsc share's do by default)
         except GscError as exc:
             self._say(f"**{exc}**")
             return
@@ -638,18 +656,10 @@ class MapViewer:
                 )
             else:
                 budget = Budget.parse(f"{int(self.budget.value)}kB")
-                codec, sums = self.codec.value, self.sums.value
-                dst = out / f"{src.stem}_share{budget}_{codec}{'' if sums else '_nosums'}.mcap"
-                result = cuts.write_share(
-                    src,
-                    self._source_pair(),
-                    dst,
-                    budget,
-                    strategy=strategy,
-                    codec=codec,
-                    sums=sums,
-                    seed=seed,
-                )
+                how = self._share_options()
+                nosums = "" if how.sums else "_nosums"
+                dst = out / f"{src.stem}_share{budget}_{how.codec}{nosums}.mcap"
+                result = cuts.write_share(src, self._source_pair(), dst, budget, how)
         except (GscError, OSError) as exc:
             self._say(f"**not written: {exc}**")
             return

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import shlex
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +16,10 @@ from gscompress.io.files import check_output
 from gscompress.io.map_files import write_map_file
 from gscompress.io.mcap_log import LogMetadata
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.offline import ShareCut, prune_log, share_log
+from gscompress.pipeline.prune import prune_log
+from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.cut import ShareCut
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import select_top
 
 SHARE_CODECS = tuple((codec, sums) for codec in reversed(CODECS) for sums in sums_choices(codec))
@@ -30,17 +33,30 @@ def codec_label(codec: str, sums: bool) -> str:
 
 def prune_command(src: Path, keep: float, by: str, seed: int) -> str:
     """The `gsc prune` command line a prune in the viewer stands for (its provenance)."""
-    return shlex.join(["gsc", "prune", src.name, "--keep", f"{keep:g}", "--by", by,
-                       "--seed", str(seed)])  # fmt: skip
+    return shlex.join(
+        ["gsc", "prune", src.name, "--keep", f"{keep:g}", "--by", by, "--seed", str(seed)]
+    )
 
 
-def share_command(src: Path, budget: Budget, strategy: str, codec: str, sums: bool,
-                  seed: int) -> str:  # fmt: skip
+def share_command(src: Path, budget: Budget, options: ShareOptions) -> str:
     """The `gsc share` command line a share in the viewer stands for (its provenance: recorded
-    in the file, so the preview's bytes are those written)."""
-    words = ["gsc", "share", src.name, "--budget", str(budget), "--strategy", strategy,
-             "--codec", codec, "--seed", str(seed)]  # fmt: skip
-    return shlex.join([*words, *([] if sums else ["--no-sums"])])
+    in the file, so the preview's bytes are those written). Its strategy, codec, sums and seed:
+    the viewer's shares take `gsc share`'s other settings as they are by default."""
+    o = options
+    words = [
+        "gsc",
+        "share",
+        src.name,
+        "--budget",
+        str(budget),
+        "--strategy",
+        o.strategy,
+        "--codec",
+        o.codec,
+        "--seed",
+        str(o.seed),
+    ]
+    return shlex.join([*words, *([] if o.sums else ["--no-sums"])])
 
 
 def kept_by_prune(gaussians: GaussianMap, keep: float, by: str, seed: int) -> np.ndarray:
@@ -78,27 +94,20 @@ class SharePreview:
 
 
 def preview_share(
-    src: Path,
-    source: tuple[GaussianMap, LogMetadata],
-    budget: Budget,
-    *,
-    strategy: str,
-    codec: str,
-    sums: bool,
-    seed: int,
+    src: Path, source: tuple[GaussianMap, LogMetadata], budget: Budget, options: ShareOptions
 ) -> SharePreview:
-    """The share `gsc share --budget BUDGET` would cut of the map `source` (of `src`): the count
-    its byte search finds, and the size of that share in every codec.
+    """The share `gsc share --budget BUDGET` with `options` would cut of the map `source` (of
+    `src`): the count its byte search finds, and the size of that share in every codec.
 
     Raises:
         BudgetError: the budget holds no Gaussian, or the map has no such scores.
     """
 
     def cut(codec: str, sums: bool) -> ShareCut:
-        command = share_command(src, budget, strategy, codec, sums, seed)
-        return ShareCut(src, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
-                        command=command, source=source)  # fmt: skip
+        how = replace(options, codec=codec, sums=sums)
+        return ShareCut(src, budget, how, command=share_command(src, budget, how), source=source)
 
+    codec, sums = options.codec, options.sums
     chosen = cut(codec, sums)
     count = chosen.budget.count(len(chosen.full), chosen.size)
     data, shared, _results = chosen.file(count)
@@ -111,9 +120,14 @@ def preview_share(
 
 
 def write_prune(
-    src: Path, source: tuple[GaussianMap, LogMetadata], is_log: bool, dst: Path, keep: float,
-    by: str, seed: int,
-) -> dict[str, Any]:  # fmt: skip
+    src: Path,
+    source: tuple[GaussianMap, LogMetadata],
+    is_log: bool,
+    dst: Path,
+    keep: float,
+    by: str,
+    seed: int,
+) -> dict[str, Any]:
     """Write the prune of `src` as `gsc prune` does (a log; for a map file, the kept Gaussians
     as a map file named by `dst`'s suffix)."""
     command = prune_command(src, keep, by, seed)
@@ -126,10 +140,12 @@ def write_prune(
 
 
 def write_share(
-    src: Path, source: tuple[GaussianMap, LogMetadata], dst: Path, budget: Budget, *,
-    strategy: str, codec: str, sums: bool, seed: int,
-) -> dict[str, Any]:  # fmt: skip
+    src: Path,
+    source: tuple[GaussianMap, LogMetadata],
+    dst: Path,
+    budget: Budget,
+    options: ShareOptions,
+) -> dict[str, Any]:
     """Write the share of `src` as `gsc share` does (`share_log`)."""
-    command = share_command(src, budget, strategy, codec, sums, seed)
-    return share_log(src, dst, budget, strategy=strategy, codec=codec, sums=sums, seed=seed,
-                     command=command, source=source)  # fmt: skip
+    command = share_command(src, budget, options)
+    return share_log(src, dst, budget, options, command=command, source=source)

@@ -18,7 +18,7 @@ from gscompress.io.mcap_log import (
     LogMetadata,
     LogReader,
 )
-from gscompress.pipeline.refine import keyframe_positions, recorded_keyframes
+from gscompress.pipeline.logs import keyframe_positions, recorded_keyframes
 
 
 @dataclass
@@ -64,8 +64,19 @@ class MapSource:
         if path.suffix.lower() != ".mcap":
             gaussians = read_map_file(path)
             none = np.zeros(0, np.int64)
-            return cls(path, False, LogMetadata(), np.zeros(1, np.int64), empty, empty, none,
-                       none, None, None, {0: gaussians})  # fmt: skip
+            return cls(
+                path,
+                False,
+                LogMetadata(),
+                np.zeros(1, np.int64),
+                empty,
+                empty,
+                none,
+                none,
+                None,
+                None,
+                {0: gaussians},
+            )
         with LogReader(path) as reader:
             count = reader.require_snapshots()
             times = np.array(
@@ -78,8 +89,19 @@ class MapSource:
             metadata = reader.metadata
             recorded = recorded_keyframes(reader)
             intrinsics = reader.read_intrinsics()
-        return cls(path, True, metadata, times, poses, poses_gt, pose_ns, gt_ns, recorded,
-                   intrinsics, {count - 1: last})  # fmt: skip
+        return cls(
+            path,
+            True,
+            metadata,
+            times,
+            poses,
+            poses_gt,
+            pose_ns,
+            gt_ns,
+            recorded,
+            intrinsics,
+            {count - 1: last},
+        )
 
     def keyframes(self) -> list[int]:
         """Positions among `poses` of the log's keyframes (`KEYFRAME_RULE`; for a log whose

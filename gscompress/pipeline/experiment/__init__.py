@@ -4,7 +4,9 @@
 - `execution`: how they run (in this process or on a pool of workers, reusing finished runs);
 - `execution_ray`: as Ray tasks on a cluster (Ray imported only there);
 - `cross_agent`: a map scored on A's, B's and all frames at refined poses (a step of the graph);
-- `report`: results rows, verdicts, tables and plots;
+- `results`: results rows, the rate-distortion curves and the verdicts;
+- `report`: the files they are written to: results.json and .csv, results.md (`markdown`) and
+  the plots (`plots`);
 - `run`: `run_experiment`, which ties the three together.
 """
 
@@ -16,7 +18,7 @@ from gscompress.pipeline.experiment.protocol import (
     plan_size,
     resolve_settings,
 )
-from gscompress.pipeline.experiment.report import (
+from gscompress.pipeline.experiment.results import (
     ROW_KEYS,
     paired_difference,
     rate_distortion_curves,

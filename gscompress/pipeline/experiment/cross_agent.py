@@ -60,7 +60,7 @@ def start_poses(
         (times [N] int64 ns, camera-to-world poses [N, 4, 4]) in time order.
     """
     from gscompress.io.trajectory import nearest_times
-    from gscompress.pipeline.evaluate import POSE_MATCH_TOLERANCE_NS, pose_source
+    from gscompress.pipeline.logs import POSE_MATCH_TOLERANCE_NS, pose_source
 
     times, poses, _, _ = pose_source(other_log)
     if T_own_other is not None:
@@ -114,6 +114,7 @@ def cross_scores(
     """
     from gscompress.io.trajectory import read_transform, write_tum_trajectory
     from gscompress.pipeline.evaluate import evaluate_log, union_results
+    from gscompress.pipeline.images import ImageOptions
 
     T_own_other = None
     if transform is not None and own != "all":
@@ -135,24 +136,34 @@ def cross_scores(
                 times, T = start_poses(log_path, other, T_own_other, own_first)
                 tum = path.with_name(f"{base}_start_{name}.txt")
                 write_tum_trajectory(
-                    tum, times / 1e9, T,
+                    tum,
+                    times / 1e9,
+                    T,
                     [f"starting poses of {log_path.name} on {name} frames: {start}"],
-                )  # fmt: skip
+                )
                 poses["poses"] = tum
         if name == "all":  # A's frames and B's hold every frame, each from its starting pose
             first, second = ("a", "b") if own == "all" else (own, "b" if own == "a" else "a")
             result = union_results(full[first], full[second])
         else:
-            result = evaluate_log(
-                log_path, seq, frames=frames[name], every=every, refine_poses=iters,
-                lpips=lpips, device=device, **poses,
-            )  # fmt: skip
+            views = ImageOptions(
+                frames=frames[name], every=every, lpips=lpips, device=device, **poses
+            )
+            result = evaluate_log(log_path, seq, views, refine_poses=iters)
         full[name] = result
         refined = {k: v for k, v in result["refined"].items() if k != "per_frame"}
-        summary[name] = {"frames": frames[name], "start": start, "refined": refined,
-                         **{key: result.get(key) for key in SUMMARY_KEYS}}  # fmt: skip
-        log.debug("%s on %s frames: PSNR %.2f at refined poses (%.2f at the start)",
-                 log_path.name, name, refined["psnr"] or float("nan"),
-                 result["psnr"] or float("nan"))  # fmt: skip
+        summary[name] = {
+            "frames": frames[name],
+            "start": start,
+            "refined": refined,
+            **{key: result.get(key) for key in SUMMARY_KEYS},
+        }
+        log.debug(
+            "%s on %s frames: PSNR %.2f at refined poses (%.2f at the start)",
+            log_path.name,
+            name,
+            refined["psnr"] or float("nan"),
+            result["psnr"] or float("nan"),
+        )
     write_text_atomic(path, json_text(full, indent=1))
     return {"cross": summary}

@@ -1,10 +1,18 @@
-"""How long an experiment will take, said before it starts: the render passes its plan takes
-(each a forward and a backward render of the map at the working size), counted from the
-settings, times one such pass timed on the sequence's first frame."""
+"""How long an experiment will take, said before it starts.
+
+Its plan's work is counted from the settings in three kinds: tracking-like iterations (a render
+forward and backward with gradients to a pose only: each SLAM run's tracking, each cross-agent
+scoring's pose refinement), mapping-like iterations (a render forward and backward with
+gradients to every Gaussian, the mapping loss and the optimiser's step: each SLAM run's mapping
+and final refinement, each merge's refinement) and evaluation renders (forward only). Each kind
+is priced by timing it now, on the sequence's first two frames: the first mapped and the second
+tracked and mapped with the SLAM settings' iterations cut to `CALIBRATION`; an evaluation render
+is priced as a tracking iteration.
+"""
 
 from __future__ import annotations
 
-import time
+from dataclasses import dataclass
 from typing import Any
 
 from gscompress.pipeline.experiment.protocol import (
@@ -15,8 +23,32 @@ from gscompress.pipeline.experiment.protocol import (
     same_budget,
 )
 
-TIMED_PASSES = 3
-"""Render passes timed for the estimate (after one untimed, which loads the kernels)."""
+CALIBRATION = {"mapping.first_frame_iters": 10, "tracking.iters": 5, "mapping.iters": 5}
+"""The iterations of the timed run: the first frame's mapping, then the second frame's tracking
+and mapping."""
+
+
+@dataclass(frozen=True)
+class Work:
+    """An amount of work of each kind (or the seconds of one unit of each)."""
+
+    tracking: float = 0.0
+    mapping: float = 0.0
+    renders: float = 0.0
+
+    def __add__(self, other: Work) -> Work:
+        return Work(*(a + b for a, b in zip(self.parts(), other.parts(), strict=True)))
+
+    def parts(self) -> tuple[float, float, float]:
+        return self.tracking, self.mapping, self.renders
+
+    def times(self, k: float) -> Work:
+        """The work `k` times over."""
+        return Work(*(a * k for a in self.parts()))
+
+    def seconds(self, price: Work) -> float:
+        """The work's seconds at `price` seconds a unit of each kind."""
+        return sum(a * b for a, b in zip(self.parts(), price.parts(), strict=True))
 
 
 def agent_frame_counts(s: ExperimentSettings, n: int) -> tuple[int, int]:
@@ -27,66 +59,67 @@ def agent_frame_counts(s: ExperimentSettings, n: int) -> tuple[int, int]:
     return n // 2, n - n // 2
 
 
-def render_passes(s: ExperimentSettings, base: Any, n: int) -> int:
-    """The render passes of the experiment's steps on `n` frames with SLAM config `base`:
-    each SLAM run's tracking, mapping and final refinement iterations and its evaluation, each
-    merge's refinement and evaluation, each cross-agent scoring's pose refinement."""
-    from gscompress.slam.system import final_iterations
+def plan_work(s: ExperimentSettings, base: Any, n: int) -> Work:
+    """The work of the experiment's steps on `n` frames with SLAM config `base`: each SLAM run's
+    tracking, mapping and final refinement iterations and its evaluation, each merge's
+    refinement and evaluation, each cross-agent scoring's pose refinement and evaluation."""
+    from gscompress.slam.config import final_iterations
 
     n_a, n_b = agent_frame_counts(s, n)
-    per_frame = base.tracking.iters + base.mapping.iters
 
     def scored(frames: int) -> int:  # (every `every`-th frame)
         return -(-frames // s.every)
 
-    def slam(frames: int) -> int:
-        return frames * (per_frame + 1) + final_iterations(base.mapping, frames) + scored(frames)
+    def slam(frames: int) -> Work:
+        mapping = frames * base.mapping.iters + final_iterations(base.mapping, frames)
+        return Work(frames * base.tracking.iters, mapping, frames + scored(frames))
 
-    merge = s.merge_iters + scored(n_b) if s.mode == "merge" else slam(n_b)
-    scoring = (s.refine_poses + 1) * (scored(n_a) + scored(n_b) + scored(n))
-    scoring *= s.refine_poses > 0
+    merge = Work(0, s.merge_iters, scored(n_b)) if s.mode == "merge" else slam(n_b)
+    frames = scored(n_a) + scored(n_b) + scored(n)
+    scoring = Work(s.refine_poses * frames, 0, frames) if s.refine_poses > 0 else Work()
     extra_budgets = [b for b in s.sweep if not same_budget(b, s.budget)]
     received = len(s.strategies) + 1  # each strategy at the main budget, A's whole map
     received += s.mode == "merge"  # B refined without a share
     sweep = len(extra_budgets) * len(s.strategies) + len(reference_formats(s))
-    per_seed = slam(n_a) + slam(n_b) + len(_rescored(s)) * n_a
-    per_seed += received * (merge + scoring) + 2 * scoring  # (A and B scored too)
-    total = 2 * slam(n) + scoring + s.seeds * per_seed
-    return total + s.sweep_seeds * sweep * (merge + scoring)
+    per_seed = slam(n_a) + slam(n_b) + Work(0, 0, len(_rescored(s)) * n_a)
+    per_seed += (merge + scoring).times(received) + scoring.times(2)  # (A and B scored too)
+    total = slam(n).times(2) + scoring + per_seed.times(s.seeds)
+    return total + (merge + scoring).times(s.sweep_seeds * sweep)
 
 
-def seconds_per_pass(sequence: Any, base: Any, device: str = "auto") -> float:
-    """Seconds of one forward and backward render of the sequence's first frame, back-projected
-    (`gaussians_from_rgbd`: one Gaussian a pixel, as a run's first map), at the working size."""
-    import numpy as np
-    import torch
+def render_passes(s: ExperimentSettings, base: Any, n: int) -> int:
+    """Every render forward (and backward, where it has one) of the plan (`plan_work`)."""
+    return round(sum(plan_work(s, base, n).parts()))
 
-    from gscompress.camera import invert_transform
-    from gscompress.ops.score import activated_tensors
-    from gscompress.render import render, resolve_backend, resolve_device
-    from gscompress.slam.densify import gaussians_from_rgbd
 
-    frame = sequence.frame(0)
-    T = np.eye(4) if frame.T_world_cam is None else frame.T_world_cam
-    gaussians = gaussians_from_rgbd(frame.color, frame.depth, sequence.intrinsics, T)
+def unit_seconds(sequence: Any, base: Any, device: str = "auto") -> Work:
+    """Seconds of one tracking iteration, one mapping iteration and one evaluation render at the
+    working size, timed now: the run of `base` (its pruning stages and final refinement off)
+    over the sequence's first two frames with the iterations of `CALIBRATION`. The kernels are
+    loaded before the clock starts."""
+    from gscompress.render import resolve_backend, resolve_device
+    from gscompress.slam.system import SlamSystem
+
+    config = base.with_overrides(**CALIBRATION, **{"prune.stages": (), "mapping.final_iters": 0})
     torch_device = resolve_device(device, base.backend)
-    backend = resolve_backend(base.backend, torch_device)
-    tensors = activated_tensors(gaussians, torch_device)
-    tensors["means"].requires_grad_(True)
-    T_cam_world = torch.as_tensor(invert_transform(T), dtype=torch.float32, device=torch_device)
-    times = []
-    for _ in range(1 + TIMED_PASSES):
-        start = time.perf_counter()
-        t = tensors
-        out = render(t["means"], t["quats"], t["scales"], t["opacities"], t["colors"],
-                     sequence.intrinsics, T_cam_world, backend=backend)  # fmt: skip
-        out.color.sum().backward()
-        times.append(time.perf_counter() - start)
-    return min(times[1:])
+    resolve_backend(base.backend, torch_device)
+    system = SlamSystem(config, sequence.intrinsics, torch_device, total_frames=None)
+    first = system.process(sequence.frame(0)).ms
+    mapping = first["mapping"] / CALIBRATION["mapping.first_frame_iters"]
+    tracking = mapping  # (a sequence of one frame: no tracking to time)
+    if len(sequence) > 1:
+        second = system.process(sequence.frame(1)).ms
+        tracking = second["tracking"] / CALIBRATION["tracking.iters"]
+        mapping = second["mapping"] / CALIBRATION["mapping.iters"]
+    return Work(tracking / 1000, mapping / 1000, tracking / 1000)
 
 
 def estimate(s: ExperimentSettings, base: Any, sequence: Any, steps: int) -> dict[str, Any]:
     """What `gsc experiment` says before it starts: its steps, render passes and seconds."""
-    passes = render_passes(s, base, len(sequence))
-    seconds = passes * seconds_per_pass(sequence, base, s.device)
-    return {"steps": steps, "render_passes": passes, "seconds": seconds}
+    work = plan_work(s, base, len(sequence))
+    price = unit_seconds(sequence, base, s.device)
+    return {
+        "steps": steps,
+        "render_passes": round(sum(work.parts())),
+        "seconds": work.seconds(price),
+    }

@@ -30,10 +30,11 @@ from typing import Any, NoReturn
 
 from gscompress import __version__
 from gscompress.errors import GscError
-from gscompress.io.codec import SHARE_IDS, layout
+from gscompress.io.codec import layout
 from gscompress.io.files import abandoned_files, json_text, read_json, write_text_atomic
 from gscompress.ops.merge import EXACT, MergeOptions
 from gscompress.pipeline.experiment.protocol import FOR_B, ExperimentSettings, RunHandle
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.threads import use_threads
 
 log = logging.getLogger(__name__)
@@ -122,34 +123,59 @@ def run_job(job: Callable[[Path], dict[str, Any]], path: Path) -> dict[str, Any]
 def _score(log_path: Path, seq: Path, every: int, lpips: bool, device: str) -> dict[str, Any]:
     """`gsc eval` of a run on its own frames (without the per-frame list)."""
     from gscompress.pipeline.evaluate import evaluate_log
+    from gscompress.pipeline.images import ImageOptions
 
-    scores = evaluate_log(log_path, seq, every=every, lpips=lpips, device=device)
+    scores = evaluate_log(log_path, seq, ImageOptions(every=every, lpips=lpips, device=device))
     scores.pop("per_frame", None)
     return scores
 
 
 def _slam_job(
-    path: Path, seq: Path, config: Any, frames: str, inject: Path | None, s: ExperimentSettings,
+    path: Path,
+    seq: Path,
+    config: Any,
+    frames: str,
+    inject: Path | None,
+    s: ExperimentSettings,
     share_transform: Path | None = None,
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     from gscompress.pipeline.slam_run import slam_file
+    from gscompress.pipeline.slam_run.options import SlamOptions
 
-    run = slam_file(seq, path, config=config, frames=frames, device=s.device, inject=inject,
-                    share_transform=share_transform, recording=s.recording,
-                    force=True)  # fmt: skip
+    options = SlamOptions(
+        frames=frames, inject=inject, share_transform=share_transform, recording=s.recording
+    )
+    run = slam_file(seq, path, options, config=config, device=s.device, force=True)
     return {"slam": run, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
 def _merge_job(
-    path: Path, seq: Path, receiver: Path, share: Path | None, frames: str, seed: int,
-    s: ExperimentSettings, share_transform: Path | None = None,
-) -> dict[str, Any]:  # fmt: skip
+    path: Path,
+    seq: Path,
+    receiver: Path,
+    share: Path | None,
+    frames: str,
+    seed: int,
+    s: ExperimentSettings,
+    share_transform: Path | None = None,
+) -> dict[str, Any]:
     from gscompress.pipeline.merge import merge_logs
 
-    merged = merge_logs(receiver, share, path, seq=seq, frames=frames, iters=s.merge_iters,
-                        views=s.merge_views, lr_final=s.merge_lr_final, device=s.device,
-                        seed=seed, share_transform=share_transform,
-                        merge=merge_options(s.merge_how), force=True)  # fmt: skip
+    merged = merge_logs(
+        receiver,
+        share,
+        path,
+        seq=seq,
+        frames=frames,
+        iters=s.merge_iters,
+        views=s.merge_views,
+        lr_final=s.merge_lr_final,
+        device=s.device,
+        seed=seed,
+        share_transform=share_transform,
+        merge=merge_options(s.merge_how),
+        force=True,
+    )
     return {"merge": merged, "eval": _score(path, seq, s.every, s.lpips, s.device)}
 
 
@@ -175,33 +201,25 @@ def _share_job(
     path: Path,
     source: Path,
     budget: str,
-    strategy: str,
-    seed: int,
-    fold: bool = False,
+    options: ShareOptions,
     receiver: Path | None = None,
     device: str = "auto",
-    spread: bool = False,
-    sums: bool = True,
-    ids: bool = SHARE_IDS,
 ) -> dict[str, Any]:
-    from gscompress.pipeline.offline import share_log
+    from gscompress.pipeline.share import share_log
 
-    # (unfolded, the paper's top-K shares: the strategies differ only in the choice)
-    return share_log(source, path, budget, strategy=strategy, seed=seed, fold_dropped=fold,
-                     receiver=receiver, device=device, spread=spread, sums=sums,
-                     ids=ids, force=True)  # fmt: skip
+    return share_log(source, path, budget, options, receiver=receiver, device=device, force=True)
 
 
 def _rescore_job(
     path: Path, source: Path, seq: Path, sigma_d: float | None, device: str = "auto"
 ) -> dict[str, Any]:
-    from gscompress.pipeline.scoring import score_file
+    from gscompress.pipeline.score import score_file
 
     return score_file(source, path, seq, sigma_d=sigma_d, device=device, force=True)
 
 
 def _reference_job(path: Path, source: Path, fmt: str) -> dict[str, Any]:
-    from gscompress.pipeline.offline import format_share
+    from gscompress.pipeline.share.formats import format_share
 
     return format_share(source, path, fmt, force=True)
 
@@ -354,8 +372,13 @@ class Runner:
                     return self._failed(name, str(exc))
                 log.warning("run %s failed; trying it again: %s", name, str(exc).split("\n")[0])
         result = {**result, **(extra() if extra else {})}
-        record = {"key": key, "spec": spec, "result": result, "result_sha256": _digest(result),
-                  "ran_on": self._where(name)}  # fmt: skip
+        record = {
+            "key": key,
+            "spec": spec,
+            "result": result,
+            "result_sha256": _digest(result),
+            "ran_on": self._where(name),
+        }
         write_text_atomic(record_path, json_text(record, indent=1))
         self._finished(name)
         return result
@@ -374,25 +397,39 @@ class Runner:
                 self.progress(name, self.done, self.total)
 
     def slam(
-        self, name: str, config: Any, frames: str, inject: RunHandle | None = None,
-        align: RunHandle | None = None, transform: Path | None = None,
-    ) -> Record:  # fmt: skip
+        self,
+        name: str,
+        config: Any,
+        frames: str,
+        inject: RunHandle | None = None,
+        align: RunHandle | None = None,
+        transform: Path | None = None,
+    ) -> Record:
         """A SLAM run on `frames`, evaluated on them (starting with the share `inject`, moved
         by the `transform` file of the step `align`)."""
         s = self.settings
         spec: dict[str, Any] = {
-            "kind": "slam", "sequence": str(self.seq.resolve()), "config": config.to_dict(),
-            "frames": frames, "inject": inject.key if inject else None, "every": s.every,
+            "kind": "slam",
+            "sequence": str(self.seq.resolve()),
+            "config": config.to_dict(),
+            "frames": frames,
+            "inject": inject.key if inject else None,
+            "every": s.every,
             "lpips": s.lpips,
-        }  # fmt: skip
+        }
         if transform is not None and align is not None:
             spec["transform"] = {"align": align.key, "file": transform.name}
         if s.recording is not None:  # (a run of the recording's default topics keeps its key)
             spec["recording"] = s.recording.record()
         job = functools.partial(
-            _slam_job, seq=self.seq, config=config, frames=frames,
-            inject=inject.path if inject else None, s=s, share_transform=transform,
-        )  # fmt: skip
+            _slam_job,
+            seq=self.seq,
+            config=config,
+            frames=frames,
+            inject=inject.path if inject else None,
+            s=s,
+            share_transform=transform,
+        )
         after = [r for r in (inject, align) if r is not None]
         return self._step(name, spec, job, after=after)
 
@@ -426,23 +463,36 @@ class Runner:
             transform = true_transform(align.path) if true else align.path
         if s.mode == "inject":  # its own name: both modes' runs can share one folder
             assert share is not None
-            return self.slam(f"{name}_inject", config, frames, inject=share, align=align,
-                             transform=transform)  # fmt: skip
+            return self.slam(
+                f"{name}_inject", config, frames, inject=share, align=align, transform=transform
+            )
         spec: dict[str, Any] = {
-            "kind": "merge", "receiver": receiver.key, "share": share.key if share else None,
-            "frames": frames, "iters": s.merge_iters, "views": s.merge_views,
-            "lr_final": s.merge_lr_final, "seed": seed, "every": s.every, "lpips": s.lpips,
+            "kind": "merge",
+            "receiver": receiver.key,
+            "share": share.key if share else None,
+            "frames": frames,
+            "iters": s.merge_iters,
+            "views": s.merge_views,
+            "lr_final": s.merge_lr_final,
+            "seed": seed,
+            "every": s.every,
+            "lpips": s.lpips,
             # (what the merge does: runs before it differ)
             "merge": merge_options(s.merge_how).record(),
-        }  # fmt: skip
+        }
         if transform is not None:
             assert align is not None
             spec["transform"] = {"align": align.key, "true": true}
         job = functools.partial(
-            _merge_job, seq=self.seq, receiver=receiver.path,
-            share=share.path if share else None, frames=frames, seed=seed, s=s,
+            _merge_job,
+            seq=self.seq,
+            receiver=receiver.path,
+            share=share.path if share else None,
+            frames=frames,
+            seed=seed,
+            s=s,
             share_transform=transform,
-        )  # fmt: skip
+        )
         after = [receiver, share] if share else [receiver]
         after += [align] if transform is not None and align is not None else []
         return self._step(name, spec, job, after, extra=lambda: {"slam": receiver.result["slam"]})
@@ -458,8 +508,13 @@ class Runner:
     ) -> Record:
         """A share of `source`'s map by `strategy`; with `receiver`, cut for that run (what its
         views do not draw first; `strategy` then ends in `FOR_B`, which the share drops)."""
-        spec: dict[str, Any] = {"kind": "share", "source": source.key, "budget": budget,
-                                "strategy": strategy, "seed": seed}  # fmt: skip
+        spec: dict[str, Any] = {
+            "kind": "share",
+            "source": source.key,
+            "budget": budget,
+            "strategy": strategy,
+            "seed": seed,
+        }
         if self.settings.fold:  # (unfolded steps keep the spec they always had)
             spec["fold"] = True
         if self.settings.spread:
@@ -471,11 +526,13 @@ class Runner:
         if receiver is not None:
             spec["for"] = receiver.key
         job = functools.partial(
-            _share_job, source=source.path, budget=budget, strategy=strategy.removesuffix(FOR_B),
-            seed=seed, fold=self.settings.fold, device=self.settings.device,
-            receiver=None if receiver is None else receiver.path, spread=self.settings.spread,
-            sums=self.settings.sums, ids=self.settings.ids,
-        )  # fmt: skip
+            _share_job,
+            source=source.path,
+            budget=budget,
+            options=self.settings.share_options(strategy.removesuffix(FOR_B), seed),
+            device=self.settings.device,
+            receiver=None if receiver is None else receiver.path,
+        )
         return self._step(name, spec, job, after=[source] + ([receiver] if receiver else []))
 
     def rescore(self, name: str, source: RunHandle, sigma_d: float | None) -> Record:
@@ -484,8 +541,13 @@ class Runner:
         from gscompress.importance import sigma_d_value
 
         spec = {"kind": "rescore", "source": source.key, "sigma_d": sigma_d_value(sigma_d)}
-        job = functools.partial(_rescore_job, source=source.path, seq=self.seq, sigma_d=sigma_d,
-                                device=self.settings.device)  # fmt: skip
+        job = functools.partial(
+            _rescore_job,
+            source=source.path,
+            seq=self.seq,
+            sigma_d=sigma_d,
+            device=self.settings.device,
+        )
         return self._step(name, spec, job, after=[source])
 
     def reference(self, name: str, source: RunHandle, fmt: str) -> Record:
@@ -510,15 +572,31 @@ class Runner:
         from gscompress.pipeline.experiment.cross_agent import cross_scores
 
         s = self.settings
-        spec = {"kind": "cross-score", "map": run.key, "own": own, "frames": frames,
-                "other": other.key if other else None, "align": align.key if align else None,
-                "iters": s.refine_poses, "every": s.every, "lpips": s.lpips,
-                "all": "a and b"}  # fmt: skip
+        spec = {
+            "kind": "cross-score",
+            "map": run.key,
+            "own": own,
+            "frames": frames,
+            "other": other.key if other else None,
+            "align": align.key if align else None,
+            "iters": s.refine_poses,
+            "every": s.every,
+            "lpips": s.lpips,
+            "all": "a and b",
+        }
         job = functools.partial(
-            cross_scores, seq=self.seq, log_path=run.path, own=own, frames=frames,
-            other=other.path if other else None, transform=align.path if align else None,
-            iters=s.refine_poses, every=s.every, lpips=s.lpips, device=s.device,
-        )  # fmt: skip
+            cross_scores,
+            seq=self.seq,
+            log_path=run.path,
+            own=own,
+            frames=frames,
+            other=other.path if other else None,
+            transform=align.path if align else None,
+            iters=s.refine_poses,
+            every=s.every,
+            lpips=s.lpips,
+            device=s.device,
+        )
         after = [r for r in (run, other, align) if r is not None]
         return self._step(f"{run.path.stem}_xeval", spec, job, after, suffix=".scores.json")
 
@@ -552,8 +630,12 @@ class LocalRunner(Runner):
             if threads * jobs != available:
                 log.warning(
                     "%d torch threads do not split evenly over %d jobs: each run gets %d (%d in "
-                    "all; see gsc --threads)", available, jobs, threads, threads * jobs,
-                )  # fmt: skip
+                    "all; see gsc --threads)",
+                    available,
+                    jobs,
+                    threads,
+                    threads * jobs,
+                )
             spawn = multiprocessing.get_context("spawn")  # fork is unsafe once OpenMP has run
             self._worker_pids = spawn.SimpleQueue()  # each worker's pid, sent as it starts
             self._pool = ProcessPoolExecutor(

@@ -123,9 +123,10 @@ class RayRunner(Runner):
         self._waiters = ThreadPoolExecutor(max(1, total))
         log.info(
             "Ray: %s CPUs, %s GPUs in the cluster; each run takes %s",
-            ray.cluster_resources().get("CPU", 0), ray.cluster_resources().get("GPU", 0),
+            ray.cluster_resources().get("CPU", 0),
+            ray.cluster_resources().get("GPU", 0),
             self.resources,
-        )  # fmt: skip
+        )
 
     def close(self, cancel: bool) -> None:
         """Wait for the tasks under way (with `cancel`, cancel them: a SLAM run stops after

@@ -12,8 +12,10 @@ from gscompress.errors import InputError, OptionError
 from gscompress.io.codec import SHARE_IDS
 from gscompress.ops.budget import Budget
 from gscompress.pipeline.merge import DEFAULT_REFINE_VIEWS
-from gscompress.pipeline.offline import REFERENCE_FORMATS, smallest_share_bytes
-from gscompress.pipeline.refine import DEFAULT_LR_FINAL
+from gscompress.pipeline.refining import DEFAULT_LR_FINAL
+from gscompress.pipeline.share.cut import smallest_share_bytes
+from gscompress.pipeline.share.formats import REFERENCE_FORMATS
+from gscompress.pipeline.share.options import ShareOptions
 from gscompress.selection import STRATEGIES, is_fraction
 from gscompress.slam.views import REFINE_VIEWS
 
@@ -140,7 +142,7 @@ class ExperimentSettings:
             against the fixed map (0: no cross-agent scoring, each run scored on its own
             frames only).
         references: formats of `REFERENCE_FORMATS` in which A's whole map is also sent to B
-            on the sweep seeds (`gscompress.pipeline.offline.format_share`: our fp32 codec,
+            on the sweep seeds (`gscompress.pipeline.share.formats.format_share`: our fp32 codec,
             SPZ, SOG), each received like a share: the field's points on the rate-distortion
             plot. SOG is left out where splat-transform is missing (`reference_formats`).
         recording: when the sequence is a recording, its topics, pairing and ground truth
@@ -176,6 +178,18 @@ class ExperimentSettings:
     refine_poses: int = 20
     references: tuple[str, ...] = REFERENCE_FORMATS
     recording: Any = None
+
+    def share_options(self, strategy: str, seed: int) -> ShareOptions:
+        """How each share by `strategy` with `seed` is cut: this experiment's fold, spread,
+        sums and ids, in `gsc share`'s codec."""
+        return ShareOptions(
+            strategy=strategy,
+            seed=seed,
+            fold=self.fold,
+            spread=self.spread,
+            sums=self.sums,
+            ids=self.ids,
+        )
 
     def agent_frames(self, n: int | None = None) -> tuple[str, str]:
         """The frame subsets of agents A and B: the odd and even positions within `frames`, or
@@ -268,7 +282,7 @@ class ExperimentSettings:
 
 
 FOR_B = "-for-b"
-"""Suffix of a strategy whose shares are cut for B (`gscompress.pipeline.receiver`)."""
+"""Suffix of a strategy whose shares are cut for B (`gscompress.pipeline.share.receiver`)."""
 
 
 RESCORED: dict[str, float | None] = {"pwas-inf": math.inf, "pwas-final": None}
@@ -426,8 +440,9 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
     frames = {"a": frames_a, "b": frames_b, "all": s.frames}
     a_alone, b_alone = AGENT_ROWS[s.split]
 
-    def score(run: RunHandle, own: str, other: RunHandle | None = None,
-              align: RunHandle | None = None) -> dict[str, Any]:  # fmt: skip
+    def score(
+        run: RunHandle, own: str, other: RunHandle | None = None, align: RunHandle | None = None
+    ) -> dict[str, Any]:
         if not s.refine_poses:
             return {}
         return {"cross": runner.score(run, own, frames, other, align)}
@@ -435,8 +450,9 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
     full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
     pruned = runner.slam("full_pwas", base, s.frames)
     rows.append({"name": "full, no pruning", "table": "table3", "run": full})
-    rows.append({"name": "full, PWAS pruning", "table": "table3", "run": pruned,
-                 **score(pruned, "all")})  # fmt: skip
+    rows.append(
+        {"name": "full, PWAS pruning", "table": "table3", "run": pruned, **score(pruned, "all")}
+    )
 
     budgets = [s.budget] + [b for b in s.sweep if not same_budget(b, s.budget)]
     own = s.anchor == "own"
@@ -447,45 +463,100 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
         a = runner.slam(f"s{seed}_agent_a", config, frames_a)
         b = runner.slam(f"s{seed}_agent_b", config, frames_b)
         align = runner.align(f"s{seed}_align", a, b) if own else None
-        rows.append({"name": a_alone, "table": "table4", "run": a, "seed": seed,
-                     **score(a, "a", b, align)})  # fmt: skip
-        rows.append({"name": b_alone, "table": "table4", "run": b, "seed": seed,
-                     **score(b, "b", a, align)})  # fmt: skip
+        rows.append(
+            {"name": a_alone, "table": "table4", "run": a, "seed": seed, **score(a, "a", b, align)}
+        )
+        rows.append(
+            {"name": b_alone, "table": "table4", "run": b, "seed": seed, **score(b, "b", a, align)}
+        )
         if s.mode == "merge":
             alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
-            rows.append({"name": B_NO_SHARE, "table": "table4", "run": alone, "seed": seed,
-                         "strategy": "none", **score(alone, "b", a, align)})  # fmt: skip
+            rows.append(
+                {
+                    "name": B_NO_SHARE,
+                    "table": "table4",
+                    "run": alone,
+                    "seed": seed,
+                    "strategy": "none",
+                    **score(alone, "b", a, align),
+                }
+            )
         scored = {x: runner.rescore(f"s{seed}_agent_a_{x}", a, RESCORED[x]) for x in _rescored(s)}
         for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
                 source = scored.get(strategy.removesuffix(FOR_B), a)
-                share = runner.share(f"{tag}_share", source, budget, ranked_by(strategy), seed,
-                                     b if strategy.endswith(FOR_B) else None)  # fmt: skip
+                share = runner.share(
+                    f"{tag}_share",
+                    source,
+                    budget,
+                    ranked_by(strategy),
+                    seed,
+                    b if strategy.endswith(FOR_B) else None,
+                )
                 got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed, align)
-                rows.append({"name": f"B + {strategy} {budget}", "table": table, "run": got,
-                             "seed": seed, "strategy": strategy, "budget": budget,
-                             "share": share, "align": align,
-                             **score(got, "b", a, align)})  # fmt: skip
+                rows.append(
+                    {
+                        "name": f"B + {strategy} {budget}",
+                        "table": table,
+                        "run": got,
+                        "seed": seed,
+                        "strategy": strategy,
+                        "budget": budget,
+                        "share": share,
+                        "align": align,
+                        **score(got, "b", a, align),
+                    }
+                )
                 if own and table == "table4" and strategy == "pwas":
-                    got = runner.receive(f"{tag}_true_agent_b", b, share, config, frames_b, seed,
-                                         align, true=True)  # fmt: skip
-                    rows.append({"name": f"{TRUE_TRANSFORM_ROW} {budget}", "table": table,
-                                 "run": got, "seed": seed, "budget": budget, "share": share,
-                                 **score(got, "b", a, align)})  # fmt: skip
+                    got = runner.receive(
+                        f"{tag}_true_agent_b", b, share, config, frames_b, seed, align, true=True
+                    )
+                    rows.append(
+                        {
+                            "name": f"{TRUE_TRANSFORM_ROW} {budget}",
+                            "table": table,
+                            "run": got,
+                            "seed": seed,
+                            "budget": budget,
+                            "share": share,
+                            **score(got, "b", a, align),
+                        }
+                    )
         whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
         got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed, align)
-        rows.append({"name": "B + A's full map", "table": "table4", "run": got, "seed": seed,
-                     "strategy": "full", "budget": "1", "share": whole, "align": align,
-                     **score(got, "b", a, align)})  # fmt: skip
+        rows.append(
+            {
+                "name": "B + A's full map",
+                "table": "table4",
+                "run": got,
+                "seed": seed,
+                "strategy": "full",
+                "budget": "1",
+                "share": whole,
+                "align": align,
+                **score(got, "b", a, align),
+            }
+        )
         for fmt in reference_formats(s) if seed < s.sweep_seeds else ():
             sent = runner.reference(f"s{seed}_whole_{fmt}_share", a, fmt)
-            got = runner.receive(f"s{seed}_whole_{fmt}_agent_b", b, sent, config, frames_b, seed,
-                                 align)  # fmt: skip
-            rows.append({"name": f"B + A's whole map as {fmt}", "table": REFERENCE_TABLE,
-                         "run": got, "seed": seed, "strategy": fmt, "budget": "1",
-                         "share": sent, "align": align, **score(got, "b", a, align)})  # fmt: skip
+            got = runner.receive(
+                f"s{seed}_whole_{fmt}_agent_b", b, sent, config, frames_b, seed, align
+            )
+            rows.append(
+                {
+                    "name": f"B + A's whole map as {fmt}",
+                    "table": REFERENCE_TABLE,
+                    "run": got,
+                    "seed": seed,
+                    "strategy": fmt,
+                    "budget": "1",
+                    "share": sent,
+                    "align": align,
+                    **score(got, "b", a, align),
+                }
+            )
     return rows
 
 

@@ -46,7 +46,8 @@ from gscompress.pipeline.experiment.protocol import (
     plan_size,
     resolve_settings,
 )
-from gscompress.pipeline.experiment.report import result_row, verdicts_of, write_reports
+from gscompress.pipeline.experiment.report import write_reports
+from gscompress.pipeline.experiment.results import result_row, verdicts_of
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +119,7 @@ def run_experiment(
         PWAS-vs-random verdicts.
     """
     from gscompress.datasets import open_sequence
-    from gscompress.pipeline.slam_run import check_working_size
+    from gscompress.pipeline.slam_run.start import check_working_size
 
     settings.check()
     check_executor(executor, jobs, address, cpus_per_run)

@@ -34,9 +34,15 @@ class _Composite(torch.autograd.Function):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         geometry = (width, height, bins.tiles_x, bins.tiles_y)
         image, T_final, last, contribution, packed = ext.composite_forward(
-            means2d, conics, opacities, features, bins.offsets, bins.ids, *geometry,
+            means2d,
+            conics,
+            opacities,
+            features,
+            bins.offsets,
+            bins.ids,
+            *geometry,
             want_contribution,
-        )  # fmt: skip
+        )
         ctx.ext, ctx.geometry, ctx.n = ext, geometry, len(means2d)
         # The packed per-entry parameters are reused, so the backward reads no Gaussian twice.
         ctx.save_for_backward(packed, bins.offsets, bins.ids, T_final, last)
@@ -50,9 +56,16 @@ class _Composite(torch.autograd.Function):
     ) -> tuple[Any, ...]:
         packed, offsets, ids, T_final, last = ctx.saved_tensors
         g_means2d, g_conics, g_opacities, g_features = ctx.ext.composite_backward(
-            packed, offsets, ids, ctx.n, *ctx.geometry, T_final, last,
-            grad_image.contiguous(), grad_T.contiguous(),
-        )  # fmt: skip
+            packed,
+            offsets,
+            ids,
+            ctx.n,
+            *ctx.geometry,
+            T_final,
+            last,
+            grad_image.contiguous(),
+            grad_T.contiguous(),
+        )
         return None, g_means2d, g_conics, g_opacities, g_features, None, None, None, None
 
 
@@ -69,9 +82,16 @@ def composite_cpu(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """C++ counterpart of `gscompress.render.torch_backend.composite_torch` (same contract)."""
     image, T_final, contribution = _Composite.apply(
-        ext, means2d.contiguous(), conics.contiguous(), opacities.contiguous(),
-        features.contiguous(), bins, width, height, want_contribution,
-    )  # fmt: skip
+        ext,
+        means2d.contiguous(),
+        conics.contiguous(),
+        opacities.contiguous(),
+        features.contiguous(),
+        bins,
+        width,
+        height,
+        want_contribution,
+    )
     return image, T_final, (contribution if want_contribution else None)
 
 
@@ -104,9 +124,13 @@ class _Project(torch.autograd.Function):
         # tracking renders detached Gaussians: then only the camera's gradient is computed
         want_params = any(ctx.needs_input_grad[2:5])
         d_means, d_quats, d_scales, d_T = ctx.ext.project_backward(
-            *ctx.saved_tensors, *ctx.camera,
-            g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous(), want_params,
-        )  # fmt: skip
+            *ctx.saved_tensors,
+            *ctx.camera,
+            g_means2d.contiguous(),
+            g_conics.contiguous(),
+            g_depths.contiguous(),
+            want_params,
+        )
         if not want_params:
             d_means = d_quats = d_scales = None
         return None, None, d_means, d_quats, d_scales, d_T
@@ -125,9 +149,13 @@ def project_cpu(
     i = intrinsics
     camera = (i.fx, i.fy, i.cx, i.cy, i.width, i.height, near)
     means2d, conics, depths, radii = _Project.apply(
-        ext, camera, means.contiguous(), quats.contiguous(), scales.contiguous(),
+        ext,
+        camera,
+        means.contiguous(),
+        quats.contiguous(),
+        scales.contiguous(),
         T_cam_world.contiguous(),
-    )  # fmt: skip
+    )
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
 
 
@@ -136,9 +164,13 @@ class _Ssim(torch.autograd.Function):
 
     @staticmethod
     def forward(
-        ctx: Any, ext: ModuleType, x: torch.Tensor, y: torch.Tensor, k: torch.Tensor,
+        ctx: Any,
+        ext: ModuleType,
+        x: torch.Tensor,
+        y: torch.Tensor,
+        k: torch.Tensor,
         constants: tuple[float, float],
-    ) -> torch.Tensor:  # fmt: skip
+    ) -> torch.Tensor:
         mean, filtered = ext.ssim_forward(x, y, k, *constants)
         ctx.ext, ctx.constants = ext, constants
         ctx.save_for_backward(x, y, k, filtered)
@@ -172,7 +204,10 @@ def bin_tiles_cpu(ext: ModuleType, projection: Projection, width: int, height: i
     """C++ counterpart of `gscompress.render.projection.bin_tiles` (the same lists)."""
     tiles_x, tiles_y = tile_grid(width, height)
     offsets, ids = ext.bin_tiles(
-        projection.means2d.detach().contiguous(), projection.radii.contiguous(),
-        projection.depths.detach().contiguous(), tiles_x, tiles_y,
-    )  # fmt: skip
+        projection.means2d.detach().contiguous(),
+        projection.radii.contiguous(),
+        projection.depths.detach().contiguous(),
+        tiles_x,
+        tiles_y,
+    )
     return TileBins(tiles_x=tiles_x, tiles_y=tiles_y, offsets=offsets, ids=ids)

@@ -57,8 +57,11 @@ class Request:
 
     def record(self) -> dict[str, Any]:
         """What a share records of the request it was cut for."""
-        return {"for": Path(self.source).name, "views": len(self.poses),
-                "request_bytes": len(self.data)}  # fmt: skip
+        return {
+            "for": Path(self.source).name,
+            "views": len(self.poses),
+            "request_bytes": len(self.data),
+        }
 
 
 def read_request(path: str | Path) -> Request:
@@ -85,8 +88,14 @@ def pack_request(poses: np.ndarray, intrinsics: Intrinsics) -> bytes:
     """The request as the receiver sends it: float32 little-endian, the camera (fx, fy, cx, cy,
     width, height), then per pose its translation (3) and unit quaternion (w, x, y, z): 24 bytes
     and 28 per pose (its length is what a byte budget counts)."""
-    camera = [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.width,
-              intrinsics.height]  # fmt: skip
+    camera = [
+        intrinsics.fx,
+        intrinsics.fy,
+        intrinsics.cx,
+        intrinsics.cy,
+        intrinsics.width,
+        intrinsics.height,
+    ]
     rows = [np.r_[T[:3, 3], rotmat_to_quat(T[:3, :3])] for T in poses]
     return np.concatenate([camera, *rows]).astype("<f4").tobytes()
 
@@ -112,8 +121,14 @@ def unseen_ids(
     poses = request.poses
     if T_request_map is not None:
         poses = np.linalg.inv(T_request_map) @ poses
-    seen = score_map(gaussians, poses, request.intrinsics, sigma_d=math.inf, backend=backend,
-                     device=resolve_device(device, backend)).alpha_t_sum  # fmt: skip
+    seen = score_map(
+        gaussians,
+        poses,
+        request.intrinsics,
+        sigma_d=math.inf,
+        backend=backend,
+        device=resolve_device(device, backend),
+    ).alpha_t_sum
     return gaussians.ids[seen < SEEN_PIXELS]
 
 

@@ -1,19 +1,15 @@
 """Refining a map on the frames of the SLAM log it came from (needs torch).
 
 `gsc merge` refines a merged map on the receiver's frames; `gsc prune --refine` and `gsc share
---refine` refine the Gaussians they kept on the log's keyframes. Both open the log's sequence as
-its run had it (checked against the first frame the log recorded), match its frames to the
-log's estimated poses by time and run `gscompress.ops.refine.refine` on the chosen views.
-
-The log's keyframes are the frames its `/slam/stats` records mark as keyframes (`gsc slam`
-writes one per frame); a log without those records gets every `keyframes.every`-th frame of its
-config, counted over the frames that have a pose (`KEYFRAME_RULE`).
+--refine` refine the Gaussians they kept on the log's keyframes (`KEYFRAME_RULE`). Both open
+the log's sequence as its run had it (checked against the first frame the log recorded), match
+its frames to the log's estimated poses by time and run `gscompress.ops.refine.refine` on the
+chosen views.
 """
 
 from __future__ import annotations
 
 import itertools
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,10 +17,16 @@ from typing import Any
 
 import numpy as np
 
-from gscompress.errors import InputError, LogFormatError, OptionError
+from gscompress.errors import LogFormatError, OptionError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.mcap_log import TOPIC_POSE, TOPIC_STATS, LogReader
-from gscompress.pipeline.logs import trajectory
+from gscompress.io.mcap_log import TOPIC_POSE, LogReader
+from gscompress.pipeline.logs import (
+    frames_with_poses,
+    is_log_keyframe,
+    open_log_sequence,
+    recorded_keyframes,
+    trajectory,
+)
 from gscompress.selection import is_fraction
 from gscompress.slam.views import REFINE_VIEWS
 
@@ -37,6 +39,7 @@ lifted every merge on tabletop, office and ICL by 0.29-0.43 dB against constant 
 ahead of 0.5 and 0.1 there (tied with 0.1 once); on the synthetic room and replica the merged
 shares ended 0.01-0.13 dB below constant rates and 0.00-0.08 dB below 0.5."""
 
+
 PSEUDO_VIEWS = 3
 """`gsc prune --refine` and `gsc share --refine` also refine on this many pseudo-views between
 each two consecutive keyframes: the whole map (the teacher) rendered at poses interpolated
@@ -48,16 +51,10 @@ its PWAS prune to 3316 Gaussians refined alike 25.31 and 25.37 (1 per gap: 25.41
 and refined to in-run pruning's count (3520) 25.72, against 25.68 for `gsc slam`'s in-run
 pruning (docs/prune-refine.md)."""
 
+
 PSEUDO_DEPTH_SILHOUETTE = 0.95
 """A pseudo-view's depth is kept where the teacher's accumulated opacity exceeds this (else 0,
 no depth), so that its thin edges do not teach a depth they do not have."""
-
-KEYFRAME_RULE = (
-    "the frames the log's /slam/stats records mark as keyframes; for a log without them, every "
-    "keyframes.every-th frame of its config (the first always), counted over the frames that "
-    "have a pose in the log"
-)
-"""Which frames are a log's keyframes (said in the commands' help)."""
 
 
 @dataclass(frozen=True)
@@ -77,7 +74,7 @@ class RefineOptions:
         pseudo_views: pseudo-views per gap between consecutive keyframes when a teacher map
             is given (`PSEUDO_VIEWS`; 0: none).
         anisotropic: refine three scales and a rotation per Gaussian: a prune or a share then
-            cuts an isotropic map as an anisotropic one (`gscompress.pipeline.offline.cut_pool`),
+            cuts an isotropic map as an anisotropic one (`gscompress.ops.fold.cut_pool`),
             so that what it folds keeps its shape, and the refinement stretches each kept
             Gaussian over the surface it now covers (docs/prune-refine.md).
         recording: a recording's topics, pairing and ground truth
@@ -111,10 +108,15 @@ class RefineOptions:
 
     def record(self) -> dict[str, Any]:
         """What a provenance step keeps of these options."""
-        return {"iters": self.iters, "views": self.views, "lr_final": self.lr_final,
-                "seed": self.seed, "backend": self.backend,
-                "pseudo_views": self.pseudo_views,
-                **({"anisotropic": True} if self.anisotropic else {})}  # fmt: skip
+        return {
+            "iters": self.iters,
+            "views": self.views,
+            "lr_final": self.lr_final,
+            "seed": self.seed,
+            "backend": self.backend,
+            "pseudo_views": self.pseudo_views,
+            **({"anisotropic": True} if self.anisotropic else {}),
+        }
 
 
 class LogRefiner:
@@ -144,7 +146,6 @@ class LogRefiner:
         progress: Callable[[int, int], object] | None = None,
         instead: str = "",
     ) -> None:
-        from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
         from gscompress.render import resolve_backend, resolve_device
         from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
         from gscompress.slam.keyframes import View
@@ -212,7 +213,7 @@ class LogRefiner:
         `rates`: per-Gaussian factors on the steps (`gscompress.ops.refine.refine`). `teacher`:
         the map `gaussians` was cut from, whose renders between the keyframes are refined on
         too (`PSEUDO_VIEWS`; only with the keyframes as views). `iters`: this many iterations
-        instead of the options' (a share's probe, `gscompress.pipeline.offline.PROBE_ITERS`),
+        instead of the options' (a share's probe, `gscompress.pipeline.share.cut.PROBE_ITERS`),
         shown on the progress as they run."""
         from gscompress.ops.refine import refine
 
@@ -229,11 +230,18 @@ class LogRefiner:
             poses = pseudo_poses([v.T_world_cam for v in self.views], self.options.pseudo_views)
             pseudo = teacher_views(teacher, poses, self.intrinsics, self.backend, self.device)
         refined, stats = refine(
-            gaussians, self.views + self.carried + pseudo, self.intrinsics, self.config, iters,
+            gaussians,
+            self.views + self.carried + pseudo,
+            self.intrinsics,
+            self.config,
+            iters,
             device=self.device,
-            seed=self.options.seed, lr_final_fraction=self.options.lr_final, progress=step,
-            rates=rates, **({"instead": self.instead} if self.instead else {}),
-        )  # fmt: skip
+            seed=self.options.seed,
+            lr_final_fraction=self.options.lr_final,
+            progress=step,
+            rates=rates,
+            **({"instead": self.instead} if self.instead else {}),
+        )
         stats["views"] = len(self.views) + len(self.carried)
         stats["pseudo_views"] = len(pseudo)
         stats["carried_views"] = len(self.carried)
@@ -297,145 +305,9 @@ def view_contributions(
     with torch.no_grad():
         inputs = params.render_inputs()
         for view in views:
-            out = render(*inputs, intrinsics, view.T_cam_world(), backend=backend,
-                         want_contribution=True)  # fmt: skip
+            out = render(
+                *inputs, intrinsics, view.T_cam_world(), backend=backend, want_contribution=True
+            )
             assert out.contribution is not None
             total += out.contribution.detach().cpu().to(torch.float64)
     return total.numpy()
-
-
-def is_log_keyframe(
-    position: int, log_time_ns: int, recorded: set[int] | None, config: Any
-) -> bool:
-    """Whether the frame at this position among those with a pose (log time `log_time_ns`) is
-    one of the log's keyframes (`KEYFRAME_RULE`): one its stats mark (`recorded`, from
-    `recorded_keyframes`), else every `keyframes.every`-th of `config` (a `SlamConfig`)."""
-    from gscompress.slam.keyframes import is_keyframe
-
-    if recorded is not None:
-        return log_time_ns in recorded
-    return is_keyframe(position, config.keyframes)
-
-
-def keyframe_positions(
-    pose_ns: np.ndarray, recorded: set[int] | None, config: dict[str, Any]
-) -> list[int]:
-    """Positions among a log's poses (log times `pose_ns`) of its keyframes (`KEYFRAME_RULE`;
-    `recorded` from `recorded_keyframes`, `config` the log's recorded SLAM config), or every
-    position when none is one. The SLAM config (and torch with it) is loaded only for a log
-    whose stats mark no keyframes."""
-    slam_config: Any = None
-    if recorded is None:
-        from gscompress.slam.config import DEFAULT_PRESET, SlamConfig, preset
-
-        slam_config = SlamConfig.from_dict(config) if config else preset(DEFAULT_PRESET)
-    return [
-        i for i, t in enumerate(pose_ns) if is_log_keyframe(i, int(t), recorded, slam_config)
-    ] or list(range(len(pose_ns)))
-
-
-@dataclass(frozen=True)
-class SpreadKeyframes:
-    """Keyframes chosen evenly over a log (`spread_keyframes`).
-
-    Attributes:
-        times: their log times (ns).
-        poses: their estimated camera-to-world poses.
-        frames: their frames of the sequence (`gscompress.datasets.base.Frame`), or None
-            when no sequence was given.
-        intrinsics: the camera of those frames (the sequence's at the log's working size),
-            else the log's calibration.
-    """
-
-    times: list[int]
-    poses: list[np.ndarray]
-    frames: list[Any] | None
-    intrinsics: Any
-
-
-def spread_keyframes(
-    src: str | Path, count: int, seq: str | Path | None, purpose: str, recording: Any = None
-) -> SpreadKeyframes:
-    """Up to `count` of a log's keyframes (`KEYFRAME_RULE`) spread evenly from its first to its
-    last, with their frames when `seq` is given (those with a frame in it; a recording read
-    with `recording`'s topics, None: those the log's run recorded).
-
-    Raises:
-        InputError: the log has no poses; no keyframe is a frame of `seq`; no calibration
-            (without `seq`). `purpose` names what needs them.
-    """
-    from gscompress.pipeline.evaluate import frames_with_poses, open_log_sequence
-
-    with LogReader(src) as reader:
-        meta = reader.metadata
-        found = trajectory(reader)
-        pose_ns, poses = found.times_ns, found.T_world_cam
-        keyframe_ns = recorded_keyframes(reader)
-        intrinsics = reader.read_intrinsics()
-    if len(pose_ns) == 0:
-        raise InputError(f"{src} has no {TOPIC_POSE}: {purpose} needs the sender's poses")
-    keyframes = keyframe_positions(pose_ns, keyframe_ns, meta.config)
-    spread = np.linspace(0, len(keyframes) - 1, min(count, len(keyframes))).round()
-    chosen = sorted({keyframes[int(k)] for k in spread})
-    if seq is None:
-        if intrinsics is None:
-            raise InputError(f"{src} has no camera calibration: give --seq to render at its size")
-        times = [int(pose_ns[i]) for i in chosen]
-        return SpreadKeyframes(times, [poses[i] for i in chosen], None, intrinsics)
-    sequence = open_log_sequence(seq, src, meta, recording=recording)
-    positions, pose_index = frames_with_poses(sequence, pose_ns, src)
-    by_pose = {int(i): int(p) for p, i in zip(positions, pose_index, strict=True)}
-    chosen = [i for i in chosen if i in by_pose]
-    if not chosen:
-        raise InputError(f"no keyframe of {src} is a frame of {sequence.name}")
-    frames = [sequence.frame(by_pose[i]) for i in chosen]
-    times = [int(pose_ns[i]) for i in chosen]
-    return SpreadKeyframes(times, [poses[i] for i in chosen], frames, sequence.intrinsics)
-
-
-def carried_keyframes(
-    src: str | Path, count: int, seq: str | Path, recording: Any = None
-) -> tuple[list[Any], Any]:
-    """`count` of the log's keyframes spread over its run (`spread_keyframes`, `recording` as
-    there) as a share carries them (`gscompress.io.keyframes.CarriedFrame`: the frame's
-    timestamp, colour and depth at the log's working size, its estimated pose), and their
-    camera.
-
-    Raises:
-        InputError: `count` outside 1..`MAX_CARRIED`, or as `spread_keyframes`.
-    """
-    from gscompress.io.keyframes import MAX_CARRIED, CarriedFrame
-    from gscompress.io.mcap_log import seconds_to_ns
-
-    if not 1 <= count <= MAX_CARRIED:
-        raise InputError(f"--keyframes is 1 to {MAX_CARRIED}, got {count}")
-    chosen = spread_keyframes(src, count, seq, "carrying keyframes", recording)
-    assert chosen.frames is not None
-    frames = [
-        CarriedFrame(seconds_to_ns(f.timestamp), f.color, f.depth, np.asarray(T, np.float64))
-        for f, T in zip(chosen.frames, chosen.poses, strict=True)
-    ]
-    return frames, chosen.intrinsics
-
-
-def recorded_keyframes(reader: LogReader) -> set[int] | None:
-    """The log times of the frames a log's `/slam/stats` records mark as keyframes, or None
-    when it has no such records.
-
-    Raises:
-        LogFormatError: a stats record that is not a JSON object.
-    """
-    times: set[int] = set()
-    seen = False
-    for _schema, _channel, message in reader.iter_messages([TOPIC_STATS]):
-        try:
-            record = json.loads(message.data)
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            record = None
-        if not isinstance(record, dict):
-            raise LogFormatError(f"{reader.path}: a {TOPIC_STATS} record is not a JSON object")
-        if "keyframe" in record:
-            seen = True
-            if record["keyframe"] is True:
-                times.add(int(message.log_time))
-    return times if seen else None

@@ -12,7 +12,8 @@ one codec more Gaussians never draw less, so each candidate is taken at its larg
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from collections.abc import Collection
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +21,15 @@ import numpy as np
 
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
-from gscompress.io.codec import CODECS, SHARE_IDS, sums_choices
+from gscompress.io.codec import CODECS, sums_choices
 from gscompress.io.files import check_output
 from gscompress.io.mcap_log import LogReader, decoded_map
 from gscompress.ops.budget import Budget
-from gscompress.pipeline.offline import MapRefiner, ShareCut, share_log
+from gscompress.ops.refine import MapRefiner
+from gscompress.pipeline.logs import spread_keyframes
+from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.cut import DEFAULTS, ShareCut
+from gscompress.pipeline.share.options import SOLVED, ShareOptions
 
 log = logging.getLogger(__name__)
 
@@ -59,17 +64,12 @@ class Candidate:
 def solve_share(
     src: str | Path,
     budget: Budget,
+    options: ShareOptions = DEFAULTS,
     *,
-    strategy: str = "pwas",
-    seed: int = 0,
-    codec: str | None = None,
-    sums: bool | None = None,
-    fold: bool | None = None,
+    fixed: Collection[str] = (),
     seq: str | Path | None = None,
     views: int = SOLVE_VIEWS,
     device: str = "auto",
-    spread: bool = False,
-    ids: bool = SHARE_IDS,
     recording: Any = None,
 ) -> tuple[Candidate, list[Candidate], dict[str, Any]]:
     """Weigh the candidate shares of `src`'s map under `budget` and pick the best picture.
@@ -78,15 +78,15 @@ def solve_share(
         src: the sender's SLAM log.
         budget: the share budget (bytes, or a fraction of the map's fp32 bytes; a fraction of
             the Gaussians fixes the count, leaving the codec to choose).
-        strategy, seed, spread: how Gaussians are ranked (as `gsc share`).
-        codec, sums, fold: constrain the search to this codec / PWAS state / folding (None:
-            any).
+        options: how Gaussians are ranked (strategy, seed, spread: as `gsc share`) and whether
+            compact candidates send the ids (`share_log`; not weighed: they draw nothing).
+            Its codec, sums and fold are the solver's to choose (`SOLVED`) unless `fixed`.
+        fixed: those of `SOLVED` that `options` fixes: the search is constrained to its codec
+            / PWAS state / folding (none: any).
         seq: the sender's sequence: score against its keyframe images (else against the whole
             map's renders).
         views: how many keyframes to render at.
         device: torch device.
-        ids: whether compact candidates send the ids (`share_log`; not weighed: they draw
-            nothing).
         recording: a recording's topics, pairing and ground truth when `seq` is one
             (`gscompress.datasets.RecordingOptions`; None: those the log's run recorded).
 
@@ -96,7 +96,8 @@ def solve_share(
 
     Raises:
         BudgetError: no candidate holds one Gaussian.
-        InputError: the log has no poses; `views` below 1.
+        InputError: the log has no poses; `views` below 1; `fixed` names a setting the solver
+            does not choose.
     """
     from gscompress.metrics import psnr
     from gscompress.ops.evaluate import render_view
@@ -105,6 +106,9 @@ def solve_share(
 
     if views < 1:
         raise InputError(f"the solver needs at least one view, got {views}")
+    if not set(fixed) <= set(SOLVED):
+        raise InputError(f"the solver chooses {', '.join(SOLVED)}; got {', '.join(fixed)}")
+    wanted = tuple(getattr(options, name) if name in fixed else None for name in SOLVED)
     poses, targets, masks, intrinsics = _views(src, seq, views, recording)
     torch_device = resolve_device(device, "auto")
     if targets is None:
@@ -115,11 +119,11 @@ def solve_share(
     weighed: list[Candidate] = []
     refusals: list[str] = []  # (one per candidate the budget cannot hold)
     for cand_codec, cand_sums, cand_fold in CANDIDATES:
-        wanted = zip((codec, sums, fold), (cand_codec, cand_sums, cand_fold), strict=True)
-        if any(w is not None and w != c for w, c in wanted):
+        chosen = zip(wanted, (cand_codec, cand_sums, cand_fold), strict=True)
+        if any(w is not None and w != c for w, c in chosen):
             continue
-        cut = ShareCut(src, budget, strategy=strategy, codec=cand_codec, sums=cand_sums,
-                       ids=ids, seed=seed, fold_dropped=cand_fold, spread=spread)  # fmt: skip
+        candidate = replace(options, codec=cand_codec, sums=cand_sums, fold=cand_fold)
+        cut = ShareCut(src, budget, candidate)
         try:
             count = cut.budget.count(len(cut.full), cut.size)
         except BudgetError as exc:
@@ -132,11 +136,18 @@ def solve_share(
             psnr(render_view(params, pose, intrinsics)[0], target, mask)
             for pose, target, mask in zip(poses, targets, masks, strict=True)
         ]
-        weighed.append(Candidate(cand_codec, cand_sums, cand_fold, count, len(data),
-                                 float(np.mean(scores))))  # fmt: skip
-        log.info("solver: %s%s%s, %d Gaussians, %d B: %.2f dB", cand_codec,
-                 "" if cand_sums else " (no sums)", " folded" if cand_fold else "", count,
-                 len(data), weighed[-1].psnr)  # fmt: skip
+        weighed.append(
+            Candidate(cand_codec, cand_sums, cand_fold, count, len(data), float(np.mean(scores)))
+        )
+        log.info(
+            "solver: %s%s%s, %d Gaussians, %d B: %.2f dB",
+            cand_codec,
+            "" if cand_sums else " (no sums)",
+            " folded" if cand_fold else "",
+            count,
+            len(data),
+            weighed[-1].psnr,
+        )
     if not weighed:
         raise BudgetError(refusals[0])  # (the smallest codec's: the others hold no more)
     weighed.sort(key=lambda c: (-c.psnr, c.file_bytes))
@@ -153,8 +164,6 @@ def _views(
 ) -> tuple[list[np.ndarray], list[np.ndarray] | None, list[np.ndarray], Any]:
     """Poses of `views` keyframes spread over the log, with their images and valid-depth masks
     when `seq` is given (else None and all-pixel masks), and the intrinsics."""
-    from gscompress.pipeline.refine import spread_keyframes
-
     chosen = spread_keyframes(src, views, seq, "the solver", recording)
     if chosen.frames is None:
         shape = (chosen.intrinsics.height, chosen.intrinsics.width)
@@ -171,12 +180,9 @@ def share_solved(
     src: str | Path,
     dst: str | Path,
     budget: str | float | Budget,
+    options: ShareOptions = DEFAULTS,
     *,
-    strategy: str = "pwas",
-    seed: int = 0,
-    codec: str | None = None,
-    sums: bool | None = None,
-    fold: bool | None = None,
+    fixed: Collection[str] = (),
     seq: str | Path | None = None,
     views: int = SOLVE_VIEWS,
     device: str = "auto",
@@ -187,27 +193,37 @@ def share_solved(
     receiver: str | Path | None = None,
     command: str = "",
     force: bool = False,
-    spread: bool = False,
-    ids: bool = SHARE_IDS,
     recording: Any = None,
 ) -> dict[str, Any]:
-    """`share_log` with the codec and PWAS state the solver chose (`solve_share`), the solver's
-    record in the provenance and the predicted PSNR in the results (`predicted_psnr`, and
-    `solved_against`: "frames" or "map renders"). Keyframes to `carry` are weighed as the
-    Gaussians' bytes are not: the solver compares the codecs without them, and the share then
-    holds the most Gaussians that fit beside them. So is a `receiver` (`share_log`): the codecs
-    are compared on the sender's views, and the share then sends first what the receiver has
-    not seen. `recording`: as `solve_share`'s."""
+    """`share_log` with the codec and PWAS state the solver chose (`solve_share`, of `options`
+    with those of `SOLVED` in `fixed` kept), the solver's record in the provenance and the
+    predicted PSNR in the results (`predicted_psnr`, and `solved_against`: "frames" or "map
+    renders"). Keyframes to `carry` are weighed as the Gaussians' bytes are not: the solver
+    compares the codecs without them, and the share then holds the most Gaussians that fit
+    beside them. So is a `receiver` (`share_log`): the codecs are compared on the sender's
+    views, and the share then sends first what the receiver has not seen. `recording`: as
+    `solve_share`'s."""
     budget = Budget.parse(budget)
     check_output(dst, [src], force, ".mcap")  # before the renders, not after them
     best, _weighed, record = solve_share(
-        src, budget, strategy=strategy, seed=seed, codec=codec, sums=sums, fold=fold, seq=seq,
-        views=views, device=device, spread=spread, ids=ids, recording=recording,
-    )  # fmt: skip
+        src, budget, options, fixed=fixed, seq=seq, views=views, device=device, recording=recording
+    )
     record["predicted_psnr"] = best.psnr
-    result = share_log(src, dst, budget, strategy=strategy, codec=best.codec, sums=best.sums,
-                       seed=seed, fold_dropped=best.fold, ply=ply, refine=refine, solve=record,
-                       align_to=align_to, carry=carry, receiver=receiver, device=device,
-                       command=command, force=force, spread=spread, ids=ids)  # fmt: skip
+    chosen = replace(options, codec=best.codec, sums=best.sums, fold=best.fold)
+    result = share_log(
+        src,
+        dst,
+        budget,
+        chosen,
+        ply=ply,
+        refine=refine,
+        solve=record,
+        align_to=align_to,
+        carry=carry,
+        receiver=receiver,
+        device=device,
+        command=command,
+        force=force,
+    )
     result.update(predicted_psnr=best.psnr, solved_against=record["against"])
     return result
