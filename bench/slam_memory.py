@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from gscompress.pipeline import slam_file
+from gscompress.pipeline.slam_run.options import SlamOptions
 
 
 def rss_mib() -> tuple[int, int]:
@@ -86,14 +87,8 @@ def main() -> None:
 
     print(f"RSS after the imports: {base[0]} MiB", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        slam_file(
-            args.seq,
-            Path(tmp) / "run.mcap",
-            frames=args.frames,
-            size=(width, height),
-            progress=progress,
-            phases=phases,
-        )
+        options = SlamOptions(frames=args.frames, size=(width, height))
+        slam_file(args.seq, Path(tmp) / "run.mcap", options, progress=progress, phases=phases)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
     report("end")
     print(f"peak: +{peak - base[0]} MiB above the imports", flush=True)
