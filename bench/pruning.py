@@ -266,7 +266,7 @@ def main() -> None:
     if opts.seq is None:
         seq = out / "synthetic_seq"
         if not seq.is_dir() or not any(seq.iterdir()):
-            write_synthetic_sequence(seq, frames=60)  # what `gsc synth DIR` writes
+            write_synthetic_sequence(seq, frames=60)  # what `gsc synth -o DIR` writes
         name = opts.name or "synthetic"
     else:
         seq = Path(opts.seq)

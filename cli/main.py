@@ -192,7 +192,7 @@ def cli(verbose: int, quiet: bool, threads: int | None) -> None:
 
     \b
     Typical flow:
-      gsc synth SEQ --frames 60           a synthetic RGB-D sequence to try it on
+      gsc synth -o SEQ --frames 60        a synthetic RGB-D sequence to try it on
       gsc info REC                        a robot's recording (ROS 1/2 bag, MCAP): its topics
       gsc slam SEQ -o a.mcap              map a sequence, score every Gaussian (PWAS)
       gsc eval a.mcap --seq SEQ           ATE, PSNR, SSIM, LPIPS of the map

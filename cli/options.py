@@ -435,6 +435,16 @@ def output_option(help: str = "Output log (.mcap).") -> Callable[[F], F]:
     return click.option("-o", "--output", "dst", required=True, type=OUTPUT_FILE, help=help)
 
 
+def output_path(given: Path | None, output: Path | None, what: str, argument: str) -> Path:
+    """An output given once: as the argument named `argument` (the older form) or with -o."""
+    if given is not None and output is not None:
+        raise click.UsageError(f"give the {what}'s path once: as {argument} or with -o, not both")
+    path = given if output is None else output
+    if path is None:
+        raise click.UsageError(f"missing the {what}'s path: give {argument} or -o {argument}")
+    return path
+
+
 def seq_option(required: bool = True, help: str = SEQUENCE_HELP) -> Any:
     """`--seq PATH`: the sequence (folder or recording) a command renders or refines against."""
     # no explicit default when required: click skips the required check of an option with one

@@ -29,6 +29,7 @@ from .options import (
     ids_option,
     json_option,
     log_refiner,
+    output_path,
     progress_bar,
     refine_options,
     refined_text,
@@ -171,8 +172,10 @@ def share(
 
     A fraction budget sends round(fraction x N) Gaussians. A byte budget sends the most
     Gaussians whose share file fits in it (the whole file as written: framing, schema,
-    metadata and map, the bytes that cross the link); it is never exceeded. `gsc info` shows a
-    share's codec and bytes.
+    metadata and map, the bytes that cross the link); it is never exceeded. The command line
+    and file names it records count as 256 bytes whatever their length, so the same budget
+    gives the same share from any folder and under any name. `gsc info` shows a share's codec
+    and bytes.
 
     With --refine N the selected Gaussians are refined on the sender's own frames before they
     are sent (--seq: the sequence SRC was made from); a byte budget still bounds the file of
@@ -197,7 +200,7 @@ def share(
       gsc share --budget 5%bytes agent_a.mcap -o share.mcap --for agent_b.mcap
     """
     options = _share_options(strategy, codec, precision, sums, ids, seed, fold, spread)
-    dst = _share_path(dst, output)
+    dst = output_path(dst, output, "share", "DST")
     check_recording_seq(recording, seq)
     context = click.get_current_context()
     fixed = [
@@ -274,16 +277,6 @@ def _share_options(
     return ShareOptions(
         strategy=strategy, codec=codec, sums=sums, ids=ids, seed=seed, fold=fold, spread=spread
     )
-
-
-def _share_path(dst: Path | None, output: Path | None) -> Path:
-    """The share's path, given as DST or with -o (once)."""
-    if dst is not None and output is not None:
-        raise click.UsageError("give the share's path once: as DST or with -o, not both")
-    dst = dst if output is None else output
-    if dst is None:
-        raise click.UsageError("missing the share's path: give DST or -o SHARE.mcap")
-    return dst
 
 
 def _solver_text(result: dict[str, Any]) -> str:

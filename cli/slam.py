@@ -186,7 +186,7 @@ def slam(
 
     \b
     Examples:
-      gsc synth demo_seq --frames 60 --size 320x240
+      gsc synth -o demo_seq --frames 60 --size 320x240
       gsc slam demo_seq -o demo.mcap                  # cpu preset, 160x120
       gsc slam data/office --preset paper --device cuda -o office.mcap
       gsc slam demo_seq --save-config my.yaml         # edit, then --config my.yaml

@@ -9,11 +9,28 @@ import click
 from gscompress.datasets.synthetic import write_synthetic_sequence
 
 from .convert import FORMATS, format_options
-from .options import emit, force_option, json_option, progress_bar, seed_option, size_option
+from .options import (
+    emit,
+    force_option,
+    json_option,
+    output_path,
+    progress_bar,
+    seed_option,
+    size_option,
+)
 
 
 @click.command("synth", short_help="Make a synthetic RGB-D room sequence with ground truth.")
-@click.argument("out_dir", type=click.Path(path_type=Path))
+@click.argument("out_dir", type=click.Path(path_type=Path), required=False)
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(path_type=Path),
+    metavar="OUT_DIR",
+    default=None,
+    help="The sequence folder (or recording) to write, as the other commands take it; or give "
+    "it as OUT_DIR.",
+)
 @click.option(
     "--frames", type=click.IntRange(1, 100_000), default=60, show_default=True, help="Frame count."
 )
@@ -39,7 +56,8 @@ from .options import emit, force_option, json_option, progress_bar, seed_option,
 @force_option()
 @json_option
 def synth(
-    out_dir: Path,
+    out_dir: Path | None,
+    output: Path | None,
     frames: int,
     size: tuple[int, int],
     seed: int,
@@ -50,7 +68,7 @@ def synth(
     force: bool,
     as_json: bool,
 ) -> None:
-    """Render a textured synthetic room with exact depth and ground-truth poses to OUT_DIR.
+    """Render a textured synthetic room with exact depth and ground-truth poses to -o OUT_DIR.
 
     Writes rgb/, depth/ (uint16, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt and
     intrinsics.json; `gsc slam OUT_DIR` and any TUM reader open it. Same seed, same bytes.
@@ -60,11 +78,12 @@ def synth(
 
     \b
     Examples:
-      gsc synth room                                # 60 frames, 320x240
-      gsc synth room_small --frames 40 --size 160x120 --supersample 2
+      gsc synth -o room                             # 60 frames, 320x240
+      gsc synth -o room_small --frames 40 --size 160x120 --supersample 2
       gsc slam room -o room.mcap                    # then map it
-      gsc synth room_bag --format ros2              # the same room as a ROS 2 bag
+      gsc synth -o room_bag --format ros2           # the same room as a ROS 2 bag
     """
+    out_dir = output_path(out_dir, output, "sequence", "OUT_DIR")
     if fmt != "tum":
         from gscompress.datasets.recording_writer import write_recording
         from gscompress.datasets.synthetic import synthetic_sequence

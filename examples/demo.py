@@ -45,7 +45,7 @@ def main() -> None:
     frames_a, frames_b = f"0:{(3 * n) // 5}", f"{(2 * n) // 5}:{n}"  # overlapping by a fifth
     a, b = out / "robot_a.mcap", out / "robot_b.mcap"
 
-    gsc("synth", seq, "--frames", n, "--size", opts.size, "--supersample", 2, "--force")
+    gsc("synth", "-o", seq, "--frames", n, "--size", opts.size, "--supersample", 2, "--force")
     gsc("slam", seq, "--frames", frames_a, "-o", a, "--force")
     gsc("slam", seq, "--frames", frames_b, "-o", b, "--force")
     middle = (3 * n) // 10

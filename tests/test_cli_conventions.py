@@ -18,8 +18,6 @@ READ_ONLY = {"info", "view"}
 """Commands that write no file."""
 REUSED = {"experiment": "its -o folder is where a rerun finds the runs it reuses"}
 """Outputs a rerun is meant to find (so no --force)."""
-POSITIONAL = {"synth": "OUT_DIR, the sequence folder it makes"}
-"""Outputs named by an argument rather than -o."""
 OPTIONAL = {"eval": "--save-images"}
 """Commands whose file output is optional, named by this option (they print their results)."""
 
@@ -40,7 +38,7 @@ def test_every_command_that_writes_names_its_output_overwrites_with_force_and_pr
         if name in READ_ONLY:
             continue
         output = OPTIONAL.get(name, "-o")
-        assert (output in given) != (name in POSITIONAL), name
+        assert output in given, name
         assert ("--force" in given) != (name in REUSED), name
 
 
@@ -81,3 +79,16 @@ def test_render_and_eval_write_over_earlier_pictures_only_with_force(tmp_path: P
     ImageOptions(save_images=None).check()
     for name in ("render", "eval"):
         assert "--force" in options(name)
+
+
+def test_synth_and_share_take_their_output_with_o_or_as_the_older_argument(tmp_path: Path) -> None:
+    runner = CliRunner()
+    for args in (["-o", str(tmp_path / "a")], [str(tmp_path / "b")]):
+        r = runner.invoke(cli, ["synth", *args, "--frames", "1", "--size", "16x12"])
+        assert r.exit_code == 0, r.output
+    assert (tmp_path / "a" / "rgb.txt").read_bytes() == (tmp_path / "b" / "rgb.txt").read_bytes()
+    twice = ["synth", str(tmp_path / "c"), "-o", str(tmp_path / "d"), "--frames", "1"]
+    r = runner.invoke(cli, twice)
+    assert r.exit_code == 2 and "once" in r.output and not (tmp_path / "c").exists()
+    r = runner.invoke(cli, ["synth", "--frames", "1"])
+    assert r.exit_code == 2 and "missing the sequence's path" in r.output

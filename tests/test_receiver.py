@@ -12,7 +12,9 @@ from gscompress.camera import Intrinsics, make_transform
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, read_map
+from gscompress.ops.budget import Budget
 from gscompress.pipeline.share import share_log
+from gscompress.pipeline.share.cut import ShareCut
 from gscompress.pipeline.share.options import ShareOptions
 from gscompress.pipeline.share.receiver import read_request, unseen_ids
 from gscompress.selection import top_k, top_k_first
@@ -110,7 +112,9 @@ def test_the_request_counts_in_a_byte_budget(agents):
     fp32 = ShareOptions(fold=False, codec="fp32")  # (76 B a Gaussian: the request takes 2)
     whole = share_log(agents["a"], agents["root"] / "w.mcap", "9999B", fp32)
     assert whole["selected"] == 32
-    budget = whole["file_bytes"] + 10  # holds the whole map, but not with the request
+    counted = ShareCut(agents["a"], Budget.parse("9999B"), fp32).size(32)  # (names at a size)
+    assert whole["file_bytes"] <= counted
+    budget = counted + 10  # holds the whole map, but not with the request
     plain = share_log(agents["a"], agents["root"] / "p.mcap", f"{budget}B", fp32)
     aware = share_log(
         agents["a"], agents["root"] / "f.mcap", f"{budget}B", fp32, receiver=agents["b"]

@@ -3,6 +3,7 @@ holding the K best Gaussians, written in memory, for any K (what a byte budget s
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,7 @@ from gscompress.errors import InputError
 from gscompress.gaussians import GaussianMap
 from gscompress.io.codec import DEFAULT_CODEC, DEFAULT_SHARE_CODEC
 from gscompress.io.compact import CompactOptions
+from gscompress.io.files import safe_text
 from gscompress.io.keyframes import CarriedFrame, carried_messages, write_carried
 from gscompress.io.mcap_log import LogMetadata, LogReader, LogWriter, pointcloud_bytes
 from gscompress.ops.budget import Budget, largest_count_within
@@ -28,6 +30,17 @@ from gscompress.pipeline.share.receiver import (
     unseen_ids,
 )
 from gscompress.selection import selection_scores
+
+RECORDED_TEXT_BYTES = 256
+"""What a share counts for the text it records of local paths (its command line and the names
+of the files it was made from), whatever their length, so that a budget gives the same share
+from any folder and under any file name. A longer command line is recorded shortened to fit;
+only names of over a hundred characters or so can still make a share smaller."""
+
+ELLIPSIS = "\u2026"
+
+NAME_KEYS = frozenset({"parent", "source", "for", "target"})
+"""The keys under which a share's provenance step and results record a file's name."""
 
 PROBE_ITERS = 100
 """A refined share under a byte budget first refines its cut this many iterations to learn how
@@ -107,7 +120,8 @@ class ShareCut:
         if align is not None:  # the share is expressed in the target's frame
             self._meta.world_frame = align[1]["target_world_frame"]
         self.extra: dict[str, Any] = {}  # further results (a refinement's)
-        self._sizes: dict[int, int] = {}
+        self._sizes: dict[int, int] = {}  # counted: the path text at RECORDED_TEXT_BYTES
+        self._path_bytes: int | None = None
         self._last: tuple[int, tuple[bytes, GaussianMap, dict[str, Any]]] | None = None
         self._take_from(self.full)
         if refine is not None and refine.anisotropic and not self._holds_whole_map():
@@ -176,6 +190,8 @@ class ShareCut:
                 **self.extra,
                 **self._recorded,
             }
+            if self._path_bytes is None:  # (the same for every count)
+                self._path_bytes = _fit_path_text(meta)
             with LogWriter(None, meta) as out:
                 o = self.options
                 columns = CompactOptions(sums=o.sums, ids=o.sends_ids)
@@ -187,7 +203,7 @@ class ShareCut:
                         out, frames, camera, self._carried_messages
                     )
             self._last = (count, (out.data, shared, dict(meta.results)))
-            self._sizes[count] = len(out.data)
+            self._sizes[count] = len(out.data) + max(RECORDED_TEXT_BYTES - self._path_bytes, 0)
         return self._last[1]
 
     @cached_property
@@ -205,13 +221,65 @@ class ShareCut:
         return carried_messages(self._carried[0])
 
     def size(self, count: int) -> int:
-        """Bytes of the share file of the `count` best Gaussians."""
-        return self._sizes[count] if count in self._sizes else len(self.file(count)[0])
+        """Bytes of the share file of the `count` best Gaussians, its path text counted at
+        `RECORDED_TEXT_BYTES` (what a budget holds; the file is no larger)."""
+        if count not in self._sizes:
+            self.file(count)
+        return self._sizes[count]
+
+
+def _fit_path_text(meta: LogMetadata) -> int:
+    """`path_text_bytes` of `meta`, its command line first shortened so that they fit in
+    `RECORDED_TEXT_BYTES` where they can."""
+    spent = path_text_bytes(meta)
+    if spent > RECORDED_TEXT_BYTES and meta.command:
+        meta.command = _shortened(meta.command, spent - RECORDED_TEXT_BYTES)
+        spent = path_text_bytes(meta)
+    return spent
+
+
+def path_text_bytes(meta: LogMetadata) -> int:
+    """The bytes a share's metadata record spends on local paths: its command line, and the
+    names under `NAME_KEYS` in its last provenance step and its results."""
+    blank = replace(
+        meta,
+        command="",
+        provenance=[*meta.provenance[:-1], *map(_without_names, meta.provenance[-1:])],
+        results=_without_names(meta.results),
+    )
+    return _record_bytes(meta) - _record_bytes(blank)
+
+
+def _without_names(value: Any) -> Any:
+    """A JSON value with every string under a key of `NAME_KEYS` emptied."""
+    if isinstance(value, dict):
+        return {
+            k: "" if k in NAME_KEYS and isinstance(v, str) else _without_names(v)
+            for k, v in value.items()
+        }
+    if isinstance(value, list):
+        return [_without_names(v) for v in value]
+    return value
+
+
+def _record_bytes(meta: LogMetadata) -> int:
+    """Bytes of the keys and values of `meta`'s MCAP metadata record (the rest of it, its
+    lengths and name, has a fixed size)."""
+    return sum(len(k.encode()) + len(v.encode()) for k, v in meta.to_record().items())
+
+
+def _shortened(text: str, excess: int) -> str:
+    """`text` (as the metadata record writes it) made at least `excess` bytes shorter, its end
+    replaced by an ellipsis ("" when nothing of it would be left)."""
+    data = safe_text(text).encode()
+    keep = len(data) - excess - len(ELLIPSIS.encode())
+    return data[:keep].decode(errors="ignore") + ELLIPSIS if keep > 0 else ""
 
 
 def smallest_share_bytes(codec: str = DEFAULT_SHARE_CODEC) -> int:
-    """Bytes of the smallest possible share file in `codec`: one Gaussian and a metadata record
-    without provenance (every share of a log is larger, so a smaller budget holds nothing)."""
+    """Bytes of the smallest possible share in `codec`, as a budget counts it: one Gaussian, a
+    metadata record without provenance and `RECORDED_TEXT_BYTES` (every share of a log is
+    larger, so a smaller budget holds nothing)."""
     one = GaussianMap.new(
         means=np.zeros((1, 3)),
         log_scales=np.zeros((1, 1)),
@@ -221,4 +289,4 @@ def smallest_share_bytes(codec: str = DEFAULT_SHARE_CODEC) -> int:
     )
     with LogWriter(None, LogMetadata()) as out:
         out.write_gaussians(one, 0, codec)
-    return len(out.data)
+    return len(out.data) + RECORDED_TEXT_BYTES
