@@ -53,7 +53,7 @@ from gscompress.pipeline.images import ImageOptions
 from gscompress.pipeline.refining import DEFAULT_LR_FINAL
 from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config, save_config
-from gscompress.slam.system import PHASES
+from gscompress.slam.results import PHASES
 
 RUNS: dict[str, dict[str, Any]] = {
     "unpruned": {"prune.stages": ()},

@@ -10,17 +10,16 @@ import click
 from .options import (
     INPUT_FILE,
     OUTPUT_FILE,
-    Phases,
     check_recording_seq,
     emit,
     force_option,
     icp_option,
     json_option,
-    progress_bar,
     recording_options,
     seed_option,
     seq_option,
 )
+from .progress import Phases, progress_bar
 
 
 @click.command("align", short_help="Estimate the transform between two maps' world frames.")

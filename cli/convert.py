@@ -13,10 +13,10 @@ from .options import (
     force_option,
     frames_option,
     json_option,
-    progress_bar,
     recording_options,
     size_option,
 )
+from .progress import progress_bar
 
 FORMATS = ("ros2", "ros2-sqlite", "ros1", "foxglove")
 """`gscompress.datasets.recording_writer.RECORDING_FORMATS`, named here for --help."""

@@ -14,17 +14,16 @@ from gscompress.pipeline.images import ImageOptions
 
 from .options import (
     INPUT_FILE,
-    advance,
     backend_option,
     device_option,
     emit,
     force_option,
     json_option,
-    progress_bar,
     recording_options,
     seq_option,
     view_options,
 )
+from .progress import advance, progress_bar
 
 
 @click.command("eval", short_help="Score a log's map and poses: ATE, PSNR, SSIM, LPIPS.")

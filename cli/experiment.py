@@ -26,17 +26,16 @@ from .options import (
     BudgetParam,
     F,
     Ratio,
-    advance,
     device_option,
     emit,
     ids_option,
     json_option,
-    progress_bar,
     recording_options,
     size_option,
     slam_config_options,
     sums_option,
 )
+from .progress import advance, progress_bar
 
 
 def _comma_list(value: str) -> tuple[str, ...]:

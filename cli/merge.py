@@ -21,7 +21,6 @@ from .options import (
     INPUT_FILE,
     F,
     FrameSubset,
-    Phases,
     backend_option,
     check_recording_seq,
     codec_option,
@@ -32,7 +31,6 @@ from .options import (
     icp_option,
     json_option,
     output_option,
-    progress_bar,
     recording_options,
     refined_text,
     seed_option,
@@ -40,6 +38,7 @@ from .options import (
     share_transform_option,
     size_option,
 )
+from .progress import Phases, progress_bar
 
 MERGE_OPTIONS = tuple(field.name for field in fields(MergeOptions))
 """The options of `gsc merge` that `MergeOptions` holds, by the names of its fields."""

@@ -13,7 +13,6 @@ from gscompress.selection import STRATEGIES
 
 from .options import (
     INPUT_FILE,
-    Phases,
     Ratio,
     check_recording_seq,
     codec_option,
@@ -26,10 +25,10 @@ from .options import (
     map_refine_options,
     map_sums_option,
     output_option,
-    progress_bar,
     refined_text,
     seed_option,
 )
+from .progress import Phases, progress_bar
 
 
 @click.command("prune", short_help="Keep the highest-scoring fraction of a log's map.")

@@ -13,17 +13,16 @@ from gscompress.pipeline.images import COLORINGS
 from .eval import images_text
 from .options import (
     INPUT_FILE,
-    advance,
     backend_option,
     device_option,
     emit,
     force_option,
     json_option,
-    progress_bar,
     recording_options,
     seq_option,
     view_options,
 )
+from .progress import advance, progress_bar
 
 
 @click.command("render", short_help="Write PNGs of a map at its poses (rgb, importance, depth).")

@@ -14,7 +14,6 @@ from .options import (
     INPUT_FILE,
     FrameSubset,
     SigmaD,
-    advance,
     backend_option,
     command_line,
     device_option,
@@ -22,11 +21,11 @@ from .options import (
     force_option,
     json_option,
     output_option,
-    progress_bar,
     recording_options,
     seq_option,
     size_option,
 )
+from .progress import advance, progress_bar
 
 
 @click.command("score", short_help="PWAS-score a map made by any tool from a sequence.")

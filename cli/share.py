@@ -19,7 +19,6 @@ from .options import (
     INPUT_FILE,
     OUTPUT_FILE,
     BudgetParam,
-    Phases,
     check_recording_seq,
     codec_option,
     command_line,
@@ -30,12 +29,12 @@ from .options import (
     json_option,
     log_refiner,
     output_path,
-    progress_bar,
     refine_options,
     refined_text,
     seed_option,
     sums_option,
 )
+from .progress import Phases, progress_bar
 
 
 @click.command("share", short_help="Cut a budgeted top share of a map for another agent.")

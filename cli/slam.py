@@ -16,9 +16,7 @@ from .options import (
     INPUT_FILE,
     INPUT_SEQUENCE,
     OUTPUT_FILE,
-    Phases,
     Ratio,
-    advance,
     backend_option,
     codec_option,
     command_line,
@@ -27,12 +25,12 @@ from .options import (
     force_option,
     frames_option,
     json_option,
-    progress_bar,
     recording_options,
     share_transform_option,
     size_option,
     slam_config_options,
 )
+from .progress import Phases, advance, progress_bar
 
 if TYPE_CHECKING:
     from gscompress.pipeline.slam_run.options import SlamOptions

@@ -14,10 +14,10 @@ from .options import (
     force_option,
     json_option,
     output_path,
-    progress_bar,
     seed_option,
     size_option,
 )
+from .progress import progress_bar
 
 
 @click.command("synth", short_help="Make a synthetic RGB-D room sequence with ground truth.")

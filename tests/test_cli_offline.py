@@ -638,7 +638,7 @@ def test_log_lines_go_above_a_shown_bar_and_handlers_come_back(monkeypatch):
 
     from tqdm import tqdm
 
-    from gscompress_cli import options
+    from gscompress_cli import progress
 
     stream = io.StringIO()
     console = logging.StreamHandler(stream)
@@ -654,7 +654,7 @@ def test_log_lines_go_above_a_shown_bar_and_handlers_come_back(monkeypatch):
 
     monkeypatch.setattr(tqdm, "external_write_mode", classmethod(around))
     say = logging.getLogger("gscompress.t").warning
-    with pytest.raises(RuntimeError), options.progress_bar("t", "x", total=3) as bar:
+    with pytest.raises(RuntimeError), progress.progress_bar("t", "x", total=3) as bar:
         say("early")  # the bar is still in its delay: nothing to write around
         bar.delay = 0  # shown from now on
         say("late")
@@ -701,9 +701,9 @@ def test_a_bar_is_drawn_while_its_count_stands_still_and_a_closed_console_stops_
     import io
     import threading
 
-    import gscompress_cli.options as options
+    import gscompress_cli.progress as progress
 
-    monkeypatch.setattr(options, "HEARTBEAT_SECONDS", 0.01)  # (not a terminal)
+    monkeypatch.setattr(progress, "HEARTBEAT_SECONDS", 0.01)  # (not a terminal)
     drawn, refused = threading.Event(), threading.Event()
 
     class Console(io.StringIO):
@@ -719,7 +719,7 @@ def test_a_bar_is_drawn_while_its_count_stands_still_and_a_closed_console_stops_
     console = Console()
     monkeypatch.setattr(sys, "stderr", console)
     monkeypatch.setattr(logging.getLogger("gscompress"), "level", logging.INFO)
-    with options.progress_bar("step", "it", total=3) as bar:
+    with progress.progress_bar("step", "it", total=3) as bar:
         assert drawn.wait(30)  # drawn after its delay, though nothing moved it
         console.broken = True
         assert refused.wait(30)  # the drawing thread met the closed console

@@ -434,84 +434,111 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
     one agent, the agents' preset, all the frames the two share out. With `refine_poses`, the
     centralised run, A, B and every run of B with a share (or refined without one) are also
     scored on A's frames, B's frames and all frames at refined poses (`Executor.score`)."""
-    s = runner.settings
-    rows: list[dict[str, Any]] = []
-    frames_a, frames_b = s.agent_frames(n)
-    frames = {"a": frames_a, "b": frames_b, "all": s.frames}
-    a_alone, b_alone = AGENT_ROWS[s.split]
+    plan = _Plan(runner, n)
+    rows = plan.table3(base)
+    for seed in range(runner.settings.seeds):
+        rows += plan.seed(base, seed)
+    return rows
+
+
+class _Plan:
+    """The steps of one experiment, started in the order the rows list them."""
+
+    def __init__(self, runner: Executor, n: int) -> None:
+        self.runner = runner
+        self.s = s = runner.settings
+        frames_a, frames_b = s.agent_frames(n)
+        self.frames = {"a": frames_a, "b": frames_b, "all": s.frames}
+        self.own = s.anchor == "own"
+        self.budgets = [s.budget] + [b for b in s.sweep if not same_budget(b, s.budget)]
 
     def score(
-        run: RunHandle, own: str, other: RunHandle | None = None, align: RunHandle | None = None
+        self,
+        run: RunHandle,
+        own: str,
+        other: RunHandle | None = None,
+        align: RunHandle | None = None,
     ) -> dict[str, Any]:
-        if not s.refine_poses:
+        """The row's cross-scoring step (with `refine_poses`), else nothing."""
+        if not self.s.refine_poses:
             return {}
-        return {"cross": runner.score(run, own, frames, other, align)}
+        return {"cross": self.runner.score(run, own, self.frames, other, align)}
 
-    full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
-    pruned = runner.slam("full_pwas", base, s.frames)
-    rows.append({"name": "full, no pruning", "table": "table3", "run": full})
-    rows.append(
-        {"name": "full, PWAS pruning", "table": "table3", "run": pruned, **score(pruned, "all")}
-    )
+    def table3(self, base: Any) -> list[dict[str, Any]]:
+        """The whole sequence without and with PWAS pruning (the centralised reference)."""
+        runner, s = self.runner, self.s
+        full = runner.slam("full_no_prune", base.with_overrides(**{"prune.stages": ()}), s.frames)
+        pruned = runner.slam("full_pwas", base, s.frames)
+        return [
+            {"name": "full, no pruning", "table": "table3", "run": full},
+            {"name": "full, PWAS pruning", "table": "table3", "run": pruned}
+            | self.score(pruned, "all"),
+        ]
 
-    budgets = [s.budget] + [b for b in s.sweep if not same_budget(b, s.budget)]
-    own = s.anchor == "own"
-    for seed in range(s.seeds):
+    def seed(self, base: Any, seed: int) -> list[dict[str, Any]]:
+        """Table 4's rows of one seed: the two agents, B alone, B with each share, with A's
+        whole map and with the reference formats."""
+        runner, s = self.runner, self.s
         config = base.with_overrides(seed=seed)
-        if own:  # each agent at the identity at its own first frame
+        if self.own:  # each agent at the identity at its own first frame
             config = config.with_overrides(init_from_ground_truth=False)
-        a = runner.slam(f"s{seed}_agent_a", config, frames_a)
-        b = runner.slam(f"s{seed}_agent_b", config, frames_b)
-        align = runner.align(f"s{seed}_align", a, b) if own else None
-        rows.append(
-            {"name": a_alone, "table": "table4", "run": a, "seed": seed, **score(a, "a", b, align)}
+        a = runner.slam(f"s{seed}_agent_a", config, self.frames["a"])
+        b = runner.slam(f"s{seed}_agent_b", config, self.frames["b"])
+        agents = _Agents(
+            a, b, config, seed, runner.align(f"s{seed}_align", a, b) if self.own else None
         )
-        rows.append(
-            {"name": b_alone, "table": "table4", "run": b, "seed": seed, **score(b, "b", a, align)}
-        )
+        a_alone, b_alone = AGENT_ROWS[s.split]
+        row = {"table": "table4", "seed": seed}
+        rows = [
+            {"name": a_alone, "run": a, **row} | self.score(a, "a", b, agents.align),
+            {"name": b_alone, "run": b, **row} | self.score(b, "b", a, agents.align),
+        ]
         if s.mode == "merge":
-            alone = runner.receive(f"s{seed}_no_share_agent_b", b, None, config, frames_b, seed)
-            rows.append(
-                {
-                    "name": B_NO_SHARE,
-                    "table": "table4",
-                    "run": alone,
-                    "seed": seed,
-                    "strategy": "none",
-                    **score(alone, "b", a, align),
-                }
+            alone = runner.receive(
+                f"s{seed}_no_share_agent_b", b, None, config, self.frames["b"], seed
             )
+            rows.append(
+                {"name": B_NO_SHARE, "run": alone, **row, "strategy": "none"}
+                | self.score(alone, "b", a, agents.align)
+            )
+        rows += self.shares(agents)
+        whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
+        rows.append(self.received(agents, f"s{seed}_full", whole, "B + A's full map", "full"))
+        for fmt in reference_formats(s) if seed < s.sweep_seeds else ():
+            sent = runner.reference(f"s{seed}_whole_{fmt}_share", a, fmt)
+            name = f"B + A's whole map as {fmt}"
+            rows.append(
+                self.received(agents, f"s{seed}_whole_{fmt}", sent, name, fmt, REFERENCE_TABLE)
+            )
+        return rows
+
+    def shares(self, agents: _Agents) -> list[dict[str, Any]]:
+        """B with each strategy's share at each budget (the sweep's in its seeds only)."""
+        runner, s, seed = self.runner, self.s, agents.seed
+        a, b = agents.a, agents.b
         scored = {x: runner.rescore(f"s{seed}_agent_a_{x}", a, RESCORED[x]) for x in _rescored(s)}
-        for budget in budgets if seed < s.sweep_seeds else budgets[:1]:
+        rows = []
+        for budget in self.budgets if seed < s.sweep_seeds else self.budgets[:1]:
             table = "table4" if budget == s.budget else "sweep"
             for strategy in s.strategies:
                 tag = f"s{seed}_{strategy}_{_slug(budget)}"
                 source = scored.get(strategy.removesuffix(FOR_B), a)
+                for_b = b if strategy.endswith(FOR_B) else None
                 share = runner.share(
-                    f"{tag}_share",
-                    source,
-                    budget,
-                    ranked_by(strategy),
-                    seed,
-                    b if strategy.endswith(FOR_B) else None,
+                    f"{tag}_share", source, budget, ranked_by(strategy), seed, for_b
                 )
-                got = runner.receive(f"{tag}_agent_b", b, share, config, frames_b, seed, align)
-                rows.append(
-                    {
-                        "name": f"B + {strategy} {budget}",
-                        "table": table,
-                        "run": got,
-                        "seed": seed,
-                        "strategy": strategy,
-                        "budget": budget,
-                        "share": share,
-                        "align": align,
-                        **score(got, "b", a, align),
-                    }
-                )
-                if own and table == "table4" and strategy == "pwas":
+                name = f"B + {strategy} {budget}"
+                rows.append(self.received(agents, tag, share, name, strategy, table, budget))
+                if self.own and table == "table4" and strategy == "pwas":
                     got = runner.receive(
-                        f"{tag}_true_agent_b", b, share, config, frames_b, seed, align, true=True
+                        f"{tag}_true_agent_b",
+                        b,
+                        share,
+                        agents.config,
+                        self.frames["b"],
+                        seed,
+                        agents.align,
+                        true=True,
                     )
                     rows.append(
                         {
@@ -521,43 +548,47 @@ def plan_runs(runner: Executor, base: Any, n: int) -> list[dict[str, Any]]:
                             "seed": seed,
                             "budget": budget,
                             "share": share,
-                            **score(got, "b", a, align),
                         }
+                        | self.score(got, "b", a, agents.align)
                     )
-        whole = runner.share(f"s{seed}_full_share", a, "1", "pwas", seed)
-        got = runner.receive(f"s{seed}_full_agent_b", b, whole, config, frames_b, seed, align)
-        rows.append(
-            {
-                "name": "B + A's full map",
-                "table": "table4",
-                "run": got,
-                "seed": seed,
-                "strategy": "full",
-                "budget": "1",
-                "share": whole,
-                "align": align,
-                **score(got, "b", a, align),
-            }
+        return rows
+
+    def received(
+        self,
+        agents: _Agents,
+        tag: str,
+        share: RunHandle,
+        name: str,
+        strategy: str,
+        table: str = "table4",
+        budget: str = "1",
+    ) -> dict[str, Any]:
+        """The row of B receiving `share` (step `{tag}_agent_b`)."""
+        b, align = agents.b, agents.align
+        got = self.runner.receive(
+            f"{tag}_agent_b", b, share, agents.config, self.frames["b"], agents.seed, align
         )
-        for fmt in reference_formats(s) if seed < s.sweep_seeds else ():
-            sent = runner.reference(f"s{seed}_whole_{fmt}_share", a, fmt)
-            got = runner.receive(
-                f"s{seed}_whole_{fmt}_agent_b", b, sent, config, frames_b, seed, align
-            )
-            rows.append(
-                {
-                    "name": f"B + A's whole map as {fmt}",
-                    "table": REFERENCE_TABLE,
-                    "run": got,
-                    "seed": seed,
-                    "strategy": fmt,
-                    "budget": "1",
-                    "share": sent,
-                    "align": align,
-                    **score(got, "b", a, align),
-                }
-            )
-    return rows
+        return {
+            "name": name,
+            "table": table,
+            "run": got,
+            "seed": agents.seed,
+            "strategy": strategy,
+            "budget": budget,
+            "share": share,
+            "align": align,
+        } | self.score(got, "b", agents.a, align)
+
+
+@dataclass(frozen=True)
+class _Agents:
+    """One seed's two agents, their configuration and (with `--anchor own`) their alignment."""
+
+    a: RunHandle
+    b: RunHandle
+    config: Any
+    seed: int
+    align: RunHandle | None
 
 
 def _slug(budget: str) -> str:
