@@ -62,7 +62,8 @@ def read_replica_traj(path: Path) -> np.ndarray:
         rows.append(values)
         linenos.append(lineno)
     poses = np.array(rows, dtype=np.float64).reshape(-1, 4, 4)
-    # Checked on the whole array at once: per line they took 0.15-0.2 s for 2000 poses.
+    # Checked on the whole array at once: per line they were slow on a long trajectory
+    # (docs/design-experiments.md, "Start-up").
     checks = (
         (np.isfinite(poses).all(axis=(1, 2)), not_a_pose),
         (

@@ -132,7 +132,7 @@ DEFAULT_SHARE_CODEC = COMPACT.name
 SHARE_IDS = False
 """Whether a compact share carries the Gaussians' ids unless asked (`gsc share --ids`). A merge
 numbers the share's Gaussians anew past the receiver's ids, so they would only trace a Gaussian
-back to the sender's, at about 2 bytes a Gaussian (docs/codecs.md)."""
+back to the sender's, at a cost in bytes (docs/codecs.md, "The compact message")."""
 
 SHARE_DEFAULTS = CompactOptions(ids=SHARE_IDS)
 """What a compact share carries unless asked otherwise: the PWAS sums, no ids."""

@@ -78,16 +78,16 @@ BITS = {
     "alpha_t_sum": 8,
 }
 """Default quantisation bits of each linear and log-linear column (chosen by bench/codec.py and
-the probes in docs/codecs.md): an 8-bit log code keeps a score or a sum within 3% over the
-1e-3..1e4 span of real maps, and a 30% prune of the decoded scores keeps 98% of the Gaussians
-the exact ones keep. 7-bit asinh colours and 8-bit log scales cost the picture 0.013 dB on the
-room's agent A map and 0.027 on office frag1's, where 8-bit linear colours and 7-bit scales
-cost 0.042 and 0.055, for 0.2-0.4 more bytes a Gaussian."""
+the probes in docs/codecs.md, "The compact message", which holds the measurements): an 8-bit
+log code keeps a score or a sum within half a code step over the span of real maps, and a prune
+by the decoded scores keeps nearly all the Gaussians the exact ones keep. 7-bit asinh colours
+and 8-bit log scales cost the picture less than 8-bit linear colours and 7-bit scales did, for
+a fraction of a byte more a Gaussian."""
 
 COLOUR_TRANSFORM = "asinh-linear"
 """How `f_dc` is coded: linear in asinh(f_dc), fine near the colours of [0, 1] (|f_dc| < 1.8)
-and coarse in the long tails optimisation leaves (f_dc up to 20 on real maps), which would
-otherwise stretch a linear code's range and coarsen every colour."""
+and coarse in the long tails optimisation leaves (far outside it on real maps: docs/codecs.md),
+which would otherwise stretch a linear code's range and coarsen every colour."""
 
 SUMS = ("importance_weight", "alpha_t_sum")
 """The PWAS sums a compact message codes beside the score (importance_sum = score x (W + eps))."""

@@ -42,8 +42,8 @@ TOPIC_KEYFRAME_POSE = "/share/keyframe/pose"
 KEYFRAME_TOPICS = (TOPIC_KEYFRAME_COLOR, TOPIC_KEYFRAME_DEPTH, TOPIC_KEYFRAME_POSE)
 
 JPEG_QUALITY = 90
-"""Colour quality of a carried keyframe (Pillow's scale). At 160x120 a keyframe, colour and
-depth, took 14-19 kB on the synthetic room, tabletop and office frag1 (docs/merge.md)."""
+"""Colour quality of a carried keyframe (Pillow's scale). What a keyframe, colour and depth,
+takes in a share: docs/merge.md, "A share that carries the sender's keyframes"."""
 
 DEPTH_UNIT_M = 0.001
 """A carried depth PNG counts in millimetres (deeper than 65.535 m is left out, as 0)."""

@@ -87,8 +87,8 @@ SH1_BUCKET, SH_REST_BUCKET = 8, 16
 """Multiples the writer rounds SH codes to (degree 1; degrees 2-3)."""
 
 ZSTD_LEVEL = 9
-"""zstd level of version-4 streams (the reference writes 12: on a SLAM map 0.02% smaller, at
-twice the time)."""
+"""zstd level of version-4 streams (the reference writes 12: on a SLAM map barely smaller and
+much slower; docs/codecs.md, "PLY, SPZ and SOG")."""
 
 _FLAG_ANTIALIASED, _FLAG_EXTENSIONS = 0x1, 0x2
 _LEGACY_HEADER = struct.Struct("<IIIBBBB")  # magic version count degree fraction flags reserved

@@ -45,9 +45,9 @@ VIEW_ALIGN = TrackingConfig(
 )
 """The refinement's settings: 300 steps whose learning rates decay to a twentieth, so that the
 first ones can cross degrees and centimetres and the last ones settle (on tabletop's agents a
-registration 13 degrees and 8.6 cm off came to the same transform as one started from the
-truth; 150 steps at half these rates stopped halfway); pixels where the source's silhouette
-passes 0.9 (its edges, half drawn, left out)."""
+registration far off came to the same transform as one started from the truth, where fewer
+steps at lower rates stopped short: docs/align.md, "Refined on the target's frames"); pixels
+where the source's silhouette passes 0.9 (its edges, half drawn, left out)."""
 
 
 @dataclass(frozen=True)

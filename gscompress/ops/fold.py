@@ -12,10 +12,10 @@ Gaussian draws what its group drew, so its PWAS numerator and alpha*T sum are th
 over the kept Gaussian's own visibility weight: its score (Eq. 8) is at least what it was, and
 a prune or share still keeps the highest scores.
 
-Measured on tabletop's unpruned map (11052 Gaussians, `--keep 0.3`, PSNR off the keyframes):
-dropping gives 15.75 dB, folding 19.54; reach 1 gave 16.96, 3 19.29, 4 19.54, none (every
-dropped Gaussian folded) 19.11; the group's weighted opacity 18.65 and its union 17.51 against
-its largest; weights of opacity times scale^0 or ^3 18.36 and 18.92 (docs/prune-refine.md).
+On tabletop's unpruned map at `--keep 0.3`, folding drew the frames off the keyframes far better
+than dropping, and each choice above (the reach, the weights, the largest opacity) did better
+than the alternatives tried: a shorter reach or none, the group's weighted opacity or its union,
+weights of opacity times scale^0 or ^3 (measured in docs/prune-refine.md, "The fold's choices").
 """
 
 from __future__ import annotations
@@ -268,8 +268,8 @@ class Folding:
     @cached_property
     def _space_order(self) -> np.ndarray:
         """[N] the Gaussians cell by cell along a Morton curve of 2^(3 x `SPATIAL_BITS`) cells:
-        queries in this order walk the k-d tree through memory they have just visited (3x
-        faster on the 1M-Gaussian map of bench/offline.py, measured on two busy cores)."""
+        queries in this order walk the k-d tree through memory they have just visited, which
+        makes them faster (docs/performance.md, "Folding")."""
         columns = self._means.T  # (a reduction a column at a time: faster than along axis 0)
         low = np.array([c.min() for c in columns], dtype=np.float64)
         high = np.array([c.max() for c in columns], dtype=np.float64)
@@ -379,11 +379,11 @@ class Folding:
         """The nearest of the Gaussians `kept` to each of `points`: ([P] distances, [P] their
         positions in `kept`), by a k-d tree of `kept`. A fold from no earlier one (`first`)
         builds the tree the fold was first written with (scipy's default: the same choice
-        among equal distances); the others a tree that builds 2x faster (sliding midpoint).
+        among equal distances); the others a tree that builds faster (sliding midpoint).
 
         Many points are queried within a bound that holds all but about 0.1% of their nearest
-        (from a sample of them), which prunes each search (20% faster on the 1M map), and the
-        few beyond it again without one."""
+        (from a sample of them), which prunes each search, and the few beyond it again without
+        one. (What both save: docs/performance.md, "Folding".)"""
         tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
         where = np.take(self._means, points, axis=0)
         workers = cpu_threads() if len(points) >= PARALLEL_QUERIES else 1

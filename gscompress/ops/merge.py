@@ -115,8 +115,8 @@ class MergeOptions:
 
     The defaults: aligned, resolved by evidence with a margin, the share's Gaussians moving as
     much as the receiver's views see them. Without the margin (1), they rendered the sender's
-    frames of office frag1 0.7 dB better than the exact merge (`EXACT`) and the receiver's
-    0.2 dB worse (docs/merge.md).
+    frames of office frag1 better than the exact merge (`EXACT`) and the receiver's a little
+    worse (docs/merge.md, "Measured").
 
     Attributes:
         align: move the share by a local rigid refinement onto the receiver where their
@@ -131,8 +131,9 @@ class MergeOptions:
         margin: with "evidence", the share keeps a contested voxel only where its evidence
             there is more than `margin` times the receiver's (1: whichever has more). The
             refinement fits the receiver's views, so a near tie goes to the receiver. At 2
-            instead of 1, B receiving A's share at SOG's bytes scored all frames 0.030 dB
-            higher on average over nine seeds of the room, tabletop and frag1 (docs/merge.md).
+            instead of 1, B receiving A's share at SOG's bytes scored all frames higher on
+            average over nine seeds of the room, tabletop and frag1 (docs/merge.md, "A margin on
+            the evidence: near ties go to the receiver").
         share_rate: the share's Gaussians move at this fraction of the receiver's learning
             rates in the refinement (0: they keep the sender's values; 1: as the receiver's).
             With `by_view`, the fraction is scaled by how much the receiver's views see each.
@@ -141,10 +142,10 @@ class MergeOptions:
         footprint: with "evidence", count a Gaussian's evidence in its voxel only when its
             footprint fits a voxel face (`voxel_evidence`). Without it, a folded Gaussian
             (its group's sums on one centre) outweighs the receiver's Gaussians wherever its
-            centre lands: a 40-Gaussian PWAS share at 1% of A's fp32 bytes took 257 of B's
-            3,721 Gaussians on tabletop, and B's own frames fell 1.3 dB; counted for the part
-            of its footprint a voxel holds, it still took 91 of B's 3,838 there and B's frames
-            fell 0.34 dB (docs/merge.md).
+            centre lands, and the merge drops the receiver's there, which costs the receiver's
+            own frames; counted for the part of its footprint a voxel holds, it still took some
+            of them (measured on tabletop in docs/merge.md, "A fold counted for its footprint"
+            and "A Gaussian larger than a cell claims none").
     """
 
     align: bool = True
@@ -192,10 +193,11 @@ WITH_SENDER_VIEWS = MergeOptions(align=True, resolve="stack", share_rate=1.0, by
 """The merge of a share that carries the sender's keyframes (`gsc share --keyframes`): aligned,
 every Gaussian of both maps kept and all refined alike, on the receiver's frames and the
 sender's. With the sender's views in the refinement, its Gaussians no longer bend towards the
-receiver's alone, and stacking loses nothing: B receiving A's whole map and A's 5-6 keyframes
+receiver's alone, and stacking loses nothing: B receiving A's whole map and A's keyframes
 came within 0.5 dB of the centralised map on both agents' frames of the synthetic room,
-tabletop and office frag1 (-0.48 to +1.55 dB), where the default merge with the same keyframes
-missed on tabletop's and frag1's A frames (-0.95, -0.51; docs/merge.md)."""
+tabletop and office frag1, where the default merge with the same keyframes missed on
+tabletop's and frag1's A frames (docs/merge.md, "A share that carries the sender's
+keyframes")."""
 
 OPAQUE = 0.5
 """Gaussians at least this opaque are the surface that `align_share` fits."""
@@ -266,8 +268,8 @@ def fit_cost(fraction: float, rms: float, max_distance: float) -> float:
     """Mean over the share's centres of the squared distance to the receiver's nearest, each
     capped at `max_distance`, from `points_fit`'s figures (the `fraction` within it, at `rms`):
     what an alignment must lower to be kept. Coloured ICP on a flat scene can slide or turn the
-    share in the plane (tabletop: 3.5-9.7 degrees, its centres farther from the receiver's than
-    before)."""
+    share in the plane, its centres ending farther from the receiver's than before (tabletop:
+    docs/merge.md, "Aligned by `gsc align`'s local step")."""
     return fraction * rms**2 + (1.0 - fraction) * max_distance**2
 
 

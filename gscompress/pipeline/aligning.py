@@ -59,17 +59,17 @@ FRAMES_TRUST = 2.0
 """With the target's frames, a registration refused only because too few feature matches agree
 is accepted when, refined on the frames, the source draws them with a mean tracking loss at most
 this many times the target's own map's. On tabletop's agents (a flat scene whose features
-agree poorly) the refined transform drew them at 1.5 times, the registration 12 degrees off at
-3.5 times."""
+agree poorly) the refined transform drew them well within this and the registration, far off,
+well beyond it (docs/align.md, "Refined on the target's frames")."""
 
 
 SURFACE_KEPT = 0.8
 """The frames may not pull the source off the target's surfaces: the refined transform must keep
 at least this fraction of the registration's share of source Gaussians within half a voxel of
-a target Gaussian (`surface_fit`), else the registration's transform is kept. On the three
-scenes' nine agent pairs the refined transform kept 0.99-2.9 of it; on the test suite's 48x36
-map, too coarse to draw its own frames well, the frames pulled a self-alignment 10 cm off and
-kept 0.65."""
+a target Gaussian (`surface_fit`), else the registration's transform is kept. On the agent
+pairs of three scenes the refined transforms kept more than this; on the test suite's small
+map, too coarse to draw its own frames well, the frames pulled a self-alignment off and kept
+less (docs/align.md, "Refined on the target's frames")."""
 
 
 REGISTRATION = "registration"

@@ -30,8 +30,8 @@ from gscompress.pipeline.refining import DEFAULT_LR_FINAL, RefineOptions
 
 DEFAULT_REFINE_VIEWS = "frames"
 """What a merge refines on unless told (`REFINE_VIEWS`): every frame of the receiver's subset.
-Keyframes alone are few (5 of tabletop's 25 even frames), and 200 iterations on them lowered
-the receiver's PSNR on its other frames; every frame raises it."""
+Keyframes alone are few, and refining on them lowered the receiver's PSNR on its other frames;
+every frame raises it (docs/design-experiments.md, "Why merges decay their learning rates")."""
 
 
 def merge_logs(

@@ -33,11 +33,11 @@ from gscompress.slam.views import REFINE_VIEWS
 DEFAULT_LR_FINAL = 0.3
 """A refinement's learning rates decay to this fraction over its iterations. Its optimizer is
 fresh, so at constant rates its first steps are as large as the last ones and leave a finished
-map little better (tabletop's unpruned Table 3 map, 200 iterations on every frame: 26.63 ->
-26.61 dB; decaying to 0.1: 27.34 dB). In the Table 4 merges of five sequences (README), 0.3
-lifted every merge on tabletop, office and ICL by 0.29-0.43 dB against constant rates and was
-ahead of 0.5 and 0.1 there (tied with 0.1 once); on the synthetic room and replica the merged
-shares ended 0.01-0.13 dB below constant rates and 0.00-0.08 dB below 0.5."""
+map little better, where decaying rates improve it. In the Table 4 merges of five sequences, 0.3
+lifted every merge on tabletop, office and ICL against constant rates and was ahead of 0.5 and
+level with or ahead of 0.1 there; on the synthetic room and replica the merged shares ended
+slightly below constant rates and 0.5 (measured in docs/design-experiments.md, "Why merges
+decay their learning rates")."""
 
 
 PSEUDO_VIEWS = 3
@@ -45,11 +45,11 @@ PSEUDO_VIEWS = 3
 each two consecutive keyframes: the whole map (the teacher) rendered at poses interpolated
 between theirs, its colour and its depth where it is opaque (silhouette above
 `PSEUDO_DEPTH_SILHOUETTE`). The keyframes alone let a refinement fit them at the cost of the
-views between them. Tabletop's unpruned map, PSNR on the 40 frames that are not keyframes:
-27.54 dB; refined 1000 iterations on its 10 keyframes 27.15, with 3 pseudo-views per gap 27.48;
-its PWAS prune to 3316 Gaussians refined alike 25.31 and 25.37 (1 per gap: 25.41); folded
-and refined to in-run pruning's count (3520) 25.72, against 25.68 for `gsc slam`'s in-run
-pruning (docs/prune-refine.md)."""
+views between them: on tabletop, the pseudo-views kept the refined unpruned map's frames off
+the keyframes near where they were before the refinement, and a folded prune refined with them
+to in-run pruning's count drew those frames as well as `gsc slam`'s in-run pruning (measured in
+docs/prune-refine.md, "Isotropic refinement (`--isotropic`)" and "What else was tried on
+tabletop")."""
 
 
 PSEUDO_DEPTH_SILHOUETTE = 0.95

@@ -21,11 +21,11 @@ def _warm_up_vector_math() -> None:
 
     With torch 2.13's CPU build on an AVX-512 Xeon, the first torch.exp of a process that ran
     on two threads (2048 elements or more) sometimes came back with one thread's half of the
-    tensor off by up to 1.5e-4 relative; every later call was exact to rounding. In `gsc slam`
-    that first call is the activation of the scales at frame 0, so a quarter of the runs (9 of
-    36 processes) took a different course. A first call below torch's parallel grain (one
-    thread, still vectorised) made it 0 of 36. The same is done for the other functions the
-    maps and losses use.
+    tensor slightly off; every later call was exact to rounding. In `gsc slam` that first call
+    is the activation of the scales at frame 0, so some runs took a different course. A first
+    call below torch's parallel grain (one thread, still vectorised) made none do so (measured
+    in docs/performance.md, "Reproducibility and threads"). The same is done for the other
+    functions the maps and losses use.
     """
     x = torch.linspace(0.5, 1.5, 1024)
     for fn in (torch.exp, torch.log, torch.sqrt, torch.sigmoid, torch.tanh):

@@ -15,10 +15,11 @@ rounding: gsplat stops compositing when T would become <= 1e-4 (we stop at < 1e-
 gsplat versions size a Gaussian's tile footprint from its opacity (up to 3.33 sigma) instead of
 3 sigma. That footprint decides only which pixels gsplat composites: the returned `radii`, and
 so which Gaussians count as visible (the frames in a PWAS weight), come from gscompress's own
-projection, run when they are first read, so a map scores alike on every backend. With gsplat
-1.5.3 on an H100, values agree with the pure-torch backend to 1e-5 and gradients to 1e-4
-relative (tests/test_render.py, opacities up to 0.35, where both footprints hold every pixel
-with alpha >= 1/255; with opacities up to 0.99, measured within 1e-4 and 1e-5).
+projection, run when they are first read, so a map scores alike on every backend.
+tests/test_render.py checks that values agree with the pure-torch backend to 1e-5 and gradients
+to 1e-4 relative, with opacities up to 0.35, where both footprints hold every pixel with alpha
+>= 1/255 (what it gave with gsplat 1.5.3 on an H100, and with higher opacities:
+docs/performance.md, "Renderer").
 """
 
 from __future__ import annotations

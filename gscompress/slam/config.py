@@ -4,18 +4,18 @@ Three presets:
 
 - `tiny`: for tests and smoke runs (a handful of iterations; seconds for a few 64x48 frames).
 - `cpu` (the default of `gsc slam`): 160x120 and iteration counts sized for a 2-core CPU
-  (40 tracking / 15 mapping iterations; 0.44-0.85 s per frame on the project's 2-core Xeon,
-  the README's Table 3),
+  (40 tracking / 15 mapping iterations; its seconds per frame on the project's 2-core Xeon are
+  in docs/performance.md, "Pruning (paper Table 3)"),
   with higher colour and scale learning rates than SplaTAM's because there are 15 mapping
   iterations per frame instead of 30-60 (tuned on the synthetic room and two real sequences
   with bench/slam.py), and a final refinement of 1000 iterations over every frame after the
   last one (at most 150 per frame of a short run), its learning rates decaying to 0.3 of the
   mapping ones (`mapping.final_iters`, `final_iters_per_frame`, `final_views`,
-  `final_lr_fraction`). Against 400 constant-rate iterations over the keyframes it gave +0.3
-  to +0.9 dB PSNR on the unpruned maps of tabletop, office, ICL and the synthetic room and
-  +0.2 to +0.8 on the PWAS-pruned ones, for about 0.1 s per frame (at constant rates 800
-  iterations had given less than 400). Besides SplaTAM's rule it densifies where the map
-  covers a pixel but shows it in the wrong colour (`densify.color_error` 0.25).
+  `final_lr_fraction`). Against 400 constant-rate iterations over the keyframes it raised the
+  PSNR of the unpruned and the PWAS-pruned maps on every sequence tried, at a small cost in
+  time per frame, where more iterations at constant rates had not helped (measured in
+  docs/design-experiments.md, "The final refinement"). Besides SplaTAM's rule it densifies
+  where the map covers a pixel but shows it in the wrong colour (`densify.color_error` 0.25).
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
 

@@ -7,11 +7,10 @@ the silhouette towards 1 on observed pixels (as in SplaTAM). Tracking compares t
 unnormalised depth would be biased by up to 1% of the depth (4 cm at 4 m), enough to pull the
 pose along the optical axis. The price is a smaller offset of the other sign where mapping has
 fitted the accumulated depth with a silhouette just below 1: against a map built from
-ground-truth poses (synthetic room, 160x120), tracking from the true pose settles 0.26-0.28 cm
-away, mostly along the optical axis (0.07-0.10 cm on the accumulated depth). End to end the
-accumulated depth measured worse (ATE 0.425 -> 0.595 cm on the synthetic room, 2.031 -> 2.212
-cm on 3dmatch office), and so did mapping on the normalised depth plus a silhouette term
-(0.774 cm; office 1.889 cm but 1.1 dB lower PSNR).
+ground-truth poses, tracking from the true pose settles slightly away from it, mostly along the
+optical axis (less so on the accumulated depth). End to end, though, tracking on the accumulated
+depth measured a worse ATE, and so did mapping on the normalised depth plus a silhouette term
+(docs/design-experiments.md, "What moves B's ATE in inject mode").
 
 Tracking:
     mask = (silhouette > s_min) & (D_gt > 0) & (|D_norm - D_gt| <= k median |D_norm - D_gt|)

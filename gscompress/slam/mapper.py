@@ -163,7 +163,8 @@ class Mapper:
         the recent, overlapping ones) pulls the surviving Gaussians into the holes. These
         iterations do not advance the cyclic-cleanup count; at the end only transparent
         Gaussians are removed: the large ones are what covers the holes, and with no mapping
-        left to fill the gaps, removing them cost about 2 dB PSNR on a pruned synthetic map.
+        left to fill the gaps, removing them cost PSNR on a pruned map (docs/design-experiments.md,
+        "The final refinement").
         `on_step` is called with each iteration's total loss (`gsc merge`'s progress). The
         learning rates decay geometrically to `lr_final_fraction` of their mapping values by the
         last iteration (1: constant, as the refinements after pruning stages run; a single

@@ -9,8 +9,8 @@ tensors; `resize_adam_rows` moves the optimizer's per-Gaussian state along, so t
 moments of every surviving Gaussian stay attached to it and new Gaussians start from zero.
 
 `Adam` is the map's optimizer: torch's Adam update without torch.optim, whose first use imports
-torch._dynamo (4-6 s measured on a 2-core machine under load, as long as importing torch; paid
-by every `gsc slam` and `gsc merge`).
+torch._dynamo (as long as importing torch itself, paid by every `gsc slam` and `gsc merge`;
+measured in docs/design-experiments.md, "Start-up").
 """
 
 from __future__ import annotations

@@ -8,8 +8,8 @@ A pose is a small rigid increment on a starting pose, applied in the camera fram
 with x starting at zero. Near zero, 2 q is the rotation vector, so Adam's learning rates act
 like SplaTAM's on the world-to-camera quaternion and translation. The gradient of x comes from
 dL/dT_cam_world (the renderer's, `pose_gradient`) and Adam's update runs in numpy (`PoseAdam`):
-as torch tensors with autograd, the pose and its gradient took about 90 small operations per
-iteration.
+as torch tensors with autograd, the pose and its gradient took many small operations per
+iteration (docs/design-experiments.md, "The tracker's pose update").
 
 The tracker optimises one frame's pose with the map fixed (`gscompress.slam.tracker`); the
 mapping optimises keyframe poses together with the map (`PoseVariable`, one per refined view;
@@ -36,8 +36,9 @@ def rotation_jacobian(q_xyz: np.ndarray) -> np.ndarray:
     """dR/dq_xyz [3 (q), 3, 3] of R = the rotation of the unit quaternion normalise(1, q_xyz).
 
     The tracker's six pose numbers live in numpy with this closed-form Jacobian: as torch
-    tensors with autograd, the pose and its gradient took about 90 small operations per tracking
-    iteration, 1.6 ms, more than a tenth of the iteration.
+    tensors with autograd, the pose and its gradient took many small operations per tracking
+    iteration, a sizeable share of its time (measured in docs/design-experiments.md, "The
+    tracker's pose update").
     """
     u = np.concatenate([[1.0], q_xyz])
     norm = np.linalg.norm(u)

@@ -22,7 +22,8 @@ GL_FLAGS = {
 }
 """Software WebGL for the page: Chromium's own SwiftShader (always there; the tests use it), or
 Mesa's llvmpipe through EGL (Debian `libegl-mesa0`; Chromium falls back to no WebGL without
-it). On a 2-core machine llvmpipe draws viser's page about twice as fast (docs/viewer.md)."""
+it). On a 2-core machine llvmpipe draws viser's page faster (docs/viewer.md, "Smaller frames
+while moving, and the page's WebGL")."""
 
 
 def find_chromium() -> str | None:

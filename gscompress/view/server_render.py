@@ -3,12 +3,13 @@ own rasterizer's picture of the splats as its scene's background image, JPEG ove
 websocket, and draws only the rest (trajectories, cameras, controls) itself.
 
 A browser without a GPU draws splats in software WebGL, a cost per splat that no resolution
-saves (0.5 fps for 100k splats on a 2-core machine; docs/viewer.md). The server's renderer
-(C++ kernels on the CPU, gsplat on CUDA) draws the same splats in a fraction of that, so the
-page follows the camera. While the camera moves, frames are drawn smaller than the page: at the
-scale that keeps one frame (drawn and encoded) near `MOTION_FRAME_S`, between the bounds of
-`MOTION_SCALE_RANGE` (`next_motion_scale`); once the camera has stood still for `SETTLE_S`, one
-frame at full size follows. Every Gaussian is drawn in both.
+saves (too slow to follow the camera on a large map: docs/viewer.md, "Speed on a 100k-Gaussian
+map"). The server's renderer (C++ kernels on the CPU, gsplat on CUDA) draws the same splats in a
+fraction of that, so the page follows the camera. While the camera moves, frames are drawn
+smaller than the page: at the scale that keeps one frame (drawn and encoded) near
+`MOTION_FRAME_S`, between the bounds of `MOTION_SCALE_RANGE` (`next_motion_scale`); once the
+camera has stood still for `SETTLE_S`, one frame at full size follows. Every Gaussian is drawn
+in both.
 
 The browser's camera is OpenCV's (+z forward, +y down; viser's `wxyz` and `position` are its
 camera-to-world pose), as is the renderer's, so no axis is flipped on the way.

@@ -130,7 +130,8 @@ class ExperimentSettings:
             Gaussian carries its score alone, so a byte budget holds more Gaussians and the
             merge has no evidence for them (`gsc share --no-sums`).
         ids: the compact shares carry the Gaussians' ids (`gsc share --ids`; not by default:
-            without them a byte budget holds about 20% more Gaussians).
+            without them a byte budget holds more Gaussians: docs/codecs.md, "The compact
+            message").
         anchor: "gt": both agents start at the ground-truth pose of their first frame, so their
             maps share a frame; "own": each starts at the identity at its own first frame, A's
             map is aligned to B's (`gscompress.pipeline.align.align_agents`) and B receives

@@ -44,11 +44,11 @@ NAME_KEYS = frozenset({"parent", "source", "for", "target"})
 
 PROBE_ITERS = 100
 """A refined share under a byte budget first refines its cut this many iterations to learn how
-the refined values compress (`ShareCut.refined`). Tabletop's map at 10%bytes, refined 1000
-iterations with three scales a Gaussian: sized before the refinement, 4891 Gaussians were
-refined, 4350 of them fit afterwards, and with the rest folded in the share scored 25.87 dB
-off the keyframes, against 26.88 for the isotropic share; with the probe, 4355 are refined
-and sent: 27.22 dB (docs/prune-refine.md)."""
+the refined values compress (`ShareCut.refined`). Sized before the refinement, a shaped share
+no longer fits once refined, and folding the Gaussians left out into the refined map costs more
+than the shape gave (below the isotropic share); sized by the probe, the Gaussians refined are
+the ones sent, and the share beats the isotropic one (measured on tabletop in
+docs/prune-refine.md, "Shaped refinement (the default)")."""
 
 
 DEFAULTS = ShareOptions()
@@ -129,9 +129,9 @@ class ShareCut:
 
     def _holds_whole_map(self) -> bool:
         """Whether a byte budget holds the whole map as it is. A refined share is then not
-        shaped (`cut_pool`): tabletop's map at 20%bytes, refined 1000 iterations, scored 27.41
-        dB off the keyframes whole and isotropic, 27.31 shaped (9,051 of its 11,052 Gaussians
-        fit), 27.49 not refined (docs/prune-refine.md)."""
+        shaped (`cut_pool`): shaping would only leave Gaussians out, and on tabletop the whole
+        map refined isotropic scored higher than the shaped share and the whole map unrefined
+        higher still (docs/prune-refine.md, "Shaped refinement (the default)")."""
         limit = self.budget.budget_bytes
         return limit is not None and self.size(len(self.pool)) <= limit
 

@@ -22,13 +22,13 @@ class ShareOptions:
     Attributes:
         strategy: what to rank Gaussians by (`gscompress.selection.STRATEGIES`).
         codec: how the map is stored (`gscompress.io.codec.CODECS`): compact (the default,
-            about 10-20 bytes per Gaussian), fp16 or fp32 (a foxglove.PointCloud Foxglove
-            draws).
+            a fraction of fp32's bytes: docs/codecs.md, "Measurements"), fp16 or fp32 (a
+            foxglove.PointCloud Foxglove draws).
         sums: send the PWAS sums (a receiver that keeps accumulating needs them); without them
             a compact share sends the score alone (fp32 and fp16 always send the sums).
         ids: send each Gaussian's id (`SHARE_IDS`: not unless asked); without them a compact
-            share is about 2 bytes a Gaussian smaller and the receiver numbers them 0..N-1
-            (fp32 and fp16 always send them: `sends_ids`).
+            share is smaller (docs/codecs.md, "The compact message") and the receiver numbers
+            them 0..N-1 (fp32 and fp16 always send them: `sends_ids`).
         seed: seed of the random strategy.
         fold: fold what the share leaves out into the Gaussians it sends
             (`gscompress.ops.fold.cut_map`).

@@ -207,8 +207,9 @@ def _cache_key(sources: tuple[Path, ...], cflags: list[str], cpu: str, compiler:
     """16 hex digits naming one build: the sources' bytes and location, flags, toolchain, CPU.
 
     The location counts because the build directory's ninja file names the sources by path: two
-    checkouts of the same sources sharing one cache would otherwise rebuild in turn, 1-2 minutes
-    each time (seen when alternating runs of two worktrees).
+    checkouts of the same sources sharing one cache would otherwise rebuild in turn, a whole
+    build each time (seen when alternating runs of two worktrees; docs/setup.md, "The C++ render
+    kernels").
     """
     key = hashlib.sha256()
     for source in sources:
@@ -229,8 +230,9 @@ def _load_built(build_dir: Path, name: str) -> ModuleType | None:
     """The extension of a finished earlier build, imported directly; None if there is none.
 
     The directory's name already fixes the sources' bytes, flags, toolchain and CPU, so there
-    is nothing for torch's loader to check: going through it costs 0.2-0.3 s per process
-    (importing setuptools, running ninja), this well under 0.01 s.
+    is nothing for torch's loader to check: going through it costs each process the import of
+    setuptools and a run of ninja, this next to nothing (measured in docs/design-experiments.md,
+    "Start-up").
     """
     path = build_dir / f"{name}.so"
     if not (build_dir / _BUILT).exists() or not path.exists():
@@ -266,13 +268,14 @@ def _last_use(build_dir: Path) -> float:
 def _prune_cache(root: Path, keep: Path, unused_days: float = 30.0) -> None:
     """Remove the builds in `root` other than `keep` that no process has used for this long.
 
-    Every change of the sources, flags, torch or CPU makes a new build of about 2 MB, and a
-    checkout whose sources are edited makes one per edit. Runs only when torch's loader was used
-    (a new build, or a build made before the marker existed), so rarely. A directory whose
-    build lock another process holds is in use (a build in progress, or one waiting for it)
-    and is skipped; the others are locked, checked again and removed under the lock, so that a
-    build cannot start in a directory being removed (see `_build_lock`). Without flock (not
-    POSIX) a build in progress cannot be told from an abandoned one, and nothing is removed.
+    Every change of the sources, flags, torch or CPU makes a new build (its size:
+    docs/setup.md, "The C++ render kernels"), and a checkout whose sources are edited makes one
+    per edit. Runs only when torch's loader was used (a new build, or a build made before the
+    marker existed), so rarely. A directory whose build lock another process holds is in use
+    (a build in progress, or one waiting for it) and is skipped; the others are locked, checked
+    again and removed under the lock, so that a build cannot start in a directory being removed
+    (see `_build_lock`). Without flock (not POSIX) a build in progress cannot be told from an
+    abandoned one, and nothing is removed.
     """
     if fcntl is None:
         return
