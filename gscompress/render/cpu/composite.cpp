@@ -18,8 +18,8 @@
 // - A segment's alpha is one long chain of dependent operations (the exponential's polynomial
 //   above all), and a core overlaps only so much of one chain with the next. The alphas of a
 //   Gaussian's segments (distinct pixels) are computed kInterleave at a time, statement by
-//   statement; with FMA in the polynomial this made the forward 1.3x and the backward 1.4x
-//   faster on AVX2 (office's tracking renders, 1 thread).
+//   statement; with FMA in the polynomial this made the forward and the backward faster on
+//   AVX2 (docs/design-experiments.md, "Interleaved compositing and FMA").
 // - The forward stores per pixel the final transmittance and the number of list entries it
 //   consumed, so the backward is a single back-to-front pass that recovers T by division.
 // - Per-Gaussian sums (contribution, gradients) are reduced over the pixels of a tile into the
@@ -58,8 +58,9 @@ struct Rules {
 // comparisons and selects into scalar code (an earlier version with 16-float rows ran mostly
 // scalar on AVX2). AVX-512 targets use 32 bytes too: with 16-float rows a segment spans a whole
 // tile row, while most footprints are a few pixels wide, and on a Xeon with AVX-512 the
-// forward + backward ran 1.20-1.25x faster as an AVX2 build than with 64-byte vectors and
-// 1.04-1.07x faster again at 32 bytes with the native target (`bench/render.py --march`).
+// forward + backward ran faster as an AVX2 build than with 64-byte vectors and faster again at
+// 32 bytes with the native target (`bench/render.py --march`; docs/design-experiments.md,
+// "Vector width on AVX-512").
 #if defined(__AVX__)
 constexpr int kVecBytes = 32;
 #else
