@@ -9,6 +9,7 @@ import click
 
 from gscompress.pipeline import log_info
 
+from .flags import with_flags
 from .options import INPUT_SEQUENCE, emit, json_option, recording_options
 
 
@@ -40,7 +41,7 @@ def info(src: Path, recording: Any, as_json: bool) -> None:
         result["kind"] = GSC_LOG
         emit(result, as_json, format_info(result))
         return
-    result = recording_info(src, recording)
+    result = recording_info(src, recording, with_flags)
     emit(result, as_json, format_recording(result))
 
 

@@ -25,6 +25,8 @@ from gscompress.interrupts import interrupted, sigterm_interrupts
 from gscompress.io.files import safe_text
 from gscompress.threads import use_threads
 
+from .flags import with_flags
+
 # command name -> "module:function" inside this package
 COMMANDS: dict[str, str] = {
     "import-ply": "import_ply:import_ply",
@@ -142,15 +144,6 @@ class GscGroup(click.Group):
             if "can't allocate memory" not in str(exc) and "out of memory" not in str(exc):
                 raise
             raise click.ClickException(OUT_OF_MEMORY) from None
-
-
-def with_flags(exc: GscError) -> str:
-    """The message of `exc` with each parameter it names (`exc.options`, written `name`) as
-    the flag that sets it (--name)."""
-    message = str(exc)
-    for name in exc.options:
-        message = message.replace(f"`{name}`", "--" + name.replace("_", "-"))
-    return message
 
 
 OUT_OF_MEMORY = "out of memory (smaller images, fewer frames or a smaller map need less)"

@@ -20,6 +20,7 @@ from gscompress.ops.budget import Budget
 from gscompress.ops.icp import DEFAULT_ICP, ICP
 from gscompress.selection import is_fraction, percent_hint
 
+from .flags import with_flags
 from .progress import Phases, advance
 
 if TYPE_CHECKING:
@@ -218,7 +219,7 @@ class BudgetParam(click.ParamType):
         try:
             return Budget.parse(value)
         except InputError as exc:
-            self.fail(str(exc), param, ctx)
+            self.fail(with_flags(exc), param, ctx)
 
 
 def command_line() -> str:
@@ -269,7 +270,7 @@ class FrameSubset(click.ParamType):
         try:
             return parse_frames(str(value))
         except InputError as exc:
-            self.fail(str(exc), param, ctx)
+            self.fail(with_flags(exc), param, ctx)
 
 
 def size_option(default: str | None = None, help: str | None = None) -> Callable[[F], F]:
@@ -561,7 +562,7 @@ def recording_options(f: F) -> F:
         try:
             kwargs["recording"] = RecordingOptions(**values)
         except OptionError as exc:
-            raise click.UsageError(str(exc)) from None
+            raise click.UsageError(with_flags(exc)) from None
         return f(*args, **kwargs)
 
     options = [

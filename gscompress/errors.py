@@ -65,10 +65,11 @@ class BudgetError(GscError):
 class DivergenceError(GscError):
     """An optimisation (tracking, mapping, a refinement) whose loss or parameters stopped being
     finite: its learning rates are too high for the data. The message reads "`what` diverged
-    (`detail`): `advice`"; `detail` says what was not finite."""
+    (`detail`): `advice`"; `detail` says what was not finite, `options` the parameters `advice`
+    names (as `GscError`'s)."""
 
-    def __init__(self, what: str, detail: str, advice: str) -> None:
-        super().__init__(f"{what} diverged ({detail}): {advice}")
+    def __init__(self, what: str, detail: str, advice: str, options: tuple[str, ...] = ()) -> None:
+        super().__init__(f"{what} diverged ({detail}): {advice}", options=options)
         self.detail = detail
 
 

@@ -53,20 +53,24 @@ def percent_hint(number: float) -> str:
     return f"{number / 100:g} or {number:g}%"
 
 
-def check_ratio(ratio: float, name: str = "ratio") -> float:
-    """Return `ratio` if it lies in (0, 1], else raise InputError."""
+def check_ratio(ratio: float, name: str = "ratio", options: tuple[str, ...] = ()) -> float:
+    """Return `ratio` if it lies in (0, 1], else raise InputError (naming it `name`, which
+    names the parameters `options`, as `GscError`'s)."""
     if not is_fraction(ratio):
-        raise InputError(f"{name} must be in (0, 1], got {ratio}")
+        raise InputError(f"{name} must be in (0, 1], got {ratio}", options=options)
     return float(ratio)
 
 
-def keep_count(n: int, ratio: float, what: str = "ratio") -> int:
+def keep_count(n: int, ratio: float, what: str = "ratio", options: tuple[str, ...] = ()) -> int:
     """Number of Gaussians kept out of `n` for a retention `ratio` in (0, 1] (round half up);
-    `what` names the ratio in the error when that is none (a budget, for a share)."""
+    `what` names the ratio in the error when that is none (a budget, for a share), and the
+    parameters `options` (as `GscError`'s)."""
     check_ratio(ratio)
     k = min(n, math.floor(ratio * n + 0.5 + 1e-9))
     if n > 0 and k == 0:
-        raise BudgetError(f"keeping {ratio:g} of {n} Gaussians rounds to none; raise the {what}")
+        raise BudgetError(
+            f"keeping {ratio:g} of {n} Gaussians rounds to none; raise the {what}", options=options
+        )
     return k
 
 
@@ -98,7 +102,8 @@ def strategy_scores(gaussians: GaussianMap, strategy: str | Strategy, seed: int 
         if not gaussians.has_importance:
             raise BudgetError(
                 "this map has no PWAS scores: record it with `gsc slam`, or score an existing "
-                "map with `gsc score MAP --seq SEQ`, or rank by another score (--by opacity)"
+                "map with `gsc score MAP --seq SEQ`, or rank by another score (`by` opacity)",
+                options=("by",),
             )
         return gaussians.importance.astype(np.float64)
     if strategy is Strategy.ALPHA_T:

@@ -73,7 +73,7 @@ def test_render_and_eval_write_over_earlier_pictures_only_with_force(tmp_path: P
     pictures.mkdir()
     ImageOptions(save_images=pictures).check()  # (an empty one)
     (pictures / "rgb").mkdir()
-    with pytest.raises(OutputError, match="--force"):
+    with pytest.raises(OutputError, match="pass `force`"):
         ImageOptions(save_images=pictures).check()
     ImageOptions(save_images=pictures, force=True).check()
     ImageOptions(save_images=None).check()

@@ -786,7 +786,7 @@ def test_a_config_of_own_anchored_agents_needs_anchor_own(tmp_path: Path) -> Non
     ground truth, every cross-agent figure would be wrong."""
     cfg = tmp_path / "own.yaml"
     cfg.write_text("init_from_ground_truth: false\n")
-    with pytest.raises(OptionError, match="use --anchor own"):
+    with pytest.raises(OptionError, match="use `anchor` own"):
         resolve_settings(ExperimentSettings(config_path=str(cfg)))
     _, base = resolve_settings(ExperimentSettings(config_path=str(cfg), anchor="own"))
     assert not base.init_from_ground_truth

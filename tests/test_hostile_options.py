@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -12,14 +13,26 @@ from click.testing import CliRunner
 
 from gscompress.camera import quat_to_rotmat
 from gscompress.datasets.base import parse_frames, parse_size
-from gscompress.errors import DatasetError, InputError, MapError, OptionError, OutputError
+from gscompress.datasets.recording import RecordingOptions
+from gscompress.errors import (
+    DatasetError,
+    GscError,
+    InputError,
+    MapError,
+    OptionError,
+    OutputError,
+)
 from gscompress.gaussians import random_map
 from gscompress.io import files
 from gscompress.io.files import check_output, read_text
 from gscompress.io.trajectory import read_transform
 from gscompress.ops.merge import MergeOptions, transform_map
-from gscompress.slam.config import load_config
-from gscompress_cli.main import cli, with_flags
+from gscompress.pipeline.experiment.protocol import ExperimentSettings
+from gscompress.pipeline.experiment.run import check_executor
+from gscompress.pipeline.slam_run import refuse_own_settings
+from gscompress.slam.config import load_config, resolve_config
+from gscompress_cli.flags import with_flags
+from gscompress_cli.main import cli
 
 
 def test_an_output_that_is_a_fifo_is_refused_even_with_force(tmp_path: Path) -> None:
@@ -239,7 +252,7 @@ def test_a_merge_whose_refinement_diverges_says_how_to_merge_anyway(
     monkeypatch.setattr(Mapper, "refine", diverging)
     view = View(0, torch.zeros(24, 32, 3), torch.ones(24, 32), np.eye(4))
     intrinsics = Intrinsics(30.0, 30.0, 16.0, 12.0, 32, 24)
-    with pytest.raises(DivergenceError, match=r"refinement diverged \(its loss .*--iters 0"):
+    with pytest.raises(DivergenceError, match=r"refinement diverged \(its loss .*`iters` 0"):
         refine(random_map(5, seed=0), [view], intrinsics, preset("tiny"), 3)
 
 
@@ -264,6 +277,50 @@ def test_an_output_named_as_a_folder_or_empty_is_refused(tmp_path: Path, name: s
         assert r.exit_code == 2, r.output
         assert ("names a folder" if name else "an empty path names no file") in r.output
     assert set(tmp_path.iterdir()) == before
+
+
+def _refused(call: Callable[[], object]) -> GscError:
+    with pytest.raises(GscError) as caught:
+        call()
+    return caught.value
+
+
+@pytest.mark.parametrize(
+    ("call", "on_the_command_line"),
+    [
+        (
+            lambda: resolve_config("tiny", keep=0.5, no_prune=True),
+            "--keep does not go with --no-prune: there is no pruning stage",
+        ),
+        (lambda: MergeOptions(margin=0.5).check(), "--margin must be >= 1, got 0.5"),
+        (
+            lambda: RecordingOptions(max_dt=2.0),
+            "--max-dt must be above 0 and at most 1 s, got 2.0",
+        ),
+        (lambda: RecordingOptions(camera_info=" "), "--camera-info must name a topic"),
+        (
+            lambda: check_executor("local", 1, "ray://head:10001", None),
+            "--address and --cpus-per-run are for --executor ray",
+        ),
+        (
+            lambda: ExperimentSettings(seeds=2, sweep_seeds=3).check(),
+            "--sweep-seeds 3 is more than --seeds 2: the sweep runs on the first seeds",
+        ),
+        (
+            lambda: refuse_own_settings(
+                (None, None, "0:4", None, None, None, None, None), True, None
+            ),
+            "--resume continues with the log's own settings; drop --frames, --no-prune",
+        ),
+    ],
+)
+def test_a_library_error_names_no_flag(
+    call: Callable[[], object], on_the_command_line: str
+) -> None:
+    """The library speaks of its parameters (`name`); gsc shows each as its flag (--name)."""
+    refused = _refused(call)
+    assert "--" not in str(refused)
+    assert with_flags(refused) == on_the_command_line
 
 
 def test_a_library_error_names_its_parameters_and_gsc_shows_them_as_flags(tmp_path: Path) -> None:

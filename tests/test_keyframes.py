@@ -222,17 +222,17 @@ def test_keyframes_of_another_camera_are_refused(agents: dict[str, Path]) -> Non
     root, seq = agents["root"], agents["seq"]
     share = root / "kf_cam.mcap"
     share_log(agents["a"], share, 1.0, carry=carried_keyframes(agents["a"], 1, seq), force=True)
-    with pytest.raises(InputError, match=r"another camera.*merge with --no-keyframes"):
+    with pytest.raises(InputError, match=r"another camera.*merge with `no_keyframes`"):
         merge_logs(agents["b"], share, root / "c.mcap", seq=seq, iters=2, size=(32, 24))
     assert not (root / "c.mcap").exists()
     # an injected run has no --no-keyframes: the message names what it can do
-    with pytest.raises(InputError, match=r"another camera.*sender's --size") as refused:
+    with pytest.raises(InputError, match=r"another camera.*sender's `size`") as refused:
         slam_file(
             seq,
             root / "i.mcap",
             SlamOptions(preset="tiny", frames="3:5", size=(32, 24), inject=share),
         )
-    assert "--no-keyframes" not in str(refused.value)
+    assert "no_keyframes" not in str(refused.value)
     assert not (root / "i.mcap").exists()
 
 

@@ -173,7 +173,7 @@ def test_writer_exception_leaves_no_file(tmp_path):
 def test_writer_refuses_existing_output_and_inputs(tmp_path):
     path = tmp_path / "x.mcap"
     path.write_bytes(b"keep me")
-    with pytest.raises(OutputError, match="--force"):
+    with pytest.raises(OutputError, match="pass `force`"):
         LogWriter(path, LogMetadata())
     with pytest.raises(OutputError, match="also an input"):
         LogWriter(path, LogMetadata(), inputs=[path], force=True)

@@ -105,7 +105,7 @@ def test_merge_refines_on_keyframes_only_when_asked(agents: dict[str, Path]) -> 
     assert result["refine_backend"] == "torch"  # the option's, not the receiver's config's
     with LogReader(out) as log:
         assert log.metadata.provenance[-1]["operation"]["views"] == "keyframes"
-    with pytest.raises(InputError, match="--views"):
+    with pytest.raises(InputError, match="`views`"):
         merge_logs(
             agents["b"], agents["share"], agents["root"] / "x.mcap", seq=agents["seq"], views="all"
         )
@@ -137,7 +137,7 @@ def test_merge_refuses_unknown_or_different_world_frames(
     slam_file(other_seq, other, SlamOptions(preset="tiny"))
     with pytest.raises(MapError, match="not known to agree"):
         merge_logs(agents["b"], other, tmp_path / "x.mcap", iters=0)
-    with pytest.raises(InputError, match="--seq"):
+    with pytest.raises(InputError, match="`seq`"):
         merge_logs(agents["b"], agents["share"], tmp_path / "x.mcap", iters=5)
     with pytest.raises(InputError, match="the receiver log itself"):
         merge_logs(agents["b"], agents["b"], tmp_path / "x.mcap", iters=0)

@@ -159,7 +159,7 @@ def test_without_open3d_the_default_merge_aligns_and_open3ds_icp_names_the_extra
     np.testing.assert_allclose(T[:3, 3], B_OFFSET, atol=1e-4)
     np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-5)
     assert stats["align_kept"] and stats["align_rmse_after_cm"] < 0.01
-    with pytest.raises(MissingDependencyError, match=r"gscompress\[align\].*--no-align"):
+    with pytest.raises(MissingDependencyError, match=r"gscompress\[align\].*`no_align`"):
         combine(agents["b"], agents["a"], replace(RESOLVED, icp="open3d"))
     merged, from_share, _, stats = combine(agents["b"], agents["a"], replace(RESOLVED, align=False))
     assert "align_pairs" not in stats
@@ -209,7 +209,7 @@ def test_a_margin_gives_near_ties_to_the_receiver() -> None:
     assert stats["share_dropped"] == int((~left).sum())
     keep_r, keep_s, _ = resolve_overlap(scene, twin, np.ones(len(scene)), share_evidence)
     assert keep_s.all() and not keep_r.any()  # without a margin the share wins both sides
-    with pytest.raises(OptionError, match="--margin"):
+    with pytest.raises(OptionError, match="`margin`"):
         MergeOptions(margin=0.5).check()
 
 

@@ -129,7 +129,7 @@ def test_a_receiver_in_another_frame_is_refused_without_alignment(agents):
     other = write_log(
         agents["root"] / "c.mcap", gaussians=None, poses=[np.eye(4)], world="first-camera:room:0"
     )
-    with pytest.raises(InputError, match="--align-to"):
+    with pytest.raises(InputError, match="`align_to`"):
         share_log(agents["a"], agents["root"] / "c_share.mcap", 0.5, receiver=other)
     no_poses = write_log(agents["root"] / "d.mcap", gaussians=None, poses=[])
     with pytest.raises(InputError, match="/camera/pose"):

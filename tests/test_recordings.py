@@ -269,13 +269,13 @@ def test_ambiguous_topics_name_the_candidates():
     topics = _topics("/left/image", "/right/image", "/left/depth")
     with pytest.raises(DatasetError) as info:
         choose_topics(topics, RecordingOptions(), "rec")
-    assert "candidates: /left/image, /right/image; pass --rgb TOPIC" in str(info.value)
+    assert "candidates: /left/image, /right/image; pass `rgb` TOPIC" in str(info.value)
     choice = choose_topics(topics, RecordingOptions(rgb="/right/image"), "rec")
     assert (choice.rgb, choice.depth) == ("/right/image", "/left/depth")
-    with pytest.raises(DatasetError, match="no topic '/nope' \\(--depth\\)"):
+    with pytest.raises(DatasetError, match="no topic '/nope' \\(`depth`\\)"):
         choose_topics(topics, RecordingOptions(depth="/nope"), "rec")
     two_infos = _topics("/a/image", "/b/depth", info=("/c/info", "/d/info"))
-    with pytest.raises(DatasetError, match="candidates: /c/info, /d/info; pass --camera-info"):
+    with pytest.raises(DatasetError, match="candidates: /c/info, /d/info; pass `camera_info`"):
         choose_topics(two_infos, RecordingOptions(), "rec")
     with pytest.raises(DatasetError, match="no camera info"):
         choose_topics(_topics("/a/image", "/b/depth", info=()), RecordingOptions(), "rec")

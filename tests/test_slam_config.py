@@ -87,7 +87,7 @@ def test_resolve_config_applies_command_line_overrides(tmp_path):
     assert config.mapping == preset("tiny").mapping
     assert resolve_config("tiny", no_prune=True).prune.stages == ()
     assert resolve_config("cpu") == preset("cpu") == resolve_config()
-    with pytest.raises(OptionError, match="--keep does not go with --no-prune"):
+    with pytest.raises(OptionError, match="`keep` does not go with `no_prune`"):
         resolve_config("tiny", keep=0.5, no_prune=True)
 
 
@@ -102,7 +102,7 @@ def test_a_config_file_and_preset_must_agree(tmp_path):
     assert resolve_config("tiny", named) == resolve_config(None, named)
     assert resolve_config("paper", plain).tracking == preset("paper").tracking
     assert resolve_config(None, plain).preset == "cpu"
-    with pytest.raises(OptionError, match="starts from preset 'tiny', not --preset paper"):
+    with pytest.raises(OptionError, match="starts from preset 'tiny', not `preset` paper"):
         resolve_config("paper", named)
 
 

@@ -15,6 +15,7 @@ from gscompress.io.mcap_log import LogReader
 from gscompress.pipeline.slam_run import RESUME_KEEPS, refuse_own_settings, slam_file
 from gscompress.pipeline.slam_run.options import SlamOptions
 from gscompress.slam.config import resolve_config
+from gscompress_cli.flags import with_flags
 
 TINY = SlamOptions(preset="tiny", frames="0:3", size=(32, 24))
 
@@ -22,14 +23,14 @@ TINY = SlamOptions(preset="tiny", frames="0:3", size=(32, 24))
 @pytest.mark.parametrize(
     ("options", "error", "message"),
     [
-        (SlamOptions(keep=0.0), InputError, r"--keep must be in \(0, 1\], got 0.0"),
-        (SlamOptions(keep=1.5), InputError, r"--keep must be in \(0, 1\], got 1.5"),
+        (SlamOptions(keep=0.0), InputError, r"`keep` must be in \(0, 1\], got 0.0"),
+        (SlamOptions(keep=1.5), InputError, r"`keep` must be in \(0, 1\], got 1.5"),
         (
             SlamOptions(keep=0.5, no_prune=True),
             OptionError,
-            "--keep does not go with --no-prune: there is no pruning stage",
+            "`keep` does not go with `no_prune`: there is no pruning stage",
         ),
-        (SlamOptions(share_transform="t.txt"), OptionError, "a share transform needs --inject"),
+        (SlamOptions(share_transform="t.txt"), OptionError, "a share transform needs `inject`"),
     ],
 )
 def test_check_refuses_what_slam_file_refused(
@@ -107,25 +108,29 @@ def test_gsc_slam_passes_each_setting(monkeypatch, seq_dir: Path, tmp_path: Path
     )
 
 
-@pytest.mark.parametrize("name", [*RESUME_KEEPS, "--no-prune", "recording"])
+@pytest.mark.parametrize("name", [*RESUME_KEEPS, "no_prune", "recording"])
 def test_resume_refuses_each_of_a_fresh_runs_settings(name: str) -> None:
     values: dict[str, Any] = {
-        "--preset": {"preset": "tiny"},
-        "--config": {"config_path": "c.yaml"},
-        "--frames": {"frames": "0:3"},
-        "--size": {"size": (32, 24)},
-        "--backend": {"backend": "torch"},
-        "--keep": {"keep": 0.5},
-        "--inject": {"inject": "s.mcap"},
-        "--share-transform": {"share_transform": "t.txt"},
-        "--no-prune": {"no_prune": True},
+        "preset": {"preset": "tiny"},
+        "config": {"config_path": "c.yaml"},
+        "frames": {"frames": "0:3"},
+        "size": {"size": (32, 24)},
+        "backend": {"backend": "torch"},
+        "keep": {"keep": 0.5},
+        "inject": {"inject": "s.mcap"},
+        "share_transform": {"share_transform": "t.txt"},
+        "no_prune": {"no_prune": True},
         "recording": {"recording": RecordingOptions(rgb="/c")},
     }
     options = SlamOptions(**values[name])
-    flag = "--rgb/--depth/--camera-info/--max-dt/--gt" if name == "recording" else name
+    recording = "`rgb`/`depth`/`camera_info`/`max_dt`/`gt`"
+    named = recording if name == "recording" else f"`{name}`"
     with pytest.raises(OptionError) as refused:
         refuse_own_settings(options.kept, options.no_prune, options.recording)
-    assert str(refused.value) == f"--resume continues with the log's own settings; drop {flag}"
+    said = "continues with the log's own settings; drop"
+    assert str(refused.value) == f"`resume` {said} {named}"
+    flag = "--rgb/--depth/--camera-info/--max-dt/--gt" if name == "recording" else f"--{name}"
+    assert with_flags(refused.value) == f"--resume {said} {flag.replace('_', '-')}"
     default = SlamOptions(recording=RecordingOptions())
     refuse_own_settings(default.kept, default.no_prune, default.recording)  # nothing given
 

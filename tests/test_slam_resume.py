@@ -90,9 +90,9 @@ def test_interrupted_run_is_a_valid_log_and_resumes_to_every_frame(
     assert r.exit_code != 0 and "drop --keep" in r.output
     r = CliRunner().invoke(cli, [*resume, "--preset", "tiny", "--frames", "0:4"])
     assert r.exit_code != 0 and "drop --preset, --frames" in r.output
-    with pytest.raises(InputError, match="drop --keep"):
+    with pytest.raises(InputError, match="drop `keep`"):
         refuse_own_settings((None, None, None, None, None, 0.5, None, None), False, None)
-    with pytest.raises(InputError, match="drop --preset, --frames"):
+    with pytest.raises(InputError, match="drop `preset`, `frames`"):
         refuse_own_settings(("tiny", None, "0:4", None, None, None, None, None), False, None)
 
 
@@ -567,7 +567,7 @@ def test_resuming_an_injected_run_that_holds_no_map_yet_is_refused(
     with pytest.raises(KeyboardInterrupt):
         slam_file(seq_dir_8, b, SlamOptions(config_path=config, frames="even", inject=share))
     monkeypatch.undo()
-    with pytest.raises(InputError, match=r"holds no map yet, so not the share .*\(--inject"):
+    with pytest.raises(InputError, match=r"holds no map yet, so not the share .*\(`inject`"):
         resume_slam_file(seq_dir_8, b)
 
 

@@ -85,7 +85,9 @@ def open_sequence(
                 known = read_intrinsics_file(Path(intrinsics))[0]
             return open_recording(root, selection, size, known, recording)
     elif recording is not None and not recording.is_default:
-        raise DatasetError(f"{root} is a sequence folder: topics and --gt are for recordings")
+        raise DatasetError(
+            f"{root} is a sequence folder: topics and `gt` are for recordings", options=("gt",)
+        )
     if not root.is_dir():
         raise DatasetError(f"sequence folder or recording not found: {root}")
     explicit = intrinsics if isinstance(intrinsics, Intrinsics | None) else Path(intrinsics)

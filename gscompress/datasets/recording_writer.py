@@ -78,7 +78,7 @@ def check_recording_output(out: Path, fmt: str, force: bool) -> RecordingFormat:
         raise OutputError(f"{out}: a {fmt} bag is a folder; name it without {out.suffix}")
     if out.exists():
         if not force:
-            raise OutputError(f"{out} exists; pass --force to replace it")
+            raise OutputError(f"{out} exists; pass `force` to replace it", options=("force",))
         if out.is_dir() and not (out / "metadata.yaml").is_file():
             raise OutputError(f"{out} is a folder but not a ROS 2 bag; not replacing it")
     if not out.parent.is_dir():
@@ -166,7 +166,8 @@ def millimetres(depth: np.ndarray) -> np.ndarray:
     back = (mm16.astype(np.float64) / MM_PER_METRE).astype(np.float32)
     if not np.array_equal(back[valid], depth[valid]):
         raise OutputError(
-            "depth is finer than a millimetre: 16UC1 would change it; use --depth-encoding 32FC1"
+            "depth is finer than a millimetre: 16UC1 would change it; use `depth_encoding` 32FC1",
+            options=("depth_encoding",),
         )
     return mm16
 

@@ -546,8 +546,8 @@ def _check_replaceable(out: Path) -> None:
     """Refuse to replace (`--force`) a folder holding anything a TUM sequence's listings do not
     name: files besides `TUM_ENTRIES` at the top, or in rgb/ and depth/ anything but the images
     that rgb.txt and depth.txt list (a user's notes or originals kept beside the frames)."""
-    action = "not replacing it even with --force"
-    check_only_entries(out, TUM_ENTRIES, "a TUM sequence", action)
+    action = "not replacing it even with `force`"
+    check_only_entries(out, TUM_ENTRIES, "a TUM sequence", action, ("force",))
     for images in ("rgb", "depth"):
         folder, listing = out / images, out / f"{images}.txt"
         if not folder.exists():
@@ -609,7 +609,9 @@ def write_synthetic_sequence(
         raise OutputError(f"cannot replace {out}, which holds the current folder: name a new one")
     if out.is_dir() and any(out.iterdir()):
         if not force:
-            raise OutputError(f"output folder is not empty: {out} (use --force to replace it)")
+            raise OutputError(
+                f"output folder is not empty: {out} (use `force` to replace it)", options=("force",)
+            )
         _check_replaceable(out)
     sequence = SyntheticSequence(frames, size, seed, supersample)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -212,7 +212,7 @@ def check_output(
     if output.exists() and not output.is_file():  # the rename would replace /dev/null
         raise OutputError(f"{output} is not a regular file (a device or a FIFO?); choose a file")
     if output.exists() and not force:
-        raise OutputError(f"{output} exists; pass --force to overwrite it")
+        raise OutputError(f"{output} exists; pass `force` to overwrite it", options=("force",))
     if not output.parent.exists():
         raise OutputError(f"directory {output.parent} does not exist")
     if not os.access(output.parent, os.W_OK | os.X_OK):  # before any work is done
@@ -357,16 +357,20 @@ def is_being_written(path: Path) -> bool:
     return False
 
 
-def check_only_entries(folder: Path, allowed: frozenset[str], what: str, action: str) -> None:
+def check_only_entries(
+    folder: Path, allowed: frozenset[str], what: str, action: str, options: tuple[str, ...] = ()
+) -> None:
     """Refuse a folder holding anything besides `allowed` entries (what gsc itself wrote there).
 
     Raises:
-        OutputError: naming up to three foreign entries, "not {what}", then `action`.
+        OutputError: naming up to three foreign entries, "not {what}", then `action` (which
+            names the parameters `options`, as `GscError`'s).
     """
     foreign = [p.name for p in folder.iterdir() if p.name not in allowed]
     if foreign:
         raise OutputError(
-            f"{folder} holds files that are not {what} ({some_names(foreign)}); {action}"
+            f"{folder} holds files that are not {what} ({some_names(foreign)}); {action}",
+            options=options,
         )
 
 

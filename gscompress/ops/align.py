@@ -196,7 +196,7 @@ def auto_voxel(*clouds: Cloud, points: int = 4000) -> float:
     return max(min(spacings), 1e-6) * max(1.5, float(np.sqrt(largest / points)))
 
 
-GLOBAL_STEP = "the global step of an alignment (used without --init)"
+GLOBAL_STEP = "the global step of an alignment (used without `init`)"
 
 FINE_STAGES: Stages = ((1.0, 30), (0.5, 30))
 """The local step's ICP on the half-voxel grid: pairs within one voxel, then within half of one."""
@@ -206,7 +206,7 @@ COARSE_STAGES: Stages = ((1.5, 20),)
 
 
 def _fpfh(pcd: Any, voxel: float) -> Any:
-    o3d = open3d_module(GLOBAL_STEP)
+    o3d = open3d_module(GLOBAL_STEP, ("init",))
     return o3d.pipelines.registration.compute_fpfh_feature(
         pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel, max_nn=100)
     )
@@ -422,7 +422,7 @@ def _open3d_grid(cloud: Cloud, voxel: float) -> Cloud:
     normals as `grid_cloud` keeps and turns them. The global step works on this grid rather than
     `grid_cloud`'s: its FPFH bins and RANSAC's samples follow the last digits of the normals and
     the order of the cells, and on Open3D's grid it finds what docs/align.md measured."""
-    o3d = open3d_module(GLOBAL_STEP)
+    o3d = open3d_module(GLOBAL_STEP, ("init",))
     pcd = o3d.geometry.PointCloud()
     pcd.points = o3d.utility.Vector3dVector(cloud.points)
     pcd.colors = o3d.utility.Vector3dVector(cloud.colors)
@@ -453,7 +453,7 @@ def _global_step(
     """Hypotheses without an initial guess (FPFH matches under Fast Global Registration and
     RANSAC, then the best one turned about its principal axes), each settled by point-to-plane
     ICP on the `voxel` grid and scored by its agreement on the fine grids. Needs Open3D."""
-    o3d = open3d_module(GLOBAL_STEP)
+    o3d = open3d_module(GLOBAL_STEP, ("init",))
     reg = o3d.pipelines.registration
     src_down, tgt_down = _open3d_grid(source, voxel), _open3d_grid(target, voxel)
     src_o3d, tgt_o3d = to_open3d(src_down), to_open3d(tgt_down)

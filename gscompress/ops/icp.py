@@ -78,9 +78,10 @@ class Cloud:
             raise InputError(f"a cloud's viewpoints must be [M, 3], got {self.viewpoints.shape}")
 
 
-def open3d_module(needed_for: str) -> Any:
-    """The open3d module, or MissingDependencyError saying what `needed_for` it and how to get
-    it (its Linux build also needs the system's libusb-1.0)."""
+def open3d_module(needed_for: str, options: tuple[str, ...] = ()) -> Any:
+    """The open3d module, or MissingDependencyError saying what `needed_for` it (naming the
+    parameters `options`, as `GscError`'s) and how to get it (its Linux build also needs the
+    system's libusb-1.0)."""
     try:
         import open3d
     except ImportError as exc:
@@ -89,7 +90,9 @@ def open3d_module(needed_for: str) -> Any:
             if "libusb" in str(exc)
             else f"install it with {INSTALL_HINT}"
         )
-        raise MissingDependencyError(f"{needed_for} needs Open3D ({exc}); {fix}") from None
+        raise MissingDependencyError(
+            f"{needed_for} needs Open3D ({exc}); {fix}", options=options
+        ) from None
     open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)  # (no stdout chatter)
     return open3d
 

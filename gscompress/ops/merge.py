@@ -34,19 +34,22 @@ from gscompress.ops.icp import DEFAULT_ICP, ICP
 MAX_ID = np.iinfo(np.uint32).max
 
 
-def check_same_world(receiver: str, share: str, what: str) -> None:
-    """Refuse to combine maps whose world frames are unknown or not known to agree."""
+def check_same_world(receiver: str, share: str, what: str, options: tuple[str, ...] = ()) -> None:
+    """Refuse to combine maps whose world frames are unknown or not known to agree (`what`
+    names the step, and the parameters `options`, as `GscError`'s)."""
     if not receiver or not share:
         raise MapError(
             f"{what}: the world frame of {'the share' if not share else 'the receiver'} is "
             "unknown; only maps anchored to the same frame can be combined (give the transform "
-            "between the two frames with --share-transform)"
+            "between the two frames with `share_transform`)",
+            options=(*options, "share_transform"),
         )
     if receiver != share:
         raise MapError(
             f"{what}: the share is expressed in {share!r} but the receiver in {receiver!r}; "
             "maps whose world frames are not known to agree cannot be combined (give the "
-            "transform between them with --share-transform)"
+            "transform between them with `share_transform`)",
+            options=(*options, "share_transform"),
         )
 
 
@@ -171,7 +174,7 @@ class MergeOptions:
         if not (math.isfinite(self.voxel) and self.voxel > 0):
             raise OptionError(f"`voxel` must be > 0 (m), got {self.voxel}", options=("voxel",))
         if not (math.isfinite(self.margin) and self.margin >= 1.0):
-            raise OptionError(f"--margin must be >= 1, got {self.margin}")
+            raise OptionError(f"`margin` must be >= 1, got {self.margin}", options=("margin",))
         if not 0.0 <= self.share_rate <= 1.0:
             raise OptionError(
                 f"`share_rate` must be in [0, 1], got {self.share_rate}", options=("share_rate",)
@@ -366,7 +369,10 @@ def combine(
         try:
             T, found = align_share(receiver, share, max_distance=options.voxel, icp=options.icp)
         except MissingDependencyError as exc:
-            raise MissingDependencyError(f"{exc}; or merge without aligning (--no-align)") from None
+            raise MissingDependencyError(
+                f"{exc}; or merge without aligning (`no_align`)",
+                options=(*exc.options, "no_align"),
+            ) from None
         stats.update(found)
         if found["align_pairs"]:
             share = transform_map(share, T)

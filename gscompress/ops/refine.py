@@ -58,7 +58,7 @@ def refine(
     seed: int = 0,
     lr_final_fraction: float = 1.0,
     progress: Callable[[int], object] | None = None,
-    instead: str = "merge with --iters 0 to concatenate only",
+    instead: str = "merge with `iters` 0 to concatenate only",
     rates: Any = None,
 ) -> tuple[GaussianMap, dict[str, Any]]:
     """Optimise a map on fixed views for `iters` iterations, each view once per shuffled pass.
@@ -74,7 +74,8 @@ def refine(
         lr_final_fraction: the learning rates (the config's mapping ones) decay geometrically
             to this fraction of their value at the last iteration (1: constant).
         progress: called with 1 after each iteration.
-        instead: what to do without a refinement, said when it diverges.
+        instead: what to do without a refinement, said when it diverges (it may name the
+            parameter `iters`, as `GscError`'s do).
         rates: [N] factors in [0, 1] on each Gaussian's steps (0: it keeps its values; None: 1
             for every Gaussian). A merge slows the share's Gaussians that the receiver's views
             barely see.
@@ -99,7 +100,8 @@ def refine(
     if gaussians.sh_degree > 0:
         raise MapError(
             f"refinement optimises SH degree 0 only; this map has degree {gaussians.sh_degree} "
-            f"({instead} and keep its higher bands)"
+            f"({instead} and keep its higher bands)",
+            options=("iters",),
         )
     if not views:
         raise MapError("no views to refine on")
@@ -122,7 +124,10 @@ def refine(
         )
     except DivergenceError as exc:  # (its rates are the log's mapping ones, from its config)
         raise DivergenceError(
-            "the refinement", exc.detail, f"it ran at the log's mapping rates; {instead}"
+            "the refinement",
+            exc.detail,
+            f"it ran at the log's mapping rates; {instead}",
+            options=("iters",),
         ) from None
     stats = {"iters": iters, "loss_before": loss_before, "loss_after": mapper.loss(views)}
     return mapper.params.to_map(), stats

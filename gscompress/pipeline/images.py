@@ -50,7 +50,9 @@ def check_colorings(colorings: tuple[str, ...]) -> tuple[str, ...]:
     """
     unknown = [c for c in colorings if c not in COLORINGS]
     if unknown or not colorings:
-        raise InputError(f"--color takes {', '.join(COLORINGS)}; got {', '.join(colorings)}")
+        raise InputError(
+            f"`color` takes {', '.join(COLORINGS)}; got {', '.join(colorings)}", options=("color",)
+        )
     return tuple(dict.fromkeys(colorings))
 
 
@@ -107,7 +109,9 @@ class ImageOptions:
             )
         folder = None if self.save_images is None else Path(self.save_images)
         if folder is not None and not self.force and folder.is_dir() and any(folder.iterdir()):
-            raise OutputError(f"{folder} holds files already; pass --force to write over them")
+            raise OutputError(
+                f"{folder} holds files already; pass `force` to write over them", options=("force",)
+            )
 
 
 @dataclass(frozen=True)

@@ -104,7 +104,8 @@ def pose_source(path: str | Path) -> Poses:
         if len(found.times_ns) == 0:
             raise LogFormatError(
                 f"{path} has no {TOPIC_POSE} messages (not a SLAM log): no poses to render at; "
-                "give them with --poses TRAJ.txt or --poses-from OTHER.mcap"
+                "give them with `poses` TRAJ.txt or `poses_from` OTHER.mcap",
+                options=("poses", "poses_from"),
             )
         return Poses(found.times_ns, found.T_world_cam, POSE_MATCH_TOLERANCE_NS, found.source)
     tum = read_tum_trajectory(path)
@@ -391,7 +392,10 @@ def spread_keyframes(
     chosen = sorted({keyframes[int(k)] for k in spread})
     if seq is None:
         if intrinsics is None:
-            raise InputError(f"{src} has no camera calibration: give --seq to render at its size")
+            raise InputError(
+                f"{src} has no camera calibration: give `seq` to render at its size",
+                options=("seq",),
+            )
         times = [int(pose_ns[i]) for i in chosen]
         return SpreadKeyframes(times, [poses[i] for i in chosen], None, intrinsics)
     sequence = open_log_sequence(seq, src, meta, recording=recording)
@@ -420,7 +424,7 @@ def carried_keyframes(
     from gscompress.io.mcap_log import seconds_to_ns
 
     if not 1 <= count <= MAX_CARRIED:
-        raise InputError(f"--keyframes is 1 to {MAX_CARRIED}, got {count}")
+        raise InputError(f"`keyframes` is 1 to {MAX_CARRIED}, got {count}", options=("keyframes",))
     chosen = spread_keyframes(src, count, seq, "carrying keyframes", recording)
     assert chosen.frames is not None
     frames = [
@@ -483,9 +487,11 @@ def read_share(
     what: str,
     transform: str | Path | None = None,
     keyframes: bool = False,
+    options: tuple[str, ...] = (),
 ) -> ReceivedShare:
     """A share's map in the receiver's world frame, what to record of it and, with `keyframes`,
-    the keyframes it carries (`gscompress.io.keyframes`) moved alike.
+    the keyframes it carries (`gscompress.io.keyframes`) moved alike. `what` names the receiving
+    step in an error, and the parameters `options` (as `GscError`'s).
 
     Without `transform` the share's recorded world frame must be the receiver's; with it, the
     share is moved by the transform in the file (share frame -> receiver frame) instead.
@@ -507,7 +513,7 @@ def read_share(
             carried, camera = read_carried(share_log)
     record: dict[str, Any] = {"share": Path(share).name, "share_sha256": sha256(share)}
     if transform is None:
-        check_same_world(receiver_world, world, what)
+        check_same_world(receiver_world, world, what, options)
     else:
         T = read_transform(transform)
         shared = transform_map(shared, T)
@@ -519,11 +525,17 @@ def read_share(
 
 
 def check_same_camera(
-    carried: Intrinsics | None, receiver: Intrinsics, share: Path | str, what: str, remedy: str
+    carried: Intrinsics | None,
+    receiver: Intrinsics,
+    share: Path | str,
+    what: str,
+    remedy: str,
+    options: tuple[str, ...] = (),
 ) -> None:
     """Refuse keyframes taken with another camera (or size) than the receiver refines at: one
     refinement renders every view with one camera. `what` names the receiving step ("the
-    merge refines"), `remedy` what the user can do instead."""
+    merge refines"), `remedy` what the user can do instead, naming the parameters `options`
+    (as `GscError`'s)."""
     if carried is None or not np.allclose(
         [carried.fx, carried.fy, carried.cx, carried.cy, carried.width, carried.height],
         [receiver.fx, receiver.fy, receiver.cx, receiver.cy, receiver.width, receiver.height],
@@ -532,5 +544,6 @@ def check_same_camera(
         got = "no camera" if carried is None else f"{carried.width}x{carried.height}"
         raise InputError(
             f"{share} carries keyframes of another camera ({got}) than the receiver's "
-            f"{receiver.width}x{receiver.height} at which {what}: {remedy}"
+            f"{receiver.width}x{receiver.height} at which {what}: {remedy}",
+            options=options,
         )

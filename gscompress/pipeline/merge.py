@@ -137,9 +137,12 @@ def _check_inputs(
 ) -> None:
     """Refuse `merge_logs`' refinement options out of range, a refinement without the receiver's
     sequence, an output that would overwrite an input, and a share that is the receiver."""
-    options.check("--iters")
+    options.check()
     if options.iters > 0 and seq is None:
-        raise OptionError("refining needs the receiver's sequence: pass --seq (or --iters 0)")
+        raise OptionError(
+            "refining needs the receiver's sequence: pass `seq` (or `iters` 0)",
+            options=("seq", "iters"),
+        )
     inputs = [receiver] + [p for p in (share, seq, share_transform) if p is not None]
     check_output(dst, inputs, force, ".mcap")
     if share is not None and Path(share).exists() and Path(share).samefile(receiver):
@@ -158,7 +161,7 @@ def _receiver_refiner(
     carries from another camera than the receiver's."""
     from gscompress.pipeline.refining import LogRefiner
 
-    instead = "merge with --iters 0 to concatenate only"
+    instead = "merge with `iters` 0 to concatenate only"
     refiner = LogRefiner(receiver, seq, options, progress, instead)
     if received is not None and received.carried:
         check_same_camera(
@@ -166,7 +169,8 @@ def _receiver_refiner(
             refiner.intrinsics,
             str(share),
             "the merge refines",
-            "merge with --no-keyframes",
+            "merge with `no_keyframes`",
+            ("no_keyframes",),
         )
     return refiner
 

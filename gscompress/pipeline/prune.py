@@ -38,7 +38,7 @@ def prune_log(
     `rewrite_map`). `refine` (a `gscompress.pipeline.refining.LogRefiner`) refines the kept
     Gaussians before they are written; it never adds or drops one.
     """
-    check_ratio(keep, "--keep")
+    check_ratio(keep, "`keep`", ("keep",))
 
     def prune(full: GaussianMap) -> tuple[GaussianMap, dict[str, Any]]:
         scores = selection_scores(full, by, seed)

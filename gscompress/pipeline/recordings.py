@@ -14,7 +14,7 @@ from typing import Any
 from gscompress.datasets import RecordingOptions, open_sequence
 from gscompress.datasets.recording import describe_recording
 from gscompress.datasets.recording_writer import write_recording
-from gscompress.errors import OutputError
+from gscompress.errors import GscError, OutputError
 from gscompress.io.files import is_within, resolved
 
 GSC_LOG, ROS2_BAG, FOXGLOVE = "gscompress log", "ROS 2 bag (MCAP)", "Foxglove recording (MCAP)"
@@ -49,10 +49,15 @@ def is_log(path: str | Path) -> bool:
     return mcap_kind(p) == GSC_LOG
 
 
-def recording_info(path: str | Path, options: RecordingOptions | None = None) -> dict[str, Any]:
+def recording_info(
+    path: str | Path,
+    options: RecordingOptions | None = None,
+    error_text: Callable[[GscError], str] = str,
+) -> dict[str, Any]:
     """What a recording holds (`gscompress.datasets.recording.describe_recording`): kind,
-    topics with counts, sizes, encodings and rates, and the pair `gsc slam` would read."""
-    return describe_recording(Path(path), options)
+    topics with counts, sizes, encodings and rates, and the pair `gsc slam` would read (or
+    why it would read none, the error as `error_text` says it)."""
+    return describe_recording(Path(path), options, error_text)
 
 
 def convert_sequence(

@@ -93,12 +93,15 @@ class RefineOptions:
     anisotropic: bool = False
     recording: Any = None
 
-    def check(self, iters_option: str = "--refine") -> None:
-        """Raise OptionError for an option out of range (named as the command names it)."""
+    def check(self) -> None:
+        """Raise OptionError for an option out of range."""
         if self.iters < 0:
-            raise OptionError(f"{iters_option} must be >= 0, got {self.iters}")
+            raise OptionError(f"`iters` must be >= 0, got {self.iters}", options=("iters",))
         if self.views not in REFINE_VIEWS:
-            raise OptionError(f"--views is one of {', '.join(REFINE_VIEWS)}, got {self.views!r}")
+            raise OptionError(
+                f"`views` is one of {', '.join(REFINE_VIEWS)}, got {self.views!r}",
+                options=("views",),
+            )
         if not is_fraction(self.lr_final):
             raise OptionError(
                 f"`lr_final` must be in (0, 1], got {self.lr_final}", options=("lr_final",)

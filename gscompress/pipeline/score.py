@@ -170,7 +170,8 @@ def _poses_to_score_from(
     if poses is None and meta is not None and meta.world_frame.startswith("first-camera:"):
         raise InputError(
             f"{src} has no poses and its world frame is its run's first camera, not the "
-            f"ground truth of {sequence.name}: pass --poses TRAJ.txt (in its frame)"
+            f"ground truth of {sequence.name}: pass `poses` TRAJ.txt (in its frame)",
+            options=("poses",),
         )
     stamps, T_world_cams = view_poses(sequence, poses)
     return stamps, T_world_cams, Path(poses).name if poses else POSES_GROUND_TRUTH
@@ -248,7 +249,8 @@ def view_poses(sequence: Any, poses: str | Path | None) -> tuple[np.ndarray, np.
     if poses is None:
         if not sequence.has_ground_truth:
             raise DatasetError(
-                f"{sequence.name} has no ground-truth poses; pass --poses TRAJ.txt (TUM format)"
+                f"{sequence.name} has no ground-truth poses; pass `poses` TRAJ.txt (TUM format)",
+                options=("poses",),
             )
         stamps, T = sequence.ground_truth()
         return np.asarray(stamps), np.asarray(T)

@@ -168,7 +168,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
         if rasterization is None:
             if asked == "auto":
                 return "torch"
-            raise MissingDependencyError(why)
+            raise MissingDependencyError(why, options=("backend",))
     return backend
 
 

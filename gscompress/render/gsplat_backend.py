@@ -62,7 +62,7 @@ def gsplat_kernels() -> tuple[Callable[..., Any] | None, str | None]:
         reason = " (gsplat found no CUDA toolkit to build them with)"
     why = (
         f"gsplat is installed but its CUDA kernels could not be loaded or built{reason}; "
-        "--backend torch renders on CUDA without them"
+        "`backend` torch renders on CUDA without them"
     )
     logger.warning(why)
     return None, why
@@ -76,7 +76,7 @@ def load_gsplat() -> Callable[..., Any]:
     """
     rasterization, why = gsplat_kernels()
     if rasterization is None:
-        raise MissingDependencyError(why)
+        raise MissingDependencyError(why, options=("backend",))
     return rasterization
 
 

@@ -651,15 +651,19 @@ def resolve_config(
             or `keep` with `no_prune` (no stage to keep at).
     """
     if keep is not None and no_prune:
-        raise OptionError("--keep does not go with --no-prune: there is no pruning stage")
+        raise OptionError(
+            "`keep` does not go with `no_prune`: there is no pruning stage",
+            options=("keep", "no_prune"),
+        )
     if config_path is None:
         config = preset(preset_name or DEFAULT_PRESET)
     else:
         config = load_config(config_path, preset_name or DEFAULT_PRESET)
         if preset_name is not None and config.preset != preset_name:
             raise OptionError(
-                f"config {config_path} starts from preset {config.preset!r}, not --preset "
-                f"{preset_name}: drop --preset, or change the file's `preset:` line"
+                f"config {config_path} starts from preset {config.preset!r}, not `preset` "
+                f"{preset_name}: drop `preset`, or change the file's `preset:` line",
+                options=("preset",),
             )
     overrides: dict[str, Any] = {}
     if size is not None:

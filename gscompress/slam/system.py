@@ -428,7 +428,11 @@ class SlamSystem:
                 "small a pwas.sigma_d?)"
             ) from None
         kept = own[
-            top_k(scores, ids[own], keep_count(own.size, keep, "keep ratio (--keep, prune.keep)"))
+            top_k(
+                scores,
+                ids[own],
+                keep_count(own.size, keep, "keep ratio (`keep`, prune.keep)", options=("keep",)),
+            )
         ]
         index = np.union1d(np.flatnonzero(ids < self.own_ids_from), kept)
         return self.mapper.keep(torch.from_numpy(index).to(self.device))

@@ -39,15 +39,23 @@ class RecordingOptions:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.max_dt, int | float) and math.isfinite(self.max_dt)):
-            raise OptionError(f"--max-dt must be a number of seconds, got {clipped(self.max_dt)}")
+            raise OptionError(
+                f"`max_dt` must be a number of seconds, got {clipped(self.max_dt)}",
+                options=("max_dt",),
+            )
         if not 0 < self.max_dt <= 1.0:
-            raise OptionError(f"--max-dt must be above 0 and at most 1 s, got {self.max_dt}")
+            raise OptionError(
+                f"`max_dt` must be above 0 and at most 1 s, got {self.max_dt}",
+                options=("max_dt",),
+            )
         for name in ("rgb", "depth", "camera_info"):
             topic = getattr(self, name)
             if topic is not None and not (isinstance(topic, str) and topic.strip()):
-                raise OptionError(f"--{name.replace('_', '-')} must name a topic")
+                raise OptionError(f"`{name}` must name a topic", options=(name,))
         if self.gt is not None and self.gt_frames is not None:
-            raise OptionError("ground truth from --gt or from --gt-frames, not both")
+            raise OptionError(
+                "ground truth from `gt` or from `gt_frames`, not both", options=("gt", "gt_frames")
+            )
 
     @property
     def is_default(self) -> bool:

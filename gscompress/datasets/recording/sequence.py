@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 import threading
 import weakref
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -32,7 +32,7 @@ from gscompress.datasets.recording.options import MAX_DT_GT, RecordingOptions
 from gscompress.datasets.recording.tf import tf_poses
 from gscompress.datasets.recording.topics import TopicChoice, choose_topics, registered
 from gscompress.datasets.stamps import associate
-from gscompress.errors import DatasetError
+from gscompress.errors import DatasetError, GscError
 
 log = logging.getLogger(__name__)
 
@@ -208,7 +208,8 @@ def _build(
     if not pairs_ij:
         raise DatasetError(
             f"{path}: no colour/depth pair within {options.max_dt} s ({choice.rgb}, "
-            f"{choice.depth}); --max-dt widens it"
+            f"{choice.depth}); `max_dt` widens it",
+            options=("max_dt",),
         )
     pairs = [_Pair(colors[i][0], colors[i][1], depths[j][1]) for i, j in pairs_ij]
     skipped = {"rgb": len(colors) - len(pairs), "depth": len(depths) - len(pairs)}
@@ -276,15 +277,22 @@ def _ground_truth(
         for _topic, _time, _loc, msg in container.scan(sorted(names)):
             transforms.extend(msg)
         if not transforms:
-            raise DatasetError(f"{source} has no /tf message for --gt-frames")
+            raise DatasetError(
+                f"{source} has no /tf message for `gt_frames`", options=("gt_frames",)
+            )
         return tf_poses(transforms, *options.gt_frames, stamps_ns)
     return [None] * len(stamps_ns)
 
 
-def describe_recording(path: Path, options: RecordingOptions | None = None) -> dict[str, Any]:
+def describe_recording(
+    path: Path,
+    options: RecordingOptions | None = None,
+    error_text: Callable[[GscError], str] = str,
+) -> dict[str, Any]:
     """What `gsc info` shows of a recording: its kind, every topic with its count, and for
     image and camera-info topics the size, encoding and rate; the pair `gsc slam` would take
-    (or why it would take none). Reads the image topics once."""
+    (or why it would take none: the error as `error_text` says it). Reads the image topics
+    once."""
     options = options or RecordingOptions()
     container = open_container(path)
     try:
@@ -316,7 +324,7 @@ def describe_recording(path: Path, options: RecordingOptions | None = None) -> d
             sequence = _build(path, container, FrameSelection(), None, None, options)
         except DatasetError as exc:
             result["slam_would_read"] = None
-            result["why_not"] = str(exc)
+            result["why_not"] = error_text(exc)
         else:
             c = sequence.choice
             result["slam_would_read"] = {

@@ -76,16 +76,18 @@ def choose_topics(
 
     Raises:
         DatasetError: a named topic is missing, or the choice is ambiguous (the message names
-            the candidates and the flags that settle it).
+            the candidates and the options that settle it).
     """
     by_name = {t.name: t for t in topics}
-    for flag, topic in (
-        ("--rgb", options.rgb),
-        ("--depth", options.depth),
-        ("--camera-info", options.camera_info),
+    for name, topic in (
+        ("rgb", options.rgb),
+        ("depth", options.depth),
+        ("camera_info", options.camera_info),
     ):
         if topic is not None and topic not in by_name:
-            raise DatasetError(f"{source} has no topic {clipped(topic)} ({flag})")
+            raise DatasetError(
+                f"{source} has no topic {clipped(topic)} (`{name}`)", options=(name,)
+            )
     images = image_topics(topics)
     colours = sorted(v for k, v in images.items() if not _is_depth_name(k))
     depths = sorted(v for k, v in images.items() if _is_depth_name(k))
@@ -103,8 +105,8 @@ def choose_topics(
             name, c, d = known[0]
             rgb, depth, reason = images[c], images[d], f"{name} topic names"
         else:
-            rgb = rgb or _only(colours, "colour", "--rgb", source)
-            depth = depth or _only(depths, "depth", "--depth", source)
+            rgb = rgb or _only(colours, "colour", "rgb", source)
+            depth = depth or _only(depths, "depth", "depth", source)
             reason = "the only colour and depth topics"
     infos = sorted(t.name for t in topics if t.kind == CAMERA_INFO and t.count > 0)
     info = options.camera_info
@@ -121,7 +123,7 @@ def choose_topics(
                 "intrinsics are unknown"
             )
         else:
-            info = _only([], "camera info", "--camera-info", source, infos)
+            info = _only([], "camera info", "camera_info", source, infos)
     for topic, kind in ((rgb, "colour"), (depth, "depth")):
         if by_name[topic].kind not in (IMAGE, COMPRESSED):
             raise DatasetError(f"{source}: {topic} is {by_name[topic].msgtype}, not a {kind} image")
@@ -131,16 +133,18 @@ def choose_topics(
 
 
 def _only(
-    candidates: Sequence[str], what: str, flag: str, source: str, listed: Sequence[str] = ()
+    candidates: Sequence[str], what: str, option: str, source: str, listed: Sequence[str] = ()
 ) -> str:
-    """The one candidate; else a DatasetError naming them (or saying there are none)."""
+    """The one candidate; else a DatasetError naming them (or saying there are none) and the
+    option that chooses one."""
     if len(candidates) == 1:
         return candidates[0]
     shown = list(listed or candidates)
     if not shown:
         raise DatasetError(f"{source} has no {what} image topic")
     raise DatasetError(
-        f"{source}: which {what} topic? candidates: {', '.join(shown)}; pass {flag} TOPIC"
+        f"{source}: which {what} topic? candidates: {', '.join(shown)}; pass `{option}` TOPIC",
+        options=(option,),
     )
 
 

@@ -82,7 +82,9 @@ class RayRunner(Runner):
         gpus_per_run: float | None = None,
     ) -> None:
         if not (cpus_per_run > 0 and math.isfinite(cpus_per_run)):
-            raise OptionError(f"--cpus-per-run must be > 0, got {cpus_per_run}")
+            raise OptionError(
+                f"`cpus_per_run` must be > 0, got {cpus_per_run}", options=("cpus_per_run",)
+            )
         ray = import_ray()
         self._ray = ray
         self._own = not ray.is_initialized()
@@ -93,7 +95,9 @@ class RayRunner(Runner):
             try:
                 ray.init(address=address, **options)
             except ConnectionError as exc:
-                raise OptionError(f"--address {address}: no Ray cluster there ({exc})") from None
+                raise OptionError(
+                    f"`address` {address}: no Ray cluster there ({exc})", options=("address",)
+                ) from None
         if gpus_per_run is None:
             device = settings.device
             gpus = ray.cluster_resources().get("GPU", 0)
@@ -109,7 +113,8 @@ class RayRunner(Runner):
             gpu = f" and {gpus_per_run:g} GPU" if gpus_per_run else ""
             raise OptionError(
                 f"no node of the Ray cluster has {cpus_per_run:g} CPUs{gpu} for a run: lower "
-                "--cpus-per-run" + (" or run on --device cpu" if gpu else "")
+                "`cpus_per_run`" + (" or run on `device` cpu" if gpu else ""),
+                options=("cpus_per_run", "device"),
             )
         super().__init__(seq, out, settings, progress, total)
         self._threads = max(1, math.ceil(cpus_per_run))

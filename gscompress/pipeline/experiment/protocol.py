@@ -199,13 +199,13 @@ class ExperimentSettings:
         """
         from gscompress.datasets.base import parse_frames
 
-        usage = f"--frames {self.frames!r}: an experiment takes all or START:STOP:STEP (from 0)"
+        usage = f"`frames` {self.frames!r}: an experiment takes all or START:STOP:STEP (from 0)"
         try:
             base = parse_frames(self.frames)
         except InputError:
-            raise InputError(usage) from None
+            raise InputError(usage, options=("frames",)) from None
         if base.spec in ("odd", "even") or (base.start or 0) < 0 or (base.stop or 0) < 0:
-            raise InputError(usage)
+            raise InputError(usage, options=("frames",))
         start, step = base.start or 0, base.step
         if self.split == "halves":
             if n is None:
@@ -224,26 +224,34 @@ class ExperimentSettings:
         try:
             self._check()
         except InputError as exc:
-            raise OptionError(str(exc)) from None
+            raise OptionError(str(exc), options=exc.options) from None
 
     def _check(self) -> None:
         self.agent_frames()
         if self.split not in SPLITS:
-            raise InputError(f"--split is one of {', '.join(SPLITS)}")
+            raise InputError(f"`split` is one of {', '.join(SPLITS)}", options=("split",))
         if not 0.0 <= self.overlap < 1.0:  # (nan too)
-            raise InputError(f"--overlap must be in [0, 1), got {self.overlap}")
+            raise InputError(
+                f"`overlap` must be in [0, 1), got {self.overlap}", options=("overlap",)
+            )
         if self.mode not in ("merge", "inject") or self.merge_iters < 0:
-            raise InputError("--mode is merge or inject, and --merge-iters must be >= 0")
+            raise InputError(
+                "`mode` is merge or inject, and `merge_iters` must be >= 0",
+                options=("mode", "merge_iters"),
+            )
         if self.anchor not in ANCHORS:
-            raise InputError(f"--anchor is one of {', '.join(ANCHORS)}")
+            raise InputError(f"`anchor` is one of {', '.join(ANCHORS)}", options=("anchor",))
         if self.refine_poses < 0:
             raise InputError(
-                f"--refine-poses must be 0 or more iterations, got {self.refine_poses}"
+                f"`refine_poses` must be 0 or more iterations, got {self.refine_poses}",
+                options=("refine_poses",),
             )
-        if self.merge_how not in MERGE_HOWS:
-            raise InputError(f"--merge is one of {', '.join(MERGE_HOWS)}")
+        if self.merge_how not in MERGE_HOWS:  # (the option `merge` sets it)
+            raise InputError(f"`merge` is one of {', '.join(MERGE_HOWS)}", options=("merge",))
         if self.merge_views not in REFINE_VIEWS:
-            raise InputError(f"--merge-views is one of {', '.join(REFINE_VIEWS)}")
+            raise InputError(
+                f"`merge_views` is one of {', '.join(REFINE_VIEWS)}", options=("merge_views",)
+            )
         if not is_fraction(self.merge_lr_final):
             raise InputError("a merge's final learning-rate fraction must be in (0, 1]")
         smallest = smallest_share_bytes()
@@ -261,11 +269,14 @@ class ExperimentSettings:
                 f"{', '.join(REFERENCE_FORMATS)} (or none)"
             )
         if self.seeds < 1 or self.sweep_seeds < 0:
-            raise OptionError("--seeds must be >= 1 and --sweep-seeds >= 0")
+            raise OptionError(
+                "`seeds` must be >= 1 and `sweep_seeds` >= 0", options=("seeds", "sweep_seeds")
+            )
         if self.sweep_seeds > self.seeds:
             raise OptionError(
-                f"--sweep-seeds {self.sweep_seeds} is more than --seeds {self.seeds}: the sweep "
-                "runs on the first seeds"
+                f"`sweep_seeds` {self.sweep_seeds} is more than `seeds` {self.seeds}: the sweep "
+                "runs on the first seeds",
+                options=("sweep_seeds", "seeds"),
             )
         known = (*STRATEGIES, *RESCORED)
         unknown = sorted({x.removesuffix(FOR_B) for x in self.strategies} - set(known))
@@ -276,7 +287,8 @@ class ExperimentSettings:
             )
         if self.anchor == "own" and any(x.endswith(FOR_B) for x in self.strategies):
             raise OptionError(
-                f"a share cut for B ({FOR_B}) needs B's poses in A's frame: use --anchor gt"
+                f"a share cut for B ({FOR_B}) needs B's poses in A's frame: use `anchor` gt",
+                options=("anchor",),
             )
         if "random" not in self.strategies or "pwas" not in self.strategies:
             raise InputError("the strategies must include random and pwas (they are compared)")
@@ -362,7 +374,8 @@ def resolve_settings(settings: ExperimentSettings) -> tuple[ExperimentSettings, 
     if settings.anchor == "gt" and not base.init_from_ground_truth:
         raise OptionError(
             "the config starts each agent at its own first frame (init_from_ground_truth: "
-            "false), but --anchor gt merges them in the ground truth's frame: use --anchor own"
+            "false), but `anchor` gt merges them in the ground truth's frame: use `anchor` own",
+            options=("anchor",),
         )
     return replace(settings, preset=base.preset, keep=base.prune.keep), base
 

@@ -65,14 +65,21 @@ def check_executor(
 ) -> None:
     """Refuse an executor's options that do not go together (`run_experiment`'s)."""
     if executor not in EXECUTORS:
-        raise OptionError(f"--executor is one of {', '.join(EXECUTORS)}, got {executor!r}")
+        raise OptionError(
+            f"`executor` is one of {', '.join(EXECUTORS)}, got {executor!r}",
+            options=("executor",),
+        )
     if executor == "ray" and jobs != 1:
         raise OptionError(
-            "--jobs is for the local executor: on Ray, the cluster's CPUs and --cpus-per-run "
-            "set how many runs go at once"
+            "`jobs` is for the local executor: on Ray, the cluster's CPUs and `cpus_per_run` "
+            "set how many runs go at once",
+            options=("jobs", "cpus_per_run"),
         )
     if executor == "local" and (address is not None or cpus_per_run is not None):
-        raise OptionError("--address and --cpus-per-run are for --executor ray")
+        raise OptionError(
+            "`address` and `cpus_per_run` are for `executor` ray",
+            options=("address", "cpus_per_run", "executor"),
+        )
 
 
 def check_output_folder(out: Path, seq: Path) -> None:
@@ -133,8 +140,9 @@ def run_experiment(
     )
     if len(sequence) < 2:
         raise InputError(
-            f"--frames {settings.frames} leaves agent A ({settings.agent_frames(2)[0]}) no frame "
-            f"of {seq}; an experiment needs at least two frames"
+            f"`frames` {settings.frames} leaves agent A ({settings.agent_frames(2)[0]}) no frame "
+            f"of {seq}; an experiment needs at least two frames",
+            options=("frames",),
         )
     check_working_size(sequence.intrinsics)
     if announce is not None:

@@ -135,7 +135,7 @@ def _check_outputs(
     an existing file (without `force`)."""
     outputs = [(dst, ".mcap")] if ply is None else [(dst, ".mcap"), (ply, ".ply")]
     if ply is not None and Path(ply).resolve() == Path(dst).resolve():
-        raise OptionError("--ply must differ from the MCAP output")
+        raise OptionError("`ply` must differ from the MCAP output", options=("ply",))
     for path, suffix in outputs:
         check_output(path, inputs, force, suffix)
 

@@ -99,8 +99,9 @@ class ShareCut:
             if align is None and receiver.world_frame != meta.world_frame:
                 raise InputError(
                     f"{receiver.source} is in the world frame {receiver.world_frame!r}, {self.src}"
-                    f" in {meta.world_frame!r}: add --align-to {receiver.source} to find the "
-                    "transform between them"
+                    f" in {meta.world_frame!r}: add `align_to` {receiver.source} to find the "
+                    "transform between them",
+                    options=("align_to",),
                 )
             self.budget = budget_less_request(budget, receiver)
             self.first_ids = unseen_ids(

@@ -161,17 +161,18 @@ def _check_options(seq: str | Path | None, sequence: Any, codec: str) -> None:
 
 
 RESUME_KEEPS = (
-    "--preset",
-    "--config",
-    "--frames",
-    "--size",
-    "--backend",
-    "--keep",
-    "--inject",
-    "--share-transform",
+    "preset",
+    "config",
+    "frames",
+    "size",
+    "backend",
+    "keep",
+    "inject",
+    "share_transform",
 )
-"""The settings `--resume` takes from the log, which may not be given beside it (as well as
-`--no-prune` and a recording's options)."""
+"""The settings a resume takes from the log, which may not be given beside it (as well as
+`no_prune` and a recording's options), named as `gsc slam`'s options are (`config`: the config
+file, `config_path`)."""
 
 
 def refuse_own_settings(kept: tuple[Any, ...], no_prune: bool, recording: Any) -> None:
@@ -182,11 +183,17 @@ def refuse_own_settings(kept: tuple[Any, ...], no_prune: bool, recording: Any) -
         OptionError: naming the settings to drop.
     """
     clashing = [name for name, value in zip(RESUME_KEEPS, kept, strict=True) if value is not None]
-    clashing += ["--no-prune"] if no_prune else []
-    clashing += ["--rgb/--depth/--camera-info/--max-dt/--gt"] if _given(recording) else []
+    clashing += ["no_prune"] if no_prune else []
+    shown = [f"`{name}`" for name in clashing]
+    if _given(recording):
+        recording_options = ("rgb", "depth", "camera_info", "max_dt", "gt")
+        clashing += recording_options
+        shown.append("/".join(f"`{name}`" for name in recording_options))
     if clashing:
-        dropped = ", ".join(clashing)
-        raise OptionError(f"--resume continues with the log's own settings; drop {dropped}")
+        raise OptionError(
+            f"`resume` continues with the log's own settings; drop {', '.join(shown)}",
+            options=("resume", *clashing),
+        )
 
 
 def _fresh_config(config: Any, options: SlamOptions) -> Any:

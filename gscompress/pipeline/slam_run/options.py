@@ -54,11 +54,14 @@ class SlamOptions:
                 `share_transform` without `inject`.
         """
         if self.keep is not None:
-            check_ratio(self.keep, "--keep")
+            check_ratio(self.keep, "`keep`", ("keep",))
             if self.no_prune:
-                raise OptionError("--keep does not go with --no-prune: there is no pruning stage")
+                raise OptionError(
+                    "`keep` does not go with `no_prune`: there is no pruning stage",
+                    options=("keep", "no_prune"),
+                )
         if self.share_transform is not None and self.inject is None:
-            raise OptionError("a share transform needs --inject")
+            raise OptionError("a share transform needs `inject`", options=("inject",))
 
     @property
     def kept(self) -> tuple[Any, ...]:

@@ -80,7 +80,8 @@ def check_working_size(intrinsics: Any) -> None:
     if min(w, h) < MIN_SIDE:
         raise OptionError(
             f"working size {w}x{h} is too small to map: SLAM needs at least {MIN_SIDE} pixels "
-            "per side (--size, or the config's size)"
+            "per side (`size`, or the config's size)",
+            options=("size",),
         )
 
 
@@ -131,7 +132,8 @@ def fresh_run(
     if unfinished and not force:
         raise OutputError(
             f"an unfinished run of {dst} is there ({unfinished[0].name}): continue it with "
-            "--resume, or pass --force to start afresh (which removes it)"
+            "`resume`, or pass `force` to start afresh (which removes it)",
+            options=("resume", "force"),
         )
     sequence = _open(seq, sequence, config, frames, recording)
     system = SlamSystem(
@@ -157,7 +159,9 @@ def fresh_run(
     if inject is not None:
         from gscompress.slam.keyframes import carried_views
 
-        received = read_share(inject, meta.world_frame, "--inject", share_transform, True)
+        received = read_share(
+            inject, meta.world_frame, "`inject`", share_transform, True, ("inject",)
+        )
         record = received.record
         if received.carried:
             check_same_camera(
@@ -165,7 +169,8 @@ def fresh_run(
                 sequence.intrinsics,
                 str(inject),
                 "this run maps",
-                "run at the sender's --size, or inject a share cut without --keyframes",
+                "run at the sender's `size`, or inject a share cut without `keyframes`",
+                ("size", "keyframes"),
             )
         views = carried_views(received.carried, system.device)
         injected = system.receive(received.gaussians, views)
@@ -195,7 +200,9 @@ def resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: A
     sources = resume_sources(dst)
     leftovers = [p for p in sources if p != dst]
     if not sources:
-        raise InputError(f"--resume: there is no log {dst} nor an unfinished run of it")
+        raise InputError(
+            f"`resume`: there is no log {dst} nor an unfinished run of it", options=("resume",)
+        )
     source, contents = _furthest(sources)
     meta = contents.metadata
     _check_resumable(dst, source, contents)
@@ -227,7 +234,8 @@ def resume_run(seq: str | Path | None, dst: str | Path, device: str, sequence: A
         if _injections(meta.provenance):
             raise InputError(
                 f"{dst} holds no map yet, so not the share it started with: run it afresh "
-                "(--inject SHARE --force)"
+                "(`inject` SHARE `force`)",
+                options=("inject", "force"),
             )
         run.carried = [r for r in carried if r[1].topic == TOPIC_CALIBRATION]
         return run
@@ -246,7 +254,8 @@ def _check_resumable(dst: Path, source: Path, contents: LogContents) -> None:
     if any(step.get("carried_ns") for step in _injections(meta.provenance)):
         raise InputError(
             f"{dst} started with the keyframes of the share it received, which its log does "
-            "not hold: run it afresh (--inject SHARE --force)"
+            "not hold: run it afresh (`inject` SHARE `force`)",
+            options=("inject", "force"),
         )
     if derived or ("frames" not in meta.results and contents.finished):
         raise InputError(f"{dst} is not the log of a `gsc slam` run (a share, prune or merge?)")
