@@ -221,18 +221,11 @@ def share(
             anisotropic,
             recording,
         )
-        carry = None
-        if keyframes:
-            if seq is None:
-                raise click.UsageError("--keyframes takes the frames from --seq: pass it")
-            from gscompress.pipeline.logs import carried_keyframes
-
-            carry = carried_keyframes(src, keyframes, seq, recording)
         common: dict[str, Any] = dict(
             ply=ply,
             refine=refine,
             align_to=align_to,
-            carry=carry,
+            carry=_carried(src, keyframes, seq, recording),
             receiver=receiver,
             device=device,
             command=command_line(),
@@ -255,6 +248,17 @@ def share(
                 **common,
             )
     emit(result, as_json, _share_text(result, options, dst, ply, receiver))
+
+
+def _carried(src: Path, keyframes: int, seq: Path | None, recording: Any) -> Any:
+    """The `keyframes` keyframes the share carries, read from `seq` (None: none)."""
+    if not keyframes:
+        return None
+    if seq is None:
+        raise click.UsageError("--keyframes takes the frames from --seq: pass it")
+    from gscompress.pipeline.logs import carried_keyframes
+
+    return carried_keyframes(src, keyframes, seq, recording)
 
 
 def _share_options(
