@@ -44,12 +44,21 @@ def quantise_linear(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarr
     values = np.asarray(values, dtype=np.float64)
     levels = (1 << bits) - 1
     if len(values):
-        low, high = values.min(axis=0), values.max(axis=0)
+        low, high = column_ranges(values)
     else:
         low = high = np.zeros(values.shape[1])
     span = np.where(high > low, high - low, 1.0)
     codes = np.rint((values - low) / span * levels)
     return codes.astype(np.uint8 if bits <= 8 else np.uint16), low, high
+
+
+def column_ranges(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and the largest value of each column of `values` [N, C] (N > 0): ([C],
+    [C]), reduced a column at a time (many times faster than along axis 0)."""
+    columns = values.reshape(len(values), -1).T
+    low = np.array([c.min() for c in columns], dtype=values.dtype)
+    high = np.array([c.max() for c in columns], dtype=values.dtype)
+    return low, high
 
 
 def dequantise_linear(
@@ -222,8 +231,8 @@ def position_step(
     means = gaussians.means.astype(np.float64)
     if not len(means):
         return np.zeros(3), float(step or 1.0), 1
-    origin = means.min(axis=0)
-    extent = float((means.max(axis=0) - origin).max())
+    origin, top = column_ranges(means)
+    extent = float((top - origin).max())
     if step is None:
         median_scale = float(np.median(np.exp(gaussians.log_scales.astype(np.float64))))
         step = POSITION_STEP_FRACTION * median_scale if median_scale > 0 else 1e-3
