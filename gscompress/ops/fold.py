@@ -20,7 +20,7 @@ weights of opacity times scale^0 or ^3 (measured in docs/prune-refine.md, "The f
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -175,28 +175,39 @@ class Folding:
         kept = np.asarray(kept, dtype=np.int64)
         group = self.groups(kept)
         members = np.flatnonzero(group >= 0)
-        base = self.gaussians.select(kept)
         if len(members) == len(kept):  # (nothing folds: the kept Gaussians as they are)
-            return base
+            return self.gaussians.select(kept)
         owner = np.full(len(group), -1)
         owner[members] = kept[group[members]]
         redo = self._changed(owner, kept)
         slot = np.cumsum(redo) - 1
         again = members[redo[group[members]]]
-        fields = self._moments(again, slot[group[again]], base.quats[redo])
-        if not redo.all():  # (the other groups as the last fold left them)
-            last = self._folded
-            assert last is not None
-            rows = last.row[kept[~redo]]
-            for name, values in fields.items():
-                whole = np.empty((len(kept), *values.shape[1:]), values.dtype)
-                whole[redo], whole[~redo] = values, getattr(last.gaussians, name)[rows]
-                fields[name] = whole
-        folded = replace(base, **fields).validate()
+        fresh = np.flatnonzero(redo)
+        computed = self._moments(again, slot[group[again]], self.gaussians.quats[kept[fresh]])
+        folded = self._assembled(kept, fresh, computed)
         row = np.full(len(group), -1)
         row[kept] = np.arange(len(kept))
         self._folded = _Folded(owner, row, folded)
         return folded
+
+    def _assembled(
+        self, kept: np.ndarray, fresh: np.ndarray, computed: dict[str, np.ndarray]
+    ) -> GaussianMap:
+        """The folded map of the Gaussians at `kept`: at rows `fresh`, the groups `computed`
+        (`_moments`; checked by `GaussianMap.validate`), at the others the groups the last fold
+        computed (and checked); the fields a fold leaves, the kept Gaussians' own."""
+        own = {f.name: getattr(self.gaussians, f.name) for f in fields(GaussianMap)}
+        left = {name: values for name, values in own.items() if name not in computed}
+        GaussianMap(**{name: v[kept[fresh]] for name, v in left.items()}, **computed).validate()
+        assembled = {name: values[kept] for name, values in left.items()}
+        if len(fresh) < len(kept):  # (the other groups as the last fold left them)
+            last = self._folded
+            assert last is not None
+            rows = last.row[kept]  # (-1 for a Gaussian not kept then: one computed anew)
+            for name, values in computed.items():
+                computed[name] = getattr(last.gaussians, name)[rows]
+                computed[name][fresh] = values
+        return GaussianMap(**assembled, **computed)
 
     def _changed(self, owner: np.ndarray, kept: np.ndarray) -> np.ndarray:
         """[K] whether each kept Gaussian's group differs from its group in the last fold (or
