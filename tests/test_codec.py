@@ -26,6 +26,7 @@ from gscompress.io.quantise import (
     MAX_POSITION_BITS,
     morton_codes,
     morton_grid,
+    morton_order,
     position_step,
     sigmoid,
 )
@@ -239,6 +240,18 @@ def test_morton_codes_invert_and_order_neighbours():
     grid = rng.integers(0, 1 << MAX_POSITION_BITS, (1000, 3))
     assert np.array_equal(morton_grid(morton_codes(grid)), grid)
     assert morton_codes(np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1]])).tolist() == [1, 2, 4]
+
+
+@pytest.mark.parametrize("bits", [3, 16, 17, 42, 3 * MAX_POSITION_BITS])
+def test_morton_order_is_the_stable_argsort(bits: int) -> None:
+    """The radix sort the encoder orders Gaussians by equals numpy's stable argsort, ties (one
+    grid cell) in index order, at every code width."""
+    rng = np.random.default_rng(bits)
+    codes = rng.integers(0, 1 << bits, 5000, dtype=np.uint64)
+    codes[1::9] = codes[::9][: len(codes[1::9])]  # (ties)
+    expected = np.argsort(codes, kind="stable")
+    np.testing.assert_array_equal(morton_order(codes, bits), expected)
+    assert morton_order(codes[:0], bits).tolist() == []
 
 
 def test_position_step_rule():

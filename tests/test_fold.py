@@ -289,6 +289,30 @@ def test_one_folding_of_many_kept_sets_equals_the_reference_for_each(seed: int) 
     assert around and max(around) <= 100  # (960 from 950, 958 from 950, ...)
 
 
+def test_gaussians_added_to_a_few_kept_ones_are_queried_not_looked_up_around() -> None:
+    """A search's first steps fold the best one, then a few hundred: around so few kept ones
+    the balls `Folding._around` looks in hold the whole map (for each Gaussian added), so the
+    added ones are queried instead (`ADDED_SHARE`); the folds equal the reference."""
+    g = varied_map(5, 20_000)
+    scores = selection_scores(g, "pwas")
+    folding = Folding(g)
+    around = []
+    original = Folding._around
+
+    def spy(self, adds, *args):  # type: ignore[no-untyped-def]
+        around.append(len(adds))
+        return original(self, adds, *args)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Folding, "_around", spy)
+        for k in (1, 400, 20_000, 410):  # (400 <= 19,600 / 32, but not 1 / 32)
+            kept = top_k(scores, g.ids, k)
+            group, expected = reference_fold(g, kept)
+            np.testing.assert_array_equal(folding.groups(kept), group)
+            assert folding.fold(kept).equals(expected), k
+    assert around == [10]  # (410 from 400)
+
+
 def test_equal_distances_go_to_one_of_the_nearest_kept():
     """On a lattice every dropped Gaussian has several kept ones at the same distance; whichever
     it joins (the tie may go either way) is one of the nearest."""

@@ -58,6 +58,7 @@ from gscompress.io.quantise import (
     encode_smallest_three,
     grid_codes,
     morton_grid,
+    morton_order,
     quantise_linear,
     quantise_log,
 )
@@ -256,7 +257,7 @@ def encode_compact(
     """
     n = len(gaussians)
     origin, step, bits, codes = grid_codes(gaussians, options.step)
-    order = np.argsort(codes, kind="stable")
+    order = morton_order(codes, 3 * bits)
     codes = codes[order]
 
     def ordered(name: str) -> np.ndarray:

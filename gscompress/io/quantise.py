@@ -44,12 +44,21 @@ def quantise_linear(values: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarr
     values = np.asarray(values, dtype=np.float64)
     levels = (1 << bits) - 1
     if len(values):
-        low, high = values.min(axis=0), values.max(axis=0)
+        low, high = column_ranges(values)
     else:
         low = high = np.zeros(values.shape[1])
     span = np.where(high > low, high - low, 1.0)
     codes = np.rint((values - low) / span * levels)
     return codes.astype(np.uint8 if bits <= 8 else np.uint16), low, high
+
+
+def column_ranges(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The smallest and the largest value of each column of `values` [N, C] (N > 0): ([C],
+    [C]), reduced a column at a time (many times faster than along axis 0)."""
+    columns = values.reshape(len(values), -1).T
+    low = np.array([c.min() for c in columns], dtype=values.dtype)
+    high = np.array([c.max() for c in columns], dtype=values.dtype)
+    return low, high
 
 
 def dequantise_linear(
@@ -198,6 +207,17 @@ def morton_codes(grid: np.ndarray) -> np.ndarray:
     )
 
 
+def morton_order(codes: np.ndarray, bits: int) -> np.ndarray:
+    """`np.argsort(codes, kind="stable")` of codes (uint64) below 2^`bits`, by a radix sort of
+    16 bits at a time: numpy sorts 16-bit keys by radix, larger ones by a merge sort several
+    times slower."""
+    order = np.arange(len(codes))
+    for shift in range(0, bits, 16):
+        digit = (codes[order] >> np.uint64(shift)).astype(np.uint16)
+        order = order[np.argsort(digit, kind="stable")]
+    return order
+
+
 def morton_grid(codes: np.ndarray) -> np.ndarray:
     """Grid coordinates [N, 3] (int64) of Morton codes (the inverse of `morton_codes`)."""
     codes = np.asarray(codes, dtype=np.uint64)
@@ -222,8 +242,8 @@ def position_step(
     means = gaussians.means.astype(np.float64)
     if not len(means):
         return np.zeros(3), float(step or 1.0), 1
-    origin = means.min(axis=0)
-    extent = float((means.max(axis=0) - origin).max())
+    origin, top = column_ranges(means)
+    extent = float((top - origin).max())
     if step is None:
         median_scale = float(np.median(np.exp(gaussians.log_scales.astype(np.float64))))
         step = POSITION_STEP_FRACTION * median_scale if median_scale > 0 else 1e-3

@@ -20,7 +20,7 @@ weights of opacity times scale^0 or ^3 (measured in docs/prune-refine.md, "The f
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from gscompress.camera import rotmat_to_quat
 from gscompress.gaussians import GaussianMap
-from gscompress.io.quantise import morton_codes
+from gscompress.io.quantise import column_ranges, morton_codes
 from gscompress.selection import top_index
 from gscompress.threads import cpu_threads
 
@@ -46,7 +46,9 @@ LOGIT_BOUND = 1e-6
 ADDED_SHARE = 1 / 32
 """A fold that starts from an earlier kept set inside its own looks for the nearest of the
 Gaussians it adds around those Gaussians (`Folding`) when they are at most this share of the
-dropped ones, else by a query of every dropped one."""
+dropped ones and of that kept set, else by a query of every dropped one. (The balls it looks in
+are about as wide as the gaps between the kept Gaussians: around each added one they hold about
+N / K of the map's N Gaussians for K kept, all of them when K is 1.)"""
 
 PARALLEL_QUERIES = 16384
 """A k-d tree query of fewer points runs on one thread (for so few, more threads cost more to
@@ -132,7 +134,7 @@ class Folding:
     set nearest to its own in size that lies inside it or holds it:
     - inside it: the nearest in the larger set is the nearer of the smaller set's nearest and
       the nearest of the Gaussians added, found by a k-d tree query of every dropped Gaussian
-      against them or, when they are few, among the dropped Gaussians around them;
+      against them or, when they are few (`ADDED_SHARE`), among the dropped Gaussians around them;
     - holding it: the nearest in the larger set stands wherever the smaller set keeps it; the
       Gaussians whose nearest was removed (and those removed) are queried again.
     Likewise only the groups whose members changed since the last fold are moment-matched
@@ -173,28 +175,39 @@ class Folding:
         kept = np.asarray(kept, dtype=np.int64)
         group = self.groups(kept)
         members = np.flatnonzero(group >= 0)
-        base = self.gaussians.select(kept)
         if len(members) == len(kept):  # (nothing folds: the kept Gaussians as they are)
-            return base
+            return self.gaussians.select(kept)
         owner = np.full(len(group), -1)
         owner[members] = kept[group[members]]
         redo = self._changed(owner, kept)
         slot = np.cumsum(redo) - 1
         again = members[redo[group[members]]]
-        fields = self._moments(again, slot[group[again]], base.quats[redo])
-        if not redo.all():  # (the other groups as the last fold left them)
-            last = self._folded
-            assert last is not None
-            rows = last.row[kept[~redo]]
-            for name, values in fields.items():
-                whole = np.empty((len(kept), *values.shape[1:]), values.dtype)
-                whole[redo], whole[~redo] = values, getattr(last.gaussians, name)[rows]
-                fields[name] = whole
-        folded = replace(base, **fields).validate()
+        fresh = np.flatnonzero(redo)
+        computed = self._moments(again, slot[group[again]], self.gaussians.quats[kept[fresh]])
+        folded = self._assembled(kept, fresh, computed)
         row = np.full(len(group), -1)
         row[kept] = np.arange(len(kept))
         self._folded = _Folded(owner, row, folded)
         return folded
+
+    def _assembled(
+        self, kept: np.ndarray, fresh: np.ndarray, computed: dict[str, np.ndarray]
+    ) -> GaussianMap:
+        """The folded map of the Gaussians at `kept`: at rows `fresh`, the groups `computed`
+        (`_moments`; checked by `GaussianMap.validate`), at the others the groups the last fold
+        computed (and checked); the fields a fold leaves, the kept Gaussians' own."""
+        own = {f.name: getattr(self.gaussians, f.name) for f in fields(GaussianMap)}
+        left = {name: values for name, values in own.items() if name not in computed}
+        GaussianMap(**{name: v[kept[fresh]] for name, v in left.items()}, **computed).validate()
+        assembled = {name: values[kept] for name, values in left.items()}
+        if len(fresh) < len(kept):  # (the other groups as the last fold left them)
+            last = self._folded
+            assert last is not None
+            rows = last.row[kept]  # (-1 for a Gaussian not kept then: one computed anew)
+            for name, values in computed.items():
+                computed[name] = getattr(last.gaussians, name)[rows]
+                computed[name][fresh] = values
+        return GaussianMap(**assembled, **computed)
 
     def _changed(self, owner: np.ndarray, kept: np.ndarray) -> np.ndarray:
         """[K] whether each kept Gaussian's group differs from its group in the last fold (or
@@ -270,13 +283,15 @@ class Folding:
         """[N] the Gaussians cell by cell along a Morton curve of 2^(3 x `SPATIAL_BITS`) cells:
         queries in this order walk the k-d tree through memory they have just visited, which
         makes them faster (docs/performance.md, "Folding")."""
-        columns = self._means.T  # (a reduction a column at a time: faster than along axis 0)
-        low = np.array([c.min() for c in columns], dtype=np.float64)
-        high = np.array([c.max() for c in columns], dtype=np.float64)
+        low, high = (np.asarray(v, dtype=np.float64) for v in column_ranges(self._means))
         extent = max(float((high - low).max()), np.finfo(np.float64).tiny)
         top = (1 << SPATIAL_BITS) - 1
-        cells = np.minimum((self._means - low) * (top / extent), top).astype(np.int64)
-        return np.argsort(morton_codes(cells).astype(np.uint16), kind="stable")  # (a radix sort)
+        spread = morton_codes(np.arange(top + 1)[:, None] * [1, 0, 0]).astype(np.uint16)
+        codes = np.zeros(len(self._means), dtype=np.uint16)  # (`morton_codes`, by a table)
+        for axis, column in enumerate(self._means.T):
+            cells = np.minimum((column - low[axis]) * (top / extent), top).astype(np.intp)
+            codes |= spread[cells] << axis
+        return np.argsort(codes, kind="stable")  # (a radix sort)
 
     @cached_property
     def _everything(self) -> cKDTree:
@@ -313,7 +328,7 @@ class Folding:
             adds = kept[~below.is_kept[kept]]
         if len(adds) == 0:
             return index, distance
-        if below is not None and len(adds) <= ADDED_SHARE * len(dropped):
+        if below is not None and len(adds) <= ADDED_SHARE * min(len(dropped), len(below.kept)):
             queried, found, gap = self._around(adds, dropped, distance, is_kept)
         else:
             gap, i = self._query(adds, dropped, first=below is None)
@@ -377,15 +392,19 @@ class Folding:
         self, kept: np.ndarray, points: np.ndarray, first: bool = False
     ) -> tuple[np.ndarray, np.ndarray]:
         """The nearest of the Gaussians `kept` to each of `points`: ([P] distances, [P] their
-        positions in `kept`), by a k-d tree of `kept`. A fold from no earlier one (`first`)
+        positions in `kept`), by a k-d tree of `kept` (of more than one). A fold from no
+        earlier one (`first`)
         builds the tree the fold was first written with (scipy's default: the same choice
         among equal distances); the others a tree that builds faster (sliding midpoint).
 
         Many points are queried within a bound that holds all but about 0.1% of their nearest
         (from a sample of them), which prunes each search, and the few beyond it again without
         one. (What both save: docs/performance.md, "Folding".)"""
-        tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
         where = np.take(self._means, points, axis=0)
+        if len(kept) == 1:  # (the distance to it, as the tree gives it: a search's first fold)
+            one = np.broadcast_to(self._means[kept[0]], where.shape)
+            return point_distances(where, one), np.zeros(len(points), dtype=np.intp)
+        tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
         workers = cpu_threads() if len(points) >= PARALLEL_QUERIES else 1
         if len(points) < BOUNDED_QUERIES:
             return tree.query(where, workers=workers)
