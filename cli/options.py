@@ -487,9 +487,21 @@ def refined_text(result: dict[str, Any]) -> str:
     )
 
 
+VIEW_NAMES = ("frames", "every", "size", "poses", "poses_from")
+"""The options of `view_options`, as `ImageOptions` names them."""
+
+
 def view_options(f: F) -> F:
     """--frames, --every, --size, --poses and --poses-from: which frames a command that draws a
-    log's map renders (`gsc eval`, `gsc render`), and at which poses."""
+    log's map renders (`gsc eval`, `gsc render`), and at which poses; passed to the command as
+    one dict named `view` of `ImageOptions`' fields."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        view = {name: kwargs.pop(name) for name in VIEW_NAMES}
+        view["frames"] = None if view["frames"] is None else str(view["frames"])
+        return f(*args, view=view, **kwargs)
+
     options = [
         click.option(
             "--frames",
@@ -526,8 +538,8 @@ def view_options(f: F) -> F:
         ),
     ]
     for option in reversed(options):
-        f = option(f)
-    return f
+        wrapper = option(wrapper)
+    return wrapper  # type: ignore[return-value]
 
 
 def check_recording_seq(recording: Any, seq: Path | None) -> None:
