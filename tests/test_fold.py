@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import replace
 
 import numpy as np
@@ -262,6 +264,21 @@ def test_a_large_fold_bounds_its_query_and_equals_the_reference(monkeypatch) -> 
     assert np.isfinite(bounds[1]) and len(bounds) <= 3  # (a sample, bounded, the rest)
 
 
+@contextlib.contextmanager
+def looked_up_around() -> Iterator[list[int]]:
+    """The sizes of the sets of added Gaussians `Folding._around` looks up, while in the block."""
+    around: list[int] = []
+    original = Folding._around
+
+    def spy(self, adds, *args):  # type: ignore[no-untyped-def]
+        around.append(len(adds))
+        return original(self, adds, *args)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Folding, "_around", spy)
+        yield around
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_one_folding_of_many_kept_sets_equals_the_reference_for_each(seed: int) -> None:
     """A `Folding` asked for the K best at counts that grow and shrink, as a byte budget's
@@ -271,16 +288,8 @@ def test_one_folding_of_many_kept_sets_equals_the_reference_for_each(seed: int) 
     g = varied_map(100 + seed, 6000, isotropic=seed != 3)
     scores = selection_scores(g, "pwas")
     folding = Folding(g)
-    around = []
-    original = Folding._around
-
-    def spy(self, adds, *args):  # type: ignore[no-untyped-def]
-        around.append(len(adds))
-        return original(self, adds, *args)
-
     counts = [1, 900, 3000, 1000, 950, 960, 958, int(rng.integers(10, 6000)), 5999, 2]
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(Folding, "_around", spy)
+    with looked_up_around() as around:
         for k in counts:
             kept = top_k(scores, g.ids, k)
             group, expected = reference_fold(g, kept)
@@ -296,15 +305,7 @@ def test_gaussians_added_to_a_few_kept_ones_are_queried_not_looked_up_around() -
     g = varied_map(5, 20_000)
     scores = selection_scores(g, "pwas")
     folding = Folding(g)
-    around = []
-    original = Folding._around
-
-    def spy(self, adds, *args):  # type: ignore[no-untyped-def]
-        around.append(len(adds))
-        return original(self, adds, *args)
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(Folding, "_around", spy)
+    with looked_up_around() as around:
         for k in (1, 400, 20_000, 410):  # (400 <= 19,600 / 32, but not 1 / 32)
             kept = top_k(scores, g.ids, k)
             group, expected = reference_fold(g, kept)
