@@ -48,9 +48,9 @@ PAPER_FULL = {**FULL_STUDY, **PROTOCOLS["paper"]}
 """`ExperimentSettings` of `STUDY` (but the seeds and scoring iterations the tests give)."""
 
 
-def _run(seq: Path, out: Path, *extra: str, refine: tuple[str, ...] = REFINE) -> dict:
-    """The fixture's experiment written to `out`, with `extra` options; its JSON result."""
-    args = [
+def _args(seq: Path, out: Path, *extra: str, refine: tuple[str, ...] = REFINE) -> list[str]:
+    """The command line of the fixture's experiment written to `out`, with `extra` options."""
+    return [
         "experiment",
         str(seq),
         "-o",
@@ -67,7 +67,11 @@ def _run(seq: Path, out: Path, *extra: str, refine: tuple[str, ...] = REFINE) ->
         *refine,
         *extra,
     ]
-    r = CliRunner().invoke(cli, args)
+
+
+def _run(seq: Path, out: Path, *extra: str, refine: tuple[str, ...] = REFINE) -> dict:
+    """The fixture's experiment written to `out`, with `extra` options; its JSON result."""
+    r = CliRunner().invoke(cli, _args(seq, out, *extra, refine=refine))
     assert r.exit_code == 0, r.output
     return json.loads(r.output)
 
@@ -291,26 +295,7 @@ def test_parallel_runs_give_the_same_rows(
     seq, out, first = experiment
     parallel = out.parent / "parallel"
     threads = 2 * torch.get_num_threads()  # each worker gets what the fixture's runs had
-    args = [
-        "--threads",
-        str(threads),
-        "experiment",
-        str(seq),
-        "-o",
-        str(parallel),
-        "--preset",
-        "tiny",
-        "--seeds",
-        "1",
-        "--sweep",
-        "0.2,0.5",
-        "--no-lpips",
-        "--json",
-        "--jobs",
-        "2",
-        *STUDY,
-        *REFINE,
-    ]
+    args = ["--threads", str(threads), *_args(seq, parallel, "--jobs", "2")]
     r = CliRunner().invoke(cli, args)
     assert r.exit_code == 0, r.output
     result = json.loads(r.output)
@@ -602,22 +587,7 @@ def test_both_modes_share_one_folder_without_overwriting_runs(
     experiment: tuple[Path, Path, dict],
 ) -> None:
     seq, out, first = experiment
-    base = [
-        "experiment",
-        str(seq),
-        "-o",
-        str(out),
-        "--preset",
-        "tiny",
-        "--seeds",
-        "1",
-        "--sweep",
-        "0.2,0.5",
-        "--no-lpips",
-        "--json",
-        *STUDY,
-        *REFINE,
-    ]
+    base = _args(seq, out)
     r = CliRunner().invoke(cli, [*base, "--mode", "inject", "--strategies", "random,pwas"])
     assert r.exit_code == 0, r.output
     inject = json.loads(r.output)
