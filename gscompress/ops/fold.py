@@ -393,9 +393,9 @@ class Folding:
     ) -> tuple[np.ndarray, np.ndarray]:
         """The nearest of the Gaussians `kept` to each of `points`: ([P] distances, [P] their
         positions in `kept`), by a k-d tree of `kept` (of more than one). A fold from no
-        earlier one (`first`)
-        builds the tree the fold was first written with (scipy's default: the same choice
-        among equal distances); the others a tree that builds faster (sliding midpoint).
+        earlier one (`first`) builds the tree the fold was first written with (scipy's default:
+        the same choice among equal distances); the others a tree that builds faster (sliding
+        midpoint).
 
         Many points are queried within a bound that holds all but about 0.1% of their nearest
         (from a sample of them), which prunes each search, and the few beyond it again without
