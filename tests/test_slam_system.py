@@ -8,12 +8,12 @@ import torch
 
 from gscompress.camera import invert_transform, make_transform, quat_to_rotmat
 from gscompress.datasets.synthetic import synthetic_sequence
-from gscompress.errors import BudgetError, DivergenceError, MapError
+from gscompress.errors import BudgetError, DivergenceError, InputError, MapError
 from gscompress.gaussians import SH_C0, random_map
 from gscompress.render import render
 from gscompress.selection import STRATEGIES, keep_count, strategy_scores
 from gscompress.slam.config import TrackingConfig, final_iterations, preset, stage_positions
-from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
+from gscompress.slam.densify import densification_mask, gaussians_from_rgbd, rendered_footprint
 from gscompress.slam.keyframes import View, overlap_fraction, sample_points, select_window
 from gscompress.slam.mapper import Mapper
 from gscompress.slam.params import GaussianParams
@@ -234,6 +234,19 @@ def test_densification_mask_rule():
     )
     expected[0, 3] = expected[0, 5] = True
     np.testing.assert_array_equal(with_color, expected)
+    footprint = np.full((4, 6), 2.0)
+    footprint[0, 3] = 1.0  # as fine as a new Gaussian: colour adds nothing there
+    with_footprint = densification_mask(
+        silhouette,
+        rendered,
+        depth,
+        color_residual=residual,
+        color_error=0.15,
+        footprint=footprint,
+        min_footprint=1.0,
+    )
+    expected[0, 3] = False
+    np.testing.assert_array_equal(with_footprint, expected)
     with pytest.raises(ValueError, match="color_residual"):
         densification_mask(silhouette, rendered, depth, color_error=0.15)
 
@@ -262,6 +275,24 @@ def test_stage_positions():
     assert stage_positions(60, (1 / 3, 2 / 3)) == {19: 1, 39: 2}
     assert stage_positions(2, (0.1, 0.2)) == {0: 1}
     assert stage_positions(10, ()) == {}
+
+
+def test_a_map_over_its_size_is_pruned_after_the_frame(seq):
+    # No stage in the schedule: only the map's size places one, after each frame that leaves
+    # the map over the cap, so that no frame ends with more than it.
+    free = preset("tiny").with_overrides(**{"prune.stages": ()})
+    system = SlamSystem(free, seq.intrinsics, total_frames=len(seq))
+    sizes = [system.process(seq.frame(i)).gaussians for i in range(4)]
+    cap = (sizes[0] + sizes[1]) // 2  # over it from the second frame on
+    capped = SlamSystem(
+        free.with_overrides(**{"prune.max_gaussians": cap}), seq.intrinsics, total_frames=len(seq)
+    )
+    results = [capped.process(seq.frame(i)) for i in range(4)]
+    assert results[0].event is None and results[0].gaussians == sizes[0]
+    assert results[1].event == "prune-size" and results[1].removed > 0
+    assert all(r.gaussians <= cap for r in results)
+    with pytest.raises(InputError, match="max_gaussians"):
+        free.with_overrides(**{"prune.max_gaussians": -1})
 
 
 def test_system_runs_and_prunes_exactly_the_top_fraction(seq):
@@ -368,7 +399,9 @@ def test_colour_densification_adds_where_the_map_shows_the_wrong_colour(seq):
     added = {}
     for error in (0.0, 0.3):
         for name, gaussians in [("right", cover), ("black", black)]:
-            config = preset("tiny").with_overrides(**{"densify.color_error": error})
+            config = preset("tiny").with_overrides(
+                **{"densify.color_error": error, "densify.color_min_footprint": 0.0}
+            )
             system = SlamSystem(config, seq.intrinsics)
             system.add_gaussians(gaussians)
             added[name, error] = system.process(frame).added
@@ -376,6 +409,40 @@ def test_colour_densification_adds_where_the_map_shows_the_wrong_colour(seq):
     # the right colours, blurred over the texture's noise: a few edge pixels
     assert added["right", 0.3] < 0.1 * np.count_nonzero(valid)
     assert_added_where_brighter(added["black", 0.3], frame, 0.3)
+
+
+def test_colour_adds_nothing_where_the_map_is_as_fine_as_a_new_gaussian(seq):
+    # A black cover renders every pixel wrong by its brightness. Where its Gaussians are as
+    # fine as those densification would add (a pixel, here 0.8 of one), mapping is left to
+    # correct the colour; where they are twice as wide, detail is missing and colour adds.
+    frame = seq.frame(0)
+    cover = gaussians_from_rgbd(
+        frame.color, frame.depth, seq.intrinsics, frame.T_world_cam, opacity=0.99
+    )
+    black = replace(cover, sh_dc=np.full_like(cover.sh_dc, -0.5 / SH_C0))
+    config = preset("tiny").with_overrides(**{"densify.color_error": 0.3})
+    assert config.densify.color_min_footprint == 1.0
+    added = {}
+    for factor in (0.8, 2.0):
+        system = SlamSystem(config, seq.intrinsics)
+        system.add_gaussians(replace(black, log_scales=black.log_scales + np.log(factor)))
+        added[factor] = system.process(frame).added
+    assert added[0.8] < 0.02 * np.count_nonzero(frame.depth > 0)  # as without the colour rule
+    assert_added_where_brighter(added[2.0], frame, 0.3)
+
+
+def test_rendered_footprint_is_the_width_of_the_gaussians_in_pixels(seq):
+    frame = seq.frame(0)
+    valid = frame.depth > 0
+    T = torch.from_numpy(invert_transform(frame.T_world_cam)).float()
+    for stride, factor in [(1, 1.0), (1, 3.0), (2, 1.0)]:
+        cover = gaussians_from_rgbd(
+            frame.color, frame.depth, seq.intrinsics, frame.T_world_cam, stride=stride
+        )
+        cover = replace(cover, log_scales=cover.log_scales + np.log(factor))
+        params = GaussianParams.from_map(cover, torch.device("cpu"))
+        width = rendered_footprint(params.render_inputs(), seq.intrinsics, T, "cpu")
+        assert np.median(width[valid]) == pytest.approx(stride * factor, rel=0.02)
 
 
 def test_frames_after_a_stage_track_against_the_map_before_it(seq, monkeypatch):

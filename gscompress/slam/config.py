@@ -11,11 +11,9 @@ Three presets:
   with bench/slam.py), and a final refinement of 1000 iterations over every frame after the
   last one (at most 150 per frame of a short run), its learning rates decaying to 0.3 of the
   mapping ones (`mapping.final_iters`, `final_iters_per_frame`, `final_views`,
-  `final_lr_fraction`). Against 400 constant-rate iterations over the keyframes it raised the
-  PSNR of the unpruned and the PWAS-pruned maps on every sequence tried, at a small cost in
-  time per frame, where more iterations at constant rates had not helped (measured in
-  docs/design-experiments.md, "The final refinement"). Besides SplaTAM's rule it densifies
-  where the map covers a pixel but shows it in the wrong colour (`densify.color_error` 0.25).
+  `final_lr_fraction`; why: docs/design-experiments.md, "The final refinement"). Besides
+  SplaTAM's rule it densifies where the map covers a pixel but shows it in the wrong colour
+  (`densify.color_error` 0.25) and is coarser there than a new Gaussian.
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
 
@@ -178,6 +176,9 @@ class DensifyConfig:
             is not divided by its silhouette, so a thinly covered bright pixel can qualify too.
             0: SplaTAM's rule alone (the default, and every preset but cpu, which uses 0.25;
             docs/design-experiments.md, "Densifying where the colour is wrong").
+        color_min_footprint: the colour rule adds only where the map's Gaussians are wider
+            than this many times the ones it would add (`densify.rendered_footprint`); where
+            they are as fine, a new one is a second layer on each revisit. 0: anywhere.
         received_color_error: with a received share (`gsc slam --inject`), do not add where the
             whole map, share included, already explains the pixel: covered, no new geometry,
             and a mean absolute RGB error below this. 0: densify wherever the run's own
@@ -189,6 +190,7 @@ class DensifyConfig:
     depth_error_factor: float = 50.0
     opacity: float = 0.5
     color_error: float = 0.0
+    color_min_footprint: float = 1.0
     received_color_error: float = 0.0
 
 
@@ -197,11 +199,9 @@ class PoseConfig:
     """Keyframe poses refined together with the map (a photometric and depth bundle adjustment
     with the mapping loss; MonoGS refines its window's keyframes alike).
 
-    A map made only from views behind the camera pulls the tracked pose back towards them, so
-    each frame is tracked a little short of where it is and the agent turns and moves less than
-    the camera did (docs/drift.md). Refining a keyframe's pose once later views overlap it
-    removes that lag from the map and from the poses. The run's first frame (the anchor), the
-    frame being mapped and another agent's keyframes (`gsc slam --inject`) keep their poses.
+    Off in every preset: they do not remove the agent's shortfall (docs/drift.md). The run's
+    first frame (the anchor), the frame being mapped and another agent's keyframes (`gsc slam
+    --inject`) keep their poses.
 
     Attributes:
         window: during mapping, optimise the poses of the window's keyframes with the Gaussians.
@@ -246,11 +246,13 @@ class PruneConfig:
         refine_iters: mapping iterations right after each stage over all keyframes so far and
             the current frame, each once per shuffled pass, so that the survivors fill the
             holes left in views the camera will not see again (0: none; off in every preset).
-        refill: right after each stage (before its refinement), densify views where the pruned
-            map leaves a hole (`densify` rules); the added Gaussians count. "off"; "current":
-            the frame just mapped, so the next frame is tracked against a map without holes;
-            "keyframes": every keyframe so far and the current frame, so views the camera has
-            left keep no empty patches. Off in every preset.
+        refill: right after each stage (before its refinement), densify where the pruned map
+            leaves a hole (`densify` rules; the added Gaussians count): "off" (every preset),
+            "current" (the frame just mapped, so the next one is tracked against no holes) or
+            "keyframes" (every keyframe so far too, so views left behind keep no empty patch).
+        max_gaussians: also run a stage after any frame that leaves more than this many of the
+            run's own Gaussians, so that the map, and with it the run's memory, stays near this
+            size however long the recording (0: no such stage; docs/recordings.md, "Memory").
         track_prestage_frames: for this many frames after each stage, track against the map as it
             stood just before the stage (a detached copy, dropped afterwards; not kept across
             `--resume`); mapping, densification, scores and the log use the pruned map (0: off).
@@ -269,6 +271,7 @@ class PruneConfig:
     by: str = "pwas"
     refine_iters: int = 0
     refill: str = "off"
+    max_gaussians: int = 0
     track_prestage_frames: int = 3
 
 
@@ -503,15 +506,18 @@ def check_config(config: SlamConfig) -> None:
     need(d.stride >= 1, "densify.stride must be >= 1")
     need(0.0 < d.opacity < 1.0, "densify.opacity must be in (0, 1)")
     need(
-        d.color_error >= 0.0 and d.received_color_error >= 0.0,
-        "densify.color_error and densify.received_color_error must be >= 0",
+        min(d.color_error, d.received_color_error, d.color_min_footprint) >= 0.0,
+        "densify.color_error, color_min_footprint and received_color_error must be >= 0",
     )
     need(p.opacity_every >= 0 and p.alpha_min >= 0 and p.huge_fraction >= 0, "bad prune values")
     need(p.scene_radius_depth_ratio > 0, "prune.scene_radius_depth_ratio must be positive")
     need(is_fraction(p.keep), "prune.keep must be in (0, 1]")
     need(p.by in STRATEGIES, f"prune.by must be one of {', '.join(STRATEGIES)}")
     need(p.refill in REFILL, f"prune.refill must be one of {', '.join(REFILL)}")
-    need(p.track_prestage_frames >= 0, "prune.track_prestage_frames must be >= 0")
+    need(
+        min(p.track_prestage_frames, p.max_gaussians) >= 0,
+        "prune.track_prestage_frames and prune.max_gaussians must be >= 0",
+    )
     need(
         min(p.refine_iters, m.final_iters, m.final_iters_per_frame) >= 0,
         "refinement iterations must be >= 0",
@@ -607,8 +613,7 @@ def load_config(path: str | Path, base: str | SlamConfig = DEFAULT_PRESET) -> Sl
         values = yaml.safe_load(read_text(path, "config", limit=MAX_CONFIG_BYTES))
     except (ValueError, RecursionError, yaml.YAMLError) as exc:  # (ints over 4300 digits)
         raise InputError(f"cannot read config {path}: {' '.join(str(exc).split())}") from None
-    if values is None:
-        values = {}
+    values = {} if values is None else values
     if not isinstance(values, dict):
         raise InputError(f"config {path} must hold a mapping of settings")
     start = base if isinstance(base, SlamConfig) else preset(base)

@@ -1,8 +1,9 @@
 """New Gaussians from RGB-D pixels (SplaTAM-style initialisation and densification).
 
 `densification_mask` picks the pixels of a frame that the map does not explain yet (SplaTAM's
-silhouette and depth rule, optionally also where the rendered colour is far off);
-`gaussians_from_rgbd` turns selected pixels into Gaussians.
+silhouette and depth rule, optionally also where the rendered colour is far off and the map is
+coarser there than the Gaussians it would add, `rendered_footprint`); `gaussians_from_rgbd`
+turns selected pixels into Gaussians.
 
 Each selected pixel with valid depth becomes one isotropic Gaussian at its back-projected point,
 coloured by the pixel, with opacity 0.5 and a standard deviation of depth / mean focal length
@@ -12,9 +13,12 @@ coloured by the pixel, with opacity 0.5 and a standard deviation of depth / mean
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from gscompress.camera import Intrinsics
 from gscompress.gaussians import SH_C0, GaussianMap
+from gscompress.render import render
+from gscompress.slam.params import RenderInputs
 
 
 def gaussians_from_rgbd(
@@ -74,6 +78,8 @@ def densification_mask(
     depth_error_factor: float = 50.0,
     color_residual: np.ndarray | None = None,
     color_error: float = 0.0,
+    footprint: np.ndarray | None = None,
+    min_footprint: float = 0.0,
 ) -> np.ndarray:
     """[H, W] bool: observed pixels the map does not explain yet (SplaTAM's rule, plus colour).
 
@@ -82,7 +88,10 @@ def densification_mask(
     rendered one by more than `depth_error_factor` times the median depth error over the
     observed, well-covered pixels (new geometry in front of the map). With `color_error` > 0
     it also qualifies when its `color_residual` is at least `color_error` (detail the map does
-    not hold there yet, although it covers the pixel).
+    not hold there yet, although it covers the pixel), provided the map's `footprint` there is
+    wider than `min_footprint` pixels: where the map already shows the surface as finely as a
+    new Gaussian would, a wrong colour is mapping's to correct, and another Gaussian would only
+    add a second layer (on every revisit, as the map grew before).
 
     Args:
         silhouette: [H, W] rendered accumulated opacity.
@@ -93,6 +102,9 @@ def densification_mask(
         color_residual: [H, W] mean absolute RGB error of the render; needed when
             `color_error` > 0.
         color_error: colour threshold in RGB units (0-1); 0 leaves colour out.
+        footprint: [H, W] the map's rendered footprint (`rendered_footprint`); None: the
+            colour rule does not look at it.
+        min_footprint: the footprint, in pixels, at or below which colour adds nothing.
     """
     valid = depth > 0
     empty = silhouette < silhouette_max
@@ -107,4 +119,35 @@ def densification_mask(
         if color_residual is None:
             raise ValueError("color_error > 0 needs color_residual")
         off_colour = covered & (color_residual >= color_error)
+        if footprint is not None:
+            off_colour &= footprint > min_footprint
     return valid & (empty | front | off_colour)
+
+
+def rendered_footprint(
+    inputs: RenderInputs, intrinsics: Intrinsics, T_cam_world: torch.Tensor, backend: str
+) -> np.ndarray:
+    """[H, W] how wide the Gaussians a view shows at each pixel are, in pixels.
+
+    Each Gaussian's largest standard deviation over its camera depth, times the mean focal
+    length, composited with the render's weights and divided by the silhouette (0 where the
+    silhouette is 0). A Gaussian that `gaussians_from_rgbd` makes with stride s is s pixels
+    wide at its own view.
+    """
+    with torch.no_grad():
+        R, t = T_cam_world[:3, :3].to(inputs.means), T_cam_world[:3, 3].to(inputs.means)
+        z = (inputs.means @ R.T + t)[:, 2].clamp(min=1e-6)
+        focal = 0.5 * (intrinsics.fx + intrinsics.fy)
+        width = inputs.scales.max(dim=-1).values * focal / z
+        channels = torch.stack([width, torch.zeros_like(width), torch.zeros_like(width)], -1)
+        out = render(
+            inputs.means,
+            inputs.quats,
+            inputs.scales,
+            inputs.opacities,
+            channels,
+            intrinsics,
+            T_cam_world,
+            backend=backend,
+        )
+        return (out.color[..., 0] / out.silhouette.clamp(min=1e-10)).cpu().numpy()

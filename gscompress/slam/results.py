@@ -27,7 +27,9 @@ class FrameResult:
         gaussians: Gaussians in the map after the frame.
         added: Gaussians added by densification (and by the refill after a pruning stage).
         removed: Gaussians removed (cyclic cleanup and pruning stage).
-        event: "prune-stage-K" when a pruning stage ran after this frame, else None.
+        event: "prune-stage-K" when the K-th pruning stage ran after this frame,
+            "prune-size" when a stage ran because the map outgrew `prune.max_gaussians`,
+            else None.
         tracking: the tracking outcome (None for the first frame and for ground-truth poses).
         mapping: the mapping statistics.
         refinement: the refinement after a pruning stage and/or after the last frame

@@ -50,7 +50,7 @@ from gscompress.importance import median_range, resolve_sigma_d
 from gscompress.render import render, resolve_device
 from gscompress.selection import keep_count, strategy_scores, top_k
 from gscompress.slam.config import SlamConfig, final_iterations, stage_positions
-from gscompress.slam.densify import densification_mask, gaussians_from_rgbd
+from gscompress.slam.densify import densification_mask, gaussians_from_rgbd, rendered_footprint
 from gscompress.slam.keyframes import (
     HeldImages,
     View,
@@ -357,18 +357,21 @@ class SlamSystem:
         removed = mapping.removed
         event = None
         stage = self.stages.get(position)
-        if stage is not None:
+        over = 0 < self.config.prune.max_gaussians < self.own_gaussians()
+        if stage is not None or over:
             frames = self.config.prune.track_prestage_frames
             if frames and not self.config.tracking.use_ground_truth:
                 with torch.no_grad():  # clone: means, quats are the parameters themselves
                     inputs = RenderInputs(*(x.clone() for x in self.mapper.params.render_inputs()))
                 self.prestage = (inputs, frames)
-            removed += self.prune_to(self.config.prune.keep, stage=stage)
-            event = f"prune-stage-{stage}"
+            # (a stage for the map's size is numbered by its frame: a resumed run numbers alike)
+            number = stage if stage is not None else 1000 * (position + 1)
+            removed += self.prune_to(self.config.prune.keep, stage=number)
+            event = f"prune-stage-{stage}" if stage is not None else "prune-size"
         ms["pruning"] = 1e3 * (time.perf_counter() - clock)
 
         clock = time.perf_counter()
-        refinement = self._refine(current, position, stage is not None, keyframe)
+        refinement = self._refine(current, position, event is not None, keyframe)
         if refinement is not None:
             removed += refinement.removed
             added += refinement.added
@@ -398,6 +401,10 @@ class SlamSystem:
             next_id=self.next_id,
             ms=ms,
         )
+
+    def own_gaussians(self) -> int:
+        """How many of the map's Gaussians are the run's own (not received)."""
+        return int((self.mapper.params.ids >= self.own_ids_from).sum())
 
     def prune_to(self, keep: float, by: str | None = None, *, stage: int = 0) -> int:
         """Keep the top `keep` fraction of the run's own Gaussians; returns how many went.
@@ -549,6 +556,11 @@ class SlamSystem:
         settings = self.config.densify
         out = render(*inputs, self.intrinsics, current.T_cam_world(), backend=self.config.backend)
         residual = (out.color - current.color).abs().mean(-1).cpu().numpy()
+        footprint = None
+        if settings.color_error > 0 and settings.color_min_footprint > 0:
+            footprint = rendered_footprint(
+                inputs, self.intrinsics, current.T_cam_world(), self.config.backend
+            )
         mask = densification_mask(
             out.silhouette.cpu().numpy(),
             out.depth_normalized.cpu().numpy(),
@@ -557,6 +569,8 @@ class SlamSystem:
             depth_error_factor=settings.depth_error_factor,
             color_residual=residual,
             color_error=settings.color_error,
+            footprint=footprint,
+            min_footprint=settings.color_min_footprint * settings.stride,
         )
         return mask, residual
 
