@@ -113,6 +113,7 @@ class _Nearest:
     is_kept: np.ndarray  # [N] bool
     index: np.ndarray  # [N] int64 position of the nearest kept one (-1 for the kept ones)
     distance: np.ndarray  # [N] float64 distance to it (inf for the kept ones)
+    owner: np.ndarray  # [N] int64 position of the kept one each joins (itself; -1: none)
 
 
 @dataclass(frozen=True)
@@ -164,36 +165,26 @@ class Folding:
 
     def groups(self, kept: np.ndarray) -> np.ndarray:
         """`fold_groups` of the map for `kept`."""
-        kept = np.asarray(kept, dtype=np.int64)
-        group = np.full(len(self.gaussians), -1, dtype=np.int64)
-        group[kept] = np.arange(len(kept))
-        dropped = np.flatnonzero(group < 0)
-        if len(dropped) == 0 or len(kept) == 0:
-            return group
-        nearest = self._nearest(kept, group >= 0)
-        index, distance = nearest.index[dropped], nearest.distance[dropped]
-        near = distance <= self.reach * (self._scale[index] + self._scale[dropped])
-        group[dropped[near]] = group[index[near]]
-        return group
+        owner, row = self._owners(np.asarray(kept, dtype=np.int64))
+        return row[owner]
 
     def fold(self, kept: np.ndarray) -> GaussianMap:
         """`fold` of the map into `kept`."""
         kept = np.asarray(kept, dtype=np.int64)
-        group = self.groups(kept)
-        members = np.flatnonzero(group >= 0)
+        owner, row = self._owners(kept)
+        members = np.flatnonzero(owner >= 0)
         if len(members) == len(kept):  # (nothing folds: the kept Gaussians as they are)
             return self.gaussians.select(kept)
-        owner = np.full(len(group), -1)
-        owner[members] = kept[group[members]]
+        group = row[owner[members]]  # (of each member)
         last = min(self._folded, key=lambda f: abs(len(f.gaussians) - len(kept)), default=None)
         redo = self._changed(owner, kept, last)
         slot = np.cumsum(redo) - 1
-        again = members[redo[group[members]]]
+        again = redo[group]
         fresh = np.flatnonzero(redo)
-        computed = self._moments(again, slot[group[again]], self.gaussians.quats[kept[fresh]])
+        computed = self._moments(
+            members[again], slot[group[again]], self.gaussians.quats[kept[fresh]]
+        )
         folded = self._assembled(kept, fresh, computed, last)
-        row = np.full(len(group), -1)
-        row[kept] = np.arange(len(kept))
         done = _Folded(owner, row, folded)
         smaller = [f for f in self._folded if len(f.gaussians) < len(kept)]
         larger = [f for f in self._folded if len(f.gaussians) > len(kept)]
@@ -203,6 +194,26 @@ class Folding:
         if larger:
             self._folded.append(min(larger, key=lambda f: len(f.gaussians)))
         return folded
+
+    def _owners(self, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """[N] the position of the kept Gaussian each Gaussian of the map joins (a kept one
+        itself, -1: none), and [N + 1] the row of each in `kept` (-1 for the others, and last,
+        where an owner of -1 looks)."""
+        n = len(self.gaussians)
+        row = np.full(n + 1, -1, dtype=np.int64)
+        row[kept] = np.arange(len(kept))
+        is_kept = row[:n] >= 0
+        if len(kept) == 0 or is_kept.all():
+            owner = np.full(n, -1, dtype=np.int64)
+            owner[kept] = kept
+            return owner, row
+        return self._nearest(kept, is_kept).owner, row
+
+    def _joined(self, points: np.ndarray, index: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """[P] whom each of the dropped Gaussians `points` joins: its nearest kept one `index`
+        at `distance` when within the reach, else -1."""
+        near = distance <= self.reach * (self._scale[index] + self._scale[points])
+        return np.where(near, index, -1)
 
     def _assembled(
         self,
@@ -324,20 +335,26 @@ class Folding:
         if below is not None and len(below.kept) == size:  # (this set again: the same nearest)
             return below
         dropped = self._space_order[~is_kept[self._space_order]]
+        start = above if above is not None else below  # (the owners are patched from it)
         if above is not None:
-            index, distance = self._shrunk(above, below, kept, self._stale(above, is_kept, dropped))
+            again = self._stale(above, is_kept, dropped)
+            index, distance, changed = self._shrunk(above, below, kept, again)
         else:
-            index, distance = self._grown(below, kept, is_kept, dropped)
+            index, distance, changed = self._grown(below, kept, is_kept, dropped)
         index[kept], distance[kept] = -1, np.inf
-        done = _Nearest(kept, is_kept, index, distance)
+        owner = np.full(len(is_kept), -1) if start is None else start.owner.copy()
+        owner[changed] = self._joined(changed, index[changed], distance[changed])
+        owner[kept] = kept
+        done = _Nearest(kept, is_kept, index, distance, owner)
         self._done = [d for d in (below, done, above) if d is not None]  # (a search's bracket)
         return done
 
     def _grown(
         self, below: _Nearest | None, kept: np.ndarray, is_kept: np.ndarray, dropped: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """[N] nearest kept and [N] distances from a kept set inside `kept` (None: from none):
-        the nearer of its nearest and the nearest of the Gaussians `kept` adds to it."""
+        the nearer of its nearest and the nearest of the Gaussians `kept` adds to it; and the
+        dropped Gaussians whose nearest is not that set's."""
         if below is None:
             index, distance = np.full(len(is_kept), -1), np.full(len(is_kept), np.inf)
             adds = kept
@@ -345,7 +362,7 @@ class Folding:
             index, distance = below.index.copy(), below.distance.copy()
             adds = kept[~below.is_kept[kept]]
         if len(adds) == 0:
-            return index, distance
+            return index, distance, adds
         if below is not None and len(adds) <= ADDED_SHARE * min(len(dropped), len(below.kept)):
             queried, found, gap = self._around(adds, dropped, distance, is_kept)
         else:
@@ -354,11 +371,11 @@ class Folding:
             queried, found = dropped, adds[i]
         if below is None:
             index[queried], distance[queried] = found, gap
-            return index, distance
+            return index, distance, queried
         closer = gap < distance[queried]
         index[queried[closer]] = found[closer]
         distance[queried[closer]] = gap[closer]
-        return index, distance
+        return index, distance, queried[closer]
 
     def _stale(self, above: _Nearest, is_kept: np.ndarray, dropped: np.ndarray) -> np.ndarray:
         """The Gaussians `dropped` whose nearest in a kept set that holds `is_kept` is not kept
@@ -369,26 +386,26 @@ class Folding:
 
     def _shrunk(
         self, above: _Nearest, below: _Nearest | None, kept: np.ndarray, again: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """[N] nearest kept and [N] distances from a kept set that holds `kept`: its nearest
-        where `kept` still holds it; for the rest (`again`, `_stale`), a query of `kept` or,
-        given a kept set inside `kept` (`below`), the nearer of its nearest and the nearest of
-        the Gaussians `kept` adds to it."""
+        where `kept` still holds it; for the rest (`again`, `_stale`, which it returns too), a
+        query of `kept` or, given a kept set inside `kept` (`below`), the nearer of its nearest
+        and the nearest of the Gaussians `kept` adds to it."""
         index, distance = above.index.copy(), above.distance.copy()
         if below is None:
             if len(again):
                 distance[again], i = self._query(kept, again)
                 index[again] = kept[i]
-            return index, distance
+            return index, distance, again
         index[again], distance[again] = below.index[again], below.distance[again]
         adds = kept[~below.is_kept[kept]]
         if len(again) == 0 or len(adds) == 0:
-            return index, distance
+            return index, distance, again
         gap, i = self._query(adds, again, nearer_than=distance[again])
         closer = gap < distance[again]
         index[again[closer]] = adds[i[closer]]
         distance[again[closer]] = gap[closer]
-        return index, distance
+        return index, distance, again
 
     def _around(
         self, adds: np.ndarray, dropped: np.ndarray, distance: np.ndarray, is_kept: np.ndarray
