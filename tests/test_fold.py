@@ -332,6 +332,26 @@ def test_a_fold_between_two_earlier_sets_queries_only_what_the_larger_one_lost(
     assert "_everything" not in vars(folding)  # (the whole map's tree, never built)
 
 
+@pytest.mark.parametrize("points", [2000, 70_000])
+def test_a_query_for_the_nearer_than_known_gives_every_nearer_one(points: int) -> None:
+    """`Folding._query` asked only for the nearest nearer than known distances (`nearer_than`,
+    queried within a bound first, those beyond it that found none again) gives the plain
+    query's nearest wherever that is nearer, and nothing nearer anywhere else."""
+    rng = np.random.default_rng(points)
+    g = varied_map(3, points + 500)
+    folding = Folding(g)
+    kept = np.sort(rng.choice(len(g), 500, replace=False))
+    others = np.setdiff1d(np.arange(len(g)), kept)
+    plain, i_plain = cKDTree(g.means[kept].astype(np.float64)).query(g.means[others])
+    known = plain * rng.uniform(0.5, 1.5, len(others))  # (about half nearer than the plain)
+    gap, i = folding._query(kept, others, nearer_than=known)
+    nearer = plain < known
+    assert 0.3 < nearer.mean() < 0.7
+    np.testing.assert_array_equal(gap[nearer], plain[nearer])
+    np.testing.assert_array_equal(i[nearer], i_plain[nearer])
+    assert np.all(gap[~nearer] >= known[~nearer]) and np.all((0 <= i) & (i < len(kept)))
+
+
 def test_gaussians_added_to_a_few_kept_ones_are_queried_not_looked_up_around() -> None:
     """A search's first steps fold the best one, then a few hundred: around so few kept ones
     the balls `Folding._around` looks in hold the whole map (for each Gaussian added), so the
