@@ -466,13 +466,15 @@ class Folding:
             return point_distances(where, one), np.zeros(len(points), dtype=np.intp)
         tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
         workers = cpu_threads() if len(points) >= PARALLEL_QUERIES else 1
-        if nearer_than is not None:
+        if nearer_than is not None and len(points):
             sample = nearer_than[::8]  # (any bound gives the same nearest: this one is quick)
             q = int(0.99 * (len(sample) - 1))
             bound = float(np.partition(sample, q)[q])
             if len(points) >= BOUNDED_QUERIES:  # (the nearest may lie far nearer: see above)
                 bound = min(bound, self._bound(tree, where, workers))
-            distance, i = tree.query(where, distance_upper_bound=bound, workers=workers)
+            # (a little wider, so that rounding cannot hide one nearer than the bound)
+            wider = bound * (1 + 1e-9)
+            distance, i = tree.query(where, distance_upper_bound=wider, workers=workers)
             none = i == len(kept)
             beyond = np.flatnonzero(none & (nearer_than > bound))
             i[none] = 0
