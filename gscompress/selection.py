@@ -137,12 +137,18 @@ def top_k(scores: np.ndarray, ids: np.ndarray, k: int) -> np.ndarray:
         return np.arange(n, dtype=np.int64)
     if k == 0:
         return np.zeros(0, dtype=np.int64)
-    threshold = np.partition(scores, n - k)[n - k]
-    above = np.flatnonzero(scores > threshold)
+    return _top_from(scores, ids, k, np.partition(scores, n - k)[n - k])
+
+
+def _top_from(scores: np.ndarray, ids: np.ndarray, k: int, threshold: float) -> np.ndarray:
+    """`top_k` given its threshold, the (N - k)-th smallest score (0 < k < N)."""
+    above = scores > threshold
     tied = np.flatnonzero(scores == threshold)
-    need = k - above.size
+    need = k - np.count_nonzero(above)
+    if need == len(tied):  # (every tied one: already in ascending order)
+        return np.flatnonzero(scores >= threshold)
     tied = tied[np.argsort(ids[tied], kind="stable")[:need]]
-    return np.sort(np.concatenate([above, tied]))
+    return np.sort(np.concatenate([np.flatnonzero(above), tied]))
 
 
 SPREAD_LEVELS = 32
@@ -258,6 +264,35 @@ def top_index(
     if first is None:
         return top_k(scores, gaussians.ids, k)
     return top_k_first(scores, gaussians.ids, k, np.asarray(first, dtype=bool))
+
+
+class Ranking:
+    """`top_index` of one map's scores for many counts (a byte budget's search): from its
+    second count on, each takes its threshold from the scores sorted once instead of a
+    partition of them (the same indices: the k-th smallest score is the same number either
+    way). A single count costs what `top_index` does.
+
+    Args:
+        gaussians: the map ranked (its ids break ties).
+        scores: [N] scores (`selection_scores`).
+        first: [N] bool, the Gaussians ranked above all others (`top_k_first`), or None.
+    """
+
+    def __init__(self, gaussians: GaussianMap, scores: np.ndarray, first: np.ndarray | None = None):
+        self.gaussians, self.scores, self.first = gaussians, scores, first
+        self._sorted: np.ndarray | None = None
+        self._asked = 0
+
+    def top(self, k: int) -> np.ndarray:
+        """[k] int64 ascending indices: `top_index(gaussians, k, scores, first)`."""
+        n = len(self.scores)
+        self._asked += 1
+        # (a receiver's preference ranks two sets apart: partitioned each time, as top_index)
+        if self.first is not None or not 0 < k < n or self._asked < 2:
+            return top_index(self.gaussians, k, self.scores, self.first)
+        if self._sorted is None:
+            self._sorted = np.sort(self.scores)
+        return _top_from(self.scores, self.gaussians.ids, k, self._sorted[n - k])
 
 
 def top_k_first(scores: np.ndarray, ids: np.ndarray, k: int, first: np.ndarray) -> np.ndarray:

@@ -282,20 +282,74 @@ def looked_up_around() -> Iterator[list[int]]:
 @pytest.mark.parametrize("seed", range(4))
 def test_one_folding_of_many_kept_sets_equals_the_reference_for_each(seed: int) -> None:
     """A `Folding` asked for the K best at counts that grow and shrink, as a byte budget's
-    search asks (the nearest kept taken from an earlier kept set inside the new one), folds
-    each exactly as a fresh reference fold; the few added Gaussians are looked up around them."""
+    search asks (the nearest kept taken from the earlier kept sets inside the new one and
+    holding it), folds each exactly as a fresh reference fold; a few Gaussians added to the
+    largest set yet are looked up around them."""
     rng = np.random.default_rng(seed)
     g = varied_map(100 + seed, 6000, isotropic=seed != 3)
     scores = selection_scores(g, "pwas")
     folding = Folding(g)
-    counts = [1, 900, 3000, 1000, 950, 960, 958, int(rng.integers(10, 6000)), 5999, 2]
+    counts = [1, 900, 3000, 3050, 1000, 950, 960, 958, int(rng.integers(10, 6000)), 5999, 2]
     with looked_up_around() as around:
         for k in counts:
             kept = top_k(scores, g.ids, k)
             group, expected = reference_fold(g, kept)
             np.testing.assert_array_equal(folding.groups(kept), group)
             assert folding.fold(kept).equals(expected), (seed, k)
-    assert around and max(around) <= 100  # (960 from 950, 958 from 950, ...)
+    assert around and max(around) <= 100  # (3050 from 3000)
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_a_fold_between_two_earlier_sets_queries_only_what_the_larger_one_lost(
+    isotropic: bool,
+) -> None:
+    """Between a kept set inside its own and one holding it, a fold takes the nearest from the
+    larger set and queries only the Gaussians whose nearest that set held and it drops (and
+    those it drops), against the few it adds to the smaller set: no ball query of the whole
+    map, the same groups and Gaussians as the reference, and as a fresh `Folding`."""
+    g = varied_map(9, 20_000, isotropic)
+    scores = selection_scores(g, "pwas")
+    folding = Folding(g)
+    trees: list[int] = []
+
+    class Tree(fold_module.cKDTree):  # type: ignore[misc]
+        def __init__(self, data, *args, **kwargs):  # type: ignore[no-untyped-def]
+            trees.append(len(data))
+            super().__init__(data, *args, **kwargs)
+
+    for k in (1, 4000, 8000):
+        folding.fold(top_k(scores, g.ids, k))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(fold_module, "cKDTree", Tree)
+        for k in (4100, 4050, 4070, 4069):  # (the nearer side alternates)
+            trees.clear()
+            kept = top_k(scores, g.ids, k)
+            group, expected = reference_fold(g, kept)
+            np.testing.assert_array_equal(folding.groups(kept), group)
+            assert folding.fold(kept).equals(expected), k
+            assert trees and max(trees) <= 100, (k, trees)  # (what the set inside lacks)
+            assert Folding(g).fold(kept).equals(expected), k
+    assert "_everything" not in vars(folding)  # (the whole map's tree, never built)
+
+
+@pytest.mark.parametrize("points", [2000, 70_000])
+def test_a_query_for_the_nearer_than_known_gives_every_nearer_one(points: int) -> None:
+    """`Folding._query` asked only for the nearest nearer than known distances (`nearer_than`,
+    queried within a bound first, those beyond it that found none again) gives the plain
+    query's nearest wherever that is nearer, and nothing nearer anywhere else."""
+    rng = np.random.default_rng(points)
+    g = varied_map(3, points + 500)
+    folding = Folding(g)
+    kept = np.sort(rng.choice(len(g), 500, replace=False))
+    others = np.setdiff1d(np.arange(len(g)), kept)
+    plain, i_plain = cKDTree(g.means[kept].astype(np.float64)).query(g.means[others])
+    known = plain * rng.uniform(0.5, 1.5, len(others))  # (about half nearer than the plain)
+    gap, i = folding._query(kept, others, nearer_than=known)
+    nearer = plain < known
+    assert 0.3 < nearer.mean() < 0.7
+    np.testing.assert_array_equal(gap[nearer], plain[nearer])
+    np.testing.assert_array_equal(i[nearer], i_plain[nearer])
+    assert np.all(gap[~nearer] >= known[~nearer]) and np.all((0 <= i) & (i < len(kept)))
 
 
 def test_gaussians_added_to_a_few_kept_ones_are_queried_not_looked_up_around() -> None:

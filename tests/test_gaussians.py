@@ -43,6 +43,9 @@ def test_validate_finds_non_finite_duplicate_ids_and_negative_sums():
     g.ids[2] = g.ids[7]
     with pytest.raises(MapError, match="ids are not unique"):
         g.validate()
+    g.ids[:] = [0, 1, 2, 3, 3, 5, 6, 7, 8, 9]  # (ascending but for a repeat)
+    with pytest.raises(MapError, match="ids are not unique"):
+        g.validate()
     g = random_map(10)
     g.importance_weight[0] = -1
     with pytest.raises(MapError, match="importance_weight has negative"):

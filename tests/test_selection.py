@@ -8,11 +8,13 @@ from hypothesis import strategies as st
 from gscompress.errors import BudgetError, InputError
 from gscompress.gaussians import random_map
 from gscompress.selection import (
+    Ranking,
     keep_count,
     select_count,
     select_top,
     spread_ranks,
     strategy_scores,
+    top_index,
     top_k,
 )
 
@@ -73,6 +75,29 @@ def test_top_k_properties(scores, ratio, seed):
     perm = np.random.default_rng(seed + 1).permutation(n)
     again = perm[top_k(scores[perm], ids[perm], k)]
     assert set(again.tolist()) == set(index.tolist())
+
+
+@given(
+    scores=st.lists(st.integers(0, 5), min_size=2, max_size=60),  # small range: many ties
+    counts=st.lists(st.integers(0, 60), min_size=1, max_size=8),
+    seed=st.integers(0, 1000),
+    special=st.sampled_from([None, -0.0, float("nan")]),
+)
+def test_a_ranking_gives_top_index_for_every_count(scores, counts, seed, special):
+    """`Ranking.top` (the scores sorted once) keeps what `top_index` keeps, count after count,
+    ties, zeros of either sign and NaN included; and with a preferred set (`first`)."""
+    rng = np.random.default_rng(seed)
+    n = len(scores)
+    g = random_map(n, seed)
+    g.ids = rng.permutation(n).astype(np.uint32)
+    values = np.asarray(scores, dtype=np.float64)
+    if special is not None:
+        values[rng.random(n) < 0.3] = special
+    first = rng.random(n) < 0.3
+    plain, preferring = Ranking(g, values), Ranking(g, values, first)
+    for k in [min(c, n) for c in counts] * 2:
+        np.testing.assert_array_equal(plain.top(k), top_index(g, k, values))
+        np.testing.assert_array_equal(preferring.top(k), top_index(g, k, values, first))
 
 
 def test_select_top_keeps_highest_pwas():

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from gscompress.camera import rotmat_to_quat
 from gscompress.gaussians import GaussianMap
 from gscompress.io.quantise import column_ranges, morton_codes
-from gscompress.selection import top_index
+from gscompress.selection import Ranking, top_index
 from gscompress.threads import cpu_threads
 
 if TYPE_CHECKING:
@@ -90,6 +90,7 @@ def cut_map(
     fold: bool,
     first: np.ndarray | None = None,
     folding: Folding | None = None,
+    ranking: Ranking | None = None,
 ) -> GaussianMap:
     """The `count` Gaussians of `full` with the highest `scores` (a strategy's, from
     `selection.selection_scores`: spread over space there if asked), each with the dropped ones
@@ -97,8 +98,8 @@ def cut_map(
     order either way). What `gsc prune` keeps and `gsc share` sends. `first` ([N] bool) ranks
     the Gaussians it marks above all the others (a receiver-aware share). `folding`, the
     `Folding` of `full`, folds it when given: a caller that cuts many counts of one map passes
-    the same one each time."""
-    index = top_index(full, count, scores, first)
+    the same one each time, and likewise `ranking`, the `Ranking` of `scores` and `first`."""
+    index = top_index(full, count, scores, first) if ranking is None else ranking.top(count)
     if not fold:
         return full.select(index)
     return (folding or Folding(full)).fold(index)
@@ -112,6 +113,7 @@ class _Nearest:
     is_kept: np.ndarray  # [N] bool
     index: np.ndarray  # [N] int64 position of the nearest kept one (-1 for the kept ones)
     distance: np.ndarray  # [N] float64 distance to it (inf for the kept ones)
+    owner: np.ndarray  # [N] int64 position of the kept one each joins (itself; -1: none)
 
 
 @dataclass(frozen=True)
@@ -131,15 +133,19 @@ class Folding:
     folds the K best of one ranking for several K, sets that lie inside each other, and narrows
     around one count: after its first steps a fold adds or removes a few hundred Gaussians to
     the last set that fitted or the last that did not. So each fold starts from the earlier
-    set nearest to its own in size that lies inside it or holds it:
-    - inside it: the nearest in the larger set is the nearer of the smaller set's nearest and
-      the nearest of the Gaussians added, found by a k-d tree query of every dropped Gaussian
-      against them or, when they are few (`ADDED_SHARE`), among the dropped Gaussians around them;
-    - holding it: the nearest in the larger set stands wherever the smaller set keeps it; the
-      Gaussians whose nearest was removed (and those removed) are queried again.
-    Likewise only the groups whose members changed since the last fold are moment-matched
-    again, the others copied. A fold gives the same bits whichever folds came before it (ties
-    in distance, which float data almost never has, may go to either Gaussian).
+    sets that lie inside it and hold it (the largest and the smallest):
+    - holding it: the nearest in the larger set stands wherever the smaller set keeps it; for
+      the Gaussians whose nearest was removed (and those removed), the nearest is the nearer of
+      their nearest in the set inside it and the nearest of the Gaussians that set lacks (found
+      by a k-d tree query within a bound), or, with no set inside it, a query of the kept set;
+    - with none holding it, from the one inside it: the nearest in the larger set is the nearer
+      of the smaller set's nearest and the nearest of the Gaussians added, found by a k-d tree
+      query of every dropped Gaussian against them or, when they are few (`ADDED_SHARE`), among
+      the dropped Gaussians around them.
+    Likewise only the groups whose members changed since the earlier fold nearest in size (the
+    last, or the nearest on either side of it) are moment-matched again, the others copied. A
+    fold gives the same bits whichever folds came before it (ties in distance, which float
+    data almost never has, may go to either Gaussian).
 
     Attributes:
         gaussians: the map folded from.
@@ -154,65 +160,86 @@ class Folding:
         self._sigma = np.exp(gaussians.log_scales).astype(np.float64)
         self._scale = np.broadcast_to(self._sigma, (len(gaussians), 3)).mean(axis=1)
         self._done: list[_Nearest] = []  # (the last fold and the nearest sets on each side)
-        self._folded: _Folded | None = None  # (the last fold that moment-matched)
+        self._folded: list[_Folded] = []  # (the last fold that moment-matched, and the nearest
+        # in size on each side: the groups of a search's next fold are mostly one of theirs)
 
     def groups(self, kept: np.ndarray) -> np.ndarray:
         """`fold_groups` of the map for `kept`."""
-        kept = np.asarray(kept, dtype=np.int64)
-        group = np.full(len(self.gaussians), -1, dtype=np.int64)
-        group[kept] = np.arange(len(kept))
-        dropped = np.flatnonzero(group < 0)
-        if len(dropped) == 0 or len(kept) == 0:
-            return group
-        nearest = self._nearest(kept, group >= 0)
-        index, distance = nearest.index[dropped], nearest.distance[dropped]
-        near = distance <= self.reach * (self._scale[index] + self._scale[dropped])
-        group[dropped[near]] = group[index[near]]
-        return group
+        owner, row = self._owners(np.asarray(kept, dtype=np.int64))
+        return row[owner]
 
     def fold(self, kept: np.ndarray) -> GaussianMap:
         """`fold` of the map into `kept`."""
         kept = np.asarray(kept, dtype=np.int64)
-        group = self.groups(kept)
-        members = np.flatnonzero(group >= 0)
+        owner, row = self._owners(kept)
+        members = np.flatnonzero(owner >= 0)
         if len(members) == len(kept):  # (nothing folds: the kept Gaussians as they are)
             return self.gaussians.select(kept)
-        owner = np.full(len(group), -1)
-        owner[members] = kept[group[members]]
-        redo = self._changed(owner, kept)
+        group = row[owner[members]]  # (of each member)
+        last = min(self._folded, key=lambda f: abs(len(f.gaussians) - len(kept)), default=None)
+        redo = self._changed(owner, kept, last)
         slot = np.cumsum(redo) - 1
-        again = members[redo[group[members]]]
+        again = redo[group]
         fresh = np.flatnonzero(redo)
-        computed = self._moments(again, slot[group[again]], self.gaussians.quats[kept[fresh]])
-        folded = self._assembled(kept, fresh, computed)
-        row = np.full(len(group), -1)
-        row[kept] = np.arange(len(kept))
-        self._folded = _Folded(owner, row, folded)
+        computed = self._moments(
+            members[again], slot[group[again]], self.gaussians.quats[kept[fresh]]
+        )
+        folded = self._assembled(kept, fresh, computed, last)
+        done = _Folded(owner, row, folded)
+        smaller = [f for f in self._folded if len(f.gaussians) < len(kept)]
+        larger = [f for f in self._folded if len(f.gaussians) > len(kept)]
+        self._folded = [done]
+        if smaller:
+            self._folded.append(max(smaller, key=lambda f: len(f.gaussians)))
+        if larger:
+            self._folded.append(min(larger, key=lambda f: len(f.gaussians)))
         return folded
 
+    def _owners(self, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """[N] the position of the kept Gaussian each Gaussian of the map joins (a kept one
+        itself, -1: none), and [N + 1] the row of each in `kept` (-1 for the others, and last,
+        where an owner of -1 looks)."""
+        n = len(self.gaussians)
+        row = np.full(n + 1, -1, dtype=np.int64)
+        row[kept] = np.arange(len(kept))
+        is_kept = row[:n] >= 0
+        if len(kept) == 0 or is_kept.all():
+            owner = np.full(n, -1, dtype=np.int64)
+            owner[kept] = kept
+            return owner, row
+        return self._nearest(kept, is_kept).owner, row
+
+    def _joined(self, points: np.ndarray, index: np.ndarray, distance: np.ndarray) -> np.ndarray:
+        """[P] whom each of the dropped Gaussians `points` joins: its nearest kept one `index`
+        at `distance` when within the reach, else -1."""
+        near = distance <= self.reach * (self._scale[index] + self._scale[points])
+        return np.where(near, index, -1)
+
     def _assembled(
-        self, kept: np.ndarray, fresh: np.ndarray, computed: dict[str, np.ndarray]
+        self,
+        kept: np.ndarray,
+        fresh: np.ndarray,
+        computed: dict[str, np.ndarray],
+        last: _Folded | None,
     ) -> GaussianMap:
         """The folded map of the Gaussians at `kept`: at rows `fresh`, the groups `computed`
-        (`_moments`; checked by `GaussianMap.validate`), at the others the groups the last fold
-        computed (and checked); the fields a fold leaves, the kept Gaussians' own."""
-        own = {f.name: getattr(self.gaussians, f.name) for f in fields(GaussianMap)}
-        left = {name: values for name, values in own.items() if name not in computed}
-        GaussianMap(**{name: v[kept[fresh]] for name, v in left.items()}, **computed).validate()
-        assembled = {name: values[kept] for name, values in left.items()}
-        if len(fresh) < len(kept):  # (the other groups as the last fold left them)
-            last = self._folded
-            assert last is not None
-            rows = last.row[kept]  # (-1 for a Gaussian not kept then: one computed anew)
-            for name, values in computed.items():
-                computed[name] = getattr(last.gaussians, name)[rows]
-                computed[name][fresh] = values
-        return GaussianMap(**assembled, **computed)
+        (`_moments`; checked by `GaussianMap.validate`), at the others the groups of an earlier
+        fold (`last`, also checked); the fields a fold leaves, the kept Gaussians' own."""
+        names = [f.name for f in fields(GaussianMap) if f.name not in computed]
+        left = {name: getattr(self.gaussians, name)[kept] for name in names}
+        if len(fresh) == len(kept):  # (every group computed: the map is what is checked)
+            return GaussianMap(**left, **computed).validate()
+        GaussianMap(**{name: v[fresh] for name, v in left.items()}, **computed).validate()
+        assert last is not None  # (the other groups as the earlier fold left them)
+        rows = last.row[kept]  # (-1 for a Gaussian not kept then: one computed anew)
+        for name, values in computed.items():
+            computed[name] = getattr(last.gaussians, name)[rows]
+            computed[name][fresh] = values
+        return GaussianMap(**left, **computed)
 
-    def _changed(self, owner: np.ndarray, kept: np.ndarray) -> np.ndarray:
-        """[K] whether each kept Gaussian's group differs from its group in the last fold (or
-        it was not kept then): the groups a fold computes, the others it copies."""
-        last = self._folded
+    def _changed(self, owner: np.ndarray, kept: np.ndarray, last: _Folded | None) -> np.ndarray:
+        """[K] whether each kept Gaussian's group differs from its group in the fold `last` (or
+        it was not kept then; all when None): the groups a fold computes, the others it copies."""
         if last is None:
             return np.ones(len(kept), dtype=bool)
         moved = np.flatnonzero(owner != last.owner)
@@ -298,28 +325,36 @@ class Folding:
         return cKDTree(self._means, balanced_tree=False, compact_nodes=False)  # (for balls)
 
     def _nearest(self, kept: np.ndarray, is_kept: np.ndarray) -> _Nearest:
-        """The nearest kept Gaussian of every dropped one, from the earlier kept set nearest to
-        `kept` in size that lies inside it or holds it (the class docstring)."""
+        """The nearest kept Gaussian of every dropped one, from the earlier kept sets that hold
+        `kept` and lie inside it (the class docstring)."""
         size = len(kept)
         inside = [d for d in self._done if len(d.kept) <= size and is_kept[d.kept].all()]
         holding = [d for d in self._done if len(d.kept) >= size and d.is_kept[kept].all()]
         below = max(inside, key=lambda d: len(d.kept), default=None)
         above = min(holding, key=lambda d: len(d.kept), default=None)
+        if below is not None and len(below.kept) == size:  # (this set again: the same nearest)
+            return below
         dropped = self._space_order[~is_kept[self._space_order]]
-        if above is not None and (below is None or len(above.kept) - size < size - len(below.kept)):
-            index, distance = self._shrunk(above, kept, is_kept, dropped)
+        start = above if above is not None else below  # (the owners are patched from it)
+        if above is not None:
+            again = self._stale(above, is_kept, dropped)
+            index, distance, changed = self._shrunk(above, below, kept, again)
         else:
-            index, distance = self._grown(below, kept, is_kept, dropped)
+            index, distance, changed = self._grown(below, kept, is_kept, dropped)
         index[kept], distance[kept] = -1, np.inf
-        done = _Nearest(kept, is_kept, index, distance)
+        owner = np.full(len(is_kept), -1) if start is None else start.owner.copy()
+        owner[changed] = self._joined(changed, index[changed], distance[changed])
+        owner[kept] = kept
+        done = _Nearest(kept, is_kept, index, distance, owner)
         self._done = [d for d in (below, done, above) if d is not None]  # (a search's bracket)
         return done
 
     def _grown(
         self, below: _Nearest | None, kept: np.ndarray, is_kept: np.ndarray, dropped: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """[N] nearest kept and [N] distances from a kept set inside `kept` (None: from none):
-        the nearer of its nearest and the nearest of the Gaussians `kept` adds to it."""
+        the nearer of its nearest and the nearest of the Gaussians `kept` adds to it; and the
+        dropped Gaussians whose nearest is not that set's."""
         if below is None:
             index, distance = np.full(len(is_kept), -1), np.full(len(is_kept), np.inf)
             adds = kept
@@ -327,34 +362,50 @@ class Folding:
             index, distance = below.index.copy(), below.distance.copy()
             adds = kept[~below.is_kept[kept]]
         if len(adds) == 0:
-            return index, distance
+            return index, distance, adds
         if below is not None and len(adds) <= ADDED_SHARE * min(len(dropped), len(below.kept)):
             queried, found, gap = self._around(adds, dropped, distance, is_kept)
         else:
-            gap, i = self._query(adds, dropped, first=below is None)
+            nearer_than = None if below is None else distance[dropped]
+            gap, i = self._query(adds, dropped, first=below is None, nearer_than=nearer_than)
             queried, found = dropped, adds[i]
         if below is None:
             index[queried], distance[queried] = found, gap
-            return index, distance
+            return index, distance, queried
         closer = gap < distance[queried]
         index[queried[closer]] = found[closer]
         distance[queried[closer]] = gap[closer]
-        return index, distance
+        return index, distance, queried[closer]
+
+    def _stale(self, above: _Nearest, is_kept: np.ndarray, dropped: np.ndarray) -> np.ndarray:
+        """The Gaussians `dropped` whose nearest in a kept set that holds `is_kept` is not kept
+        any more, or which it kept itself (in the order of `dropped`)."""
+        stale = above.is_kept[dropped]
+        stale[~stale] = ~is_kept[above.index[dropped[~stale]]]
+        return dropped[stale]
 
     def _shrunk(
-        self, above: _Nearest, kept: np.ndarray, is_kept: np.ndarray, dropped: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+        self, above: _Nearest, below: _Nearest | None, kept: np.ndarray, again: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """[N] nearest kept and [N] distances from a kept set that holds `kept`: its nearest
-        where `kept` still holds it, a query of `kept` for the rest (the Gaussians it drops and
-        those whose nearest it drops)."""
+        where `kept` still holds it; for the rest (`again`, `_stale`, which it returns too), a
+        query of `kept` or, given a kept set inside `kept` (`below`), the nearer of its nearest
+        and the nearest of the Gaussians `kept` adds to it."""
         index, distance = above.index.copy(), above.distance.copy()
-        stale = above.is_kept[dropped]
-        stale[~stale] = ~is_kept[index[dropped[~stale]]]
-        again = dropped[stale]
-        if len(again):
-            distance[again], i = self._query(kept, again)
-            index[again] = kept[i]
-        return index, distance
+        if below is None:
+            if len(again):
+                distance[again], i = self._query(kept, again)
+                index[again] = kept[i]
+            return index, distance, again
+        index[again], distance[again] = below.index[again], below.distance[again]
+        adds = kept[~below.is_kept[kept]]
+        if len(again) == 0 or len(adds) == 0:
+            return index, distance, again
+        gap, i = self._query(adds, again, nearer_than=distance[again])
+        closer = gap < distance[again]
+        index[again[closer]] = adds[i[closer]]
+        distance[again[closer]] = gap[closer]
+        return index, distance, again
 
     def _around(
         self, adds: np.ndarray, dropped: np.ndarray, distance: np.ndarray, is_kept: np.ndarray
@@ -389,7 +440,11 @@ class Folding:
         return queried[order[first]], found[order[first]], gap[order[first]]
 
     def _query(
-        self, kept: np.ndarray, points: np.ndarray, first: bool = False
+        self,
+        kept: np.ndarray,
+        points: np.ndarray,
+        first: bool = False,
+        nearer_than: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The nearest of the Gaussians `kept` to each of `points`: ([P] distances, [P] their
         positions in `kept`), by a k-d tree of `kept` (of more than one). A fold from no
@@ -399,21 +454,47 @@ class Folding:
 
         Many points are queried within a bound that holds all but about 0.1% of their nearest
         (from a sample of them), which prunes each search, and the few beyond it again without
-        one. (What both save: docs/performance.md, "Folding".)"""
+        one. (What both save: docs/performance.md, "Folding".)
+
+        `nearer_than` ([P], the distances of `points` to an earlier nearest) asks only for the
+        nearest of those nearer than that: the others may come back at an infinite distance
+        (and position 0). The points are then queried within a bound that holds 99% of these
+        distances, and again without one those beyond it that found none within it."""
         where = np.take(self._means, points, axis=0)
         if len(kept) == 1:  # (the distance to it, as the tree gives it: a search's first fold)
             one = np.broadcast_to(self._means[kept[0]], where.shape)
             return point_distances(where, one), np.zeros(len(points), dtype=np.intp)
         tree = cKDTree(np.take(self._means, kept, axis=0), balanced_tree=first, compact_nodes=first)
         workers = cpu_threads() if len(points) >= PARALLEL_QUERIES else 1
+        if nearer_than is not None and len(points):
+            sample = nearer_than[::8]  # (any bound gives the same nearest: this one is quick)
+            q = int(0.99 * (len(sample) - 1))
+            bound = float(np.partition(sample, q)[q])
+            if len(points) >= BOUNDED_QUERIES:  # (the nearest may lie far nearer: see above)
+                bound = min(bound, self._bound(tree, where, workers))
+            # (a little wider, so that rounding cannot hide one nearer than the bound)
+            wider = bound * (1 + 1e-9)
+            distance, i = tree.query(where, distance_upper_bound=wider, workers=workers)
+            none = i == len(kept)
+            beyond = np.flatnonzero(none & (nearer_than > bound))
+            i[none] = 0
+            if len(beyond):
+                distance[beyond], i[beyond] = tree.query(where[beyond], workers=workers)
+            return distance, i
         if len(points) < BOUNDED_QUERIES:
             return tree.query(where, workers=workers)
-        bound = np.quantile(tree.query(where[::64], workers=workers)[0], 0.999)
+        bound = self._bound(tree, where, workers)
         distance, i = tree.query(where, distance_upper_bound=bound, workers=workers)
         beyond = np.flatnonzero(i == len(kept))
         if len(beyond):
             distance[beyond], i[beyond] = tree.query(where[beyond], workers=workers)
         return distance, i
+
+    @staticmethod
+    def _bound(tree: cKDTree, where: np.ndarray, workers: int) -> float:
+        """A distance that holds about 99.9% of the nearest in `tree` of the points `where`
+        (from a sample of them)."""
+        return float(np.quantile(tree.query(where[::64], workers=workers)[0], 0.999))
 
 
 def point_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ from gscompress.pipeline.share.receiver import (
     budget_less_request,
     unseen_ids,
 )
-from gscompress.selection import selection_scores
+from gscompress.selection import Ranking, selection_scores
 
 RECORDED_TEXT_BYTES = 256
 """What a share counts for the text it records of local paths (its command line and the names
@@ -145,10 +145,17 @@ class ShareCut:
         self._scores = selection_scores(pool, o.strategy, o.seed, o.spread)
         self._first = None if self.first_ids is None else np.isin(pool.ids, self.first_ids)
         self._folding = Folding(pool) if o.fold else None  # (one for every count tried)
+        self._ranking = Ranking(pool, self._scores, self._first)  # (likewise)
 
     def _cut(self, count: int) -> GaussianMap:
         return cut_map(
-            self.pool, count, self._scores, self.options.fold, self._first, self._folding
+            self.pool,
+            count,
+            self._scores,
+            self.options.fold,
+            self._first,
+            self._folding,
+            self._ranking,
         )
 
     def refined(self, count: int, refine: MapRefiner) -> int:
