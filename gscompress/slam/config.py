@@ -251,8 +251,8 @@ class PruneConfig:
             "current" (the frame just mapped, so the next one is tracked against no holes) or
             "keyframes" (every keyframe so far too, so views left behind keep no empty patch).
         max_gaussians: also run a stage after any frame that leaves more than this many of the
-            run's own Gaussians, so that the map, and with it the run's memory, stays near this
-            size however long the recording (0: no such stage; docs/recordings.md, "Memory").
+            run's own Gaussians, so that the map, and the run's memory, stay near this size
+            however long the recording (0: never; docs/recordings.md, "Streaming and memory").
         track_prestage_frames: for this many frames after each stage, track against the map as it
             stood just before the stage (a detached copy, dropped afterwards; not kept across
             `--resume`); mapping, densification, scores and the log use the pruned map (0: off).
