@@ -13,7 +13,6 @@ end (glibc's `malloc_trim`): what that returns was free memory the heap kept, no
 from __future__ import annotations
 
 import argparse
-import ctypes
 import gc
 import resource
 import tempfile
@@ -24,6 +23,7 @@ from typing import Any
 import torch
 
 from gscompress.pipeline import slam_file
+from gscompress.pipeline.slam_run import release_free_heap
 from gscompress.pipeline.slam_run.options import SlamOptions
 
 
@@ -93,7 +93,7 @@ def main() -> None:
     report("end")
     print(f"peak: +{peak - base[0]} MiB above the imports", flush=True)
     if args.trim:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
+        release_free_heap()
         report("after malloc_trim")
 
 

@@ -6,9 +6,11 @@ visited: docs/recordings.md, "Streaming and memory")."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from gscompress.datasets.synthetic import synthetic_sequence
+from gscompress.pipeline.slam_run import _malloc_trim, release_free_heap
 from gscompress.slam.config import preset
 from gscompress.slam.keyframes import HeldImages, View
 from gscompress.slam.system import SlamSystem
@@ -59,3 +61,23 @@ def test_the_views_a_run_keeps_hold_no_more_tensors_with_more_frames() -> None:
     bound = 3 * (window + 1) + 2  # the held keyframes' images and edges, the empty pair
     assert max(short) <= bound and max(long) <= bound, (short, long)
     assert short[-1] == long[-1] == 2  # after the refinement, every view released
+
+
+def _rss_mib() -> float:
+    with open("/proc/self/status") as status:
+        line = next(x for x in status if x.startswith("VmRSS:"))
+    return int(line.split()[1]) / 1024
+
+
+@pytest.mark.skipif(_malloc_trim() is None, reason="needs glibc's malloc_trim")
+def test_free_heap_goes_back_to_the_system() -> None:
+    # 2,000 blocks of 64 kB come from the heap (below glibc's mmap threshold); with the last
+    # one kept, freeing the others leaves 125 MB of free heap in the process, which
+    # release_free_heap hands back.
+    blocks = [np.ones(8192) for _ in range(2000)]
+    last = blocks[-1]
+    del blocks
+    before = _rss_mib()
+    release_free_heap()
+    assert before - _rss_mib() > 60
+    assert last.sum() == 8192

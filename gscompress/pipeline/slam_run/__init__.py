@@ -8,6 +8,7 @@ the log it writes (here) are the same in all three cases.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
 import itertools
 import logging
@@ -239,7 +240,31 @@ def _log_frame(run: Run, out: LogWriter, frame: Any, result: Any, i: int) -> dic
         _write_refined(run, out)
         run.map_frames = i + 1
     out.flush()
+    if result.event:
+        release_free_heap()
     return stats
+
+
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's `malloc_trim`, or None where the C library has none (macOS, musl)."""
+    try:
+        return ctypes.CDLL(None).malloc_trim
+    except (AttributeError, OSError):
+        return None
+
+
+def release_free_heap() -> None:
+    """Hand the heap's free memory back to the system (glibc), after a pruning stage.
+
+    A stage frees most of the map, and the map then regrows in tensors of other sizes, so the
+    freed space stays in the process as free heap; over a long run with many stages that
+    slack, not live data, made the peak RSS grow with the frames (docs/recordings.md,
+    "Streaming and memory"). Elsewhere a no-op.
+    """
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 RESUMABLE = (DatasetError, OSError)
