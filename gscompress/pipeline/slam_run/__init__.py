@@ -240,8 +240,7 @@ def _log_frame(run: Run, out: LogWriter, frame: Any, result: Any, i: int) -> dic
         _write_refined(run, out)
         run.map_frames = i + 1
     out.flush()
-    if result.event:
-        release_free_heap()
+    release_free_heap()
     return stats
 
 
@@ -255,12 +254,12 @@ def _malloc_trim() -> Callable[[int], int] | None:
 
 
 def release_free_heap() -> None:
-    """Hand the heap's free memory back to the system (glibc), after a pruning stage.
+    """Hand the heap's free memory back to the system (glibc), as `gsc slam` does after each
+    frame.
 
-    A stage frees most of the map, and the map then regrows in tensors of other sizes, so the
-    freed space stays in the process as free heap; over a long run with many stages that
-    slack, not live data, made the peak RSS grow with the frames (docs/recordings.md,
-    "Streaming and memory"). Elsewhere a no-op.
+    The map is cut at each stage and regrows in tensors of other sizes, so freed space stays in
+    the process as free heap; over a long run that slack, not live data, made the peak RSS grow
+    with the frames (docs/recordings.md, "Streaming and memory"). Elsewhere a no-op.
     """
     trim = _malloc_trim()
     if trim is not None:
