@@ -86,6 +86,10 @@ def test_resolve_config_applies_command_line_overrides(tmp_path):
     assert config.size == (40, 30) and config.prune.keep == 0.5
     assert config.mapping == preset("tiny").mapping
     assert resolve_config("tiny", no_prune=True).prune.stages == ()
+    capped = tmp_path / "capped.yaml"
+    capped.write_text("prune:\n  max_gaussians: 5000\n")
+    assert resolve_config("tiny", capped).prune.max_gaussians == 5000
+    assert resolve_config("tiny", capped, no_prune=True).prune.max_gaussians == 0
     assert resolve_config("cpu") == preset("cpu") == resolve_config()
     with pytest.raises(OptionError, match="`keep` does not go with `no_prune`"):
         resolve_config("tiny", keep=0.5, no_prune=True)

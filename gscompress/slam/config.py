@@ -675,8 +675,8 @@ def resolve_config(
         overrides["size"] = size
     if keep is not None:
         overrides["prune.keep"] = keep
-    if no_prune:
-        overrides["prune.stages"] = ()
+    if no_prune:  # (no stage at all: neither the scheduled ones nor one for the map's size)
+        overrides.update({"prune.stages": (), "prune.max_gaussians": 0})
     if backend is not None:
         overrides["backend"] = backend
     return config.with_overrides(**overrides) if overrides else config
