@@ -7,7 +7,8 @@ end of the frames and of the final refinement, the torch tensors alive (count an
 how many of the run's views hold images. `--trim` hands the allocator's free memory back at the
 end (glibc's `malloc_trim`): what that returns was free memory the heap kept, not live objects.
 
-    python bench/slam_memory.py SEQ [--frames 0:1000] [--size 64x48] [--census] [--trim]
+    python bench/slam_memory.py SEQ [--frames 0:1000] [--size 64x48] [--config FILE] [--census]
+        [--trim]
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ def main() -> None:
     parser.add_argument("seq")
     parser.add_argument("--frames", default="all")
     parser.add_argument("--size", default="64x48", help="working size WxH")
+    parser.add_argument("--config", default=None, help="a gsc slam config (e.g. a size cap)")
     parser.add_argument("--census", action="store_true")
     parser.add_argument("--trim", action="store_true")
     args = parser.parse_args()
@@ -87,7 +89,7 @@ def main() -> None:
 
     print(f"RSS after the imports: {base[0]} MiB", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        options = SlamOptions(frames=args.frames, size=(width, height))
+        options = SlamOptions(frames=args.frames, size=(width, height), config_path=args.config)
         slam_file(args.seq, Path(tmp) / "run.mcap", options, progress=progress, phases=phases)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
     report("end")
