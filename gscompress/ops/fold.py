@@ -372,10 +372,7 @@ class Folding:
         if below is None:
             index[queried], distance[queried] = found, gap
             return index, distance, queried
-        closer = gap < distance[queried]
-        index[queried[closer]] = found[closer]
-        distance[queried[closer]] = gap[closer]
-        return index, distance, queried[closer]
+        return index, distance, _take_nearer(index, distance, queried, found, gap)
 
     def _stale(self, above: _Nearest, is_kept: np.ndarray, dropped: np.ndarray) -> np.ndarray:
         """The Gaussians `dropped` whose nearest in a kept set that holds `is_kept` is not kept
@@ -402,9 +399,7 @@ class Folding:
         if len(again) == 0 or len(adds) == 0:
             return index, distance, again
         gap, i = self._query(adds, again, nearer_than=distance[again])
-        closer = gap < distance[again]
-        index[again[closer]] = adds[i[closer]]
-        distance[again[closer]] = gap[closer]
+        _take_nearer(index, distance, again, adds[i], gap)
         return index, distance, again
 
     def _around(
@@ -495,6 +490,17 @@ class Folding:
         """A distance that holds about 99.9% of the nearest in `tree` of the points `where`
         (from a sample of them)."""
         return float(np.quantile(tree.query(where[::64], workers=workers)[0], 0.999))
+
+
+def _take_nearer(
+    index: np.ndarray, distance: np.ndarray, points: np.ndarray, found: np.ndarray, gap: np.ndarray
+) -> np.ndarray:
+    """Where `found` ([P]) lies nearer to `points` ([P]) than their nearest so far (`gap`
+    against `distance`), make it their nearest in `index` and `distance`; those points."""
+    closer = gap < distance[points]
+    index[points[closer]] = found[closer]
+    distance[points[closer]] = gap[closer]
+    return points[closer]
 
 
 def point_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:

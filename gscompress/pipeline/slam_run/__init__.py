@@ -240,7 +240,6 @@ def _log_frame(run: Run, out: LogWriter, frame: Any, result: Any, i: int) -> dic
         _write_refined(run, out)
         run.map_frames = i + 1
     out.flush()
-    release_free_heap()
     return stats
 
 
@@ -441,6 +440,7 @@ def _process_frames(
                 result = system.process(frame)
                 whole = True
                 stats = _log_frame(run, out, frame, result, i)
+                release_free_heap()  # (what the frame freed: docs/recordings.md)
                 if progress is not None:
                     progress(i + 1, total, {**stats, "seconds": time.perf_counter() - start})
                 if stopping():
