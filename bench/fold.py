@@ -8,7 +8,8 @@ fresh interpreter, old and new one after the other (which goes first alternates 
 prints one JSON object per command and tree: the median wall time, the time of the command
 itself (`run_s`: imports excluded) and the process's CPU time (user + system, every thread;
 what other load on the machine changes least). The summary gives prune / info and share / info
-on each tree and new / old for each command, and says whether both trees wrote the same bytes.
+on each tree and new / old for each command, and says whether both trees wrote the same bytes
+(each tree's version string, which a log records, left out).
 
 Logs: bench/offline.py's log of N Gaussians (default 1,000,000; fraction budgets only: there
 a byte budget's search of the old tree folds a million Gaussians some 15 times, about a
@@ -90,6 +91,19 @@ def commands(log: Path, budget_bytes: str | None) -> dict[str, list[str]]:
     return out
 
 
+def version(shim_dir: Path) -> bytes:
+    """The version string that the tree's logs record."""
+    out = subprocess.run(
+        [sys.executable, "-c", "import gscompress; print(gscompress.__version__)"],
+        env={**os.environ, "PYTHONPATH": str(shim_dir)},
+        cwd=shim_dir,  # (not a folder whose own gscompress would be imported first)
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return out.stdout.strip().encode()
+
+
 def run_child(shim_dir: Path, cwd: Path, args: list[str]) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(shim_dir)}
     for name in OUTPUTS.values():
@@ -139,6 +153,7 @@ def main() -> None:
             logs.append((path, budget))
         logs += [(log.resolve(), opts.budget_bytes) for log in opts.log]
         shims = {name: shim(tree, tmp / f"shim_{name}") for name, tree in trees.items()}
+        versions = {name: version(shims[name]) for name in trees}
         cwds = {name: tmp / name for name in trees}
         for cwd in cwds.values():
             cwd.mkdir()
@@ -154,7 +169,10 @@ def main() -> None:
                         row = run_child(shims[tree], cwds[tree], args)
                         runs.setdefault((log.name, name, tree), []).append(row)
                     if name in OUTPUTS:
-                        written = [(cwds[t] / OUTPUTS[name]).read_bytes() for t in trees]
+                        written = [
+                            (cwds[t] / OUTPUTS[name]).read_bytes().replace(versions[t], b"")
+                            for t in trees
+                        ]
                         same[(log.name, name)] = same.get((log.name, name), True) and (
                             written[0] == written[1]
                         )
