@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from bounded import rss_bytes
 
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.pipeline.slam_run import _malloc_trim, release_free_heap
@@ -63,12 +64,6 @@ def test_the_views_a_run_keeps_hold_no_more_tensors_with_more_frames() -> None:
     assert short[-1] == long[-1] == 2  # after the refinement, every view released
 
 
-def _rss_mib() -> float:
-    with open("/proc/self/status") as status:
-        line = next(x for x in status if x.startswith("VmRSS:"))
-    return int(line.split()[1]) / 1024
-
-
 @pytest.mark.skipif(_malloc_trim() is None, reason="needs glibc's malloc_trim")
 def test_free_heap_goes_back_to_the_system() -> None:
     # 2,000 blocks of 64 kB come from the heap (below glibc's mmap threshold); with the last
@@ -77,7 +72,7 @@ def test_free_heap_goes_back_to_the_system() -> None:
     blocks = [np.ones(8192) for _ in range(2000)]
     last = blocks[-1]
     del blocks
-    before = _rss_mib()
+    before = rss_bytes()
     release_free_heap()
-    assert before - _rss_mib() > 60
+    assert before - rss_bytes() > 60 * 2**20
     assert last.sum() == 8192
