@@ -29,13 +29,13 @@ from gscompress.datasets.base import Frame
 from gscompress.datasets.tum import write_tum_sequence
 from gscompress.io.mcap_log import read_map
 from gscompress.render import render
-from gscompress.slam.params import GaussianParams
+from gscompress.slam.params import GaussianParams, RenderInputs
 
 
 class SplatWorld:
     """`sequence` with its colour and/or depth replaced by renders of `inputs` at true poses."""
 
-    def __init__(self, sequence: Any, inputs: list[torch.Tensor], args: argparse.Namespace):
+    def __init__(self, sequence: Any, inputs: RenderInputs, args: argparse.Namespace):
         self.sequence, self.inputs, self.args = sequence, inputs, args
         self.intrinsics = sequence.intrinsics
 
@@ -74,7 +74,7 @@ def main() -> None:
     args = parser.parse_args()
     sequence = open_sequence(args.seq)
     params = GaussianParams.from_map(read_map(args.log))
-    inputs = [t.detach() for t in params.render_inputs()]
+    inputs = RenderInputs(*(t.detach() for t in params.render_inputs()))
     if args.out.exists():
         shutil.rmtree(args.out)
     write_tum_sequence(SplatWorld(sequence, inputs, args), args.out, args.depth_scale)
