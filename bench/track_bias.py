@@ -16,6 +16,14 @@ Modes:
   surface), and the first frame's raw back-projection (no mapping iteration) is rendered at its
   own pose (normalised depth minus observed, on flat pixels and at depth discontinuities).
 
+- `pull`: the run maps every frame at its true pose; frame t is rendered from the map of the
+  frames before it at `PULL_OFFSETS` along its step (the camera moved back by a fraction of the
+  step t-1 -> t) and the L1 error of colour and of depth is summed over the frames, on the
+  tracking mask of the true pose, for every pixel and by pixel class: at a depth step, flat and
+  textured (the top quarter of the render's change over the offsets), flat and plain. Where each
+  curve is lowest (a parabola through its lowest samples; positive = behind the camera) is how
+  far back that channel and those pixels would pull tracking.
+
 Variants of `loop` (each leaves pixels out of tracking by zeroing their observed depth, which the
 tracking mask requires): `--edges REL` leaves out pixels with a relative depth step above REL to
 a 4-neighbour (dilated by a pixel); `--margin M` keeps only pixels whose surface point lies at
@@ -28,6 +36,7 @@ map's view ("towards": a fraction of the t -> j distance). Prints one JSON objec
 
     python bench/track_bias.py SEQ --mode loop --frames 0:24
     python bench/track_bias.py SEQ --mode single --gap 5
+    python bench/track_bias.py SEQ --mode pull
 """
 
 from __future__ import annotations
@@ -47,10 +56,15 @@ from gscompress.datasets.base import Frame, iter_frames
 from gscompress.render import render
 from gscompress.slam.config import SlamConfig, load_config, preset
 from gscompress.slam.keyframes import frame_tensors
+from gscompress.slam.losses import tracking_mask
 from gscompress.slam.params import RenderInputs, decay_per_step
 from gscompress.slam.poses import PoseAdam, orthonormalize, pose_gradient, pose_increment
 from gscompress.slam.system import SlamSystem
 from gscompress.slam.tracker import constant_velocity, track
+
+PULL_OFFSETS = (-0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3)
+"""`pull`: where along frame t's step the map is rendered (fractions of the step, back from the
+true pose)."""
 
 
 def along(est: np.ndarray, truth: np.ndarray, previous: np.ndarray) -> float:
@@ -232,6 +246,64 @@ def spread_mm(values: np.ndarray | torch.Tensor) -> dict[str, float]:
     return {"median_mm": round(p50, 2), "p10_mm": round(p10, 2), "p90_mm": round(p90, 2)}
 
 
+def pull(config: SlamConfig, frames: list[Frame], intrinsics: Intrinsics) -> dict[str, Any]:
+    """The `pull` mode: which pixels of frame t make the map of the frames before it (true
+    poses) look as if seen from behind the camera."""
+    config = config.with_overrides(**{"tracking.use_ground_truth": True, "prune.stages": ()})
+    system = SlamSystem(config, intrinsics, total_frames=None)
+    curves: dict[str, np.ndarray] = {}
+    for t, frame in enumerate(frames):
+        if t >= 2:
+            truth, previous = np.asarray(frame.T_world_cam), np.asarray(frames[t - 1].T_world_cam)
+            inputs = RenderInputs(*(x.detach() for x in system.mapper.params.render_inputs()))
+            color, depth = frame_tensors(frame, system.device)
+            outs = []
+            for offset in PULL_OFFSETS:
+                T = truth.copy()
+                T[:3, 3] -= offset * (truth[:3, 3] - previous[:3, 3])
+                pose = torch.as_tensor(invert_transform(T), dtype=torch.float32)
+                outs.append(render(*inputs, intrinsics, pose))
+            at = outs[PULL_OFFSETS.index(0.0)]
+            mask = tracking_mask(at.silhouette, depth, config.tracking.silhouette_min)
+            edges = depth_steps(frame.depth, 0.05)
+            change = (outs[-1].color - at.color).abs().sum(-1)
+            textured = change > change[mask].quantile(0.75)
+            classes = {
+                "all": mask,
+                "depth_steps": mask & edges,
+                "flat_textured": mask & ~edges & textured,
+                "flat_plain": mask & ~edges & ~textured,
+            }
+            for name, pixels in classes.items():
+                n = max(int(pixels.sum()), 1)
+                for channel in ("color", "depth"):
+                    losses = [
+                        float(
+                            (
+                                (o.color - color).abs().mean(-1)
+                                if channel == "color"
+                                else (o.depth_normalized - depth).abs()
+                            )[pixels].sum()
+                        )
+                        / n
+                        for o in outs
+                    ]
+                    key = f"{channel}_{name}"
+                    curves[key] = curves.get(key, 0.0) + np.array(losses)
+        system.process(frame)
+    return {key: round(parabola_minimum(np.array(PULL_OFFSETS), c), 4) for key, c in curves.items()}
+
+
+def parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
+    """Where the parabola through the lowest sample of y(x) and its two neighbours is lowest
+    (the end sample itself when the lowest is at an end)."""
+    k = int(np.argmin(y))
+    if k in (0, len(y) - 1):
+        return float(x[k])
+    a, b, _ = np.polyfit(x[k - 1 : k + 2], y[k - 1 : k + 2], 2)
+    return float(-b / (2 * a)) if a > 0 else float(x[k])
+
+
 def centres(config: SlamConfig, frames: list[Frame], intrinsics: Intrinsics) -> dict[str, Any]:
     """The `centres` mode."""
     raw = config.with_overrides(**{"mapping.first_frame_iters": 0, "prune.stages": ()})
@@ -265,7 +337,9 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("seq")
-    parser.add_argument("--mode", choices=("loop", "single", "dense", "centres"), default="loop")
+    parser.add_argument(
+        "--mode", choices=("loop", "single", "dense", "centres", "pull"), default="loop"
+    )
     parser.add_argument("--frames", default="0:24")
     parser.add_argument("--gap", type=int, default=5)
     parser.add_argument("--config", help="YAML on top of the cpu preset")
@@ -284,6 +358,8 @@ def main() -> None:
         result["variant"] = variant
     elif args.mode == "centres":
         result = centres(config, frames, sequence.intrinsics)
+    elif args.mode == "pull":
+        result = pull(config, frames, sequence.intrinsics)
     else:
         result = single(config, frames, sequence.intrinsics, args.gap, args.mode == "dense")
     print(json.dumps({"mode": args.mode, "frames": args.frames, "gap": args.gap, **result}))
