@@ -674,3 +674,70 @@ def test_refill_of_the_current_view_fills_only_its_holes(seq):
         added[refill] = stats.added
         assert _hole_pixels(system, [current]) < holes / 4
     assert 0 < added["current"] < added["keyframes"]  # the older keyframe's holes stay
+
+
+def test_shaping_gives_three_scales_and_a_rotation_without_changing_the_render(seq):
+    frame = seq.frame(0)
+    mapper = Mapper(preset("tiny"), seq.intrinsics, torch.device("cpu"))
+    mapper.add(gaussians_from_rgbd(frame.color, frame.depth, seq.intrinsics, frame.T_world_cam))
+    view = View(0, torch.from_numpy(frame.color), torch.from_numpy(frame.depth), frame.T_world_cam)
+    mapper.optimize(view, [], 3, np.random.default_rng(0))  # (Adam moments to carry along)
+    T = view.T_cam_world()
+    with torch.no_grad():
+        before = render(*mapper.params.render_inputs(), seq.intrinsics, T)
+    moments = mapper.optimizer.state[mapper.params.log_scales]["exp_avg"].clone()
+    assert mapper.params.isotropic
+    assert "quats" not in [g["name"] for g in mapper.optimizer.param_groups]
+    mapper.shape()
+    mapper.shape()  # (once shaped, again changes nothing)
+    p = mapper.params
+    assert p.log_scales.shape == (len(p), 3) and not p.isotropic
+    torch.testing.assert_close(p.log_scales, p.log_scales[:, :1].expand(-1, 3))
+    state = mapper.optimizer.state[p.log_scales]["exp_avg"]
+    torch.testing.assert_close(state, moments.expand(-1, 3))
+    names = [g["name"] for g in mapper.optimizer.param_groups]
+    assert names.count("quats") == 1
+    with torch.no_grad():
+        after = render(*p.render_inputs(), seq.intrinsics, T)
+    torch.testing.assert_close(after.color, before.color)
+    torch.testing.assert_close(after.depth, before.depth)
+    # mapping now turns and stretches the Gaussians, one scale apart from another
+    quats = p.quats.detach().clone()
+    mapper.optimize(view, [], 5, np.random.default_rng(1))
+    p = mapper.params
+    assert not torch.equal(p.quats, quats)
+    assert float((p.log_scales[:, 0] - p.log_scales[:, 1]).detach().abs().max()) > 0
+
+
+def test_a_shaping_stage_leaves_a_map_of_shaped_gaussians_that_keeps_growing(seq):
+    def run(shape):
+        config = preset("tiny").with_overrides(**{"prune.stages": (0.5,), "prune.shape": shape})
+        system = SlamSystem(config, seq.intrinsics, total_frames=4)
+        results = [system.process(seq.frame(i)) for i in range(4)]
+        assert results[1].event == "prune-stage-1"
+        return system, results
+
+    round_system, _ = run(False)
+    assert round_system.gaussian_map().isotropic
+    system, results = run(True)
+    shaped = system.gaussian_map()
+    assert not shaped.isotropic and sum(r.added for r in results[2:]) > 0
+    # Gaussians added after the stage start round (three equal scales); survivors have turned
+    new = shaped.ids >= results[1].next_id
+    assert new.any() and (~new).any()
+    spread = np.ptp(shaped.log_scales, axis=1)
+    assert spread[~new].max() > 1e-4
+    # a resumed run optimises the rotations as the run it resumes did
+    again = SlamSystem(system.config, seq.intrinsics, total_frames=4)
+    views = [
+        View.from_frame(v.index, seq.frame(v.index), v.T_world_cam, "cpu") for v in system.keyframes
+    ]
+    again.restore(
+        shaped,
+        [(i, seq.frame(i).timestamp, T) for i, T in enumerate(system.poses)],
+        views,
+        mapping_iterations=system.mapper.iterations,
+        next_id=system.next_id,
+        first_depth=seq.frame(0).depth,
+    )
+    assert "quats" in [g["name"] for g in again.mapper.optimizer.param_groups]

@@ -253,6 +253,10 @@ class PruneConfig:
         max_gaussians: also run a stage after any frame that leaves more than this many of the
             run's own Gaussians, so that the map, and the run's memory, stay near this size
             however long the recording (0: never; docs/recordings.md, "Streaming and memory").
+        shape: at a stage the survivors take three scales and a rotation each, optimised from
+            then on (`Mapper.shape`; later Gaussians start round), as `gsc prune` shapes a
+            pruned map: fewer Gaussians, each holding more of the picture
+            (docs/design-experiments.md, "Shaping at a stage").
         track_prestage_frames: for this many frames after each stage, track against the map as it
             stood just before the stage (a detached copy, dropped afterwards; not kept across
             `--resume`); mapping, densification, scores and the log use the pruned map (0: off).
@@ -272,6 +276,7 @@ class PruneConfig:
     refine_iters: int = 0
     refill: str = "off"
     max_gaussians: int = 0
+    shape: bool = False
     track_prestage_frames: int = 3
 
 

@@ -101,6 +101,17 @@ class Mapper:
             self.params.append(gaussians, self.optimizer)
         return len(gaussians)
 
+    def shape(self) -> None:
+        """Let every Gaussian take its own shape from now on: three scales and a rotation, both
+        optimised (`prune.shape`; the map renders as before until the next step). Gaussians
+        added later start round, with three equal scales."""
+        self.params.widen(self.optimizer)
+        if all(group.get("name") != "quats" for group in self.optimizer.param_groups):
+            lr = self.config.mapping.lr_quats
+            self.optimizer.param_groups.append(
+                {"params": [self.params.quats], "lr": lr, "name": "quats"}
+            )
+
     def keep(self, index: torch.Tensor) -> int:
         """Keep the Gaussians at `index` (bool mask or indices); returns how many were removed."""
         before = len(self.params)

@@ -239,11 +239,7 @@ class GaussianParams:
     def append(self, gaussians: GaussianMap, optimizer: Adam | None) -> None:
         """Add Gaussians at the end (their Adam state starts at zero, sums as given)."""
         if self.isotropic and not gaussians.isotropic:
-
-            def widen(x: torch.Tensor) -> torch.Tensor:
-                return x.expand(-1, 3).contiguous()
-
-            self._replace(optimizer, ("log_scales",), widen, widen)
+            self.widen(optimizer)
         elif gaussians.isotropic and not self.isotropic:
             gaussians = gaussians.as_anisotropic()
         extra = GaussianParams.from_map(gaussians, self.means.device)
@@ -261,6 +257,17 @@ class GaussianParams:
             self._replace(optimizer, (name,), values, zeros_after)
         self.ids = torch.cat([self.ids, extra.ids])
         self.sums = self.sums.extend(extra.sums)
+
+    def widen(self, optimizer: Adam | None) -> None:
+        """Give every Gaussian of an isotropic map three scales, each its one scale (the render
+        is unchanged), with its Adam state alike (nothing to do on an anisotropic map)."""
+        if not self.isotropic:
+            return
+
+        def columns(x: torch.Tensor) -> torch.Tensor:
+            return x.expand(-1, 3).contiguous()
+
+        self._replace(optimizer, ("log_scales",), columns, columns)
 
     def keep(self, index: torch.Tensor, optimizer: Adam | None) -> None:
         """Keep only the Gaussians at `index` (bool mask [N] or indices), with their state."""

@@ -286,6 +286,8 @@ class SlamSystem:
         if self.keeps_every_view and [v.index for v in views] != list(range(len(poses))):
             raise MapError("restore() needs the view of every restored frame, in order")
         self.add_gaussians(gaussians, renumber=False)
+        if self.config.prune.shape and not self.mapper.params.isotropic:
+            self.mapper.shape()  # (a stage has shaped the map: its rotations are optimised)
         for index, stamp, T in poses:
             self.frame_indices.append(int(index))
             self.timestamps.append(float(stamp))
@@ -367,6 +369,8 @@ class SlamSystem:
             # (a stage for the map's size is numbered by its frame: a resumed run numbers alike)
             number = stage if stage is not None else 1000 * (position + 1)
             removed += self.prune_to(self.config.prune.keep, stage=number)
+            if self.config.prune.shape:
+                self.mapper.shape()
             event = f"prune-stage-{stage}" if stage is not None else "prune-size"
         ms["pruning"] = 1e3 * (time.perf_counter() - clock)
 
