@@ -13,7 +13,9 @@ Three presets:
   mapping ones (`mapping.final_iters`, `final_iters_per_frame`, `final_views`,
   `final_lr_fraction`; why: docs/design-experiments.md, "The final refinement"). Besides
   SplaTAM's rule it densifies where the map covers a pixel but shows it in the wrong colour
-  (`densify.color_error` 0.25) and is coarser there than a new Gaussian.
+  (`densify.color_error` 0.25) and is coarser there than a new Gaussian. Its pruning stages
+  shape what they keep (`prune.shape`: three scales and a rotation from then on; why:
+  docs/design-experiments.md, "Shaping at a stage").
 - `paper`: SplaTAM's Replica settings (40 tracking / 60 mapping iterations, full resolution),
   for a GPU; `paper-tum` has SplaTAM's TUM settings (200 / 30, camera rotation lr 2e-3).
 
@@ -567,6 +569,7 @@ PRESETS: dict[str, SlamConfig] = {
         ),
         keyframes=KeyframeConfig(every=5, window=8, overlap_samples=800),
         densify=DensifyConfig(color_error=0.25),
+        prune=PruneConfig(shape=True),
     ),
     "tiny": SlamConfig(
         preset="tiny",
