@@ -5,6 +5,8 @@ visited: docs/recordings.md, "Streaming and memory")."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 import torch
@@ -12,9 +14,9 @@ from bounded import rss_bytes
 
 from gscompress.datasets.synthetic import synthetic_sequence
 from gscompress.pipeline.slam_run import _malloc_trim, release_free_heap
-from gscompress.slam.config import preset
+from gscompress.slam.config import final_iterations, preset
 from gscompress.slam.keyframes import HeldImages, View
-from gscompress.slam.system import SlamSystem
+from gscompress.slam.system import RELEASE_EVERY, SlamSystem
 
 
 def view_tensors(views: list[View]) -> set[int]:
@@ -76,3 +78,51 @@ def test_free_heap_goes_back_to_the_system() -> None:
     release_free_heap()
     assert before - rss_bytes() > 60 * 2**20
     assert last.sum() == 8192
+
+
+def test_a_refinement_hands_the_heap_back_every_few_iterations() -> None:
+    # the final refinement, one frame's work over every view, hands back what the views'
+    # visits freed every RELEASE_EVERY iterations; the map is the same as without
+    frames = 4
+    seq = synthetic_sequence(frames, (32, 24))
+    config = preset("tiny").with_overrides(**{"mapping.final_iters": 25})
+    maps, calls = [], []
+    for release in (False, True):
+        system = SlamSystem(config, seq.intrinsics, total_frames=frames, frames=seq.frame)
+        if release:
+            system.release = functools.partial(lambda s: calls.append(len(s.poses)), system)
+        for i in range(frames):
+            system.process(seq.frame(i))
+        maps.append(system.gaussian_map())
+    refined = final_iterations(config.mapping, frames)
+    assert refined >= RELEASE_EVERY
+    assert calls == [frames - 1] * (refined // RELEASE_EVERY)  # in the last frame's refinement
+    assert maps[0].equals(maps[1])
+
+
+def test_gsc_slam_hands_the_heap_back_after_each_frame_and_in_its_end(monkeypatch, tmp_path):
+    import gscompress.pipeline.slam_run as slam_run
+
+    calls: list[None] = []
+    monkeypatch.setattr(slam_run, "release_free_heap", lambda: calls.append(None))
+    frames = 12
+    config = preset("tiny").with_overrides(**{"mapping.final_iters": 25})
+    slam_run.slam_file(
+        None, tmp_path / "run.mcap", config=config, sequence=synthetic_sequence(frames, (32, 24))
+    )
+    refined = final_iterations(config.mapping, frames)
+    # after each frame, in the final refinement and in the final scoring (a view each)
+    assert len(calls) == frames + refined // RELEASE_EVERY + frames // RELEASE_EVERY
+
+
+def test_the_poses_a_run_keeps_come_from_one_block_not_one_array_a_frame() -> None:
+    # a pose array made per frame and kept to the end splits the heap's free space where it
+    # lands (docs/recordings.md, "Streaming and memory"): they come a block at a time
+    frames = 6
+    seq = synthetic_sequence(frames, (32, 24))
+    system = SlamSystem(preset("tiny"), seq.intrinsics, total_frames=frames, frames=seq.frame)
+    results = [system.process(seq.frame(i)) for i in range(frames)]
+    assert all(p.base is not None for p in system.poses)
+    assert len({id(p.base) for p in system.poses}) == 1
+    assert all(r.T_world_cam is p for r, p in zip(results, system.poses, strict=True))
+    assert np.array_equal(system.poses[0], seq.frame(0).T_world_cam)

@@ -129,3 +129,28 @@ class PoseVariable:
         camera-to-world pose."""
         self.x = self.adam.step(self.x, pose_gradient(self.x, self.start, g_T_cam_world), rate)
         return self.T_world_cam
+
+
+class PoseStore:
+    """[4, 4] float64 arrays for poses a run keeps to its end (one per frame), taken from blocks
+    of `block` made at once.
+
+    A pose array made when its frame is done is a small block of the heap (its values and its
+    shape) that lives to the end of the run, placed wherever the allocator had a small free
+    chunk: in the middle of the space the frame's large working tensors had just freed, which
+    it then splits for good. Over a long run those splits left the heap in more and smaller
+    holes than the frames' working tensors fit, and each frame's peak grew with the frames
+    (docs/recordings.md, "Streaming and memory"). Arrays made a block at a time sit together.
+    """
+
+    def __init__(self, block: int = 256) -> None:
+        self.block = block
+        self._free: list[np.ndarray] = []
+
+    def keep(self, T: np.ndarray) -> np.ndarray:
+        """A kept array holding the values of `T` (its float64 copy)."""
+        if not self._free:
+            self._free = list(np.empty((self.block, 4, 4)))[::-1]
+        out = self._free.pop()
+        out[...] = T
+        return out

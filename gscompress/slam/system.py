@@ -70,11 +70,14 @@ from gscompress.slam.lost import (
 )
 from gscompress.slam.mapper import Mapper, MappingStats
 from gscompress.slam.params import RenderInputs
-from gscompress.slam.poses import orthonormalize
+from gscompress.slam.poses import PoseStore, orthonormalize
 from gscompress.slam.results import PHASES, FrameResult
 from gscompress.slam.tracker import TrackResult, constant_velocity, track, velocity_guess
 
 log = logging.getLogger(__name__)
+
+RELEASE_EVERY = 10
+"""Refinement iterations between two calls of `SlamSystem.release`."""
 
 
 class SlamSystem:
@@ -117,6 +120,8 @@ class SlamSystem:
         self.views: list[View] = []
         """Every frame's view when the final refinement runs on every frame, else empty."""
         self.poses: list[np.ndarray] = []
+        self.kept_poses = PoseStore()
+        """Where the arrays of `poses` come from (`gscompress.slam.poses.PoseStore`)."""
         self.frame_indices: list[int] = []
         self.timestamps: list[float] = []
         self.next_id = 0
@@ -141,6 +146,12 @@ class SlamSystem:
         self.on_final_step: Callable[[int, int], object] | None = None
         """Called after each iteration of the final refinement with (iterations done,
         iterations): `gsc slam`'s progress through it (minutes at full size on a CPU)."""
+        self.release: Callable[[], object] | None = None
+        """Called every `RELEASE_EVERY` iterations of a refinement: `gsc slam` hands the heap's
+        free memory back to the system there (`gscompress.pipeline.slam_run.release_free_heap`,
+        as after each frame), so that the final refinement, one frame's work over every view,
+        does not hold what each view's visit freed (docs/recordings.md, "Streaming and
+        memory")."""
         self.sigma_d: float | None = None
         """PWAS's distance scale in metres (inf: no proximity weighting), known from the first
         frame with valid depth on (`pwas.sigma_d` of the config, else derived from that
@@ -328,6 +339,7 @@ class SlamSystem:
 
         clock = time.perf_counter()
         T_world_cam, tracking = self._pose(frame, color, depth, position)
+        T_world_cam = self.kept_poses.keep(T_world_cam)  # (kept to the end: `PoseStore`)
         ms["tracking"] = 1e3 * (time.perf_counter() - clock)
         current = self.images.sourced(View(position, color, depth, T_world_cam))
         keyframe = is_keyframe(position, self.config.keyframes)
@@ -609,7 +621,7 @@ class SlamSystem:
             return None
         rng = np.random.default_rng([self.config.seed, position, 1])
         self.in_final_refinement = final
-        on_step = self._final_steps(iters) if final and iters else None
+        on_step = self._refinement_steps(iters, final)
         try:
             stats = self.mapper.refine(
                 views,
@@ -627,15 +639,26 @@ class SlamSystem:
         stats.added = added
         return stats
 
-    def _final_steps(self, iters: int) -> Callable[[float], object] | None:
-        """The mapper's `on_step` that counts the final refinement's iterations to
-        `on_final_step` (None without one)."""
-        report = self.on_final_step
-        if report is None:
+    def _refinement_steps(self, iters: int, final: bool) -> Callable[[float], object] | None:
+        """The mapper's `on_step` of a refinement: `release` every `RELEASE_EVERY` iterations,
+        and in the final refinement the iterations counted to `on_final_step` (None when
+        neither is set)."""
+        report = self.on_final_step if final and iters else None
+        release = self.release
+        if report is None and release is None:
             return None
-        report(0, iters)
+        if report is not None:
+            report(0, iters)
         done = itertools.count(1)
-        return lambda _loss: report(next(done), iters)
+
+        def step(_loss: float) -> None:
+            k = next(done)
+            if release is not None and k % RELEASE_EVERY == 0:
+                release()
+            if report is not None:
+                report(k, iters)
+
+        return step
 
     def _accumulate_pwas(self, current: View) -> float:
         """Add this frame's PWAS terms at the final mapped state; returns the frame's PSNR."""

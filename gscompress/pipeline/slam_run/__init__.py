@@ -227,7 +227,7 @@ def _log_frame(run: Run, out: LogWriter, frame: Any, result: Any, i: int) -> dic
     out.write_pose(result.T_world_cam, run.t_ns)
     if frame.T_world_cam is not None:
         out.write_pose(frame.T_world_cam, run.t_ns, ground_truth=True)
-        run.gt_poses.append(frame.T_world_cam)
+        run.gt_poses.append(run.system.kept_poses.keep(frame.T_world_cam))
         run.est_poses.append(result.T_world_cam)
     stats = result.stats()
     checkpoint = every > 0 and (i + 1) % every == 0 and i + 1 < total
@@ -340,16 +340,17 @@ def _finished_scores(
     its accumulated sums (they hold the sender's views), as does a run without valid depth
     (no sigma_d)."""
     from gscompress.ops.score import score_map
+    from gscompress.slam.system import RELEASE_EVERY
 
     received = system.own_ids_from > 0
     if not system.config.pwas.final_scores or received or system.sigma_d is None:
         return gaussians
     log.debug("scoring the finished map from the run's %d views", len(system.poses))
     views = len(system.poses)
-    step = None
+    report = None
     if phases is not None:
         phases(FINAL_SCORING, 0, views)
-        step = _counter(functools.partial(phases, FINAL_SCORING), views)
+        report = functools.partial(phases, FINAL_SCORING)
     return score_map(
         gaussians,
         system.refined_poses(),
@@ -357,16 +358,23 @@ def _finished_scores(
         sigma_d=system.sigma_d,
         backend=backend,
         device=system.device,
-        progress=step,
+        progress=_counter(report, views, RELEASE_EVERY),
     )
 
 
-def _counter(report: Callable[[int, int], object], total: int) -> Callable[[Any], None]:
-    """A callback that reports one more of `total` steps each time it is called."""
+def _counter(
+    report: Callable[[int, int], object] | None, total: int, release_every: int
+) -> Callable[[Any], None]:
+    """A callback that reports one more of `total` steps each time it is called (to `report`,
+    when given), and hands the heap's free memory back every `release_every` steps."""
     done = itertools.count(1)
 
     def step(_: Any) -> None:
-        report(next(done), total)
+        k = next(done)
+        if k % release_every == 0:
+            release_free_heap()
+        if report is not None:
+            report(k, total)
 
     return step
 
@@ -431,6 +439,7 @@ def _process_frames(
     try:
         with _stop_between_frames(lambda: system.in_final_refinement) as stopping:
             system.stop_requested = stopping  # (for this run only: unset below)
+            system.release = release_free_heap  # (in refinements: docs/recordings.md)
             if phases is not None:
                 phases(FRAMES, run.start, total)
                 system.on_final_step = functools.partial(phases, FINAL_REFINEMENT)
@@ -451,7 +460,7 @@ def _process_frames(
         failure = exc
         whole = whole or isinstance(exc, TrackingLostError)  # (lost before it changed the map)
     finally:
-        system.stop_requested = system.on_final_step = None
+        system.stop_requested = system.on_final_step = system.release = None
     return failure, whole
 
 
