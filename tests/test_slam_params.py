@@ -114,3 +114,13 @@ def test_adam_equals_torch_adam_bit_for_bit_through_remove_and_add():
 def test_to_map_round_trip(isotropic):
     g = random_map(30, seed=5, isotropic=isotropic)
     assert GaussianParams.from_map(g).to_map().equals(g)
+
+
+def test_a_map_taken_from_the_params_is_a_copy_that_later_steps_leave_alone():
+    params = GaussianParams.from_map(random_map(20, seed=5))
+    optimizer = Adam(groups(params))
+    before = params.to_map()
+    means = before.means.copy()
+    step_with_row_gradients(params, optimizer)
+    assert not np.array_equal(params.means.detach().numpy(), means)  # (the step moved them)
+    np.testing.assert_array_equal(before.means, means)

@@ -221,19 +221,20 @@ class GaussianParams:
         return activate(self.means, self.log_scales, self.quats, self.opacity_logits, self.sh_dc)
 
     def to_map(self) -> GaussianMap:
-        """A numpy `GaussianMap` of the current state, importance sums included."""
+        """A numpy `GaussianMap` of the current state, importance sums included: a copy, which
+        later steps of the parameters leave as it is."""
+
+        def copy(x: torch.Tensor) -> np.ndarray:
+            return np.array(x.detach().cpu().numpy())
+
         n = len(self)
         return GaussianMap.new(
-            means=self.means.detach().cpu().numpy(),
-            log_scales=self.log_scales.detach().cpu().numpy(),
-            quats=self.quats.detach().cpu().numpy(),
-            opacity_logits=self.opacity_logits.detach().cpu().numpy(),
-            sh_dc=self.sh_dc.detach().cpu().numpy(),
+            **{name: copy(getattr(self, name)) for name in TRAINABLE},
             sh_rest=np.zeros((n, 0, 3), np.float32),
             ids=self.ids.cpu().numpy().astype(np.uint32),
-            importance_sum=self.sums.importance_sum.cpu().numpy(),
-            importance_weight=self.sums.importance_weight.cpu().numpy(),
-            alpha_t_sum=self.sums.alpha_t_sum.cpu().numpy(),
+            importance_sum=copy(self.sums.importance_sum),
+            importance_weight=copy(self.sums.importance_weight),
+            alpha_t_sum=copy(self.sums.alpha_t_sum),
         )
 
     def append(self, gaussians: GaussianMap, optimizer: Adam | None) -> None:

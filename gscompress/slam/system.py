@@ -38,6 +38,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -78,6 +79,26 @@ log = logging.getLogger(__name__)
 
 RELEASE_EVERY = 10
 """Refinement iterations between two calls of `SlamSystem.release`."""
+
+
+def counted_steps(
+    total: int,
+    report: Callable[[int, int], object] | None = None,
+    release: Callable[[], object] | None = None,
+) -> Callable[[Any], None]:
+    """A callback for each of `total` steps (whatever it is called with): it reports (steps
+    done, `total`) to `report` and calls `release` every `RELEASE_EVERY` steps (either may be
+    None)."""
+    done = itertools.count(1)
+
+    def step(_: Any) -> None:
+        k = next(done)
+        if release is not None and k % RELEASE_EVERY == 0:
+            release()
+        if report is not None:
+            report(k, total)
+
+    return step
 
 
 class SlamSystem:
@@ -644,21 +665,11 @@ class SlamSystem:
         and in the final refinement the iterations counted to `on_final_step` (None when
         neither is set)."""
         report = self.on_final_step if final and iters else None
-        release = self.release
-        if report is None and release is None:
+        if report is None and self.release is None:
             return None
         if report is not None:
             report(0, iters)
-        done = itertools.count(1)
-
-        def step(_loss: float) -> None:
-            k = next(done)
-            if release is not None and k % RELEASE_EVERY == 0:
-                release()
-            if report is not None:
-                report(k, iters)
-
-        return step
+        return counted_steps(iters, report, self.release)
 
     def _accumulate_pwas(self, current: View) -> float:
         """Add this frame's PWAS terms at the final mapped state; returns the frame's PSNR."""

@@ -10,7 +10,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
-import itertools
 import logging
 import signal
 import threading
@@ -340,7 +339,7 @@ def _finished_scores(
     its accumulated sums (they hold the sender's views), as does a run without valid depth
     (no sigma_d)."""
     from gscompress.ops.score import score_map
-    from gscompress.slam.system import RELEASE_EVERY
+    from gscompress.slam.system import counted_steps
 
     received = system.own_ids_from > 0
     if not system.config.pwas.final_scores or received or system.sigma_d is None:
@@ -358,25 +357,8 @@ def _finished_scores(
         sigma_d=system.sigma_d,
         backend=backend,
         device=system.device,
-        progress=_counter(report, views, RELEASE_EVERY),
+        progress=counted_steps(views, report, release_free_heap),
     )
-
-
-def _counter(
-    report: Callable[[int, int], object] | None, total: int, release_every: int
-) -> Callable[[Any], None]:
-    """A callback that reports one more of `total` steps each time it is called (to `report`,
-    when given), and hands the heap's free memory back every `release_every` steps."""
-    done = itertools.count(1)
-
-    def step(_: Any) -> None:
-        k = next(done)
-        if k % release_every == 0:
-            release_free_heap()
-        if report is not None:
-            report(k, total)
-
-    return step
 
 
 def _loop(
