@@ -178,7 +178,8 @@ def slam(
 
     Per frame: track the camera, add Gaussians where the map misses the frame, optimise the
     map over a window of keyframes, and accumulate each Gaussian's PWAS importance; at 1/3 and
-    2/3 of the sequence keep the top --keep fraction by importance. The log has the poses
+    2/3 of the sequence keep the top --keep fraction by importance (with the cpu preset each
+    Gaussian kept then takes its own three scales and rotation). The log has the poses
     (estimated and ground truth), per-frame stats, and the map after each pruning stage and
     at the end, ready for `gsc prune`, `gsc share`, `gsc export-ply` and Foxglove.
 
