@@ -98,8 +98,8 @@ def view(
         recording=recording,
     )
     viewer = MapViewer(src, options)
-    click.echo(f"gsc view: http://{host}:{viewer.port} (Ctrl-C to stop)", err=True)
-    try:
+    try:  # (announced inside: a stop right after the address shows is a clean stop too)
+        click.echo(f"gsc view: http://{host}:{viewer.port} (Ctrl-C to stop)", err=True)
         threading.Event().wait()
     except KeyboardInterrupt:
         pass
