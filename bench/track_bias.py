@@ -274,22 +274,16 @@ def pull(config: SlamConfig, frames: list[Frame], intrinsics: Intrinsics) -> dic
                 "flat_textured": mask & ~edges & textured,
                 "flat_plain": mask & ~edges & ~textured,
             }
+            errors = {  # (per offset: each pixel's L1 error)
+                "color": [(o.color - color).abs().mean(-1) for o in outs],
+                "depth": [(o.depth_normalized - depth).abs() for o in outs],
+            }
             for name, pixels in classes.items():
                 n = max(int(pixels.sum()), 1)
-                for channel in ("color", "depth"):
-                    losses = [
-                        float(
-                            (
-                                (o.color - color).abs().mean(-1)
-                                if channel == "color"
-                                else (o.depth_normalized - depth).abs()
-                            )[pixels].sum()
-                        )
-                        / n
-                        for o in outs
-                    ]
+                for channel, maps in errors.items():
+                    losses = np.array([float(e[pixels].sum()) / n for e in maps])
                     key = f"{channel}_{name}"
-                    curves[key] = curves.get(key, 0.0) + np.array(losses)
+                    curves[key] = curves.get(key, 0.0) + losses
         system.process(frame)
     return {key: round(parabola_minimum(np.array(PULL_OFFSETS), c), 4) for key, c in curves.items()}
 
