@@ -86,9 +86,9 @@ class Mapper:
             {"params": [p.opacity_logits], "lr": m.lr_opacity_logits, "name": "opacity_logits"},
             {"params": [p.log_scales], "lr": m.lr_log_scales, "name": "log_scales"},
         ]
-        if not config.isotropic:
-            groups.append({"params": [p.quats], "lr": m.lr_quats, "name": "quats"})
         self.optimizer = Adam(groups, eps=1e-15)
+        if not config.isotropic:
+            self._open_rotations()
         self.iterations = 0
         self.scene_radius: float | None = None
 
@@ -106,6 +106,10 @@ class Mapper:
         optimised (`prune.shape`; the map renders as before until the next step). Gaussians
         added later start round, with three equal scales."""
         self.params.widen(self.optimizer)
+        self._open_rotations()
+
+    def _open_rotations(self) -> None:
+        """Optimise the rotations too (at `mapping.lr_quats`), unless they already are."""
         if all(group.get("name") != "quats" for group in self.optimizer.param_groups):
             lr = self.config.mapping.lr_quats
             self.optimizer.param_groups.append(
